@@ -1,0 +1,482 @@
+"""The rig description: geometry, calibration and schedule, loaded from TOML.
+
+This module is the contract between the acquisition, the simulated devices and the
+processing (see ``docs/rig.md``). Lengths are metres and angles degrees in the TOML
+(names end in ``_m`` and ``_deg``); in code, after loading, angles are radians.
+
+An impossible rig is refused with a one-line :class:`RigError` that names the file and
+the field.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from pathlib import Path
+from typing import Annotated, Literal
+
+import numpy as np
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    PositiveFloat,
+    PositiveInt,
+    ValidationError,
+    model_validator,
+)
+
+from drivers.arm import SoftLimits
+from drivers.pose import Pose, rotation_from_angles
+
+RIG_SCHEMA_VERSION = 1
+DEFAULT_RIG_PATH = Path(__file__).resolve().parent.parent / "rigs" / "default.toml"
+
+Vec2 = tuple[float, float]
+Vec3 = tuple[float, float, float]
+RGB = tuple[float, float, float]
+
+
+class RigError(ValueError):
+    """An impossible or unreadable rig description (one line: file, field, cause)."""
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+# --- poses at the user's edge ----------------------------------------------------------
+class PoseSpec(_Strict):
+    """A pose: position in metres, fixed-axis X-Y-Z rotation in degrees."""
+
+    position_m: Vec3 = (0.0, 0.0, 0.0)
+    rotation_deg: Vec3 = (0.0, 0.0, 0.0)
+
+    def to_pose(self) -> Pose:
+        rx, ry, rz = (math.radians(a) for a in self.rotation_deg)
+        return Pose(*self.position_m, rx, ry, rz)
+
+
+def look_rotation(forward, x_hint) -> np.ndarray:
+    """Rotation whose z axis is ``forward`` and whose x axis is as close to ``x_hint``."""
+    z = np.asarray(forward, dtype=float)
+    if np.linalg.norm(z) < 1e-12:
+        raise ValueError("the light sits on the point it should aim at")
+    z = z / np.linalg.norm(z)
+    x = np.asarray(x_hint, dtype=float)
+    x = x - z * np.dot(x, z)
+    norm = np.linalg.norm(x)
+    if norm < 1e-9:
+        raise ValueError("the x axis hint is parallel to the viewing direction")
+    x /= norm
+    y = np.cross(z, x)
+    return np.column_stack([x, y, z])
+
+
+class Orientation(_Strict):
+    """A fixed light orientation: explicit angles, or the light axis aimed at a point.
+
+    With ``aim_at_m`` the light's +z points from the schedule's middle position at that
+    point and its +x lies along ``x_axis`` as far as possible; the orientation is then
+    held for every position, as the reference experiment's arm did.
+    """
+
+    rotation_deg: Vec3 | None = None
+    aim_at_m: Vec3 | None = (0.0, 0.0, 0.0)
+    x_axis: Vec3 = (1.0, 0.0, 0.0)
+
+    def rotation_from(self, position) -> np.ndarray:
+        if self.rotation_deg is not None:
+            return rotation_from_angles(*(math.radians(a) for a in self.rotation_deg))
+        forward = np.asarray(self.aim_at_m) - np.asarray(position, dtype=float)
+        return look_rotation(forward, self.x_axis)
+
+
+# --- the parts of the rig ----------------------------------------------------------------
+class CameraPose(_Strict):
+    """Where the camera is and where it looks.
+
+    Either ``position_m`` + ``look_at_m`` + ``up`` (the image's up direction), or an
+    OpenCV extrinsic ``rvec`` (Rodrigues, radians) + ``tvec_m`` with ``x_cam = R X + t``.
+    """
+
+    position_m: Vec3 | None = (0.0, 0.0, 0.2)
+    look_at_m: Vec3 = (0.0, 0.0, 0.0)
+    up: Vec3 = (0.0, 1.0, 0.0)
+    rvec: Vec3 | None = None
+    tvec_m: Vec3 | None = None
+
+    @model_validator(mode="after")
+    def _one_form(self):
+        if (self.rvec is None) != (self.tvec_m is None):
+            raise ValueError("give both rvec and tvec_m, or neither")
+        return self
+
+    def extrinsics(self) -> tuple[np.ndarray, np.ndarray]:
+        """OpenCV's (R, t): rig point X to camera coordinates ``R @ X + t``."""
+        if self.rvec is not None:
+            from scipy.spatial.transform import Rotation
+
+            rot = Rotation.from_rotvec(self.rvec).as_matrix()
+            return rot, np.asarray(self.tvec_m, dtype=float)
+        centre = np.asarray(self.position_m, dtype=float)
+        forward = np.asarray(self.look_at_m, dtype=float) - centre
+        z = forward / np.linalg.norm(forward)
+        down = -np.asarray(self.up, dtype=float)  # OpenCV's image y points down
+        y = down - z * np.dot(down, z)
+        if np.linalg.norm(y) < 1e-9:
+            raise ValueError("up is parallel to the viewing direction")
+        y /= np.linalg.norm(y)
+        x = np.cross(y, z)
+        rot = np.vstack([x, y, z])
+        return rot, -rot @ centre
+
+
+class ThinLens(_Strict):
+    """A thin lens focused at ``focus_distance_m`` (along the axis) at ``f_number``."""
+
+    focus_distance_m: PositiveFloat
+    f_number: PositiveFloat
+
+
+class Camera(_Strict):
+    """The camera: a pinhole of finite diameter, or a thin lens.
+
+    ``sensor_distance_m`` is the pinhole-to-sensor (or lens-to-sensor) distance. The
+    radiometric ``sensitivity_e_per_s`` is for simulation: the electrons per second a
+    pixel on the axis collects from a scene of unit radiance through the whole aperture.
+    """
+
+    pinhole_diameter_m: PositiveFloat = 0.2e-3
+    sensor_distance_m: PositiveFloat = 0.025
+    thin_lens: ThinLens | None = None
+    pixel_pitch_m: PositiveFloat = 5.9e-6
+    width: PositiveInt = 2000
+    height: PositiveInt = 1312
+    principal_point_px: Vec2 | None = None
+    pose: CameraPose = CameraPose()
+    cfa_pattern: Literal["RGGB", "BGGR", "GRBG", "GBRG"] = "RGGB"
+    bit_depth: Annotated[int, Field(ge=8, le=16)] = 12
+    black_level_dn: Annotated[int, Field(ge=0)] = 64
+    white_level_dn: PositiveInt | None = None
+    full_well_e: PositiveFloat = 20000.0
+    read_noise_e: Annotated[float, Field(ge=0.0)] = 3.0
+    channel_wavelengths_m: RGB = (610e-9, 540e-9, 465e-9)
+    sensitivity_e_per_s: PositiveFloat = 1000.0
+
+    @model_validator(mode="after")
+    def _levels(self):
+        top = (1 << self.bit_depth) - 1
+        if self.white_level_dn is not None and self.white_level_dn > top:
+            raise ValueError(f"white_level_dn {self.white_level_dn} exceeds the {self.bit_depth}-bit range")
+        if self.black_level_dn >= self.white_level:
+            raise ValueError("black_level_dn must be below the white level")
+        if self.principal_point_px is not None:
+            cx, cy = self.principal_point_px
+            if not (0 <= cx < self.width and 0 <= cy < self.height):
+                raise ValueError("principal_point_px lies outside the sensor")
+        return self
+
+    @property
+    def white_level(self) -> int:
+        return self.white_level_dn if self.white_level_dn is not None else (1 << self.bit_depth) - 1
+
+    @property
+    def principal_point(self) -> tuple[float, float]:
+        if self.principal_point_px is not None:
+            return self.principal_point_px
+        return ((self.width - 1) / 2.0, (self.height - 1) / 2.0)
+
+    @property
+    def aperture_diameter_m(self) -> float:
+        if self.thin_lens is not None:
+            focal = 1.0 / (1.0 / self.sensor_distance_m + 1.0 / self.thin_lens.focus_distance_m)
+            return focal / self.thin_lens.f_number
+        return self.pinhole_diameter_m
+
+    @property
+    def f_number(self) -> float:
+        """The working f-number that sets diffraction: sensor distance over aperture."""
+        return self.sensor_distance_m / self.aperture_diameter_m
+
+    @property
+    def gain_e_per_dn(self) -> float:
+        """Conversion gain that maps the full well onto the white level."""
+        return self.full_well_e / (self.white_level - self.black_level_dn)
+
+    def camera_matrix(self) -> np.ndarray:
+        """OpenCV's intrinsic matrix K (focal length in pixels)."""
+        fpx = self.sensor_distance_m / self.pixel_pitch_m
+        cx, cy = self.principal_point
+        return np.array([[fpx, 0.0, cx], [0.0, fpx, cy], [0.0, 0.0, 1.0]])
+
+    def centre(self) -> np.ndarray:
+        rot, t = self.pose.extrinsics()
+        return -rot.T @ t
+
+
+class Ball(_Strict):
+    """The mirrored ball: a conductor with complex refractive index n + ik per channel.
+
+    The defaults are chrome in the red, green and blue channels (normal-incidence
+    reflectance about 0.55).
+    """
+
+    centre_m: Vec3 = (0.0, 0.0, 0.0)
+    radius_m: PositiveFloat = 0.0254
+    n: RGB = (3.20, 3.10, 2.60)
+    k: RGB = (3.30, 3.30, 3.20)
+
+
+class Light(_Strict):
+    """The light's mount and housing.
+
+    ``light_to_tool`` is the light frame expressed in the arm's tool frame. The housing
+    is an opaque cylinder of ``housing_radius_m`` behind the light plane (z from
+    ``-housing_depth_m`` to 0 in the light frame); it blocks any ray that meets it.
+    """
+
+    light_to_tool: PoseSpec = PoseSpec()
+    housing_radius_m: Annotated[float, Field(ge=0.0)] = 0.012
+    housing_depth_m: Annotated[float, Field(ge=0.0)] = 0.05
+
+
+class AxisRange(_Strict):
+    x_m: Vec2 = (-0.25, 0.25)
+    y_m: Vec2 = (-0.25, 0.25)
+    z_m: Vec2 = (0.0, 0.45)
+    rx_deg: Vec2 = (-180.0, 180.0)
+    ry_deg: Vec2 = (-180.0, 180.0)
+    rz_deg: Vec2 = (-180.0, 180.0)
+
+    @model_validator(mode="after")
+    def _ordered(self):
+        for name in type(self).model_fields:
+            low, high = getattr(self, name)
+            if low > high:
+                raise ValueError(f"{name}: lower limit {low} above upper limit {high}")
+        return self
+
+    def to_soft_limits(self) -> SoftLimits:
+        return SoftLimits(
+            {
+                "x": self.x_m,
+                "y": self.y_m,
+                "z": self.z_m,
+                "rx": tuple(math.radians(a) for a in self.rx_deg),
+                "ry": tuple(math.radians(a) for a in self.ry_deg),
+                "rz": tuple(math.radians(a) for a in self.rz_deg),
+            }
+        )
+
+
+class Arm(_Strict):
+    soft_limits: AxisRange = AxisRange()
+
+
+# --- schedules ---------------------------------------------------------------------------
+class LightSweep(_Strict):
+    """Positions ``start + i * step`` for i in 0..count-1, at one fixed orientation."""
+
+    kind: Literal["light-sweep"] = "light-sweep"
+    start_m: Vec3 = (-0.08125, 0.04, 0.10)
+    step_m: Vec3 = (0.0025, 0.0, 0.0)
+    count: PositiveInt = 66
+    orientation: Orientation = Orientation()
+
+    def light_poses(self) -> list[Pose]:
+        start, step = np.asarray(self.start_m), np.asarray(self.step_m)
+        positions = [start + i * step for i in range(self.count)]
+        rotation = self.orientation.rotation_from(start + 0.5 * (self.count - 1) * step)
+        return [Pose.from_rotation(p, rotation) for p in positions]
+
+
+class Raster(_Strict):
+    """A 2-D grid ``origin + i * step_u + j * step_v``, row by row, fixed orientation."""
+
+    kind: Literal["raster"] = "raster"
+    origin_m: Vec3 = (-0.01, 0.03, 0.10)
+    step_u_m: Vec3 = (0.0025, 0.0, 0.0)
+    step_v_m: Vec3 = (0.0, 0.0025, 0.0)
+    count_u: PositiveInt = 9
+    count_v: PositiveInt = 9
+    orientation: Orientation = Orientation()
+
+    def light_poses(self) -> list[Pose]:
+        origin = np.asarray(self.origin_m)
+        su, sv = np.asarray(self.step_u_m), np.asarray(self.step_v_m)
+        middle = origin + 0.5 * (self.count_u - 1) * su + 0.5 * (self.count_v - 1) * sv
+        rotation = self.orientation.rotation_from(middle)
+        return [
+            Pose.from_rotation(origin + i * su + j * sv, rotation)
+            for j in range(self.count_v)
+            for i in range(self.count_u)
+        ]
+
+
+class ObjectArc(_Strict):
+    """Light positions on an arc around an object, each aimed at the object.
+
+    Position k is ``centre + radius * Rot(axis, angle_k) @ reference_direction``: with
+    the defaults the light starts towards the camera (+z) and rises towards +y by
+    10 to 50 degrees, at 30 cm, as in the reference experiment.
+    """
+
+    kind: Literal["object-arc"] = "object-arc"
+    centre_m: Vec3 = (0.0, 0.0, 0.0)
+    radius_m: PositiveFloat = 0.30
+    angles_deg: list[float] = Field(default_factory=lambda: [10.0, 20.0, 30.0, 40.0, 50.0], min_length=1)
+    reference_direction: Vec3 = (0.0, 0.0, 1.0)
+    axis: Vec3 = (-1.0, 0.0, 0.0)
+    x_axis: Vec3 = (1.0, 0.0, 0.0)
+
+    def light_poses(self) -> list[Pose]:
+        from scipy.spatial.transform import Rotation
+
+        axis = np.asarray(self.axis, dtype=float)
+        axis /= np.linalg.norm(axis)
+        ref = np.asarray(self.reference_direction, dtype=float)
+        ref /= np.linalg.norm(ref)
+        centre = np.asarray(self.centre_m)
+        poses = []
+        for angle in self.angles_deg:
+            direction = Rotation.from_rotvec(axis * math.radians(angle)).apply(ref)
+            position = centre + self.radius_m * direction
+            poses.append(Pose.from_rotation(position, look_rotation(-direction, self.x_axis)))
+        return poses
+
+
+class PoseList(_Strict):
+    """An explicit list of light poses."""
+
+    kind: Literal["poses"] = "poses"
+    poses: list[PoseSpec] = Field(min_length=1)
+
+    def light_poses(self) -> list[Pose]:
+        return [p.to_pose() for p in self.poses]
+
+
+Schedule = Annotated[LightSweep | Raster | ObjectArc | PoseList, Field(discriminator="kind")]
+
+
+class Simulation(_Strict):
+    """Settings used only by the simulated devices."""
+
+    truth: str = "five-gaussians"
+    seed: int = 0
+    diffraction: bool = True
+    noise: bool = True
+
+
+# --- the rig -------------------------------------------------------------------------------
+class Rig(_Strict):
+    """A whole rig: camera, ball, light, arm and the schedule of light poses."""
+
+    schema_version: Literal[1] = RIG_SCHEMA_VERSION
+    name: str = "default"
+    camera: Camera = Camera()
+    ball: Ball = Ball()
+    light: Light = Light()
+    arm: Arm = Arm()
+    schedule: Schedule = LightSweep()
+    simulation: Simulation = Simulation()
+
+    # Derived views ------------------------------------------------------------------
+    def light_poses(self) -> list[Pose]:
+        """Where the light is at each schedule position (rig frame)."""
+        return self.schedule.light_poses()
+
+    def tool_poses(self) -> list[Pose]:
+        """What the arm is commanded to: light pose composed with tool-from-light."""
+        light_from_tool = self.light.light_to_tool.to_pose().inverse()
+        return [p.compose(light_from_tool) for p in self.light_poses()]
+
+    def soft_limits(self) -> SoftLimits:
+        return self.arm.soft_limits.to_soft_limits()
+
+    # Physical checks --------------------------------------------------------------------
+    @model_validator(mode="after")
+    def _physically_possible(self):
+        centre = np.asarray(self.ball.centre_m)
+        radius = self.ball.radius_m
+        try:
+            camera_centre = self.camera.centre()
+        except ValueError as exc:  # degenerate look-at
+            raise ValueError(f"camera.pose: {exc}") from None
+        if np.linalg.norm(camera_centre - centre) <= radius:
+            raise ValueError("camera.pose: the camera is inside the ball")
+        rot, t = self.camera.pose.extrinsics()
+        if (rot @ centre + t)[2] <= radius:
+            raise ValueError("camera.pose: the ball is not in front of the camera")
+
+        try:
+            lights = self.light_poses()
+        except ValueError as exc:
+            raise ValueError(f"schedule: {exc}") from None
+        clearance = radius + self.light.housing_radius_m
+        for i, pose in enumerate(lights):
+            if np.linalg.norm(pose.position - centre) <= radius:
+                raise ValueError(f"schedule: position {i}: the light is inside the ball")
+        for i in range(len(lights) - 1):
+            a, b = lights[i].position, lights[i + 1].position
+            if _segment_distance(centre, a, b) <= clearance:
+                raise ValueError(
+                    f"schedule: the light's path from position {i} to {i + 1} crosses the ball"
+                )
+        limits = self.soft_limits()
+        for i, tool in enumerate(self.tool_poses()):
+            problem = limits.violation(tool)
+            if problem is not None:
+                raise ValueError(f"schedule: position {i}: tool pose {problem} (arm.soft_limits)")
+        return self
+
+
+def _segment_distance(point, a, b) -> float:
+    ab = b - a
+    denom = float(np.dot(ab, ab))
+    s = 0.0 if denom == 0.0 else float(np.clip(np.dot(point - a, ab) / denom, 0.0, 1.0))
+    return float(np.linalg.norm(point - (a + s * ab)))
+
+
+# --- loading -------------------------------------------------------------------------------
+def _describe(error: ValidationError) -> str:
+    first = error.errors()[0]
+    location = ""
+    for part in first["loc"]:
+        location += f"[{part}]" if isinstance(part, int) else (f".{part}" if location else str(part))
+    message = first["msg"].removeprefix("Value error, ")
+    got = first.get("input")
+    if location:
+        if first["type"] not in ("value_error", "missing") and not isinstance(got, dict):
+            return f"{location}: {message} (got {got!r})"
+        return f"{location}: {message}"
+    return message
+
+
+def rig_from_dict(data: dict, source: str = "<rig>") -> Rig:
+    """Validate a rig description given as a dictionary (the parsed TOML)."""
+    try:
+        return Rig.model_validate(data)
+    except ValidationError as exc:
+        raise RigError(f"{source}: {_describe(exc)}") from None
+
+
+def load_rig(path: str | Path | None = None) -> Rig:
+    """Load and validate a rig TOML file (the default rig when ``path`` is None)."""
+    path = Path(path) if path is not None else DEFAULT_RIG_PATH
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise RigError(f"{path}: rig file not found") from None
+    except OSError as exc:
+        raise RigError(f"{path}: cannot read the rig file: {exc.strerror}") from None
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise RigError(f"{path}: not valid TOML: {exc}") from None
+    return rig_from_dict(data, str(path))
+
+
+def rig_to_toml_dict(rig: Rig) -> dict:
+    """The rig as plain data (for storing inside run files), None values dropped."""
+    return rig.model_dump(mode="json", exclude_none=True)

@@ -1,0 +1,127 @@
+"""The simulated camera: renders the mirrored ball, writes a real DNG, decodes it back.
+
+Every frame goes through the same decode path as a real camera's raw file
+(:func:`drivers.raw_decode.decode_raw`), so the acquisition cannot tell the difference.
+The light's pose comes from the shared :class:`~sim_devices.world.SimWorld`.
+"""
+
+from __future__ import annotations
+
+import itertools
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from acquisition.rig import Rig
+from drivers.camera import Camera, RawFrame
+from drivers.errors import DeviceError
+from drivers.raw_decode import decode_raw
+from sim_devices.dng import write_dng
+from sim_devices.lights import TruthLight, load_truth
+from sim_devices.optics import MirrorBallRenderer, Rendering
+from sim_devices.sensor import SensorModel
+from sim_devices.world import SimWorld
+
+
+class SimulatedCamera(Camera):
+    """A pinhole (or thin-lens) camera looking at the mirrored ball.
+
+    Parameters
+    ----------
+    rig : Rig
+        Camera, ball and light geometry; ``rig.simulation`` gives the truth, seed,
+        noise and diffraction switches unless overridden here.
+    world : SimWorld
+        Where the light is at the moment of capture.
+    out_dir : path
+        Folder the DNG files are written to (injected: tests use a temporary folder).
+    truth : TruthLight, optional
+        Overrides ``rig.simulation.truth``.
+    wall_clock : callable
+        Seconds since the epoch, for the frames' timestamps.
+    latency_s : float
+        Time a capture takes beyond the exposure (0 for benchmarks).
+    """
+
+    def __init__(
+        self,
+        rig: Rig,
+        world: SimWorld,
+        out_dir: str | Path,
+        *,
+        truth: TruthLight | None = None,
+        noise: bool | None = None,
+        diffraction: bool | None = None,
+        seed: int | None = None,
+        renderer_options: dict | None = None,
+        wall_clock: Callable[[], float] = time.time,
+        sleep: Callable[[float], None] = time.sleep,
+        latency_s: float = 0.0,
+        serial: str = "SIM-0001",
+    ):
+        sim = rig.simulation
+        self.rig = rig
+        self.world = world
+        self.out_dir = Path(out_dir)
+        self.out_dir.mkdir(parents=True, exist_ok=True)
+        self.truth = truth or load_truth(sim.truth)
+        seed = sim.seed if seed is None else seed
+        self.renderer = MirrorBallRenderer(
+            rig,
+            self.truth,
+            diffraction=sim.diffraction if diffraction is None else diffraction,
+            seed=seed,
+            **(renderer_options or {}),
+        )
+        self.sensor = SensorModel.from_rig(rig.camera, noise=sim.noise if noise is None else noise)
+        self.rng = np.random.default_rng(seed + 1)
+        self.name = "simulated pinhole camera"
+        self.serial = serial
+        self._wall_clock = wall_clock
+        self._sleep = sleep
+        self.latency_s = latency_s
+        self._counter = itertools.count()
+        self._cached_pose = None
+        self._cached: Rendering | None = None
+
+    @property
+    def identity(self) -> str:
+        return f"mirrorgonio {self.name} {self.serial}"
+
+    def rendering(self) -> Rendering:
+        """The noise-free expected electron rates for the light's current pose."""
+        pose = self.world.light_pose()
+        key = tuple(round(v, 10) for v in pose.as_tuple())
+        if key != self._cached_pose:
+            self._cached = self.renderer.render(pose)
+            self._cached_pose = key
+        return self._cached
+
+    def capture(self, exposure_s: float) -> RawFrame:
+        return self.capture_to(self.out_dir / f"sim-{next(self._counter):06d}.dng", exposure_s)
+
+    def capture_to(self, path: str | Path, exposure_s: float) -> RawFrame:
+        """Capture one frame into the DNG file ``path`` and decode it back."""
+        if not exposure_s > 0:
+            raise DeviceError(self.identity, "capture", f"exposure must be positive, got {exposure_s!r}")
+        rates = self.rendering().rate
+        mosaic = self.sensor.expose(rates, exposure_s, self.rng)
+        if self.latency_s:
+            self._sleep(self.latency_s + exposure_s)
+        timestamp = self._wall_clock()
+        cam = self.rig.camera
+        write_dng(
+            path,
+            mosaic,
+            cfa_pattern=cam.cfa_pattern,
+            black_level=cam.black_level_dn,
+            white_level=cam.white_level,
+            bits_per_sample=cam.bit_depth,
+            exposure_s=exposure_s,
+            camera_model=self.name,
+            serial=self.serial,
+            timestamp=timestamp,
+        )
+        return decode_raw(path)

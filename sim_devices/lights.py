@@ -1,0 +1,141 @@
+"""Ground-truth light sources for the simulation, defined in TOML.
+
+A truth is a set of emitting discs on the light plane (z = 0 of the light frame, light
+leaving towards +z). Each disc has a uniform radiance over its area whose direction
+dependence follows its radiant intensity model: ``L(θ, φ) = I(θ, φ) / (cos θ · π r²)``,
+so the disc seen from afar is a point source of intensity ``I(θ, φ)``. A Lambertian disc
+is given by its radiance directly. Shipped truths live in ``sim_devices/lights/``; any
+other file path works too, so new truths need no code.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from pathlib import Path
+from typing import Annotated, Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, PositiveFloat, ValidationError
+
+LIGHTS_DIR = Path(__file__).resolve().parent / "lights"
+
+
+class TruthError(ValueError):
+    """An unreadable or impossible truth file (one line: file, field, cause)."""
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class GaussianIntensity(_Strict):
+    """``I = peak · exp(-θ² / 2σ²)``: rotationally symmetric, as in the reference simulation."""
+
+    model: Literal["gaussian"] = "gaussian"
+    peak_w_sr: PositiveFloat = 1.0
+    sigma_deg: PositiveFloat = 20.0
+
+    def __call__(self, theta, phi):
+        s = math.radians(self.sigma_deg)
+        return self.peak_w_sr * np.exp(-0.5 * (theta / s) ** 2)
+
+
+class CosinePowerIntensity(_Strict):
+    """``I = peak · cos^μ θ``: the usual model of an LED."""
+
+    model: Literal["cos-power"] = "cos-power"
+    peak_w_sr: PositiveFloat = 1.0
+    mu: PositiveFloat = 3.0
+
+    def __call__(self, theta, phi):
+        return self.peak_w_sr * np.clip(np.cos(theta), 0.0, None) ** self.mu
+
+
+class AnisotropicIntensity(_Strict):
+    """An elliptical Gaussian lobe: widths ``sigma_major`` along azimuth ``azimuth_deg``."""
+
+    model: Literal["anisotropic-gaussian"] = "anisotropic-gaussian"
+    peak_w_sr: PositiveFloat = 1.0
+    sigma_major_deg: PositiveFloat = 30.0
+    sigma_minor_deg: PositiveFloat = 12.0
+    azimuth_deg: float = 0.0
+
+    def __call__(self, theta, phi):
+        a = np.asarray(phi) - math.radians(self.azimuth_deg)
+        sm, sn = math.radians(self.sigma_major_deg), math.radians(self.sigma_minor_deg)
+        return self.peak_w_sr * np.exp(-0.5 * theta**2 * (np.cos(a) ** 2 / sm**2 + np.sin(a) ** 2 / sn**2))
+
+
+class LambertianRadiance(_Strict):
+    """A uniform Lambertian emitter of radiance ``radiance`` (``I = L · cos θ · area``)."""
+
+    model: Literal["lambertian"] = "lambertian"
+    radiance_w_sr_m2: PositiveFloat = 1.0
+
+
+Intensity = Annotated[
+    GaussianIntensity | CosinePowerIntensity | AnisotropicIntensity | LambertianRadiance,
+    Field(discriminator="model"),
+]
+
+
+class Emitter(_Strict):
+    """One emitting disc on the light plane."""
+
+    name: str = ""
+    centre_m: tuple[float, float] = (0.0, 0.0)
+    radius_m: PositiveFloat = 0.5e-3
+    spectrum: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    intensity: Intensity = GaussianIntensity()
+
+    @property
+    def area_m2(self) -> float:
+        return math.pi * self.radius_m**2
+
+    def radiance(self, theta, phi) -> np.ndarray:
+        """Radiance leaving the disc (any point on it) in direction (θ, φ)."""
+        theta = np.asarray(theta, dtype=float)
+        if isinstance(self.intensity, LambertianRadiance):
+            return np.where(theta < math.pi / 2, self.intensity.radiance_w_sr_m2, 0.0)
+        cos_t = np.cos(theta)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            value = self.intensity(theta, phi) / (np.maximum(cos_t, 1e-12) * self.area_m2)
+        return np.where(cos_t > 0.0, value, 0.0)
+
+    def intensity_w_sr(self, theta, phi=0.0) -> np.ndarray:
+        """Radiant intensity of the whole disc: the truth a fit is compared with."""
+        theta = np.asarray(theta, dtype=float)
+        if isinstance(self.intensity, LambertianRadiance):
+            return self.intensity.radiance_w_sr_m2 * np.clip(np.cos(theta), 0.0, None) * self.area_m2
+        return self.intensity(theta, phi)
+
+
+class TruthLight(_Strict):
+    """A ground-truth light: the emitters on its plane."""
+
+    name: str = "truth"
+    description: str = ""
+    emitters: list[Emitter] = Field(min_length=1)
+
+
+def load_truth(name_or_path: str | Path) -> TruthLight:
+    """Load a truth by shipped name (``five-gaussians``) or by TOML path."""
+    path = Path(name_or_path)
+    if not path.suffix:
+        path = LIGHTS_DIR / f"{name_or_path}.toml"
+        if not path.exists():
+            shipped = ", ".join(sorted(p.stem for p in LIGHTS_DIR.glob("*.toml")))
+            raise TruthError(f"{name_or_path}: no such truth light (shipped: {shipped})")
+    try:
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise TruthError(f"{path}: truth file not found") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise TruthError(f"{path}: not valid TOML: {exc}") from None
+    try:
+        return TruthLight.model_validate(data)
+    except ValidationError as exc:
+        first = exc.errors()[0]
+        where = ".".join(str(p) for p in first["loc"])
+        raise TruthError(f"{path}: {where}: {first['msg']}") from None

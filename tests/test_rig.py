@@ -1,0 +1,120 @@
+"""The rig description: the default geometry, schedules, and one-line refusals."""
+
+import math
+import re
+
+import numpy as np
+import pytest
+
+from acquisition.rig import DEFAULT_RIG_PATH, RigError, load_rig, rig_from_dict
+
+
+def _default_data():
+    import tomllib
+
+    return tomllib.loads(DEFAULT_RIG_PATH.read_text())
+
+
+def test_default_rig_matches_measurement_md():
+    rig = load_rig()
+    poses = rig.light_poses()
+    assert len(poses) == 66
+    np.testing.assert_allclose(poses[0].position, [-0.08125, 0.04, 0.10], atol=1e-12)
+    np.testing.assert_allclose(poses[-1].position, [0.08125, 0.04, 0.10], atol=1e-12)
+    np.testing.assert_allclose(np.diff([p.x for p in poses]), 0.0025, atol=1e-12)
+    # The light axis (+z) aims at the ball centre from the middle position; +x along rig +x.
+    rot = poses[0].rotation
+    middle = np.array([0.0, 0.04, 0.10])
+    np.testing.assert_allclose(rot[:, 2], -middle / np.linalg.norm(middle), atol=1e-12)
+    np.testing.assert_allclose(rot[:, 0], [1.0, 0.0, 0.0], atol=1e-12)
+    # Camera 20 cm from the ball on +z, looking at it, rig +y up in the image.
+    r, t = rig.camera.pose.extrinsics()
+    np.testing.assert_allclose(rig.camera.centre(), [0, 0, 0.2], atol=1e-12)
+    ball_in_cam = r @ np.zeros(3) + t
+    np.testing.assert_allclose(ball_in_cam, [0, 0, 0.2], atol=1e-12)
+    up_in_image = r @ np.array([0.0, 1.0, 0.0])
+    assert up_in_image[1] < -0.99  # OpenCV's image y points down
+    assert rig.camera.f_number == pytest.approx(125.0)
+    # Identity light-to-tool: tool poses are the light poses.
+    assert rig.tool_poses()[5].distance_to(poses[5])[0] == pytest.approx(0.0, abs=1e-12)
+
+
+def test_chrome_normal_reflectance_is_about_055():
+    rig = load_rig()
+    n, k = np.array(rig.ball.n), np.array(rig.ball.k)
+    r0 = ((n - 1) ** 2 + k**2) / ((n + 1) ** 2 + k**2)
+    assert np.all((r0 > 0.5) & (r0 < 0.6))
+
+
+def test_light_to_tool_offsets_the_commanded_tool_pose():
+    data = _default_data()
+    data["light"]["light_to_tool"] = {"position_m": [0.0, 0.0, 0.05], "rotation_deg": [0, 0, 0]}
+    rig = rig_from_dict(data)
+    light, tool = rig.light_poses()[10], rig.tool_poses()[10]
+    # Composing back gives the light pose; the tool sits 5 cm behind the light plane.
+    back = tool.compose(rig.light.light_to_tool.to_pose())
+    assert back.distance_to(light)[0] < 1e-12
+    np.testing.assert_allclose(light.position - tool.position, 0.05 * light.rotation[:, 2], atol=1e-12)
+
+
+def test_raster_object_arc_and_pose_list_schedules():
+    data = _default_data()
+    data["schedule"] = {"kind": "raster", "count_u": 3, "count_v": 2}
+    raster = rig_from_dict(data).light_poses()
+    assert len(raster) == 6
+    np.testing.assert_allclose(raster[1].position - raster[0].position, [0.0025, 0, 0])
+    np.testing.assert_allclose(raster[3].position - raster[0].position, [0, 0.0025, 0])
+
+    data["schedule"] = {"kind": "object-arc"}
+    data["arm"]["soft_limits"]["z_m"] = [0.0, 0.45]
+    arc = rig_from_dict(data).light_poses()
+    assert len(arc) == 5
+    for pose, angle in zip(arc, [10, 20, 30, 40, 50], strict=True):
+        assert np.linalg.norm(pose.position) == pytest.approx(0.30)
+        elevation = math.degrees(math.atan2(pose.y, pose.z))
+        assert elevation == pytest.approx(angle)
+        # Each light looks at the object.
+        np.testing.assert_allclose(pose.rotation[:, 2], -pose.position / 0.30, atol=1e-12)
+
+    data["schedule"] = {"kind": "poses", "poses": [{"position_m": [0.0, 0.05, 0.1], "rotation_deg": [160, 0, 0]}]}
+    (single,) = rig_from_dict(data).light_poses()
+    assert math.degrees(single.rx) == pytest.approx(160)
+
+
+def _error(data) -> str:
+    with pytest.raises(RigError) as info:
+        rig_from_dict(data, "bad.toml")
+    message = str(info.value)
+    assert "\n" not in message
+    assert message.startswith("bad.toml: ")
+    return message
+
+
+@pytest.mark.parametrize(
+    ("edit", "pattern"),
+    [
+        (lambda d: d["ball"].__setitem__("radius_m", -0.01), r"ball\.radius_m: .*greater than 0"),
+        (lambda d: d["camera"]["pose"].__setitem__("position_m", [0.0, 0.0, 0.01]), r"camera\.pose: the camera is inside the ball"),
+        (lambda d: d["schedule"].__setitem__("start_m", [0.0, 0.0, 0.01]), r"schedule: position 0: the light is inside the ball"),
+        (lambda d: d["schedule"].update(start_m=[0.0, 0.0, 0.1], step_m=[0.0, 0.0, -0.05], count=5, orientation={"rotation_deg": [180, 0, 0]}), r"schedule: .*(inside the ball|crosses the ball)"),
+        (lambda d: d["schedule"].update(start_m=[-0.2, 0.0, 0.03], step_m=[0.1, 0.0, 0.0], count=5, orientation={"rotation_deg": [180, 0, 0]}), r"schedule: the light's path from position 1 to 2 crosses the ball"),
+        (lambda d: d["arm"]["soft_limits"].__setitem__("x_m", [-0.05, 0.05]), r"schedule: position 0: tool pose x=-0\.081250 m outside the soft limits .*arm\.soft_limits"),
+        (lambda d: d["camera"].__setitem__("width", 0), r"camera\.width: .*greater than 0"),
+        (lambda d: d["camera"].__setitem__("colour", "red"), r"camera\.colour: Extra inputs are not permitted"),
+        (lambda d: d["schedule"].__setitem__("kind", "spiral"), r"schedule: .*(discriminator|tag|does not match)"),
+        (lambda d: d["camera"].__setitem__("black_level_dn", 5000), r"camera: black_level_dn must be below the white level"),
+    ],
+)
+def test_impossible_rigs_are_refused_naming_the_field(edit, pattern):
+    data = _default_data()
+    edit(data)
+    assert re.search(pattern, _error(data)), _error(data)
+
+
+def test_unreadable_files_get_one_line_errors(tmp_path):
+    with pytest.raises(RigError, match=r"missing\.toml: rig file not found"):
+        load_rig(tmp_path / "missing.toml")
+    broken = tmp_path / "broken.toml"
+    broken.write_text("[camera\nwidth = 3\n")
+    with pytest.raises(RigError, match=r"broken\.toml: not valid TOML: .*line 1"):
+        load_rig(broken)
