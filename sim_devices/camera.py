@@ -108,6 +108,7 @@ class SimulatedCamera(Camera):
             raise DeviceError(self.identity, "capture", f"exposure must be positive, got {exposure_s!r}")
         rates = self.rendering().rate
         mosaic = self.sensor.expose(rates, exposure_s, self.rng)
+        self.last_mosaic = mosaic  # what was written, for checking the decode path
         if self.latency_s:
             self._sleep(self.latency_s + exposure_s)
         timestamp = self._wall_clock()

@@ -237,12 +237,25 @@ def trace(camera: CameraOptics, mirror: Mirror, plane: LightPlane, col, row, ax,
 
 
 # --- sample patterns ---------------------------------------------------------------------
-def unit_disc_pattern(count: int) -> np.ndarray:
-    """``count`` points evenly spread over the unit disc (Vogel's sunflower spiral)."""
-    j = np.arange(count) + 0.5
-    r = np.sqrt(j / count)
-    a = j * GOLDEN_ANGLE
-    return np.column_stack([r * np.cos(a), r * np.sin(a)])
+def unit_disc_samples(count: int, shape: tuple[int, ...], rng: np.random.Generator) -> np.ndarray:
+    """Stratified points over the unit disc, a fresh random shift for every set.
+
+    Vogel's sunflower spiral (equal-area radial strata, golden-angle azimuths), with the
+    position inside each radial stratum and the spiral's rotation drawn at random per
+    set. Without the radial shift the fraction of points inside a centred circle is
+    fixed by the pattern and biases small pre-images (e.g. 21 of 48 points for an area
+    fraction of 0.444).
+
+    Returns
+    -------
+    ndarray, shape (*shape, count, 2)
+    """
+    j = np.arange(count)
+    shift = rng.random((*shape, 1))
+    spin = rng.random((*shape, 1)) * 2.0 * math.pi
+    r = np.sqrt((j + shift) / count)
+    a = j * GOLDEN_ANGLE + spin
+    return np.stack([r * np.cos(a), r * np.sin(a)], axis=-1)
 
 
 def subpixel_pattern(per_side: int) -> np.ndarray:
@@ -338,8 +351,8 @@ class MirrorBallRenderer:
         self.mirror = Mirror.from_rig(rig)
         self.subpixel = subpixel_pattern(subpixel_per_side)
         self.subpixel_cell = 1.0 / subpixel_per_side
-        self.disc = unit_disc_pattern(aperture_samples)
-        self.wide_disc = unit_disc_pattern(wide_aperture_samples)
+        self.aperture_samples = aperture_samples
+        self.wide_aperture_samples = wide_aperture_samples
         self.diffraction = diffraction
         self.rng = np.random.default_rng(seed)
         self.chunk_rays = chunk_rays
@@ -495,7 +508,7 @@ class MirrorBallRenderer:
         keep = np.linalg.norm(a, axis=1) <= ra + reach
         col, row, a, j_inv, shift_per_px, ellipse_area = (x[keep] for x in (col, row, a, j_inv, shift_per_px, ellipse_area))
         npx = col.size
-        nsub, ndisc = len(self.subpixel), len(self.disc)
+        nsub, ndisc = len(self.subpixel), self.aperture_samples
         per_pixel = nsub * ndisc
         weight = ellipse_area / (math.pi * ra * ra) / per_pixel
         pixel_index = (row.astype(np.int64) * cam.width + col.astype(np.int64))
@@ -508,11 +521,8 @@ class MirrorBallRenderer:
             jitter = self.rng.random((m, nsub, 2)) * self.subpixel_cell
             offs = self.subpixel[None, :, :] + jitter  # (m, nsub, 2) pixel offsets in [-0.5, 0.5)
             centres = a[sl, None, :] + np.einsum("nij,nsj->nsi", shift_per_px[sl], offs)
-            spin = self.rng.random(m) * 2 * math.pi
-            cs, sn = np.cos(spin), np.sin(spin)
-            disc = np.stack([cs[:, None] * self.disc[None, :, 0] - sn[:, None] * self.disc[None, :, 1],
-                             sn[:, None] * self.disc[None, :, 0] + cs[:, None] * self.disc[None, :, 1]], axis=-1)  # fmt: skip
-            pts = centres[:, :, None, :] + radius * np.einsum("nij,nkj->nki", j_inv[sl], disc)[:, None, :, :]
+            disc = unit_disc_samples(ndisc, (m, nsub), self.rng)  # (m, nsub, ndisc, 2)
+            pts = centres[:, :, None, :] + radius * np.einsum("nij,nskj->nski", j_inv[sl], disc)
             ax, ay = pts[..., 0].ravel(), pts[..., 1].ravel()
             sc = np.broadcast_to((col[sl, None] + offs[..., 0])[:, :, None], pts.shape[:3]).ravel()
             sr = np.broadcast_to((row[sl, None] + offs[..., 1])[:, :, None], pts.shape[:3]).ravel()
@@ -524,7 +534,7 @@ class MirrorBallRenderer:
             value[in_aperture] = np.where(on[:, None], (emitter.radiance(t.theta, t.phi) * t.cos4)[:, None] * t.fresnel * np.asarray(emitter.spectrum)[None, :], 0.0)
             # Rim check: hits in the outer third of the sampled ellipse's radius would mean
             # the ellipse may be too small to hold the whole pre-image.
-            disc_r = np.broadcast_to(np.linalg.norm(self.disc, axis=1)[None, None, :], pts.shape[:3]).ravel()
+            disc_r = np.linalg.norm(disc, axis=-1).ravel()
             rim += int(np.count_nonzero(on & (disc_r[in_aperture] > 0.9)))
             hits += int(np.count_nonzero(on))
             contrib_all.append(value.reshape(m, per_pixel, 3).sum(axis=1) * weight[sl, None])
@@ -535,7 +545,7 @@ class MirrorBallRenderer:
         """Emitter wider than the aperture's footprint: sample the whole aperture."""
         cam, ra = self.camera, self.camera.aperture_radius
         npx = col.size
-        nsub, ndisc = len(self.subpixel), len(self.wide_disc)
+        nsub, ndisc = len(self.subpixel), self.wide_aperture_samples
         per_pixel = nsub * ndisc
         pixel_index = row.astype(np.int64) * cam.width + col.astype(np.int64)
         out = []
@@ -544,13 +554,9 @@ class MirrorBallRenderer:
             sl = slice(s, min(npx, s + step))
             m = sl.stop - sl.start
             offs = self.subpixel[None] + self.rng.random((m, nsub, 2)) * self.subpixel_cell
-            spin = self.rng.random(m) * 2 * math.pi
-            cs, sn = np.cos(spin), np.sin(spin)
-            dx = ra * (cs[:, None] * self.wide_disc[None, :, 0] - sn[:, None] * self.wide_disc[None, :, 1])
-            dy = ra * (sn[:, None] * self.wide_disc[None, :, 0] + cs[:, None] * self.wide_disc[None, :, 1])
+            disc = ra * unit_disc_samples(ndisc, (m, nsub), self.rng)
             shape = (m, nsub, ndisc)
-            ax = np.broadcast_to(dx[:, None, :], shape).ravel()
-            ay = np.broadcast_to(dy[:, None, :], shape).ravel()
+            ax, ay = disc[..., 0].ravel(), disc[..., 1].ravel()
             sc = np.broadcast_to((col[sl, None] + offs[..., 0])[:, :, None], shape).ravel()
             sr = np.broadcast_to((row[sl, None] + offs[..., 1])[:, :, None], shape).ravel()
             t = trace(cam, self.mirror, plane, sc, sr, ax, ay)
