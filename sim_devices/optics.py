@@ -332,6 +332,7 @@ class MirrorBallRenderer:
     """
 
     ellipse_scale = 1.5
+    sensor_splat_max_px = 40.0
 
     def __init__(
         self,
@@ -454,8 +455,14 @@ class MirrorBallRenderer:
         # The pixel whose chief ray lands closest to the emitter: its sharp image.
         i0 = int(np.argmin(distance))
         footprint = sv_a[i0, 1] * ra  # the smallest reach of one pixel's rays on the plane
-        if distance[i0] > rho + 2.0 * sv_a[i0, 0] * ra:
+        if distance[i0] > rho + 2.0 * sv_a[i0, 0] * ra + np.linalg.norm(jd[i0]):
             return empty  # the ball never shows this emitter to the camera
+        aperture_pre_area = math.pi * (self.ellipse_scale * rho) ** 2 / abs(np.linalg.det(ja[i0]))
+        sensor_pre_radius = self.ellipse_scale * rho * np.linalg.svd(np.linalg.inv(jd[i0]), compute_uv=False)[0]
+        if aperture_pre_area >= math.pi * ra * ra and sensor_pre_radius < self.sensor_splat_max_px:
+            # A focused camera: for a fixed aperture point the emitter's pre-image on the
+            # sensor is small, so sample there instead (and splat into pixels).
+            return self._sensor_narrow(plane, emitter, col[i0], row[i0], uv0[i0], ja[i0], jd[i0])
         if self.ellipse_scale * rho < footprint:
             # Small emitter: only pixels within the blur disc around its image see it.
             j_inv = np.linalg.inv(ja[i0])
@@ -540,6 +547,50 @@ class MirrorBallRenderer:
             contrib_all.append(value.reshape(m, per_pixel, 3).sum(axis=1) * weight[sl, None])
             pix_all.append(pixel_index[sl])
         return np.concatenate(contrib_all), np.concatenate(pix_all), rim, hits, npx * per_pixel
+
+    def _sensor_narrow(self, plane, emitter, col0, row0, uv_chief, ja, jd):
+        """Emitter whose image, for a fixed aperture point, is small on the sensor.
+
+        Stratified aperture points; for each, Newton's method finds the sensor point whose
+        ray lands on the emitter's centre, and samples fill an ellipse 1.5 times the
+        emitter's pre-image around it. Each sample adds to the pixel it falls in.
+        """
+        cam, ra, rho = self.camera, self.camera.aperture_radius, emitter.radius_m
+        q = np.asarray(emitter.centre_m, dtype=float)
+        n_ap = self.aperture_samples * len(self.subpixel)
+        a = ra * unit_disc_samples(n_ap, (), self.rng)
+        ax, ay = a[:, 0], a[:, 1]
+        jd_inv = np.linalg.inv(jd)
+        start = np.array([col0, row0]) + (jd_inv @ (q[:, None] - uv_chief[:, None] - ja @ a.T)).T
+        sc, sr = start[:, 0].copy(), start[:, 1].copy()
+        j = np.broadcast_to(jd, (n_ap, 2, 2)).copy()
+        for _ in range(4):
+            t = trace(cam, self.mirror, plane, sc, sr, ax, ay, fresnel=False)
+            uv = np.column_stack([t.u, t.v])
+            jn, okj = self._jacobian_sensor(plane, sc, sr, ax, ay, uv)
+            ok = t.valid & okj
+            j = np.where(ok[:, None, None], jn, j)
+            step = np.einsum("nij,nj->ni", np.linalg.inv(j), q[None, :] - uv)
+            sc, sr = np.where(ok, sc + step[:, 0], sc), np.where(ok, sr + step[:, 1], sr)
+        j_inv = np.linalg.inv(j)
+        radius = self.ellipse_scale * rho
+        area_px = math.pi * radius**2 * np.abs(np.linalg.det(j_inv))
+        per_point = int(np.clip(np.ceil(16.0 * area_px.max()), 32, 4096))
+        disc = unit_disc_samples(per_point, (n_ap,), self.rng)
+        pts = np.stack([sc, sr], axis=-1)[:, None, :] + radius * np.einsum("nij,nkj->nki", j_inv, disc)
+        px, py = pts[..., 0].ravel(), pts[..., 1].ravel()
+        axs, ays = np.repeat(ax, per_point), np.repeat(ay, per_point)
+        t = trace(cam, self.mirror, plane, px, py, axs, ays)
+        du, dv = t.u - q[0], t.v - q[1]
+        on = t.valid & (du * du + dv * dv <= rho * rho)
+        on &= (px > -0.5) & (px < cam.width - 0.5) & (py > -0.5) & (py < cam.height - 0.5)
+        weight = np.repeat(area_px / (n_ap * per_point), per_point)
+        value = (emitter.radiance(t.theta[on], t.phi[on]) * t.cos4[on] * weight[on])[:, None]
+        value = value * t.fresnel[on] * np.asarray(emitter.spectrum)[None, :]
+        pixel = np.rint(py[on]).astype(np.int64) * cam.width + np.rint(px[on]).astype(np.int64)
+        disc_r = np.linalg.norm(disc, axis=-1).ravel()
+        rim = int(np.count_nonzero(disc_r[on] > 0.9))
+        return value, pixel, rim, int(on.sum()), int(px.size + 8 * n_ap)
 
     def _wide(self, plane, emitter, col, row):
         """Emitter wider than the aperture's footprint: sample the whole aperture."""

@@ -296,3 +296,74 @@ def test_diffraction_spreads_the_spot_as_the_airy_pattern_predicts():
     assert np.max(np.abs(diffracted - expected)) < 0.01 * peak
     # First Airy zero at 1.22 lambda N = 14 px: the spot is visibly wider than the geometric disc.
     assert diffracted.max() < 0.92 * geometric.max()
+
+
+# --- the thin-lens camera ---------------------------------------------------------------------
+def _spot_radius(spot):
+    rows, cols = np.mgrid[0 : spot.shape[0], 0 : spot.shape[1]]
+    total = spot.sum()
+    cy, cx = (spot * rows).sum() / total, (spot * cols).sum() / total
+    var = (spot * ((rows - cy) ** 2 + (cols - cx) ** 2)).sum() / total / 2
+    return 2 * math.sqrt(max(var - 1 / 12, 0.0))
+
+
+def test_thin_lens_focused_on_the_virtual_image_is_sharp_and_defocus_blurs_as_predicted():
+    pinhole = _crop_rig()
+    pose = pinhole.light_poses()[33]
+    source = pose.position
+    cam_centre = pinhole.camera.centre()
+    p = specular_point(source, cam_centre, np.zeros(3), pinhole.ball.radius_m)
+    d, c = np.linalg.norm(source - p), np.linalg.norm(cam_centre - p)
+    cos_a = float(np.dot(p / pinhole.ball.radius_m, (source - p) / d))
+    radius = pinhole.ball.radius_m
+    z = c + 0.5 * (1 / (1 / d + 2 / (radius * cos_a)) + 1 / (1 / d + 2 * cos_a / radius))
+    tiny = _single_source(radius=0.02e-3)
+
+    def lens_rig(focus):
+        return rig_with(camera__width=320, camera__height=320, camera__principal_point_px=[999.5 - 840, 655.5 - 400],
+                        camera__thin_lens={"focus_distance_m": focus, "f_number": 8.0})  # fmt: skip
+
+    focused = lens_rig(z)
+    spot = MirrorBallRenderer(focused, tiny, diffraction=False, seed=11).render(pose).rate[GREEN]
+    assert _spot_radius(spot) < 1.5  # against ~19 px for the pinhole
+
+    defocused = lens_rig(2 * z)
+    spot = MirrorBallRenderer(defocused, tiny, diffraction=False, seed=12).render(pose).rate[GREEN]
+    f = defocused.camera.sensor_distance_m
+    aperture = defocused.camera.aperture_diameter_m
+    predicted = 0.5 * aperture * f * abs(1 / z - 1 / (2 * z)) / defocused.camera.pixel_pitch_m
+    assert predicted > 10
+    assert _spot_radius(spot) == pytest.approx(predicted, rel=0.05)
+    # The radiometry does not depend on the camera model: same total as the Coddington prediction.
+    expected, _ = _predicted_total_rate(defocused, pose, tiny.emitters[0])
+    assert spot.sum() == pytest.approx(expected, rel=0.01)
+
+
+# --- truths -------------------------------------------------------------------------------------
+def test_shipped_truths_load_and_match_their_definitions():
+    five = load_truth("five-gaussians")
+    assert len(five.emitters) == 5
+    centres = sorted(tuple(e.centre_m) for e in five.emitters)
+    assert centres == sorted([(0.0, 0.0), (0.004, 0.0), (-0.004, 0.0), (0.0, 0.004), (0.0, -0.004)])
+    assert all(e.radius_m == 0.0005 for e in five.emitters)
+    led = load_truth("cos-led").emitters[0]
+    assert led.intensity_w_sr(math.radians(60)) == pytest.approx(0.5**3)
+    lobe = load_truth("anisotropic").emitters[0]
+    theta = math.radians(20)
+    assert lobe.intensity_w_sr(theta, 0.0) > lobe.intensity_w_sr(theta, math.pi / 2)
+    plane = load_truth("lambertian-disc").emitters[0]
+    # Radiance of a disc is I / (cos(theta) * area): constant for a Lambertian emitter.
+    assert plane.radiance(np.array([0.1, 1.0]), 0.0) == pytest.approx([1000.0, 1000.0])
+    gauss = five.emitters[0]
+    assert gauss.radiance(0.0, 0.0) * gauss.area_m2 == pytest.approx(gauss.intensity_w_sr(0.0))
+
+
+def test_truth_errors_are_one_line(tmp_path):
+    from sim_devices.lights import TruthError
+
+    with pytest.raises(TruthError, match=r"^nonesuch: no such truth light \(shipped: .*five-gaussians"):
+        load_truth("nonesuch")
+    bad = tmp_path / "bad.toml"
+    bad.write_text('[[emitters]]\nradius_m = -1\n')
+    with pytest.raises(TruthError, match=r"bad\.toml: emitters\.0\.radius_m: .*greater than 0"):
+        load_truth(bad)
