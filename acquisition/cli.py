@@ -31,6 +31,17 @@ app.add_typer(bench_app, name="bench")
 RigOption = Annotated[Path, typer.Option("--rig", help="Rig description (TOML).")]
 
 
+@app.callback()
+def main_options(
+    verbose: Annotated[bool, typer.Option("--verbose", "-v", help="Log the libraries' own messages.")] = False,
+) -> None:
+    """A mirror-ball goniophotometer: measure a near-field light source."""
+    import logging
+
+    # pymodbus logs connection failures straight to stderr; our errors already say it in one line.
+    logging.getLogger("pymodbus").setLevel(logging.DEBUG if verbose else logging.CRITICAL)
+
+
 def _fail(message: str) -> typer.Exit:
     typer.echo(f"error: {message}", err=True)
     return typer.Exit(code=2)

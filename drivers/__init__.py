@@ -12,6 +12,7 @@ from drivers.errors import (
     DeviceError,
     DeviceTimeoutError,
     LimitsError,
+    MoveInterruptedError,
     RawFileError,
 )
 from drivers.pose import Pose
@@ -25,6 +26,7 @@ __all__ = [
     "DeviceError",
     "DeviceTimeoutError",
     "LimitsError",
+    "MoveInterruptedError",
     "Pose",
     "RawFileError",
     "RawFrame",

@@ -13,7 +13,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
-from drivers.errors import AlarmError, DeviceTimeoutError, LimitsError
+from drivers.errors import AlarmError, DeviceTimeoutError, LimitsError, MoveInterruptedError
 from drivers.pose import AXES, Pose
 
 _ANGULAR = {"rx", "ry", "rz"}
@@ -72,6 +72,9 @@ class Arm(abc.ABC):
 
     Use as a context manager: ``with ModbusArm(...) as arm: arm.move_to(pose)``.
 
+    ``start_grace_s`` is how long a move may show neither motion nor "in position"
+    before it counts as stopped short.
+
     Parameters
     ----------
     name : str
@@ -85,6 +88,8 @@ class Arm(abc.ABC):
     clock : callable
         Monotonic clock in seconds, injected for the same reason.
     """
+
+    start_grace_s = 1.0
 
     def __init__(
         self,
@@ -168,15 +173,20 @@ class Arm(abc.ABC):
         return self.position()
 
     def _wait_in_position(self, command: str, timeout: float) -> None:
-        deadline = self._clock() + timeout
-        # The first status after a move command may still show the previous "in
-        # position"; only trust it once the controller has acknowledged the new target.
+        start = self._clock()
+        deadline = start + timeout
+        seen_moving = False
         while True:
             status = self.status()
             if status.alarm:
                 raise AlarmError(self.name, command, status.alarm_code, status.alarm_text)
             if status.in_position and not status.moving:
                 return
+            seen_moving |= status.moving
+            # Neither moving nor in position: stopped short (a stop command, an operator's
+            # emergency stop). A controller may take a moment to start, hence the grace.
+            if not status.moving and (seen_moving or self._clock() - start > self.start_grace_s):
+                raise MoveInterruptedError(self.name, command, "stopped before reaching the target")
             if self._clock() > deadline:
                 try:
                     self.stop()

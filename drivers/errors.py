@@ -44,6 +44,10 @@ class DeviceTimeoutError(DeviceError):
     """The device did not answer, or did not finish, in time."""
 
 
+class MoveInterruptedError(DeviceError):
+    """The arm stopped before reaching its target (a stop command, an emergency stop)."""
+
+
 class CommunicationError(DeviceError):
     """The link to the device failed (connection refused or dropped, garbled reply).
 

@@ -15,6 +15,8 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.spatial.transform import Rotation, Slerp  # imported up front: a lazy import mid-move
+                                                       # can stall the server past the watchdog
 
 from drivers.pose import AXES, Pose, rotation_from_angles
 
@@ -147,11 +149,10 @@ class SimulatedStage:
             self._begin(self.config.home_pose)
 
     def stop(self) -> None:
-        """Stop at once where the stage is now."""
+        """Stop at once where the stage is now; the target stays unreached."""
         with self._lock:
             here = self._true_pose_locked()
             self._start = here
-            self._target = here
             self._duration = 0.0
             self._stopped_at = here
 
@@ -252,8 +253,8 @@ class SimulatedStage:
     def _raise_alarm(self, code: int) -> None:
         here = self._true_pose_locked()
         self._start = here
-        self._target = here
         self._duration = 0.0
+        self._stopped_at = here
         self._alarm = code
 
     def _check_watchdog(self) -> None:
@@ -265,6 +266,8 @@ class SimulatedStage:
         self._check_watchdog()
 
     def _true_pose_locked(self) -> Pose:
+        if self._stopped_at is not None:
+            return self._stopped_at
         if self._duration <= 0.0:
             return self._target
         s = _profile_fraction(self._clock() - self._t0, self._duration)
@@ -278,8 +281,6 @@ class SimulatedStage:
 
 def _slerp_rotation(r0: np.ndarray, r1: np.ndarray, s: float) -> np.ndarray:
     """Rotation a fraction ``s`` of the way from ``r0`` to ``r1`` (shortest arc)."""
-    from scipy.spatial.transform import Rotation, Slerp
-
     key = Rotation.from_matrix(np.stack([r0, r1]))
     return Slerp([0.0, 1.0], key)([s]).as_matrix()[0]
 

@@ -15,6 +15,7 @@ import pytest
 
 from drivers.arm import SoftLimits
 from drivers.errors import (
+    MoveInterruptedError,
     AlarmError,
     CommunicationError,
     DeviceError,
@@ -176,11 +177,13 @@ def test_stop_during_a_long_move_stops_short_of_the_target():
             driver.stop()  # from another thread, while move_to polls the status
             mover.join(timeout=5.0)
             assert not mover.is_alive()
-            assert "error" not in outcome
+            # move_to must not pretend the target was reached.
+            assert isinstance(outcome.get("error"), MoveInterruptedError), outcome
+            assert "stopped before reaching the target" in str(outcome["error"])
             stopped_at = slow.true_pose()
             assert far.x - stopped_at.x > 0.1
             assert not slow.moving
-            _assert_close(outcome["pose"], stopped_at, NOISE_M, NOISE_RAD)
+            _assert_close(driver.position(), stopped_at, NOISE_M, NOISE_RAD)
             assert "1;1;STOP" in slow_peer.frames_received
         finally:
             driver.close()
