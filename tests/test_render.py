@@ -367,3 +367,24 @@ def test_truth_errors_are_one_line(tmp_path):
     bad.write_text('[[emitters]]\nradius_m = -1\n')
     with pytest.raises(TruthError, match=r"bad\.toml: emitters\.0\.radius_m: .*greater than 0"):
         load_truth(bad)
+
+
+def test_light_housing_blocks_the_cameras_view_with_the_predicted_silhouette():
+    # A 2 mm housing, 5 cm deep, on the camera axis between camera and ball: its back end,
+    # 5 cm from the pinhole, hides a disc of radius f/p * 2 mm / 50 mm around the centre.
+    pitch = 23.6e-6
+    rig = rig_with(camera__width=500, camera__height=328, camera__pixel_pitch_m=pitch,
+                   light__housing_radius_m=0.002, light__housing_depth_m=0.05,
+                   simulation__truth="lambertian-disc", simulation__diffraction=False)  # fmt: skip
+    rate = MirrorBallRenderer(rig, load_truth("lambertian-disc"), diffraction=False, seed=3).render(LAMBERTIAN_POSE).rate[GREEN]
+    cx, cy = rig.camera.principal_point
+    rows, cols = np.mgrid[0 : rig.camera.height, 0 : rig.camera.width]
+    r = np.hypot(cols - cx, rows - cy)
+    shadow = 0.025 / pitch * 0.002 / 0.05  # 42.4 px
+    blur = 0.1e-3 * (1 + 0.025 / 0.05) / pitch  # the pinhole's blur of an edge 5 cm away
+    assert np.all(rate[r < shadow - blur - 1] == 0)
+    assert np.all(rate[(r > shadow + blur + 1) & (r < shadow + 20)] > 0)
+    # Without the housing the same pixels see the plane.
+    clear = rig_with(camera__width=500, camera__height=328, camera__pixel_pitch_m=pitch, light__housing_radius_m=0.0)
+    open_view = MirrorBallRenderer(clear, load_truth("lambertian-disc"), diffraction=False, seed=3).render(LAMBERTIAN_POSE).rate[GREEN]
+    assert np.all(open_view[r < shadow - blur - 1] > 0)
