@@ -197,7 +197,7 @@ def demo(
     output = out / "capture-position-33.dng"
     t0 = time.perf_counter()
     try:
-        _capture_one(rig or _default_rig(), 33, 0.002, output, None, True, True, None)
+        _capture_one(rig or _default_rig(), 33, 0.001, output, None, True, True, None)
         frame = decode_raw(output)
     except _domain_errors() as exc:
         raise _fail(str(exc)) from None

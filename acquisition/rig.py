@@ -11,7 +11,6 @@ the field.
 from __future__ import annotations
 
 import math
-import tomllib
 from pathlib import Path
 from typing import Annotated, Literal
 
@@ -22,11 +21,11 @@ from pydantic import (
     Field,
     PositiveFloat,
     PositiveInt,
-    ValidationError,
     model_validator,
 )
 
 from drivers.arm import SoftLimits
+from drivers.config_files import load_model, validate_model
 from drivers.pose import Pose, rotation_from_angles
 
 RIG_SCHEMA_VERSION = 1
@@ -439,42 +438,14 @@ def _segment_distance(point, a, b) -> float:
 
 
 # --- loading -------------------------------------------------------------------------------
-def _describe(error: ValidationError) -> str:
-    first = error.errors()[0]
-    location = ""
-    for part in first["loc"]:
-        location += f"[{part}]" if isinstance(part, int) else (f".{part}" if location else str(part))
-    message = first["msg"].removeprefix("Value error, ")
-    got = first.get("input")
-    if location:
-        if first["type"] not in ("value_error", "missing") and not isinstance(got, dict):
-            return f"{location}: {message} (got {got!r})"
-        return f"{location}: {message}"
-    return message
-
-
 def rig_from_dict(data: dict, source: str = "<rig>") -> Rig:
     """Validate a rig description given as a dictionary (the parsed TOML)."""
-    try:
-        return Rig.model_validate(data)
-    except ValidationError as exc:
-        raise RigError(f"{source}: {_describe(exc)}") from None
+    return validate_model(Rig, data, source, RigError)
 
 
 def load_rig(path: str | Path | None = None) -> Rig:
     """Load and validate a rig TOML file (the default rig when ``path`` is None)."""
-    path = Path(path) if path is not None else DEFAULT_RIG_PATH
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise RigError(f"{path}: rig file not found") from None
-    except OSError as exc:
-        raise RigError(f"{path}: cannot read the rig file: {exc.strerror}") from None
-    try:
-        data = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        raise RigError(f"{path}: not valid TOML: {exc}") from None
-    return rig_from_dict(data, str(path))
+    return load_model(path if path is not None else DEFAULT_RIG_PATH, Rig, "rig file", RigError)
 
 
 def rig_to_toml_dict(rig: Rig) -> dict:

@@ -13,12 +13,12 @@ file and the field.
 from __future__ import annotations
 
 import math
-import tomllib
 from pathlib import Path
 from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
+from drivers.config_files import load_model, validate_model
 from drivers.pose import AXES
 
 SIM_STAGE_PROFILE = Path(__file__).resolve().parent / "profiles" / "sim_stage.toml"
@@ -242,41 +242,9 @@ class ModbusProfile(_Strict):
         return self.alarm.text.get(code, "not in the profile's alarm table")
 
 
-def _describe(error: ValidationError) -> str:
-    """The first validation error as ``field: cause`` on one line."""
-    first = error.errors()[0]
-    location = ".".join(str(part) for part in first["loc"])
-    message = first["msg"].removeprefix("Value error, ")
-    kind = first["type"]
-    context = first.get("ctx") or {}
-    readable = {
-        "greater_than": lambda: f"must be > {context.get('gt'):g}",
-        "greater_than_equal": lambda: f"must be >= {context.get('ge'):g}",
-        "less_than": lambda: f"must be < {context.get('lt'):g}",
-        "less_than_equal": lambda: f"must be <= {context.get('le'):g}",
-        "missing": lambda: "missing",
-        "extra_forbidden": lambda: "unknown field",
-    }
-    if kind in readable:
-        message = readable[kind]()
-    if kind == "value_error":
-        # Our own validators name the field at the start of their message.
-        head = message.split(":", 1)[0]
-        if head != message and " " not in head:
-            return message
-        return f"{location}: {message}" if location else message
-    got = first.get("input")
-    if kind not in ("missing", "extra_forbidden") and not isinstance(got, dict):
-        return f"{location}: {message} (got {got!r})"
-    return f"{location}: {message}"
-
-
 def profile_from_dict(data: dict, source: str = "<profile>") -> ModbusProfile:
     """Validate a profile given as a dictionary (the parsed TOML)."""
-    try:
-        return ModbusProfile.model_validate(data)
-    except ValidationError as exc:
-        raise ProfileError(f"{source}: {_describe(exc)}") from None
+    return validate_model(ModbusProfile, data, source, ProfileError)
 
 
 def load_profile(path: str | Path = SIM_STAGE_PROFILE) -> ModbusProfile:
@@ -288,18 +256,7 @@ def load_profile(path: str | Path = SIM_STAGE_PROFILE) -> ModbusProfile:
         One line naming the file and the field, if the file is missing, is not TOML or
         describes an impossible register map.
     """
-    path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise ProfileError(f"{path.name}: profile file not found ({path})") from None
-    except OSError as exc:
-        raise ProfileError(f"{path.name}: cannot read the profile: {exc.strerror}") from None
-    try:
-        data = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        raise ProfileError(f"{path.name}: not valid TOML: {exc}") from None
-    return profile_from_dict(data, path.name)
+    return load_model(path, ModbusProfile, "profile file", ProfileError)
 
 
 __all__ = [

@@ -11,12 +11,13 @@ other file path works too, so new truths need no code.
 from __future__ import annotations
 
 import math
-import tomllib
 from pathlib import Path
 from typing import Annotated, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, PositiveFloat, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, PositiveFloat
+
+from drivers.config_files import load_model
 
 LIGHTS_DIR = Path(__file__).resolve().parent / "lights"
 
@@ -127,15 +128,4 @@ def load_truth(name_or_path: str | Path) -> TruthLight:
         if not path.exists():
             shipped = ", ".join(sorted(p.stem for p in LIGHTS_DIR.glob("*.toml")))
             raise TruthError(f"{name_or_path}: no such truth light (shipped: {shipped})")
-    try:
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise TruthError(f"{path}: truth file not found") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise TruthError(f"{path}: not valid TOML: {exc}") from None
-    try:
-        return TruthLight.model_validate(data)
-    except ValidationError as exc:
-        first = exc.errors()[0]
-        where = ".".join(str(p) for p in first["loc"])
-        raise TruthError(f"{path}: {where}: {first['msg']}") from None
+    return load_model(path, TruthLight, "truth file", TruthError)

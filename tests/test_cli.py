@@ -69,7 +69,7 @@ def test_bad_rig_file_is_named(tmp_path):
     bad.write_text("[ball]\nradius_m = -0.01\n")
     result = runner.invoke(app, ["simulate", "capture", "--rig", str(bad), "-o", str(tmp_path / "x.dng")])
     assert result.exit_code == 2
-    assert result.output.strip().splitlines() == [f"error: {bad}: ball.radius_m: Input should be greater than 0 (got -0.01)"]
+    assert result.output.strip().splitlines() == [f"error: {bad}: ball.radius_m: must be > 0 (got -0.01)"]
 
 
 def test_bench_render_prints_json(small_rig):
@@ -87,7 +87,7 @@ def test_demo_renders_and_decodes(tmp_path, small_rig):
     assert result.exit_code == 0, result.output
     written = tmp_path / "demo" / "capture-position-33.dng"
     assert str(written.resolve()) in result.output
-    assert decode_raw(written).exposure_s == pytest.approx(0.002)
+    assert decode_raw(written).exposure_s == pytest.approx(0.001)
 
 
 def test_every_subcommand_has_help():
