@@ -61,6 +61,32 @@ def _default_rig() -> Path:
     return DEFAULT_RIG_PATH
 
 
+# --- serve ----------------------------------------------------------------------------------
+@app.command("serve")
+def serve(
+    config: Annotated[Path | None, typer.Option("--config", help="daemon.toml (docs/daemon.md); simulated rig without one.")] = None,
+    host: Annotated[str | None, typer.Option(help="Address to listen on (default from the configuration: 127.0.0.1).")] = None,
+    port: Annotated[int | None, typer.Option(help="TCP port (default from the configuration: 8000).")] = None,
+    data_dir: Annotated[Path | None, typer.Option("--data-dir", help="Where run files and the catalog live.")] = None,
+) -> None:
+    """Run the acquisition daemon (REST API and web page) under uvicorn."""
+    from acquisition.settings import SettingsError, load_settings
+
+    try:
+        settings = load_settings(config, host=host, port=port, data_dir=data_dir)
+        settings.require_token_off_loopback()
+    except (SettingsError, OSError) as exc:
+        raise _fail(str(exc)) from None
+    import uvicorn
+
+    from acquisition.app import create_app
+
+    try:
+        uvicorn.run(create_app(settings), host=settings.host, port=settings.port, log_level="info")
+    except _domain_errors() as exc:
+        raise _fail(str(exc)) from None
+
+
 # --- simulate -----------------------------------------------------------------------------
 @simulate_app.command("arm")
 def simulate_arm(

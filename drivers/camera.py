@@ -64,6 +64,10 @@ class Camera(abc.ABC):
     def identity(self) -> str:
         return self.name
 
+    def problem(self) -> str | None:
+        """Why the camera cannot capture right now, or None when it can (for health)."""
+        return None
+
     def connect(self) -> None:  # noqa: B027 - optional for cameras without a session
         """Open the session with the camera, where there is one."""
 

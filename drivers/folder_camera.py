@@ -90,6 +90,10 @@ class FolderCamera(Camera):
         """The camera named in the last file read, else this driver and its folder."""
         return self._last_camera_id or f"{self.name} ({self.folder})"
 
+    def problem(self) -> str | None:
+        """The watched folder has gone (unmounted share, deleted)."""
+        return None if self.folder.is_dir() else f"{self.folder} is not a folder"
+
     def connect(self) -> None:
         """Check that the folder exists."""
         if not self.folder.is_dir():

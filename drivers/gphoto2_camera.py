@@ -154,6 +154,10 @@ class Gphoto2Camera(Camera):
         """Model and serial number from the camera's abilities and summary."""
         return self._identity or self.name
 
+    def problem(self) -> str | None:
+        """No session with the camera (never connected, or lost and closed)."""
+        return None if self._camera is not None else "no session with the camera"
+
     def connect(self) -> None:
         """Import python-gphoto2, find the camera and open a session with it."""
         if self._camera is not None:

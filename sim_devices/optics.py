@@ -515,6 +515,8 @@ class MirrorBallRenderer:
         keep = np.linalg.norm(a, axis=1) <= ra + reach
         col, row, a, j_inv, shift_per_px, ellipse_area = (x[keep] for x in (col, row, a, j_inv, shift_per_px, ellipse_area))
         npx = col.size
+        if npx == 0:  # the emitter's image falls outside the sensor
+            return np.zeros((0, 3)), np.zeros(0, dtype=np.int64), 0, 0, 0
         nsub, ndisc = len(self.subpixel), self.aperture_samples
         per_pixel = nsub * ndisc
         weight = ellipse_area / (math.pi * ra * ra) / per_pixel

@@ -388,3 +388,11 @@ def test_light_housing_blocks_the_cameras_view_with_the_predicted_silhouette():
     clear = rig_with(camera__width=500, camera__height=328, camera__pixel_pitch_m=pitch, light__housing_radius_m=0.0)
     open_view = MirrorBallRenderer(clear, load_truth("lambertian-disc"), diffraction=False, seed=3).render(LAMBERTIAN_POSE).rate[GREEN]
     assert np.all(open_view[r < shadow - blur - 1] > 0)
+
+
+def test_sources_imaged_off_a_cropped_sensor_render_as_dark_not_as_an_error():
+    rig = _crop_rig()
+    renderer = MirrorBallRenderer(rig, load_truth("five-gaussians"), diffraction=False, seed=1)
+    rendering = renderer.render(rig.light_poses()[0])  # the sweep's first position images off this crop
+    assert rendering.rate.shape == (3, 320, 320)
+    assert np.isfinite(rendering.rate).all()

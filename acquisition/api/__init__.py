@@ -1,0 +1,1 @@
+"""The daemon's REST API: one router per resource."""

@@ -1,0 +1,17 @@
+"""The arm's emergency stop."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter, status
+
+from acquisition.api.deps import EngineDep, TokenDep
+
+router = APIRouter(prefix="/arm", tags=["arm"])
+
+
+@router.post("/stop", status_code=status.HTTP_202_ACCEPTED, dependencies=[TokenDep])
+def stop_arm(engine: EngineDep) -> dict:
+    """Stop the arm at once, also mid-move. A run in progress pauses and re-takes the
+    interrupted position when resumed."""
+    engine.stop_arm()
+    return {"stopped": True}

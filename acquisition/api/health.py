@@ -1,0 +1,58 @@
+"""Health that tells the truth, and the devices' own state."""
+
+from __future__ import annotations
+
+import math
+
+from fastapi import APIRouter, Response, status
+
+from acquisition import __version__
+from acquisition.api.deps import CatalogDep, EngineDep
+from acquisition.models import ArmState, CameraState, DevicesStatus, Health
+from drivers.errors import DeviceError
+
+router = APIRouter(tags=["health"])
+
+
+def arm_state(engine) -> ArmState:
+    arm = engine.devices.arm
+    try:
+        st = arm.status()
+        pose = arm.position()
+    except DeviceError as exc:
+        return ArmState(connected=False, identity=arm.identity, error=str(exc))
+    position = {"x": pose.x, "y": pose.y, "z": pose.z,
+                "rx": math.degrees(pose.rx), "ry": math.degrees(pose.ry), "rz": math.degrees(pose.rz)}  # fmt: skip
+    return ArmState(connected=True, identity=arm.identity, position=position, moving=st.moving,
+                    in_position=st.in_position, alarm_code=st.alarm_code, alarm_text=st.alarm_text or None)  # fmt: skip
+
+
+def camera_state(engine) -> CameraState:
+    camera = engine.devices.camera
+    problem = camera.problem()
+    return CameraState(connected=problem is None, identity=camera.identity, error=problem)
+
+
+@router.get("/health", response_model=Health, responses={503: {"model": Health, "description": "degraded"}})
+def health(engine: EngineDep, catalog: CatalogDep, response: Response) -> Health:
+    """``ok`` only when the arm answers without an alarm and the camera is there; else 503."""
+    reasons = []
+    arm = arm_state(engine)
+    if not arm.connected:
+        reasons.append(f"arm: {arm.error}")
+    elif arm.alarm_code:
+        reasons.append(f"arm: alarm {arm.alarm_code:#06x}: {arm.alarm_text}")
+    camera = camera_state(engine)
+    if not camera.connected:
+        reasons.append(f"camera: {camera.error}")
+    active = catalog.active_run()
+    if reasons:
+        response.status_code = status.HTTP_503_SERVICE_UNAVAILABLE
+    return Health(status="degraded" if reasons else "ok", reasons=reasons, version=__version__,
+                  active_run=active.id if active else None)  # fmt: skip
+
+
+@router.get("/devices", response_model=DevicesStatus, tags=["devices"])
+def devices(engine: EngineDep) -> DevicesStatus:
+    """Connection, read-back position and status of the arm; the camera's identity."""
+    return DevicesStatus(arm=arm_state(engine), camera=camera_state(engine))

@@ -1,0 +1,24 @@
+"""Schedule presets a run can be started from."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter
+
+from acquisition.api.deps import EngineDep, SettingsDep
+
+router = APIRouter(tags=["presets"])
+
+
+@router.get("/presets")
+def presets(engine: EngineDep, settings: SettingsDep) -> dict:
+    """The presets with their schedules, position counts and the default bracket."""
+    out = {}
+    for name in engine.presets():
+        from acquisition.models import RunRequest
+
+        try:
+            rig = engine.plan_schedule(RunRequest(preset=name))
+            out[name] = {"schedule": rig.schedule.model_dump(mode="json"), "positions": len(rig.light_poses()), "valid": True, "error": None}
+        except ValueError as exc:
+            out[name] = {"schedule": engine.presets()[name], "positions": None, "valid": False, "error": str(exc)}
+    return {"presets": out, "default_bracket": {"mode": "fixed", "exposures_s": settings.default_exposures_s}}

@@ -1,0 +1,19 @@
+"""The latest frame of whatever ran last."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter, HTTPException, Response, status
+
+from acquisition.api.deps import EngineDep
+from acquisition.models import Problem
+
+router = APIRouter(tags=["runs"])
+
+
+@router.get("/preview.png", responses={200: {"content": {"image/png": {}}}, 404: {"model": Problem}})
+def latest_preview(engine: EngineDep) -> Response:
+    """The latest frame taken, tone-mapped and downscaled."""
+    png = engine.preview()
+    if png is None:
+        raise HTTPException(status.HTTP_404_NOT_FOUND, "no frame has been taken yet")
+    return Response(png, media_type="image/png", headers={"Cache-Control": "no-store"})

@@ -1,0 +1,123 @@
+"""Runs: start, list, follow, control, download, and ask for processing."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+from pathlib import Path
+
+from fastapi import APIRouter, HTTPException, Request, Response, status
+from fastapi.responses import FileResponse, StreamingResponse
+
+from acquisition.api.deps import CatalogDep, EngineDep, SettingsDep, TokenDep
+from acquisition.api.jobs import job_status
+from acquisition.catalog import RunRecord
+from acquisition.models import JobRequest, JobStatus, Problem, RunRequest, RunStatus
+
+router = APIRouter(prefix="/runs", tags=["runs"])
+FINAL = ("complete", "aborted", "failed", "interrupted")
+ERRORS = {404: {"model": Problem}, 409: {"model": Problem}}
+
+
+def run_status(record: RunRecord) -> RunStatus:
+    percent = 100.0 * record.positions_done / record.n_positions if record.n_positions else 0.0
+    return RunStatus(
+        id=record.id, state=record.state, preset=record.preset, n_positions=record.n_positions,
+        positions_done=record.positions_done, percent_done=round(percent, 2),
+        current_position=record.current_position, eta_s=record.eta_s, last_error=record.last_error,
+        created_utc=record.created_utc, started_utc=record.started_utc, finished_utc=record.finished_utc,
+        exposures_per_position=record.exposures_per_position, file_url=f"/runs/{record.id}/file",
+    )  # fmt: skip
+
+
+@router.post("", status_code=status.HTTP_201_CREATED, response_model=RunStatus, dependencies=[TokenDep],
+             responses={409: {"model": Problem, "description": "another run is active"}, 422: {"model": Problem}})  # fmt: skip
+def start_run(body: RunRequest, engine: EngineDep, settings: SettingsDep) -> RunStatus:
+    """Start a run. Only one run at a time per rig: a second one gets 409."""
+    if "bracket" not in body.model_fields_set:
+        default = {"mode": "fixed", "exposures_s": settings.default_exposures_s}
+        body = RunRequest.model_validate({**body.model_dump(exclude={"bracket"}), "bracket": default})
+    return run_status(engine.start_run(body))
+
+
+@router.get("", response_model=list[RunStatus])
+def list_runs(catalog: CatalogDep, limit: int = 100) -> list[RunStatus]:
+    """Runs, newest first."""
+    return [run_status(r) for r in catalog.list_runs(limit=max(1, min(limit, 1000)))]
+
+
+@router.get("/{run_id}", response_model=RunStatus, responses=ERRORS)
+def get_run(run_id: str, catalog: CatalogDep) -> RunStatus:
+    """What happened to a run: state, percent done, ETA, current position, last error."""
+    return run_status(catalog.get_run(run_id))
+
+
+@router.post("/{run_id}/pause", response_model=RunStatus, dependencies=[TokenDep], responses=ERRORS)
+def pause(run_id: str, engine: EngineDep) -> RunStatus:
+    """Pause between frames."""
+    return run_status(engine.pause(run_id))
+
+
+@router.post("/{run_id}/resume", response_model=RunStatus, dependencies=[TokenDep], responses=ERRORS)
+def resume(run_id: str, engine: EngineDep) -> RunStatus:
+    """Resume a paused run, or continue an interrupted (daemon crash) or failed (device
+    fault, now cleared) run from its first incomplete position."""
+    return run_status(engine.resume(run_id))
+
+
+@router.post("/{run_id}/abort", response_model=RunStatus, dependencies=[TokenDep], responses=ERRORS)
+def abort(run_id: str, engine: EngineDep) -> RunStatus:
+    """Stop the arm and end the run; every frame taken is kept."""
+    return run_status(engine.abort(run_id))
+
+
+@router.get("/{run_id}/events", responses={200: {"content": {"text/event-stream": {}}}, **ERRORS})
+async def events(run_id: str, request: Request, catalog: CatalogDep, engine: EngineDep) -> StreamingResponse:
+    """Progress as server-sent events (``event: progress``), until the run ends."""
+    catalog.get_run(run_id)  # 404 before the stream starts
+
+    async def stream():
+        version = None
+        while True:
+            if await request.is_disconnected():
+                return
+            current = engine.events.version
+            if current != version:
+                version = current
+                record = await asyncio.to_thread(catalog.get_run, run_id)
+                yield f"event: progress\ndata: {json.dumps(run_status(record).model_dump())}\n\n"
+                if record.state in FINAL:
+                    return
+            await asyncio.sleep(0.2)
+
+    return StreamingResponse(stream(), media_type="text/event-stream", headers={"Cache-Control": "no-cache"})
+
+
+@router.get("/{run_id}/preview.png", responses={200: {"content": {"image/png": {}}}, **ERRORS})
+def run_preview(run_id: str, engine: EngineDep, catalog: CatalogDep) -> Response:
+    """The latest frame of this run, tone-mapped and downscaled."""
+    catalog.get_run(run_id)
+    png = engine.preview() if engine.latest_frame_run == run_id else None
+    if png is None:
+        raise HTTPException(status.HTTP_404_NOT_FOUND, f"run {run_id} has no frame in memory to preview")
+    return Response(png, media_type="image/png", headers={"Cache-Control": "no-store"})
+
+
+@router.get("/{run_id}/file", responses={200: {"content": {"application/x-hdf5": {}}}, **ERRORS})
+def download(run_id: str, catalog: CatalogDep) -> FileResponse:
+    """The run file (HDF5, ``docs/run-file.md``); refused while the run is being written."""
+    record = catalog.get_run(run_id)
+    if record.state in ("running", "paused", "queued"):
+        raise HTTPException(status.HTTP_409_CONFLICT, f"run {run_id} is {record.state}: the file is still being written")
+    path = Path(record.path)
+    if not path.exists():
+        raise HTTPException(status.HTTP_404_NOT_FOUND, f"run {run_id} has no run file")
+    return FileResponse(path, media_type="application/x-hdf5", filename=path.name)
+
+
+@router.post("/{run_id}/process", status_code=status.HTTP_201_CREATED, response_model=JobStatus,
+             dependencies=[TokenDep], responses=ERRORS)  # fmt: skip
+def process(run_id: str, catalog: CatalogDep, body: JobRequest | None = None) -> JobStatus:
+    """Queue a processing job for the run (a worker takes it)."""
+    body = body or JobRequest()
+    return job_status(catalog.create_job(run_id, steps=body.steps))

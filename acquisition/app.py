@@ -1,0 +1,89 @@
+"""The FastAPI daemon: devices created in the lifespan, routers per resource, one error map.
+
+``create_app(settings)`` builds the application; ``mirrorgonio serve`` runs it under uvicorn.
+"""
+
+from __future__ import annotations
+
+import logging
+from contextlib import asynccontextmanager
+from pathlib import Path
+
+from fastapi import FastAPI, Request, status
+from fastapi.responses import HTMLResponse, JSONResponse
+
+from acquisition import __version__
+from acquisition.api import arm, health, jobs, preview, presets, runs
+from acquisition.catalog import (
+    ActiveRunError,
+    Catalog,
+    CatalogError,
+    InvalidTransitionError,
+    UnknownJobError,
+    UnknownRunError,
+)
+from acquisition.devices import open_devices
+from acquisition.rig import RigError, load_rig
+from acquisition.runner import RunConflictError, RunEngine, RunEngineError
+from acquisition.settings import DaemonSettings
+from drivers.errors import DeviceError
+
+log = logging.getLogger("mirrorgonio.daemon")
+WEB_PAGE = Path(__file__).resolve().parent / "web" / "index.html"
+
+# Domain errors and the HTTP status each one means.
+ERROR_STATUS: list[tuple[type[Exception], int]] = [
+    (UnknownRunError, status.HTTP_404_NOT_FOUND),
+    (UnknownJobError, status.HTTP_404_NOT_FOUND),
+    (InvalidTransitionError, status.HTTP_409_CONFLICT),
+    (ActiveRunError, status.HTTP_409_CONFLICT),
+    (RunConflictError, status.HTTP_409_CONFLICT),
+    (RigError, status.HTTP_422_UNPROCESSABLE_CONTENT),
+    (CatalogError, status.HTTP_400_BAD_REQUEST),
+    (RunEngineError, status.HTTP_400_BAD_REQUEST),
+    (DeviceError, status.HTTP_503_SERVICE_UNAVAILABLE),
+]
+
+
+def create_app(settings: DaemonSettings) -> FastAPI:
+    @asynccontextmanager
+    async def lifespan(app: FastAPI):
+        rig = load_rig(settings.rig)
+        Path(settings.data_dir).mkdir(parents=True, exist_ok=True)
+        catalog = Catalog(settings.catalog_path)
+        interrupted = catalog.mark_interrupted()
+        if interrupted:
+            log.warning("runs interrupted by the last shutdown: %s", ", ".join(interrupted))
+        devices = open_devices(settings, rig)
+        engine = RunEngine(settings, rig, devices, catalog)
+        app.state.settings, app.state.catalog, app.state.engine = settings, catalog, engine
+        try:
+            yield
+        finally:
+            engine.shutdown()
+            devices.close()
+            catalog.close()
+
+    app = FastAPI(
+        title="mirrorgonio daemon",
+        version=__version__,
+        description="Drives the arm and the camera of a mirror-ball goniophotometer and writes run files.",
+        lifespan=lifespan,
+    )
+    for router in (health.router, presets.router, runs.router, preview.router, arm.router, jobs.router):
+        app.include_router(router)
+
+    async def domain_error(request: Request, exc: Exception) -> JSONResponse:
+        for kind, code in ERROR_STATUS:
+            if isinstance(exc, kind):
+                return JSONResponse({"detail": str(exc)}, status_code=code)
+        raise exc  # pragma: no cover - only registered for the kinds above
+
+    for kind, _ in ERROR_STATUS:
+        app.add_exception_handler(kind, domain_error)
+
+    @app.get("/", response_class=HTMLResponse, include_in_schema=False)
+    def web_page() -> HTMLResponse:
+        return HTMLResponse(WEB_PAGE.read_text(encoding="utf-8"))
+
+    return app

@@ -1,0 +1,127 @@
+"""Build the arm and the camera the configuration names.
+
+The daemon knows devices only through the :mod:`drivers` interfaces; this module is the
+one place that turns configuration into concrete objects, the simulated rig included.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from acquisition.rig import Rig
+from acquisition.settings import DaemonSettings, SettingsError
+from drivers.arm import Arm
+from drivers.camera import Camera
+
+
+@dataclass
+class Devices:
+    """The devices of one rig, and what must be stopped when the daemon exits."""
+
+    arm: Arm
+    camera: Camera
+    simulated: dict = field(default_factory=dict)  # the simulated parts, for tests and health
+    _closers: list = field(default_factory=list)
+
+    def close(self) -> None:
+        for closer in reversed(self._closers):
+            try:
+                closer()
+            except Exception:  # noqa: BLE001 - best effort at shutdown; each closer is independent
+                pass
+        self._closers.clear()
+
+
+def open_devices(settings: DaemonSettings, rig: Rig) -> Devices:
+    """Create, start and connect the configured arm and camera."""
+    closers: list = []
+    simulated: dict = {}
+    try:
+        arm = _open_arm(settings, rig, closers, simulated)
+        camera = _open_camera(settings, rig, simulated)
+        camera.connect()
+        closers.append(camera.close)
+    except BaseException:
+        for closer in reversed(closers):
+            closer()
+        raise
+    return Devices(arm=arm, camera=camera, simulated=simulated, _closers=closers)
+
+
+def _open_arm(settings: DaemonSettings, rig: Rig, closers: list, simulated: dict) -> Arm:
+    cfg = settings.arm
+    limits = rig.soft_limits()
+    if cfg.kind == "simulated":
+        from drivers.modbus_arm import ModbusArm
+        from drivers.modbus_profile import SIM_STAGE_PROFILE
+        from sim_devices.modbus_server import SimulatedModbusArm
+        from sim_devices.stage import SimulatedStage, StageConfig
+
+        stage = SimulatedStage(
+            StageConfig(
+                speed_m_s=cfg.simulated.speed_m_s,
+                accel_m_s2=cfg.simulated.accel_m_s2 if math.isfinite(cfg.simulated.speed_m_s) else math.inf,
+                angular_speed_rad_s=cfg.simulated.angular_speed_rad_s,
+                angular_accel_rad_s2=10 * cfg.simulated.angular_speed_rad_s,
+            )
+        )
+        server = SimulatedModbusArm(stage, host="127.0.0.1", port=cfg.port)
+        server.start()
+        closers.append(server.stop)
+        simulated.update(stage=stage, modbus_server=server)
+        arm: Arm = ModbusArm(SIM_STAGE_PROFILE, host="127.0.0.1", port=server.port, limits=limits,
+                             timeout_s=cfg.timeout_s, retries=cfg.retries)  # fmt: skip
+    elif cfg.kind in ("modbus-tcp", "modbus-rtu"):
+        from drivers.modbus_arm import ModbusArm
+
+        if cfg.profile is None:
+            raise SettingsError("arm.profile: a Modbus arm needs its register-map profile")
+        options = dict(limits=limits, timeout_s=cfg.timeout_s, retries=cfg.retries)
+        if cfg.kind == "modbus-tcp":
+            arm = ModbusArm(cfg.profile, transport="tcp", host=cfg.host, port=cfg.port or 502, **options)
+        else:
+            if not cfg.serial_port:
+                raise SettingsError("arm.serial_port: Modbus RTU needs a serial port")
+            arm = ModbusArm(cfg.profile, transport="rtu", serial_port=cfg.serial_port,
+                            baudrate=cfg.baudrate or 19200, **options)  # fmt: skip
+    else:
+        from drivers.serial_arm import MelfaSerialArm
+
+        if not cfg.serial_port:
+            raise SettingsError("arm.serial_port: a serial arm needs a serial port")
+        arm = MelfaSerialArm(cfg.serial_port, baudrate=cfg.baudrate or 9600, timeout_s=cfg.timeout_s,
+                             retries=cfg.retries, limits=limits)  # fmt: skip
+    arm.connect()
+    closers.append(arm.close)
+    return arm
+
+
+def _open_camera(settings: DaemonSettings, rig: Rig, simulated: dict) -> Camera:
+    cfg = settings.camera
+    spool = Path(settings.data_dir) / "spool"
+    if cfg.kind == "simulated":
+        if "stage" not in simulated:
+            raise SettingsError("camera.kind: the simulated camera needs the simulated arm (arm.kind = \"simulated\")")
+        from sim_devices.camera import SimulatedCamera
+        from sim_devices.lights import load_truth
+        from sim_devices.world import SimWorld
+
+        world = SimWorld(simulated["stage"].true_pose, rig.light.light_to_tool.to_pose())
+        sim = cfg.simulated
+        camera = SimulatedCamera(
+            rig, world, spool, truth=load_truth(sim.truth) if sim.truth else None,
+            noise=sim.noise, diffraction=sim.diffraction, latency_s=sim.latency_s,
+        )  # fmt: skip
+        simulated["world"] = world
+        return camera
+    if cfg.kind == "folder":
+        from drivers.folder_camera import FolderCamera
+
+        if cfg.folder is None:
+            raise SettingsError("camera.folder: a folder camera needs the folder to watch")
+        return FolderCamera(cfg.folder, timeout_s=cfg.capture_timeout_s)
+    from drivers.gphoto2_camera import Gphoto2Camera
+
+    return Gphoto2Camera(port=cfg.gphoto2_port, model=cfg.gphoto2_model, download_dir=spool)

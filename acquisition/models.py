@@ -1,0 +1,155 @@
+"""Request and response models of the daemon's REST API (with OpenAPI examples)."""
+
+from __future__ import annotations
+
+from datetime import datetime
+from typing import Annotated, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, PositiveFloat, model_validator
+
+from acquisition.rig import PoseSpec
+
+
+# --- requests ------------------------------------------------------------------------------
+class FixedBracket(BaseModel):
+    """A fixed list of exposure times, taken at every position in this order."""
+
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [{"mode": "fixed", "exposures_s": [0.0002, 0.001, 0.005]}]})
+    mode: Literal["fixed"] = "fixed"
+    exposures_s: list[Annotated[float, Field(gt=0.0, le=3600.0)]] = Field(min_length=1, max_length=16)
+
+
+class AutoBracket(BaseModel):
+    """Exposures chosen per position from a metering frame (``docs/daemon.md``)."""
+
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [{"mode": "auto", "target_snr": 20}]})
+    mode: Literal["auto"] = "auto"
+    target_snr: PositiveFloat | None = Field(default=None, le=1000.0)
+    useful_fraction: float | None = Field(default=None, gt=0.0, lt=1.0)
+    max_exposures: int | None = Field(default=None, ge=1, le=16)
+
+    def overrides(self) -> dict:
+        return {k: v for k, v in self.model_dump(exclude={"mode"}).items() if v is not None}
+
+
+Bracket = Annotated[FixedBracket | AutoBracket, Field(discriminator="mode")]
+
+
+class RunRequest(BaseModel):
+    """Start a run: a schedule preset × a bracket × metadata."""
+
+    model_config = ConfigDict(
+        extra="forbid",
+        json_schema_extra={
+            "examples": [
+                {
+                    "preset": "light-sweep",
+                    "bracket": {"mode": "fixed", "exposures_s": [0.0002, 0.001, 0.005]},
+                    "operator": "A. Technician",
+                    "light_source": "LED flashlight #3",
+                    "notes": "first sweep after cleaning the ball",
+                }
+            ]
+        },
+    )
+    preset: Literal["light-sweep", "object-arc", "raster", "poses"] = "light-sweep"
+    poses: list[PoseSpec] | None = Field(default=None, max_length=10000, description="light poses, for preset 'poses'")
+    count: int | None = Field(default=None, ge=1, le=100000, description="take only the first COUNT positions")
+    bracket: Bracket = Field(default_factory=lambda: FixedBracket(exposures_s=[0.0002, 0.001, 0.005]))
+    operator: str = Field(default="", max_length=200)
+    light_source: str = Field(default="", max_length=200)
+    notes: str = Field(default="", max_length=4000)
+
+    @model_validator(mode="after")
+    def _poses_with_their_preset(self):
+        if self.preset == "poses" and not self.poses:
+            raise ValueError("poses: preset 'poses' needs a list of poses")
+        if self.preset != "poses" and self.poses:
+            raise ValueError(f"poses: only for preset 'poses', not '{self.preset}'")
+        return self
+
+
+class JobRequest(BaseModel):
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [{"steps": "hdr,trace,fit"}]})
+    steps: str = Field(default="hdr,trace,fit", pattern=r"^[a-z]+(,[a-z]+)*$", max_length=200)
+
+
+# --- responses -----------------------------------------------------------------------------
+class RunStatus(BaseModel):
+    """Everything about a run in one answer."""
+
+    model_config = ConfigDict(json_schema_extra={"examples": [{
+        "id": "run-20261121-134501-3f2a", "state": "running", "preset": "light-sweep",
+        "n_positions": 66, "positions_done": 12, "percent_done": 18.2, "current_position": 12,
+        "eta_s": 310.0, "last_error": None, "created_utc": "2026-11-21T13:45:01+00:00",
+        "started_utc": "2026-11-21T13:45:02+00:00", "finished_utc": None,
+        "exposures_per_position": 3, "file_url": "/runs/run-20261121-134501-3f2a/file",
+    }]})  # fmt: skip
+    id: str
+    state: str
+    preset: str | None
+    n_positions: int
+    positions_done: int
+    percent_done: float
+    current_position: int | None
+    eta_s: float | None
+    last_error: str | None
+    created_utc: datetime
+    started_utc: datetime | None
+    finished_utc: datetime | None
+    exposures_per_position: int | None
+    file_url: str
+
+
+class JobStatus(BaseModel):
+    model_config = ConfigDict(json_schema_extra={"examples": [{
+        "id": "job-20261121-140000-aa01", "run_id": "run-20261121-134501-3f2a", "state": "queued",
+        "steps": "hdr,trace,fit", "progress": 0.0, "error": None, "result_dir": None,
+        "created_utc": "2026-11-21T14:00:00+00:00", "updated_utc": "2026-11-21T14:00:00+00:00",
+    }]})  # fmt: skip
+    id: str
+    run_id: str
+    state: str
+    steps: str
+    progress: float
+    error: str | None
+    result_dir: str | None
+    created_utc: datetime
+    updated_utc: datetime
+
+
+class ArmState(BaseModel):
+    connected: bool
+    identity: str
+    position: dict[str, float] | None = Field(default=None, description="read-back pose: x, y, z in m; rx, ry, rz in degrees")
+    moving: bool | None = None
+    in_position: bool | None = None
+    alarm_code: int | None = None
+    alarm_text: str | None = None
+    error: str | None = None
+
+
+class CameraState(BaseModel):
+    connected: bool
+    identity: str
+    error: str | None = None
+
+
+class DevicesStatus(BaseModel):
+    arm: ArmState
+    camera: CameraState
+
+
+class Health(BaseModel):
+    model_config = ConfigDict(json_schema_extra={"examples": [{"status": "degraded", "reasons": ["arm: connection refused"], "version": "0.1.0", "active_run": None}]})
+    status: Literal["ok", "degraded"]
+    reasons: list[str]
+    version: str
+    active_run: str | None
+
+
+class Problem(BaseModel):
+    """The body of every error answer."""
+
+    model_config = ConfigDict(json_schema_extra={"examples": [{"detail": "run run-1 is already active on this rig"}]})
+    detail: str | list

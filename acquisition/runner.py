@@ -1,0 +1,465 @@
+"""The run engine: moves the arm through a schedule and takes a bracket at each position.
+
+One run at a time per rig. States: queued → running ⇄ paused → complete | aborted |
+failed, and interrupted for a run whose daemon died (resumable, as is a failed run once
+its fault is cleared). Pause takes effect between frames; abort stops the arm and keeps
+every frame taken; a transient device error is retried, a persistent one fails the run
+with the device's own message.
+
+Frames of position i are written by a writer thread while the arm already moves to
+position i + 1, so the software's time hides behind the hardware's.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import queue
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from pathlib import Path
+
+from acquisition import __version__
+from acquisition.bracketing import NoiseModel, exposures_from_metering, is_saturated
+from acquisition.catalog import Catalog, RunRecord
+from acquisition.devices import Devices
+from acquisition.models import AutoBracket, FixedBracket, RunRequest
+from acquisition.preview import preview_png
+from acquisition.rig import Rig, rig_from_dict
+from acquisition.runfile import PositionTimes, RunFileWriter, RunHeader
+from acquisition.settings import DaemonSettings
+from drivers.camera import RawFrame
+from drivers.errors import CommunicationError, DeviceError, DeviceTimeoutError, MoveInterruptedError
+from drivers.pose import Pose
+
+log = logging.getLogger("mirrorgonio.runner")
+
+ACTIVE_STATES = ("queued", "running", "paused")
+
+
+class RunEngineError(Exception):
+    """A request the engine cannot honour (mapped to an HTTP status by the API)."""
+
+
+class RunConflictError(RunEngineError):
+    """Another run is active, or the run is not in a state that allows the request."""
+
+
+class _Aborted(Exception):
+    pass
+
+
+class _OperatorStop(Exception):
+    pass
+
+
+@dataclass
+class RunPlan:
+    run_id: str
+    rig: Rig
+    tool_poses: list[Pose]
+    light_poses: list[Pose]
+    request: RunRequest
+    path: Path
+
+
+@dataclass
+class _Control:
+    """Flags the HTTP side sets and the run thread obeys."""
+
+    pause: threading.Event = field(default_factory=threading.Event)
+    abort: threading.Event = field(default_factory=threading.Event)
+    operator_stop: threading.Event = field(default_factory=threading.Event)
+    wake: threading.Condition = field(default_factory=threading.Condition)
+
+
+class ProgressEvents:
+    """A version counter that server-sent-event streams wait on."""
+
+    def __init__(self):
+        self._version = 0
+        self._cond = threading.Condition()
+
+    def publish(self) -> None:
+        with self._cond:
+            self._version += 1
+            self._cond.notify_all()
+
+    @property
+    def version(self) -> int:
+        return self._version
+
+    def wait_newer(self, version: int, timeout: float) -> int:
+        with self._cond:
+            self._cond.wait_for(lambda: self._version != version, timeout=timeout)
+            return self._version
+
+
+class RunEngine:
+    """Runs acquisitions on one rig's devices, recording them in the catalog."""
+
+    def __init__(
+        self,
+        settings: DaemonSettings,
+        rig: Rig,
+        devices: Devices,
+        catalog: Catalog,
+        *,
+        wall_clock: Callable[[], float] = time.time,
+        monotonic: Callable[[], float] = time.monotonic,
+        sleep: Callable[[float], None] = time.sleep,
+    ):
+        self.settings = settings
+        self.rig = rig
+        self.devices = devices
+        self.catalog = catalog
+        self.events = ProgressEvents()
+        self._wall = wall_clock
+        self._mono = monotonic
+        self._sleep = sleep
+        self._lock = threading.Lock()
+        self._thread: threading.Thread | None = None
+        self._control = _Control()
+        self._current: str | None = None
+        self.latest_frame: RawFrame | None = None
+        self.latest_frame_run: str | None = None
+        self._preview_cache: tuple[int, bytes] | None = None
+        self._frame_serial = 0
+        Path(settings.runs_dir).mkdir(parents=True, exist_ok=True)
+
+    # --- presets ---------------------------------------------------------------------------
+    def presets(self) -> dict[str, dict]:
+        """Schedules a run can use: the rig's own, and the other kinds' defaults."""
+        from acquisition.rig import LightSweep, ObjectArc, Raster
+
+        base = {"light-sweep": LightSweep(), "object-arc": ObjectArc(), "raster": Raster()}
+        base[self.rig.schedule.kind] = self.rig.schedule
+        return {name: schedule.model_dump(mode="json") for name, schedule in base.items()}
+
+    def plan_schedule(self, request: RunRequest) -> Rig:
+        """The rig with the request's schedule, validated (limits, collisions)."""
+        if request.preset == "poses":
+            schedule = {"kind": "poses", "poses": [p.model_dump(mode="json") for p in request.poses or []]}
+        else:
+            schedule = self.presets()[request.preset]
+        data = self.rig.model_dump(mode="json", exclude_none=True)
+        data["schedule"] = schedule
+        return rig_from_dict(data, f"preset {request.preset}")
+
+    # --- control ---------------------------------------------------------------------------
+    @property
+    def busy(self) -> bool:
+        return self._thread is not None and self._thread.is_alive()
+
+    def start_run(self, request: RunRequest) -> RunRecord:
+        rig = self.plan_schedule(request)
+        with self._lock:
+            active = self.catalog.active_run()
+            if active is not None or self.busy:
+                raise RunConflictError(f"run {active.id if active else self._current} is already active on this rig")
+            tool, light = rig.tool_poses(), rig.light_poses()
+            if request.count is not None:
+                tool, light = tool[: request.count], light[: request.count]
+            runs_dir = Path(self.settings.runs_dir)
+            record = self.catalog.create_run(
+                preset=request.preset,
+                path_for=lambda run_id: str(runs_dir / f"{run_id}.h5"),
+                n_positions=len(tool),
+                request=request.model_dump(mode="json"),
+            )
+            plan = RunPlan(record.id, rig, tool, light, request, Path(record.path))
+            self._launch(plan, resume=False)
+        return record
+
+    def resume(self, run_id: str) -> RunRecord:
+        """Continue a paused run, or restart an interrupted or failed one where it stopped."""
+        with self._lock:
+            record = self.catalog.get_run(run_id)
+            if record.state == "paused" and self.busy and self._current == run_id:
+                self._control.operator_stop.clear()
+                self._control.pause.clear()
+                record = self.catalog.transition_run(run_id, "running")
+                self._notify()
+                return record
+            if record.state not in ("interrupted", "failed", "paused"):
+                raise RunConflictError(f"run {run_id} is {record.state}: only a paused, interrupted or failed run can resume")
+            active = self.catalog.active_run()
+            if self.busy or (active is not None and active.id != run_id):
+                raise RunConflictError(f"run {self._current or active.id} is already active on this rig")
+            request = RunRequest.model_validate(record.request)
+            rig = self.plan_schedule(request)
+            tool, light = rig.tool_poses(), rig.light_poses()
+            if request.count is not None:
+                tool, light = tool[: request.count], light[: request.count]
+            if record.state == "failed":
+                # The technician has cleared the fault: acknowledge the controller's alarm.
+                self.devices.arm.reset_alarm()
+            plan = RunPlan(run_id, rig, tool, light, request, Path(record.path))
+            # Running as soon as the request returns: a client polling right after must
+            # not see the old failed or interrupted state.
+            record = self.catalog.transition_run(run_id, "running")
+            self.events.publish()
+            self._launch(plan, resume=True)
+            return record
+
+    def pause(self, run_id: str) -> RunRecord:
+        with self._lock:
+            self._require_current(run_id)
+            record = self.catalog.transition_run(run_id, "paused")
+            self._control.pause.set()
+            self._notify()
+            return record
+
+    def abort(self, run_id: str) -> RunRecord:
+        with self._lock:
+            record = self.catalog.get_run(run_id)
+            if record.state in ("interrupted", "failed") and not self.busy:
+                record = self.catalog.transition_run(run_id, "aborted")
+                self.events.publish()
+                return record
+            self._require_current(run_id)
+            self._control.abort.set()
+            self._notify()
+        self.devices.arm.stop()
+        self._thread.join(timeout=60)
+        return self.catalog.get_run(run_id)
+
+    def stop_arm(self) -> None:
+        """Stop the arm at once; a run in progress pauses and re-takes its position on resume."""
+        if self.busy:
+            self._control.operator_stop.set()
+        self.devices.arm.stop()
+
+    def wait(self, timeout: float | None = None) -> None:
+        """Wait for the current run's thread to finish (tests, shutdown)."""
+        thread = self._thread
+        if thread is not None:
+            thread.join(timeout)
+
+    def shutdown(self) -> None:
+        if self.busy:
+            self._control.abort.set()
+            self._notify()
+            self._thread.join(timeout=30)
+
+    def preview(self) -> bytes | None:
+        frame, serial = self.latest_frame, self._frame_serial
+        if frame is None:
+            return None
+        if self._preview_cache is None or self._preview_cache[0] != serial:
+            self._preview_cache = (serial, preview_png(frame))
+        return self._preview_cache[1]
+
+    # --- internals -------------------------------------------------------------------------
+    def _require_current(self, run_id: str) -> None:
+        record = self.catalog.get_run(run_id)
+        if not (self.busy and self._current == run_id):
+            raise RunConflictError(f"run {run_id} is {record.state}, not in progress")
+
+    def _notify(self) -> None:
+        with self._control.wake:
+            self._control.wake.notify_all()
+
+    def _launch(self, plan: RunPlan, resume: bool) -> None:
+        self._control = _Control()
+        self._current = plan.run_id
+        self._thread = threading.Thread(target=self._execute, args=(plan, resume), name=f"run-{plan.run_id}", daemon=True)
+        self._thread.start()
+
+    def _checkpoint(self) -> None:
+        """Between frames: honour abort, and wait while paused."""
+        control = self._control
+        if control.abort.is_set():
+            raise _Aborted()
+        with control.wake:
+            while control.pause.is_set() and not control.abort.is_set():
+                control.wake.wait(timeout=0.5)
+        if control.abort.is_set():
+            raise _Aborted()
+
+    def _device(self, what: str, action: Callable, *args, **kwargs):
+        """Run a device action, retrying transient errors."""
+        attempts = self.settings.device_retries + 1
+        for attempt in range(attempts):
+            try:
+                return action(*args, **kwargs)
+            except MoveInterruptedError:
+                if self._control.operator_stop.is_set():
+                    raise _OperatorStop() from None
+                if self._control.abort.is_set():
+                    raise _Aborted() from None
+                raise
+            except (CommunicationError, DeviceTimeoutError) as exc:
+                if attempt == attempts - 1 or self._control.abort.is_set():
+                    raise
+                log.warning("%s failed (%s); retry %d of %d", what, exc, attempt + 1, attempts - 1)
+                self._sleep(0.2 * (attempt + 1))
+        raise AssertionError("unreachable")
+
+    def _bracket(self, bracket: FixedBracket | AutoBracket) -> list[float]:
+        if isinstance(bracket, FixedBracket):
+            return list(bracket.exposures_s)
+        rule = self.settings.auto_bracket.model_copy(update=bracket.overrides())
+        noise = NoiseModel(self.rig.camera.gain_e_per_dn, self.rig.camera.read_noise_e)
+        exposure = rule.metering_exposure_s
+        for _ in range(8):
+            self._checkpoint()
+            meter = self._device("metering capture", self.devices.camera.capture, exposure)
+            self._discard_raw(meter)
+            if not is_saturated(meter) or exposure <= rule.min_exposure_s:
+                return exposures_from_metering(meter, rule, noise)
+            exposure = max(exposure / 8.0, rule.min_exposure_s)
+        return exposures_from_metering(meter, rule, noise)
+
+    def _max_exposures(self, request: RunRequest) -> int:
+        if isinstance(request.bracket, FixedBracket):
+            return len(request.bracket.exposures_s)
+        return self.settings.auto_bracket.model_copy(update=request.bracket.overrides()).max_exposures
+
+    def _header(self, plan: RunPlan) -> RunHeader:
+        request = plan.request
+        return RunHeader(
+            run_id=plan.run_id,
+            rig=plan.rig,
+            tool_poses=plan.tool_poses,
+            light_poses=plan.light_poses,
+            max_exposures=self._max_exposures(request),
+            frame_shape=(plan.rig.camera.height, plan.rig.camera.width),
+            bracket=request.bracket.model_dump(mode="json"),
+            metadata={"operator": request.operator, "light_source": request.light_source, "notes": request.notes},
+            devices={"arm": self.devices.arm.identity, "camera": self.devices.camera.identity},
+            software_version=__version__,
+            created_utc=datetime.now(UTC).isoformat(timespec="seconds"),
+            preset=request.preset,
+        )
+
+    def _discard_raw(self, frame: RawFrame) -> None:
+        if not self.settings.camera.keep_raw_files and frame.source:
+            try:
+                os.unlink(frame.source)
+            except OSError:
+                pass
+
+    def _execute(self, plan: RunPlan, resume: bool) -> None:
+        run_id = plan.run_id
+        writer: RunFileWriter | None = None
+        write_queue: queue.Queue = queue.Queue(maxsize=1)
+        writer_error: list[BaseException] = []
+        durations: list[float] = []
+
+        def write_loop() -> None:
+            while True:
+                item = write_queue.get()
+                try:
+                    if item is None:
+                        return
+                    index, measured, times, frames = item
+                    if writer_error:
+                        continue
+                    try:
+                        writer.write_position(index, measured, times, frames)
+                    except BaseException as exc:  # noqa: BLE001 - reported to the run thread
+                        writer_error.append(exc)
+                        continue
+                    for frame in frames:
+                        self._discard_raw(frame)
+                    done = int(writer.complete.sum())
+                    per_position = sum(durations[-10:]) / len(durations[-10:]) if durations else None
+                    self.catalog.update_progress(run_id, positions_done=done, current_position=index,
+                                                 seconds_per_position=per_position,
+                                                 exposures_per_position=len(frames))  # fmt: skip
+                    self.events.publish()
+                finally:
+                    write_queue.task_done()
+
+        write_thread = threading.Thread(target=write_loop, name=f"write-{run_id}", daemon=True)
+        outcome, message = "complete", ""
+        try:
+            if resume:
+                writer = RunFileWriter.reopen(plan.path)
+            else:
+                writer = RunFileWriter.create(plan.path, self._header(plan))
+            if self.catalog.get_run(run_id).state != "running":
+                self.catalog.transition_run(run_id, "running")
+            writer.set_status("running")
+            self.events.publish()
+            write_thread.start()
+            index = writer.first_incomplete()
+            while index is not None and index < len(plan.tool_poses):
+                if writer.complete[index]:
+                    index += 1
+                    continue
+                try:
+                    self._take_position(plan, index, write_queue, durations)
+                except _OperatorStop:
+                    self._pause_after_stop(run_id, index)
+                    continue  # re-take this position once resumed
+                if writer_error:
+                    raise writer_error[0]
+                index += 1
+            write_queue.join()
+            if writer_error:
+                raise writer_error[0]
+        except _Aborted:
+            outcome, message = "aborted", "aborted by the operator"
+        except DeviceError as exc:
+            outcome, message = "failed", str(exc)
+        except Exception as exc:  # noqa: BLE001 - any other failure still keeps the data
+            log.exception("run %s failed", run_id)
+            outcome, message = "failed", f"{type(exc).__name__}: {exc}"
+        finally:
+            if outcome != "complete":
+                try:
+                    self.devices.arm.stop()
+                except DeviceError as exc:
+                    message += f"; stopping the arm also failed: {exc}"
+            if write_thread.is_alive():
+                write_queue.put(None)  # frames already taken are still written
+                write_thread.join()
+            if writer_error and outcome == "complete":
+                outcome, message = "failed", str(writer_error[0])
+            if writer is not None:
+                try:
+                    writer.set_status(outcome, message)
+                finally:
+                    writer.close()
+            state = self.catalog.get_run(run_id).state
+            if state != outcome:
+                self.catalog.transition_run(run_id, outcome, error=message or None)
+            self._current = None if outcome != "paused" else run_id
+            self.events.publish()
+
+    def _take_position(self, plan: RunPlan, index: int, write_queue: queue.Queue, durations: list[float]) -> None:
+        started = self._mono()
+        self._checkpoint()
+        self.catalog.update_progress(plan.run_id, positions_done=self._done(plan), current_position=index)
+        self.events.publish()
+        move_started = self._wall()
+        measured = self._device("move", self.devices.arm.move_to, plan.tool_poses[index],
+                                timeout=self.settings.arm.move_timeout_s)  # fmt: skip
+        in_position = self._wall()
+        exposures = self._bracket(plan.request.bracket)
+        frames: list[RawFrame] = []
+        for exposure in exposures:
+            self._checkpoint()
+            frame = self._device("capture", self.devices.camera.capture, exposure)
+            frames.append(frame)
+            self.latest_frame, self.latest_frame_run = frame, plan.run_id
+            self._frame_serial += 1
+        times = PositionTimes(move_started, in_position, self._wall())
+        durations.append(self._mono() - started)
+        # Blocks only while the previous position is still being written.
+        write_queue.put((index, measured, times, frames))
+
+    def _done(self, plan: RunPlan) -> int:
+        return self.catalog.get_run(plan.run_id).positions_done
+
+    def _pause_after_stop(self, run_id: str, index: int) -> None:
+        log.warning("arm stopped by the operator at position %d; run %s paused", index, run_id)
+        self.catalog.transition_run(run_id, "paused", error=f"arm stopped by the operator at position {index}")
+        self._control.pause.set()
+        self._control.operator_stop.clear()
+        self.events.publish()

@@ -1,0 +1,149 @@
+"""The daemon's configuration: ``daemon.toml`` overlaid by ``MG_*`` environment variables.
+
+With no file at all the daemon runs the simulated rig: the simulated stage served over
+Modbus TCP on loopback and driven through the real :class:`~drivers.modbus_arm.ModbusArm`,
+and the simulated camera. A file names real devices instead (``docs/daemon.md``).
+"""
+
+from __future__ import annotations
+
+import ipaddress
+from pathlib import Path
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, PositiveFloat, SecretStr
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+from acquisition.rig import DEFAULT_RIG_PATH
+from drivers.config_files import read_toml, validate_model
+
+
+class SettingsError(ValueError):
+    """An unreadable or impossible daemon configuration (one line: file, field, cause)."""
+
+
+class _Section(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class SimulatedStageSettings(_Section):
+    """Mechanics of the simulated stage (``speed_m_s = inf`` makes moves instantaneous)."""
+
+    speed_m_s: PositiveFloat = 0.05
+    accel_m_s2: PositiveFloat = 0.5
+    angular_speed_rad_s: PositiveFloat = 1.0
+
+
+class ArmSettings(_Section):
+    """Which arm, and how to reach it.
+
+    ``simulated`` starts the simulated stage's Modbus TCP server on loopback (on
+    ``port``, 0 for any free port) and drives it through ``ModbusArm``.
+    """
+
+    kind: Literal["simulated", "modbus-tcp", "modbus-rtu", "serial"] = "simulated"
+    profile: Path | None = None
+    host: str = "127.0.0.1"
+    port: int = Field(default=0, ge=0, le=65535)
+    serial_port: str | None = None
+    baudrate: int | None = None
+    timeout_s: PositiveFloat = 1.0
+    retries: int = Field(default=3, ge=0)
+    move_timeout_s: PositiveFloat = 120.0
+    simulated: SimulatedStageSettings = SimulatedStageSettings()
+
+
+class SimulatedCameraSettings(_Section):
+    truth: str | None = None
+    noise: bool | None = None
+    diffraction: bool | None = None
+    latency_s: float = Field(default=0.0, ge=0.0)
+
+
+class CameraSettings(_Section):
+    """Which camera: ``simulated``, ``gphoto2`` (tethered over USB) or ``folder``."""
+
+    kind: Literal["simulated", "gphoto2", "folder"] = "simulated"
+    folder: Path | None = None
+    gphoto2_port: str | None = None
+    gphoto2_model: str | None = None
+    capture_timeout_s: PositiveFloat = 30.0
+    keep_raw_files: bool = False
+    simulated: SimulatedCameraSettings = SimulatedCameraSettings()
+
+
+class AutoBracketSettings(_Section):
+    """The ``auto`` bracket rule (``docs/daemon.md``, "Auto bracketing")."""
+
+    metering_exposure_s: PositiveFloat = 0.001
+    saturation_fraction: float = Field(default=0.8, gt=0.0, le=1.0)
+    useful_fraction: float = Field(default=1e-3, gt=0.0, lt=1.0)
+    target_snr: PositiveFloat = 20.0
+    step_ratio: float = Field(default=4.0, gt=1.0)
+    max_exposures: int = Field(default=7, ge=1, le=16)
+    min_exposure_s: PositiveFloat = 1e-5
+    max_exposure_s: PositiveFloat = 30.0
+
+
+class DaemonSettings(BaseSettings):
+    """Everything ``mirrorgonio serve`` needs."""
+
+    model_config = SettingsConfigDict(env_prefix="MG_", env_nested_delimiter="__", extra="forbid")
+
+    data_dir: Path = Path("data")
+    rig: Path = DEFAULT_RIG_PATH
+    host: str = "127.0.0.1"
+    port: int = Field(default=8000, ge=0, le=65535)
+    token: SecretStr | None = None
+    device_retries: int = Field(default=2, ge=0, description="retries of a transient device error")
+    arm: ArmSettings = ArmSettings()
+    camera: CameraSettings = CameraSettings()
+    auto_bracket: AutoBracketSettings = AutoBracketSettings()
+    default_exposures_s: list[PositiveFloat] = Field(default_factory=lambda: [0.0002, 0.001, 0.005])
+
+    @property
+    def catalog_path(self) -> Path:
+        return self.data_dir / "catalog.sqlite"
+
+    @property
+    def runs_dir(self) -> Path:
+        return self.data_dir / "runs"
+
+    def require_token_off_loopback(self) -> None:
+        """``serve`` refuses a non-loopback address without a token."""
+        if self.token is not None and self.token.get_secret_value():
+            return
+        if not is_loopback(self.host):
+            raise SettingsError(
+                f"host: refusing to listen on {self.host} without a token "
+                "(set token in the configuration or MG_TOKEN)"
+            )
+
+
+def is_loopback(host: str) -> bool:
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+def load_settings(path: str | Path | None = None, **overrides) -> DaemonSettings:
+    """Read ``daemon.toml`` (optional); ``MG_*`` variables fill what the file leaves out."""
+    data = read_toml(path, "configuration file", SettingsError) if path is not None else {}
+    data.update({k: v for k, v in overrides.items() if v is not None})
+    source = str(path) if path is not None else "<settings>"
+    settings = validate_model(DaemonSettings, data, source, SettingsError)
+    if path is not None:
+        # Relative paths in the file are relative to the file, not to the working directory.
+        base = Path(path).resolve().parent
+        for name in ("data_dir", "rig"):
+            value = getattr(settings, name)
+            if name in data and not Path(value).is_absolute():
+                setattr(settings, name, base / value)
+        if settings.arm.profile is not None and not settings.arm.profile.is_absolute():
+            settings.arm.profile = base / settings.arm.profile
+        if settings.camera.folder is not None and not settings.camera.folder.is_absolute():
+            settings.camera.folder = base / settings.camera.folder
+    return settings

@@ -1,0 +1,106 @@
+"""Shared fixtures: the reduced rig, free ports, and real daemon processes."""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import httpx
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+REDUCED_RIG = ROOT / "tests" / "rigs" / "reduced.toml"
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class DaemonProcess:
+    """``mirrorgonio serve`` in its own process, reached over HTTP only."""
+
+    def __init__(self, config: Path, port: int, log: Path, token: str | None = None):
+        self.config, self.port, self.log_path, self.token = config, port, log, token
+        self.url = f"http://127.0.0.1:{port}"
+        self.proc: subprocess.Popen | None = None
+
+    def start(self, timeout: float = 60.0) -> DaemonProcess:
+        exe = Path(sys.executable).with_name("mirrorgonio")
+        env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+        if self.token:
+            env["MG_TOKEN"] = self.token
+        self._log = open(self.log_path, "ab")
+        self.proc = subprocess.Popen([str(exe), "serve", "--config", str(self.config), "--port", str(self.port)],
+                                     stdout=self._log, stderr=subprocess.STDOUT, env=env)  # fmt: skip
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if self.proc.poll() is not None:
+                raise RuntimeError(f"daemon exited: {self.log_path.read_text()[-2000:]}")
+            try:
+                httpx.get(self.url + "/health", timeout=1.0)
+                return self
+            except httpx.HTTPError:
+                time.sleep(0.1)
+        raise RuntimeError(f"daemon did not start: {self.log_path.read_text()[-2000:]}")
+
+    def client(self) -> httpx.Client:
+        headers = {"Authorization": f"Bearer {self.token}"} if self.token else {}
+        return httpx.Client(base_url=self.url, headers=headers, timeout=30.0)
+
+    def kill(self) -> None:
+        if self.proc and self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGKILL)
+            self.proc.wait(10)
+
+    def stop(self) -> None:
+        if self.proc and self.proc.poll() is None:
+            self.proc.terminate()
+            try:
+                self.proc.wait(20)
+            except subprocess.TimeoutExpired:
+                self.kill()
+        if getattr(self, "_log", None):
+            self._log.close()
+
+
+def write_config(path: Path, data_dir: Path, arm_port: int = 0, extra: str = "") -> Path:
+    path.write_text(
+        f'data_dir = "{data_dir}"\nrig = "{REDUCED_RIG}"\n'
+        f"[arm]\nkind = \"simulated\"\nport = {arm_port}\n[arm.simulated]\nspeed_m_s = 0.5\naccel_m_s2 = 5.0\n"
+        f"{extra}"
+    )
+    return path
+
+
+@pytest.fixture()
+def daemon_factory(tmp_path):
+    """Start real daemons; every one is stopped at the end of the test."""
+    started: list[DaemonProcess] = []
+
+    def make(config: Path, token: str | None = None, port: int | None = None) -> DaemonProcess:
+        daemon = DaemonProcess(config, port or free_port(), tmp_path / f"daemon-{len(started)}.log", token)
+        started.append(daemon)
+        return daemon.start()
+
+    yield make
+    for daemon in started:
+        daemon.stop()
+
+
+def wait_for(client: httpx.Client, run_id: str, states, timeout: float = 300.0, done_at_least: int | None = None) -> dict:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        status = client.get(f"/runs/{run_id}").json()
+        if status["state"] in states:
+            return status
+        if done_at_least is not None and status["positions_done"] >= done_at_least:
+            return status
+        time.sleep(0.1)
+    raise AssertionError(f"run {run_id} did not reach {states}: {status}")

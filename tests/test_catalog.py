@@ -1,0 +1,493 @@
+"""The catalog of runs and jobs: states, restarts, and races between threads and processes."""
+
+import itertools
+import multiprocessing
+import pickle
+import re
+import sqlite3
+import threading
+from datetime import UTC, datetime, timedelta, timezone
+
+import pytest
+
+from acquisition.catalog import (
+    ALLOWED_RUN_TRANSITIONS,
+    JOB_STATES,
+    RUN_STATES,
+    SCHEMA_VERSION,
+    ActiveRunError,
+    Catalog,
+    CatalogError,
+    InvalidTransitionError,
+    JobClaimError,
+    UnknownJobError,
+    UnknownRunError,
+)
+
+T0 = datetime(2026, 11, 21, 13, 45, 1, tzinfo=UTC)
+
+
+class FakeClock:
+    """A clock the test moves by hand."""
+
+    def __init__(self, start: datetime = T0):
+        self.now = start
+        self._lock = threading.Lock()
+
+    def __call__(self) -> datetime:
+        with self._lock:
+            return self.now
+
+    def advance(self, seconds: float) -> None:
+        with self._lock:
+            self.now += timedelta(seconds=seconds)
+
+
+@pytest.fixture
+def clock():
+    return FakeClock()
+
+
+@pytest.fixture
+def db(tmp_path):
+    return tmp_path / "catalog.sqlite"
+
+
+@pytest.fixture
+def cat(db, clock):
+    catalog = Catalog(db, clock=clock)
+    yield catalog
+    catalog.close()
+
+
+def _new_run(cat, n=10, **request):
+    return cat.create_run(preset="quick", path_for=lambda rid: f"/data/{rid}.h5", n_positions=n, request=request)
+
+
+def _run_in(cat, state):
+    """A new run brought to ``state`` through allowed transitions."""
+    run = _new_run(cat)
+    path = {
+        "queued": [],
+        "running": ["running"],
+        "paused": ["running", "paused"],
+        "complete": ["running", "complete"],
+        "aborted": ["aborted"],
+        "failed": ["running", "failed"],
+        "interrupted": ["running", "interrupted"],
+    }[state]
+    for step in path:
+        run = cat.transition_run(run.id, step)
+    return run
+
+
+# --- runs --------------------------------------------------------------------------------
+def test_create_get_list_runs_newest_first(cat, clock):
+    ids = []
+    for k in range(3):
+        run = _new_run(cat, n=5 + k, k=k, nested={"exposures": [0.001, 0.01]})
+        assert re.fullmatch(r"run-20261121-1345\d\d-[0-9a-f]{4}", run.id)
+        assert run.state == "queued"
+        assert run.path == f"/data/{run.id}.h5"
+        assert run.created_utc == run.updated_utc == clock.now
+        assert run.n_positions == 5 + k and run.positions_done == 0
+        assert run.request == {"k": k, "nested": {"exposures": [0.001, 0.01]}}
+        assert run.started_utc is None and run.finished_utc is None and run.eta_s is None
+        ids.append(run.id)
+        cat.transition_run(run.id, "aborted")
+    assert len(set(ids)) == 3
+    assert cat.get_run(ids[1]).request["k"] == 1
+    assert [r.id for r in cat.list_runs()] == ids[::-1]
+    assert [r.id for r in cat.list_runs(limit=2)] == ids[:0:-1]
+    assert cat.list_runs(state="running") == []
+    assert len(cat.list_runs(state="aborted")) == 3
+    with pytest.raises(UnknownRunError, match="run-nope"):
+        cat.get_run("run-nope")
+    with pytest.raises(CatalogError, match="unknown run state 'done'"):
+        cat.list_runs(state="done")
+
+
+def test_create_run_refuses_bad_input_and_a_second_active_run(cat):
+    with pytest.raises(CatalogError, match="n_positions"):
+        cat.create_run(preset="p", path_for=None, n_positions=0, request={})
+    with pytest.raises(CatalogError, match="not plain JSON"):
+        cat.create_run(preset="p", path_for=None, n_positions=3, request={"x": float("nan")})
+    run = cat.create_run(preset=None, path_for=None, n_positions=3, request={})
+    assert run.path is None and run.preset is None
+    with pytest.raises(ActiveRunError, match=f"run {run.id} is queued"):
+        _new_run(cat)
+    cat.transition_run(run.id, "running")
+    with pytest.raises(ActiveRunError, match="running"):
+        _new_run(cat)
+    cat.transition_run(run.id, "complete")
+    _new_run(cat)
+
+
+def test_every_transition_follows_the_table(cat):
+    assert set(ALLOWED_RUN_TRANSITIONS) == set(RUN_STATES)
+    for source, target in itertools.product(RUN_STATES, RUN_STATES):
+        run = _run_in(cat, source)
+        assert run.state == source
+        if target in ALLOWED_RUN_TRANSITIONS[source]:
+            assert cat.transition_run(run.id, target).state == target
+        else:
+            with pytest.raises(InvalidTransitionError) as info:
+                cat.transition_run(run.id, target)
+            assert info.value.from_state == source and info.value.to_state == target
+            assert cat.get_run(run.id).state == source
+        # Leave no active run behind for the next pair.
+        if cat.get_run(run.id).state in ("queued", "running", "paused"):
+            cat.transition_run(run.id, "aborted")
+
+
+def test_invalid_transition_message_names_the_run_and_both_states(cat):
+    run = _run_in(cat, "complete")
+    with pytest.raises(InvalidTransitionError) as info:
+        cat.transition_run(run.id, "running")
+    message = str(info.value)
+    assert "\n" not in message
+    assert run.id in message and "from complete to running" in message and "final" in message
+    with pytest.raises(CatalogError, match="unknown run state 'done'"):
+        cat.transition_run(run.id, "done")
+    with pytest.raises(UnknownRunError):
+        cat.transition_run("run-nope", "running")
+    # The errors survive a trip to another process.
+    again = pickle.loads(pickle.dumps(info.value))
+    assert type(again) is InvalidTransitionError and str(again) == message
+
+
+def test_transitions_set_start_finish_and_error(cat, clock):
+    run = _new_run(cat)
+    clock.advance(5)
+    run = cat.transition_run(run.id, "running")
+    started = clock.now
+    assert run.started_utc == started and run.finished_utc is None
+    clock.advance(60)
+    run = cat.transition_run(run.id, "failed", error="arm: move_to: alarm 0x0010: overtravel")
+    assert run.finished_utc == clock.now and run.last_error.startswith("arm: move_to")
+    clock.advance(60)
+    run = cat.transition_run(run.id, "running")  # resumed after the fault was cleared
+    assert run.started_utc == started and run.finished_utc is None
+    assert run.last_error.startswith("arm: move_to")  # kept: it says what stopped the run
+    run = cat.transition_run(run.id, "complete")
+    assert run.finished_utc == clock.now and run.updated_utc == clock.now
+
+
+def test_resuming_a_run_while_another_is_active_is_refused(cat):
+    old = _run_in(cat, "interrupted")
+    new = _run_in(cat, "running")
+    with pytest.raises(ActiveRunError, match=new.id):
+        cat.transition_run(old.id, "running")
+    cat.transition_run(new.id, "complete")
+    assert cat.transition_run(old.id, "running").state == "running"
+
+
+def test_racing_transitions_exactly_one_wins(db, clock):
+    """Two threads, each with its own connection, end the same running run differently."""
+    cats = [Catalog(db, clock=clock) for _ in range(2)]
+    targets = ("complete", "aborted")
+    try:
+        for _ in range(15):
+            run = _run_in(cats[0], "running")
+            barrier = threading.Barrier(2)
+            outcomes = [None, None]
+
+            def end(k):
+                barrier.wait()
+                try:
+                    outcomes[k] = cats[k].transition_run(run.id, targets[k]).state
+                except InvalidTransitionError as exc:
+                    outcomes[k] = exc
+
+            threads = [threading.Thread(target=end, args=(k,)) for k in range(2)]
+            for t in threads:
+                t.start()
+            for t in threads:
+                t.join(10)
+            winners = [o for o in outcomes if isinstance(o, str)]
+            losers = [o for o in outcomes if isinstance(o, InvalidTransitionError)]
+            assert len(winners) == 1 and len(losers) == 1, outcomes
+            assert cats[0].get_run(run.id).state == winners[0]
+            assert losers[0].from_state == winners[0]
+            assert f"from {winners[0]} to" in str(losers[0])
+    finally:
+        for c in cats:
+            c.close()
+
+
+def test_active_run_and_mark_interrupted_after_restart(db, clock):
+    cat = Catalog(db, clock=clock)
+    assert cat.active_run() is None
+    done = _run_in(cat, "complete")
+    run = _run_in(cat, "running")
+    cat.update_progress(run.id, positions_done=3, current_position=3, seconds_per_position=4.0)
+    assert cat.active_run().id == run.id
+    cat.close()
+    with pytest.raises(CatalogError, match="closed"):
+        cat.get_run(run.id)
+
+    clock.advance(3600)
+    cat = Catalog(db, clock=clock)  # the daemon restarts on the same file
+    try:
+        survived = cat.get_run(run.id)
+        assert survived.state == "running" and survived.positions_done == 3
+        assert cat.get_run(done.id).state == "complete"
+        assert cat.mark_interrupted() == [run.id]
+        assert cat.mark_interrupted() == []
+        after = cat.get_run(run.id)
+        assert after.state == "interrupted" and after.updated_utc == clock.now
+        assert after.positions_done == 3 and after.current_position == 3
+        assert cat.active_run() is None
+        assert cat.transition_run(run.id, "running").state == "running"  # resume
+        assert cat.active_run().id == run.id
+    finally:
+        cat.close()
+
+
+def test_mark_interrupted_also_catches_queued_and_paused(cat):
+    queued = _run_in(cat, "queued")
+    assert cat.active_run().id == queued.id
+    assert cat.mark_interrupted() == [queued.id]
+    paused = _run_in(cat, "paused")
+    assert cat.active_run().id == paused.id
+    assert cat.mark_interrupted() == [paused.id]
+    assert {r.state for r in cat.list_runs()} == {"interrupted"}
+
+
+def test_progress_and_eta(cat, clock):
+    run = _new_run(cat, n=10)
+    cat.transition_run(run.id, "running")
+    clock.advance(30)
+    cat.update_progress(run.id, positions_done=4, current_position=4, seconds_per_position=2.5, exposures_per_position=5)
+    run = cat.get_run(run.id)
+    assert (run.positions_done, run.current_position, run.exposures_per_position) == (4, 4, 5)
+    assert run.updated_utc == clock.now
+    assert run.eta_s == pytest.approx(15.0)
+    assert run.model_dump(mode="json")["eta_s"] == pytest.approx(15.0)
+    # None leaves the average and the exposures as they were.
+    cat.update_progress(run.id, positions_done=5, current_position=None)
+    run = cat.get_run(run.id)
+    assert run.current_position is None and run.seconds_per_position == 2.5 and run.exposures_per_position == 5
+    assert run.eta_s == pytest.approx(12.5)
+    assert cat.transition_run(run.id, "paused").eta_s is None  # no ETA unless running
+    with pytest.raises(CatalogError, match="positions_done 11 > n_positions 10"):
+        cat.update_progress(run.id, positions_done=11, current_position=None)
+    with pytest.raises(CatalogError, match="current_position 10 >= n_positions 10"):
+        cat.update_progress(run.id, positions_done=10, current_position=10)
+    with pytest.raises(CatalogError, match="seconds_per_position"):
+        cat.update_progress(run.id, positions_done=5, current_position=5, seconds_per_position=-1.0)
+    with pytest.raises(UnknownRunError):
+        cat.update_progress("run-nope", positions_done=0, current_position=None)
+
+
+def test_the_clock_must_be_timezone_aware(db):
+    with pytest.raises(CatalogError, match="timezone-aware"):
+        Catalog(db, clock=lambda: datetime(2026, 1, 1))
+    cet = timezone(timedelta(hours=1))
+    cat = Catalog(db, clock=lambda: datetime(2026, 1, 1, 13, 0, tzinfo=cet))
+    try:
+        assert _new_run(cat).created_utc == datetime(2026, 1, 1, 12, 0, tzinfo=UTC)
+    finally:
+        cat.close()
+
+
+def test_schema_version_is_recorded_and_a_newer_one_refused(db, clock):
+    Catalog(db, clock=clock).close()
+    Catalog(db, clock=clock).close()  # reopening does not migrate twice
+    with sqlite3.connect(db) as conn:
+        assert conn.execute("SELECT version FROM schema_version").fetchall() == [(SCHEMA_VERSION,)]
+        assert conn.execute("PRAGMA journal_mode").fetchone()[0] == "wal"
+        conn.execute("INSERT INTO schema_version VALUES (?, 'later')", (SCHEMA_VERSION + 1,))
+    conn.close()
+    with pytest.raises(CatalogError, match=f"schema version {SCHEMA_VERSION + 1}, newer"):
+        Catalog(db, clock=clock)
+
+
+def test_a_file_that_is_not_a_catalog_is_refused(tmp_path):
+    junk = tmp_path / "junk.sqlite"
+    junk.write_bytes(b"this is not a database" * 100)
+    with pytest.raises(CatalogError, match="cannot open catalog .*junk.sqlite"):
+        Catalog(junk)
+    with pytest.raises(CatalogError, match="cannot open catalog"):
+        Catalog(tmp_path / "missing-dir" / "catalog.sqlite")
+
+
+# --- jobs --------------------------------------------------------------------------------
+def test_create_get_list_jobs(cat, clock):
+    assert JOB_STATES == ("queued", "running", "complete", "failed")
+    with pytest.raises(UnknownRunError, match="run-nope"):
+        cat.create_job("run-nope")
+    run = _run_in(cat, "complete")
+    job = cat.create_job(run.id)
+    assert re.fullmatch(r"job-20261121-134501-[0-9a-f]{4}", job.id)
+    assert (job.run_id, job.state, job.steps, job.options, job.progress) == (run.id, "queued", "hdr,trace,fit", {}, 0.0)
+    assert job.claimed_by is None and job.heartbeat_utc is None and job.created_utc == clock.now
+    other = cat.create_job(run.id, steps="hdr, fit", options={"sources": 5})
+    assert other.steps == "hdr,fit" and cat.get_job(other.id).options == {"sources": 5}
+    assert [j.id for j in cat.list_jobs()] == [other.id, job.id]
+    assert [j.id for j in cat.list_jobs(run.id, limit=1)] == [other.id]
+    with pytest.raises(UnknownRunError):
+        cat.list_jobs("run-nope")
+    with pytest.raises(UnknownJobError, match="job-nope"):
+        cat.get_job("job-nope")
+    with pytest.raises(CatalogError, match="not a step name"):
+        cat.create_job(run.id, steps="hdr,,fit")
+    with pytest.raises(CatalogError, match="twice"):
+        cat.create_job(run.id, steps="hdr,hdr")
+
+
+def test_claim_takes_the_oldest_queued_job(cat):
+    run = _run_in(cat, "complete")
+    jobs = [cat.create_job(run.id) for _ in range(3)]  # same timestamp: order by creation
+    assert [cat.claim_job("w1").id for _ in range(3)] == [j.id for j in jobs]
+    assert cat.claim_job("w1") is None
+
+
+def _claim_until_empty(path, worker_id, start, results):
+    """A worker process: claim and finish jobs until none is left, report the ids."""
+    cat = Catalog(path)
+    start.wait(30)
+    claimed = []
+    while (job := cat.claim_job(worker_id)) is not None:
+        assert job.claimed_by == worker_id
+        claimed.append(job.id)
+        cat.finish_job(job.id, worker_id=worker_id, result_dir=f"/results/{job.id}")
+    cat.close()
+    results.put((worker_id, claimed))
+
+
+def test_claim_job_is_atomic_across_processes(db):
+    cat = Catalog(db)
+    run = _run_in(cat, "complete")
+    job_ids = {cat.create_job(run.id).id for _ in range(20)}
+    ctx = multiprocessing.get_context("spawn")
+    start, results = ctx.Event(), ctx.Queue()
+    workers = [ctx.Process(target=_claim_until_empty, args=(str(db), f"w{k}", start, results)) for k in range(2)]
+    for w in workers:
+        w.start()
+    start.set()
+    reports = dict(results.get(timeout=60) for _ in workers)
+    for w in workers:
+        w.join(30)
+        assert w.exitcode == 0
+    claimed = reports["w0"] + reports["w1"]
+    assert len(claimed) == len(set(claimed)) == 20  # every job claimed exactly once
+    assert set(claimed) == job_ids
+    for job in cat.list_jobs(run.id):
+        assert job.state == "complete" and job.progress == 1.0
+        assert job.id in reports[job.claimed_by] and job.result_dir == f"/results/{job.id}"
+    cat.close()
+
+
+def test_a_catalog_opened_before_fork_refuses_the_child(db):
+    if "fork" not in multiprocessing.get_all_start_methods():
+        pytest.skip("no fork on this platform")
+    cat = Catalog(db)
+    run = _new_run(cat)
+    ctx = multiprocessing.get_context("fork")
+    results = ctx.Queue()
+
+    def child():
+        try:
+            cat.get_run(run.id)
+            results.put("used the parent's connection")
+        except CatalogError as exc:
+            own = Catalog(db)
+            results.put((str(exc), own.get_run(run.id).state))
+            own.close()
+
+    p = ctx.Process(target=child)
+    p.start()
+    message, state = results.get(timeout=30)
+    p.join(10)
+    assert "open a new Catalog" in message and state == "queued"
+    assert cat.get_run(run.id).state == "queued"  # the parent's connection still works
+    cat.close()
+
+
+def test_heartbeat_and_requeue_stale_jobs(cat, clock):
+    run = _run_in(cat, "complete")
+    a, b = cat.create_job(run.id), cat.create_job(run.id)
+    assert cat.claim_job("w1").id == a.id
+    assert cat.claim_job("w2").id == b.id
+    clock.advance(20)
+    cat.heartbeat(a.id, "w1", progress=0.25)
+    job = cat.get_job(a.id)
+    assert job.heartbeat_utc == clock.now and job.progress == 0.25
+    clock.advance(20)  # w1 beat 20 s ago, w2 40 s ago
+    assert cat.requeue_stale_jobs(30) == [b.id]
+    requeued = cat.get_job(b.id)
+    assert requeued.state == "queued" and requeued.claimed_by is None and requeued.heartbeat_utc is None
+    assert cat.get_job(a.id).state == "running"
+    # The dead worker comes back: it no longer holds the job.
+    with pytest.raises(JobClaimError, match=f"job {b.id} is queued, claimed by nobody, not by w2"):
+        cat.heartbeat(b.id, "w2")
+    again = cat.claim_job("w3")
+    assert again.id == b.id and again.claimed_by == "w3" and again.progress == 0.0
+    with pytest.raises(JobClaimError, match="claimed by w3, not by w2"):
+        cat.heartbeat(b.id, "w2", progress=0.5)
+    with pytest.raises(JobClaimError, match="claimed by w3"):
+        cat.finish_job(b.id, worker_id="w2")
+    with pytest.raises(UnknownJobError):
+        cat.heartbeat("job-nope", "w1")
+    with pytest.raises(CatalogError, match="progress"):
+        cat.heartbeat(a.id, "w1", progress=1.5)
+    assert cat.requeue_stale_jobs(30) == []
+
+
+def test_finish_job(cat):
+    run = _run_in(cat, "complete")
+    ok, bad = cat.create_job(run.id), cat.create_job(run.id)
+    with pytest.raises(InvalidTransitionError, match=f"{ok.id}: cannot go from queued to complete"):
+        cat.finish_job(ok.id)
+    cat.claim_job("w1")
+    cat.claim_job("w1")
+    done = cat.finish_job(ok.id, result_dir="/data/results/x", worker_id="w1")
+    assert (done.state, done.progress, done.result_dir, done.error) == ("complete", 1.0, "/data/results/x", None)
+    cat.heartbeat(bad.id, "w1", progress=0.4)
+    failed = cat.finish_job(bad.id, error="trace: no ball found in frame 12")
+    assert (failed.state, failed.progress, failed.error) == ("failed", 0.4, "trace: no ball found in frame 12")
+    with pytest.raises(InvalidTransitionError, match="from complete to failed"):
+        cat.finish_job(ok.id, error="late")
+    with pytest.raises(UnknownJobError):
+        cat.finish_job("job-nope")
+
+
+def test_concurrent_writes_from_threads_do_not_lock(db, clock):
+    """Six threads share one Catalog, two more have their own connection to the file."""
+    shared = Catalog(db, clock=clock)
+    run = _run_in(shared, "running")
+    own = [Catalog(db, clock=clock) for _ in range(2)]
+    errors = []
+    barrier = threading.Barrier(8)
+
+    def work(k, cat):
+        try:
+            barrier.wait()
+            for i in range(40):
+                cat.update_progress(run.id, positions_done=i % 10, current_position=i % 10, seconds_per_position=1.0)
+                job = cat.create_job(run.id, options={"thread": k, "i": i})
+                cat.get_run(run.id)
+                cat.list_jobs(run.id, limit=5)
+                claimed = cat.claim_job(f"w{k}")
+                if claimed is not None:
+                    cat.heartbeat(claimed.id, f"w{k}", progress=0.5)
+                    cat.finish_job(claimed.id, worker_id=f"w{k}")
+                assert job.options["thread"] == k
+        except Exception as exc:  # noqa: BLE001 - reported below
+            errors.append(exc)
+
+    threads = [threading.Thread(target=work, args=(k, shared if k < 6 else own[k - 6])) for k in range(8)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(60)
+    try:
+        assert errors == []
+        jobs = shared.list_jobs(run.id, limit=1000)
+        assert len(jobs) == 8 * 40
+        assert {j.state for j in jobs} <= {"queued", "complete"}
+        assert sum(j.state == "complete" for j in jobs) >= 1
+    finally:
+        for c in [shared, *own]:
+            c.close()

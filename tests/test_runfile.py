@@ -1,0 +1,551 @@
+"""The run file: round trip, compression, crash safety under SIGKILL, salvage, errors."""
+
+from __future__ import annotations
+
+import shutil
+import signal
+import subprocess
+import sys
+import time
+import tomllib
+from pathlib import Path
+
+import h5py
+import hdf5plugin
+import numpy as np
+import pytest
+
+from acquisition.rig import DEFAULT_RIG_PATH, rig_from_dict
+from acquisition.runfile import (
+    RUN_FILE_FORMAT,
+    RUN_FILE_VERSION,
+    PositionTimes,
+    RunFile,
+    RunFileError,
+    RunFileWriter,
+    RunHeader,
+)
+from drivers.camera import RawFrame
+from drivers.pose import Pose
+
+H, W = 64, 96
+MAX_EXPOSURES = 3
+SEED = 1234
+TESTS_DIR = Path(__file__).resolve().parent
+
+
+# --- deterministic runs (also imported by the writer subprocess) ------------------------
+def make_rig(n_positions: int):
+    data = tomllib.loads(DEFAULT_RIG_PATH.read_text())
+    data["camera"]["width"], data["camera"]["height"] = W, H
+    data["schedule"]["count"] = n_positions
+    return rig_from_dict(data)
+
+
+def make_header(n_positions: int = 6, run_id: str = "run-0001") -> RunHeader:
+    rig = make_rig(n_positions)
+    return RunHeader(
+        run_id=run_id,
+        rig=rig,
+        tool_poses=rig.tool_poses(),
+        light_poses=rig.light_poses(),
+        max_exposures=MAX_EXPOSURES,
+        frame_shape=(H, W),
+        bracket={"mode": "fixed", "exposures_s": [0.001, 0.004, 0.016]},
+        metadata={"operator": "Ada", "light_source": "LED 3 W", "notes": "über ✓"},
+        devices={"arm": "sim-arm 1", "camera": "sim-camera 2"},
+        software_version="0.1.0",
+        created_utc="2026-05-09T07:35:25+00:00",
+        preset="sweep-66",
+    )
+
+
+def frame_count(i: int) -> int:
+    return 1 + i % MAX_EXPOSURES
+
+
+def position_data(seed: int, i: int, count: int | None = None) -> tuple[Pose, PositionTimes, list[RawFrame]]:
+    """The measured pose, times and frames of position ``i``, the same on every call."""
+    frames = []
+    for k in range(frame_count(i) if count is None else count):
+        rng = np.random.default_rng([seed, i, k])
+        mosaic = np.full((H, W), 64, np.uint16)  # dark, with a bright noisy spot
+        left = 20 + (2 * i) % 32
+        mosaic[8:40, left : left + 40] = rng.integers(0, 4096, (32, 40))
+        black = np.array([[64.0, 64.5], [63.75, 64.25]]) + k
+        frames.append(RawFrame(mosaic, black, 4095 - k, "RGGB", 0.001 * 4**k, 1.7e9 + i + 0.1 * k, "sim", f"/tmp/{i}-{k}.dng"))
+    measured = Pose(0.01 * i, 0.04 + 1e-6 * seed, 0.1, 0.1, -0.2, 0.3 + 1e-3 * i)
+    times = PositionTimes(1.7e9 + i, 1.7e9 + i + 0.25, 1.7e9 + i + 0.75)
+    return measured, times, frames
+
+
+def check_position(run: RunFile, seed: int, i: int, count: int | None = None) -> None:
+    measured, times, frames = position_data(seed, i, count)
+    assert run.measured_pose(i) == measured
+    assert run.times(i) == times
+    stack = run.frames(i)
+    assert stack.dtype == np.uint16 and stack.shape == (len(frames), H, W)
+    for k, frame in enumerate(frames):
+        assert np.array_equal(stack[k], frame.mosaic)
+    np.testing.assert_array_equal(run.exposures(i), [f.exposure_s for f in frames])
+    np.testing.assert_array_equal(run.black_level(i), [f.black_level for f in frames])
+    np.testing.assert_array_equal(run.white_level(i), [f.white_level for f in frames])
+    assert run.cfa_pattern(i) == [f.cfa_pattern for f in frames]
+
+
+def write_run(path, n: int, positions, seed: int = SEED) -> None:
+    with RunFileWriter.create(path, make_header(n)) as writer:
+        for i in positions:
+            writer.write_position(i, *position_data(seed, i))
+
+
+WRITER_SCRIPT = """
+import os, signal, sys, time
+sys.path.insert(0, {tests!r})
+from test_runfile import SEED, make_header, position_data
+from acquisition.runfile import RunFileWriter
+
+path, n, stop_after, pause = sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), float(sys.argv[4])
+print("ready", flush=True)
+writer = RunFileWriter.reopen(path) if os.path.exists(path) else RunFileWriter.create(path, make_header(n))
+writer.set_status("running")
+print("opened", flush=True)
+written = 0
+index = writer.first_incomplete()
+while index is not None:
+    if written == stop_after:
+        print("stopping", flush=True)
+        os.kill(os.getpid(), signal.SIGKILL)
+    writer.write_position(index, *position_data(SEED, index))
+    print("wrote", index, flush=True)
+    written += 1
+    time.sleep(pause)
+    index = writer.first_incomplete()
+writer.set_status("complete")
+writer.close()
+print("done", flush=True)
+"""
+
+
+@pytest.fixture()
+def writer_script(tmp_path):
+    script = tmp_path / "writer.py"
+    script.write_text(WRITER_SCRIPT.format(tests=str(TESTS_DIR)))
+    return script
+
+
+def start_writer(script, path, n, stop_after=-1, pause=0.0) -> subprocess.Popen:
+    proc = subprocess.Popen(
+        [sys.executable, str(script), str(path), str(n), str(stop_after), str(pause)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    line = proc.stdout.readline()
+    if line != "ready\n":
+        proc.kill()
+        raise AssertionError(f"writer did not start: {line!r} {proc.stderr.read()}")
+    return proc
+
+
+def finish_writer(proc: subprocess.Popen) -> list[str]:
+    """Wait for a killed writer; the lines it printed. A Python error fails the test."""
+    out, err = proc.communicate(timeout=10)
+    assert proc.returncode in (0, -signal.SIGKILL), err
+    return out.splitlines()
+
+
+# --- round trip ----------------------------------------------------------------------------
+def test_round_trip(tmp_path):
+    path = tmp_path / "run-0001.h5"
+    n = 5
+    header = make_header(n)
+    with RunFileWriter.create(path, header) as writer:
+        assert writer.first_incomplete() == 0
+        for i in (0, 1, 2, 4):
+            writer.write_position(i, *position_data(SEED, i))
+        assert writer.complete.tolist() == [True, True, True, False, True]
+        assert writer.first_incomplete() == 3
+        writer.set_status("paused", "operator stop at position 3: ärm ✓")
+    assert not Path(str(path) + ".lock").exists()
+    with RunFile.open(path) as run:
+        assert run.header == header
+        assert run.header.rig == header.rig
+        assert run.n_positions == n and run.max_exposures == MAX_EXPOSURES and run.frame_shape == (H, W)
+        assert run.status == "paused"
+        assert run.status_message == "operator stop at position 3: ärm ✓"
+        assert run.completed_positions().tolist() == [0, 1, 2, 4]
+        for i in (0, 1, 2, 4):
+            check_position(run, SEED, i)
+        frame = run.frame(2, 1)
+        expected = position_data(SEED, 2)[2][1]
+        assert np.array_equal(frame.mosaic, expected.mosaic)
+        assert frame.exposure_s == expected.exposure_s and frame.timestamp == expected.timestamp
+        assert frame.white_level == expected.white_level and frame.cfa_pattern == "RGGB"
+        np.testing.assert_array_equal(frame.black_level, expected.black_level)
+        assert frame.camera_id == "sim-camera 2"
+        assert run.measured_pose(3) is None and run.times(3) is None
+        with pytest.raises(RunFileError, match=r"run-0001\.h5: position 3 is not complete"):
+            run.frames(3)
+        with pytest.raises(RunFileError, match="out of range"):
+            run.frames(5)
+        with pytest.raises(RunFileError, match="no frame 1"):
+            run.frame(0, 1)
+        # The layout other readers rely on.
+        f = h5py.File(path, "r", swmr=True)
+        try:
+            assert f.attrs["format"] == RUN_FILE_FORMAT and f.attrs["format_version"] == RUN_FILE_VERSION
+            np.testing.assert_array_equal(f["schedule/commanded_pose"][2], header.tool_poses[2].as_tuple())
+            np.testing.assert_array_equal(f["schedule/light_pose"][4], header.light_poses[4].as_tuple())
+            assert np.isnan(f["positions/measured_pose"][3]).all() and np.isnan(f["positions/times"][3]).all()
+            assert f["positions/frame_count"][()].tolist() == [1, 2, 3, 0, 2]
+            assert np.isnan(f["frames/exposure_s"][0, 1:]).all()
+            assert f["status/state"].dtype == np.dtype("S16") and f["status/message"].dtype == np.dtype("S1024")
+        finally:
+            f.close()
+
+
+def test_status_message_truncated_to_fit(tmp_path):
+    path = tmp_path / "run.h5"
+    with RunFileWriter.create(path, make_header(2)) as writer:
+        writer.set_status("failed", "é" * 600)  # 1200 bytes of UTF-8
+        with pytest.raises(RunFileError, match="unknown status 'done'"):
+            writer.set_status("done")
+    with RunFile.open(path) as run:
+        assert run.status == "failed" and run.status_message == "é" * 512
+
+
+def test_frames_are_lz4_one_frame_per_chunk_and_plain_h5py_reads_them(tmp_path):
+    path = tmp_path / "run.h5"
+    write_run(path, 3, range(3))
+    with h5py.File(path, "r") as f:  # a cleanly closed file opens without SWMR too
+        raw = f["frames/raw"]
+        assert raw.shape == (3, MAX_EXPOSURES, H, W) and raw.dtype == np.uint16
+        assert raw.chunks == (1, 1, H, W)
+        plist = raw.id.get_create_plist()
+        filters = [plist.get_filter(j)[0] for j in range(plist.get_nfilters())]
+        assert filters == [hdf5plugin.LZ4_ID]
+        assert raw.id.get_storage_size() < 6 * H * W * 2  # six frames stored, compressed
+        assert np.array_equal(raw[2, 2], position_data(SEED, 2)[2][2].mosaic)
+    code = (
+        "import sys, h5py, hdf5plugin\n"
+        "f = h5py.File(sys.argv[1], 'r')\n"
+        "print(int(f['frames/raw'][1, 1].astype('int64').sum()), f['positions/complete'][:].tolist())\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code, str(path)], capture_output=True, text=True, check=True)
+    expected = int(position_data(SEED, 1)[2][1].mosaic.astype(np.int64).sum())
+    assert out.stdout.split(maxsplit=1) == [str(expected), "[1, 1, 1]\n"]
+
+
+# --- crash safety ------------------------------------------------------------------------------
+def _check_after_kill(path: Path, seed: int, n: int, before: set[int], reported: set[int]) -> set[int]:
+    """Every complete position is bit-exact; none complete before or reported written is lost."""
+    leftovers = {p.name for p in path.parent.iterdir()} - {path.name, "writer.py"}
+    assert leftovers <= {path.name + s for s in (".tmp", ".salvage.tmp", ".lock")}, leftovers
+    if not path.exists():
+        assert not before and not reported
+        return set()
+    with RunFile.open(path) as run:
+        assert run.n_positions == n
+        assert run.status in ("created", "running", "interrupted", "complete")
+        done = set(run.completed_positions().tolist())
+        for i in done:
+            check_position(run, seed, i)
+    assert before | reported <= done
+    return done
+
+
+def test_sigkill_at_random_moments_then_salvage_and_finish(tmp_path, writer_script):
+    """Eight SIGKILLs of a writer (creating, salvaging or writing); nothing complete is lost."""
+    path = tmp_path / "run.h5"
+    n, pause = 60, 0.01
+    rng = np.random.default_rng(20260509)
+    # The first moments fall in the creation, then in the salvage; the later ones in the
+    # middle of writing (creating or salvaging takes about 10 ms here, a position 15 ms).
+    delays = [rng.uniform(0.0, 0.012) for _ in range(3)] + [rng.uniform(0.0, 0.15) for _ in range(5)]
+    done: set[int] = set()
+    phases = []
+    for delay in delays:
+        crashed_before = path.exists()
+        proc = start_writer(writer_script, path, n, pause=pause)
+        time.sleep(float(delay))
+        proc.send_signal(signal.SIGKILL)
+        lines = finish_writer(proc)
+        reported = {int(line.split()[1]) for line in lines if line.startswith("wrote")}
+        phases.append(("salvage" if crashed_before else "create") if "opened" not in lines else "writing")
+        done = _check_after_kill(path, SEED, n, done, reported)
+    assert 0 < len(done) < n, (len(done), phases)
+    assert "writing" in phases, phases
+    with RunFileWriter.reopen(path) as writer:  # salvages the killed file
+        assert set(np.flatnonzero(writer.complete).tolist()) == done
+        with RunFile.open(path) as run:
+            assert run.status == "interrupted"
+            assert f"{len(done)} of {n} positions complete" in run.status_message
+        writer.set_status("running")
+        index = writer.first_incomplete()
+        while index is not None:
+            writer.write_position(index, *position_data(SEED, index))
+            index = writer.first_incomplete()
+        writer.set_status("complete")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["run.h5", "writer.py"]
+    with RunFile.open(path) as run:
+        assert run.complete.all() and run.status == "complete"
+        for i in range(n):
+            check_position(run, SEED, i)
+
+
+def test_kill_during_create_leaves_no_file_or_a_whole_one(tmp_path):
+    """A process creating run after run, frozen at random moments, then killed.
+
+    What a process leaves on disk when SIGKILL stops it is what is on disk when SIGSTOP
+    freezes it, so each freeze is copied aside and checked as if the process had been
+    killed there: every run file present is whole; a half-built one is only ever a
+    ``.tmp`` file.
+    """
+    script = tmp_path / "creator.py"
+    script.write_text(
+        f"import sys\nsys.path.insert(0, {str(TESTS_DIR)!r})\n"
+        "from test_runfile import make_header\n"
+        "from acquisition.runfile import RunFileWriter\n"
+        "header = make_header(66)\n"
+        "print('ready', flush=True)\n"
+        "for j in range(100000):\n"
+        "    RunFileWriter.create(f'{sys.argv[1]}/run-{j:05d}.h5', header).close()\n"
+    )
+    folder = tmp_path / "runs"
+    folder.mkdir()
+    proc = subprocess.Popen([sys.executable, str(script), str(folder)], stdout=subprocess.PIPE, text=True)
+    rng = np.random.default_rng(7)
+    caught_building = 0
+    try:
+        assert proc.stdout.readline() == "ready\n"
+        for moment in range(25):
+            time.sleep(float(rng.uniform(0.0, 0.03)))
+            proc.send_signal(signal.SIGSTOP)
+            snapshot = tmp_path / f"snapshot-{moment}"
+            shutil.copytree(folder, snapshot)
+            proc.send_signal(signal.SIGCONT)
+            runs = sorted(snapshot.glob("run-*.h5"))
+            for path in runs[-2:]:  # the earlier ones were checked in earlier snapshots
+                with RunFile.open(path) as run:
+                    assert run.n_positions == 66 and run.status == "created" and not run.complete.any()
+            others = {p.name for p in snapshot.iterdir()} - {p.name for p in runs}
+            names = {p.name for p in runs[-1:]}
+            if runs:
+                names.add(f"run-{int(runs[-1].name[4:9]) + 1:05d}.h5")
+            else:
+                names.add("run-00000.h5")
+            assert others <= {name + suffix for name in names for suffix in (".tmp", ".lock")}, others
+            caught_building += any(name.endswith(".tmp") for name in others)
+            shutil.rmtree(snapshot)
+    finally:
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(timeout=10)
+        proc.stdout.close()
+    assert caught_building >= 1
+    # After the kill: every run file is whole, and a stale .tmp does not stop the next run.
+    runs = sorted(folder.glob("run-*.h5"))
+    for path in runs[-3:]:
+        with RunFile.open(path) as run:
+            assert run.n_positions == 66
+    following = folder / f"run-{int(runs[-1].name[4:9]) + 1:05d}.h5"
+    RunFileWriter.create(following, make_header(66)).close()
+    assert not Path(str(following) + ".tmp").exists()
+
+
+def test_salvage_copies_frame_chunks_without_recompressing(tmp_path, writer_script):
+    path = tmp_path / "run.h5"
+    n = 6
+    proc = start_writer(writer_script, path, n, stop_after=4)
+    assert finish_writer(proc)[-1] == "stopping" and proc.returncode == -signal.SIGKILL
+    with pytest.raises(OSError, match="already open for write"):
+        h5py.File(path, "r")  # the premise: a killed writer's file needs SWMR to read
+    with h5py.File(path, "r", swmr=True) as f:
+        raw = f["frames/raw"]
+        before = {(i, k): raw.id.read_direct_chunk((i, k, 0, 0)) for i in range(4) for k in range(frame_count(i))}
+    with RunFileWriter.reopen(path) as writer:
+        assert writer.complete.tolist() == [True] * 4 + [False] * 2
+    with h5py.File(path, "r") as f:  # closed cleanly now
+        raw = f["frames/raw"]
+        for (i, k), chunk in before.items():
+            assert raw.id.read_direct_chunk((i, k, 0, 0)) == chunk
+        assert raw.id.get_chunk_info_by_coord((4, 0, 0, 0)).size == 0
+    with RunFile.open(path) as run:
+        assert run.status == "interrupted"
+        for i in range(4):
+            check_position(run, SEED, i)
+        assert run.measured_pose(4) is None
+
+
+def test_second_writer_is_refused(tmp_path):
+    path = tmp_path / "run.h5"
+    with RunFileWriter.create(path, make_header(2)):
+        with pytest.raises(RunFileError, match=r"run\.h5: another process \(pid \d+\) is writing this run"):
+            RunFileWriter.reopen(path)
+        with pytest.raises(RunFileError, match="another process"):
+            RunFileWriter.create(path, make_header(2))
+    with pytest.raises(RunFileError, match="run file already exists"):
+        RunFileWriter.create(path, make_header(2))
+
+
+def test_live_reader_sees_new_positions_after_refresh(tmp_path):
+    path = tmp_path / "run.h5"
+    code = (
+        f"import sys\nsys.path.insert(0, {str(TESTS_DIR)!r})\n"
+        "from test_runfile import SEED, make_header, position_data\n"
+        "from acquisition.runfile import RunFileWriter\n"
+        "w = RunFileWriter.create(sys.argv[1], make_header(4))\n"
+        "w.write_position(0, *position_data(SEED, 0))\n"
+        "print('one', flush=True); sys.stdin.readline()\n"
+        "w.write_position(1, *position_data(SEED, 1)); w.set_status('running')\n"
+        "print('two', flush=True); sys.stdin.readline()\n"
+        "w.close()\n"
+    )
+    proc = subprocess.Popen([sys.executable, "-c", code, str(path)], stdin=subprocess.PIPE,
+                            stdout=subprocess.PIPE, text=True)  # fmt: skip
+    try:
+        assert proc.stdout.readline() == "one\n"
+        with RunFile.open(path) as run:
+            assert run.completed_positions().tolist() == [0]
+            proc.stdin.write("\n")
+            proc.stdin.flush()
+            assert proc.stdout.readline() == "two\n"
+            run.refresh()
+            assert run.completed_positions().tolist() == [0, 1] and run.status == "running"
+            check_position(run, SEED, 1)
+        proc.stdin.write("\n")
+        proc.stdin.flush()
+        assert proc.wait(timeout=10) == 0
+    finally:
+        proc.kill()
+        proc.stdout.close()
+        proc.stdin.close()
+
+
+# --- validation --------------------------------------------------------------------------------
+def _bad_frames(kind: str) -> tuple[int, list[RawFrame], str]:
+    _, _, frames = position_data(99, 1)
+    if kind == "shape":
+        frames[1].mosaic = np.zeros((100, 80), np.uint16)
+        return 1, frames, rf"position 1 frame 1: shape 100x80, expected {H}x{W}"
+    if kind == "dtype":
+        frames[0].mosaic = frames[0].mosaic.astype(np.float32)
+        return 1, frames, "position 1 frame 0: mosaic dtype float32, expected uint16"
+    if kind == "too many":
+        return 1, frames * 2, f"position 1: 4 frames, expected 1 to {MAX_EXPOSURES}"
+    if kind == "none":
+        return 1, [], f"position 1: 0 frames, expected 1 to {MAX_EXPOSURES}"
+    if kind == "exposure":
+        frames[1].exposure_s = 0.0
+        return 1, frames, r"position 1 frame 1: exposure_s must be finite and > 0 \(got 0.0\)"
+    if kind == "nan exposure":
+        frames[0].exposure_s = float("nan")
+        return 1, frames, "position 1 frame 0: exposure_s must be finite"
+    if kind == "black level":
+        frames[0].black_level = np.zeros(4)
+        return 1, frames, "position 1 frame 0: black_level must be 2x2"
+    if kind == "index":
+        return 7, frames, r"position 7 out of range \(0 to 3\)"
+    if kind == "negative index":
+        return -1, frames, "position -1 out of range"
+    raise AssertionError(kind)
+
+
+@pytest.mark.parametrize(
+    "kind", ["shape", "dtype", "too many", "none", "exposure", "nan exposure", "black level", "index", "negative index"]
+)
+def test_bad_position_is_refused_and_writes_nothing(tmp_path, kind):
+    path = tmp_path / "run-0001.h5"
+    with RunFileWriter.create(path, make_header(4)) as writer:
+        writer.write_position(0, *position_data(SEED, 0))
+        writer.write_position(1, *position_data(SEED, 1))
+        index, frames, message = _bad_frames(kind)
+        measured, times, _ = position_data(99, 1)
+        with pytest.raises(RunFileError, match=r"^" + str(path).replace(".", r"\.") + ": " + message) as info:
+            writer.write_position(index, measured, times, frames)
+        assert "\n" not in str(info.value)
+        assert writer.complete.tolist() == [True, True, False, False]
+    with RunFile.open(path) as run:
+        check_position(run, SEED, 0)
+        check_position(run, SEED, 1)  # the earlier take of position 1 is untouched
+
+
+def test_bad_header_is_refused(tmp_path):
+    header = make_header(3)
+    header.light_poses = header.light_poses[:2]
+    with pytest.raises(RunFileError, match=r"run\.h5: cannot create the run: light_poses: 2 poses for 3"):
+        RunFileWriter.create(tmp_path / "run.h5", header)
+    header = make_header(3)
+    header.bracket = {"exposures_s": [0.1]}
+    with pytest.raises(RunFileError, match="bracket: must be a dict with mode 'fixed' or 'auto'"):
+        RunFileWriter.create(tmp_path / "run.h5", header)
+    assert list(tmp_path.iterdir()) == []
+
+
+# --- opening errors ------------------------------------------------------------------------------
+def _future_version(path):
+    write_run(path, 2, [0])
+    with h5py.File(path, "a") as f:
+        f.attrs["format_version"] = RUN_FILE_VERSION + 1
+
+
+def _truncated(path):
+    write_run(path, 3, range(3))
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])
+
+
+def _foreign(path):
+    with h5py.File(path, "w") as f:
+        f["x"] = np.arange(3)
+
+
+def _missing_dataset(path):
+    write_run(path, 2, [0])
+    with h5py.File(path, "a") as f:
+        del f["positions/times"]
+
+
+@pytest.mark.parametrize(
+    ("make", "message"),
+    [
+        (None, "run file not found"),
+        (lambda p: p.write_text("hello\n"), "not an HDF5 file"),
+        (_foreign, r"not a mirrorgonio run file \(no 'format' attribute\)"),
+        (_future_version, r"run file format version 2 is newer than this software reads \(up to 1\)"),
+        (_truncated, r"truncated or corrupt HDF5 file \(truncated: \d+ of \d+ bytes\)"),
+        (_missing_dataset, "corrupt run file: /positions/times is missing"),
+    ],
+    ids=["missing", "text", "foreign-hdf5", "future-version", "truncated", "missing-dataset"],
+)
+def test_open_errors_are_one_line_naming_the_file(tmp_path, make, message):
+    path = tmp_path / "run-0009.h5"
+    if make is not None:
+        make(path)
+    with pytest.raises(RunFileError, match=r"^" + str(path).replace(".", r"\.") + ": " + message) as info:
+        RunFile.open(path)
+    assert "\n" not in str(info.value)
+    with pytest.raises(RunFileError, match=r"^" + str(path).replace(".", r"\.") + ": " + message):
+        RunFileWriter.reopen(path)
+    assert not Path(str(path) + ".lock").exists()
+
+
+# --- resuming ----------------------------------------------------------------------------------
+def test_rewrite_completed_position_after_reopen(tmp_path):
+    path = tmp_path / "run.h5"
+    write_run(path, 4, [0, 1, 2])
+    with RunFileWriter.reopen(path) as writer:
+        assert writer.header == make_header(4)
+        assert writer.first_incomplete() == 3
+        writer.write_position(2, *position_data(555, 2, count=1))  # re-taken: 1 frame, not 3
+        writer.write_position(3, *position_data(SEED, 3))
+        writer.set_status("complete")
+    with RunFile.open(path) as run:
+        assert run.complete.all() and run.status == "complete" and run.status_message == ""
+        check_position(run, SEED, 0)
+        check_position(run, SEED, 1)
+        check_position(run, 555, 2, count=1)
+        check_position(run, SEED, 3)
+    with h5py.File(path, "r") as f:  # the earlier take's extra frames are gone
+        assert not f["frames/raw"][2, 1:].any()
+        assert np.isnan(f["frames/exposure_s"][2, 1:]).all()
