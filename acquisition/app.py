@@ -10,7 +10,7 @@ from contextlib import asynccontextmanager
 from pathlib import Path
 
 from fastapi import FastAPI, Request, status
-from fastapi.responses import HTMLResponse, JSONResponse
+from fastapi.responses import FileResponse, HTMLResponse, JSONResponse
 
 from acquisition import __version__
 from acquisition.api import arm, health, jobs, preview, presets, runs
@@ -29,7 +29,8 @@ from acquisition.settings import DaemonSettings
 from drivers.errors import DeviceError
 
 log = logging.getLogger("mirrorgonio.daemon")
-WEB_PAGE = Path(__file__).resolve().parent / "web" / "index.html"
+WEB_DIR = Path(__file__).resolve().parent / "web"
+WEB_PAGE = WEB_DIR / "index.html"
 
 # Domain errors and the HTTP status each one means.
 ERROR_STATUS: list[tuple[type[Exception], int]] = [
@@ -85,5 +86,14 @@ def create_app(settings: DaemonSettings) -> FastAPI:
     @app.get("/", response_class=HTMLResponse, include_in_schema=False)
     def web_page() -> HTMLResponse:
         return HTMLResponse(WEB_PAGE.read_text(encoding="utf-8"))
+
+    # The page's script and style (no build step, nothing from the network).
+    @app.get("/app.js", include_in_schema=False)
+    def web_script() -> FileResponse:
+        return FileResponse(WEB_DIR / "app.js", media_type="text/javascript", headers={"Cache-Control": "no-cache"})
+
+    @app.get("/app.css", include_in_schema=False)
+    def web_style() -> FileResponse:
+        return FileResponse(WEB_DIR / "app.css", media_type="text/css", headers={"Cache-Control": "no-cache"})
 
     return app

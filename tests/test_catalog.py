@@ -6,6 +6,7 @@ import pickle
 import re
 import sqlite3
 import threading
+import time
 from datetime import UTC, datetime, timedelta, timezone
 
 import pytest
@@ -346,11 +347,12 @@ def test_claim_takes_the_oldest_queued_job(cat):
 def _claim_until_empty(path, worker_id, start, results):
     """A worker process: claim and finish jobs until none is left, report the ids."""
     cat = Catalog(path)
-    start.wait(30)
+    start.wait(30)  # both workers have opened the catalog: the race starts now
     claimed = []
     while (job := cat.claim_job(worker_id)) is not None:
         assert job.claimed_by == worker_id
         claimed.append(job.id)
+        time.sleep(0.005)  # some work, so that both workers are claiming at the same time
         cat.finish_job(job.id, worker_id=worker_id, result_dir=f"/results/{job.id}")
     cat.close()
     results.put((worker_id, claimed))
@@ -361,11 +363,10 @@ def test_claim_job_is_atomic_across_processes(db):
     run = _run_in(cat, "complete")
     job_ids = {cat.create_job(run.id).id for _ in range(20)}
     ctx = multiprocessing.get_context("spawn")
-    start, results = ctx.Event(), ctx.Queue()
+    start, results = ctx.Barrier(2), ctx.Queue()
     workers = [ctx.Process(target=_claim_until_empty, args=(str(db), f"w{k}", start, results)) for k in range(2)]
     for w in workers:
         w.start()
-    start.set()
     reports = dict(results.get(timeout=60) for _ in workers)
     for w in workers:
         w.join(30)

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import asyncio
-import json
 from pathlib import Path
 
 from fastapi import APIRouter, HTTPException, Request, Response, status
@@ -85,7 +84,7 @@ async def events(run_id: str, request: Request, catalog: CatalogDep, engine: Eng
             if current != version:
                 version = current
                 record = await asyncio.to_thread(catalog.get_run, run_id)
-                yield f"event: progress\ndata: {json.dumps(run_status(record).model_dump())}\n\n"
+                yield f"event: progress\ndata: {run_status(record).model_dump_json()}\n\n"
                 if record.state in FINAL:
                     return
             await asyncio.sleep(0.2)

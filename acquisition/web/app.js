@@ -1,0 +1,450 @@
+// The technician's page: plain JavaScript against the daemon's REST API, no build step.
+"use strict";
+
+const TOKEN_KEY = "mirrorgonio.token";
+const FINAL = ["complete", "aborted", "failed", "interrupted"];
+const ACTIVE = ["queued", "running", "paused"];
+const STATUS_PERIOD_MS = 2000;
+const POLL_PERIOD_MS = 1000;
+
+const $ = (id) => document.getElementById(id);
+
+// --- talking to the daemon ---------------------------------------------------------------
+class ApiError extends Error {
+  constructor(status, detail) {
+    super(status ? `${detail} (HTTP ${status})` : detail);
+    this.status = status;
+  }
+}
+
+// FastAPI's ``detail``: a string, or a list of validation errors with ``loc`` and ``msg``.
+function describeDetail(detail) {
+  if (typeof detail === "string") return detail;
+  if (Array.isArray(detail)) {
+    return detail.map((d) => {
+      const loc = (d.loc || []).filter((p) => p !== "body").join(".");
+      return loc ? `${loc}: ${d.msg}` : String(d.msg);
+    }).join("; ");
+  }
+  return JSON.stringify(detail);
+}
+
+// ``accept`` lists the error statuses whose JSON body is still an answer (503 of /health).
+async function api(method, path, body, accept = []) {
+  const headers = {};
+  const token = $("token").value.trim();
+  if (method !== "GET" && token) headers.Authorization = `Bearer ${token}`;
+  if (body !== undefined) headers["Content-Type"] = "application/json";
+  let resp;
+  try {
+    resp = await fetch(path, {
+      method, headers, cache: "no-store",
+      body: body === undefined ? undefined : JSON.stringify(body),
+    });
+  } catch (err) {
+    throw new ApiError(0, `the daemon does not answer (${err.message})`);
+  }
+  const text = await resp.text();
+  let data = null;
+  try { data = text ? JSON.parse(text) : null; } catch { data = text; }
+  if (!resp.ok && !accept.includes(resp.status)) {
+    const detail = data && data.detail !== undefined ? describeDetail(data.detail) : (resp.statusText || "error");
+    throw new ApiError(resp.status, detail);
+  }
+  return data;
+}
+
+function showMessage(text, kind = "error") {
+  const box = $("message");
+  box.textContent = text;
+  box.className = `message ${kind}`;
+  box.setAttribute("role", kind === "error" ? "alert" : "status");
+  box.hidden = false;
+}
+
+// --- formatting --------------------------------------------------------------------------
+function fmtPercent(p) { return `${Math.round((p || 0) * 10) / 10} %`; }
+
+function fmtDuration(s) {
+  s = Math.max(0, Math.round(s));
+  const h = Math.floor(s / 3600), m = Math.floor((s % 3600) / 60), sec = s % 60;
+  const mm = String(m).padStart(h ? 2 : 1, "0"), ss = String(sec).padStart(2, "0");
+  return h ? `${h}:${mm}:${ss}` : `${mm}:${ss}`;
+}
+
+function fmtTime(iso) {
+  if (!iso) return "—";
+  const d = new Date(iso);
+  return Number.isNaN(d.getTime()) ? iso : d.toLocaleString();
+}
+
+function setBadge(el, text, cls) {
+  el.textContent = text;
+  el.className = `badge ${cls}`;
+}
+
+function el(tag, props = {}, ...children) {
+  const node = document.createElement(tag);
+  Object.assign(node, props);
+  for (const child of children) node.append(child);
+  return node;
+}
+
+// --- device status, every 2 s --------------------------------------------------------------
+async function refreshStatus() {
+  try {
+    const [health, devices] = await Promise.all([api("GET", "/health", undefined, [503]), api("GET", "/devices")]);
+    renderHealth(health);
+    renderDevices(devices);
+    $("devices-updated").textContent = `updated ${new Date().toLocaleTimeString()}`;
+    // Follow whatever run the daemon is busy with once ours has ended.
+    if (health.active_run && health.active_run !== followed && (!current || !ACTIVE.includes(current.state))) {
+      follow(health.active_run);
+    }
+  } catch (err) {
+    setBadge($("health-status"), "unreachable", "badge-unreachable");
+    $("health-summary").textContent = err.message;
+  } finally {
+    setTimeout(refreshStatus, STATUS_PERIOD_MS);
+  }
+}
+
+function renderHealth(h) {
+  setBadge($("health-status"), h.status, `badge-${h.status}`);
+  const active = h.active_run ? `active run ${h.active_run}` : "no active run";
+  $("health-summary").textContent = `${h.reasons.length ? h.reasons.join("; ") : "devices ready"} · ${active} · v${h.version}`;
+  $("health-reasons").replaceChildren(...h.reasons.map((r) => el("li", { textContent: r })));
+}
+
+function renderDevices(d) {
+  const arm = d.arm, cam = d.camera;
+  $("arm-connected").textContent = arm.connected ? "connected" : `not connected: ${arm.error || "?"}`;
+  $("arm-connected").className = arm.connected ? "good" : "bad";
+  $("arm-identity").textContent = arm.identity;
+  if (arm.position) {
+    const p = arm.position, mm = (v) => (v * 1000).toFixed(2), deg = (v) => v.toFixed(2);
+    $("arm-position").textContent =
+      `x ${mm(p.x)}  y ${mm(p.y)}  z ${mm(p.z)} mm\nrx ${deg(p.rx)}  ry ${deg(p.ry)}  rz ${deg(p.rz)} °`;
+    $("arm-position").style.whiteSpace = "pre";
+  } else {
+    $("arm-position").textContent = "—";
+  }
+  const status = [];
+  if (arm.moving !== null && arm.moving !== undefined) status.push(arm.moving ? "moving" : "still");
+  if (arm.in_position !== null && arm.in_position !== undefined) status.push(arm.in_position ? "in position" : "not in position");
+  $("arm-status").textContent = status.join(", ") || "—";
+  const alarm = arm.alarm_code ? `0x${arm.alarm_code.toString(16).padStart(4, "0")}: ${arm.alarm_text || ""}` : "none";
+  $("arm-alarm").textContent = arm.connected ? alarm : "—";
+  $("arm-alarm").className = arm.alarm_code ? "bad" : "";
+  $("camera-connected").textContent = cam.connected ? "connected" : `not connected: ${cam.error || "?"}`;
+  $("camera-connected").className = cam.connected ? "good" : "bad";
+  $("camera-identity").textContent = cam.identity;
+}
+
+// --- presets and the start form --------------------------------------------------------------
+let presets = {};
+
+async function loadPresets() {
+  try {
+    const data = await api("GET", "/presets");
+    presets = data.presets;
+    const select = $("preset");
+    select.replaceChildren(...Object.entries(presets).map(([name, p]) =>
+      el("option", { value: name, textContent: p.valid ? `${name} (${p.positions} positions)` : `${name} (invalid)`, disabled: !p.valid })));
+    if (!$("exposures").value && data.default_bracket && data.default_bracket.exposures_s) {
+      $("exposures").value = data.default_bracket.exposures_s.join(", ");
+    }
+    showPresetInfo();
+  } catch (err) {
+    showMessage(`Cannot read the presets — ${err.message}`);
+  }
+}
+
+function showPresetInfo() {
+  const p = presets[$("preset").value];
+  $("preset-info").textContent = !p ? "" : p.valid ? `${p.schedule.kind}: ${p.positions} positions` : p.error;
+}
+
+function bracketMode() { return $("bracket-auto").checked ? "auto" : "fixed"; }
+
+function showBracketFields() {
+  const auto = bracketMode() === "auto";
+  $("exposures-label").hidden = auto;
+  $("snr-label").hidden = !auto;
+}
+
+// Numbers where they parse; anything else goes as typed, for the daemon to explain.
+function parseExposures(text) {
+  return text.split(/[\s,;]+/).filter(Boolean).map((s) => {
+    const n = Number(s);
+    return Number.isFinite(n) ? n : s;
+  });
+}
+
+function runRequest() {
+  const body = {
+    preset: $("preset").value,
+    operator: $("operator").value,
+    light_source: $("light-source").value,
+    notes: $("notes").value,
+  };
+  const count = $("count").value.trim();
+  if (count) body.count = Number(count);
+  if (bracketMode() === "fixed") {
+    body.bracket = { mode: "fixed", exposures_s: parseExposures($("exposures").value) };
+  } else {
+    body.bracket = { mode: "auto" };
+    const snr = $("target-snr").value.trim();
+    if (snr) body.bracket.target_snr = Number(snr);
+  }
+  return body;
+}
+
+async function startRun(event) {
+  event.preventDefault();
+  const button = $("start");
+  button.disabled = true;
+  try {
+    const run = await api("POST", "/runs", runRequest());
+    showMessage(`Run ${run.id} started: ${run.n_positions} positions.`, "info");
+    follow(run.id, run);
+    refreshRuns();
+  } catch (err) {
+    showMessage(`Start refused: ${err.message}`);
+  } finally {
+    button.disabled = false;
+  }
+}
+
+// --- the followed run: server-sent events, polling as the fallback -------------------------
+let followed = null;   // id of the run shown
+let current = null;    // its last RunStatus
+let source = null;     // its EventSource
+let pollTimer = null;
+let previewKey = null;
+
+function stopFollowing() {
+  if (source) { source.close(); source = null; }
+  if (pollTimer) { clearInterval(pollTimer); pollTimer = null; }
+}
+
+async function follow(id, initial) {
+  stopFollowing();
+  followed = id;
+  current = null;
+  previewKey = null;
+  $("preview").hidden = true;
+  $("preview").removeAttribute("src");
+  $("preview-caption").textContent = "no frame yet";
+  if (initial) render(initial);
+  markSelected();
+  const run = await fetchFollowed();
+  if (run && followed === id && ACTIVE.includes(run.state)) openEvents(id);
+}
+
+async function fetchFollowed() {
+  const id = followed;
+  if (!id) return null;
+  try {
+    const run = await api("GET", `/runs/${encodeURIComponent(id)}`);
+    if (followed === id) render(run);
+    return run;
+  } catch (err) {
+    $("follow-mode").textContent = `cannot read the run: ${err.message}`;
+    return null;
+  }
+}
+
+function openEvents(id) {
+  if (!window.EventSource) { startPolling(id); return; }
+  const es = new EventSource(`/runs/${encodeURIComponent(id)}/events`);
+  source = es;
+  es.addEventListener("progress", (e) => {
+    if (followed !== id) return;
+    $("follow-mode").textContent = "live";
+    try { render(JSON.parse(e.data)); } catch { /* a malformed event: polling will catch up */ }
+  });
+  // The stream ends when the run does; any other end (or failure) falls back to polling.
+  es.onerror = () => {
+    es.close();
+    if (source === es) source = null;
+    if (followed === id && !(current && FINAL.includes(current.state))) startPolling(id);
+  };
+}
+
+function startPolling(id) {
+  if (pollTimer || followed !== id) return;
+  $("follow-mode").textContent = "polling";
+  pollTimer = setInterval(async () => {
+    const run = await fetchFollowed();
+    if (followed !== id || (run && FINAL.includes(run.state))) {
+      clearInterval(pollTimer);
+      pollTimer = null;
+      if (followed === id) $("follow-mode").textContent = "";
+    }
+  }, POLL_PERIOD_MS);
+}
+
+function render(run) {
+  const previous = current;
+  current = run;
+  $("run-id").textContent = run.id;
+  $("progress").value = run.percent_done;
+  $("progress").textContent = fmtPercent(run.percent_done);
+  $("percent").textContent = fmtPercent(run.percent_done);
+  setBadge($("state"), run.state, `state-${run.state}`);
+  $("positions").textContent = `${run.positions_done} / ${run.n_positions} done · preset ${run.preset || "—"}`;
+  $("current").textContent = run.current_position === null ? "—" : `#${run.current_position}`;
+  if (run.state === "running" && run.eta_s !== null) {
+    const end = new Date(Date.now() + run.eta_s * 1000);
+    $("eta").textContent = `ETA ${fmtDuration(run.eta_s)} (about ${end.toLocaleTimeString()})`;
+  } else if (run.finished_utc) {
+    $("eta").textContent = `finished ${fmtTime(run.finished_utc)}`;
+  } else {
+    $("eta").textContent = "—";
+  }
+  $("run-exposures").textContent = run.exposures_per_position ?? "—";
+  $("last-error").textContent = run.last_error || "none";
+  $("last-error").className = run.last_error ? "bad" : "";
+  $("pause").disabled = run.state !== "running";
+  $("resume").disabled = !["paused", "interrupted", "failed"].includes(run.state);
+  $("abort").disabled = !["queued", "running", "paused", "interrupted"].includes(run.state);
+  refreshPreview(run);
+  if (!previous || previous.state !== run.state || (FINAL.includes(run.state) && previous.percent_done !== run.percent_done)) {
+    refreshRuns();
+  }
+}
+
+function refreshPreview(run) {
+  const key = `${run.id}:${run.positions_done}:${run.state}:${run.current_position}`;
+  if (key === previewKey || (run.positions_done === 0 && run.current_position === null)) return;
+  previewKey = key;
+  $("preview").src = `/runs/${encodeURIComponent(run.id)}/preview.png?t=${Date.now()}`;
+}
+
+function previewLoaded() {
+  $("preview").hidden = false;
+  const run = current;
+  $("preview-caption").textContent = run
+    ? `latest frame of ${run.id} (${run.positions_done} of ${run.n_positions} positions), ${new Date().toLocaleTimeString()}`
+    : "latest frame";
+}
+
+function previewMissing() {
+  $("preview").hidden = true;
+  $("preview-caption").textContent = "no frame of this run in memory to preview";
+}
+
+async function control(action) {
+  const id = followed;
+  if (!id) return;
+  if (action === "abort" && !window.confirm(`Abort run ${id}? The frames taken are kept.`)) return;
+  try {
+    const run = await api("POST", `/runs/${encodeURIComponent(id)}/${action}`);
+    showMessage(`Run ${id}: ${action} → ${run.state}.`, "info");
+    if (action === "resume") follow(id, run); else render(run);
+  } catch (err) {
+    showMessage(`${action} refused: ${err.message}`);
+  }
+}
+
+async function stopArm() {
+  try {
+    await api("POST", "/arm/stop");
+    showMessage("Arm stopped. A running run pauses; resume it to re-take the interrupted position.", "info");
+    fetchFollowed();
+  } catch (err) {
+    showMessage(`Stop arm refused: ${err.message}`);
+  }
+}
+
+// --- the list of runs -------------------------------------------------------------------------
+let runsLoading = false;
+
+async function refreshRuns() {
+  if (runsLoading) return;
+  runsLoading = true;
+  try {
+    const [runs, jobs] = await Promise.all([api("GET", "/runs?limit=50"), api("GET", "/jobs?limit=200")]);
+    const latestJob = {};
+    for (const job of jobs) {
+      if (!latestJob[job.run_id] || job.created_utc > latestJob[job.run_id].created_utc) latestJob[job.run_id] = job;
+    }
+    renderRuns(runs, latestJob);
+    if (!followed && runs.length) follow(runs[0].id);
+  } catch (err) {
+    $("runs").replaceChildren(el("tr", {}, el("td", { colSpan: 7, className: "bad", textContent: err.message })));
+  } finally {
+    runsLoading = false;
+  }
+}
+
+function renderRuns(runs, latestJob) {
+  if (!runs.length) {
+    $("runs").replaceChildren(el("tr", {}, el("td", { colSpan: 7, className: "muted", textContent: "no runs yet" })));
+    return;
+  }
+  $("runs").replaceChildren(...runs.map((run) => {
+    const view = el("a", { href: `#${run.id}`, className: "run-link", textContent: run.id, title: "show this run" });
+    view.addEventListener("click", (e) => { e.preventDefault(); follow(run.id); });
+    const state = el("span", { className: `badge state-${run.state}`, textContent: run.state });
+    const file = FINAL.includes(run.state)
+      ? el("a", { href: run.file_url, className: "download", textContent: "download .h5", download: "" })
+      : el("span", { className: "muted", textContent: "being written" });
+    const job = latestJob[run.id];
+    const process = el("button", { type: "button", className: "small process", textContent: "process", disabled: !FINAL.includes(run.state) });
+    process.addEventListener("click", () => processRun(run.id));
+    const jobText = job ? ` ${job.state}${job.state === "running" ? ` ${Math.round(job.progress * 100)} %` : ""}${job.error ? `: ${job.error}` : ""}` : "";
+    const row = el("tr", {},
+      el("td", {}, view),
+      el("td", { textContent: run.preset || "—" }),
+      el("td", {}, state),
+      el("td", { className: "num percent-cell", textContent: `${fmtPercent(run.percent_done)} (${run.positions_done}/${run.n_positions})` }),
+      el("td", { className: "small", textContent: fmtTime(run.created_utc) }),
+      el("td", {}, file),
+      el("td", {}, process, el("span", { className: "small job-state", textContent: jobText, title: job ? job.id : "" })),
+    );
+    row.dataset.runId = run.id;
+    return row;
+  }));
+  markSelected();
+}
+
+function markSelected() {
+  for (const row of $("runs").querySelectorAll("tr[data-run-id]")) {
+    row.classList.toggle("selected", row.dataset.runId === followed);
+  }
+}
+
+async function processRun(id) {
+  try {
+    const job = await api("POST", `/runs/${encodeURIComponent(id)}/process`);
+    showMessage(`Job ${job.id} queued for run ${id} (steps ${job.steps}).`, "info");
+    refreshRuns();
+  } catch (err) {
+    showMessage(`Process refused: ${err.message}`);
+  }
+}
+
+// --- wiring ---------------------------------------------------------------------------------
+function init() {
+  const token = $("token");
+  token.value = localStorage.getItem(TOKEN_KEY) || "";
+  token.addEventListener("input", () => localStorage.setItem(TOKEN_KEY, token.value.trim()));
+  $("start-form").addEventListener("submit", startRun);
+  $("preset").addEventListener("change", showPresetInfo);
+  for (const radio of document.querySelectorAll("input[name=bracket]")) radio.addEventListener("change", showBracketFields);
+  $("pause").addEventListener("click", () => control("pause"));
+  $("resume").addEventListener("click", () => control("resume"));
+  $("abort").addEventListener("click", () => control("abort"));
+  $("stop-arm").addEventListener("click", stopArm);
+  $("preview").addEventListener("load", previewLoaded);
+  $("preview").addEventListener("error", previewMissing);
+  showBracketFields();
+  loadPresets();
+  refreshStatus();
+  refreshRuns();
+  setInterval(refreshRuns, STATUS_PERIOD_MS);
+}
+
+document.addEventListener("DOMContentLoaded", init);

@@ -1,0 +1,155 @@
+"""The daemon's API fuzzed against its own OpenAPI document (schemathesis, in process).
+
+Every operation gets generated requests, valid and invalid, with the right token, a wrong
+one or none; every answer must be no server error, carry a documented status code and
+match the documented schema. The daemon runs in process over ASGI with its lifespan (the
+simulated rig: the Modbus TCP server on loopback and the simulated camera).
+"""
+
+from __future__ import annotations
+
+import time
+import zlib
+
+import pytest
+import schemathesis
+from fastapi.testclient import TestClient
+from hypothesis import HealthCheck, settings
+from schemathesis.checks import not_a_server_error
+from schemathesis.python import asgi
+from schemathesis.specs.openapi.checks import (
+    content_type_conformance,
+    response_schema_conformance,
+    status_code_conformance,
+)
+
+from acquisition.app import create_app
+from acquisition.settings import load_settings
+from conftest import REDUCED_RIG
+
+TOKEN = "fuzz-token"
+AUTH = {"Authorization": f"Bearer {TOKEN}"}
+FINAL = {"complete", "aborted", "failed", "interrupted"}
+CHECKS = [not_a_server_error, status_code_conformance, response_schema_conformance, content_type_conformance]
+
+
+def make_app(data_dir):
+    settings = load_settings(None, data_dir=data_dir, rig=REDUCED_RIG, token=TOKEN)
+    settings.arm.simulated.speed_m_s = 0.5
+    settings.arm.simulated.accel_m_s2 = 5.0
+    return create_app(settings)
+
+
+def wait_final(http, run_id, timeout=60.0) -> dict:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        status = http.get(f"/runs/{run_id}").json()
+        if status["state"] in FINAL:
+            return status
+        time.sleep(0.05)
+    raise AssertionError(f"run {run_id} did not end: {status}")
+
+
+def abort_active_run(app) -> None:
+    """End whatever run a fuzzed request started (or resumed), so that runs stay tiny and
+    the next request sees an idle rig."""
+    engine = app.state.engine
+    active = engine.catalog.active_run()
+    if active is not None and engine.busy:
+        engine.abort(active.id)
+    engine.wait(timeout=30)
+
+
+@pytest.fixture(scope="module")
+def daemon_app(tmp_path_factory):
+    """The daemon under test, its catalog seeded with runs in several states and a job so
+    that the fuzzer can aim at ids that exist (its lifespan is run once here to seed it)."""
+    app = make_app(tmp_path_factory.mktemp("fuzz") / "data")
+    known: dict[str, list[str]] = {"run_id": [], "job_id": []}
+    with TestClient(app, headers=AUTH) as http:
+        bracket = {"mode": "fixed", "exposures_s": [0.001]}
+        done = http.post("/runs", json={"count": 1, "bracket": bracket}).json()
+        assert wait_final(http, done["id"])["state"] == "complete"
+        aborted = http.post("/runs", json={"count": 3, "bracket": bracket}).json()
+        http.post(f"/runs/{aborted['id']}/abort")
+        assert wait_final(http, aborted["id"])["state"] == "aborted"
+        job = http.post(f"/runs/{done['id']}/process", json={"steps": "hdr"}).json()
+        known["run_id"] += [done["id"], aborted["id"]]
+        known["job_id"].append(job["id"])
+    app.state.known_ids = known
+    yield app
+    # Schemathesis starts the lifespan on the first fuzzed request and its pytest plugin
+    # ends it after each test; this is the backstop (daemon shutdown: an active run
+    # aborted, the simulated devices closed).
+    asgi.shutdown_lifespans()
+
+
+# The daemon's own OpenAPI document (what it serves at /openapi.json; it does not depend on
+# the settings, so an app that is never started gives it at collection time).
+schema = schemathesis.openapi.from_dict(make_app("unused").openapi())
+schema.config.update(request_timeout=30.0)  # a bound on any request, the event stream included
+
+
+def pick(case, salt: str, options: list):
+    """A choice that is a function of the generated request only: reproducible (and stable
+    while Hypothesis shrinks), unlike a draw that ``@schema.given`` would bring (which
+    cannot be combined with the schema's own examples)."""
+    key = f"{salt}|{case.method}|{case.path_parameters}|{case.query}|{case.body!r}"
+    return options[zlib.crc32(key.encode()) % len(options)]
+
+
+@schema.parametrize()
+@settings(
+    max_examples=30,
+    deadline=None,
+    derandomize=True,
+    database=None,
+    suppress_health_check=[HealthCheck.too_slow, HealthCheck.filter_too_much, HealthCheck.data_too_large],
+)
+def test_api_conforms_to_its_openapi_document(case, daemon_app):
+    # Aim half of the path ids at records that exist, so that the handlers past the 404 run.
+    for name, ids in daemon_app.state.known_ids.items():
+        if name in (case.path_parameters or {}) and pick(case, name, [True, False]):
+            case.path_parameters[name] = pick(case, name + " value", ids)
+    # Mostly the daemon's token; sometimes none (401) or a wrong one (403).
+    auth = pick(case, "auth", ["good", "good", "good", "none", "wrong"])
+    headers = {"good": AUTH, "none": {}, "wrong": {"Authorization": "Bearer not-the-token"}}[auth]
+    try:
+        case.call_and_validate(headers=headers, checks=CHECKS, app=daemon_app)
+    finally:
+        abort_active_run(daemon_app)
+
+
+# --- explicit checks ---------------------------------------------------------------------
+@pytest.fixture()
+def http(tmp_path):
+    with TestClient(make_app(tmp_path / "data"), headers=AUTH) as client:
+        yield client
+        abort_active_run(client.app)
+
+
+def test_a_bad_exposure_is_a_422_naming_the_field(http):
+    answer = http.post("/runs", json={"bracket": {"mode": "fixed", "exposures_s": [-1]}})
+    assert answer.status_code == 422, answer.text
+    assert "exposures_s" in answer.text
+    assert any("exposures_s" in error["loc"] for error in answer.json()["detail"])
+
+
+def test_an_unknown_field_is_a_422(http):
+    answer = http.post("/runs", json={"preset": "light-sweep", "colour": "blue"})
+    assert answer.status_code == 422, answer.text
+    assert any("colour" in error["loc"] for error in answer.json()["detail"])
+
+
+def test_a_second_run_while_one_is_active_is_a_409(http):
+    first = http.post("/runs", json={"bracket": {"mode": "fixed", "exposures_s": [0.001]}})
+    assert first.status_code == 201, first.text
+    second = http.post("/runs", json={"count": 1})
+    assert second.status_code == 409, second.text
+    assert first.json()["id"] in second.json()["detail"]
+
+
+def test_the_token_is_required_to_change_anything(http):
+    assert http.post("/runs", json={"count": 1}, headers={"Authorization": ""}).status_code == 401
+    assert http.post("/arm/stop", headers={"Authorization": "Bearer wrong"}).status_code == 403
+    assert http.get("/runs").status_code == 200

@@ -1,0 +1,163 @@
+"""The technician's page in a real headless browser: Debian's chromium driven by playwright,
+against a real daemon process with the simulated devices.
+
+``make test`` installs chromium (its ``browser`` target); without it these tests fail.
+"""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import httpx
+import pytest
+from playwright.sync_api import expect, sync_playwright
+
+from conftest import write_config
+
+TOKEN = "t0k"
+# Debian's chromium, not a browser downloaded by `playwright install` (no network for that).
+# The flags keep it from reaching for the network it does not have.
+CHROMIUM_ARGS = [
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--no-first-run",
+]
+
+
+def chromium_executable() -> str:
+    found = shutil.which("chromium") or next(
+        (p for p in ("/usr/bin/chromium", "/usr/bin/chromium-browser") if Path(p).exists()), None
+    )
+    if found is None:
+        pytest.fail(
+            "chromium is not installed: run `make test` (its `browser` target installs Debian's "
+            "chromium) or `make browser`, or `apt-get install chromium`",
+            pytrace=False,
+        )
+    return found
+
+
+@pytest.fixture()
+def page(tmp_path):
+    """A fresh headless chromium (own profile) and a page that records script errors."""
+    executable = chromium_executable()
+    with sync_playwright() as pw:
+        context = pw.chromium.launch_persistent_context(
+            str(tmp_path / "chromium-profile"),
+            executable_path=executable,
+            headless=True,
+            args=CHROMIUM_ARGS,
+            viewport={"width": 1366, "height": 900},
+        )
+        try:
+            page = context.pages[0] if context.pages else context.new_page()
+            page.script_errors = []
+            page.on("pageerror", lambda exc: page.script_errors.append(str(exc)))
+            page.set_default_timeout(15_000)
+            yield page
+        finally:
+            context.close()
+
+
+def open_page(page, daemon) -> None:
+    page.goto(daemon.url + "/")
+    expect(page.locator("#health-status")).to_have_text("ok")
+    # The presets are in the select, with the daemon's default bracket in the form.
+    expect(page.locator("#preset option[value=light-sweep]")).to_have_count(1)
+    expect(page.locator("#exposures")).to_have_value("0.0002, 0.001, 0.005")
+
+
+def test_a_run_started_from_the_page_completes_with_preview_and_download(tmp_path, daemon_factory, page):
+    daemon = daemon_factory(write_config(tmp_path / "daemon.toml", tmp_path / "data"), token=TOKEN)
+    open_page(page, daemon)
+    expect(page.locator("#arm-connected")).to_have_text("connected")
+    expect(page.locator("#arm-identity")).to_contain_text("simulated stage")
+    expect(page.locator("#arm-alarm")).to_have_text("none")
+    expect(page.locator("#camera-identity")).to_contain_text("SIM-0001")
+    expect(page.locator("#stop-arm")).to_be_enabled()
+
+    page.fill("#token", TOKEN)
+    page.select_option("#preset", "light-sweep")
+    page.fill("#exposures", "0.001, 0.005")
+    page.fill("#count", "8")
+    page.fill("#operator", "page test")
+    page.click("#start")
+
+    expect(page.locator("#message")).to_contain_text("started: 8 positions")
+    expect(page.locator("#percent")).to_have_text("100 %", timeout=60_000)
+    expect(page.locator("#state")).to_have_text("complete")
+    expect(page.locator("#follow-mode")).to_have_text("live")  # followed through server-sent events
+    run_id = page.locator("#run-id").inner_text()
+    with daemon.client() as http:
+        status = http.get(f"/runs/{run_id}").json()
+    assert status["state"] == "complete" and status["n_positions"] == 8, status
+    assert status["exposures_per_position"] == 2
+    assert page.eval_on_selector("#progress", "e => e.value") == 100
+    expect(page.locator("#positions")).to_contain_text("8 / 8")
+    expect(page.locator("#last-error")).to_have_text("none")
+    for finished in ("#pause", "#resume", "#abort"):
+        expect(page.locator(finished)).to_be_disabled()
+
+    # The latest frame of this run has loaded.
+    preview = page.locator("#preview")
+    expect(preview).to_be_visible()
+    assert page.eval_on_selector("#preview", "e => e.getAttribute('src')").startswith(f"/runs/{run_id}/preview.png?t=")
+    page.wait_for_function("() => { const i = document.getElementById('preview'); return i.complete && i.naturalWidth > 0; }")
+
+    # The run is listed, with its download link and a process button that queues a job.
+    row = page.locator(f'#runs tr[data-run-id="{run_id}"]')
+    expect(row).to_contain_text("complete")
+    expect(row).to_contain_text("100 %")
+    link = row.locator("a.download")
+    expect(link).to_have_attribute("href", status["file_url"])
+    download = httpx.get(daemon.url + link.get_attribute("href"), timeout=30)
+    assert download.status_code == 200 and download.content[:8] == b"\x89HDF\r\n\x1a\n"
+    row.locator("button.process").click()
+    expect(page.locator("#message")).to_contain_text(f"queued for run {run_id}")
+    with daemon.client() as http:
+        jobs = http.get("/jobs", params={"run_id": run_id}).json()
+    assert len(jobs) == 1 and jobs[0]["state"] == "queued", jobs
+    expect(row.locator(".job-state")).to_contain_text("queued")
+
+    assert page.evaluate("localStorage.getItem('mirrorgonio.token')") == TOKEN
+    page.screenshot(path=str(tmp_path / "page.png"), full_page=True)
+    assert page.script_errors == []
+
+
+def test_the_page_shows_what_the_daemon_refuses_and_polls_without_events(tmp_path, daemon_factory, page):
+    daemon = daemon_factory(write_config(tmp_path / "daemon.toml", tmp_path / "data"), token=TOKEN)
+    page.add_init_script("delete window.EventSource")  # a browser (or proxy) without server-sent events
+    open_page(page, daemon)
+    message = page.locator("#message")
+    expect(message).to_be_hidden()
+
+    page.fill("#count", "8")
+    page.click("#start")  # no token yet
+    expect(message).to_contain_text("a bearer token is required (HTTP 401)")
+
+    page.fill("#token", TOKEN)
+    page.fill("#exposures", "-1")
+    page.click("#start")
+    expect(message).to_contain_text("bracket.fixed.exposures_s.0: Input should be greater than 0")
+    expect(message).to_contain_text("HTTP 422")
+    expect(message).to_have_class("message error")
+
+    with daemon.client() as http:
+        assert http.get("/runs").json() == []
+    page.screenshot(path=str(tmp_path / "refused.png"), full_page=True)
+
+    # Without EventSource the page follows the run by polling.
+    page.fill("#exposures", "0.001")
+    page.fill("#count", "3")
+    page.click("#start")
+    expect(message).to_contain_text("started: 3 positions")
+    expect(message).to_have_class("message info")
+    expect(page.locator("#percent")).to_have_text("100 %", timeout=60_000)
+    expect(page.locator("#state")).to_have_text("complete")
+    assert page.evaluate("typeof window.EventSource") == "undefined"
+    page.wait_for_function("() => { const i = document.getElementById('preview'); return i.complete && i.naturalWidth > 0; }")
+    assert page.script_errors == []
