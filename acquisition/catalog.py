@@ -845,16 +845,14 @@ class Catalog:
             The claimed job, or None when no job is queued.
         """
         _check_text("worker_id", worker_id)
-        with self._read() as conn:
-            row = conn.execute("SELECT id FROM jobs WHERE state = 'queued' ORDER BY seq LIMIT 1").fetchone()
-        import time; time.sleep(0.001)
         with self._write() as conn:
+            row = conn.execute("SELECT id FROM jobs WHERE state = 'queued' ORDER BY seq LIMIT 1").fetchone()
             if row is None:
                 return None
             stamp = _fmt(self._now())
             conn.execute(
                 "UPDATE jobs SET state = 'running', claimed_by = ?, heartbeat_utc = ?, updated_utc = ?, "
-                "progress = 0, error = NULL WHERE id = ?",
+                "progress = 0, error = NULL WHERE id = ? AND state = 'queued'",
                 (worker_id, stamp, stamp, row["id"]),
             )
             return self._fetch_job(conn, row["id"])

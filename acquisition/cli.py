@@ -208,6 +208,24 @@ def bench_render(
     typer.echo(json.dumps(result, indent=2))
 
 
+@bench_app.command("acquire")
+def bench_acquire_command(
+    rig: RigOption = None,
+    positions: Annotated[int, typer.Option(min=1, help="Schedule positions per run.")] = 20,
+    exposures: Annotated[int, typer.Option(min=1, max=16, help="Frames per position.")] = 3,
+    repeat: Annotated[int, typer.Option(min=1, help="Timed repetitions (medians reported).")] = 3,
+    as_json: Annotated[bool, typer.Option("--json", help="Print JSON only.")] = False,
+) -> None:
+    """The daemon's overhead with zero-latency devices, next to a plain h5py write of the same frames."""
+    from acquisition.bench import bench_acquire
+
+    try:
+        result = bench_acquire(rig, positions=positions, exposures=exposures, repeat=repeat)
+    except _domain_errors() as exc:
+        raise _fail(str(exc)) from None
+    typer.echo(json.dumps(result) if as_json else json.dumps(result, indent=2))
+
+
 # --- demo -------------------------------------------------------------------------------------
 @app.command("demo")
 def demo(

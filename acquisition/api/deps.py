@@ -9,6 +9,7 @@ from fastapi import Depends, HTTPException, Request, status
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
 from acquisition.catalog import Catalog
+from acquisition.models import Problem
 from acquisition.runner import RunEngine
 from acquisition.settings import DaemonSettings
 
@@ -48,3 +49,8 @@ def require_token(
 
 
 TokenDep = Depends(require_token)
+#: The answers ``require_token`` adds to an endpoint it guards (for its OpenAPI ``responses``).
+TOKEN_ERRORS = {
+    401: {"model": Problem, "description": "no bearer token (a token is configured)"},
+    403: {"model": Problem, "description": "the token is not valid for this daemon"},
+}

@@ -17,7 +17,7 @@ def job_status(job: JobRecord) -> JobStatus:
                      updated_utc=job.updated_utc)  # fmt: skip
 
 
-@router.get("", response_model=list[JobStatus])
+@router.get("", response_model=list[JobStatus], responses={404: {"model": Problem, "description": "unknown run_id"}})
 def list_jobs(catalog: CatalogDep, run_id: str | None = None, limit: int = 100) -> list[JobStatus]:
     return [job_status(j) for j in catalog.list_jobs(run_id=run_id, limit=max(1, min(limit, 1000)))]
 

@@ -8,7 +8,7 @@ from pathlib import Path
 from fastapi import APIRouter, HTTPException, Request, Response, status
 from fastapi.responses import FileResponse, StreamingResponse
 
-from acquisition.api.deps import CatalogDep, EngineDep, SettingsDep, TokenDep
+from acquisition.api.deps import TOKEN_ERRORS, CatalogDep, EngineDep, SettingsDep, TokenDep
 from acquisition.api.jobs import job_status
 from acquisition.catalog import RunRecord
 from acquisition.models import JobRequest, JobStatus, Problem, RunRequest, RunStatus
@@ -16,6 +16,7 @@ from acquisition.models import JobRequest, JobStatus, Problem, RunRequest, RunSt
 router = APIRouter(prefix="/runs", tags=["runs"])
 FINAL = ("complete", "aborted", "failed", "interrupted")
 ERRORS = {404: {"model": Problem}, 409: {"model": Problem}}
+GUARDED_ERRORS = {**ERRORS, **TOKEN_ERRORS}  # and 401/403 from the token
 
 
 def run_status(record: RunRecord) -> RunStatus:
@@ -30,7 +31,8 @@ def run_status(record: RunRecord) -> RunStatus:
 
 
 @router.post("", status_code=status.HTTP_201_CREATED, response_model=RunStatus, dependencies=[TokenDep],
-             responses={409: {"model": Problem, "description": "another run is active"}, 422: {"model": Problem}})  # fmt: skip
+             responses={409: {"model": Problem, "description": "another run is active"}, 422: {"model": Problem},
+                        **TOKEN_ERRORS})  # fmt: skip
 def start_run(body: RunRequest, engine: EngineDep, settings: SettingsDep) -> RunStatus:
     """Start a run. Only one run at a time per rig: a second one gets 409."""
     if "bracket" not in body.model_fields_set:
@@ -51,20 +53,20 @@ def get_run(run_id: str, catalog: CatalogDep) -> RunStatus:
     return run_status(catalog.get_run(run_id))
 
 
-@router.post("/{run_id}/pause", response_model=RunStatus, dependencies=[TokenDep], responses=ERRORS)
+@router.post("/{run_id}/pause", response_model=RunStatus, dependencies=[TokenDep], responses=GUARDED_ERRORS)
 def pause(run_id: str, engine: EngineDep) -> RunStatus:
     """Pause between frames."""
     return run_status(engine.pause(run_id))
 
 
-@router.post("/{run_id}/resume", response_model=RunStatus, dependencies=[TokenDep], responses=ERRORS)
+@router.post("/{run_id}/resume", response_model=RunStatus, dependencies=[TokenDep], responses=GUARDED_ERRORS)
 def resume(run_id: str, engine: EngineDep) -> RunStatus:
     """Resume a paused run, or continue an interrupted (daemon crash) or failed (device
     fault, now cleared) run from its first incomplete position."""
     return run_status(engine.resume(run_id))
 
 
-@router.post("/{run_id}/abort", response_model=RunStatus, dependencies=[TokenDep], responses=ERRORS)
+@router.post("/{run_id}/abort", response_model=RunStatus, dependencies=[TokenDep], responses=GUARDED_ERRORS)
 def abort(run_id: str, engine: EngineDep) -> RunStatus:
     """Stop the arm and end the run; every frame taken is kept."""
     return run_status(engine.abort(run_id))
@@ -115,7 +117,7 @@ def download(run_id: str, catalog: CatalogDep) -> FileResponse:
 
 
 @router.post("/{run_id}/process", status_code=status.HTTP_201_CREATED, response_model=JobStatus,
-             dependencies=[TokenDep], responses=ERRORS)  # fmt: skip
+             dependencies=[TokenDep], responses=GUARDED_ERRORS)  # fmt: skip
 def process(run_id: str, catalog: CatalogDep, body: JobRequest | None = None) -> JobStatus:
     """Queue a processing job for the run (a worker takes it)."""
     body = body or JobRequest()

@@ -1,0 +1,109 @@
+"""Benchmarks of the acquisition software: what the daemon adds to the hardware's time."""
+
+from __future__ import annotations
+
+import math
+import statistics
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def _frames(rig, count: int, seed: int = 0):
+    """Realistic raw frames: rendered mirror-ball images with sensor noise."""
+    from sim_devices.camera import SimulatedCamera
+    from sim_devices.world import SimWorld
+
+    poses = rig.tool_poses()
+    state = {"pose": poses[len(poses) // 2]}
+    with tempfile.TemporaryDirectory() as spool:
+        camera = SimulatedCamera(rig, SimWorld(lambda: state["pose"]), spool, seed=seed)
+        frames = []
+        for k in range(count):
+            state["pose"] = poses[(len(poses) // 2 + 7 * k) % len(poses)]
+            frames.append(camera.capture([0.0002, 0.001, 0.005][k % 3]))
+    return frames
+
+
+def _plain_h5py_write(path: Path, frames, positions: int, exposures: int) -> float:
+    """The same frames into one dataset with the same chunks and filter: the peer."""
+    import h5py
+    import hdf5plugin
+
+    h, w = frames[0].mosaic.shape
+    start = time.perf_counter()
+    with h5py.File(path, "w") as f:
+        raw = f.create_dataset("raw", (positions, exposures, h, w), dtype="u2", chunks=(1, 1, h, w), **hdf5plugin.LZ4())
+        k = 0
+        for i in range(positions):
+            for e in range(exposures):
+                raw[i, e] = frames[k % len(frames)].mosaic
+                k += 1
+    return time.perf_counter() - start
+
+
+def bench_acquire(rig_path=None, positions: int = 20, exposures: int = 3, repeat: int = 3, distinct_frames: int = 6) -> dict:
+    """Run the real engine on zero-latency devices and compare with a plain h5py write."""
+    from acquisition.catalog import Catalog
+    from acquisition.devices import Devices
+    from acquisition.models import FixedBracket, RunRequest
+    from acquisition.rig import load_rig
+    from acquisition.runner import RunEngine
+    from acquisition.settings import load_settings
+    from drivers.modbus_arm import ModbusArm
+    from drivers.modbus_profile import SIM_STAGE_PROFILE
+    from sim_devices.modbus_server import SimulatedModbusArm
+    from sim_devices.replay_camera import ReplayCamera
+    from sim_devices.stage import SimulatedStage, StageConfig
+
+    rig = load_rig(rig_path)
+    frames = _frames(rig, distinct_frames)
+    frame_bytes = frames[0].mosaic.nbytes
+    total_frames = positions * exposures
+    engine_times, plain_times = [], []
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        stage = SimulatedStage(StageConfig(speed_m_s=math.inf, accel_m_s2=math.inf, angular_speed_rad_s=math.inf,
+                                           angular_accel_rad_s2=math.inf, readback_noise_m=0.0, readback_noise_rad=0.0))  # fmt: skip
+        with SimulatedModbusArm(stage) as server:
+            arm = ModbusArm(SIM_STAGE_PROFILE, port=server.port, limits=rig.soft_limits(), poll_interval_s=0.0)
+            arm.connect()
+            try:
+                for r in range(repeat):
+                    settings = load_settings(None, data_dir=tmp / f"engine-{r}", rig=rig_path or None)
+                    settings.data_dir.mkdir(parents=True)
+                    catalog = Catalog(settings.catalog_path)
+                    engine = RunEngine(settings, rig, Devices(arm=arm, camera=ReplayCamera(frames)), catalog)
+                    request = RunRequest(count=positions, bracket=FixedBracket(exposures_s=[0.0002 * 4**k for k in range(exposures)]))
+                    start = time.perf_counter()
+                    record = engine.start_run(request)
+                    engine.wait()
+                    engine_times.append(time.perf_counter() - start)
+                    state = catalog.get_run(record.id).state
+                    catalog.close()
+                    if state != "complete":
+                        raise RuntimeError(f"benchmark run ended {state}")
+                    plain_times.append(_plain_h5py_write(tmp / f"plain-{r}.h5", frames, positions, exposures))
+            finally:
+                arm.close()
+    engine_s, plain_s = statistics.median(engine_times), statistics.median(plain_times)
+    megabytes = total_frames * frame_bytes / 1e6
+    return {
+        "benchmark": "acquire",
+        "frame_shape": list(frames[0].mosaic.shape),
+        "positions": positions,
+        "exposures_per_position": exposures,
+        "repeat": repeat,
+        "engine_s_median": round(engine_s, 3),
+        "engine_frames_per_s": round(total_frames / engine_s, 2),
+        "engine_mb_per_s": round(megabytes / engine_s, 1),
+        "plain_h5py_s_median": round(plain_s, 3),
+        "plain_h5py_mb_per_s": round(megabytes / plain_s, 1),
+        "engine_over_plain_throughput": round(plain_s / engine_s, 3),
+        "target_ratio": 0.7,
+        "meets_target": plain_s / engine_s >= 0.7,
+        "engine_s_all": [round(t, 3) for t in engine_times],
+        "plain_s_all": [round(t, 3) for t in plain_times],
+    }
