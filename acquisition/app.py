@@ -6,10 +6,13 @@
 from __future__ import annotations
 
 import logging
+import math
 from contextlib import asynccontextmanager
 from pathlib import Path
 
 from fastapi import FastAPI, Request, status
+from fastapi.encoders import jsonable_encoder
+from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse, HTMLResponse, JSONResponse
 
 from acquisition import __version__
@@ -44,6 +47,21 @@ ERROR_STATUS: list[tuple[type[Exception], int]] = [
     (RunEngineError, status.HTTP_400_BAD_REQUEST),
     (DeviceError, status.HTTP_503_SERVICE_UNAVAILABLE),
 ]
+
+
+def json_safe(value):
+    """``value`` with what strict JSON cannot carry spelled out: NaN and ±Infinity (which
+    Python's JSON parser accepts in a request) as text, and lone surrogates (``"\\ud800"``
+    is valid JSON but not Unicode, so it cannot be encoded as UTF-8) backslash-escaped."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return str(value)
+    if isinstance(value, str):
+        return value.encode("utf-8", "backslashreplace").decode("utf-8")
+    if isinstance(value, dict):
+        return {json_safe(k): json_safe(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [json_safe(v) for v in value]
+    return value
 
 
 def create_app(settings: DaemonSettings) -> FastAPI:
@@ -82,6 +100,14 @@ def create_app(settings: DaemonSettings) -> FastAPI:
 
     for kind, _ in ERROR_STATUS:
         app.add_exception_handler(kind, domain_error)
+
+    async def validation_error(request: Request, exc: RequestValidationError) -> JSONResponse:
+        # FastAPI's own 422, but its errors echo the input, which made a 500 of a request
+        # holding NaN or a lone surrogate: the answer could not be rendered.
+        detail = json_safe(jsonable_encoder(exc.errors()))
+        return JSONResponse({"detail": detail}, status_code=status.HTTP_422_UNPROCESSABLE_CONTENT)
+
+    app.add_exception_handler(RequestValidationError, validation_error)
 
     @app.get("/", response_class=HTMLResponse, include_in_schema=False)
     def web_page() -> HTMLResponse:

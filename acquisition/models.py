@@ -5,7 +5,7 @@ from __future__ import annotations
 from datetime import datetime
 from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, PositiveFloat, model_validator
+from pydantic import BaseModel, ConfigDict, Field, PositiveFloat, field_validator, model_validator
 
 from acquisition.rig import PoseSpec
 
@@ -72,6 +72,14 @@ class RunRequest(BaseModel):
 class JobRequest(BaseModel):
     model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [{"steps": "hdr,trace,fit"}]})
     steps: str = Field(default="hdr,trace,fit", pattern=r"^[a-z]+(,[a-z]+)*$", max_length=200)
+
+    @field_validator("steps")
+    @classmethod
+    def _each_step_once(cls, steps: str) -> str:
+        names = steps.split(",")
+        if len(set(names)) != len(names):
+            raise ValueError("names a step twice")
+        return steps
 
 
 # --- responses -----------------------------------------------------------------------------

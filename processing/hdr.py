@@ -1,0 +1,340 @@
+"""Merge a raw exposure bracket into linear radiance with its variance.
+
+The merge works on the Bayer mosaic, before any demosaicing: black level removed per CFA
+site, every sample divided by its exposure time, saturated samples rejected at a level
+measured from the data (LibRaw's reported white level is often wrong), and the rest
+combined with the weights that minimise the variance under a photon-shot-plus-read noise
+model.
+
+With a conversion gain ``g`` (e⁻/DN) and read noise ``σ_r`` (DN), a sample of a pixel of
+radiance ``X`` (DN/s) exposed for ``t`` has mean ``μ = t X`` and variance
+``σ² = μ / g + σ_r²``. The minimum-variance unbiased combination of the estimates
+``y_i / t_i`` weights them by ``t_i² / σ_i²`` (Granados et al., "Optimal HDR
+reconstruction with linear digital cameras", CVPR 2010; Hanji et al., "Noise-aware merging
+of high dynamic range image stacks without camera calibration", ECCV 2020). The variances
+are predicted from a first, Poisson-optimal estimate ``Σ y_i / Σ t_i`` (the estimator of
+HDRutils, exact when read noise is negligible) rather than from each sample's own value,
+which would bias the result; samples whose predicted mean lies within three standard
+deviations of saturation are dropped for the same reason.
+
+Methods (``method=``): ``"optimal"`` (the above), ``"poisson"`` (``Σ y / Σ t``), and
+``"debevec"`` for 8-bit non-linear brackets (Debevec & Malik, SIGGRAPH 1997, through
+OpenCV's ``CalibrateDebevec`` and ``MergeDebevec``).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+
+
+class HDRError(ValueError):
+    """A bracket that cannot be merged (one line naming the cause)."""
+
+
+@dataclass(frozen=True)
+class NoiseModel:
+    """Photon-shot-plus-read noise of a sensor, in digital numbers."""
+
+    gain_e_per_dn: float
+    read_noise_dn: float
+    source: str = "rig"  # where the figures came from: "rig" or "estimated"
+
+    def variance(self, mean_dn):
+        """Variance in DN² of a sample of mean ``mean_dn`` (above black), quantisation included."""
+        return np.maximum(mean_dn, 0.0) / self.gain_e_per_dn + self.read_noise_dn**2 + 1.0 / 12.0
+
+
+@dataclass
+class MergeResult:
+    """One position's merged bracket, per Bayer site.
+
+    Attributes
+    ----------
+    radiance : float32 (H, W)
+        Signal rate in DN/s above black; NaN where no sample was usable.
+    variance : float32 (H, W)
+        Variance of ``radiance`` under the noise model, (DN/s)².
+    count : uint8 (H, W)
+        Frames that contributed to each pixel.
+    saturated : bool (H, W)
+        Saturated even in the shortest exposure: ``radiance`` is then only a lower bound
+        (the shortest frame's value), never an estimate.
+    saturation_level : float (2, 2)
+        The clipping level measured per CFA site, in raw DN.
+    """
+
+    radiance: np.ndarray
+    variance: np.ndarray
+    count: np.ndarray
+    saturated: np.ndarray
+    saturation_level: np.ndarray
+    noise: NoiseModel
+    method: str
+
+
+# --- saturation, measured ---------------------------------------------------------------------
+def measure_saturation(frames: np.ndarray, reported_white: int, *, pile_fraction: float = 1e-4) -> np.ndarray:
+    """The raw level at which each CFA site clips, from the data.
+
+    A clipping sensor piles many samples up at one top value. Per CFA site, the highest
+    value seen is the clipping level if at least ``pile_fraction`` of the samples sit
+    within 0.2 % of the range below it; otherwise nothing clipped and the reported white
+    level stands.
+    """
+    levels = np.empty((2, 2))
+    for sy in range(2):
+        for sx in range(2):
+            site = frames[:, sy::2, sx::2]
+            top = int(site.max())
+            tolerance = max(2, int(0.002 * reported_white))
+            piled = np.count_nonzero(site >= top - tolerance)
+            levels[sy, sx] = top if piled >= pile_fraction * site.size else reported_white
+    return levels
+
+
+# --- the merge kernels -------------------------------------------------------------------------
+@numba.njit(parallel=True, cache=True, fastmath=False)
+def _merge_kernel(frames, exposures, black, threshold, inv_gain, read_var, near_black, optimal):
+    k, h, w = frames.shape
+    radiance = np.empty((h, w), np.float32)
+    variance = np.empty((h, w), np.float32)
+    count = np.zeros((h, w), np.uint8)
+    saturated = np.zeros((h, w), np.bool_)
+    order = np.argsort(exposures)
+    for y in numba.prange(h):
+        for x in range(w):
+            b = black[y & 1, x & 1]
+            thr = threshold[y & 1, x & 1]
+            # Pass 1: Poisson-optimal estimate from every unsaturated sample.
+            sum_y = 0.0
+            sum_t = 0.0
+            n1 = 0
+            for i in range(k):
+                v = frames[i, y, x]
+                if v < thr:
+                    sum_y += v - b
+                    sum_t += exposures[i]
+                    n1 += 1
+            if n1 == 0:
+                # Saturated in every frame: report the shortest frame's lower bound.
+                j = order[0]
+                radiance[y, x] = (frames[j, y, x] - b) / exposures[j]
+                variance[y, x] = np.inf
+                saturated[y, x] = True
+                continue
+            x0 = max(sum_y / sum_t, 0.0)
+            if not optimal:
+                radiance[y, x] = sum_y / sum_t
+                variance[y, x] = (x0 * sum_t * inv_gain + n1 * read_var) / (sum_t * sum_t)
+                count[y, x] = n1
+                continue
+            # Pass 2: weights t²/σ² with σ² predicted from x0, not from each sample.
+            head = thr - b
+            longest_kept = -1
+            for jj in range(k - 1, -1, -1):
+                j = order[jj]
+                mu = exposures[j] * x0
+                if frames[j, y, x] < thr and mu + 3.0 * math.sqrt(mu * inv_gain + read_var) < head:
+                    longest_kept = j
+                    break
+            num = 0.0
+            den = 0.0
+            n2 = 0
+            for i in range(k):
+                v = frames[i, y, x]
+                t = exposures[i]
+                mu = t * x0
+                var = mu * inv_gain + read_var
+                if v >= thr or mu + 3.0 * math.sqrt(var) >= head:
+                    continue  # clipped, or its mean is too close to clipping to be unbiased
+                if mu < near_black and i != longest_kept and longest_kept >= 0:
+                    continue  # all but read noise; a longer exposure says more
+                wgt = t * t / var
+                num += wgt * (v - b) / t
+                den += wgt
+                n2 += 1
+            if n2 == 0:
+                # Only samples near clipping remain: keep the shortest unsaturated one.
+                for jj in range(k):
+                    j = order[jj]
+                    if frames[j, y, x] < thr:
+                        t = exposures[j]
+                        var = t * x0 * inv_gain + read_var
+                        num = (frames[j, y, x] - b) / t
+                        den = t * t / var
+                        n2 = 1
+                        break
+                radiance[y, x] = num
+            else:
+                radiance[y, x] = num / den
+            variance[y, x] = 1.0 / den
+            count[y, x] = n2
+    return radiance, variance, count, saturated
+
+
+def _as_site_array(value) -> np.ndarray:
+    value = np.asarray(value, dtype=np.float64)
+    if value.shape == ():
+        return np.full((2, 2), float(value))
+    if value.shape != (2, 2):
+        raise HDRError(f"black level: expected one value or a 2x2 CFA tile, got shape {value.shape}")
+    return value
+
+
+def _check_bracket(frames, exposures) -> tuple[np.ndarray, np.ndarray]:
+    frames = [np.asarray(f) for f in frames] if isinstance(frames, (list, tuple)) else frames
+    if isinstance(frames, list):
+        if not frames:
+            raise HDRError("bracket: no frames")
+        shapes = {f.shape for f in frames}
+        if len(shapes) > 1:
+            raise HDRError(f"bracket: frames of different sizes {sorted(shapes)}")
+        frames = np.stack(frames)
+    if frames.ndim != 3 or frames.shape[0] == 0:
+        raise HDRError(f"bracket: expected frames of shape (k, H, W), got {frames.shape}")
+    if frames.dtype != np.uint16:
+        if np.issubdtype(frames.dtype, np.integer) and frames.min() >= 0 and frames.max() <= 65535:
+            frames = frames.astype(np.uint16)
+        else:
+            raise HDRError(f"bracket: raw frames must be unsigned 16-bit integers, got {frames.dtype}")
+    if exposures is None:
+        raise HDRError("exposure times: missing from the metadata")
+    exposures = np.asarray(exposures, dtype=np.float64).ravel()
+    if exposures.size != frames.shape[0]:
+        raise HDRError(f"exposure times: {exposures.size} given for {frames.shape[0]} frames")
+    if not np.all(np.isfinite(exposures)) or np.any(exposures <= 0):
+        raise HDRError(f"exposure times: must be positive and finite, got {exposures.tolist()}")
+    return np.ascontiguousarray(frames), exposures
+
+
+def merge_raw(frames, exposures, black_level, white_level: int, noise: NoiseModel, *, method: str = "optimal",
+              saturation_level=None, near_black_sigma: float = 2.0) -> MergeResult:  # fmt: skip
+    """Merge one position's raw bracket.
+
+    Parameters
+    ----------
+    frames : uint16 array (k, H, W) or list of (H, W)
+        The raw mosaics of the bracket, any order.
+    exposures : sequence of float
+        Exposure time of each frame in seconds, as read from the files.
+    black_level : float or (2, 2)
+        Black level per CFA site.
+    white_level : int
+        The file's reported white level (only used when nothing clipped).
+    noise : NoiseModel
+        Gain and read noise; see :func:`estimate_noise` to obtain them from the data.
+    method : {"optimal", "poisson"}
+        The estimator (see the module's description).
+    saturation_level : (2, 2), optional
+        Clipping level per site; measured from the frames when omitted.
+    near_black_sigma : float
+        Samples whose predicted signal is below this many read-noise σ are dropped when a
+        longer usable exposure exists.
+    """
+    if method not in RAW_METHODS:
+        raise HDRError(f"method: {method!r} is not one of {sorted(RAW_METHODS)} (use merge_ldr for 'debevec')")
+    frames, exposures = _check_bracket(frames, exposures)
+    black = _as_site_array(black_level)
+    levels = measure_saturation(frames, int(white_level)) if saturation_level is None else _as_site_array(saturation_level)
+    # Stay clear of the clipping level by 1 % of the range: a pixel's noise near full well
+    # can spread a clipped sensor's values a little below the ADC's top code.
+    threshold = levels - 0.01 * (levels - black)
+    read_var = noise.read_noise_dn**2 + 1.0 / 12.0
+    radiance, variance, count, saturated = _merge_kernel(
+        frames, exposures, black, threshold, 1.0 / noise.gain_e_per_dn, read_var,
+        near_black_sigma * math.sqrt(read_var), method == "optimal",
+    )  # fmt: skip
+    return MergeResult(radiance, variance, count, saturated, levels, noise, method)
+
+
+RAW_METHODS = {"optimal": "minimum-variance weights t²/σ² (Granados 2010, Hanji 2020)",
+               "poisson": "Σ y / Σ t, optimal for shot noise alone (HDRutils)"}  # fmt: skip
+
+
+# --- noise model from the data ------------------------------------------------------------------
+def estimate_noise(frames, exposures, black_level, *, saturation_level=None, white_level: int = 65535,
+                   bins: int = 24) -> NoiseModel:  # fmt: skip
+    """Gain and read noise from a bracket itself, without flat fields or repeated frames.
+
+    For two exposures ``t_a < t_b`` of a static scene, ``d = y_a − (t_a / t_b) y_b`` has
+    mean zero and variance ``(1 + r) μ_a / g + (1 + r²) σ_r²`` with ``r = t_a / t_b`` and
+    ``μ_a`` the mean of ``y_a``. Binning pixels by ``μ_a`` (estimated from the longer
+    frame) and fitting that line over every usable pair gives ``1/g`` and ``σ_r²``.
+    """
+    frames, exposures = _check_bracket(frames, exposures)
+    if frames.shape[0] < 2:
+        raise HDRError("noise estimate: needs at least two exposures")
+    black = _as_site_array(black_level)
+    h, w = frames.shape[1:]
+    black_map = np.tile(black, ((h + 1) // 2, (w + 1) // 2))[:h, :w]
+    levels = measure_saturation(frames, white_level) if saturation_level is None else _as_site_array(saturation_level)
+    limit = np.tile(levels - 0.05 * (levels - black), ((h + 1) // 2, (w + 1) // 2))[:h, :w]
+    order = np.argsort(exposures)
+    rows_x, rows_y = [], []
+    for a, b in zip(order[:-1], order[1:], strict=True):
+        r = exposures[a] / exposures[b]
+        ya = frames[a].astype(np.float64) - black_map
+        yb = frames[b].astype(np.float64) - black_map
+        usable = (frames[a] < limit) & (frames[b] < limit)
+        mu_a = r * yb[usable]
+        d = ya[usable] - r * yb[usable]
+        if mu_a.size < 1000:
+            continue
+        edges = np.unique(np.quantile(mu_a, np.linspace(0, 1, bins + 1)))
+        index = np.digitize(mu_a, edges[1:-1])
+        for k in range(len(edges) - 1):
+            sel = index == k
+            if np.count_nonzero(sel) < 200:
+                continue
+            rows_x.append([(1 + r) * mu_a[sel].mean(), 1 + r * r])
+            rows_y.append(d[sel].var() - (1 + r * r) / 12.0)
+    if len(rows_y) < 3:
+        raise HDRError("noise estimate: not enough unsaturated signal in the bracket")
+    (inv_gain, read_var), *_ = np.linalg.lstsq(np.array(rows_x), np.array(rows_y), rcond=None)
+    if inv_gain <= 0:
+        raise HDRError("noise estimate: no shot noise visible (is the scene static and lit?)")
+    return NoiseModel(1.0 / inv_gain, math.sqrt(max(read_var, 0.0)), source="estimated")
+
+
+# --- views --------------------------------------------------------------------------------------
+CHANNEL = {"R": 0, "G": 1, "B": 2}
+
+
+def superpixels(mosaic: np.ndarray, cfa_pattern: str) -> np.ndarray:
+    """(H/2, W/2, 3) RGB from 2x2 CFA tiles, the two greens averaged: the display view."""
+    h, w = mosaic.shape
+    tiles = mosaic[: h - h % 2, : w - w % 2].reshape(h // 2, 2, w // 2, 2).transpose(0, 2, 1, 3)
+    rgb = np.zeros((h // 2, w // 2, 3), dtype=np.float32)
+    counts = np.zeros(3)
+    for i, colour in enumerate(cfa_pattern):
+        rgb[..., CHANNEL[colour]] += tiles[..., i // 2, i % 2]
+        counts[CHANNEL[colour]] += 1
+    return rgb / counts.astype(np.float32)
+
+
+# --- 8-bit, non-linear brackets ------------------------------------------------------------------
+def merge_ldr(images, exposures, *, samples: int = 70, lambda_: float = 10.0) -> tuple[np.ndarray, np.ndarray]:
+    """Debevec & Malik's response recovery and merge for 8-bit brackets (e.g. JPEG).
+
+    Returns the relative radiance (H, W, 3) float32 and the recovered response curve
+    (256, 1, 3).
+    """
+    import cv2
+
+    images = [np.asarray(im) for im in images]
+    if not images:
+        raise HDRError("bracket: no images")
+    if any(im.dtype != np.uint8 for im in images):
+        raise HDRError("method 'debevec': needs 8-bit images")
+    if len({im.shape for im in images}) > 1:
+        raise HDRError(f"bracket: images of different sizes {sorted({im.shape for im in images})}")
+    times = np.asarray(exposures, dtype=np.float32)
+    if times.size != len(images) or not np.all(times > 0):
+        raise HDRError("exposure times: one positive time per image is needed")
+    response = cv2.createCalibrateDebevec(samples=samples, lambda_=lambda_).process(images, times)
+    radiance = cv2.createMergeDebevec().process(images, times, response)
+    return radiance, response
