@@ -49,7 +49,7 @@ ERROR_STATUS: list[tuple[type[Exception], int]] = [
 ]
 
 
-def json_safe(value):
+def _json_safe(value):
     """``value`` with what strict JSON cannot carry spelled out: NaN and ±Infinity (which
     Python's JSON parser accepts in a request) as text, and lone surrogates (``"\\ud800"``
     is valid JSON but not Unicode, so it cannot be encoded as UTF-8) backslash-escaped."""
@@ -58,9 +58,9 @@ def json_safe(value):
     if isinstance(value, str):
         return value.encode("utf-8", "backslashreplace").decode("utf-8")
     if isinstance(value, dict):
-        return {json_safe(k): json_safe(v) for k, v in value.items()}
+        return {_json_safe(k): _json_safe(v) for k, v in value.items()}
     if isinstance(value, list | tuple):
-        return [json_safe(v) for v in value]
+        return [_json_safe(v) for v in value]
     return value
 
 
@@ -104,7 +104,7 @@ def create_app(settings: DaemonSettings) -> FastAPI:
     async def validation_error(request: Request, exc: RequestValidationError) -> JSONResponse:
         # FastAPI's own 422, but its errors echo the input, which made a 500 of a request
         # holding NaN or a lone surrogate: the answer could not be rendered.
-        detail = json_safe(jsonable_encoder(exc.errors()))
+        detail = _json_safe(jsonable_encoder(exc.errors()))
         return JSONResponse({"detail": detail}, status_code=status.HTTP_422_UNPROCESSABLE_CONTENT)
 
     app.add_exception_handler(RequestValidationError, validation_error)

@@ -87,6 +87,39 @@ def serve(
         raise _fail(str(exc)) from None
 
 
+# --- process ------------------------------------------------------------------------------
+@app.command("process")
+def process(
+    runs: Annotated[list[Path], typer.Argument(help="Run files (HDF5) to process.")],
+    out: Annotated[Path | None, typer.Option("--out", help="Folder for the results (default: beside each run).")] = None,
+    steps: Annotated[str, typer.Option(help="Comma-separated steps: hdr.")] = "hdr",
+    method: Annotated[str, typer.Option(help="HDR estimator: optimal or poisson.")] = "optimal",
+    noise: Annotated[str, typer.Option(help="Noise model: auto (estimate, else the rig's), estimated, or rig.")] = "auto",
+) -> None:
+    """Turn run files into results: HDR radiance, its variance, OpenEXR and PNG per position."""
+    from rich.progress import Progress
+
+    from processing.hdr import HDRError
+    from processing.pipeline import ProcessingError, process_run
+
+    if noise not in ("auto", "estimated", "rig"):
+        raise _fail(f"--noise: {noise!r} is not one of auto, estimated, rig")
+    step_list = tuple(s for s in steps.split(",") if s)
+    with Progress(transient=True) as bar:
+        for run in runs:
+            task = bar.add_task(f"{run.name}", total=None)
+            try:
+                report = process_run(run, out, steps=step_list, method=method, noise=noise,
+                                     progress=lambda done, total, task=task: bar.update(task, completed=done, total=total))  # fmt: skip
+            except (ProcessingError, HDRError) as exc:
+                raise _fail(str(exc)) from None
+            bar.remove_task(task)
+            noise_model = report.noise
+            typer.echo(f"{run}: {report.positions} positions -> {report.results_file} "
+                       f"(noise {noise_model.source}: gain {noise_model.gain_e_per_dn:.3f} e-/DN, "
+                       f"read noise {noise_model.read_noise_dn:.3f} DN; EXR and PNG in {report.results_file.parent / (run.stem + '.hdr')})")  # fmt: skip
+
+
 # --- simulate -----------------------------------------------------------------------------
 @simulate_app.command("arm")
 def simulate_arm(

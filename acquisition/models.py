@@ -11,10 +11,13 @@ from acquisition.rig import PoseSpec
 
 
 # --- requests ------------------------------------------------------------------------------
+# A request's bracket must name its ``mode``: it is the discriminator of ``Bracket``. The
+# defaults serve Python callers only, so the JSON schemas list ``mode`` as required.
 class FixedBracket(BaseModel):
     """A fixed list of exposure times, taken at every position in this order."""
 
-    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [{"mode": "fixed", "exposures_s": [0.0002, 0.001, 0.005]}]})
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"required": ["mode", "exposures_s"],
+                                                                 "examples": [{"mode": "fixed", "exposures_s": [0.0002, 0.001, 0.005]}]})  # fmt: skip
     mode: Literal["fixed"] = "fixed"
     exposures_s: list[Annotated[float, Field(gt=0.0, le=3600.0)]] = Field(min_length=1, max_length=16)
 
@@ -22,7 +25,7 @@ class FixedBracket(BaseModel):
 class AutoBracket(BaseModel):
     """Exposures chosen per position from a metering frame (``docs/daemon.md``)."""
 
-    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [{"mode": "auto", "target_snr": 20}]})
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"required": ["mode"], "examples": [{"mode": "auto", "target_snr": 20}]})
     mode: Literal["auto"] = "auto"
     target_snr: PositiveFloat | None = Field(default=None, le=1000.0)
     useful_fraction: float | None = Field(default=None, gt=0.0, lt=1.0)

@@ -274,6 +274,9 @@ class RunEngine:
         control = self._control
         if control.abort.is_set():
             raise _Aborted()
+        if control.operator_stop.is_set():
+            # The arm was stopped while not moving (during a capture): still a pause.
+            raise _OperatorStop()
         with control.wake:
             while control.pause.is_set() and not control.abort.is_set():
                 control.wake.wait(timeout=0.5)

@@ -80,19 +80,23 @@ class MergeResult:
 def measure_saturation(frames: np.ndarray, reported_white: int, *, pile_fraction: float = 1e-4) -> np.ndarray:
     """The raw level at which each CFA site clips, from the data.
 
-    A clipping sensor piles many samples up at one top value. Per CFA site, the highest
-    value seen is the clipping level if at least ``pile_fraction`` of the samples sit
-    within 0.2 % of the range below it; otherwise nothing clipped and the reported white
-    level stands.
+    A clipping sensor piles samples up in a spike at its top value, far denser than the
+    values just below it (a well-exposed flat field only has a sparse noise tail there).
+    Per CFA site: if at least ``pile_fraction`` of the samples lie within a window of
+    0.1 % of the range below the highest value, at ten times the density of the 40
+    windows beneath, that value is the clipping level; otherwise nothing clipped and the
+    reported white level stands.
     """
     levels = np.empty((2, 2))
+    window = max(2, int(0.001 * reported_white))
     for sy in range(2):
         for sx in range(2):
             site = frames[:, sy::2, sx::2]
             top = int(site.max())
-            tolerance = max(2, int(0.002 * reported_white))
-            piled = np.count_nonzero(site >= top - tolerance)
-            levels[sy, sx] = top if piled >= pile_fraction * site.size else reported_white
+            at_top = np.count_nonzero(site > top - window)
+            beneath = np.count_nonzero((site > top - 41 * window) & (site <= top - window)) / 40.0
+            spike = at_top >= pile_fraction * site.size and at_top > 10.0 * max(beneath, 1.0)
+            levels[sy, sx] = top if spike else reported_white
     return levels
 
 
@@ -292,7 +296,10 @@ def estimate_noise(frames, exposures, black_level, *, saturation_level=None, whi
                 continue
             rows_x.append([(1 + r) * mu_a[sel].mean(), 1 + r * r])
             rows_y.append(d[sel].var() - (1 + r * r) / 12.0)
-    if len(rows_y) < 3:
+    signal_bins = sum(1 for x, _ in rows_x if x > 100.0)
+    if len(rows_y) < 3 or signal_bins < 3:
+        # The slope (shot noise) is only measurable over a range of signals well above
+        # the read noise; a nearly dark bracket would give any gain at all.
         raise HDRError("noise estimate: not enough unsaturated signal in the bracket")
     (inv_gain, read_var), *_ = np.linalg.lstsq(np.array(rows_x), np.array(rows_y), rcond=None)
     if inv_gain <= 0:

@@ -21,8 +21,9 @@ EXPOSURES = [0.0002, 0.001, 0.005]
 
 @pytest.fixture()
 def daemon(tmp_path):
-    def start(speed=0.5, **overrides):
+    def start(speed=0.5, camera_latency_s=0.0, **overrides):
         settings = load_settings(None, data_dir=tmp_path / "data", rig=REDUCED_RIG, **overrides)
+        settings.camera.simulated.latency_s = camera_latency_s
         settings.arm.simulated.speed_m_s = speed
         settings.arm.simulated.accel_m_s2 = 10 * speed
         client = TestClient(create_app(settings))
@@ -229,3 +230,18 @@ def test_the_next_move_overlaps_the_writing_of_the_frames_just_taken(daemon, mon
         for i in range(4):
             # Position i+1's move began while position i was still being written.
             assert run_file.times(i + 1).move_started < spans[i][1], i
+
+
+def test_stop_arm_during_a_capture_also_pauses_the_run(daemon):
+    http, engine = daemon(camera_latency_s=0.4)  # captures take far longer than moves
+    stage = engine.devices.simulated["stage"]
+    run = http.post("/runs", json={"count": 6, "bracket": {"mode": "fixed", "exposures_s": [0.001, 0.002]}}).json()
+    while http.get(f"/runs/{run['id']}").json()["positions_done"] < 1:
+        time.sleep(0.02)
+    while stage.moving:
+        time.sleep(0.01)
+    assert http.post("/arm/stop").status_code == 202
+    paused = wait_state(http, run["id"], {"paused", "complete"}, timeout=10)
+    assert paused["state"] == "paused" and "stopped by the operator" in paused["last_error"]
+    http.post(f"/runs/{run['id']}/resume")
+    assert wait_state(http, run["id"], {"complete", "failed"}, timeout=60)["state"] == "complete"

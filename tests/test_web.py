@@ -143,6 +143,8 @@ def test_a_run_started_from_the_page_completes_with_preview_and_download(tmp_pat
     expect(page.locator("#state")).to_have_text("running")
     page.click("#stop-arm")
     expect(page.locator("#message")).to_contain_text("Arm stopped")
+    expect(page.locator("#state")).to_have_text("paused")  # a stopped arm pauses the run
+    expect(page.locator("#resume")).to_be_enabled()
     page.once("dialog", lambda dialog: dialog.accept())
     page.click("#abort")
     expect(page.locator("#state")).to_have_text("aborted")

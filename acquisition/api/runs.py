@@ -17,6 +17,8 @@ router = APIRouter(prefix="/runs", tags=["runs"])
 FINAL = ("complete", "aborted", "failed", "interrupted")
 ERRORS = {404: {"model": Problem}, 409: {"model": Problem}}
 GUARDED_ERRORS = {**ERRORS, **TOKEN_ERRORS}  # and 401/403 from the token
+# FastAPI's answer to a body it cannot read as JSON text at all (not UTF-8, say).
+BODY_ERRORS = {400: {"model": Problem, "description": "the body cannot be read"}}
 
 
 def run_status(record: RunRecord) -> RunStatus:
@@ -32,7 +34,7 @@ def run_status(record: RunRecord) -> RunStatus:
 
 @router.post("", status_code=status.HTTP_201_CREATED, response_model=RunStatus, dependencies=[TokenDep],
              responses={409: {"model": Problem, "description": "another run is active"}, 422: {"model": Problem},
-                        **TOKEN_ERRORS})  # fmt: skip
+                        **BODY_ERRORS, **TOKEN_ERRORS})  # fmt: skip
 def start_run(body: RunRequest, engine: EngineDep, settings: SettingsDep) -> RunStatus:
     """Start a run. Only one run at a time per rig: a second one gets 409."""
     if "bracket" not in body.model_fields_set:
@@ -117,7 +119,7 @@ def download(run_id: str, catalog: CatalogDep) -> FileResponse:
 
 
 @router.post("/{run_id}/process", status_code=status.HTTP_201_CREATED, response_model=JobStatus,
-             dependencies=[TokenDep], responses=GUARDED_ERRORS)  # fmt: skip
+             dependencies=[TokenDep], responses={**GUARDED_ERRORS, **BODY_ERRORS})  # fmt: skip
 def process(run_id: str, catalog: CatalogDep, body: JobRequest | None = None) -> JobStatus:
     """Queue a processing job for the run (a worker takes it)."""
     body = body or JobRequest()
