@@ -278,7 +278,7 @@ def estimate_noise(frames, exposures, black_level, *, saturation_level=None, whi
     levels = measure_saturation(frames, white_level) if saturation_level is None else _as_site_array(saturation_level)
     limit = np.tile(levels - 0.05 * (levels - black), ((h + 1) // 2, (w + 1) // 2))[:h, :w]
     order = np.argsort(exposures)
-    rows_x, rows_y = [], []
+    rows_x, rows_y, weights = [], [], []
     for a, b in zip(order[:-1], order[1:], strict=True):
         r = exposures[a] / exposures[b]
         ya = frames[a].astype(np.float64) - black_map
@@ -288,20 +288,31 @@ def estimate_noise(frames, exposures, black_level, *, saturation_level=None, whi
         d = ya[usable] - r * yb[usable]
         if mu_a.size < 1000:
             continue
-        edges = np.unique(np.quantile(mu_a, np.linspace(0, 1, bins + 1)))
+        # Log-spaced bins over the signal range: a mirror ball's frames are mostly dark, and
+        # quantile bins would spend themselves on the background.
+        top = float(mu_a.max())
+        if top <= 20.0:
+            continue
+        edges = np.concatenate([[-np.inf, 20.0], np.geomspace(20.0, top, bins)[1:]])
         index = np.digitize(mu_a, edges[1:-1])
         for k in range(len(edges) - 1):
             sel = index == k
-            if np.count_nonzero(sel) < 200:
+            n = int(np.count_nonzero(sel))
+            if n < 100:
                 continue
             rows_x.append([(1 + r) * mu_a[sel].mean(), 1 + r * r])
             rows_y.append(d[sel].var() - (1 + r * r) / 12.0)
+            weights.append(math.sqrt(n))
     signal_bins = sum(1 for x, _ in rows_x if x > 100.0)
     if len(rows_y) < 3 or signal_bins < 3:
         # The slope (shot noise) is only measurable over a range of signals well above
         # the read noise; a nearly dark bracket would give any gain at all.
         raise HDRError("noise estimate: not enough unsaturated signal in the bracket")
-    (inv_gain, read_var), *_ = np.linalg.lstsq(np.array(rows_x), np.array(rows_y), rcond=None)
+    # Each bin's variance has a relative error of about sqrt(2 / n), times its own size:
+    # weight rows by sqrt(n) over the variance's scale.
+    x, y, wgt = np.array(rows_x), np.array(rows_y), np.array(weights)
+    scale = wgt / np.maximum(np.abs(y), 1e-6)
+    (inv_gain, read_var), *_ = np.linalg.lstsq(x * scale[:, None], y * scale, rcond=None)
     if inv_gain <= 0:
         raise HDRError("noise estimate: no shot noise visible (is the scene static and lit?)")
     return NoiseModel(1.0 / inv_gain, math.sqrt(max(read_var, 0.0)), source="estimated")

@@ -1,0 +1,99 @@
+"""`mirrorgonio process --steps hdr` on a simulated run file: numbers, files, errors."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from acquisition.cli import app
+from acquisition.rig import load_rig
+from acquisition.runfile import PositionTimes, RunFileWriter, RunHeader
+from conftest import REDUCED_RIG
+from processing.hdr import superpixels
+from processing.images import read_exr
+from processing.results import Results
+from sim_devices.camera import SimulatedCamera
+from sim_devices.world import SimWorld
+
+runner = CliRunner()
+EXPOSURES = [0.0002, 0.001, 0.005, 0.025]
+POSITIONS = (20, 33, 45)
+
+
+@pytest.fixture(scope="module")
+def simulated_run(tmp_path_factory):
+    """A run file of three positions with four exposures, and the rates that made it."""
+    folder = tmp_path_factory.mktemp("run")
+    rig = load_rig(REDUCED_RIG)
+    tools, lights = rig.tool_poses(), rig.light_poses()
+    here = {"pose": tools[0]}
+    camera = SimulatedCamera(rig, SimWorld(lambda: here["pose"]), folder / "spool", seed=3)
+    header = RunHeader(run_id="run-test", rig=rig, tool_poses=tools, light_poses=lights, max_exposures=len(EXPOSURES),
+                       frame_shape=(rig.camera.height, rig.camera.width), bracket={"mode": "fixed", "exposures_s": EXPOSURES},
+                       metadata={}, devices={"arm": "test", "camera": camera.identity}, software_version="test",
+                       created_utc="2026-11-21T00:00:00+00:00", preset="light-sweep")  # fmt: skip
+    rates = {}
+    path = folder / "run-test.h5"
+    with RunFileWriter.create(path, header) as writer:
+        for index in POSITIONS:
+            here["pose"] = tools[index]
+            frames = [camera.capture(t) for t in EXPOSURES]
+            rates[index] = camera.rendering().rate
+            writer.write_position(index, tools[index], PositionTimes(0.0, 0.0, 0.0), frames)
+        writer.set_status("aborted", "three positions only")
+    return path, rates, rig
+
+
+def test_process_hdr_writes_results_exr_and_png(simulated_run, tmp_path):
+    path, rates, rig = simulated_run
+    result = runner.invoke(app, ["process", str(path), "--steps", "hdr", "--out", str(tmp_path)])
+    assert result.exit_code == 0, result.output
+    assert "3 positions" in result.output
+    from sim_devices.sensor import mosaic_of
+
+    with Results.open(tmp_path / "run-test.results.h5") as results:
+        assert results.hdr_done.tolist() == [i in POSITIONS for i in range(66)]
+        # A quarter-resolution mirror ball has too few lit pixels to measure the shot noise
+        # (tests/test_hdr.py measures it where it can): auto falls back to the rig's figures.
+        assert results.noise.source == "rig"
+        assert results.noise.gain_e_per_dn == pytest.approx(rig.camera.gain_e_per_dn)
+        for index in POSITIONS:
+            truth = mosaic_of(rates[index], rig.camera.cfa_pattern) / rig.camera.gain_e_per_dn  # DN/s
+            radiance = results.radiance(index)
+            exposed = (truth * EXPOSURES[-1] > 200) & ~results.saturated(index)
+            assert exposed.sum() > 200
+            rel = (radiance[exposed] - truth[exposed]) / truth[exposed]
+            assert abs(rel.mean()) < 0.01
+            z = (radiance[exposed] - truth[exposed]) / np.sqrt(results.variance(index)[exposed])
+            assert z.std() == pytest.approx(1.0, abs=0.15)  # the variance is honest
+            exr = read_exr(tmp_path / "run-test.hdr" / f"position-{index:03d}.exr")
+            np.testing.assert_allclose(exr, superpixels(np.nan_to_num(radiance), "RGGB"), rtol=1e-6)
+            assert (tmp_path / "run-test.hdr" / f"position-{index:03d}.png").stat().st_size > 100
+
+
+def test_process_bad_input_is_one_line(simulated_run, tmp_path):
+    path, _, _ = simulated_run
+    missing = runner.invoke(app, ["process", str(tmp_path / "nope.h5")])
+    assert missing.exit_code == 2 and missing.output.strip().startswith("error: ")
+    assert "nope.h5" in missing.output and len(missing.output.strip().splitlines()) == 1
+    text = tmp_path / "notes.h5"
+    text.write_text("not hdf5")
+    assert "notes.h5" in runner.invoke(app, ["process", str(text)]).output
+    forced = runner.invoke(app, ["process", str(path), "--noise", "estimated", "--out", str(tmp_path)])
+    assert forced.exit_code == 2
+    assert forced.output.strip() == f"error: {path}: the noise model cannot be estimated from these brackets"
+    step = runner.invoke(app, ["process", str(path), "--steps", "hdr,dance", "--out", str(tmp_path)])
+    assert step.exit_code == 2 and "--steps: unknown step 'dance'" in step.output
+
+
+def test_a_run_without_any_complete_position_is_refused(simulated_run, tmp_path):
+    _, _, rig = simulated_run
+    header = RunHeader(run_id="empty", rig=rig, tool_poses=rig.tool_poses()[:2], light_poses=rig.light_poses()[:2],
+                       max_exposures=1, frame_shape=(rig.camera.height, rig.camera.width), bracket={"mode": "fixed", "exposures_s": [0.01]},
+                       metadata={}, devices={}, software_version="test", created_utc="2026-11-21T00:00:00+00:00")  # fmt: skip
+    empty = tmp_path / "empty.h5"
+    RunFileWriter.create(empty, header).close()
+    result = runner.invoke(app, ["process", str(empty), "--out", str(tmp_path)])
+    assert result.exit_code == 2
+    assert result.output.strip() == f"error: {empty}: the run has no complete position (no frames to process)"
