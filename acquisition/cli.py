@@ -259,6 +259,29 @@ def bench_acquire_command(
     typer.echo(json.dumps(result) if as_json else json.dumps(result, indent=2))
 
 
+@bench_app.command("hdr")
+def bench_hdr_command(
+    rig: RigOption = None,
+    positions: Annotated[int, typer.Option(min=1, help="Brackets merged (a few rendered scenes cycled, fresh noise each).")] = 66,
+    exposures: Annotated[int, typer.Option(min=2, max=16, help="Frames per bracket.")] = 5,
+    width: Annotated[int, typer.Option(min=4, help="Frame width in pixels (even).")] = 2000,
+    height: Annotated[int, typer.Option(min=4, help="Frame height in pixels (even).")] = 1312,
+    repeat: Annotated[int, typer.Option(min=1, help="Timed repetitions (medians reported).")] = 1,
+    seed: Annotated[int, typer.Option(help="Seed of the sensor noise.")] = 0,
+    peers: Annotated[bool, typer.Option(help="Also run HDRutils, colour-hdri and OpenCV (the bench extra).")] = True,
+    as_json: Annotated[bool, typer.Option("--json", help="Print JSON only.")] = False,
+) -> None:
+    """This project's raw HDR merge next to HDRutils, colour-hdri and OpenCV on the same brackets: time and error."""
+    from acquisition.benchmarks.hdr import BenchmarkError, bench_hdr
+    from processing.hdr import HDRError
+
+    try:
+        result = bench_hdr(positions, exposures, width, height, repeat, seed, rig_path=rig, peers=peers)
+    except (BenchmarkError, HDRError, *_domain_errors()) as exc:
+        raise _fail(str(exc)) from None
+    typer.echo(json.dumps(result) if as_json else json.dumps(result, indent=2))
+
+
 # --- demo -------------------------------------------------------------------------------------
 @app.command("demo")
 def demo(
