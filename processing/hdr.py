@@ -356,3 +356,31 @@ def merge_ldr(images, exposures, *, samples: int = 70, lambda_: float = 10.0) ->
     response = cv2.createCalibrateDebevec(samples=samples, lambda_=lambda_).process(images, times)
     radiance = cv2.createMergeDebevec().process(images, times, response)
     return radiance, response
+
+
+# --- one entry point, named estimators -------------------------------------------------------
+def _merge_debevec(images, exposures, **_ignored):
+    radiance, _response = merge_ldr(images, exposures)
+    return radiance
+
+
+MERGE_METHODS = {
+    "optimal": lambda frames, exposures, **kw: merge_raw(frames, exposures, method="optimal", **kw),
+    "poisson": lambda frames, exposures, **kw: merge_raw(frames, exposures, method="poisson", **kw),
+    "debevec": _merge_debevec,
+}
+
+
+def merge(frames, exposures, *, method: str = "optimal", **options):
+    """Merge a bracket with the named estimator.
+
+    ``"optimal"`` and ``"poisson"`` take raw mosaics and need ``black_level``,
+    ``white_level`` and ``noise`` (see :func:`merge_raw`); they return a
+    :class:`MergeResult`. ``"debevec"`` takes 8-bit images (JPEG brackets) and returns
+    relative radiance (H, W, 3) (see :func:`merge_ldr`).
+    """
+    try:
+        estimator = MERGE_METHODS[method]
+    except KeyError:
+        raise HDRError(f"method: {method!r} is not one of {sorted(MERGE_METHODS)}") from None
+    return estimator(frames, exposures, **options)

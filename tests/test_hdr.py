@@ -178,3 +178,18 @@ def test_debevec_recovers_radiance_from_8_bit_non_linear_brackets():
     assert correlation > 0.99
     with pytest.raises(HDRError, match="needs 8-bit images"):
         merge_ldr([np.zeros((4, 4, 3), np.uint16)], [0.1])
+
+
+def test_merge_dispatches_on_the_method_name():
+    from processing.hdr import merge
+
+    rng = np.random.default_rng(8)
+    frames = bracket(np.full((6, 8), 1e6), rng)
+    optimal = merge(frames, EXPOSURES, method="optimal", black_level=64, white_level=4095, noise=NOISE)
+    poisson = merge(frames, EXPOSURES, method="poisson", black_level=64, white_level=4095, noise=NOISE)
+    assert optimal.method == "optimal" and poisson.method == "poisson"
+    np.testing.assert_allclose(poisson.radiance.mean(), 1e6 / GAIN, rtol=0.01)
+    ldr = [np.full((8, 8, 3), v, np.uint8) for v in (20, 80, 200)]
+    assert merge(ldr, [0.01, 0.04, 0.16], method="debevec").shape == (8, 8, 3)
+    with pytest.raises(HDRError, match=r"method: 'median' is not one of \['debevec', 'optimal', 'poisson'\]"):
+        merge(frames, EXPOSURES, method="median")
