@@ -77,6 +77,45 @@ class MergeResult:
 
 
 # --- saturation, measured ---------------------------------------------------------------------
+@numba.njit(parallel=True, cache=True)
+def _site_maxima(frames):
+    k, h, w = frames.shape
+    rows = np.zeros((h, 2), np.int64)
+    for y in numba.prange(h):
+        for i in range(k):
+            for x in range(w):
+                v = frames[i, y, x]
+                if v > rows[y, x & 1]:
+                    rows[y, x & 1] = v
+    top = np.zeros((2, 2), np.int64)
+    for y in range(h):
+        for sx in range(2):
+            top[y & 1, sx] = max(top[y & 1, sx], rows[y, sx])
+    return top
+
+
+@numba.njit(parallel=True, cache=True)
+def _site_counts(frames, top, window):
+    """Per CFA site: samples within ``window`` of the top, and in the 40 windows beneath."""
+    k, h, w = frames.shape
+    counts = np.zeros((h, 2, 2), np.int64)
+    for y in numba.prange(h):
+        for i in range(k):
+            for x in range(w):
+                t = top[y & 1, x & 1]
+                v = frames[i, y, x]
+                if v > t - window:
+                    counts[y, x & 1, 0] += 1
+                elif v > t - 41 * window:
+                    counts[y, x & 1, 1] += 1
+    out = np.zeros((2, 2, 2), np.int64)
+    for y in range(h):
+        for sx in range(2):
+            out[y & 1, sx, 0] += counts[y, sx, 0]
+            out[y & 1, sx, 1] += counts[y, sx, 1]
+    return out
+
+
 def measure_saturation(frames: np.ndarray, reported_white: int, *, pile_fraction: float = 1e-4) -> np.ndarray:
     """The raw level at which each CFA site clips, from the data.
 
@@ -87,96 +126,115 @@ def measure_saturation(frames: np.ndarray, reported_white: int, *, pile_fraction
     windows beneath, that value is the clipping level; otherwise nothing clipped and the
     reported white level stands.
     """
-    levels = np.empty((2, 2))
+    frames = np.ascontiguousarray(frames)
     window = max(2, int(0.001 * reported_white))
+    top = _site_maxima(frames)
+    counts = _site_counts(frames, top, window)
+    k, h, w = frames.shape
+    levels = np.empty((2, 2))
     for sy in range(2):
         for sx in range(2):
-            site = frames[:, sy::2, sx::2]
-            top = int(site.max())
-            at_top = np.count_nonzero(site > top - window)
-            beneath = np.count_nonzero((site > top - 41 * window) & (site <= top - window)) / 40.0
-            spike = at_top >= pile_fraction * site.size and at_top > 10.0 * max(beneath, 1.0)
-            levels[sy, sx] = top if spike else reported_white
+            size = k * len(range(sy, h, 2)) * len(range(sx, w, 2))
+            at_top, beneath = counts[sy, sx, 0], counts[sy, sx, 1] / 40.0
+            spike = at_top >= pile_fraction * size and at_top > 10.0 * max(beneath, 1.0)
+            levels[sy, sx] = top[sy, sx] if spike else reported_white
     return levels
 
 
 # --- the merge kernels -------------------------------------------------------------------------
-@numba.njit(parallel=True, cache=True, fastmath=False)
+# fastmath's reassociation is harmless here: every sum has at most 16 terms, and the
+# only non-finite value (inf for saturated pixels) is assigned, never computed with.
+_FAST = {"nsz", "arcp", "contract", "afn", "reassoc"}
+
+
+@numba.njit(parallel=True, cache=True, fastmath=_FAST)
 def _merge_kernel(frames, exposures, black, threshold, inv_gain, read_var, near_black, optimal):
+    """Row by row; inside a row, loops run along x with the exposure outside, so that
+    they read memory contiguously and vectorise."""
     k, h, w = frames.shape
     radiance = np.empty((h, w), np.float32)
     variance = np.empty((h, w), np.float32)
     count = np.zeros((h, w), np.uint8)
     saturated = np.zeros((h, w), np.bool_)
-    order = np.argsort(exposures)
+    shortest = np.argmin(exposures)
+    inv_t = 1.0 / exposures
     for y in numba.prange(h):
+        b = np.empty(w)
+        thr = np.empty(w)
         for x in range(w):
-            b = black[y & 1, x & 1]
-            thr = threshold[y & 1, x & 1]
-            # Pass 1: Poisson-optimal estimate from every unsaturated sample.
-            sum_y = 0.0
-            sum_t = 0.0
-            n1 = 0
-            for i in range(k):
+            b[x] = black[y & 1, x & 1]
+            thr[x] = threshold[y & 1, x & 1]
+        sum_y = np.zeros(w)
+        sum_t = np.zeros(w)
+        n1 = np.zeros(w, np.int64)
+        # Pass 1: Poisson-optimal estimate from every unsaturated sample.
+        for i in range(k):
+            t = exposures[i]
+            for x in range(w):
                 v = frames[i, y, x]
-                if v < thr:
-                    sum_y += v - b
-                    sum_t += exposures[i]
-                    n1 += 1
-            if n1 == 0:
+                if v < thr[x]:
+                    sum_y[x] += v - b[x]
+                    sum_t[x] += t
+                    n1[x] += 1
+        x0 = np.empty(w)
+        for x in range(w):
+            x0[x] = max(sum_y[x] / sum_t[x], 0.0) if n1[x] > 0 else 0.0
+        # The longest exposure whose mean stays 3 sigma clear of clipping, per pixel.
+        longest = np.full(w, -1, np.int64)
+        fallback = np.full(w, -1, np.int64)
+        for i in range(k):
+            t = exposures[i]
+            for x in range(w):
+                if frames[i, y, x] >= thr[x]:
+                    continue
+                if fallback[x] < 0 or t < exposures[fallback[x]]:
+                    fallback[x] = i
+                mu = t * x0[x]
+                if mu + 3.0 * math.sqrt(mu * inv_gain + read_var) < thr[x] - b[x]:
+                    if longest[x] < 0 or t > exposures[longest[x]]:
+                        longest[x] = i
+        # Pass 2: weights t^2 / sigma^2 with sigma^2 predicted from x0, not from each sample.
+        num = np.zeros(w)
+        den = np.zeros(w)
+        n2 = np.zeros(w, np.int64)
+        if optimal:
+            for i in range(k):
+                t = exposures[i]
+                for x in range(w):
+                    v = frames[i, y, x]
+                    if v >= thr[x]:
+                        continue
+                    mu = t * x0[x]
+                    var = mu * inv_gain + read_var
+                    if mu + 3.0 * math.sqrt(var) >= thr[x] - b[x]:
+                        continue  # its mean is too close to clipping to be unbiased
+                    if mu < near_black and i != longest[x]:
+                        continue  # all but read noise; a longer exposure says more
+                    wgt = t * t / var
+                    num[x] += wgt * (v - b[x]) * inv_t[i]
+                    den[x] += wgt
+                    n2[x] += 1
+        for x in range(w):
+            if n1[x] == 0:
                 # Saturated in every frame: report the shortest frame's lower bound.
-                j = order[0]
-                radiance[y, x] = (frames[j, y, x] - b) / exposures[j]
+                radiance[y, x] = (frames[shortest, y, x] - b[x]) * inv_t[shortest]
                 variance[y, x] = np.inf
                 saturated[y, x] = True
-                continue
-            x0 = max(sum_y / sum_t, 0.0)
-            if not optimal:
-                radiance[y, x] = sum_y / sum_t
-                variance[y, x] = (x0 * sum_t * inv_gain + n1 * read_var) / (sum_t * sum_t)
-                count[y, x] = n1
-                continue
-            # Pass 2: weights t²/σ² with σ² predicted from x0, not from each sample.
-            head = thr - b
-            longest_kept = -1
-            for jj in range(k - 1, -1, -1):
-                j = order[jj]
-                mu = exposures[j] * x0
-                if frames[j, y, x] < thr and mu + 3.0 * math.sqrt(mu * inv_gain + read_var) < head:
-                    longest_kept = j
-                    break
-            num = 0.0
-            den = 0.0
-            n2 = 0
-            for i in range(k):
-                v = frames[i, y, x]
-                t = exposures[i]
-                mu = t * x0
-                var = mu * inv_gain + read_var
-                if v >= thr or mu + 3.0 * math.sqrt(var) >= head:
-                    continue  # clipped, or its mean is too close to clipping to be unbiased
-                if mu < near_black and i != longest_kept and longest_kept >= 0:
-                    continue  # all but read noise; a longer exposure says more
-                wgt = t * t / var
-                num += wgt * (v - b) / t
-                den += wgt
-                n2 += 1
-            if n2 == 0:
+            elif not optimal:
+                radiance[y, x] = sum_y[x] / sum_t[x]
+                variance[y, x] = (x0[x] * sum_t[x] * inv_gain + n1[x] * read_var) / (sum_t[x] * sum_t[x])
+                count[y, x] = n1[x]
+            elif n2[x] == 0:
                 # Only samples near clipping remain: keep the shortest unsaturated one.
-                for jj in range(k):
-                    j = order[jj]
-                    if frames[j, y, x] < thr:
-                        t = exposures[j]
-                        var = t * x0 * inv_gain + read_var
-                        num = (frames[j, y, x] - b) / t
-                        den = t * t / var
-                        n2 = 1
-                        break
-                radiance[y, x] = num
+                j = fallback[x]
+                var = exposures[j] * x0[x] * inv_gain + read_var
+                radiance[y, x] = (frames[j, y, x] - b[x]) * inv_t[j]
+                variance[y, x] = var * inv_t[j] * inv_t[j]
+                count[y, x] = 1
             else:
-                radiance[y, x] = num / den
-            variance[y, x] = 1.0 / den
-            count[y, x] = n2
+                radiance[y, x] = num[x] / den[x]
+                variance[y, x] = 1.0 / den[x]
+                count[y, x] = n2[x]
     return radiance, variance, count, saturated
 
 

@@ -43,6 +43,9 @@ class SimulatedCamera(Camera):
         Seconds since the epoch, for the frames' timestamps.
     latency_s : float
         Time a capture takes beyond the exposure (0 for benchmarks).
+    environment_radiance : float or (R, G, B)
+        Uniform radiance of the room the ball reflects (0, a dark room, by default): a
+        calibration frame shows the ball as a bright disc against a dark background.
     """
 
     def __init__(
@@ -60,6 +63,7 @@ class SimulatedCamera(Camera):
         sleep: Callable[[float], None] = time.sleep,
         latency_s: float = 0.0,
         serial: str = "SIM-0001",
+        environment_radiance: float | tuple[float, float, float] = 0.0,
     ):
         sim = rig.simulation
         self.rig = rig
@@ -73,6 +77,7 @@ class SimulatedCamera(Camera):
             self.truth,
             diffraction=sim.diffraction if diffraction is None else diffraction,
             seed=seed,
+            environment_radiance=environment_radiance,
             **(renderer_options or {}),
         )
         self.sensor = SensorModel.from_rig(rig.camera, noise=sim.noise if noise is None else noise)

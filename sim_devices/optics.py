@@ -23,6 +23,16 @@ the emitter's pre-image; every sample is then traced exactly, so the estimate st
 unbiased as long as the ellipse covers the true pre-image (the renderer reports the
 fraction of hits in the ellipse's outer rim to check it). Emitters larger than the
 aperture's footprint are sampled over the whole aperture instead.
+
+An optional uniform *environment* (``environment_radiance``, for calibration images) is
+the ball reflecting a radiance ``L_env`` from every direction that meets neither the light's
+housing (its face included) nor an emitter; the housing also hides the ball where it
+stands between camera and ball. It adds ``k · L_env · F(α) · cos⁴β`` per ray. Pixels whose
+whole ray bundle (pixel area × aperture) can straddle an edge of that (the silhouette, the
+housing's reflection or shadow) are those within the largest blur radius of a pixel whose
+chief ray is classified differently; they are sampled over the whole aperture, the others
+with one aperture point per sub-pixel sample (their integrand is smooth). Emitters outside
+the housing's face hide the environment behind them: their rays subtract ``L_env``.
 """
 
 from __future__ import annotations
@@ -30,6 +40,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
+import cv2
 import numpy as np
 from scipy import fft as sfft
 from scipy.special import j1  # noqa: F401  (kept for the Airy PSF helper below)
@@ -329,6 +340,12 @@ class MirrorBallRenderer:
         Apply the Airy pattern of each channel's wavelength.
     seed : int
         Seed of the sample jitter.
+    environment_radiance : float or (R, G, B)
+        Uniform radiance of the surroundings the ball reflects (0: a dark room, the
+        default). Used for calibration images: the ball then shows as a bright disc.
+    environment_aperture_samples : int
+        Rays per sub-pixel sample over the whole aperture for pixels near an edge of the
+        environment's image (the silhouette, the housing).
     """
 
     ellipse_scale = 1.5
@@ -337,7 +354,7 @@ class MirrorBallRenderer:
     def __init__(
         self,
         rig: Rig,
-        truth: TruthLight,
+        truth: TruthLight | None,
         *,
         subpixel_per_side: int = 2,
         aperture_samples: int = 48,
@@ -345,6 +362,8 @@ class MirrorBallRenderer:
         diffraction: bool = True,
         seed: int = 0,
         chunk_rays: int = 2_000_000,
+        environment_radiance: float | tuple[float, float, float] = 0.0,
+        environment_aperture_samples: int = 32,
     ):
         self.rig = rig
         self.truth = truth
@@ -358,6 +377,11 @@ class MirrorBallRenderer:
         self.rng = np.random.default_rng(seed)
         self.chunk_rays = chunk_rays
         self.sensitivity = rig.camera.sensitivity_e_per_s
+        env = np.broadcast_to(np.asarray(environment_radiance, dtype=float), (3,)).copy()
+        if not np.all(np.isfinite(env)) or np.any(env < 0):
+            raise ValueError(f"environment_radiance must be finite and >= 0, got {environment_radiance!r}")
+        self.environment = env
+        self.environment_aperture_samples = environment_aperture_samples
 
     # Pixels whose chief ray meets the ball ----------------------------------------------------
     def _ball_pixels(self) -> tuple[np.ndarray, np.ndarray]:
@@ -386,6 +410,9 @@ class MirrorBallRenderer:
         cam, stats = self.camera, RenderStats()
         plane = LightPlane.at(self.rig, light_pose)
         rate = np.zeros((3, cam.height * cam.width))
+        lit_room = bool(np.any(self.environment > 0))
+        if lit_room:
+            rate += self._render_environment(plane, stats)
         col, row = self._ball_pixels()
         zero = np.zeros_like(col)
         chief = trace(cam, self.mirror, plane, col, row, zero, zero, fresnel=False)
@@ -394,9 +421,22 @@ class MirrorBallRenderer:
         uv0 = np.column_stack([chief.u[keep], chief.v[keep]])
         stats.pixels_on_ball = int(keep.sum())
         stats.rays_traced += chief.valid.size
-        if col.size == 0:
+        if col.size == 0 and not lit_room:
             return Rendering(rate.reshape(3, cam.height, cam.width), stats)
+        if col.size:
+            self._render_emitters(plane, stats, rate, col, row, uv0)
 
+        rate = rate.reshape(3, cam.height, cam.width) * self.sensitivity
+        if self.diffraction:
+            for ch in range(3):
+                rate[ch] = apply_diffraction(
+                    rate[ch], cam.pitch, 2 * cam.aperture_radius, cam.sensor_distance, cam.wavelengths[ch]
+                )
+            np.clip(rate, 0.0, None, out=rate)
+        return Rendering(rate, stats)
+
+    def _render_emitters(self, plane, stats, rate, col, row, uv0):
+        cam = self.camera
         # Affine map of aperture offset and sensor offset onto the light plane, per pixel.
         h_a = 0.5 * cam.aperture_radius
         ja, ok_a = self._jacobian_aperture(plane, col, row, np.zeros_like(col), np.zeros_like(col), uv0, h_a)
@@ -406,7 +446,7 @@ class MirrorBallRenderer:
         col, row, uv0, ja, jd = col[ok], row[ok], uv0[ok], ja[ok], jd[ok]
 
         rim_hits = total_hits = 0
-        for emitter in self.truth.emitters:
+        for emitter in self.truth.emitters if self.truth is not None else []:
             contrib, pix, rim, hits, rays = self._render_emitter(plane, emitter, col, row, uv0, ja, jd)
             stats.rays_traced += rays
             stats.per_emitter_pixels[emitter.name or str(len(stats.per_emitter_pixels))] = int(np.unique(pix).size)
@@ -417,14 +457,105 @@ class MirrorBallRenderer:
                     rate[ch] += np.bincount(pix, weights=contrib[:, ch], minlength=rate.shape[1])
         stats.rim_hit_fraction = rim_hits / total_hits if total_hits else 0.0
 
-        rate = rate.reshape(3, cam.height, cam.width) * self.sensitivity
-        if self.diffraction:
-            for ch in range(3):
-                rate[ch] = apply_diffraction(
-                    rate[ch], cam.pitch, 2 * cam.aperture_radius, cam.sensor_distance, cam.wavelengths[ch]
-                )
-            np.clip(rate, 0.0, None, out=rate)
-        return Rendering(rate, stats)
+    # --- the uniform environment ------------------------------------------------------------
+    def _environment_blur_px(self, plane) -> float:
+        """An upper bound of the radius (pixels) of any scene point's blur on the sensor.
+
+        Everything the environment pass can see lies between the nearest of the ball's
+        front and the light's housing, and the ball's far side (virtual images of the
+        surroundings lie inside the ball). A pinhole blurs a point at distance z into a
+        disc of radius ``a (1 + f/z)``; a thin lens focused at ``z_f`` into ``a f |1/z - 1/z_f|``.
+        """
+        cam = self.camera
+        dist = float(np.linalg.norm(self.mirror.centre - cam.centre))
+        z_near = dist - self.mirror.radius
+        if plane.housing_radius > 0:
+            to_light = float(np.linalg.norm(plane.origin - cam.centre))
+            z_near = min(z_near, to_light - plane.housing_radius - plane.housing_depth)
+        z_near = max(z_near, 0.2 * (dist - self.mirror.radius), 1e-3)
+        z_far = dist + self.mirror.radius
+        a, f = cam.aperture_radius, cam.sensor_distance
+        if cam.focus_distance is None:
+            blur = a * (1.0 + f / z_near)
+        else:
+            blur = a * f * max(abs(1.0 / z - 1.0 / cam.focus_distance) for z in (z_near, z_far))
+        return blur / cam.pitch
+
+    def _environment_rays(self, plane, col, row, ax, ay):
+        """Per ray: the environment's ``F(α) · cos⁴β`` (N, 3), 0 where it is not seen."""
+        (ox, oy, oz), (dx, dy, dz), cos4 = self.camera.rays(col, row, ax, ay)
+        c, radius = self.mirror.centre, self.mirror.radius
+        qx, qy, qz = ox - c[0], oy - c[1], oz - c[2]
+        b = qx * dx + qy * dy + qz * dz
+        disc = b * b - (qx * qx + qy * qy + qz * qz - radius**2)
+        t = -b - np.sqrt(np.maximum(disc, 0.0))
+        seen = (disc > 0.0) & (t > 0.0)
+        sx, sy, sz = ox + t * dx, oy + t * dy, oz + t * dz
+        nx, ny, nz = (sx - c[0]) / radius, (sy - c[1]) / radius, (sz - c[2]) / radius
+        cos_i = -(dx * nx + dy * ny + dz * nz)
+        rx, ry, rz = dx + 2.0 * cos_i * nx, dy + 2.0 * cos_i * ny, dz + 2.0 * cos_i * nz
+        if plane.housing_radius > 0:
+            seen &= ~plane.blocks_segment((ox, oy, oz), (sx, sy, sz))  # the housing hides the ball
+            far = 100.0  # metres: the reflected ray, far beyond the rig
+            seen &= ~plane.blocks_segment((sx, sy, sz), (sx + far * rx, sy + far * ry, sz + far * rz))
+        value = fresnel_conductor(cos_i, self.mirror.n, self.mirror.k) * cos4[:, None]
+        return np.where(seen[:, None], value, 0.0)
+
+    def _render_environment(self, plane, stats) -> np.ndarray:
+        """Unscaled rate (3, H·W) of the uniform environment reflected by the ball."""
+        cam = self.camera
+        out = np.zeros((3, cam.height * cam.width))
+        margin = int(math.ceil(1.25 * self._environment_blur_px(plane) + 2.0))
+        col, row = self._ball_pixels()
+        if col.size == 0:
+            return out
+        c0, c1 = max(0, int(col.min()) - margin), min(cam.width, int(col.max()) + margin + 1)
+        r0, r1 = max(0, int(row.min()) - margin), min(cam.height, int(row.max()) + margin + 1)
+        rr, cc = np.mgrid[r0:r1, c0:c1]
+        zero = np.zeros(cc.size)
+        chief = self._environment_rays(plane, cc.ravel().astype(float), rr.ravel().astype(float), zero, zero)
+        seen = (chief[:, 1] > 0).reshape(rr.shape).astype(np.uint8)
+        stats.rays_traced += cc.size
+        # Pixels within the blur radius of a differently classified pixel straddle an edge.
+        kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * margin + 1, 2 * margin + 1))
+        near_edge = cv2.dilate(seen, kernel, borderType=cv2.BORDER_REPLICATE) != cv2.erode(
+            seen, kernel, borderType=cv2.BORDER_REPLICATE
+        )
+        interior = (seen.astype(bool) & ~near_edge).ravel()
+        edge = near_edge.ravel()
+        flat = (rr * cam.width + cc).ravel()
+        for mask, ndisc in ((interior, 1), (edge, self.environment_aperture_samples)):
+            pix = flat[mask]
+            pcol, prow = cc.ravel()[mask].astype(float), rr.ravel()[mask].astype(float)
+            value, rays = self._environment_pixels(plane, pcol, prow, ndisc)
+            stats.rays_traced += rays
+            out[:, pix] = value.T * self.environment[:, None]
+        return out
+
+    def _environment_pixels(self, plane, col, row, ndisc):
+        """Mean of ``F · cos⁴`` over each pixel's area × the whole aperture (stratified)."""
+        cam, ra = self.camera, self.camera.aperture_radius
+        nsub = len(self.subpixel)
+        per_pixel = nsub * ndisc
+        out = np.zeros((col.size, 3))
+        step = max(1, self.chunk_rays // per_pixel)
+        for s in range(0, col.size, step):
+            sl = slice(s, min(col.size, s + step))
+            m = sl.stop - sl.start
+            offs = self.subpixel[None] + self.rng.random((m, nsub, 2)) * self.subpixel_cell
+            disc = ra * unit_disc_samples(ndisc, (m, nsub), self.rng)
+            shape = (m, nsub, ndisc)
+            sc = np.broadcast_to((col[sl, None] + offs[..., 0])[:, :, None], shape).ravel()
+            sr = np.broadcast_to((row[sl, None] + offs[..., 1])[:, :, None], shape).ravel()
+            value = self._environment_rays(plane, sc, sr, disc[..., 0].ravel(), disc[..., 1].ravel())
+            out[sl] = value.reshape(m, per_pixel, 3).mean(axis=1)
+        return out, col.size * per_pixel
+
+    def _hidden_environment(self, plane, t, on) -> np.ndarray:
+        """``L_env · F · cos⁴`` (N, 3) for emitter hits outside the housing's face: light of
+        the surroundings the emitter hides (already counted by the environment pass)."""
+        bare = on & (t.u * t.u + t.v * t.v > plane.housing_radius**2)
+        return np.where(bare[:, None], t.fresnel * t.cos4[:, None] * self.environment[None, :], 0.0)
 
     # --- local linearisation ------------------------------------------------------------------
     def _jacobian_aperture(self, plane, col, row, ax, ay, uv, h):
@@ -541,6 +672,8 @@ class MirrorBallRenderer:
             on = t.valid & (du * du + dv * dv <= rho * rho)
             value = np.zeros((ax.size, 3))
             value[in_aperture] = np.where(on[:, None], (emitter.radiance(t.theta, t.phi) * t.cos4)[:, None] * t.fresnel * np.asarray(emitter.spectrum)[None, :], 0.0)
+            if np.any(self.environment > 0):
+                value[in_aperture] -= self._hidden_environment(plane, t, on)
             # Rim check: hits in the outer third of the sampled ellipse's radius would mean
             # the ellipse may be too small to hold the whole pre-image.
             disc_r = np.linalg.norm(disc, axis=-1).ravel()
@@ -589,6 +722,8 @@ class MirrorBallRenderer:
         weight = np.repeat(area_px / (n_ap * per_point), per_point)
         value = (emitter.radiance(t.theta[on], t.phi[on]) * t.cos4[on] * weight[on])[:, None]
         value = value * t.fresnel[on] * np.asarray(emitter.spectrum)[None, :]
+        if np.any(self.environment > 0):
+            value -= self._hidden_environment(plane, t, on)[on]
         pixel = np.rint(py[on]).astype(np.int64) * cam.width + np.rint(px[on]).astype(np.int64)
         disc_r = np.linalg.norm(disc, axis=-1).ravel()
         rim = int(np.count_nonzero(disc_r[on] > 0.9))
@@ -616,5 +751,7 @@ class MirrorBallRenderer:
             du, dv = t.u - emitter.centre_m[0], t.v - emitter.centre_m[1]
             on = t.valid & (du * du + dv * dv <= emitter.radius_m**2)
             value = np.where(on[:, None], (emitter.radiance(t.theta, t.phi) * t.cos4)[:, None] * t.fresnel * np.asarray(emitter.spectrum)[None, :], 0.0)
+            if np.any(self.environment > 0):
+                value -= self._hidden_environment(plane, t, on)
             out.append(value.reshape(m, per_pixel, 3).mean(axis=1))
         return np.concatenate(out), pixel_index, npx * per_pixel

@@ -58,7 +58,7 @@ def test_measured_peers_are_compared(report):
         assert entry["status"] == "ok"
         assert entry["pixels_compared"] == ours["pixels_compared"]
         assert report[f"speedup_vs_{peer}"] > 0
-        assert set(report["target_per_peer"][peer]) == {"speedup", "at_least_3x_faster", "error_not_higher"}
+        assert {"speedup", "at_least_3x_faster", "error_not_higher"} <= set(report["target_per_peer"][peer])
     # OpenCV is a core dependency and (from version 5) merges 16-bit images.
     opencv = report["methods"]["opencv_debevec"]["status"]
     assert opencv == "ok" or opencv.startswith("rejects 16-bit input")

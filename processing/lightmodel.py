@@ -1,0 +1,401 @@
+"""The light model: the measured light as point sources on its plane, and its file.
+
+A :class:`LightModel` is what a run's processing ends with (``measurement.md``, "Light
+source model"): sources ``s`` at ``p_s = (u_s, v_s, 0)`` on the light plane, each with a
+continuous radiant intensity ``I_s(θ, φ)`` fitted to its samples (:mod:`processing.fit`).
+It answers the questions the rest of the project asks of a light — the intensity of one
+source, the far field of the whole light, the irradiance on a surface close by — and it is
+saved as a small, versioned, human-readable JSON file (``docs/light-model.md``).
+
+All positions are metres and all angles radians, in the **light frame**: the plane is
+``z = 0``, the light emits towards ``+z``; θ is the zenith from ``+z`` and φ the azimuth from
+``+x``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from processing.fit import FitError, IntensityFit, Samples
+
+__all__ = [
+    "LIGHT_MODEL_FORMAT",
+    "LIGHT_MODEL_VERSION",
+    "LightModel",
+    "LightModelError",
+    "SourceModel",
+    "samples_table",
+]
+
+LIGHT_MODEL_FORMAT = "mirrorgonio-light-model"
+LIGHT_MODEL_VERSION = 1
+UNITS = ("W/sr", "relative")
+_SAMPLE_COLUMNS = ("theta", "phi", "intensity", "sigma", "position")
+_HALF_PI = 0.5 * math.pi
+
+
+class LightModelError(ValueError):
+    """An invalid light model, or an unreadable or foreign light-model file (one line naming it)."""
+
+
+def samples_table(samples: Samples, positions=None, cell_sum_intensity=None) -> dict:
+    """The samples of one source as the light model stores them: a table of plain lists.
+
+    Parameters
+    ----------
+    samples : Samples
+        The samples the source's fit was made from.
+    positions : array_like of int, optional
+        Schedule position of each sample (default ``0 .. n−1``).
+    cell_sum_intensity : array_like, optional
+        The fast-path flux-sum estimate at the same positions, for comparison.
+
+    Returns
+    -------
+    dict
+        ``theta``, ``phi``, ``intensity``, ``sigma``, ``position`` (and
+        ``cell_sum_intensity`` when given), each a list of one value per sample.
+    """
+    n = len(samples)
+    positions = np.arange(n) if positions is None else np.asarray(positions)
+    table = {
+        "theta": [float(v) for v in samples.theta],
+        "phi": [float(v) for v in samples.phi],
+        "intensity": [float(v) for v in samples.intensity],
+        "sigma": [float(v) for v in samples.sigma],
+        "position": [int(v) for v in positions],
+    }
+    if cell_sum_intensity is not None:
+        table["cell_sum_intensity"] = [float(v) for v in np.asarray(cell_sum_intensity, dtype=float)]
+    lengths = {k: len(v) for k, v in table.items()}
+    if len(set(lengths.values())) != 1:
+        raise LightModelError(f"samples: columns differ in length ({', '.join(f'{k} {v}' for k, v in lengths.items())})")
+    return table
+
+
+@dataclass
+class SourceModel:
+    """One point source of the light.
+
+    Attributes
+    ----------
+    name : str
+        Its name, unique in the model.
+    centre_m : tuple of float
+        ``(u, v)``, its position on the light plane, metres.
+    radius_m : float
+        Radius of its emitting disc, metres (0 for a true point).
+    fit : IntensityFit
+        Its radiant intensity ``I_s(θ, φ)``.
+    samples : dict
+        The samples the fit was made from (:func:`samples_table`): lists ``theta``,
+        ``phi``, ``intensity``, ``sigma``, ``position`` and optionally ``cell_sum_intensity``.
+    """
+
+    name: str
+    centre_m: tuple[float, float]
+    radius_m: float
+    fit: IntensityFit
+    samples: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        self.name = str(self.name)
+        try:
+            u, v = (float(c) for c in self.centre_m)
+        except (TypeError, ValueError):
+            raise LightModelError(f"source {self.name!r}: centre_m must be two numbers (u, v), got {self.centre_m!r}") from None
+        self.centre_m = (u, v)
+        self.radius_m = float(self.radius_m)
+        if not (math.isfinite(u) and math.isfinite(v)):
+            raise LightModelError(f"source {self.name!r}: centre_m must be finite, got {self.centre_m}")
+        if not (self.radius_m >= 0 and math.isfinite(self.radius_m)):
+            raise LightModelError(f"source {self.name!r}: radius_m must be finite and >= 0, got {self.radius_m}")
+        if not isinstance(self.fit, IntensityFit):
+            raise LightModelError(f"source {self.name!r}: fit must be an IntensityFit, got {type(self.fit).__name__}")
+        if not isinstance(self.samples, dict):
+            raise LightModelError(f"source {self.name!r}: samples must be a table (dict of lists)")
+
+    def intensity(self, theta, phi=0.0) -> np.ndarray:
+        """``I_s(θ, φ)``: the fit, clipped at zero, and zero behind the plane (θ > 90°)."""
+        theta, phi = np.broadcast_arrays(np.asarray(theta, dtype=float), np.asarray(phi, dtype=float))
+        values = self.fit(theta, phi)
+        return np.where(theta <= _HALF_PI, np.maximum(values, 0.0), 0.0)
+
+    def flux(self, n_theta: int = 400, n_phi: int = 180) -> float:
+        """``∫ I_s dΩ`` over the hemisphere: Gauss–Legendre in θ, the periodic trapezoid rule in φ."""
+        x, w = np.polynomial.legendre.leggauss(n_theta)
+        theta = 0.25 * math.pi * (x + 1.0)
+        w_theta = 0.25 * math.pi * w * np.sin(theta)
+        if self.fit.method == "gaussian-2d":
+            phi = np.arange(n_phi) * (2.0 * math.pi / n_phi)
+            values = self.intensity(theta[:, None], phi[None, :])
+            return float(np.sum(values.mean(axis=1) * w_theta) * 2.0 * math.pi)
+        return float(np.sum(self.intensity(theta) * w_theta) * 2.0 * math.pi)
+
+    def to_dict(self) -> dict:
+        """A JSON-able record of the source."""
+        return {
+            "name": self.name,
+            "centre_m": list(self.centre_m),
+            "radius_m": self.radius_m,
+            "fit": self.fit.to_dict(),
+            "samples": _plain(self.samples),
+        }
+
+
+def _plain(obj):
+    """numpy scalars and arrays to plain Python for JSON; non-finite floats become None (null)."""
+    if isinstance(obj, dict):
+        return {str(k): _plain(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_plain(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return _plain(obj.tolist())
+    if isinstance(obj, np.integer):
+        return int(obj)
+    if isinstance(obj, (float, np.floating)):
+        return float(obj) if math.isfinite(obj) else None  # JSON has no NaN: null where no value
+    if isinstance(obj, np.bool_):
+        return bool(obj)
+    return obj
+
+
+@dataclass
+class LightModel:
+    """The measured light: point sources with their own radiant intensity distributions.
+
+    Attributes
+    ----------
+    sources : list of SourceModel
+        The sources, in the order of the run's source layout.
+    units : str
+        ``"W/sr"`` when the run was radiometrically calibrated, else ``"relative"``.
+    provenance : dict
+        Where the model comes from: ``run_id``, ``run_file``, ``rig``, ``software_version``,
+        ``method`` (e.g. ``"template-unmixing"`` or ``"cell-sums"``),
+        ``spatial_resolution_m`` (the point spread's footprint on the light plane), and
+        anything else worth keeping (JSON-able).
+
+    Notes
+    -----
+    The model of the light (``measurement.md``): ``D(r) = Σ_s I_s(θ_s, φ_s)/|r − p_s|²``
+    and ``E(r, n) = Σ_s I_s(θ_s, φ_s)·max(0, n·ω_s)/|r − p_s|²``.
+    """
+
+    sources: list[SourceModel]
+    units: str = "relative"
+    provenance: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        self.sources = list(self.sources)
+        if self.units not in UNITS:
+            raise LightModelError(f"units: {self.units!r} is not one of {', '.join(UNITS)}")
+        if not self.sources:
+            raise LightModelError("sources: a light model needs at least one source")
+        for i, s in enumerate(self.sources):
+            if not isinstance(s, SourceModel):
+                raise LightModelError(f"sources[{i}]: expected a SourceModel, got {type(s).__name__}")
+        names = [s.name for s in self.sources]
+        dupes = sorted({n for n in names if names.count(n) > 1})
+        if dupes:
+            raise LightModelError(f"sources: duplicate name {', '.join(map(repr, dupes))}")
+        if not isinstance(self.provenance, dict):
+            raise LightModelError("provenance: expected a table (dict)")
+
+    # ----------------------------------------------------------------- lookups
+
+    def source(self, source: int | str) -> SourceModel:
+        """A source by index or by name (:class:`LightModelError` if there is none)."""
+        if isinstance(source, (int, np.integer)) and not isinstance(source, bool):
+            if not -len(self.sources) <= source < len(self.sources):
+                raise LightModelError(f"source {int(source)}: out of range (the model has {len(self.sources)})")
+            return self.sources[int(source)]
+        for s in self.sources:
+            if s.name == source:
+                return s
+        raise LightModelError(f"source {source!r}: no such source (known: {', '.join(s.name for s in self.sources)})")
+
+    def intensity(self, source: int | str, theta, phi=0.0) -> np.ndarray:
+        """Radiant intensity ``I_s(θ, φ)`` of one source.
+
+        Parameters
+        ----------
+        source : int or str
+            Index or name.
+        theta, phi : array_like
+            Directions in the light frame, radians.
+
+        Returns
+        -------
+        ndarray
+            The source's fit, clipped at zero (a polynomial may dip below it when
+            extrapolated), and zero behind the light plane (θ > 90°).
+        """
+        return self.source(source).intensity(theta, phi)
+
+    def far_field(self, theta, phi=0.0) -> np.ndarray:
+        """``Σ_s I_s(θ, φ)``: the whole light seen from far away, where every source is at one point."""
+        theta, phi = np.broadcast_arrays(np.asarray(theta, dtype=float), np.asarray(phi, dtype=float))
+        total = np.zeros(theta.shape)
+        for s in self.sources:
+            total += s.intensity(theta, phi)
+        return total
+
+    def irradiance(self, points, normals) -> np.ndarray:
+        """Irradiance on surfaces close to the light, each source an inverse-square point.
+
+        ``E(r, n) = Σ_s I_s(θ_s, φ_s)·max(0, n·ω_s)/|r − p_s|²`` (``measurement.md``), with
+        ``p_s = (u_s, v_s, 0)``, ``(θ_s, φ_s)`` the direction from ``p_s`` to ``r`` and
+        ``ω_s`` the unit vector from ``r`` to ``p_s``.
+
+        Parameters
+        ----------
+        points : array_like (N, 3)
+            Surface points ``r`` in the light frame, metres.
+        normals : array_like (N, 3) or (3,)
+            Their surface normals in the light frame (normalised here).
+
+        Returns
+        -------
+        ndarray (N,)
+            Irradiance in the model's units per m² (W/m² when ``units`` is ``"W/sr"``);
+            zero for points on or behind the light plane (``z <= 0``).
+        """
+        r = np.asarray(points, dtype=float)
+        if r.ndim != 2 or r.shape[1] != 3:
+            raise LightModelError(f"irradiance: points must be (N, 3), got shape {r.shape}")
+        n = np.broadcast_to(np.asarray(normals, dtype=float), r.shape)
+        norm = np.linalg.norm(n, axis=1)
+        if np.any(~(norm > 0)):
+            raise LightModelError("irradiance: normals must be non-zero and finite")
+        n = n / norm[:, None]
+        front = r[:, 2] > 0
+        E = np.zeros(len(r))
+        rf, nf = r[front], n[front]
+        for s in self.sources:
+            d = rf - np.array([s.centre_m[0], s.centre_m[1], 0.0])
+            dist2 = np.einsum("ij,ij->i", d, d)
+            dist = np.sqrt(dist2)
+            theta = np.arccos(np.clip(d[:, 2] / dist, -1.0, 1.0))
+            phi = np.arctan2(d[:, 1], d[:, 0])
+            cos_in = np.maximum(0.0, -np.einsum("ij,ij->i", nf, d) / dist)  # n·ω_s, ω_s = −d/|d|
+            E[front] += s.intensity(theta, phi) * cos_in / dist2
+        return E
+
+    def total_flux(self) -> float:
+        """``∫ Σ_s I_s dΩ`` over the hemisphere in front of the plane (numerical), in the model's units × sr."""
+        return float(sum(s.flux() for s in self.sources))
+
+    # ----------------------------------------------------------------- the file
+
+    def to_dict(self) -> dict:
+        """The JSON-able record written by :meth:`save`."""
+        return {
+            "format": LIGHT_MODEL_FORMAT,
+            "format_version": LIGHT_MODEL_VERSION,
+            "units": self.units,
+            "provenance": _plain(self.provenance),
+            "sources": [s.to_dict() for s in self.sources],
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict, *, origin: str = "light model") -> LightModel:
+        """Rebuild a model from :meth:`to_dict`'s record, checking format and version.
+
+        Raises
+        ------
+        LightModelError
+            One line naming ``origin`` and the offending field.
+        """
+        if not isinstance(d, dict):
+            raise LightModelError(f"{origin}: not a mirrorgonio light model (a JSON {type(d).__name__}, not an object)")
+        fmt = d.get("format")
+        if fmt != LIGHT_MODEL_FORMAT:
+            raise LightModelError(f"{origin}: not a mirrorgonio light model (format {fmt!r}, expected {LIGHT_MODEL_FORMAT!r})")
+        version = d.get("format_version")
+        if isinstance(version, bool) or not isinstance(version, int) or version < 1:
+            raise LightModelError(f"{origin}: format_version: {version!r} is not a version number")
+        if version > LIGHT_MODEL_VERSION:
+            raise LightModelError(f"{origin}: format_version {version} is newer than this software reads "
+                                  f"(up to {LIGHT_MODEL_VERSION}): update mirrorgonio")  # fmt: skip
+        for key in ("units", "sources"):
+            if key not in d:
+                raise LightModelError(f"{origin}: {key}: missing")
+        if not isinstance(d["sources"], list):
+            raise LightModelError(f"{origin}: sources: expected a list")
+        sources = []
+        for i, s in enumerate(d["sources"]):
+            where = f"{origin}: sources[{i}]"
+            if not isinstance(s, dict):
+                raise LightModelError(f"{where}: expected an object")
+            for key in ("name", "centre_m", "radius_m", "fit"):
+                if key not in s:
+                    raise LightModelError(f"{where}.{key}: missing")
+            try:
+                fit = IntensityFit.from_dict(s["fit"])
+            except FitError as e:
+                raise LightModelError(f"{where}.fit: {str(e).removeprefix('fit record: ')}") from None
+            try:
+                sources.append(SourceModel(s["name"], tuple(s["centre_m"]), s["radius_m"], fit, s.get("samples", {})))
+            except (LightModelError, TypeError, ValueError) as e:
+                raise LightModelError(f"{where}: {e}") from None
+        try:
+            return cls(sources, d["units"], d.get("provenance", {}))
+        except LightModelError as e:
+            raise LightModelError(f"{origin}: {e}") from None
+
+    def save(self, path) -> Path:
+        """Write the model as JSON (``docs/light-model.md``), atomically; returns the path."""
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        text = _dumps(self.to_dict()) + "\n"
+        json.loads(text)  # what is written must read back
+        tmp = path.with_name(path.name + ".tmp")
+        tmp.write_text(text, encoding="utf-8")
+        os.replace(tmp, path)
+        return path
+
+    @classmethod
+    def load(cls, path) -> LightModel:
+        """Read a light-model file, checking its format and version.
+
+        Raises
+        ------
+        LightModelError
+            One line naming the file: unreadable, not JSON, a foreign JSON, a newer format
+            version, or a bad field.
+        """
+        path = Path(path)
+        try:
+            text = path.read_text(encoding="utf-8")
+        except OSError as e:
+            raise LightModelError(f"{path}: cannot read ({e.strerror or e})") from None
+        except UnicodeDecodeError:
+            raise LightModelError(f"{path}: not a light-model file (not UTF-8 text)") from None
+        try:
+            d = json.loads(text)
+        except json.JSONDecodeError as e:
+            raise LightModelError(f"{path}: not JSON ({e.msg}, line {e.lineno})") from None
+        return cls.from_dict(d, origin=str(path))
+
+
+def _dumps(obj, indent: int = 0) -> str:
+    """JSON with objects one key a line and lists of numbers on one line: small and readable."""
+    pad, inner = " " * indent, " " * (indent + 2)
+    if isinstance(obj, dict):
+        if not obj:
+            return "{}"
+        items = [f"{inner}{json.dumps(str(k))}: {_dumps(v, indent + 2)}" for k, v in obj.items()]
+        return "{\n" + ",\n".join(items) + "\n" + pad + "}"
+    if isinstance(obj, list):
+        if all(not isinstance(v, (dict, list)) for v in obj):
+            return json.dumps(obj, allow_nan=False)
+        items = [f"{inner}{_dumps(v, indent + 2)}" for v in obj]
+        return "[\n" + ",\n".join(items) + "\n" + pad + "]"
+    return json.dumps(obj, allow_nan=False)

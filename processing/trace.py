@@ -1,0 +1,209 @@
+"""Chief rays: camera → mirrored ball → light plane, for every pixel on the ball.
+
+Written for the processing and independently of the simulated camera (``sim_devices``):
+pixels are back-projected with OpenCV's intrinsic matrix, and the geometry is done with
+(N, 3) vectors in the rig frame. For each pixel the chief ray (through the pinhole's
+centre) gives where on the light plane its light came from (u, v), the direction it left
+in (θ, φ, in the light frame), the ball's Fresnel reflectance at the angle of incidence,
+the ``cos⁴β`` fall-off of the sensor, and the pixel's footprint area on the light plane.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from acquisition.rig import Rig
+from drivers.pose import Pose
+
+
+@dataclass(frozen=True)
+class RigGeometry:
+    """The rig's numbers in the form the tracer uses (rig frame, metres)."""
+
+    K: np.ndarray
+    K_inv: np.ndarray
+    R: np.ndarray  # rig -> camera
+    t: np.ndarray
+    camera_centre: np.ndarray
+    sensor_distance: float
+    pitch: float
+    aperture_radius: float
+    ball_centre: np.ndarray
+    ball_radius: float
+    n: np.ndarray
+    k: np.ndarray
+    light_to_tool: Pose
+    housing_radius: float
+    housing_depth: float
+    wavelengths: np.ndarray
+    width: int
+    height: int
+
+    @classmethod
+    def from_rig(cls, rig: Rig, ball_centre=None) -> RigGeometry:
+        cam = rig.camera
+        R, t = cam.pose.extrinsics()
+        K = cam.camera_matrix()
+        return cls(
+            K=K, K_inv=np.linalg.inv(K), R=R, t=np.asarray(t, float), camera_centre=-R.T @ t,
+            sensor_distance=cam.sensor_distance_m, pitch=cam.pixel_pitch_m,
+            aperture_radius=cam.aperture_diameter_m / 2.0,
+            ball_centre=np.asarray(ball_centre if ball_centre is not None else rig.ball.centre_m, float),
+            ball_radius=rig.ball.radius_m, n=np.asarray(rig.ball.n, float), k=np.asarray(rig.ball.k, float),
+            light_to_tool=rig.light.light_to_tool.to_pose(), housing_radius=rig.light.housing_radius_m,
+            housing_depth=rig.light.housing_depth_m, wavelengths=np.asarray(cam.channel_wavelengths_m, float),
+            width=cam.width, height=cam.height,
+        )  # fmt: skip
+
+    def pixel_directions(self, cols, rows) -> np.ndarray:
+        """Unit directions (N, 3) in the rig frame of the chief rays of pixels (col, row)."""
+        homogeneous = np.stack([cols, rows, np.ones_like(cols)], axis=-1).astype(float)
+        in_camera = homogeneous @ self.K_inv.T
+        in_rig = in_camera @ self.R  # R.T @ d for each row
+        return in_rig / np.linalg.norm(in_rig, axis=-1, keepdims=True)
+
+    def cos4(self, cols, rows) -> np.ndarray:
+        """``cos⁴β`` of the flat sensor behind the pinhole, β the chief ray's off-axis angle."""
+        x = (cols - self.K[0, 2]) / self.K[0, 0]
+        y = (rows - self.K[1, 2]) / self.K[1, 1]
+        return 1.0 / (1.0 + x * x + y * y) ** 2
+
+    def project(self, points) -> np.ndarray:
+        """Pixel coordinates (N, 2) of rig-frame points through the pinhole's centre."""
+        cam = points @ self.R.T + self.t
+        uvw = cam @ self.K.T
+        return uvw[..., :2] / uvw[..., 2:3]
+
+
+def conductor_reflectance(cos_incidence, n, k) -> np.ndarray:
+    """Unpolarised Fresnel reflectance (N, C) of a metal of index n + ik (complex form)."""
+    m = (np.asarray(n) + 1j * np.asarray(k))[None, :]
+    c = np.clip(np.asarray(cos_incidence), 0.0, 1.0)[:, None]
+    root = np.sqrt(m * m - (1.0 - c * c))  # m * cos(theta_t)
+    r_s = (c - root) / (c + root)
+    r_p = (m * m * c - root) / (m * m * c + root)
+    return 0.5 * (np.abs(r_s) ** 2 + np.abs(r_p) ** 2)
+
+
+@dataclass
+class ChiefRays:
+    """Chief-ray trace of a set of pixels at one light pose (all arrays per pixel)."""
+
+    cols: np.ndarray
+    rows: np.ndarray
+    hits_ball: np.ndarray
+    reaches_plane: np.ndarray
+    blocked: np.ndarray  # the light housing is in the way of the camera's view
+    valid: np.ndarray
+    u: np.ndarray
+    v: np.ndarray
+    theta: np.ndarray
+    phi: np.ndarray
+    alpha: np.ndarray  # angle of incidence on the ball
+    fresnel: np.ndarray  # (N, 3)
+    cos4: np.ndarray
+    ball_points: np.ndarray  # (N, 3)
+    deflection: np.ndarray  # angle between the camera's ray and the reflected ray
+
+
+def _housing_blocks(start, end, light: Pose, radius: float, depth: float) -> np.ndarray:
+    """Segments (rig frame) that pass through the housing cylinder behind the light plane.
+
+    In the light frame the segment is ``a + s d`` for s in [0, 1]; it meets the solid
+    cylinder where three intervals of s overlap: [0, 1], the slab -depth <= z <= 0, and
+    the roots of (a_x + s d_x)² + (a_y + s d_y)² <= r².
+    """
+    if radius <= 0:
+        return np.zeros(len(start), dtype=bool)
+    rot, origin = light.rotation, light.position
+    a = (start - origin) @ rot
+    d = (end - start) @ rot
+    lo, hi = np.zeros(len(a)), np.ones(len(a))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        z0, z1 = (-depth - a[:, 2]) / d[:, 2], (0.0 - a[:, 2]) / d[:, 2]
+    flat = np.abs(d[:, 2]) < 1e-15
+    inside_slab = (a[:, 2] >= -depth) & (a[:, 2] <= 0.0)
+    lo = np.where(flat, np.where(inside_slab, lo, np.inf), np.maximum(lo, np.minimum(z0, z1)))
+    hi = np.where(flat, hi, np.minimum(hi, np.maximum(z0, z1)))
+    qa = d[:, 0] ** 2 + d[:, 1] ** 2
+    qb = 2.0 * (a[:, 0] * d[:, 0] + a[:, 1] * d[:, 1])
+    qc = a[:, 0] ** 2 + a[:, 1] ** 2 - radius**2
+    disc = qb * qb - 4.0 * qa * qc
+    parallel = qa < 1e-30
+    root = np.sqrt(np.maximum(disc, 0.0))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        r0 = np.where(parallel, np.where(qc <= 0, -np.inf, np.inf), (-qb - root) / (2.0 * qa))
+        r1 = np.where(parallel, np.where(qc <= 0, np.inf, -np.inf), (-qb + root) / (2.0 * qa))
+    meets_cylinder = parallel | (disc >= 0.0)
+    return meets_cylinder & (np.maximum(lo, r0) <= np.minimum(hi, r1))
+
+
+def trace_pixels(geometry: RigGeometry, light_pose: Pose, cols, rows) -> ChiefRays:
+    """Trace the chief rays of the given pixels with the light at ``light_pose``."""
+    cols = np.asarray(cols, float).ravel()
+    rows = np.asarray(rows, float).ravel()
+    d = geometry.pixel_directions(cols, rows)
+    o = geometry.camera_centre
+    oc = o - geometry.ball_centre
+    b = d @ oc
+    disc = b * b - (oc @ oc - geometry.ball_radius**2)
+    hits = disc > 0.0
+    dist = -b - np.sqrt(np.where(hits, disc, 0.0))
+    hits &= dist > 0.0
+    points = o + dist[:, None] * d
+    normals = (points - geometry.ball_centre) / geometry.ball_radius
+    cos_i = -np.sum(d * normals, axis=1)
+    reflected = d + 2.0 * cos_i[:, None] * normals
+    rot, origin = light_pose.rotation, light_pose.position
+    local_point = (points - origin) @ rot
+    local_dir = reflected @ rot
+    reaches = hits & (local_point[:, 2] > 0.0) & (local_dir[:, 2] < 0.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = -local_point[:, 2] / local_dir[:, 2]
+    u = local_point[:, 0] + s * local_dir[:, 0]
+    v = local_point[:, 1] + s * local_dir[:, 1]
+    emitted = -local_dir  # from the plane towards the ball
+    theta = np.arccos(np.clip(emitted[:, 2], -1.0, 1.0))
+    phi = np.arctan2(emitted[:, 1], emitted[:, 0])
+    blocked = np.zeros_like(hits)
+    if np.any(hits):
+        blocked[hits] = _housing_blocks(np.broadcast_to(o, (hits.sum(), 3)), points[hits], light_pose,
+                                        geometry.housing_radius, geometry.housing_depth)  # fmt: skip
+    valid = reaches & ~blocked
+    alpha = np.arccos(np.clip(cos_i, -1.0, 1.0))
+    fresnel = conductor_reflectance(cos_i, geometry.n, geometry.k)
+    deflection = np.pi - 2.0 * alpha  # between -d and the reflected direction's reverse
+    return ChiefRays(cols, rows, hits, reaches, blocked, valid, u, v, theta, phi, alpha, fresnel,
+                     geometry.cos4(cols, rows), points, deflection)  # fmt: skip
+
+
+def ball_pixel_grid(geometry: RigGeometry) -> tuple[np.ndarray, np.ndarray]:
+    """Pixel coordinates of a box that holds the ball's image."""
+    rel = geometry.R @ (geometry.ball_centre - geometry.camera_centre)
+    dist = np.linalg.norm(rel)
+    half = np.arcsin(min(1.0, geometry.ball_radius / dist))
+    f_px = geometry.K[0, 0]
+    centre = geometry.project(geometry.ball_centre[None, :])[0]
+    reach = f_px * np.tan(np.arccos(rel[2] / dist) + half) - f_px * np.tan(max(np.arccos(rel[2] / dist) - half, 0))
+    radius = max(reach / 2.0, f_px * np.tan(half)) * 1.05 + 3
+    c0, c1 = int(max(0, np.floor(centre[0] - radius))), int(min(geometry.width, np.ceil(centre[0] + radius)))
+    r0, r1 = int(max(0, np.floor(centre[1] - radius))), int(min(geometry.height, np.ceil(centre[1] + radius)))
+    rows, cols = np.mgrid[r0:r1, c0:c1]
+    return cols.ravel().astype(float), rows.ravel().astype(float)
+
+
+def footprint_areas(geometry: RigGeometry, light_pose: Pose, rays: ChiefRays, step: float = 0.5) -> np.ndarray:
+    """Area (m²) of each pixel's chief-ray footprint on the light plane (finite differences)."""
+    right = trace_pixels(geometry, light_pose, rays.cols + step, rays.rows)
+    down = trace_pixels(geometry, light_pose, rays.cols, rays.rows + step)
+    du = np.stack([(right.u - rays.u) / step, (right.v - rays.v) / step], axis=-1)
+    dv = np.stack([(down.u - rays.u) / step, (down.v - rays.v) / step], axis=-1)
+    area = np.abs(du[:, 0] * dv[:, 1] - du[:, 1] * dv[:, 0])
+    return np.where(rays.valid & right.valid & down.valid, area, np.nan)
+
+
+def light_pose_at(geometry: RigGeometry, tool_pose: Pose) -> Pose:
+    """The light's pose for a tool pose."""
+    return tool_pose.compose(geometry.light_to_tool)
