@@ -282,6 +282,26 @@ def bench_hdr_command(
     typer.echo(json.dumps(result) if as_json else json.dumps(result, indent=2))
 
 
+@bench_app.command("accuracy")
+def bench_accuracy_command(
+    noise: Annotated[bool, typer.Option(help="Photon, read and quantisation noise.")] = True,
+    truth: Annotated[str, typer.Option(help="Shipped truth light.")] = "five-gaussians",
+    positions: Annotated[int, typer.Option(min=3, help="Schedule positions (the first N of the sweep).")] = 66,
+    fit: Annotated[str, typer.Option(help="Fit method: gaussian, polynomial, cos-power.")] = "gaussian",
+    rig: RigOption = None,
+    as_json: Annotated[bool, typer.Option("--json", help="Print JSON only.")] = False,
+) -> None:
+    """The reference simulation through the whole chain, scored against the truth."""
+    from acquisition.benchmarks.accuracy import bench_accuracy
+    from processing.pipeline import ProcessingError
+
+    try:
+        result = bench_accuracy(noise=noise, truth=truth, positions=positions, rig_path=rig, fit_method=fit)
+    except (*_domain_errors(), ProcessingError) as exc:
+        raise _fail(str(exc)) from None
+    typer.echo(json.dumps(result) if as_json else json.dumps(result, indent=2))
+
+
 # --- demo -------------------------------------------------------------------------------------
 @app.command("demo")
 def demo(

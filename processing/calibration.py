@@ -88,6 +88,12 @@ class Ellipse:
         normals = np.column_stack([ca * nx - sa * ny, sa * nx + ca * ny])
         return pts, normals / np.linalg.norm(normals, axis=1, keepdims=True)
 
+    def curvature(self, count: int) -> np.ndarray:
+        """Curvature (1/px) at the points of :meth:`points` (same parameterisation)."""
+        a, b = self.semi_axes
+        t = np.linspace(0.0, 2.0 * math.pi, count, endpoint=False)
+        return a * b / (a * a * np.sin(t) ** 2 + b * b * np.cos(t) ** 2) ** 1.5
+
     def normalised_radius(self, pts: np.ndarray) -> np.ndarray:
         """``sqrt((x/a)² + (y/b)²)`` of points in the ellipse's frame (1 on the ellipse)."""
         a, b = self.semi_axes
@@ -123,6 +129,8 @@ class Silhouette:
     rejected : int
         Profiles left out (interior features, the image border, outliers).
     image_shape : (H, W)
+    curvature : (N,)
+        The outline's curvature at the points (1/px), for the estimator's area element.
     """
 
     points: np.ndarray
@@ -134,6 +142,7 @@ class Silhouette:
     levels: tuple[float, float]
     rejected: int
     image_shape: tuple[int, int]
+    curvature: np.ndarray | None = None  # (N,) of the outline at the points, 1/px
 
 
 @dataclass
@@ -298,14 +307,17 @@ def _line_fit(t, values, mask):
     return a, b, rms
 
 
-def _flux_edges(profile_at, count: int, x1: float, x2: float, step: float, iterations: int = 4):
+def _flux_edges(profile_at, count: int, x1: float, x2: float, step: float, curvature=0.0, iterations: int = 4):
     """Flux-balanced edge offsets along ``count`` profiles.
 
     ``profile_at(offsets)`` returns the profiles' values at signed distances ``offsets``
-    (count, K) along the outward normals. The edge e solves
-    ``∫_{-x1}^{x1} O = ∫_{-x1}^{e} (a_i + b_i t) + ∫_{e}^{x1} (a_o + b_o t)`` with lines fitted
-    over [-x2, -x1] (inside) and [x1, x2] (outside) about the current edge, which is then
-    moved there; a few rounds centre the windows on the edge.
+    (count, K) along the outward normals. With lines ``a_i + b_i t`` fitted over
+    [-x2, -x1] (inside) and ``a_o + b_o t`` over [x1, x2] (outside) about the current
+    edge, the edge e balances the light over the window:
+    ``∫_{-x1}^{x1} O w = ∫_{-x1}^{e} (a_i + b_i t) w + ∫_{e}^{x1} (a_o + b_o t) w``, with
+    ``w = 1 + t · curvature`` the area element of a curved outline (blur conserves light in
+    the image plane, not along a line: without it a disc's edge comes out ``σ² / 2r`` too far
+    in). The windows are then re-centred on the edge and the balance repeated.
 
     Returns the offsets (count,), inner and outer levels at the edge, the inner fit's RMS.
     """
@@ -315,21 +327,26 @@ def _flux_edges(profile_at, count: int, x1: float, x2: float, step: float, itera
     tm = t[middle]
     trap = np.full(tm.size, step)
     trap[0] = trap[-1] = step / 2.0
+    kappa = np.broadcast_to(np.asarray(curvature, dtype=float), (count,))
+    weights = 1.0 + kappa[:, None] * tm[None, :]
+
+    def primitive(a, b, x):  # ∫ (a + b t)(1 + κ t) dt
+        return a * x + (b + a * kappa) * x * x / 2.0 + b * kappa * x**3 / 3.0
+
     s0 = np.zeros(count)
     shape = (count, t.size)
     for _ in range(iterations):
         values = profile_at(s0[:, None] + t[None, :])
         a_i, b_i, rms_i = _line_fit(np.broadcast_to(t, shape), values, np.broadcast_to(inner, shape))
         a_o, b_o, _ = _line_fit(np.broadcast_to(t, shape), values, np.broadcast_to(outer, shape))
-        area = values[:, middle] @ trap
-        # (b_i - b_o)/2 e² + (a_i - a_o) e + c = 0, the root near 0.
-        qa = 0.5 * (b_i - b_o)
-        qb = a_i - a_o
-        qc = (a_i + a_o) * x1 + 0.5 * (b_o - b_i) * x1 * x1 - area
-        with np.errstate(divide="ignore", invalid="ignore"):
-            disc = np.sqrt(np.maximum(qb * qb - 4.0 * qa * qc, 0.0))
-            e = np.where(np.abs(qa * qc) < 1e-12 * qb * qb, -qc / qb, (-2.0 * qc) / (qb + np.sign(qb) * disc))
-        e = np.clip(np.nan_to_num(e), -x1, x1)
+        area = np.sum(values[:, middle] * weights * trap[None, :], axis=1)
+        fixed = primitive(a_o, b_o, x1) - primitive(a_i, b_i, -x1) - area
+        e = np.zeros(count)
+        for _ in range(8):  # Newton on a cubic that is nearly linear
+            g = primitive(a_i, b_i, e) - primitive(a_o, b_o, e) + fixed
+            slope = ((a_i - a_o) + (b_i - b_o) * e) * (1.0 + kappa * e)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                e = np.clip(np.nan_to_num(e - g / slope), -x1, x1)
         s0 = s0 + e
         if np.max(np.abs(e)) < 1e-4:
             break
@@ -403,10 +420,12 @@ def detect_silhouette(image, *, method: str = "ellipse", profiles: int | None = 
         inside_image = np.all((far[..., 0] >= 1) & (far[..., 0] <= w - 2) & (far[..., 1] >= 1) & (far[..., 1] <= h - 2), axis=1)
         pts, normals = pts[inside_image], normals[inside_image]
 
+        curvature = ellipse.curvature(count)[inside_image]
+
         def profile_at(offsets, pts=pts, normals=normals):
             return _sample(img, pts[:, None, :] + offsets[..., None] * normals[:, None, :])
 
-        offset, a_in, a_out, rms = _flux_edges(profile_at, len(pts), x1, x2, step)
+        offset, a_in, a_out, rms = _flux_edges(profile_at, len(pts), x1, x2, step, curvature)
         contrast = a_in - a_out
         typical = np.median(contrast)
         noise = np.median(rms)
@@ -421,12 +440,13 @@ def detect_silhouette(image, *, method: str = "ellipse", profiles: int | None = 
         fitted = Ellipse.from_cv(cv2.fitEllipse(edge[good].astype(np.float32)))
         dev = (fitted.normalised_radius(edge) - 1.0) * min(fitted.semi_axes)
         mad = 1.4826 * np.median(np.abs(dev[good] - np.median(dev[good])))
-        good &= np.abs(dev) < max(5.0 * mad, 0.05)
+        good &= np.abs(dev) < max(5.0 * mad, 0.25)
         ellipse = Ellipse.from_cv(cv2.fitEllipse(edge[good].astype(np.float32)))
         rejected = count - int(good.sum())
     points, normals = edge[good], normals[good]
     return Silhouette(points, normals, ellipse, "ellipse", (x1, x2), blur,
-                      (float(np.median(a_out[good])), float(np.median(a_in[good]))), rejected, (h, w))  # fmt: skip
+                      (float(np.median(a_out[good])), float(np.median(a_in[good]))), rejected, (h, w),
+                      curvature[good])  # fmt: skip
 
 
 # --- the centre -----------------------------------------------------------------------------------
@@ -456,7 +476,8 @@ def _mean_reflectance(ball_index, cos_i: np.ndarray) -> np.ndarray:
     return (0.5 * (np.abs(r_s) ** 2 + np.abs(r_p) ** 2)).mean(axis=1)
 
 
-def fresnel_rim_shift_px(kappa, sin_beta: float, ball_index, window_px: tuple[float, float], step: float = 0.02) -> np.ndarray:
+def fresnel_rim_shift_px(kappa, sin_beta: float, ball_index, window_px: tuple[float, float], curvature: float = 0.0,
+                         step: float = 0.02) -> np.ndarray:  # fmt: skip
     """Outward shift (px) of the flux-balanced edge caused by the Fresnel rim.
 
     For a sharp silhouette, the profile a pixel ``δ`` inside the edge sees is the ball's
@@ -478,7 +499,7 @@ def fresnel_rim_shift_px(kappa, sin_beta: float, ball_index, window_px: tuple[fl
         f = _mean_reflectance(ball_index, cos_alpha.ravel()).reshape(offsets.shape)
         return np.where(offsets < 0.0, f, 0.0)
 
-    shift, *_ = _flux_edges(profile_at, kappa.size, x1, x2, step, iterations=6)
+    shift, *_ = _flux_edges(profile_at, kappa.size, x1, x2, step, curvature, iterations=6)
     return shift
 
 
@@ -550,7 +571,8 @@ def solve_ball_centre(
             inward = _rays(k_inv, pts - normals)
             kappa = np.arccos(np.clip(np.sum(_rays(k_inv, pts) * inward, axis=1), -1.0, 1.0))
             grid = np.linspace(kappa.min(), kappa.max(), 9) if np.ptp(kappa) > 0 else kappa[:1]
-            per_grid = fresnel_rim_shift_px(grid, sin_beta, ball_index, silhouette.window_px)
+            bend = float(np.median(silhouette.curvature)) if silhouette.curvature is not None else 0.0
+            per_grid = fresnel_rim_shift_px(grid, sin_beta, ball_index, silhouette.window_px, bend)
             shift = np.interp(kappa, grid, per_grid) if grid.size > 1 else np.full(len(pts), per_grid[0])
             use = pts - shift[:, None] * normals
             d = _rays(k_inv, use)

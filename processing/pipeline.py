@@ -21,7 +21,8 @@ from processing.images import write_exr, write_png
 from processing.results import HDRInfo, ResultsWriter, results_path_for
 
 log = logging.getLogger("mirrorgonio.processing")
-STEPS = ("hdr",)
+STEPS = ("hdr", "sources")
+ESTIMATORS = ("auto", "templates", "cell-sums")
 
 
 class ProcessingError(ValueError):
@@ -35,7 +36,13 @@ class ProcessReport:
     positions: int
     noise: NoiseModel
     outputs: dict[str, list[Path]] = field(default_factory=dict)
+    samples: object = None
+    model: object = None
     saturated_pixels: int = 0
+    light_model: Path | None = None
+    estimator: str = ""
+    estimator_reason: str = ""
+    spatial_resolution_m: float = float("nan")
 
 
 def rig_noise(run: RunFile) -> NoiseModel:
@@ -71,10 +78,9 @@ def choose_noise(run: RunFile, positions: np.ndarray, mode: str) -> NoiseModel:
 
 
 def process_run(run_path, out_dir=None, *, steps=("hdr",), method: str = "optimal", noise: str = "auto",
-                progress: Callable[[int, int], None] | None = None) -> ProcessReport:  # fmt: skip
+                progress: Callable[[int, int], None] | None = None, layout=None, estimator: str = "auto",
+                fit_method: str = "gaussian", units: str = "relative") -> ProcessReport:  # fmt: skip
     """Process one run file; results go beside it, or into ``out_dir``."""
-    from acquisition import __version__
-
     unknown = [s for s in steps if s not in STEPS]
     if unknown:
         raise ProcessingError(f"--steps: unknown step {unknown[0]!r} (known: {', '.join(STEPS)})")
@@ -89,33 +95,192 @@ def process_run(run_path, out_dir=None, *, steps=("hdr",), method: str = "optima
             raise ProcessingError(f"{run_path}: the run has no complete position (no frames to process)")
         out = Path(out_dir) if out_dir is not None else run_path.parent
         out.mkdir(parents=True, exist_ok=True)
-        images = out / f"{run_path.stem}.hdr"
-        images.mkdir(exist_ok=True)
-        model = choose_noise(run, positions, noise)
-        cfa = run.cfa_pattern(int(positions[0]))[0]
         results_file = results_path_for(run_path, out)
-        report = ProcessReport(run_path, results_file, int(positions.size), model, {"exr": [], "png": []})
-        with ResultsWriter.create(results_file, run_id=run.header.run_id, run_file=str(run_path),
-                                  n_positions=run.n_positions, frame_shape=run.frame_shape,
-                                  software_version=__version__,
-                                  hdr=HDRInfo(method, model, rig_noise(run), cfa)) as writer:  # fmt: skip
-            for done, index in enumerate(positions, start=1):
-                index = int(index)
-                try:
-                    merged = merge_raw(run.frames(index), run.exposures(index), run.black_level(index)[0],
-                                       int(run.white_level(index)[0]), model, method=method)  # fmt: skip
-                except HDRError as exc:
-                    raise ProcessingError(f"{run_path}: position {index}: {exc}") from None
-                writer.write_hdr(index, merged)
-                report.saturated_pixels += int(merged.saturated.sum())
-                rgb = superpixels(np.where(np.isfinite(merged.radiance), merged.radiance, 0.0), cfa)
-                report.outputs["exr"].append(write_exr(images / f"position-{index:03d}.exr", rgb))
-                report.outputs["png"].append(write_png(images / f"position-{index:03d}.png", rgb))
-                if progress:
-                    progress(done, int(positions.size))
-        if report.saturated_pixels:
-            log.warning("%s: %d pixel samples saturated even in the shortest exposure (flagged in the results)",
-                        run_path, report.saturated_pixels)  # fmt: skip
-    if math.isnan(model.gain_e_per_dn):  # pragma: no cover - estimate_noise never returns NaN
-        raise ProcessingError(f"{run_path}: invalid noise model")
+        if "hdr" in steps:
+            report = _hdr_step(run, run_path, out, results_file, positions, method, noise, progress)
+        elif results_file.exists():
+            from processing.results import Results
+
+            with Results.open(results_file) as existing:
+                report = ProcessReport(run_path, results_file, int(existing.hdr_done.sum()), existing.noise, {})
+        else:
+            raise ProcessingError(f"{results_file}: no HDR results to build on (run --steps hdr first)")
+    if "sources" in steps:
+        _sources_step(run_path, results_file, out, report, layout=layout, estimator=estimator,
+                      fit_method=fit_method, units=units)  # fmt: skip
     return report
+
+
+def _hdr_step(run: RunFile, run_path: Path, out: Path, results_file: Path, positions, method, noise, progress):
+    from acquisition import __version__
+
+    images = out / f"{run_path.stem}.hdr"
+    images.mkdir(exist_ok=True)
+    model = choose_noise(run, positions, noise)
+    cfa = run.cfa_pattern(int(positions[0]))[0]
+    report = ProcessReport(run_path, results_file, int(positions.size), model, {"exr": [], "png": []})
+    with ResultsWriter.create(results_file, run_id=run.header.run_id, run_file=str(run_path),
+                              n_positions=run.n_positions, frame_shape=run.frame_shape,
+                              software_version=__version__,
+                              hdr=HDRInfo(method, model, rig_noise(run), cfa)) as writer:  # fmt: skip
+        for done, index in enumerate(positions, start=1):
+            index = int(index)
+            try:
+                merged = merge_raw(run.frames(index), run.exposures(index), run.black_level(index)[0],
+                                   int(run.white_level(index)[0]), model, method=method)  # fmt: skip
+            except HDRError as exc:
+                raise ProcessingError(f"{run_path}: position {index}: {exc}") from None
+            writer.write_hdr(index, merged)
+            report.saturated_pixels += int(merged.saturated.sum())
+            rgb = superpixels(np.where(np.isfinite(merged.radiance), merged.radiance, 0.0), cfa)
+            report.outputs["exr"].append(write_exr(images / f"position-{index:03d}.exr", rgb))
+            report.outputs["png"].append(write_png(images / f"position-{index:03d}.png", rgb))
+            if progress:
+                progress(done, int(positions.size))
+    if report.saturated_pixels:
+        log.warning("%s: %d pixel samples saturated even in the shortest exposure (flagged in the results)",
+                    run_path, report.saturated_pixels)  # fmt: skip
+    return report
+
+
+def _sources_step(run_path: Path, results_file: Path, out: Path, report: ProcessReport, *, layout, estimator,
+                  fit_method, units) -> None:  # fmt: skip
+    from processing.results import Results
+    from processing.sources import SourcesError, load_layout
+
+    if layout is None:
+        raise ProcessingError("--layout: the sources step needs the layout of the sources (a TOML file)")
+    try:
+        sources = load_layout(layout)
+    except SourcesError as exc:
+        raise ProcessingError(str(exc)) from None
+    if estimator not in ESTIMATORS:
+        raise ProcessingError(f"--estimator: {estimator!r} is not one of {', '.join(ESTIMATORS)}")
+    with RunFile.open(run_path) as run, Results.open(results_file) as results:
+        samples, chosen, reason, footprint = estimate_sources(run, results, sources, estimator=estimator)
+        model = fit_light_model(run, sources, samples, method=fit_method, units=units, estimator=chosen,
+                                footprint=footprint)  # fmt: skip
+    report.light_model = model.save(out / f"{run_path.stem}.light.json")
+    report.estimator, report.estimator_reason, report.spatial_resolution_m = chosen, reason, 2.0 * footprint
+    report.samples = samples
+    report.model = model
+
+
+# --- sources and fits (measurement.md steps 2-5) ---------------------------------------------
+@dataclass
+class SourceSamples:
+    """Every source's samples over the run: one row per position."""
+
+    positions: np.ndarray
+    theta: np.ndarray  # (n_positions, n_sources)
+    phi: np.ndarray
+    intensity: np.ndarray  # channel mean
+    sigma: np.ndarray
+    intensity_rgb: np.ndarray  # (n_positions, n_sources, 3)
+    cell_sum: np.ndarray  # (n_positions, n_sources), the fast path on the same data
+
+
+def _light_pose(run: RunFile, geometry, index: int):
+    from processing.trace import light_pose_at
+
+    measured = run.measured_pose(index)
+    return light_pose_at(geometry, measured if measured is not None else run.header.tool_poses[index])
+
+
+def choose_estimator(geometry, builder, layout, light_pose, requested: str) -> tuple[str, str, float]:
+    """Templates, or cell sums where the blur's footprint on the light plane is smaller
+    than the sources' spacing; returns (estimator, reason, footprint radius in metres)."""
+    from processing.trace import trace_pixels
+
+    footprint = float("nan")
+    for source in layout:
+        template = builder.build(source, light_pose)
+        if template is None:
+            continue
+        col, row = template.image_centre
+        rays = trace_pixels(geometry, light_pose, np.array([col, col + 1.0, col]), np.array([row, row, row + 1.0]))
+        per_pixel = max(math.hypot(rays.u[1] - rays.u[0], rays.v[1] - rays.v[0]),
+                        math.hypot(rays.u[2] - rays.u[0], rays.v[2] - rays.v[0]))  # fmt: skip
+        footprint = per_pixel * template.blur_radius_px
+        break
+    spacing = min((math.dist(a.centre, b.centre) for a in layout for b in layout if a is not b), default=math.inf)
+    if requested != "auto":
+        return requested, f"{requested} as requested", footprint
+    if not math.isfinite(footprint):
+        return "templates", "no source in view to size the footprint", footprint
+    if 2.0 * footprint < spacing:
+        return "cell-sums", (f"the footprint ({2e3 * footprint:.2f} mm across) is smaller than the sources' spacing "
+                             f"({1e3 * spacing:.2f} mm): flux sums are exact enough"), footprint  # fmt: skip
+    return "templates", (f"the footprint ({2e3 * footprint:.2f} mm across) exceeds the sources' spacing "
+                         f"({1e3 * spacing:.2f} mm): unmixing with templates"), footprint  # fmt: skip
+
+
+def estimate_sources(run: RunFile, results, layout, *, estimator: str = "auto", progress=None):
+    """Per-source samples of radiant intensity at every complete position."""
+    from processing.sources import TemplateBuilder, cell_sums, unmix_position
+    from processing.trace import RigGeometry
+
+    rig = run.header.rig
+    geometry = RigGeometry.from_rig(rig)
+    builder = TemplateBuilder(geometry, rig.camera.sensitivity_e_per_s)
+    positions = np.flatnonzero(results.hdr_done & run.complete)
+    if positions.size == 0:
+        raise ProcessingError(f"{run.path}: no position has both frames and an HDR result")
+    middle = int(positions[len(positions) // 2])
+    chosen, reason, footprint = choose_estimator(geometry, builder, layout, _light_pose(run, geometry, middle), estimator)
+    log.info("%s: %s", run.path, reason)
+    gain = results.noise.gain_e_per_dn
+    spacing = min((math.dist(a.centre, b.centre) for a in layout for b in layout if a is not b), default=math.inf)
+    cell_radius = min(0.5 * spacing, 3.0 * footprint) if math.isfinite(footprint) else 0.5 * spacing
+    n, m = len(positions), len(layout)
+    out = SourceSamples(positions, *(np.full((n, m), np.nan) for _ in range(4)), np.full((n, m, 3), np.nan),
+                        np.full((n, m), np.nan))  # fmt: skip
+    for row, index in enumerate(positions):
+        index = int(index)
+        pose = _light_pose(run, geometry, index)
+        radiance = results.radiance(index).astype(np.float64) * gain
+        variance = results.variance(index).astype(np.float64) * gain * gain
+        usable = ~results.saturated(index) & (results.count(index) > 0) & np.isfinite(radiance)
+        estimate = unmix_position(index, radiance, variance, usable, results.cfa_pattern, builder, layout, pose)
+        out.theta[row], out.phi[row] = estimate.theta, estimate.phi
+        lit = usable & (radiance > 3.0 * np.sqrt(np.where(np.isfinite(variance), variance, np.inf)))
+        sums = cell_sums(radiance, lit, geometry, rig.camera.sensitivity_e_per_s, layout, pose, cell_radius,
+                         results.cfa_pattern).mean(axis=1)  # fmt: skip
+        out.cell_sum[row] = sums
+        if chosen == "cell-sums":
+            out.intensity[row] = sums
+            out.sigma[row] = np.nan
+        else:
+            out.intensity_rgb[row] = estimate.intensity
+            out.intensity[row] = np.nanmean(estimate.intensity, axis=1)
+            out.sigma[row] = np.sqrt(np.nansum(estimate.sigma**2, axis=1)) / 3.0
+        if progress:
+            progress(row + 1, n)
+    return out, chosen, reason, footprint
+
+
+def fit_light_model(run: RunFile, layout, samples: SourceSamples, *, method: str = "gaussian", units: str = "relative",
+                    estimator: str = "", footprint: float = float("nan")):  # fmt: skip
+    """Fit every source's samples and assemble the light model."""
+    from acquisition import __version__
+    from processing.fit import FitError, Samples, fit_intensity
+    from processing.lightmodel import LightModel, SourceModel, samples_table
+
+    sources = []
+    for k, source in enumerate(layout):
+        ok = np.isfinite(samples.intensity[:, k]) & np.isfinite(samples.theta[:, k])
+        sigma = samples.sigma[:, k][ok]
+        if not np.all(np.isfinite(sigma) & (sigma > 0)):
+            # Cell sums carry no uncertainty: weight by a constant fraction of the peak.
+            sigma = np.full(ok.sum(), 0.01 * max(np.nanmax(samples.intensity[:, k]), 1e-30))
+        data = Samples(samples.theta[:, k][ok], samples.phi[:, k][ok], samples.intensity[:, k][ok], sigma)
+        try:
+            fit = fit_intensity(data, method=method)
+        except FitError as exc:
+            raise ProcessingError(f"{run.path}: source {source.name}: {exc}") from None
+        table = samples_table(data, samples.positions[ok], samples.cell_sum[:, k][ok])
+        sources.append(SourceModel(source.name, source.centre, source.radius, fit, table))
+    provenance = {"run_id": run.header.run_id, "run_file": str(run.path), "rig": run.header.rig.name,
+                  "software_version": __version__, "method": estimator, "fit": method,
+                  "spatial_resolution_m": 2.0 * footprint}  # fmt: skip
+    return LightModel(sources, units=units, provenance=provenance)
