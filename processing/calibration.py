@@ -131,6 +131,9 @@ class Silhouette:
     image_shape : (H, W)
     curvature : (N,)
         The outline's curvature at the points (1/px), for the estimator's area element.
+    line_spread : (offsets, weights)
+        The camera's line spread across the edge, measured: the symmetric part of the
+        derivative of the median edge profile (out to the windows' far end).
     """
 
     points: np.ndarray
@@ -143,6 +146,7 @@ class Silhouette:
     rejected: int
     image_shape: tuple[int, int]
     curvature: np.ndarray | None = None  # (N,) of the outline at the points, 1/px
+    line_spread: tuple[np.ndarray, np.ndarray] | None = None  # (offsets px, weights summing to 1)
 
 
 @dataclass
@@ -321,8 +325,9 @@ def _flux_edges(profile_at, count: int, x1: float, x2: float, step: float, curva
 
     Returns the offsets (count,), inner and outer levels at the edge, the inner fit's RMS.
     """
+    x1 = step * math.floor(x1 / step + 1e-9)  # the balance runs between grid points
     t = _profile_grid(x1, x2, step)
-    inner, outer = (t <= -x1) & (t >= -x2), (t >= x1) & (t <= x2)
+    inner, outer = (t <= -x1 + 1e-9) & (t >= -x2), (t >= x1 - 1e-9) & (t <= x2)
     middle = np.abs(t) <= x1 + 1e-9
     tm = t[middle]
     trap = np.full(tm.size, step)
@@ -444,9 +449,18 @@ def detect_silhouette(image, *, method: str = "ellipse", profiles: int | None = 
         ellipse = Ellipse.from_cv(cv2.fitEllipse(edge[good].astype(np.float32)))
         rejected = count - int(good.sum())
     points, normals = edge[good], normals[good]
+    # The line spread function: the derivative of the median normalised edge profile,
+    # symmetrised (the camera's blur is symmetric; the Fresnel rim adds an odd part).
+    m = int(math.ceil(x2 / step))
+    t = np.arange(-m, m + 1) * step
+    long = _sample(img, points[:, None, :] + t[None, :, None] * normals[:, None, :])
+    esf = np.median((long - a_out[good, None]) / (a_in[good] - a_out[good])[:, None], axis=0)
+    lsf = -np.gradient(esf, step)
+    lsf = np.clip(0.5 * (lsf + lsf[::-1]), 0.0, None)
+    lsf = lsf / lsf.sum() if lsf.sum() > 0 else np.eye(1, t.size, m)[0]
     return Silhouette(points, normals, ellipse, "ellipse", (x1, x2), blur,
                       (float(np.median(a_out[good])), float(np.median(a_in[good]))), rejected, (h, w),
-                      curvature[good])  # fmt: skip
+                      curvature[good], (t, lsf))  # fmt: skip
 
 
 # --- the centre -----------------------------------------------------------------------------------
@@ -477,27 +491,40 @@ def _mean_reflectance(ball_index, cos_i: np.ndarray) -> np.ndarray:
 
 
 def fresnel_rim_shift_px(kappa, sin_beta: float, ball_index, window_px: tuple[float, float], curvature: float = 0.0,
-                         step: float = 0.02) -> np.ndarray:  # fmt: skip
+                         line_spread=None, step: float = 0.02) -> np.ndarray:  # fmt: skip
     """Outward shift (px) of the flux-balanced edge caused by the Fresnel rim.
 
     For a sharp silhouette, the profile a pixel ``δ`` inside the edge sees is the ball's
     reflectance ``F(α)`` at the incidence of the ray ``ψ = κ δ`` inside the tangent
     (``κ``: radians per pixel along the normal), where the ray's impact parameter
-    ``|C| sin(β - ψ) = R sin α``; the estimator of :func:`detect_silhouette` applied to
-    that profile gives the shift. The smooth parts of the interior (the room, ``cos⁴``)
-    are absorbed by the estimator's fitted lines and do not enter.
+    ``|C| sin(β - ψ) = R sin α``, blurred by the measured ``line_spread`` (offsets, weights);
+    the estimator of :func:`detect_silhouette` applied to that profile gives the shift.
+    (The blur matters: it carries the Fresnel curve's dip at 70-80° into the inner window.)
+    The smooth parts of the interior (the room, ``cos⁴``) are absorbed by the estimator's
+    fitted lines and do not enter.
     """
     kappa = np.atleast_1d(np.asarray(kappa, dtype=float))
     x1, x2 = window_px
     beta = math.asin(sin_beta)
+    if line_spread is not None:
+        lsf_t, lsf_w = (np.asarray(x, dtype=float) for x in line_spread)
+        half = int(math.ceil(np.max(np.abs(lsf_t)) / step))
+        kernel = np.interp(np.arange(-half, half + 1) * step, lsf_t, lsf_w, left=0.0, right=0.0)
+        kernel = kernel / kernel.sum()
+    else:
+        half, kernel = 0, np.ones(1)
+    reach = x1 + x2 + 2.0 + half * step
+    grid = np.arange(-int(math.ceil(reach / step)), int(math.ceil(reach / step)) + 1) * step
+
+    delta = np.maximum(-grid, 0.0)  # px inside the edge
+    psi = kappa[:, None] * delta[None, :]
+    sin_alpha = np.clip(np.sin(np.clip(beta - psi, -math.pi / 2, math.pi / 2)) / sin_beta, -1.0, 1.0)
+    cos_alpha = np.sqrt(1.0 - sin_alpha**2)
+    sharp = np.where(grid[None, :] < 0.0, _mean_reflectance(ball_index, cos_alpha.ravel()).reshape(cos_alpha.shape), 0.0)
+    blurred = np.stack([np.convolve(row, kernel, mode="same") for row in sharp])
 
     def profile_at(offsets):
-        delta = np.maximum(-offsets, 0.0)  # px inside the edge
-        psi = kappa[:, None] * delta
-        sin_alpha = np.clip(np.sin(np.clip(beta - psi, -math.pi / 2, math.pi / 2)) / sin_beta, -1.0, 1.0)
-        cos_alpha = np.sqrt(1.0 - sin_alpha**2)
-        f = _mean_reflectance(ball_index, cos_alpha.ravel()).reshape(offsets.shape)
-        return np.where(offsets < 0.0, f, 0.0)
+        return np.stack([np.interp(o, grid, b) for o, b in zip(offsets, blurred)])
 
     shift, *_ = _flux_edges(profile_at, kappa.size, x1, x2, step, curvature, iterations=6)
     return shift
@@ -572,7 +599,8 @@ def solve_ball_centre(
             kappa = np.arccos(np.clip(np.sum(_rays(k_inv, pts) * inward, axis=1), -1.0, 1.0))
             grid = np.linspace(kappa.min(), kappa.max(), 9) if np.ptp(kappa) > 0 else kappa[:1]
             bend = float(np.median(silhouette.curvature)) if silhouette.curvature is not None else 0.0
-            per_grid = fresnel_rim_shift_px(grid, sin_beta, ball_index, silhouette.window_px, bend)
+            per_grid = fresnel_rim_shift_px(grid, sin_beta, ball_index, silhouette.window_px, bend,
+                                            silhouette.line_spread)  # fmt: skip
             shift = np.interp(kappa, grid, per_grid) if grid.size > 1 else np.full(len(pts), per_grid[0])
             use = pts - shift[:, None] * normals
             d = _rays(k_inv, use)

@@ -13,13 +13,14 @@ Methods (``method=``, the keys of :data:`FIT_METHODS`):
     the reference paper used for its simulated sources.
 ``"polynomial"``
     ``I = Σ_k c_k θ^k`` (θ in radians), weighted linear least squares; the degree is chosen
-    by K-fold cross-validation over 1..8 unless ``degree=`` is given. The model the
-    reference paper used for a real LED flashlight.
+    by K-fold cross-validation over 1..8 (one-standard-error rule) unless ``degree=`` is
+    given. The model the reference paper used for a real LED flashlight.
 ``"cos-power"``
     ``I = a·cos^μ θ`` (a generalised Lambertian lobe).
 ``"gaussian-2d"``
-    an elliptical lobe ``I = a·exp(−θ²·(cos²(φ−φ0)/2σ₁² + sin²(φ−φ0)/2σ₂²))``, only when the
-    samples cover azimuth (a straight sweep past the ball does not).
+    an elliptical lobe ``I = a·exp(−θ²·(cos²(φ−φ0)/2σ₁² + sin²(φ−φ0)/2σ₂²))``, reported with
+    σ₁ ≥ σ₂ and φ0 in [0, π), only when the samples cover azimuth (a straight sweep past
+    the ball does not).
 
 The non-linear models are fitted by :func:`scipy.optimize.curve_fit` with
 ``absolute_sigma=True``, started from a weighted log-linear fit. Every failure (too few
@@ -473,13 +474,17 @@ def _wls(theta: np.ndarray, y: np.ndarray, sigma: np.ndarray, degree: int):
     return coef, cov
 
 
-def _fit_polynomial(samples: Samples, *, degree: int | None = None, max_degree: int = 8, folds: int = 5) -> IntensityFit:
+def _fit_polynomial(samples: Samples, *, degree: int | None = None, max_degree: int = 8, folds: int = 5,
+                    rule: str = "one-se") -> IntensityFit:  # fmt: skip
     """``I = Σ_k c_k θ^k``: weighted linear least squares, degree by K-fold cross-validation.
 
     The samples are sorted by θ and dealt round-robin into ``folds`` folds, so that each
-    fold spans the whole range (no fold is an extrapolation); the score of a degree is the
-    mean squared normalised prediction error ``((I − Î)/σ)²`` over the held-out samples,
-    and the lowest score wins (the lower degree on a tie).
+    fold spans the whole range (no fold is an extrapolation). The score of a degree is the
+    mean over the folds of the mean squared normalised prediction error ``((I − Î)/σ)²`` of
+    the held-out samples. ``rule="one-se"`` (default) takes the lowest degree whose score is
+    within one standard error of the best (Hastie, Tibshirani & Friedman, *The Elements of
+    Statistical Learning*, 2nd ed., §7.10): degrees beyond the true one win the raw minimum
+    by chance about half the time. ``rule="min"`` takes the lowest score.
     """
     method = "polynomial"
     who = _label(method, samples)
@@ -492,6 +497,8 @@ def _fit_polynomial(samples: Samples, *, degree: int | None = None, max_degree: 
         _checked(samples, method, degree + 1)
         info["degree_source"] = "given"
     else:
+        if rule not in ("one-se", "min"):
+            raise FitError(f"{who}: rule must be 'one-se' or 'min', got {rule!r}")
         _checked(samples, method, 2)
         k = int(min(max(folds, 2), n))
         order = np.argsort(samples.theta, kind="stable")
@@ -500,22 +507,25 @@ def _fit_polynomial(samples: Samples, *, degree: int | None = None, max_degree: 
         smallest_train = n - int(np.max(np.bincount(fold_of)))
         top = min(int(max_degree), smallest_train - 2, n - 2)
         scores: dict[str, float] = {}
+        errors: dict[str, float] = {}
         for d in range(1, top + 1):
-            err, ok = 0.0, True
+            per_fold = []
             for j in range(k):
                 train, test = fold_of != j, fold_of == j
                 fit = _wls(samples.theta[train], samples.intensity[train], samples.sigma[train], d)
                 if fit is None:
-                    ok = False
                     break
                 pred = np.polynomial.polynomial.polyval(samples.theta[test], fit[0])
-                err += float(np.sum(((samples.intensity[test] - pred) / samples.sigma[test]) ** 2))
-            if ok:
-                scores[str(d)] = err / n
+                per_fold.append(float(np.mean(((samples.intensity[test] - pred) / samples.sigma[test]) ** 2)))
+            if len(per_fold) == k:
+                scores[str(d)] = float(np.mean(per_fold))
+                errors[str(d)] = float(np.std(per_fold, ddof=1) / math.sqrt(k))
         if not scores:
             raise FitError(f"{who}: {n} samples at {len(np.unique(samples.theta))} distinct θ are too few to choose a degree by cross-validation")
-        degree = int(min(scores, key=lambda s: (scores[s], int(s))))
-        info.update(degree_source="cross-validation", folds=k, cv_scores=scores)
+        best = min(scores, key=lambda d: (scores[d], int(d)))
+        limit = scores[best] + (errors[best] if rule == "one-se" else 0.0)
+        degree = min(int(d) for d in scores if scores[d] <= limit)
+        info.update(degree_source="cross-validation", rule=rule, folds=k, cv_scores=scores, cv_errors=errors)
     fit = _wls(samples.theta, samples.intensity, samples.sigma, degree)
     if fit is None:
         raise FitError(f"{who}: degree {degree} is not determined by samples at {len(np.unique(samples.theta))} distinct θ")
@@ -542,7 +552,7 @@ def fit_intensity(samples: Samples, method: str = "gaussian", **options) -> Inte
     method : str
         A key of :data:`FIT_METHODS`: ``"gaussian"`` (``a·exp(−θ²/2σ²)``; option
         ``free_centre``), ``"polynomial"`` (``Σ c_k θ^k``; options ``degree``, ``max_degree``,
-        ``folds``), ``"cos-power"`` (``a·cos^μ θ``) or ``"gaussian-2d"`` (elliptical lobe;
+        ``folds``, ``rule``), ``"cos-power"`` (``a·cos^μ θ``) or ``"gaussian-2d"`` (elliptical lobe;
         option ``min_phi_span``).
     **options
         Passed to the estimator.

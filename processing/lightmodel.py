@@ -18,9 +18,11 @@ import json
 import math
 import os
 from dataclasses import dataclass, field
+from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
+from scipy.special import roots_legendre
 
 from processing.fit import FitError, IntensityFit, Samples
 
@@ -129,9 +131,7 @@ class SourceModel:
 
     def flux(self, n_theta: int = 400, n_phi: int = 180) -> float:
         """``∫ I_s dΩ`` over the hemisphere: Gauss–Legendre in θ, the periodic trapezoid rule in φ."""
-        x, w = np.polynomial.legendre.leggauss(n_theta)
-        theta = 0.25 * math.pi * (x + 1.0)
-        w_theta = 0.25 * math.pi * w * np.sin(theta)
+        theta, w_theta = _hemisphere_nodes(n_theta)
         if self.fit.method == "gaussian-2d":
             phi = np.arange(n_phi) * (2.0 * math.pi / n_phi)
             values = self.intensity(theta[:, None], phi[None, :])
@@ -147,6 +147,14 @@ class SourceModel:
             "fit": self.fit.to_dict(),
             "samples": _plain(self.samples),
         }
+
+
+@lru_cache(maxsize=8)
+def _hemisphere_nodes(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Gauss–Legendre nodes θ on [0, π/2] and their weights times sin θ."""
+    x, w = roots_legendre(n)
+    theta = 0.25 * math.pi * (x + 1.0)
+    return theta, 0.25 * math.pi * w * np.sin(theta)
 
 
 def _plain(obj):
