@@ -421,7 +421,7 @@ def detect_silhouette(image, *, method: str = "ellipse", profiles: int | None = 
     rejected = 0
     for _ in range(2):
         pts, normals = ellipse.points(count)
-        far = pts[:, None, :] + (x1 + x2) * np.array([-1.0, 1.0])[None, :, None] * normals[:, None, :]
+        far = pts[:, None, :] + (x2 + 0.5 * x1) * np.array([-1.0, 1.0])[None, :, None] * normals[:, None, :]
         inside_image = np.all((far[..., 0] >= 1) & (far[..., 0] <= w - 2) & (far[..., 1] >= 1) & (far[..., 1] <= h - 2), axis=1)
         pts, normals = pts[inside_image], normals[inside_image]
 
@@ -437,7 +437,7 @@ def detect_silhouette(image, *, method: str = "ellipse", profiles: int | None = 
         good = (
             (contrast > 0.7 * typical) & (contrast < 1.3 * typical)
             & (rms < 3.0 * noise + 0.01 * abs(typical))
-            & (np.abs(offset) < x1 - 1e-6)
+            & (np.abs(offset) < 0.5 * x1)
         )  # fmt: skip
         edge = pts + offset[:, None] * normals
         if good.sum() < max(20, 0.25 * count):
@@ -491,7 +491,7 @@ def _mean_reflectance(ball_index, cos_i: np.ndarray) -> np.ndarray:
 
 
 def fresnel_rim_shift_px(kappa, sin_beta: float, ball_index, window_px: tuple[float, float], curvature: float = 0.0,
-                         line_spread=None, step: float = 0.02) -> np.ndarray:  # fmt: skip
+                         line_spread=None, step: float = 0.05) -> np.ndarray:  # fmt: skip
     """Outward shift (px) of the flux-balanced edge caused by the Fresnel rim.
 
     For a sharp silhouette, the profile a pixel ``δ`` inside the edge sees is the ball's
@@ -516,11 +516,14 @@ def fresnel_rim_shift_px(kappa, sin_beta: float, ball_index, window_px: tuple[fl
     reach = x1 + x2 + 2.0 + half * step
     grid = np.arange(-int(math.ceil(reach / step)), int(math.ceil(reach / step)) + 1) * step
 
-    delta = np.maximum(-grid, 0.0)  # px inside the edge
-    psi = kappa[:, None] * delta[None, :]
+    # Cell averages over 16 sub-samples: F rises as sqrt(distance) into the edge.
+    sub = grid[:, None] + (np.arange(16) + 0.5 - 8.0)[None, :] * (step / 16.0)
+    delta = np.maximum(-sub, 0.0)  # px inside the edge
+    psi = kappa[:, None, None] * delta[None, :, :]
     sin_alpha = np.clip(np.sin(np.clip(beta - psi, -math.pi / 2, math.pi / 2)) / sin_beta, -1.0, 1.0)
     cos_alpha = np.sqrt(1.0 - sin_alpha**2)
-    sharp = np.where(grid[None, :] < 0.0, _mean_reflectance(ball_index, cos_alpha.ravel()).reshape(cos_alpha.shape), 0.0)
+    reflectance = _mean_reflectance(ball_index, cos_alpha.ravel()).reshape(cos_alpha.shape)
+    sharp = np.where(sub[None, :, :] < 0.0, reflectance, 0.0).mean(axis=2)
     blurred = np.stack([np.convolve(row, kernel, mode="same") for row in sharp])
 
     def profile_at(offsets):
@@ -598,8 +601,9 @@ def solve_ball_centre(
             inward = _rays(k_inv, pts - normals)
             kappa = np.arccos(np.clip(np.sum(_rays(k_inv, pts) * inward, axis=1), -1.0, 1.0))
             grid = np.linspace(kappa.min(), kappa.max(), 9) if np.ptp(kappa) > 0 else kappa[:1]
-            bend = float(np.median(silhouette.curvature)) if silhouette.curvature is not None else 0.0
-            per_grid = fresnel_rim_shift_px(grid, sin_beta, ball_index, silhouette.window_px, bend,
+            # A straight edge blurred in 1-D, so no curvature weighting: the detection's
+            # weighting undoes the 2-D blur of the curved outline, which the model lacks.
+            per_grid = fresnel_rim_shift_px(grid, sin_beta, ball_index, silhouette.window_px, 0.0,
                                             silhouette.line_spread)  # fmt: skip
             shift = np.interp(kappa, grid, per_grid) if grid.size > 1 else np.full(len(pts), per_grid[0])
             use = pts - shift[:, None] * normals

@@ -213,11 +213,19 @@ class TemplateBuilder:
                         fresnel, solid_angle, (float(centre_px[0]), float(centre_px[1])), blur)  # fmt: skip
 
     def _sensor_points(self, paths: np.ndarray, rim_cam: np.ndarray) -> np.ndarray:
-        """Where the rays from reflection points through rim points land, in pixels."""
+        """Where the rays from reflection points through rim points land, in pixels.
+
+        A thin lens of focal length F images an object point P (distance u) at
+        P' = -P v/u, v = 1/(1/F - 1/u); the ray through the rim point a heads for P' and
+        meets the sensor at a + (P' - a) f / v. With 1/F = 0 this is the pinhole's
+        straight line.
+        """
         g = self.geometry
         p_cam = paths @ g.R.T + g.t
-        scale = g.sensor_distance / p_cam[:, 2]
-        sensor = rim_cam + (rim_cam - p_cam) * scale[:, None]  # on the plane z = -f
+        u = p_cam[:, 2]
+        v = 1.0 / (g.inverse_focal - 1.0 / u)
+        image = np.stack([-p_cam[:, 0] * v / u, -p_cam[:, 1] * v / u, -v], axis=-1)
+        sensor = rim_cam + (image - rim_cam) * (g.sensor_distance / v)[:, None]  # on the plane z = -f
         return np.stack([g.K[0, 2] - sensor[:, 0] / g.pitch, g.K[1, 2] - sensor[:, 1] / g.pitch], -1)
 
     def _render(self, outline: np.ndarray, disc: np.ndarray, centre: np.ndarray):

@@ -40,6 +40,7 @@ class RigGeometry:
     wavelengths: np.ndarray
     width: int
     height: int
+    inverse_focal: float = 0.0  # 1/F of a thin lens; 0 for a pinhole
 
     @classmethod
     def from_rig(cls, rig: Rig, ball_centre=None) -> RigGeometry:
@@ -55,6 +56,7 @@ class RigGeometry:
             light_to_tool=rig.light.light_to_tool.to_pose(), housing_radius=rig.light.housing_radius_m,
             housing_depth=rig.light.housing_depth_m, wavelengths=np.asarray(cam.channel_wavelengths_m, float),
             width=cam.width, height=cam.height,
+            inverse_focal=(1.0 / cam.sensor_distance_m + 1.0 / cam.thin_lens.focus_distance_m) if cam.thin_lens else 0.0,
         )  # fmt: skip
 
     def pixel_directions(self, cols, rows) -> np.ndarray:
