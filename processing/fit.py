@@ -158,6 +158,21 @@ def _dec(x) -> float:
     return float(x)
 
 
+def _enc_tree(obj):
+    """``info`` for JSON: numpy values to plain Python, non-finite floats to strings."""
+    if isinstance(obj, dict):
+        return {str(k): _enc_tree(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple, np.ndarray)):
+        return [_enc_tree(v) for v in obj]
+    if isinstance(obj, (bool, np.bool_)):
+        return bool(obj)
+    if isinstance(obj, (int, np.integer)):
+        return int(obj)
+    if isinstance(obj, (float, np.floating)):
+        return _enc(obj)
+    return obj
+
+
 @dataclass(eq=False)
 class IntensityFit:
     """A continuous fit of one source's radiant intensity.
@@ -240,7 +255,7 @@ class IntensityFit:
             "n_samples": int(self.n_samples),
             "theta_range": [_enc(v) for v in self.theta_range],
             "phi_range": [_enc(v) for v in self.phi_range],
-            "info": self.info,
+            "info": _enc_tree(self.info),
         }
 
     @classmethod

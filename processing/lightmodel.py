@@ -362,8 +362,10 @@ class LightModel:
         """Write the model as JSON (``docs/light-model.md``), atomically; returns the path."""
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
-        text = _dumps(self.to_dict()) + "\n"
-        json.loads(text)  # what is written must read back
+        try:
+            text = _dumps(self.to_dict()) + "\n"
+        except (TypeError, ValueError) as e:  # a provenance or table value JSON cannot hold
+            raise LightModelError(f"{path}: cannot write ({e})") from None
         tmp = path.with_name(path.name + ".tmp")
         tmp.write_text(text, encoding="utf-8")
         os.replace(tmp, path)
