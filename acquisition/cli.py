@@ -92,11 +92,15 @@ def serve(
 def process(
     runs: Annotated[list[Path], typer.Argument(help="Run files (HDF5) to process.")],
     out: Annotated[Path | None, typer.Option("--out", help="Folder for the results (default: beside each run).")] = None,
-    steps: Annotated[str, typer.Option(help="Comma-separated steps: hdr.")] = "hdr",
+    steps: Annotated[str | None, typer.Option(help="Comma-separated steps: hdr, sources (default: both with --layout, else hdr).")] = None,
     method: Annotated[str, typer.Option(help="HDR estimator: optimal or poisson.")] = "optimal",
     noise: Annotated[str, typer.Option(help="Noise model: auto (estimate, else the rig's), estimated, or rig.")] = "auto",
+    layout: Annotated[Path | None, typer.Option(help="The sources on the light plane (TOML, docs/light-model.md).")] = None,
+    estimator: Annotated[str, typer.Option(help="auto (from the footprint), templates, or cell-sums.")] = "auto",
+    fit: Annotated[str, typer.Option(help="Fit: gaussian, polynomial, cos-power, gaussian-2d.")] = "gaussian",
 ) -> None:
-    """Turn run files into results: HDR radiance, its variance, OpenEXR and PNG per position."""
+    """Turn run files into results: HDR radiance per position (OpenEXR, PNG); with a source
+    layout also the light model, IES, LDT and TM-25 files."""
     from rich.progress import Progress
 
     from processing.hdr import HDRError
@@ -104,20 +108,25 @@ def process(
 
     if noise not in ("auto", "estimated", "rig"):
         raise _fail(f"--noise: {noise!r} is not one of auto, estimated, rig")
-    step_list = tuple(s for s in steps.split(",") if s)
+    step_list = tuple(s for s in (steps or ("hdr,sources" if layout else "hdr")).split(",") if s)
     with Progress(transient=True) as bar:
         for run in runs:
             task = bar.add_task(f"{run.name}", total=None)
             try:
-                report = process_run(run, out, steps=step_list, method=method, noise=noise,
+                report = process_run(run, out, steps=step_list, method=method, noise=noise, layout=layout,
+                                     estimator=estimator, fit_method=fit,
                                      progress=lambda done, total, task=task: bar.update(task, completed=done, total=total))  # fmt: skip
-            except (ProcessingError, HDRError) as exc:
+            except (ProcessingError, HDRError, ValueError) as exc:
                 raise _fail(str(exc)) from None
             bar.remove_task(task)
             noise_model = report.noise
             typer.echo(f"{run}: {report.positions} positions -> {report.results_file} "
                        f"(noise {noise_model.source}: gain {noise_model.gain_e_per_dn:.3f} e-/DN, "
                        f"read noise {noise_model.read_noise_dn:.3f} DN; EXR and PNG in {report.results_file.parent / (run.stem + '.hdr')})")  # fmt: skip
+            if report.light_model:
+                typer.echo(f"  sources: {report.estimator_reason}")
+                typer.echo(f"  light model {report.light_model}; " + ", ".join(
+                    f"{kind.upper()} {paths[0]}" for kind, paths in report.outputs.items() if kind in ("ies", "ldt", "tm25", "report")))  # fmt: skip
 
 
 # --- simulate -----------------------------------------------------------------------------

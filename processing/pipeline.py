@@ -161,6 +161,12 @@ def _sources_step(run_path: Path, results_file: Path, out: Path, report: Process
         model = fit_light_model(run, sources, samples, method=fit_method, units=units, estimator=chosen,
                                 footprint=footprint)  # fmt: skip
     report.light_model = model.save(out / f"{run_path.stem}.light.json")
+    from processing.exports import write_ies, write_ldt, write_tm25
+
+    stem = out / run_path.stem
+    report.outputs["ies"] = [write_ies(model, stem.with_suffix(".ies"), luminaire=f"mirrorgonio run {run_path.stem}")]
+    report.outputs["ldt"] = [write_ldt(model, stem.with_suffix(".ldt"), luminaire=f"mirrorgonio run {run_path.stem}")]
+    report.outputs["tm25"] = [write_tm25(model, stem.with_suffix(".tm25ray"), n_rays=100_000, seed=0)]
     report.estimator, report.estimator_reason, report.spatial_resolution_m = chosen, reason, 2.0 * footprint
     report.samples = samples
     report.model = model

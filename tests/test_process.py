@@ -97,3 +97,29 @@ def test_a_run_without_any_complete_position_is_refused(simulated_run, tmp_path)
     result = runner.invoke(app, ["process", str(empty), "--out", str(tmp_path)])
     assert result.exit_code == 2
     assert result.output.strip() == f"error: {empty}: the run has no complete position (no frames to process)"
+
+
+def test_process_with_a_layout_writes_the_light_model_and_the_light_files(simulated_run, tmp_path):
+    from processing.exports import read_tm25
+    from processing.lightmodel import LightModel
+    from sim_devices.lights import LIGHTS_DIR
+
+    path, _, _ = simulated_run
+    result = runner.invoke(app, ["process", str(path), "--out", str(tmp_path), "--layout", str(LIGHTS_DIR / "five-gaussians.toml")])
+    assert result.exit_code == 0, result.output
+    assert "unmixing with templates" in result.output
+    model = LightModel.load(tmp_path / "run-test.light.json")
+    assert [s.name for s in model.sources] == ["centre", "+u", "-u", "+v", "-v"]
+    assert model.provenance["method"] == "templates"
+    assert len(model.sources[0].samples["theta"]) == 3
+    assert (tmp_path / "run-test.ies").read_text().startswith("IES:LM-63-2019")
+    assert (tmp_path / "run-test.ldt").stat().st_size > 500
+    header, rays = read_tm25(tmp_path / "run-test.tm25ray")
+    assert len(rays) == 100_000
+
+
+def test_the_sources_step_needs_a_layout(simulated_run, tmp_path):
+    path, _, _ = simulated_run
+    result = runner.invoke(app, ["process", str(path), "--out", str(tmp_path), "--steps", "hdr,sources"])
+    assert result.exit_code == 2
+    assert result.output.strip() == "error: --layout: the sources step needs the layout of the sources (a TOML file)"
