@@ -413,8 +413,8 @@ def detect_silhouette(image, *, method: str = "ellipse", profiles: int | None = 
     t90 = inside_t[inside_t < 0].max() if np.any(inside_t < 0) else 0.0
     t10 = outside_t[outside_t > t90].min() if np.any(outside_t > t90) else 0.0
     blur = float(max(t10 - t90, 1.0))
-    x1 = 1.25 * blur + 2.0
-    x2 = x1 + max(4.0, blur)
+    x1 = step * math.floor((1.25 * blur + 2.0) / step)  # windows on the sampling grid
+    x2 = x1 + step * math.ceil(max(4.0, blur) / step)
     if x2 > 0.6 * small:
         raise CalibrationError(f"the ball's image is too small for its blur (radius {small:.0f} px, edge {blur:.0f} px wide)")
 
@@ -683,7 +683,7 @@ def _wrapped(angle: np.ndarray) -> np.ndarray:
 
 
 def angle_sensitivity(rig: Rig, light_pose: Pose, shift_m: float = 1e-3, *, plane_radius_m: float | None = None,
-                      max_pixels: int = 40_000) -> dict:  # fmt: skip
+                      max_pixels: int = 250_000) -> dict:  # fmt: skip
     """How far the recovered outgoing angles move when the ball is ``shift_m`` off.
 
     Chief rays of a grid of pixels on the ball are traced (``processing.trace``) with the

@@ -221,6 +221,22 @@ def choose_estimator(geometry, builder, layout, light_pose, requested: str) -> t
                          f"({1e3 * spacing:.2f} mm): unmixing with templates"), footprint  # fmt: skip
 
 
+def _check_view(run: RunFile, results, geometry, builder, layout, positions) -> None:
+    """Refuse, in one line, a run the estimate cannot work with."""
+    from processing.trace import ball_pixel_grid
+
+    cols, rows = ball_pixel_grid(geometry)
+    if cols.size == 0:
+        raise ProcessingError(f"{run.path}: the ball is not in the camera's view (check camera.pose and ball.centre_m)")
+    if all(results.saturated(int(i)).all() for i in positions):
+        raise ProcessingError(f"{run.path}: every pixel is saturated even in the shortest exposure: take shorter exposures")
+    seen = any(builder.build(source, _light_pose(run, geometry, int(i))) is not None
+               for i in positions[:: max(1, len(positions) // 8)] for source in layout)  # fmt: skip
+    if not seen:
+        raise ProcessingError(f"{run.path}: the light never reflects into the camera at any position "
+                              "(is it facing the ball?)")  # fmt: skip
+
+
 def estimate_sources(run: RunFile, results, layout, *, estimator: str = "auto", progress=None):
     """Per-source samples of radiant intensity at every complete position."""
     from processing.sources import TemplateBuilder, cell_sums, unmix_position
@@ -232,6 +248,7 @@ def estimate_sources(run: RunFile, results, layout, *, estimator: str = "auto", 
     positions = np.flatnonzero(results.hdr_done & run.complete)
     if positions.size == 0:
         raise ProcessingError(f"{run.path}: no position has both frames and an HDR result")
+    _check_view(run, results, geometry, builder, layout, positions)
     middle = int(positions[len(positions) // 2])
     chosen, reason, footprint = choose_estimator(geometry, builder, layout, _light_pose(run, geometry, middle), estimator)
     log.info("%s: %s", run.path, reason)

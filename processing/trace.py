@@ -182,8 +182,10 @@ def trace_pixels(geometry: RigGeometry, light_pose: Pose, cols, rows) -> ChiefRa
 
 
 def ball_pixel_grid(geometry: RigGeometry) -> tuple[np.ndarray, np.ndarray]:
-    """Pixel coordinates of a box that holds the ball's image."""
+    """Pixel coordinates of a box that holds the ball's image (empty if it is out of view)."""
     rel = geometry.R @ (geometry.ball_centre - geometry.camera_centre)
+    if rel[2] <= geometry.ball_radius:
+        return np.zeros(0), np.zeros(0)
     dist = np.linalg.norm(rel)
     half = np.arcsin(min(1.0, geometry.ball_radius / dist))
     f_px = geometry.K[0, 0]
@@ -192,6 +194,8 @@ def ball_pixel_grid(geometry: RigGeometry) -> tuple[np.ndarray, np.ndarray]:
     radius = max(reach / 2.0, f_px * np.tan(half)) * 1.05 + 3
     c0, c1 = int(max(0, np.floor(centre[0] - radius))), int(min(geometry.width, np.ceil(centre[0] + radius)))
     r0, r1 = int(max(0, np.floor(centre[1] - radius))), int(min(geometry.height, np.ceil(centre[1] + radius)))
+    if c1 <= c0 or r1 <= r0:
+        return np.zeros(0), np.zeros(0)  # the ball's image misses the sensor
     rows, cols = np.mgrid[r0:r1, c0:c1]
     return cols.ravel().astype(float), rows.ravel().astype(float)
 

@@ -123,3 +123,54 @@ def test_the_sources_step_needs_a_layout(simulated_run, tmp_path):
     result = runner.invoke(app, ["process", str(path), "--out", str(tmp_path), "--steps", "hdr,sources"])
     assert result.exit_code == 2
     assert result.output.strip() == "error: --layout: the sources step needs the layout of the sources (a TOML file)"
+
+
+def _one_position_run(tmp_path, rig, frames, name):
+    header = RunHeader(run_id=name, rig=rig, tool_poses=rig.tool_poses(), light_poses=rig.light_poses(), max_exposures=len(frames),
+                       frame_shape=(rig.camera.height, rig.camera.width), bracket={"mode": "fixed", "exposures_s": [f.exposure_s for f in frames]},
+                       metadata={}, devices={}, software_version="test", created_utc="2026-11-21T00:00:00+00:00")  # fmt: skip
+    path = tmp_path / f"{name}.h5"
+    with RunFileWriter.create(path, header) as writer:
+        writer.write_position(33, rig.tool_poses()[33], PositionTimes(0.0, 0.0, 0.0), frames)
+    return path
+
+
+def _frames_at(rig, tmp_path, exposures, pose_index=33):
+    here = {"pose": rig.tool_poses()[pose_index]}
+    camera = SimulatedCamera(rig, SimWorld(lambda: here["pose"]), tmp_path / "spool", seed=4)
+    return [camera.capture(t) for t in exposures]
+
+
+@pytest.mark.parametrize(
+    ("case", "message"),
+    [
+        ("saturated", "every pixel is saturated even in the shortest exposure: take shorter exposures"),
+        ("no-ball", "the ball is not in the camera's view"),
+        ("facing-away", "the light never reflects into the camera at any position"),
+    ],
+)
+def test_runs_the_estimate_cannot_use_get_one_line_errors(tmp_path, case, message):
+    from acquisition.rig import rig_from_dict
+    from sim_devices.lights import LIGHTS_DIR
+    import tomllib
+
+    data = tomllib.loads(REDUCED_RIG.read_text())
+    data.setdefault("simulation", {})["truth"] = "lambertian-disc"
+    data.setdefault("light", {})["housing_radius_m"] = 0.0
+    data = {**tomllib.loads((REDUCED_RIG.parent.parent.parent / "rigs" / "default.toml").read_text()), **data}
+    if case == "saturated":
+        data["camera"]["sensitivity_e_per_s"] = 1e9  # a uniform glare far above full well
+    rig = rig_from_dict(data)
+    frames = _frames_at(rig, tmp_path, [0.01, 0.02])
+    if case == "no-ball":
+        data["camera"]["pose"] = {"position_m": [0.0, 0.0, 0.2], "look_at_m": [0.15, 0.0, 0.0]}  # the ball out of frame
+        rig = rig_from_dict(data)
+    if case == "facing-away":
+        data["schedule"]["orientation"] = {"rotation_deg": [0.0, 0.0, 0.0]}  # emits away from the ball
+        rig = rig_from_dict(data)
+    path = _one_position_run(tmp_path, rig, frames, case)
+    result = runner.invoke(app, ["process", str(path), "--out", str(tmp_path / "out"), "--layout",
+                                 str(LIGHTS_DIR / "five-gaussians.toml"), "--noise", "rig"])  # fmt: skip
+    assert result.exit_code == 2, result.output
+    assert result.output.strip().startswith(f"error: {path}: {message}"), result.output
+    assert len(result.output.strip().splitlines()) == 1

@@ -1,0 +1,933 @@
+"""The run's report: one self-contained HTML page that shows the measured light.
+
+:func:`write_report` turns a :class:`~processing.lightmodel.LightModel` (and, when they are
+at hand, the run file, the per-position samples and the pipeline's
+:class:`~processing.pipeline.ProcessReport`) into a single HTML file whose figures are
+embedded as base64 PNG: no external asset, so the file can be mailed or archived alone.
+A person should understand the light from the figures without reading the numbers:
+
+1. the header: run, rig, date, units, the estimator and why it was chosen, the spatial
+   resolution the camera allows on the light plane, the noise model;
+2. per source, a half-polar plot of its radiant intensity ``I_s(θ)`` (the reference
+   paper's Figs. 6 and 8): samples, the fit (solid where the samples cover θ, dashed where
+   it extrapolates), the chief-ray cell sums for comparison and, for a simulated run, the
+   truth;
+3. the sources on the light plane with the footprint of one pixel drawn to scale;
+4. the θ each source was sampled at, position by position;
+5. how the ball widens the angles (the paper's Fig. 5): outgoing θ against the deflection
+   the ball gives each chief ray, at the middle position;
+6. the residuals of every fit, its reduced χ² and its parameters with uncertainties;
+7. the calibration check (measured against described ball centre, and what 1 mm of error
+   in the ball's position costs in angle);
+8. a strip of the HDR previews over the sweep.
+
+The polar plots show θ *signed by side*: the sweep carries the light past the ball, so its
+samples leave on both sides of the light's axis; a sample whose azimuth lies within 90° of
+the sweep's main azimuth ``φ_s`` is drawn at +θ, the others at −θ.
+
+The figures are drawn with matplotlib's Agg canvas directly (no pyplot, no global
+backend). Each section that cannot be drawn (missing inputs) says why instead; a section
+that fails is reported in the page and logged, and never stops the processing.
+
+The truth, for simulated runs, is a callable ``truth(source, theta) -> intensity`` passed by
+the caller (the processing never imports the simulator). It is called with the source's
+index in ``model.sources`` first and, if that raises ``LookupError`` or ``TypeError``, with
+its name; ``None`` means no truth for that source.
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import io
+import logging
+import math
+import re
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from pathlib import Path
+
+import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+from matplotlib.patches import Circle, Polygon
+
+from processing.lightmodel import LightModel, SourceModel
+
+__all__ = [
+    "angles_figure",
+    "coverage_figure",
+    "layout_figure",
+    "polar_figure",
+    "residuals_figure",
+    "write_report",
+]
+
+log = logging.getLogger("mirrorgonio.processing")
+_DPI = 100
+_PREVIEWS = 6
+_PREVIEW_WIDTH = 320
+_COLOURS = ("#1f77b4", "#d62728", "#2ca02c", "#9467bd", "#ff7f0e", "#8c564b", "#e377c2", "#17becf", "#bcbd22")
+NO_CALIBRATION = "no calibration image in this run"
+
+
+# --- the data the figures share ------------------------------------------------------------------
+@dataclass
+class _SourceData:
+    """One source's samples as plain arrays (NaN where a column is missing)."""
+
+    theta: np.ndarray
+    phi: np.ndarray
+    intensity: np.ndarray
+    sigma: np.ndarray
+    position: np.ndarray
+    cell_sum: np.ndarray | None
+
+
+@dataclass
+class _Geometry:
+    """The middle position's chief-ray trace, when the run is at hand."""
+
+    index: int
+    pose: object
+    geometry: object
+    rays: object | None = None
+    pixel_polygon: np.ndarray | None = None  # (4, 2) metres on the light plane
+    pixel_at: tuple[float, float] | None = None
+
+
+@dataclass
+class _Context:
+    model: LightModel
+    data: list[_SourceData]
+    azimuth: float  # the sweep's main azimuth φ_s, radians in (−π/2, π/2]
+    truth: Callable | None
+    resolution_m: float
+    colours: list[str] = field(default_factory=list)
+    geometry: _Geometry | None = None
+    geometry_note: str = ""
+
+
+def _column(table: dict, key: str) -> np.ndarray | None:
+    if key not in table or table[key] is None:
+        return None
+    return np.asarray([np.nan if v is None else v for v in table[key]], dtype=float)
+
+
+def _source_data(model: LightModel, samples=None) -> list[_SourceData]:
+    """Every source's samples: the model's tables (what was fitted), else the pipeline's
+    :class:`SourceSamples` columns."""
+    out = []
+    for k, source in enumerate(model.sources):
+        table = source.samples or {}
+        theta = _column(table, "theta")
+        if theta is None and samples is not None:
+            ok = np.isfinite(samples.intensity[:, k]) & np.isfinite(samples.theta[:, k])
+            cell = np.asarray(samples.cell_sum[:, k], dtype=float)[ok]
+            out.append(_SourceData(np.asarray(samples.theta[:, k])[ok], np.asarray(samples.phi[:, k])[ok],
+                                   np.asarray(samples.intensity[:, k])[ok], np.asarray(samples.sigma[:, k])[ok],
+                                   np.asarray(samples.positions)[ok].astype(float), cell))  # fmt: skip
+            continue
+        if theta is None:
+            empty = np.zeros(0)
+            out.append(_SourceData(empty, empty, empty, empty, empty, None))
+            continue
+        n = len(theta)
+
+        def col(key, default=np.nan):
+            value = _column(table, key)
+            return value if value is not None and len(value) == n else np.full(n, default)
+
+        position = _column(table, "position")
+        out.append(_SourceData(theta, col("phi", 0.0), col("intensity"), col("sigma"),
+                               position if position is not None and len(position) == n else np.arange(n, dtype=float),
+                               _column(table, "cell_sum_intensity")))  # fmt: skip
+    return out
+
+
+def _sweep_azimuth(data: list[_SourceData]) -> float:
+    """The samples' main azimuth, modulo π (weighted by sin θ: the axis carries no azimuth)."""
+    s = c = 0.0
+    for d in data:
+        ok = np.isfinite(d.theta) & np.isfinite(d.phi)
+        w = np.sin(d.theta[ok])
+        s += float(np.sum(w * np.sin(2.0 * d.phi[ok])))
+        c += float(np.sum(w * np.cos(2.0 * d.phi[ok])))
+    if s == 0.0 and c == 0.0:
+        return 0.0
+    phi = 0.5 * math.atan2(s, c)  # in (−π/2, π/2]
+    return phi
+
+
+def _signed(theta, phi, azimuth: float) -> np.ndarray:
+    """θ with the sign of its side: + within 90° of the sweep's azimuth, − opposite."""
+    theta = np.asarray(theta, dtype=float)
+    return np.where(np.cos(np.asarray(phi, dtype=float) - azimuth) >= 0.0, theta, -theta)
+
+
+def _truth_values(truth, k: int, name: str, theta: np.ndarray) -> np.ndarray | None:
+    if truth is None:
+        return None
+    for key in (k, name):
+        try:
+            value = truth(key, theta)
+        except (LookupError, TypeError):
+            continue
+        if value is None:
+            return None
+        return np.broadcast_to(np.asarray(value, dtype=float), np.shape(theta)).copy()
+    return None
+
+
+def _truth_error(source: SourceModel, truth, k: int) -> float | None:
+    """RMS(I_fit − I_true) / max(I_true) over the θ the samples cover (``measurement.md``)."""
+    lo, hi = source.fit.theta_range
+    if not (math.isfinite(lo) and math.isfinite(hi)):
+        return None
+    grid = np.linspace(lo, hi, 200)
+    true = _truth_values(truth, k, source.name, grid)
+    if true is None or not np.all(np.isfinite(true)) or np.max(true) <= 0:
+        return None
+    return math.sqrt(float(np.mean((source.fit(grid) - true) ** 2))) / float(np.max(true))
+
+
+def _context(model: LightModel, *, samples=None, truth=None, resolution_m=float("nan")) -> _Context:
+    data = _source_data(model, samples)
+    colours = [_COLOURS[k % len(_COLOURS)] for k in range(len(model.sources))]
+    return _Context(model, data, _sweep_azimuth(data), truth, resolution_m, colours)
+
+
+# --- figures ----------------------------------------------------------------------------------------
+def _new_figure(width: float, height: float) -> Figure:
+    fig = Figure(figsize=(width, height), dpi=_DPI, layout="constrained")
+    FigureCanvasAgg(fig)
+    return fig
+
+
+def _png(fig: Figure) -> bytes:
+    buffer = io.BytesIO()
+    fig.savefig(buffer, format="png", dpi=_DPI)
+    return buffer.getvalue()
+
+
+def _runs(mask: np.ndarray) -> np.ndarray:
+    """``mask`` grown by one sample each way, so that a solid and a dashed curve meet."""
+    grown = mask.copy()
+    grown[1:] |= mask[:-1]
+    grown[:-1] |= mask[1:]
+    return grown
+
+
+def _grid(rows_cols: int) -> tuple[int, int]:
+    cols = min(rows_cols, 3)
+    return math.ceil(rows_cols / cols), cols
+
+
+def _fit_curve(source: SourceModel, signed_theta: np.ndarray, azimuth: float):
+    theta = np.abs(signed_theta)
+    phi = np.where(signed_theta >= 0.0, azimuth, azimuth + math.pi)
+    values, extrapolated = source.fit.evaluate(theta, phi)
+    values = np.where(theta <= 0.5 * math.pi, np.maximum(values, 0.0), 0.0)
+    return values, extrapolated
+
+
+def _polar_panel(ax, ctx: _Context, k: int) -> list:
+    """One source's half-polar plot; returns the legend handles it drew."""
+    source, d, colour = ctx.model.sources[k], ctx.data[k], ctx.colours[k]
+    grid = np.radians(np.linspace(-90.0, 90.0, 721))
+    fit, extrapolated = _fit_curve(source, grid, ctx.azimuth)
+    signed = _signed(d.theta, d.phi, ctx.azimuth)
+    true = _truth_values(ctx.truth, k, source.name, np.abs(grid))
+    sigma = np.where(np.isfinite(d.sigma), d.sigma, 0.0)
+    peaks = [np.nanmax(d.intensity + sigma) if d.intensity.size else 0.0,
+             np.max(fit[~extrapolated]) if np.any(~extrapolated) else 0.0]  # fmt: skip
+    if d.cell_sum is not None and np.any(np.isfinite(d.cell_sum)):
+        peaks.append(np.nanmax(d.cell_sum))
+    if true is not None and np.any(np.isfinite(true)):
+        peaks.append(np.nanmax(true))
+    rmax = 1.12 * max(float(np.nanmax(peaks)) if np.any(np.isfinite(peaks)) else 0.0, 1e-30)
+    if not np.any(~extrapolated):
+        rmax = max(rmax, 1.12 * float(np.nanmax(np.where(np.abs(grid) < math.radians(80), fit, np.nan))))
+    handles = []
+    # the θ the samples cover, side by side
+    for side in (1.0, -1.0):
+        on_side = signed[np.isfinite(signed) & (np.sign(signed) == side)] if signed.size else np.zeros(0)
+        if on_side.size:
+            span = np.linspace(on_side.min(), on_side.max(), 50)
+            ax.fill_between(span, 0.0, rmax, color="0.5", alpha=0.10, linewidth=0)
+    shown = np.where(fit <= 1.05 * rmax, fit, np.nan)
+    solid = np.where(~extrapolated, shown, np.nan)
+    dashed = np.where(_runs(extrapolated), shown, np.nan)
+    (h,) = ax.plot(grid, solid, color=colour, lw=2.0, label="fit (θ covered)")
+    handles.append(h)
+    (h,) = ax.plot(grid, dashed, color=colour, lw=1.4, ls="--", alpha=0.45, label="fit, extrapolated")
+    handles.append(h)
+    if true is not None:
+        (h,) = ax.plot(grid, np.where(true <= 1.05 * rmax, true, np.nan), color="k", lw=1.2, ls=(0, (6, 3)),
+                       label="truth")  # fmt: skip
+        handles.append(h)
+    if d.cell_sum is not None and np.any(np.isfinite(d.cell_sum)) and not np.allclose(
+        d.cell_sum, d.intensity, equal_nan=True
+    ):
+        (h,) = ax.plot(signed, d.cell_sum, ls="none", marker="^", ms=4, mfc="none", mec="0.35", mew=0.8,
+                       label="chief-ray cell sums")  # fmt: skip
+        handles.append(h)
+    if d.intensity.size:
+        has_sigma = np.any(np.isfinite(d.sigma) & (d.sigma > 0))
+        h = ax.errorbar(signed, d.intensity, yerr=sigma if has_sigma else None, fmt="o", ms=3.2, color=colour,
+                        mec="k", mew=0.4, ecolor=colour, elinewidth=0.9, capsize=0, label="samples ± 1σ")  # fmt: skip
+        handles.append(h)
+    ax.set_theta_zero_location("N")
+    ax.set_theta_direction(-1)
+    ax.set_thetamin(-90)
+    ax.set_thetamax(90)
+    ax.set_thetagrids(range(-90, 91, 30), [f"{t}°" for t in range(-90, 91, 30)], fontsize=8)
+    ax.set_ylim(0.0, rmax)
+    ax.set_rlabel_position(90)  # radial scale along the +90° edge
+    ax.tick_params(axis="y", labelsize=7)
+    ax.set_title(f"{source.name}  ({source.fit.method}, χ²ᵣ = {source.fit.chi2_reduced:.2g})", fontsize=10, pad=2)
+    return handles
+
+
+def polar_figure(model: LightModel, *, samples=None, truth=None) -> Figure:
+    """Per source, the radiant intensity ``I_s(θ)`` on a half-polar plot (θ from −90° to 90°).
+
+    Dots: the samples with ±1σ bars; solid line: the fit over the θ its samples cover,
+    dashed where it extrapolates; open triangles: the chief-ray cell sums of the same
+    positions (when the estimator was not the cell sums themselves); broken black line:
+    the truth, when ``truth`` is given; grey wedges: the θ the samples cover on each side.
+    """
+    ctx = _context(model, samples=samples, truth=truth)
+    return _polar_figure(ctx)
+
+
+def _polar_figure(ctx: _Context) -> Figure:
+    n = len(ctx.model.sources)
+    rows, cols = _grid(n)
+    fig = _new_figure(4.3 * cols, 2.75 * rows + 0.5)
+    handles = {}
+    for k in range(n):
+        ax = fig.add_subplot(rows, cols, k + 1, projection="polar")
+        for h in _polar_panel(ax, ctx, k):
+            handles.setdefault(h.get_label(), h)
+    order = ["samples ± 1σ", "fit (θ covered)", "fit, extrapolated", "chief-ray cell sums", "truth"]
+    shown = [handles[label] for label in order if label in handles]
+    fig.legend(shown, [h.get_label() for h in shown], loc="outside lower center", ncols=len(shown), fontsize=9,
+               frameon=False)  # fmt: skip
+    fig.text(0.0, 1.0, f"radial axis: radiant intensity [{ctx.model.units}]", fontsize=8, va="top", ha="left",
+             color="0.3")  # fmt: skip
+    return fig
+
+
+def layout_figure(model: LightModel, *, resolution_m: float = float("nan"), pixel_polygon=None) -> Figure:
+    """The sources on the light plane (circles of their radius) and, drawn to scale, the
+    footprint of one pixel: the point spread's (diameter ``resolution_m``) and, when known,
+    the chief ray's own (``pixel_polygon``, (4, 2) metres)."""
+    colours = [_COLOURS[k % len(_COLOURS)] for k in range(len(model.sources))]
+    fig = _new_figure(6.4, 5.4)
+    ax = fig.add_subplot(1, 1, 1)
+    centres = np.array([s.centre_m for s in model.sources], dtype=float) * 1e3
+    radii = np.array([s.radius_m for s in model.sources], dtype=float) * 1e3
+    spacing = 1.0
+    if len(centres) > 1:
+        dist = np.hypot(*(centres[:, None, :] - centres[None, :, :]).transpose(2, 0, 1))
+        spacing = float(np.min(dist[dist > 0])) if np.any(dist > 0) else 1.0
+    marker_floor = 0.04 * spacing
+    for k, (source, (u, v), r) in enumerate(zip(model.sources, centres, radii)):
+        ax.add_patch(Circle((u, v), max(r, marker_floor), facecolor=colours[k], alpha=0.55, edgecolor=colours[k],
+                            lw=1.2))  # fmt: skip
+        ax.plot([u], [v], "+", color="k", ms=6, mew=0.8)
+        ax.annotate(source.name, (u, v), xytext=(6, 6), textcoords="offset points", fontsize=10, color=colours[k],
+                    fontweight="bold")  # fmt: skip
+    centroid = centres.mean(axis=0)
+    lo = (centres - radii[:, None]).min(axis=0)
+    hi = (centres + radii[:, None]).max(axis=0)
+    if math.isfinite(resolution_m) and resolution_m > 0:
+        rad = 0.5 * resolution_m * 1e3
+        ax.add_patch(Circle(tuple(centroid), rad, fill=False, ls="--", lw=1.4, edgecolor="0.3"))
+        ax.annotate(f"what one pixel gathers light from:\nthe point spread's footprint, {2 * rad:.1f} mm across",
+                    (centroid[0], centroid[1] - rad), xytext=(0, -8), textcoords="offset points", ha="center",
+                    va="top", fontsize=9, color="0.25")  # fmt: skip
+        lo = np.minimum(lo, centroid - rad)
+        hi = np.maximum(hi, centroid + rad)
+    if pixel_polygon is not None:
+        poly = np.asarray(pixel_polygon, dtype=float) * 1e3
+        ax.add_patch(Polygon(poly, closed=True, facecolor="k", edgecolor="k", lw=0.8))
+        size = np.ptp(poly, axis=0)
+        ax.annotate(f"one pixel's chief-ray footprint\n({size[0]:.2f} × {size[1]:.2f} mm)", tuple(poly.mean(axis=0)),
+                    xytext=(-10, 18), textcoords="offset points", ha="right", fontsize=8,
+                    arrowprops={"arrowstyle": "-", "color": "0.3", "lw": 0.6})  # fmt: skip
+        lo = np.minimum(lo, poly.min(axis=0))
+        hi = np.maximum(hi, poly.max(axis=0))
+    span = max(float(np.max(hi - lo)), 2.0 * spacing, 1.0)
+    mid = 0.5 * (lo + hi)
+    ax.set_xlim(mid[0] - 0.62 * span, mid[0] + 0.62 * span)
+    ax.set_ylim(mid[1] - 0.62 * span - 0.06 * span, mid[1] + 0.62 * span)
+    ax.set_aspect("equal")
+    ax.grid(True, color="0.9", lw=0.6)
+    ax.set_xlabel("u [mm]  (light frame x)")
+    ax.set_ylabel("v [mm]  (light frame y)")
+    return fig
+
+
+def coverage_figure(model: LightModel, *, samples=None) -> Figure:
+    """The θ (signed by side) each source was sampled at, against the position index."""
+    ctx = _context(model, samples=samples)
+    return _coverage_figure(ctx, samples)
+
+
+def _coverage_figure(ctx: _Context, samples=None) -> Figure:
+    fig = _new_figure(7.6, 3.9)
+    ax = fig.add_subplot(1, 1, 1)
+    for k, source in enumerate(ctx.model.sources):
+        colour = ctx.colours[k]
+        if samples is not None and samples.theta.shape[1] == len(ctx.model.sources):
+            pos = np.asarray(samples.positions, dtype=float)
+            signed = np.degrees(_signed(samples.theta[:, k], samples.phi[:, k], ctx.azimuth))
+            ok = np.isfinite(samples.intensity[:, k])
+            ax.plot(pos, signed, "-", color=colour, lw=0.8, alpha=0.6)
+            ax.plot(pos[ok], signed[ok], "o", color=colour, ms=3.5, label=source.name)
+            if np.any(~ok & np.isfinite(signed)):
+                ax.plot(pos[~ok], signed[~ok], "x", color=colour, ms=5, label=f"{source.name}: no estimate")
+        else:
+            d = ctx.data[k]
+            order = np.argsort(d.position)
+            ax.plot(d.position[order], np.degrees(_signed(d.theta, d.phi, ctx.azimuth))[order], "o-", color=colour,
+                    ms=3.5, lw=0.8, label=source.name)  # fmt: skip
+    ax.axhline(0.0, color="0.5", lw=0.6)
+    ax.set_xlabel("schedule position")
+    ax.set_ylabel(f"θ sampled [°]  (+ towards φ = {math.degrees(ctx.azimuth):.0f}°)")
+    ax.grid(True, color="0.9", lw=0.6)
+    ax.legend(fontsize=8, ncols=min(len(ctx.model.sources), 5), loc="best", frameon=False)
+    return fig
+
+
+def angles_figure(rays, *, index: int | None = None, centre_m=(0.0, 0.0), light_radius_m: float = 0.01,
+                  ball_half_angle: float | None = None) -> Figure:  # fmt: skip
+    """Outgoing angle θ at the light plane against the deflection the ball gives each chief
+    ray (the reference paper's Fig. 5), for the chief rays of pixels across the ball.
+
+    Every ray that reaches the light plane is a grey dot; those that land within
+    ``light_radius_m`` of ``centre_m`` (the sources) are coloured by their distance from it.
+    """
+    fig = _new_figure(7.2, 4.6)
+    ax = fig.add_subplot(1, 1, 1)
+    valid = rays.valid
+    defl, theta = np.degrees(rays.deflection[valid]), np.degrees(rays.theta[valid])
+    dist = np.hypot(rays.u[valid] - centre_m[0], rays.v[valid] - centre_m[1]) * 1e3
+    ax.scatter(defl, theta, s=1.5, c="0.78", linewidths=0, rasterized=True, label="every chief ray on the light plane")
+    near = dist <= light_radius_m * 1e3
+    if np.any(near):
+        order = np.argsort(-dist[near])
+        sc = ax.scatter(defl[near][order], theta[near][order], s=5, c=dist[near][order], cmap="viridis",
+                        vmin=0.0, vmax=light_radius_m * 1e3, linewidths=0, rasterized=True,
+                        label=f"rays landing within {light_radius_m * 1e3:.0f} mm of the sources")  # fmt: skip
+        fig.colorbar(sc, ax=ax, label="distance on the light plane from the sources' centre [mm]", shrink=0.85)
+    ax.set_xlabel("deflection at the ball: angle between the camera's ray and its reflection [°]")
+    ax.set_ylabel("outgoing angle θ at the light plane [°]")
+    ax.grid(True, color="0.9", lw=0.6)
+    ax.legend(fontsize=8, loc="upper right", markerscale=4, frameon=False)
+    title = "chief rays across the ball" + (f", position {index}" if index is not None else "")
+    if ball_half_angle is not None:
+        title += f" (the ball spans ±{math.degrees(ball_half_angle):.1f}° of the camera's view)"
+    ax.set_title(title, fontsize=10)
+    return fig
+
+
+def residuals_figure(model: LightModel, *, samples=None) -> Figure:
+    """Per source, the normalised residuals ``(data − fit)/σ`` against θ (signed by side)."""
+    ctx = _context(model, samples=samples)
+    return _residuals_figure(ctx)
+
+
+def _residuals_figure(ctx: _Context) -> Figure:
+    n = len(ctx.model.sources)
+    rows, cols = _grid(n)
+    fig = _new_figure(3.6 * cols, 2.4 * rows)
+    axes = []
+    for k, source in enumerate(ctx.model.sources):
+        ax = fig.add_subplot(rows, cols, k + 1, sharey=axes[0] if axes else None)
+        axes.append(ax)
+        d = ctx.data[k]
+        signed = np.degrees(_signed(d.theta, d.phi, ctx.azimuth))
+        with np.errstate(invalid="ignore", divide="ignore"):
+            r = (d.intensity - source.fit(d.theta, d.phi)) / d.sigma
+        ax.axhspan(-3, 3, color="0.93", lw=0)
+        ax.axhspan(-1, 1, color="0.85", lw=0)
+        ax.axhline(0, color="0.4", lw=0.7)
+        ax.plot(signed, r, "o", color=ctx.colours[k], ms=3.5, mec="k", mew=0.3)
+        ax.set_title(f"{source.name}: χ²ᵣ = {source.fit.chi2_reduced:.3g}", fontsize=9)
+        ax.grid(True, color="0.9", lw=0.5)
+        if k % cols == 0:
+            ax.set_ylabel("(data − fit) / σ")
+        if k >= n - cols:
+            ax.set_xlabel("θ [°] (signed by side)")
+        ax.tick_params(labelsize=8)
+    return fig
+
+
+# --- geometry from the run --------------------------------------------------------------------------
+def _middle_geometry(run, samples, model: LightModel, max_pixels: int = 60_000) -> _Geometry:
+    from processing.trace import RigGeometry, ball_pixel_grid, light_pose_at, trace_pixels
+
+    rig = run.header.rig
+    geometry = RigGeometry.from_rig(rig)
+    positions = np.asarray(samples.positions) if samples is not None and len(samples.positions) else None
+    if positions is None:
+        positions = np.asarray(run.completed_positions())
+    if positions.size == 0:
+        positions = np.arange(run.n_positions)
+    index = int(positions[len(positions) // 2])
+    measured = None
+    try:
+        measured = run.measured_pose(index)
+    except (ValueError, KeyError, OSError):
+        measured = None
+    pose = light_pose_at(geometry, measured if measured is not None else run.header.tool_poses[index])
+    out = _Geometry(index, pose, geometry)
+    cols, rows = ball_pixel_grid(geometry)
+    stride = max(1, int(math.ceil(math.sqrt(cols.size / max_pixels))))
+    keep = (cols % stride == 0) & (rows % stride == 0)
+    rays = trace_pixels(geometry, pose, cols[keep], rows[keep])
+    out.rays = rays
+    centroid = np.mean([s.centre_m for s in model.sources], axis=0)
+    if np.any(rays.valid):
+        dist = np.where(rays.valid, np.hypot(rays.u - centroid[0], rays.v - centroid[1]), np.inf)
+        i = int(np.argmin(dist))
+        col, row = rays.cols[i], rays.rows[i]
+        if stride > 1:  # refine on the full pixel grid around the best subsampled pixel
+            cc, rr = np.meshgrid(np.arange(col - stride, col + stride + 1), np.arange(row - stride, row + stride + 1))
+            fine = trace_pixels(geometry, pose, cc.ravel(), rr.ravel())
+            d2 = np.where(fine.valid, np.hypot(fine.u - centroid[0], fine.v - centroid[1]), np.inf)
+            j = int(np.argmin(d2))
+            col, row = fine.cols[j], fine.rows[j]
+        corners = trace_pixels(geometry, pose, col + np.array([-0.5, 0.5, 0.5, -0.5]),
+                               row + np.array([-0.5, -0.5, 0.5, 0.5]))  # fmt: skip
+        if np.all(corners.valid):
+            out.pixel_polygon = np.column_stack([corners.u, corners.v])
+            out.pixel_at = (float(col), float(row))
+    return out
+
+
+# --- the calibration check ----------------------------------------------------------------------------
+def _calibration_section(model: LightModel, run, report, calibration, geo: _Geometry | None) -> str:
+    rig = run.header.rig if run is not None else None
+    found = calibration
+    if found is None and report is not None:
+        found = getattr(report, "calibration", None)
+    if found is None:
+        found = model.provenance.get("calibration")
+    if found is None and run is not None and callable(getattr(run, "calibration_image", None)):
+        image = run.calibration_image()
+        if image is not None:
+            from processing.calibration import calibrate_ball
+
+            found = calibrate_ball(image, rig)
+    parts = []
+    comparison = None
+    if found is None:
+        parts.append(_note(f"{NO_CALIBRATION}: the processing used the ball centre of the rig description."))
+    elif isinstance(found, dict):
+        comparison = found
+    elif rig is not None and hasattr(found, "centre_camera"):
+        from processing.calibration import compare_with_rig
+
+        comparison = compare_with_rig(found, rig)
+    else:
+        parts.append(_note("a calibration result is present, but without the run's rig it cannot be compared."))
+    if comparison is not None:
+        rows = []
+        for label, key in (("measured (rig frame)", "measured_mm"), ("described by the rig", "described_mm"),
+                           ("measured − described", "discrepancy_mm"), ("1σ of the measurement", "sigma_mm")):  # fmt: skip
+            value = comparison.get(key)
+            if value is not None:
+                rows.append([label, *(f"{float(v):+.3f}" for v in value)])
+        parts.append(_table(["ball centre [mm]", "x", "y", "z"], rows))
+        distance, significance = comparison.get("distance_mm"), comparison.get("significance")
+        if distance is not None:
+            text = f"The ball is {float(distance):.3f} mm from where the rig description puts it"
+            if significance is not None:
+                text += f" ({float(significance):.1f} σ of the measurement)"
+            parts.append(f"<p>{html.escape(text)}.</p>")
+    if rig is not None and geo is not None:
+        try:
+            from processing.calibration import angle_sensitivity
+        except ImportError:
+            angle_sensitivity = None
+        if angle_sensitivity is not None:
+            sens = angle_sensitivity(rig, geo.pose, 1e-3, max_pixels=40_000)
+            rows = [[axis, f"{sens[axis]['theta_median_deg']:.3f}", f"{sens[axis]['theta_max_deg']:.3f}",
+                     f"{sens[axis]['direction_median_deg']:.3f}", f"{sens[axis]['uv_median_mm']:.3f}"]
+                    for axis in "xyz"]  # fmt: skip
+            parts.append(f"<p>What 1 mm of error in the ball's position costs, at position {geo.index} "
+                         f"(chief rays landing within {sens['plane_radius_mm']:.0f} mm of the light's axis):</p>")  # fmt: skip
+            parts.append(_table(["ball moved 1 mm along", "Δθ median [°]", "Δθ max [°]", "Δdirection median [°]",
+                                 "Δ(u, v) median [mm]"], rows))  # fmt: skip
+            if comparison is not None and comparison.get("distance_mm") is not None:
+                shift = float(comparison["distance_mm"]) * sens["theta_median_deg"]
+                parts.append(f"<p>At the measured discrepancy that is about {shift:.3f}° of θ (median, worst axis).</p>")
+    return "\n".join(parts)
+
+
+# --- HTML ---------------------------------------------------------------------------------------------
+def _note(text: str) -> str:
+    return f'<p class="note">{html.escape(text)}</p>'
+
+
+def _table(header: list[str] | None, rows: list[list[str]]) -> str:
+    head = "".join(f"<th>{html.escape(str(h))}</th>" for h in header) if header else ""
+    body = "".join("<tr>" + "".join(f"<td>{html.escape(str(c))}</td>" for c in row) + "</tr>" for row in rows)
+    return (f"<table><thead><tr>{head}</tr></thead>" if head else "<table>") + f"<tbody>{body}</tbody></table>"
+
+
+def _img(png: bytes, alt: str, cls: str = "") -> str:
+    data = base64.b64encode(png).decode("ascii")
+    extra = f' class="{cls}"' if cls else ""
+    return f'<img src="data:image/png;base64,{data}" alt="{html.escape(alt)}"{extra}>'
+
+
+def _figure(fig: Figure, alt: str, caption: str) -> str:
+    return f"<figure>{_img(_png(fig), alt)}<figcaption>{caption}</figcaption></figure>"
+
+
+def _mm(x: float) -> str:
+    return f"{1e3 * x:.2f} mm" if math.isfinite(x) else "unknown"
+
+
+def _param_rows(source: SourceModel, units: str) -> list[list[str]]:
+    rows = []
+    for name, value in source.fit.params.items():
+        err = source.fit.uncertainties.get(name, float("nan"))
+        if name in ("sigma", "sigma1", "sigma2", "theta0", "phi0"):
+            shown, unc, unit = math.degrees(value), math.degrees(err) if math.isfinite(err) else err, "°"
+        elif name == "a":
+            shown, unc, unit = value, err, units
+        elif name == "mu":
+            shown, unc, unit = value, err, ""
+        elif re.fullmatch(r"c\d+", name):
+            power = int(name[1:])
+            shown, unc, unit = value, err, units + (f"/rad^{power}" if power else "")
+        else:
+            shown, unc, unit = value, err, ""
+        unc_text = "not determined" if not math.isfinite(unc) else f"{unc:.3g}"
+        relative = f"{abs(unc / shown) * 100:.2g} %" if math.isfinite(unc) and shown != 0 else ""
+        rows.append([source.name, name, f"{shown:.5g}", unc_text, relative, unit])
+    return rows
+
+
+def _half_width(source: SourceModel) -> float | None:
+    """θ where the fit falls to half its value on the axis (degrees), if it does before 90°."""
+    theta = np.radians(np.linspace(0.0, 90.0, 1801))
+    values = source.intensity(theta)
+    if values[0] <= 0:
+        return None
+    below = np.flatnonzero(values <= 0.5 * values[0])
+    return float(np.degrees(theta[below[0]])) if below.size else None
+
+
+_CSS = """
+body { font-family: system-ui, -apple-system, "Segoe UI", sans-serif; max-width: 1180px; margin: 1.5em auto;
+       padding: 0 1em; color: #222; line-height: 1.4; }
+h1 { font-size: 1.5em; margin-bottom: 0.2em; } h2 { font-size: 1.2em; margin-top: 2em; border-bottom: 1px solid #ccc; }
+table { border-collapse: collapse; margin: 0.6em 0; font-size: 0.92em; }
+th, td { border: 1px solid #ccc; padding: 0.25em 0.6em; text-align: left; }
+th { background: #f2f2f2; } td { font-variant-numeric: tabular-nums; }
+figure { margin: 0.8em 0; } figure img { max-width: 100%; }
+figcaption { font-size: 0.92em; color: #444; max-width: 60em; }
+.note { color: #7a4b00; background: #fff6e0; padding: 0.4em 0.7em; border-left: 3px solid #e0a000; }
+.strip { display: flex; flex-wrap: wrap; gap: 0.6em; } .strip figure { margin: 0; }
+.strip img { width: 180px; } .strip figcaption { text-align: center; }
+"""
+
+
+def _previews(report, run, model: LightModel, path: Path) -> list[Path]:
+    outputs = getattr(report, "outputs", None) or {}
+    pngs = [Path(p) for p in outputs.get("png", [])]
+    if not pngs:
+        stems = []
+        if report is not None:
+            stems.append(Path(report.results_file).parent / f"{Path(report.run_file).stem}.hdr")
+        if run is not None:
+            stems.append(path.parent / f"{Path(run.path).stem}.hdr")
+            stems.append(Path(run.path).parent / f"{Path(run.path).stem}.hdr")
+        if model.provenance.get("run_file"):
+            run_file = Path(model.provenance["run_file"])
+            stems += [path.parent / f"{run_file.stem}.hdr", run_file.parent / f"{run_file.stem}.hdr"]
+        for folder in stems:
+            if folder.is_dir():
+                pngs = sorted(folder.glob("position-*.png"))
+                if pngs:
+                    break
+    return [p for p in pngs if p.exists()]
+
+
+def _preview_strip(pngs: list[Path]) -> str:
+    import cv2
+
+    picks = sorted(set(np.linspace(0, len(pngs) - 1, min(_PREVIEWS, len(pngs))).round().astype(int).tolist()))
+    cells = []
+    for i in picks:
+        image = cv2.imread(str(pngs[i]), cv2.IMREAD_COLOR)
+        if image is None:
+            continue
+        if image.shape[1] > _PREVIEW_WIDTH:
+            size = (_PREVIEW_WIDTH, max(1, round(image.shape[0] * _PREVIEW_WIDTH / image.shape[1])))
+            image = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
+        ok, encoded = cv2.imencode(".png", image)
+        if not ok:
+            continue
+        match = re.search(r"(\d+)", pngs[i].stem)
+        label = f"position {int(match.group(1))}" if match else pngs[i].stem
+        cells.append(f"<figure>{_img(encoded.tobytes(), label)}<figcaption>{html.escape(label)}</figcaption></figure>")
+    return f'<div class="strip">{"".join(cells)}</div>' if cells else ""
+
+
+def _header(model: LightModel, run, report, samples, resolution_m: float) -> str:
+    prov = model.provenance
+    header = run.header if run is not None else None
+    run_id = prov.get("run_id") or (header.run_id if header else None) or "unknown"
+    rig = prov.get("rig") or (header.rig.name if header else None) or "unknown"
+    rows = [["run", run_id], ["rig", rig]]
+    if header is not None:
+        rows.append(["run started (UTC)", header.created_utc])
+    rows.append(["report written (UTC)", datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M:%S")])
+    if run is not None:
+        rows.append(["positions", f"{len(run.completed_positions())} complete of {run.n_positions} scheduled"])
+    n = [len(d.theta) for d in _source_data(model, samples)]
+    rows.append(["sources", f"{len(model.sources)} ({', '.join(s.name for s in model.sources)}), "
+                            f"{min(n)}–{max(n)} samples each" if n else str(len(model.sources))])  # fmt: skip
+    if model.units == "W/sr":
+        rows.append(["units", "W/sr (radiometrically calibrated)"])
+    else:
+        rows.append(["units", f"{model.units} (not calibrated: the shapes and the ratios between sources are "
+                              "measured, not the absolute scale)"])  # fmt: skip
+    estimator = (getattr(report, "estimator", "") or prov.get("method") or "not recorded")
+    reason = getattr(report, "estimator_reason", "") or prov.get("estimator_reason") or "not recorded"
+    rows.append(["estimator", f"{estimator}: {reason}"])
+    rows.append(["spatial resolution on the light plane",
+                 f"{_mm(resolution_m)}: the point spread's footprint, the patch of the light plane one pixel "
+                 "gathers light from; sources closer than this are told apart only by unmixing with templates"])  # fmt: skip
+    noise = getattr(report, "noise", None)
+    if noise is not None:
+        where = {"rig": "the rig's camera figures", "estimated": "estimated from the brackets"}.get(noise.source, noise.source)
+        rows.append(["noise model", f"gain {noise.gain_e_per_dn:.4g} e⁻/DN, read noise {noise.read_noise_dn:.4g} DN "
+                                    f"(photon shot + read noise, from {where})"])  # fmt: skip
+    else:
+        rows.append(["noise model", "not given to the report"])
+    fits = sorted({s.fit.method for s in model.sources})
+    rows.append(["fit", ", ".join(fits)])
+    if prov.get("software_version"):
+        rows.append(["software", f"mirrorgonio {prov['software_version']}"])
+    return _table(None, [[f"{name}:", value] for name, value in rows])
+
+
+def write_report(path, model: LightModel, *, run=None, samples=None, report=None, truth=None,
+                 calibration=None) -> Path:  # fmt: skip
+    """Write the run's report: one self-contained HTML file.
+
+    Parameters
+    ----------
+    path : path-like
+        The HTML file to write (its folder is created).
+    model : LightModel
+        The measured light.
+    run : RunFile, optional
+        The (open) run file: its rig and poses give the chief-ray figure, the pixel's
+        footprint and the calibration's sensitivity. Without it those say so.
+    samples : SourceSamples, optional
+        The pipeline's per-position samples (every position, including those without an
+        estimate); without them the model's sample tables are used.
+    report : ProcessReport, optional
+        The pipeline's report: estimator and its reason, noise model, spatial resolution
+        and the HDR previews.
+    truth : callable, optional
+        ``truth(source, theta) -> intensity`` for a simulated run (see the module's notes).
+    calibration : BallFit or dict, optional
+        A calibration of the ball's position (:func:`processing.calibration.calibrate_ball`,
+        or :func:`~processing.calibration.compare_with_rig`'s dict). Also looked for on
+        ``report.calibration`` and in ``model.provenance["calibration"]``.
+
+    Returns
+    -------
+    Path
+        The file written.
+    """
+    path = Path(path)
+    resolution = float(model.provenance.get("spatial_resolution_m") or float("nan"))
+    if not math.isfinite(resolution) and report is not None:
+        resolution = float(getattr(report, "spatial_resolution_m", float("nan")))
+    ctx = _context(model, samples=samples, truth=truth, resolution_m=resolution)
+    geo = None
+    if run is not None:
+        try:
+            geo = _middle_geometry(run, samples, model)
+        except Exception as exc:  # a figure never stops the processing
+            log.warning("report: chief rays at the middle position: %s", exc, exc_info=True)
+            ctx.geometry_note = f"the chief rays could not be traced: {exc}"
+    else:
+        ctx.geometry_note = "no run file given to the report: the rig and the poses are unknown"
+    ctx.geometry = geo
+    sections: list[tuple[str, str]] = []
+
+    def section(title: str, build: Callable[[], str]) -> None:
+        try:
+            body = build()
+        except Exception as exc:  # noqa: BLE001 - one section's failure is reported, not fatal
+            log.warning("report: %s: %s", title, exc, exc_info=True)
+            body = _note(f"this section could not be drawn: {type(exc).__name__}: {exc}")
+        sections.append((title, body))
+
+    run_id = model.provenance.get("run_id") or (run.header.run_id if run is not None else "")
+
+    section("The light source, source by source", lambda: _intensity_section(ctx))
+    section("The sources on the light plane", lambda: _layout_section(ctx))
+    section("Which θ each source was sampled at", lambda: _coverage_section(ctx, samples))
+    section("How the ball widens the angles", lambda: _angles_section(ctx))
+    section("How well the fits describe the samples", lambda: _residuals_section(ctx))
+    section("Calibration check: the ball's position", lambda: _calibration_section(model, run, report, calibration, geo))
+    section("HDR frames over the sweep", lambda: _previews_section(report, run, model, path))
+
+    title = f"mirrorgonio light report: {run_id}" if run_id else "mirrorgonio light report"
+    body = [f"<h1>{html.escape(title)}</h1>", _header(model, run, report, samples, resolution)]
+    for name, content in sections:
+        body.append(f"<h2>{html.escape(name)}</h2>\n{content}")
+    page = (f'<!DOCTYPE html>\n<html lang="en">\n<head>\n<meta charset="utf-8">\n<title>{html.escape(title)}</title>\n'
+            f"<style>{_CSS}</style>\n</head>\n<body>\n" + "\n".join(body) + "\n</body>\n</html>\n")  # fmt: skip
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(page, encoding="utf-8")
+    tmp.replace(path)
+    return path
+
+
+# --- the sections -------------------------------------------------------------------------------------
+def _intensity_section(ctx: _Context) -> str:
+    model = ctx.model
+    side = f"{math.degrees(ctx.azimuth):.0f}°"
+    caption = (f"Radiant intensity of each source [{model.units}] against the angle θ from the light's axis "
+               f"(up), the radius being the intensity. Dots are the samples (one per position, bars ±1σ); the solid "
+               f"line is the fit where the samples cover θ (grey wedges), dashed where it extrapolates — read "
+               f"nothing into the dashed part. θ is signed by side: + for directions towards azimuth φ = {side} in "
+               f"the light frame, − for the opposite side; the fitted model is rotationally symmetric unless it "
+               f"is a 2-D one. ")  # fmt: skip
+    if any(d.cell_sum is not None for d in ctx.data):
+        caption += ("Open triangles are the chief-ray cell sums at the same positions: the light a cell of the "
+                    "sharp-looking (u, v) map holds; their distance from the dots is what unmixing with the "
+                    "point spread recovers. ")  # fmt: skip
+    if ctx.truth is not None:
+        caption += "The broken black line is the truth of the simulation."
+    parts = [_figure(_polar_figure(ctx), "radiant intensity per source, half-polar", html.escape(caption))]
+    header = ["source", "(u, v) [mm]", "radius [mm]", f"on-axis I [{model.units}]", "half-width at half max",
+              "θ covered", "samples", "χ²ᵣ"]  # fmt: skip
+    if ctx.truth is not None:
+        header.append("error vs truth (RMS / peak)")
+    rows = []
+    for k, (source, d) in enumerate(zip(model.sources, ctx.data)):
+        lo, hi = source.fit.theta_range
+        hw = _half_width(source)
+        row = [source.name, f"({1e3 * source.centre_m[0]:+.2f}, {1e3 * source.centre_m[1]:+.2f})",
+               f"{1e3 * source.radius_m:.2f}", f"{float(source.intensity(0.0)):.4g}",
+               f"{hw:.1f}°" if hw is not None else "beyond 90°", f"{math.degrees(lo):.1f}° – {math.degrees(hi):.1f}°",
+               str(len(d.theta)), f"{source.fit.chi2_reduced:.3g}"]  # fmt: skip
+        if ctx.truth is not None:
+            err = _truth_error(source, ctx.truth, k)
+            row.append(f"{100 * err:.3g} %" if err is not None else "no truth for this source")
+        rows.append(row)
+    parts.append(_table(header, rows))
+    if ctx.truth is not None:
+        parts.append("<p>Error vs truth: RMS(I<sub>fit</sub> − I<sub>true</sub>) / max(I<sub>true</sub>) over the θ "
+                     "the source's samples cover (<code>measurement.md</code>).</p>")  # fmt: skip
+    return "\n".join(parts)
+
+
+def _layout_section(ctx: _Context) -> str:
+    polygon = ctx.geometry.pixel_polygon if ctx.geometry is not None else None
+    fig = layout_figure(ctx.model, resolution_m=ctx.resolution_m, pixel_polygon=polygon)
+    caption = ("The sources where the layout puts them on the light plane (circles of their emitting radius), "
+               "seen from the front (the light emits towards the viewer). ")  # fmt: skip
+    if math.isfinite(ctx.resolution_m):
+        caption += (f"The dashed circle, drawn to the same scale, is the patch one camera pixel gathers light from "
+                    f"(the point spread's footprint, {_mm(ctx.resolution_m)} across): where it covers several "
+                    f"sources, a pixel mixes them and only the templates' unmixing tells them apart. ")  # fmt: skip
+    if polygon is not None:
+        caption += (f"The small black patch is where one pixel's chief ray alone would look (pixel "
+                    f"{ctx.geometry.pixel_at[0]:.0f}, {ctx.geometry.pixel_at[1]:.0f} at position "
+                    f"{ctx.geometry.index}): sharp, but not what the pixel sees.")  # fmt: skip
+    parts = [_figure(fig, "sources on the light plane", html.escape(caption))]
+    if not math.isfinite(ctx.resolution_m):
+        parts.append(_note("the spatial resolution is not recorded in the light model: no footprint drawn."))
+    if polygon is None and ctx.geometry_note:
+        parts.append(_note(f"no chief-ray footprint: {ctx.geometry_note}."))
+    return "\n".join(parts)
+
+
+def _coverage_section(ctx: _Context, samples) -> str:
+    caption = ("The angle θ each source's sample leaves at, position by position (signed by side as in the polar "
+               "plots). A sweep past the ball draws one line per source crossing 0 near the middle; the gaps "
+               "between the lines are the sources' different view of the ball. The fits are valid over the θ "
+               "range each line spans.")  # fmt: skip
+    if samples is not None:
+        caption += " Crosses mark positions where the source was in view but had no estimate."
+    return _figure(_coverage_figure(ctx, samples), "theta sampled per position", html.escape(caption))
+
+
+def _angles_section(ctx: _Context) -> str:
+    geo = ctx.geometry
+    if geo is None or geo.rays is None:
+        return _note(f"skipped: {ctx.geometry_note or 'no run file'}.")
+    rays = geo.rays
+    if not np.any(rays.valid):
+        return _note(f"skipped: no chief ray reaches the light plane at position {geo.index}.")
+    centres = np.array([s.centre_m for s in ctx.model.sources])
+    centroid = centres.mean(axis=0)
+    extent = float(np.max(np.hypot(*(centres - centroid).T) + [s.radius_m for s in ctx.model.sources]))
+    reach = max(extent + 1e-3, 0.5 * ctx.resolution_m if math.isfinite(ctx.resolution_m) else 0.0, 5e-3)
+    g = geo.geometry
+    distance = float(np.linalg.norm(g.ball_centre - g.camera_centre))
+    half = math.asin(min(1.0, g.ball_radius / distance))
+    fig = angles_figure(rays, index=geo.index, centre_m=tuple(centroid), light_radius_m=reach, ball_half_angle=half)
+    valid = rays.valid
+    near = valid & (np.hypot(rays.u - centroid[0], rays.v - centroid[1]) <= reach)
+    d_all = np.degrees(rays.deflection[valid])
+    t_all = np.degrees(rays.theta[valid])
+    caption = (f"Each dot is the chief ray of one pixel on the ball at position {geo.index} (the middle of the "
+               f"sweep). The camera sees the whole ball within ±{math.degrees(half):.1f}°; the convex mirror turns "
+               f"those rays by {d_all.min():.0f}°–{d_all.max():.0f}°, so they leave the light plane over θ = "
+               f"{t_all.min():.0f}°–{t_all.max():.0f}°: one photograph samples a wide cone of directions, which is "
+               f"what lets a short sweep measure I(θ). ")  # fmt: skip
+    if np.any(near):
+        t_near = np.degrees(rays.theta[near])
+        caption += (f"The coloured dots are the rays that land on the sources (within {1e3 * reach:.0f} mm of their "
+                    f"centre): at this position they carry θ = {t_near.min():.1f}°–{t_near.max():.1f}°. The steep "
+                    "fan of each colour shows how sensitive θ is to where on the ball a ray reflects.")  # fmt: skip
+    return _figure(fig, "outgoing angle against deflection", html.escape(caption))
+
+
+def _residuals_section(ctx: _Context) -> str:
+    caption = ("Data minus fit at each sample, in units of the sample's σ (dark band ±1σ, light band ±3σ). "
+               "A good fit scatters evenly about 0, mostly within the dark band, and has χ²ᵣ near 1; a wave or a "
+               "trend with θ means the model's shape does not match the source.")  # fmt: skip
+    parts = [_figure(_residuals_figure(ctx), "normalised residuals per source", html.escape(caption))]
+    rows = []
+    for source in ctx.model.sources:
+        rows.extend(_param_rows(source, ctx.model.units))
+    parts.append("<p>The fitted parameters, with their 1σ uncertainties (from the covariance of the weighted fit; "
+                 "angles in degrees):</p>")  # fmt: skip
+    parts.append(_table(["source", "parameter", "value", "± 1σ", "relative", "unit"], rows))
+    warnings = [f"{s.name}: {s.fit.info['warning']}" for s in ctx.model.sources if s.fit.info.get("warning")]
+    parts.extend(_note(w) for w in warnings)
+    return "\n".join(parts)
+
+
+def _previews_section(report, run, model: LightModel, path: Path) -> str:
+    pngs = _previews(report, run, model, path)
+    if not pngs:
+        return _note("no HDR previews found (the hdr step writes them beside the results as position-NNN.png).")
+    strip = _preview_strip(pngs)
+    if not strip:
+        return _note("the HDR previews could not be read.")
+    caption = (f"{min(_PREVIEWS, len(pngs))} of the {len(pngs)} merged HDR frames, spread over the sweep "
+               "(tone-mapped: square root of the radiance). The sources appear as a blurred patch on the ball that "
+               "moves across it as the light passes.")  # fmt: skip
+    return f"{strip}<p class='caption'>{html.escape(caption)}</p>"
