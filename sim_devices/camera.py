@@ -46,6 +46,8 @@ class SimulatedCamera(Camera):
     environment_radiance : float or (R, G, B)
         Uniform radiance of the room the ball reflects (0, a dark room, by default): a
         calibration frame shows the ball as a bright disc against a dark background.
+        Settable later, as is ``light_on`` (False: the light's emitters are dark, its
+        housing still in place), for taking a calibration frame between runs.
     """
 
     def __init__(
@@ -90,6 +92,16 @@ class SimulatedCamera(Camera):
         self._counter = itertools.count()
         self._cached_pose = None
         self._cached: Rendering | None = None
+        self.light_on = True
+
+    @property
+    def environment_radiance(self):
+        return self.renderer.environment.copy()
+
+    @environment_radiance.setter
+    def environment_radiance(self, value) -> None:
+        self.renderer.set_environment(value)
+        self._cached_pose = None
 
     @property
     def identity(self) -> str:
@@ -98,8 +110,9 @@ class SimulatedCamera(Camera):
     def rendering(self) -> Rendering:
         """The noise-free expected electron rates for the light's current pose."""
         pose = self.world.light_pose()
-        key = tuple(round(v, 10) for v in pose.as_tuple())
+        key = (*(round(v, 10) for v in pose.as_tuple()), self.light_on)
         if key != self._cached_pose:
+            self.renderer.truth = self.truth if self.light_on else None
             self._cached = self.renderer.render(pose)
             self._cached_pose = key
         return self._cached
