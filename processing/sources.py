@@ -280,11 +280,14 @@ def cfa_channels(pattern: str, rows: np.ndarray, cols: np.ndarray) -> np.ndarray
 
 
 def unmix_position(index: int, rate_e: np.ndarray, variance_e: np.ndarray, usable: np.ndarray, cfa_pattern: str,
-                   builder: TemplateBuilder, sources: list[Source], light_pose: Pose) -> PositionEstimate:  # fmt: skip
+                   builder: TemplateBuilder, sources: list[Source], light_pose: Pose, *,
+                   region: str = "intersection") -> PositionEstimate:  # fmt: skip
     """Variance-weighted NNLS for every source's intensity at one position.
 
     ``rate_e`` and ``variance_e`` are the merged mosaic in e⁻/s and (e⁻/s)²; ``usable``
-    masks pixels with a valid, unsaturated estimate.
+    masks pixels with a valid, unsaturated estimate. ``region``: fit where every template
+    is whole (``"intersection"``, exact), or over all of them (``"union"``, for many
+    candidates spread wide, at the cost of cutting the far diffraction tails).
     """
     n = len(sources)
     templates = [builder.build(s, light_pose) for s in sources]
@@ -300,10 +303,11 @@ def unmix_position(index: int, rate_e: np.ndarray, variance_e: np.ndarray, usabl
     h, w = rate_e.shape
     # Fit where every template is whole: outside its patch a template is cut to zero
     # while the data still holds its diffraction tail.
-    top = max(0, max(templates[i].row0 for i in shown))
-    left = max(0, max(templates[i].col0 for i in shown))
-    bottom = min(h, min(templates[i].row0 + templates[i].image.shape[1] for i in shown))
-    right = min(w, min(templates[i].col0 + templates[i].image.shape[2] for i in shown))
+    pick_lo, pick_hi = (max, min) if region == "intersection" else (min, max)
+    top = max(0, pick_lo(templates[i].row0 for i in shown))
+    left = max(0, pick_lo(templates[i].col0 for i in shown))
+    bottom = min(h, pick_hi(templates[i].row0 + templates[i].image.shape[1] for i in shown))
+    right = min(w, pick_hi(templates[i].col0 + templates[i].image.shape[2] for i in shown))
     if bottom <= top or right <= left:
         return PositionEstimate(index, intensity, sigma, theta, phi, np.zeros(n, bool), templates, residual)
     rows, cols = np.mgrid[top:bottom, left:right]
@@ -371,3 +375,68 @@ def cell_sums(rate_e: np.ndarray, usable: np.ndarray, geometry: RigGeometry, sen
             share = {0: 4.0, 1: 2.0, 2: 4.0}[c]
             out[i, c] = share * np.sum(radiance * area[sel] * np.cos(sub_rays.theta[sel]))
     return out
+
+
+# --- the layout from the data -----------------------------------------------------------------
+def find_layout(rates: list[np.ndarray], usable: list[np.ndarray], variances: list[np.ndarray], poses: list[Pose],
+                builder: TemplateBuilder, cfa_pattern: str, *, spacing: float = 1.5e-3, threshold: float = 0.05,
+                core_fraction: float = 0.2, margin: float = 3e-3, min_separation: float = 2e-3) -> list[Source]:  # fmt: skip
+    """Find the emitters from the data: a grid of candidate point sources, unmixed by
+    non-negative least squares at a few positions (non-negativity keeps the solution
+    sparse), summed, and its local maxima refined to a strength-weighted centroid.
+
+    ``rates``, ``variances`` and ``usable`` are merged mosaics (e⁻/s) at the light poses
+    ``poses``. The candidates cover the light plane seen by the brightest pixels, plus
+    ``margin``; the spatial resolution is that of the templates, so sources closer than
+    about a tenth of the footprint merge.
+    """
+    g = builder.geometry
+    boxes = []
+    for rate, ok, pose in zip(rates, usable, poses, strict=True):
+        lit = ok & np.isfinite(rate) & (rate > core_fraction * np.nanmax(np.where(ok, rate, 0.0)))
+        rows, cols = np.nonzero(lit)
+        if rows.size == 0:
+            continue
+        rays = trace_pixels(g, pose, cols.astype(float), rows.astype(float))
+        if np.any(rays.valid):
+            boxes.append((rays.u[rays.valid].min(), rays.u[rays.valid].max(), rays.v[rays.valid].min(), rays.v[rays.valid].max()))
+    if not boxes:
+        raise SourcesError("no light in the data to find sources in")
+    u0, u1 = min(b[0] for b in boxes) - margin, max(b[1] for b in boxes) + margin
+    v0, v1 = min(b[2] for b in boxes) - margin, max(b[3] for b in boxes) + margin
+    us = np.arange(math.floor(u0 / spacing), math.ceil(u1 / spacing) + 1) * spacing
+    vs = np.arange(math.floor(v0 / spacing), math.ceil(v1 / spacing) + 1) * spacing
+    candidates = [Source(f"c{i}-{j}", (float(u), float(v)), 0.25 * spacing) for j, v in enumerate(vs) for i, u in enumerate(us)]
+    strength = np.zeros(len(candidates))
+    for rate, var, ok, pose in zip(rates, variances, usable, poses, strict=True):
+        estimate = unmix_position(-1, rate, var, ok, cfa_pattern, builder, candidates, pose, region="union")
+        values = np.nan_to_num(np.nanmean(estimate.intensity, axis=1))
+        if values.max() > 0:
+            strength += values / values.max()
+    grid = strength.reshape(len(vs), len(us))
+    found = []
+    peak = grid.max()
+    if peak <= 0:
+        raise SourcesError("no source stands out of the candidate grid")
+    for j in range(len(vs)):
+        for i in range(len(us)):
+            value = grid[j, i]
+            window = grid[max(0, j - 1) : j + 2, max(0, i - 1) : i + 2]
+            if value < threshold * peak or value < window.max():
+                continue
+            jj, ii = np.mgrid[max(0, j - 1) : j + 2, max(0, i - 1) : i + 2]
+            u = float((window * us[ii]).sum() / window.sum())
+            v = float((window * vs[jj]).sum() / window.sum())
+            found.append((u, v, float(window.sum())))
+    # Peaks closer than the resolution are one source whose strength the grid shared out.
+    merged: list[list[float]] = []
+    for u, v, w in sorted(found, key=lambda p: -p[2]):
+        for m in merged:
+            if math.hypot(u - m[0] / m[2], v - m[1] / m[2]) < min_separation:
+                m[0] += u * w
+                m[1] += v * w
+                m[2] += w
+                break
+        else:
+            merged.append([u * w, v * w, w])
+    return [Source(f"source-{k}", (m[0] / m[2], m[1] / m[2]), 0.5 * spacing) for k, m in enumerate(merged)]
