@@ -92,15 +92,15 @@ def serve(
 def process(
     runs: Annotated[list[Path], typer.Argument(help="Run files (HDF5) to process.")],
     out: Annotated[Path | None, typer.Option("--out", help="Folder for the results (default: beside each run).")] = None,
-    steps: Annotated[str | None, typer.Option(help="Comma-separated steps: hdr, sources (default: both with --layout, else hdr).")] = None,
+    steps: Annotated[str, typer.Option(help="Comma-separated steps: hdr, sources.")] = "hdr,sources",
     method: Annotated[str, typer.Option(help="HDR estimator: optimal or poisson.")] = "optimal",
     noise: Annotated[str, typer.Option(help="Noise model: auto (estimate, else the rig's), estimated, or rig.")] = "auto",
-    layout: Annotated[Path | None, typer.Option(help="The sources on the light plane (TOML, docs/light-model.md).")] = None,
+    layout: Annotated[Path | None, typer.Option(help="The sources on the light plane (TOML); found in the data without one.")] = None,
     estimator: Annotated[str, typer.Option(help="auto (from the footprint), templates, or cell-sums.")] = "auto",
     fit: Annotated[str, typer.Option(help="Fit: gaussian, polynomial, cos-power, gaussian-2d.")] = "gaussian",
 ) -> None:
-    """Turn run files into results: HDR radiance per position (OpenEXR, PNG); with a source
-    layout also the light model, IES, LDT and TM-25 files."""
+    """Turn run files into results: HDR radiance per position (OpenEXR, PNG), the light model,
+    and the IES, LDT and TM-25 files."""
     from rich.progress import Progress
 
     from processing.hdr import HDRError
@@ -108,7 +108,7 @@ def process(
 
     if noise not in ("auto", "estimated", "rig"):
         raise _fail(f"--noise: {noise!r} is not one of auto, estimated, rig")
-    step_list = tuple(s for s in (steps or ("hdr,sources" if layout else "hdr")).split(",") if s)
+    step_list = tuple(s for s in steps.split(",") if s)
     with Progress(transient=True) as bar:
         for run in runs:
             task = bar.add_task(f"{run.name}", total=None)

@@ -79,8 +79,11 @@ def choose_noise(run: RunFile, positions: np.ndarray, mode: str) -> NoiseModel:
 
 def process_run(run_path, out_dir=None, *, steps=("hdr",), method: str = "optimal", noise: str = "auto",
                 progress: Callable[[int, int], None] | None = None, layout=None, estimator: str = "auto",
-                fit_method: str = "gaussian", units: str = "relative") -> ProcessReport:  # fmt: skip
-    """Process one run file; results go beside it, or into ``out_dir``."""
+                fit_method: str = "gaussian", units: str = "relative", truth=None) -> ProcessReport:  # fmt: skip
+    """Process one run file; results go beside it, or into ``out_dir``.
+
+    ``truth`` (simulated runs only, given by the caller): ``truth(source, theta) -> intensity``,
+    drawn beside the fits in the report (:mod:`processing.report`)."""
     unknown = [s for s in steps if s not in STEPS]
     if unknown:
         raise ProcessingError(f"--steps: unknown step {unknown[0]!r} (known: {', '.join(STEPS)})")
@@ -107,8 +110,37 @@ def process_run(run_path, out_dir=None, *, steps=("hdr",), method: str = "optima
             raise ProcessingError(f"{results_file}: no HDR results to build on (run --steps hdr first)")
     if "sources" in steps:
         _sources_step(run_path, results_file, out, report, layout=layout, estimator=estimator,
-                      fit_method=fit_method, units=units)  # fmt: skip
+                      fit_method=fit_method, units=units, truth=truth)  # fmt: skip
     return report
+
+
+def layout_from_data(run: RunFile, results) -> list:
+    """The sources found in the data (``processing.sources.find_layout``) at three
+    positions spread over the sweep."""
+    from processing.sources import SourcesError, TemplateBuilder, find_layout
+    from processing.trace import RigGeometry
+
+    rig = run.header.rig
+    geometry = RigGeometry.from_rig(rig)
+    builder = TemplateBuilder(geometry, rig.camera.sensitivity_e_per_s)
+    positions = np.flatnonzero(results.hdr_done & run.complete)
+    if positions.size == 0:
+        raise ProcessingError(f"{run.path}: no position has both frames and an HDR result")
+    picks = sorted({int(positions[int(q * (len(positions) - 1))]) for q in (0.25, 0.5, 0.75)})
+    gain = results.noise.gain_e_per_dn
+    rates, variances, usable, poses = [], [], [], []
+    for index in picks:
+        rate = results.radiance(index).astype(np.float64) * gain
+        rates.append(rate)
+        variances.append(results.variance(index).astype(np.float64) * gain * gain)
+        usable.append(~results.saturated(index) & (results.count(index) > 0) & np.isfinite(rate))
+        poses.append(_light_pose(run, geometry, index))
+    try:
+        found = find_layout(rates, usable, variances, poses, builder, results.cfa_pattern)
+    except SourcesError as exc:
+        raise ProcessingError(f"{run.path}: the sources could not be found in the data: {exc}") from None
+    log.info("%s: %d sources found in the data at positions %s", run.path, len(found), picks)
+    return found
 
 
 def _hdr_step(run: RunFile, run_path: Path, out: Path, results_file: Path, positions, method, noise, progress):
@@ -144,22 +176,25 @@ def _hdr_step(run: RunFile, run_path: Path, out: Path, results_file: Path, posit
 
 
 def _sources_step(run_path: Path, results_file: Path, out: Path, report: ProcessReport, *, layout, estimator,
-                  fit_method, units) -> None:  # fmt: skip
+                  fit_method, units, truth=None) -> None:  # fmt: skip
+    from processing.report import write_report
     from processing.results import Results
     from processing.sources import SourcesError, load_layout
 
-    if layout is None:
-        raise ProcessingError("--layout: the sources step needs the layout of the sources (a TOML file)")
-    try:
-        sources = load_layout(layout)
-    except SourcesError as exc:
-        raise ProcessingError(str(exc)) from None
     if estimator not in ESTIMATORS:
         raise ProcessingError(f"--estimator: {estimator!r} is not one of {', '.join(ESTIMATORS)}")
     with RunFile.open(run_path) as run, Results.open(results_file) as results:
+        if layout is not None:
+            try:
+                sources = load_layout(layout)
+            except SourcesError as exc:
+                raise ProcessingError(str(exc)) from None
+        else:
+            sources = layout_from_data(run, results)
         samples, chosen, reason, footprint = estimate_sources(run, results, sources, estimator=estimator)
         model = fit_light_model(run, sources, samples, method=fit_method, units=units, estimator=chosen,
                                 footprint=footprint)  # fmt: skip
+    model.provenance["layout"] = str(layout) if layout is not None else "found in the data (grid of candidates, NNLS)"
     report.light_model = model.save(out / f"{run_path.stem}.light.json")
     from processing.exports import write_ies, write_ldt, write_tm25
 
@@ -170,6 +205,9 @@ def _sources_step(run_path: Path, results_file: Path, out: Path, report: Process
     report.estimator, report.estimator_reason, report.spatial_resolution_m = chosen, reason, 2.0 * footprint
     report.samples = samples
     report.model = model
+    with RunFile.open(run_path) as run:  # the report draws the rig's chief rays at the middle position
+        report.outputs["report"] = [write_report(stem.with_suffix(".report.html"), model, run=run, samples=samples,
+                                                 report=report, truth=truth)]  # fmt: skip
 
 
 # --- sources and fits (measurement.md steps 2-5) ---------------------------------------------

@@ -68,6 +68,7 @@ log = logging.getLogger("mirrorgonio.processing")
 _DPI = 100
 _PREVIEWS = 6
 _PREVIEW_WIDTH = 320
+_PREVIEW_CROP = 200
 _COLOURS = ("#1f77b4", "#d62728", "#2ca02c", "#9467bd", "#ff7f0e", "#8c564b", "#e377c2", "#17becf", "#bcbd22")
 NO_CALIBRATION = "no calibration image in this run"
 
@@ -140,9 +141,10 @@ def _source_data(model: LightModel, samples=None) -> list[_SourceData]:
             return value if value is not None and len(value) == n else np.full(n, default)
 
         position = _column(table, "position")
+        cell = _column(table, "cell_sum_intensity")
         out.append(_SourceData(theta, col("phi", 0.0), col("intensity"), col("sigma"),
                                position if position is not None and len(position) == n else np.arange(n, dtype=float),
-                               _column(table, "cell_sum_intensity")))  # fmt: skip
+                               cell if cell is not None and len(cell) == n else None))  # fmt: skip
     return out
 
 
@@ -156,8 +158,12 @@ def _sweep_azimuth(data: list[_SourceData]) -> float:
         c += float(np.sum(w * np.cos(2.0 * d.phi[ok])))
     if s == 0.0 and c == 0.0:
         return 0.0
-    phi = 0.5 * math.atan2(s, c)  # in (−π/2, π/2]
-    return phi
+    return 0.5 * math.atan2(s, c)  # in (−π/2, π/2]
+
+
+def _deg(angle: float) -> str:
+    """An angle in whole degrees (an int: never "-0")."""
+    return f"{round(math.degrees(angle)):d}°"
 
 
 def _signed(theta, phi, azimuth: float) -> np.ndarray:
@@ -199,8 +205,8 @@ def _context(model: LightModel, *, samples=None, truth=None, resolution_m=float(
 
 
 # --- figures ----------------------------------------------------------------------------------------
-def _new_figure(width: float, height: float) -> Figure:
-    fig = Figure(figsize=(width, height), dpi=_DPI, layout="constrained")
+def _new_figure(width: float, height: float, layout: str | None = "constrained") -> Figure:
+    fig = Figure(figsize=(width, height), dpi=_DPI, layout=layout)
     FigureCanvasAgg(fig)
     return fig
 
@@ -240,15 +246,11 @@ def _polar_panel(ax, ctx: _Context, k: int) -> list:
     signed = _signed(d.theta, d.phi, ctx.azimuth)
     true = _truth_values(ctx.truth, k, source.name, np.abs(grid))
     sigma = np.where(np.isfinite(d.sigma), d.sigma, 0.0)
-    peaks = [np.nanmax(d.intensity + sigma) if d.intensity.size else 0.0,
-             np.max(fit[~extrapolated]) if np.any(~extrapolated) else 0.0]  # fmt: skip
-    if d.cell_sum is not None and np.any(np.isfinite(d.cell_sum)):
-        peaks.append(np.nanmax(d.cell_sum))
-    if true is not None and np.any(np.isfinite(true)):
-        peaks.append(np.nanmax(true))
-    rmax = 1.12 * max(float(np.nanmax(peaks)) if np.any(np.isfinite(peaks)) else 0.0, 1e-30)
-    if not np.any(~extrapolated):
-        rmax = max(rmax, 1.12 * float(np.nanmax(np.where(np.abs(grid) < math.radians(80), fit, np.nan))))
+    # the radial scale: what the data, the covered fit and the truth reach (an extrapolation may run away)
+    reach = [d.intensity + sigma, fit[~extrapolated] if np.any(~extrapolated) else fit[np.abs(grid) < 1.4]]
+    reach += [a for a in (d.cell_sum, true) if a is not None]
+    finite = np.concatenate([np.ravel(a)[np.isfinite(np.ravel(a))] for a in reach])
+    rmax = 1.12 * max(float(finite.max()) if finite.size else 0.0, 1e-30)
     handles = []
     # the θ the samples cover, side by side
     for side in (1.0, -1.0):
@@ -284,9 +286,8 @@ def _polar_panel(ax, ctx: _Context, k: int) -> list:
     ax.set_thetamax(90)
     ax.set_thetagrids(range(-90, 91, 30), [f"{t}°" for t in range(-90, 91, 30)], fontsize=8)
     ax.set_ylim(0.0, rmax)
-    ax.set_rlabel_position(90)  # radial scale along the +90° edge
+    ax.set_rlabel_position(90)  # the radial scale along the baseline
     ax.tick_params(axis="y", labelsize=7)
-    ax.set_title(f"{source.name}  ({source.fit.method}, χ²ᵣ = {source.fit.chi2_reduced:.2g})", fontsize=10, pad=2)
     return handles
 
 
@@ -305,18 +306,32 @@ def polar_figure(model: LightModel, *, samples=None, truth=None) -> Figure:
 def _polar_figure(ctx: _Context) -> Figure:
     n = len(ctx.model.sources)
     rows, cols = _grid(n)
-    fig = _new_figure(4.3 * cols, 2.75 * rows + 0.5)
+    # Placed by hand: a polar axes keeps a square box even for a half disc (matplotlib pads the
+    # wedge to equal aspect), so the boxes overlap where they are empty and the half discs pack.
+    cell_w, cell_h, side = 4.2, 2.6, 3.3  # inches: a cell, and the square box of a half disc 3.3 wide
+    top_band, legend_band = 0.3, 0.45
+    width, height = cell_w * cols, top_band + cell_h * rows + legend_band
+    fig = _new_figure(width, height, layout=None)
     handles = {}
     for k in range(n):
-        ax = fig.add_subplot(rows, cols, k + 1, projection="polar")
+        r, c = divmod(k, cols)
+        cell_top = height - top_band - r * cell_h
+        wedge_top = cell_top - 0.58  # the title and the 0° label above it
+        box_bottom = wedge_top - 0.75 * side  # the half disc fills the upper middle half of its square box
+        left = c * cell_w + 0.5 * (cell_w - side)
+        ax = fig.add_axes((left / width, box_bottom / height, side / width, side / height), projection="polar")
         for h in _polar_panel(ax, ctx, k):
             handles.setdefault(h.get_label(), h)
+        source = ctx.model.sources[k]
+        fig.text((c + 0.5) * cell_w / width, (cell_top - 0.02) / height,
+                 f"{source.name}  ({source.fit.method}, χ²ᵣ = {source.fit.chi2_reduced:.2g})", ha="center", va="top",
+                 fontsize=10)  # fmt: skip
     order = ["samples ± 1σ", "fit (θ covered)", "fit, extrapolated", "chief-ray cell sums", "truth"]
     shown = [handles[label] for label in order if label in handles]
-    fig.legend(shown, [h.get_label() for h in shown], loc="outside lower center", ncols=len(shown), fontsize=9,
-               frameon=False)  # fmt: skip
-    fig.text(0.0, 1.0, f"radial axis: radiant intensity [{ctx.model.units}]", fontsize=8, va="top", ha="left",
-             color="0.3")  # fmt: skip
+    fig.legend(shown, [h.get_label() for h in shown], loc="lower center", bbox_to_anchor=(0.5, 0.0),
+               ncols=len(shown), fontsize=9, frameon=False)  # fmt: skip
+    fig.text(0.5, 1.0 - 0.08 / height, f"radiant intensity I(θ) [{ctx.model.units}] as the radius; θ from the "
+             "light's axis (up), signed by side", ha="center", va="top", fontsize=9, color="0.3")  # fmt: skip
     return fig
 
 
@@ -325,7 +340,7 @@ def layout_figure(model: LightModel, *, resolution_m: float = float("nan"), pixe
     footprint of one pixel: the point spread's (diameter ``resolution_m``) and, when known,
     the chief ray's own (``pixel_polygon``, (4, 2) metres)."""
     colours = [_COLOURS[k % len(_COLOURS)] for k in range(len(model.sources))]
-    fig = _new_figure(6.4, 5.4)
+    fig = _new_figure(6.4, 6.0)
     ax = fig.add_subplot(1, 1, 1)
     centres = np.array([s.centre_m for s in model.sources], dtype=float) * 1e3
     radii = np.array([s.radius_m for s in model.sources], dtype=float) * 1e3
@@ -341,29 +356,35 @@ def layout_figure(model: LightModel, *, resolution_m: float = float("nan"), pixe
         ax.annotate(source.name, (u, v), xytext=(6, 6), textcoords="offset points", fontsize=10, color=colours[k],
                     fontweight="bold")  # fmt: skip
     centroid = centres.mean(axis=0)
+    handles = []
     lo = (centres - radii[:, None]).min(axis=0)
     hi = (centres + radii[:, None]).max(axis=0)
     if math.isfinite(resolution_m) and resolution_m > 0:
         rad = 0.5 * resolution_m * 1e3
-        ax.add_patch(Circle(tuple(centroid), rad, fill=False, ls="--", lw=1.4, edgecolor="0.3"))
-        ax.annotate(f"what one pixel gathers light from:\nthe point spread's footprint, {2 * rad:.1f} mm across",
-                    (centroid[0], centroid[1] - rad), xytext=(0, -8), textcoords="offset points", ha="center",
-                    va="top", fontsize=9, color="0.25")  # fmt: skip
+        handles.append(ax.add_patch(Circle(tuple(centroid), rad, fill=False, ls="--", lw=1.4, edgecolor="0.3",
+                                           label=f"what one pixel gathers light from: the point spread's footprint "
+                                                 f"({2 * rad:.1f} mm across)")))  # fmt: skip
         lo = np.minimum(lo, centroid - rad)
         hi = np.maximum(hi, centroid + rad)
     if pixel_polygon is not None:
+        # a scale glyph in the lower-left corner, clear of the sources (its shape and size are the pixel's)
         poly = np.asarray(pixel_polygon, dtype=float) * 1e3
-        ax.add_patch(Polygon(poly, closed=True, facecolor="k", edgecolor="k", lw=0.8))
-        size = np.ptp(poly, axis=0)
-        ax.annotate(f"one pixel's chief-ray footprint\n({size[0]:.2f} × {size[1]:.2f} mm)", tuple(poly.mean(axis=0)),
-                    xytext=(-10, 18), textcoords="offset points", ha="right", fontsize=8,
-                    arrowprops={"arrowstyle": "-", "color": "0.3", "lw": 0.6})  # fmt: skip
+        poly = poly - poly.min(axis=0)
+        size = poly.max(axis=0)
+        corner = lo + 0.02 * max(float(np.max(hi - lo)), 1.0)
+        clear = np.all(np.hypot(*(centres - (corner + 0.5 * size)).T) > radii + 0.75 * float(np.hypot(*size)))
+        poly = poly + (corner if clear else lo - size - 0.05 * max(float(np.max(hi - lo)), 1.0))
+        label = f"one pixel's chief-ray footprint ({size[0]:.2f} × {size[1]:.2f} mm), to scale, lower left"
+        handles.append(ax.add_patch(Polygon(poly, closed=True, facecolor="0.2", edgecolor="k", lw=0.8, alpha=0.8,
+                                            zorder=3, label=label)))  # fmt: skip
         lo = np.minimum(lo, poly.min(axis=0))
         hi = np.maximum(hi, poly.max(axis=0))
     span = max(float(np.max(hi - lo)), 2.0 * spacing, 1.0)
     mid = 0.5 * (lo + hi)
     ax.set_xlim(mid[0] - 0.62 * span, mid[0] + 0.62 * span)
-    ax.set_ylim(mid[1] - 0.62 * span - 0.06 * span, mid[1] + 0.62 * span)
+    ax.set_ylim(mid[1] - 0.62 * span, mid[1] + 0.62 * span)
+    if handles:
+        fig.legend(handles=handles, loc="outside lower center", fontsize=8, frameon=False)
     ax.set_aspect("equal")
     ax.grid(True, color="0.9", lw=0.6)
     ax.set_xlabel("u [mm]  (light frame x)")
@@ -397,26 +418,29 @@ def _coverage_figure(ctx: _Context, samples=None) -> Figure:
                     ms=3.5, lw=0.8, label=source.name)  # fmt: skip
     ax.axhline(0.0, color="0.5", lw=0.6)
     ax.set_xlabel("schedule position")
-    ax.set_ylabel(f"θ sampled [°]  (+ towards φ = {math.degrees(ctx.azimuth):.0f}°)")
+    ax.set_ylabel(f"θ sampled [°]  (+ towards φ = {_deg(ctx.azimuth)})")
     ax.grid(True, color="0.9", lw=0.6)
     ax.legend(fontsize=8, ncols=min(len(ctx.model.sources), 5), loc="best", frameon=False)
     return fig
 
 
 def angles_figure(rays, *, index: int | None = None, centre_m=(0.0, 0.0), light_radius_m: float = 0.01,
-                  ball_half_angle: float | None = None) -> Figure:  # fmt: skip
+                  ball_half_angle: float | None = None, ball_distance_ratio: float | None = None) -> Figure:  # fmt: skip
     """Outgoing angle θ at the light plane against the deflection the ball gives each chief
     ray (the reference paper's Fig. 5), for the chief rays of pixels across the ball.
 
     Every ray that reaches the light plane is a grey dot; those that land within
     ``light_radius_m`` of ``centre_m`` (the sources) are coloured by their distance from it.
+    With ``ball_distance_ratio`` (the camera's distance from the ball's centre over the
+    ball's radius) a top axis gives the camera ray's angle off the ball's centre: a ray at
+    impact angle α has ``sin(view) = sin α · R/D`` and deflection ``π − 2α``.
     """
     fig = _new_figure(7.2, 4.6)
     ax = fig.add_subplot(1, 1, 1)
     valid = rays.valid
     defl, theta = np.degrees(rays.deflection[valid]), np.degrees(rays.theta[valid])
     dist = np.hypot(rays.u[valid] - centre_m[0], rays.v[valid] - centre_m[1]) * 1e3
-    ax.scatter(defl, theta, s=1.5, c="0.78", linewidths=0, rasterized=True, label="every chief ray on the light plane")
+    ax.scatter(defl, theta, s=1.0, c="0.75", linewidths=0, rasterized=True, label="every chief ray on the light plane")
     near = dist <= light_radius_m * 1e3
     if np.any(near):
         order = np.argsort(-dist[near])
@@ -424,14 +448,27 @@ def angles_figure(rays, *, index: int | None = None, centre_m=(0.0, 0.0), light_
                         vmin=0.0, vmax=light_radius_m * 1e3, linewidths=0, rasterized=True,
                         label=f"rays landing within {light_radius_m * 1e3:.0f} mm of the sources")  # fmt: skip
         fig.colorbar(sc, ax=ax, label="distance on the light plane from the sources' centre [mm]", shrink=0.85)
+    if ball_half_angle is not None and ball_distance_ratio is not None:
+        # the camera's view angle off the ball's centre that gives each deflection (the same for any azimuth)
+        k = ball_distance_ratio
+
+        def to_view(defl):
+            return np.degrees(np.arcsin(np.clip(np.cos(np.radians(np.asarray(defl, dtype=float)) / 2.0) / k, -1, 1)))
+
+        def to_deflection(view):
+            return np.degrees(2.0 * np.arccos(np.clip(np.sin(np.radians(np.asarray(view, dtype=float))) * k, -1, 1)))
+
+        top = ax.secondary_xaxis("top", functions=(to_view, to_deflection))
+        top.set_xlabel("the camera's ray: angle off the ball's centre [°]", fontsize=9)
+        top.tick_params(labelsize=8)
     ax.set_xlabel("deflection at the ball: angle between the camera's ray and its reflection [°]")
     ax.set_ylabel("outgoing angle θ at the light plane [°]")
     ax.grid(True, color="0.9", lw=0.6)
     ax.legend(fontsize=8, loc="upper right", markerscale=4, frameon=False)
     title = "chief rays across the ball" + (f", position {index}" if index is not None else "")
     if ball_half_angle is not None:
-        title += f" (the ball spans ±{math.degrees(ball_half_angle):.1f}° of the camera's view)"
-    ax.set_title(title, fontsize=10)
+        title += f": the ball spans ±{math.degrees(ball_half_angle):.1f}° of the camera's view"
+    fig.suptitle(title, fontsize=10)
     return fig
 
 
@@ -542,7 +579,8 @@ def _calibration_section(model: LightModel, run, report, calibration, geo: _Geom
                            ("measured − described", "discrepancy_mm"), ("1σ of the measurement", "sigma_mm")):  # fmt: skip
             value = comparison.get(key)
             if value is not None:
-                rows.append([label, *(f"{float(v):+.3f}" for v in value)])
+                fmt = "{:.3f}" if key == "sigma_mm" else "{:+.3f}"
+                rows.append([label, *(fmt.format(float(v)) for v in value)])
         parts.append(_table(["ball centre [mm]", "x", "y", "z"], rows))
         distance, significance = comparison.get("distance_mm"), comparison.get("significance")
         if distance is not None:
@@ -634,7 +672,7 @@ table { border-collapse: collapse; margin: 0.6em 0; font-size: 0.92em; }
 th, td { border: 1px solid #ccc; padding: 0.25em 0.6em; text-align: left; }
 th { background: #f2f2f2; } td { font-variant-numeric: tabular-nums; }
 figure { margin: 0.8em 0; } figure img { max-width: 100%; }
-figcaption { font-size: 0.92em; color: #444; max-width: 60em; }
+figcaption, .caption { font-size: 0.92em; color: #444; max-width: 60em; }
 .note { color: #7a4b00; background: #fff6e0; padding: 0.4em 0.7em; border-left: 3px solid #e0a000; }
 .strip { display: flex; flex-wrap: wrap; gap: 0.6em; } .strip figure { margin: 0; }
 .strip img { width: 180px; } .strip figcaption { text-align: center; }
@@ -662,7 +700,18 @@ def _previews(report, run, model: LightModel, path: Path) -> list[Path]:
     return [p for p in pngs if p.exists()]
 
 
-def _preview_strip(pngs: list[Path]) -> str:
+def _ball_box(geo: _Geometry | None):
+    """The ball's image as ``(col, row, radius, sensor width)`` in sensor pixels, to crop the previews."""
+    if geo is None:
+        return None
+    g = geo.geometry
+    centre = g.project(g.ball_centre[None, :])[0]
+    distance = float(np.linalg.norm(g.ball_centre - g.camera_centre))
+    radius = g.K[0, 0] * math.tan(math.asin(min(1.0, g.ball_radius / distance)))
+    return float(centre[0]), float(centre[1]), 1.15 * radius, g.width
+
+
+def _preview_strip(pngs: list[Path], box=None) -> str:
     import cv2
 
     picks = sorted(set(np.linspace(0, len(pngs) - 1, min(_PREVIEWS, len(pngs))).round().astype(int).tolist()))
@@ -671,6 +720,18 @@ def _preview_strip(pngs: list[Path]) -> str:
         image = cv2.imread(str(pngs[i]), cv2.IMREAD_COLOR)
         if image is None:
             continue
+        if box is not None:  # the ball only: the rest of the frame is dark
+            scale = image.shape[1] / box[3]
+            col, row, radius = box[0] * scale, box[1] * scale, max(box[2] * scale, 4.0)
+            r0, r1 = max(0, int(row - radius)), min(image.shape[0], int(math.ceil(row + radius)))
+            c0, c1 = max(0, int(col - radius)), min(image.shape[1], int(math.ceil(col + radius)))
+            if r1 - r0 >= 4 and c1 - c0 >= 4:
+                image = image[r0:r1, c0:c1]
+                zoom = _PREVIEW_CROP / image.shape[1]
+                size = (_PREVIEW_CROP, max(1, round(image.shape[0] * zoom)))
+                image = cv2.resize(image, size, interpolation=cv2.INTER_AREA if zoom < 1 else cv2.INTER_CUBIC)
+                ring = (round((col - c0) * zoom * 8), round((row - r0) * zoom * 8))  # 3 bits of sub-pixel
+                cv2.circle(image, ring, round(radius / 1.15 * zoom * 8), (110, 110, 110), 1, cv2.LINE_AA, 3)
         if image.shape[1] > _PREVIEW_WIDTH:
             size = (_PREVIEW_WIDTH, max(1, round(image.shape[0] * _PREVIEW_WIDTH / image.shape[1])))
             image = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
@@ -703,8 +764,8 @@ def _header(model: LightModel, run, report, samples, resolution_m: float) -> str
         rows.append(["units", f"{model.units} (not calibrated: the shapes and the ratios between sources are "
                               "measured, not the absolute scale)"])  # fmt: skip
     estimator = (getattr(report, "estimator", "") or prov.get("method") or "not recorded")
-    reason = getattr(report, "estimator_reason", "") or prov.get("estimator_reason") or "not recorded"
-    rows.append(["estimator", f"{estimator}: {reason}"])
+    reason = getattr(report, "estimator_reason", "") or prov.get("estimator_reason")
+    rows.append(["estimator", f"{estimator}: {reason}" if reason else f"{estimator} (why is not recorded in the light model)"])
     rows.append(["spatial resolution on the light plane",
                  f"{_mm(resolution_m)}: the point spread's footprint, the patch of the light plane one pixel "
                  "gathers light from; sources closer than this are told apart only by unmixing with templates"])  # fmt: skip
@@ -715,6 +776,8 @@ def _header(model: LightModel, run, report, samples, resolution_m: float) -> str
                                     f"(photon shot + read noise, from {where})"])  # fmt: skip
     else:
         rows.append(["noise model", "not given to the report"])
+    if prov.get("layout"):
+        rows.append(["layout of the sources", str(prov["layout"])])
     fits = sorted({s.fit.method for s in model.sources})
     rows.append(["fit", ", ".join(fits)])
     if prov.get("software_version"):
@@ -746,7 +809,9 @@ def write_report(path, model: LightModel, *, run=None, samples=None, report=None
     calibration : BallFit or dict, optional
         A calibration of the ball's position (:func:`processing.calibration.calibrate_ball`,
         or :func:`~processing.calibration.compare_with_rig`'s dict). Also looked for on
-        ``report.calibration`` and in ``model.provenance["calibration"]``.
+        ``report.calibration``, in ``model.provenance["calibration"]`` and, when the run file
+        offers one, in ``run.calibration_image()``; without any the section says
+        "no calibration image in this run".
 
     Returns
     -------
@@ -786,7 +851,7 @@ def write_report(path, model: LightModel, *, run=None, samples=None, report=None
     section("How the ball widens the angles", lambda: _angles_section(ctx))
     section("How well the fits describe the samples", lambda: _residuals_section(ctx))
     section("Calibration check: the ball's position", lambda: _calibration_section(model, run, report, calibration, geo))
-    section("HDR frames over the sweep", lambda: _previews_section(report, run, model, path))
+    section("HDR frames over the sweep", lambda: _previews_section(report, run, model, path, geo))
 
     title = f"mirrorgonio light report: {run_id}" if run_id else "mirrorgonio light report"
     body = [f"<h1>{html.escape(title)}</h1>", _header(model, run, report, samples, resolution)]
@@ -804,7 +869,7 @@ def write_report(path, model: LightModel, *, run=None, samples=None, report=None
 # --- the sections -------------------------------------------------------------------------------------
 def _intensity_section(ctx: _Context) -> str:
     model = ctx.model
-    side = f"{math.degrees(ctx.azimuth):.0f}°"
+    side = f"{_deg(ctx.azimuth)}"
     caption = (f"Radiant intensity of each source [{model.units}] against the angle θ from the light's axis "
                f"(up), the radius being the intensity. Dots are the samples (one per position, bars ±1σ); the solid "
                f"line is the fit where the samples cover θ (grey wedges), dashed where it extrapolates — read "
@@ -886,7 +951,8 @@ def _angles_section(ctx: _Context) -> str:
     g = geo.geometry
     distance = float(np.linalg.norm(g.ball_centre - g.camera_centre))
     half = math.asin(min(1.0, g.ball_radius / distance))
-    fig = angles_figure(rays, index=geo.index, centre_m=tuple(centroid), light_radius_m=reach, ball_half_angle=half)
+    fig = angles_figure(rays, index=geo.index, centre_m=tuple(centroid), light_radius_m=reach, ball_half_angle=half,
+                        ball_distance_ratio=distance / g.ball_radius)  # fmt: skip
     valid = rays.valid
     near = valid & (np.hypot(rays.u - centroid[0], rays.v - centroid[1]) <= reach)
     d_all = np.degrees(rays.deflection[valid])
@@ -899,8 +965,8 @@ def _angles_section(ctx: _Context) -> str:
     if np.any(near):
         t_near = np.degrees(rays.theta[near])
         caption += (f"The coloured dots are the rays that land on the sources (within {1e3 * reach:.0f} mm of their "
-                    f"centre): at this position they carry θ = {t_near.min():.1f}°–{t_near.max():.1f}°. The steep "
-                    "fan of each colour shows how sensitive θ is to where on the ball a ray reflects.")  # fmt: skip
+                    f"centre): at this position they carry θ = {t_near.min():.1f}°–{t_near.max():.1f}°, the "
+                    "spread the camera's blur mixes into one sample.")  # fmt: skip
     return _figure(fig, "outgoing angle against deflection", html.escape(caption))
 
 
@@ -920,14 +986,16 @@ def _residuals_section(ctx: _Context) -> str:
     return "\n".join(parts)
 
 
-def _previews_section(report, run, model: LightModel, path: Path) -> str:
+def _previews_section(report, run, model: LightModel, path: Path, geo: _Geometry | None) -> str:
     pngs = _previews(report, run, model, path)
     if not pngs:
         return _note("no HDR previews found (the hdr step writes them beside the results as position-NNN.png).")
-    strip = _preview_strip(pngs)
+    box = _ball_box(geo)
+    strip = _preview_strip(pngs, box)
     if not strip:
         return _note("the HDR previews could not be read.")
     caption = (f"{min(_PREVIEWS, len(pngs))} of the {len(pngs)} merged HDR frames, spread over the sweep "
-               "(tone-mapped: square root of the radiance). The sources appear as a blurred patch on the ball that "
-               "moves across it as the light passes.")  # fmt: skip
+               f"(tone-mapped: square root of the radiance{', cropped to the ball' if box else ''}). The light "
+               "appears as a blurred spot, its reflection on the ball, that moves across the ball as the light "
+               "passes.")  # fmt: skip
     return f"{strip}<p class='caption'>{html.escape(caption)}</p>"

@@ -118,11 +118,37 @@ def test_process_with_a_layout_writes_the_light_model_and_the_light_files(simula
     assert len(rays) == 100_000
 
 
-def test_the_sources_step_needs_a_layout(simulated_run, tmp_path):
-    path, _, _ = simulated_run
-    result = runner.invoke(app, ["process", str(path), "--out", str(tmp_path), "--steps", "hdr,sources"])
-    assert result.exit_code == 2
-    assert result.output.strip() == "error: --layout: the sources step needs the layout of the sources (a TOML file)"
+def test_without_a_layout_the_sources_are_found_in_the_data(tmp_path):
+    from processing.lightmodel import LightModel
+
+    rig = _crop_run_rig()
+    tools = rig.tool_poses()
+    here = {"pose": tools[0]}
+    camera = SimulatedCamera(rig, SimWorld(lambda: here["pose"]), tmp_path / "spool", seed=9)
+    header = RunHeader(run_id="found", rig=rig, tool_poses=tools, light_poses=rig.light_poses(), max_exposures=3,
+                       frame_shape=(rig.camera.height, rig.camera.width), bracket={"mode": "fixed", "exposures_s": [2e-5, 2e-4, 2e-3]},
+                       metadata={}, devices={}, software_version="test", created_utc="2026-11-21T00:00:00+00:00")  # fmt: skip
+    path = tmp_path / "found.h5"
+    with RunFileWriter.create(path, header) as writer:
+        for index in (31, 33, 35):
+            here["pose"] = tools[index]
+            writer.write_position(index, tools[index], PositionTimes(0.0, 0.0, 0.0), [camera.capture(t) for t in (2e-5, 2e-4, 2e-3)])
+    result = runner.invoke(app, ["process", str(path), "--out", str(tmp_path / "out"), "--noise", "rig"])
+    assert result.exit_code == 0, result.output
+    model = LightModel.load(tmp_path / "out" / "found.light.json")
+    assert model.provenance["layout"].startswith("found in the data")
+    centres = sorted((round(s.centre_m[0] * 1e3), round(s.centre_m[1] * 1e3)) for s in model.sources)
+    # The five sources of the truth, each within a millimetre (the candidate grid is 1.5 mm).
+    truth = sorted([(0, 0), (4, 0), (-4, 0), (0, 4), (0, -4)])
+    assert len(centres) == 5
+    for (u, v), (tu, tv) in zip(sorted(centres), truth, strict=True):
+        assert abs(u - tu) <= 1 and abs(v - tv) <= 1
+
+
+def _crop_run_rig():
+    from test_render import _crop_rig
+
+    return _crop_rig(size=400)
 
 
 def _one_position_run(tmp_path, rig, frames, name):
