@@ -148,7 +148,7 @@ def test_without_a_layout_the_sources_are_found_in_the_data(tmp_path):
 def _crop_run_rig():
     from test_render import _crop_rig
 
-    return _crop_rig(size=400)
+    return _crop_rig(size=400, diffraction=True)  # a real camera diffracts; the templates model it
 
 
 def _one_position_run(tmp_path, rig, frames, name):
