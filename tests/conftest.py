@@ -17,6 +17,22 @@ ROOT = Path(__file__).resolve().parent.parent
 REDUCED_RIG = ROOT / "tests" / "rigs" / "reduced.toml"
 
 
+def rig_with(**edits):
+    """The default rig with fields replaced: ``camera__width=500`` sets ``[camera] width``."""
+    import tomllib
+
+    from acquisition.rig import DEFAULT_RIG_PATH, rig_from_dict
+
+    data = tomllib.loads(DEFAULT_RIG_PATH.read_text())
+    for path, value in edits.items():
+        node = data
+        *parents, leaf = path.split("__")
+        for key in parents:
+            node = node.setdefault(key, {})
+        node[leaf] = value
+    return rig_from_dict(data)
+
+
 def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))

@@ -12,12 +12,11 @@ centre's perspective offset is 3.66 px against 3.61 px from the closed form.
 from __future__ import annotations
 
 import math
-import tomllib
 
 import numpy as np
 import pytest
 
-from acquisition.rig import DEFAULT_RIG_PATH, load_rig, rig_from_dict
+from acquisition.rig import load_rig
 from drivers.pose import Pose
 from processing.calibration import (
     CalibrationError,
@@ -32,20 +31,10 @@ from sim_devices.camera import SimulatedCamera
 from sim_devices.lights import Emitter, LambertianRadiance, TruthLight
 from sim_devices.optics import MirrorBallRenderer
 from sim_devices.world import SimWorld
+from conftest import rig_with
 
 GREEN = 1
 REDUCED = dict(camera__width=500, camera__height=400, camera__pixel_pitch_m=23.6e-6)
-
-
-def rig_with(**edits):
-    data = tomllib.loads(DEFAULT_RIG_PATH.read_text())
-    for path, value in edits.items():
-        node = data
-        *parents, leaf = path.split("__")
-        for key in parents:
-            node = node.setdefault(key, {})
-        node[leaf] = value
-    return rig_from_dict(data)
 
 
 def calibration_frame(rig, tmp_path, seed):

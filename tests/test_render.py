@@ -14,28 +14,15 @@ import numpy as np
 import pytest
 from scipy.special import j1
 
-from acquisition.rig import DEFAULT_RIG_PATH, rig_from_dict
 from drivers.pose import Pose
 from drivers.raw_decode import decode_raw
 from sim_devices.camera import SimulatedCamera
 from sim_devices.lights import Emitter, GaussianIntensity, TruthLight, load_truth
 from sim_devices.optics import MirrorBallRenderer
 from sim_devices.world import SimWorld
+from conftest import rig_with
 
 GREEN = 1
-
-
-def rig_with(**edits):
-    import tomllib
-
-    data = tomllib.loads(DEFAULT_RIG_PATH.read_text())
-    for path, value in edits.items():
-        node = data
-        *parents, leaf = path.split("__")
-        for key in parents:
-            node = node.setdefault(key, {})
-        node[leaf] = value
-    return rig_from_dict(data)
 
 
 def fresnel_born_wolf(theta_i, n, k):
