@@ -251,7 +251,7 @@ class TemplateBuilder:
         channels = np.zeros((3, size, size))
         channels[:, margin : margin + n, margin : margin + n] = geometric
         if self.diffraction:
-            padded = sfft.next_fast_len(2 * size, real=True)
+            padded = sfft.next_fast_len(4 * size, real=True)
             spectrum = sfft.rfft2(channels[0], s=(padded, padded))
             for c in range(3):
                 otf = _airy_otf((padded, padded), g.pitch, 2 * g.aperture_radius, g.sensor_distance, g.wavelengths[c])
