@@ -98,6 +98,7 @@ def process(
     layout: Annotated[Path | None, typer.Option(help="The sources on the light plane (TOML); found in the data without one.")] = None,
     estimator: Annotated[str, typer.Option(help="auto (from the footprint), templates, or cell-sums.")] = "auto",
     fit: Annotated[str, typer.Option(help="Fit: gaussian, polynomial, cos-power, gaussian-2d.")] = "gaussian",
+    ball_centre: Annotated[str | None, typer.Option("--ball-centre", help="Measured ball centre X,Y,Z in metres (rig frame; from `calibrate`).")] = None,
 ) -> None:
     """Turn run files into results: HDR radiance per position (OpenEXR, PNG), the light model,
     and the IES, LDT and TM-25 files."""
@@ -109,12 +110,19 @@ def process(
     if noise not in ("auto", "estimated", "rig"):
         raise _fail(f"--noise: {noise!r} is not one of auto, estimated, rig")
     step_list = tuple(s for s in steps.split(",") if s)
+    centre = None
+    if ball_centre is not None:
+        try:
+            centre = tuple(float(v) for v in ball_centre.split(","))
+            assert len(centre) == 3
+        except (ValueError, AssertionError):
+            raise _fail(f"--ball-centre: expected X,Y,Z in metres, got {ball_centre!r}") from None
     with Progress(transient=True) as bar:
         for run in runs:
             task = bar.add_task(f"{run.name}", total=None)
             try:
                 report = process_run(run, out, steps=step_list, method=method, noise=noise, layout=layout,
-                                     estimator=estimator, fit_method=fit,
+                                     estimator=estimator, fit_method=fit, ball_centre=centre,
                                      progress=lambda done, total, task=task: bar.update(task, completed=done, total=total))  # fmt: skip
             except (ProcessingError, HDRError, ValueError) as exc:
                 raise _fail(str(exc)) from None
@@ -127,6 +135,42 @@ def process(
                 typer.echo(f"  sources: {report.estimator_reason}")
                 typer.echo(f"  light model {report.light_model}; " + ", ".join(
                     f"{kind.upper()} {paths[0]}" for kind, paths in report.outputs.items() if kind in ("ies", "ldt", "tm25", "report")))  # fmt: skip
+
+
+# --- calibrate ----------------------------------------------------------------------------
+@app.command("calibrate")
+def calibrate(
+    image: Annotated[Path, typer.Argument(help="A raw file of the ball lit by its surroundings (DNG, NEF, CR2, ...).")],
+    rig: RigOption = None,
+    as_json: Annotated[bool, typer.Option("--json", help="Print JSON only.")] = False,
+) -> None:
+    """Measure the ball's centre from its silhouette and compare it with the rig description.
+
+    Feed the measured centre to ``process --ball-centre X,Y,Z`` to use it.
+    """
+    from acquisition.rig import load_rig
+    from drivers.raw_decode import decode_raw
+    from processing.calibration import CalibrationError, angle_sensitivity, calibrate_ball, compare_with_rig, mosaic_luminance
+
+    try:
+        rig_model = load_rig(rig or _default_rig())
+        frame = decode_raw(image)
+        fit = calibrate_ball(mosaic_luminance(frame.mosaic, frame.black_level.mean()), rig_model)
+        comparison = compare_with_rig(fit, rig_model)
+        poses = rig_model.light_poses()
+        sensitivity = angle_sensitivity(rig_model, poses[len(poses) // 2])
+    except (*_domain_errors(), CalibrationError) as exc:
+        raise _fail(str(exc)) from None
+    result = {"image": str(image), **{k: v for k, v in comparison.items() if not callable(v)},
+              "angle_change_deg_per_mm": sensitivity}
+    text = json.dumps(result, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o))
+    if as_json:
+        typer.echo(text)
+        return
+    measured = ",".join(f"{v / 1000:.6f}" for v in comparison["measured_mm"])
+    typer.echo(f"ball centre measured {comparison['measured_mm']} mm, described {comparison['described_mm']} mm: "
+               f"off by {comparison['distance_mm']:.3f} mm ({comparison['significance']:.1f} sigma)")  # fmt: skip
+    typer.echo(f"use it with: mirrorgonio process RUN.h5 --ball-centre {measured}")
 
 
 # --- simulate -----------------------------------------------------------------------------

@@ -79,7 +79,7 @@ def choose_noise(run: RunFile, positions: np.ndarray, mode: str) -> NoiseModel:
 
 def process_run(run_path, out_dir=None, *, steps=("hdr",), method: str = "optimal", noise: str = "auto",
                 progress: Callable[[int, int], None] | None = None, layout=None, estimator: str = "auto",
-                fit_method: str = "gaussian", units: str = "relative", truth=None) -> ProcessReport:  # fmt: skip
+                fit_method: str = "gaussian", units: str = "relative", truth=None, ball_centre=None) -> ProcessReport:  # fmt: skip
     """Process one run file; results go beside it, or into ``out_dir``.
 
     ``truth`` (simulated runs only, given by the caller): ``truth(source, theta) -> intensity``,
@@ -110,18 +110,18 @@ def process_run(run_path, out_dir=None, *, steps=("hdr",), method: str = "optima
             raise ProcessingError(f"{results_file}: no HDR results to build on (run --steps hdr first)")
     if "sources" in steps:
         _sources_step(run_path, results_file, out, report, layout=layout, estimator=estimator,
-                      fit_method=fit_method, units=units, truth=truth)  # fmt: skip
+                      fit_method=fit_method, units=units, truth=truth, ball_centre=ball_centre)  # fmt: skip
     return report
 
 
-def layout_from_data(run: RunFile, results) -> list:
+def layout_from_data(run: RunFile, results, ball_centre=None) -> list:
     """The sources found in the data (``processing.sources.find_layout``) at three
     positions spread over the sweep."""
     from processing.sources import SourcesError, TemplateBuilder, find_layout
     from processing.trace import RigGeometry
 
     rig = run.header.rig
-    geometry = RigGeometry.from_rig(rig)
+    geometry = RigGeometry.from_rig(rig, ball_centre=ball_centre)
     builder = TemplateBuilder(geometry, rig.camera.sensitivity_e_per_s)
     positions = np.flatnonzero(results.hdr_done & run.complete)
     if positions.size == 0:
@@ -176,7 +176,7 @@ def _hdr_step(run: RunFile, run_path: Path, out: Path, results_file: Path, posit
 
 
 def _sources_step(run_path: Path, results_file: Path, out: Path, report: ProcessReport, *, layout, estimator,
-                  fit_method, units, truth=None) -> None:  # fmt: skip
+                  fit_method, units, truth=None, ball_centre=None) -> None:  # fmt: skip
     from processing.report import write_report
     from processing.results import Results
     from processing.sources import SourcesError, load_layout
@@ -190,10 +190,12 @@ def _sources_step(run_path: Path, results_file: Path, out: Path, report: Process
             except SourcesError as exc:
                 raise ProcessingError(str(exc)) from None
         else:
-            sources = layout_from_data(run, results)
-        samples, chosen, reason, footprint = estimate_sources(run, results, sources, estimator=estimator)
+            sources = layout_from_data(run, results, ball_centre)
+        samples, chosen, reason, footprint = estimate_sources(run, results, sources, estimator=estimator,
+                                                              ball_centre=ball_centre)  # fmt: skip
         model = fit_light_model(run, sources, samples, method=fit_method, units=units, estimator=chosen,
                                 footprint=footprint)  # fmt: skip
+    model.provenance["ball_centre_m"] = list(ball_centre) if ball_centre is not None else "as described by the rig"
     model.provenance["layout"] = str(layout) if layout is not None else "found in the data (grid of candidates, NNLS)"
     report.light_model = model.save(out / f"{run_path.stem}.light.json")
     from processing.exports import write_ies, write_ldt, write_tm25
@@ -279,13 +281,13 @@ def _check_view(run: RunFile, results, geometry, builder, layout, positions) -> 
                               "(is it facing the ball?)")  # fmt: skip
 
 
-def estimate_sources(run: RunFile, results, layout, *, estimator: str = "auto", progress=None):
+def estimate_sources(run: RunFile, results, layout, *, estimator: str = "auto", progress=None, ball_centre=None):
     """Per-source samples of radiant intensity at every complete position."""
     from processing.sources import TemplateBuilder, cell_sums, unmix_position
     from processing.trace import RigGeometry
 
     rig = run.header.rig
-    geometry = RigGeometry.from_rig(rig)
+    geometry = RigGeometry.from_rig(rig, ball_centre=ball_centre)
     builder = TemplateBuilder(geometry, rig.camera.sensitivity_e_per_s)
     positions = np.flatnonzero(results.hdr_done & run.complete)
     if positions.size == 0:

@@ -200,3 +200,28 @@ def test_runs_the_estimate_cannot_use_get_one_line_errors(tmp_path, case, messag
     assert result.exit_code == 2, result.output
     assert result.output.strip().startswith(f"error: {path}: {message}"), result.output
     assert len(result.output.strip().splitlines()) == 1
+
+
+def test_calibrate_measures_the_ball_and_process_uses_the_measured_centre(simulated_run, tmp_path):
+    import json
+
+    from processing.lightmodel import LightModel
+    from sim_devices.lights import LIGHTS_DIR
+
+    path, _, rig = simulated_run
+    # A calibration frame: the room lit, the light off (the reduced rig, truth ball at the origin).
+    camera = SimulatedCamera(rig, SimWorld(lambda: rig.tool_poses()[33]), tmp_path / "cal", seed=5, environment_radiance=50.0)
+    camera.light_on = False
+    frame = camera.capture(0.05)
+    result = runner.invoke(app, ["calibrate", frame.source, "--rig", str(REDUCED_RIG), "--json"])
+    assert result.exit_code == 0, result.output
+    measured = json.loads(result.output)
+    assert measured["distance_mm"] < 0.2  # the rig describes the simulated ball exactly
+    centre = ",".join(f"{v / 1000:.6f}" for v in measured["measured_mm"])
+    done = runner.invoke(app, ["process", str(path), "--out", str(tmp_path / "out"), "--noise", "rig",
+                               "--layout", str(LIGHTS_DIR / "five-gaussians.toml"), "--ball-centre", centre])  # fmt: skip
+    assert done.exit_code == 0, done.output
+    model = LightModel.load(tmp_path / "out" / "run-test.light.json")
+    assert model.provenance["ball_centre_m"] == pytest.approx([float(v) for v in centre.split(",")])
+    bad = runner.invoke(app, ["process", str(path), "--ball-centre", "1,2", "--out", str(tmp_path / "x")])
+    assert bad.exit_code == 2 and "--ball-centre: expected X,Y,Z in metres" in bad.output
