@@ -55,6 +55,11 @@ def _domain_errors():
     return (RigError, TruthError, DeviceError, OSError)
 
 
+def _print_result(result: dict, as_json: bool) -> None:
+    """A benchmark's result: one JSON line with --json, indented for people otherwise."""
+    typer.echo(json.dumps(result) if as_json else json.dumps(result, indent=2))
+
+
 def _default_rig() -> Path:
     from acquisition.rig import DEFAULT_RIG_PATH
 
@@ -288,10 +293,7 @@ def bench_render(
         "target_s": 10.0,
         "meets_target": render_s <= 10.0,
     }
-    if as_json:
-        typer.echo(json.dumps(result))
-        return
-    typer.echo(json.dumps(result, indent=2))
+    _print_result(result, as_json)
 
 
 @bench_app.command("acquire")
@@ -303,13 +305,13 @@ def bench_acquire_command(
     as_json: Annotated[bool, typer.Option("--json", help="Print JSON only.")] = False,
 ) -> None:
     """The daemon's overhead with zero-latency devices, next to a plain h5py write of the same frames."""
-    from acquisition.bench import bench_acquire
+    from acquisition.benchmarks.acquire import bench_acquire
 
     try:
         result = bench_acquire(rig, positions=positions, exposures=exposures, repeat=repeat)
     except _domain_errors() as exc:
         raise _fail(str(exc)) from None
-    typer.echo(json.dumps(result) if as_json else json.dumps(result, indent=2))
+    _print_result(result, as_json)
 
 
 @bench_app.command("hdr")
@@ -332,7 +334,7 @@ def bench_hdr_command(
         result = bench_hdr(positions, exposures, width, height, repeat, seed, rig_path=rig, peers=peers)
     except (BenchmarkError, HDRError, *_domain_errors()) as exc:
         raise _fail(str(exc)) from None
-    typer.echo(json.dumps(result) if as_json else json.dumps(result, indent=2))
+    _print_result(result, as_json)
 
 
 @bench_app.command("accuracy")
@@ -352,7 +354,7 @@ def bench_accuracy_command(
         result = bench_accuracy(noise=noise, truth=truth, positions=positions, rig_path=rig, fit_method=fit)
     except (*_domain_errors(), ProcessingError) as exc:
         raise _fail(str(exc)) from None
-    typer.echo(json.dumps(result) if as_json else json.dumps(result, indent=2))
+    _print_result(result, as_json)
 
 
 # --- demo -------------------------------------------------------------------------------------
