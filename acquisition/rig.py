@@ -358,13 +358,44 @@ class PoseList(_Strict):
 Schedule = Annotated[LightSweep | Raster | ObjectArc | PoseList, Field(discriminator="kind")]
 
 
+class SceneObject(_Strict):
+    """An object photographed in place of the ball (reflectance runs).
+
+    ``mesh`` is a PLY, OBJ or STL file (read with trimesh; from a 3D digitiser in real
+    use); a relative path is relative to the rig file's folder. ``units_m`` converts the
+    mesh's units to metres (0.001 for millimetres). ``pose`` places the object frame in
+    the rig frame (``x_rig = R·x_object + t``). ``up`` is the object's vertical axis in its
+    own frame, along which reflectance profiles are drawn.
+    """
+
+    mesh: str = Field(min_length=1)
+    units_m: PositiveFloat = 1.0
+    pose: PoseSpec = PoseSpec()
+    up: Vec3 = (0.0, 1.0, 0.0)
+
+    @model_validator(mode="after")
+    def _up_is_a_direction(self):
+        if not np.linalg.norm(self.up) > 0:
+            raise ValueError("up: must be a non-zero vector")
+        return self
+
+    def mesh_path(self, base: Path | None = None) -> Path:
+        path = Path(self.mesh).expanduser()
+        return path if path.is_absolute() or base is None else base / path
+
+
 class Simulation(_Strict):
-    """Settings used only by the simulated devices."""
+    """Settings used only by the simulated devices.
+
+    ``surface`` names the simulated object's reflectance (``sim_devices/surfaces/``: a base
+    albedo, painted patches and an optional specular lobe) when the rig has an ``object``.
+    """
 
     truth: str = "five-gaussians"
     seed: int = 0
     diffraction: bool = True
     noise: bool = True
+    surface: str = "uniform"
 
 
 # --- the rig -------------------------------------------------------------------------------
@@ -379,6 +410,7 @@ class Rig(_Strict):
     arm: Arm = Arm()
     schedule: Schedule = LightSweep()
     simulation: Simulation = Simulation()
+    object: SceneObject | None = None
 
     # Derived views ------------------------------------------------------------------
     def light_poses(self) -> list[Pose]:
@@ -444,8 +476,17 @@ def rig_from_dict(data: dict, source: str = "<rig>") -> Rig:
 
 
 def load_rig(path: str | Path | None = None) -> Rig:
-    """Load and validate a rig TOML file (the default rig when ``path`` is None)."""
-    return load_model(path if path is not None else DEFAULT_RIG_PATH, Rig, "rig file", RigError)
+    """Load and validate a rig TOML file (the default rig when ``path`` is None).
+
+    An object's relative mesh path is made absolute against the rig file's folder, so the
+    rig stored in a run file still finds its mesh.
+    """
+    path = Path(path) if path is not None else DEFAULT_RIG_PATH
+    rig = load_model(path, Rig, "rig file", RigError)
+    if rig.object is not None:
+        mesh = rig.object.mesh_path(path.resolve().parent)
+        rig = rig.model_copy(update={"object": rig.object.model_copy(update={"mesh": str(mesh)})})
+    return rig
 
 
 def rig_to_toml_dict(rig: Rig) -> dict:
