@@ -62,6 +62,11 @@ class RunRequest(BaseModel):
     operator: str = Field(default="", max_length=200)
     light_source: str = Field(default="", max_length=200)
     notes: str = Field(default="", max_length=4000)
+    light_results: str | None = Field(
+        default=None,
+        max_length=4096,
+        description="object runs: the processed light run's model (RUN.light.json) that lights the object",
+    )
 
     @model_validator(mode="after")
     def _poses_with_their_preset(self):

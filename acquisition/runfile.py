@@ -30,12 +30,13 @@ from __future__ import annotations
 import contextlib
 import errno
 import fcntl
+import hashlib
 import json
 import math
 import os
 import re
 import threading
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import h5py
@@ -112,6 +113,10 @@ class RunHeader:
         ISO 8601 time of creation (UTC).
     preset : str
         Name of the preset or schedule the run was started from.
+    references : dict
+        Files the run belongs with, each ``{"path", "sha256", ...}``: ``light_model`` (the
+        processed light run whose model lit an object run) and ``object_mesh`` (the object's
+        geometry, with its ``units_m`` and ``pose``). Empty for a light run.
     """
 
     run_id: str
@@ -126,6 +131,7 @@ class RunHeader:
     software_version: str
     created_utc: str
     preset: str = ""
+    references: dict = field(default_factory=dict)
 
     @property
     def n_positions(self) -> int:
@@ -139,6 +145,15 @@ def _h5_cause(exc: BaseException) -> str:
     match = re.search(r"\((.*)\)\s*$", text)
     cause = match.group(1) if match else text
     return " ".join(cause.split())
+
+
+def file_sha256(path, chunk_bytes: int = 1 << 20) -> str:
+    """Hex SHA-256 of a file's bytes (the identity of a referenced file)."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        while block := f.read(chunk_bytes):
+            digest.update(block)
+    return digest.hexdigest()
 
 
 def _fsync_path(path: Path) -> None:
@@ -397,6 +412,7 @@ def _read_header(f: h5py.File, path) -> RunHeader:
         software_version=str(run.get("software_version", "")),
         created_utc=str(run.get("created_utc", "")),
         preset=str(run.get("preset", "")),
+        references=run.get("references", {}) if isinstance(run.get("references", {}), dict) else {},
     )
 
 
@@ -419,7 +435,7 @@ def _header_strings(path, header: RunHeader) -> tuple[str, str]:
         problems.append(f"frame_shape: must be (height, width) in pixels (got {header.frame_shape!r})")
     if not isinstance(header.bracket, dict) or header.bracket.get("mode") not in ("fixed", "auto"):
         problems.append("bracket: must be a dict with mode 'fixed' or 'auto'")
-    for name in ("metadata", "devices"):
+    for name in ("metadata", "devices", "references"):
         if not isinstance(getattr(header, name), dict):
             problems.append(f"{name}: must be a dict")
     if not header.run_id:
@@ -434,6 +450,7 @@ def _header_strings(path, header: RunHeader) -> tuple[str, str]:
         "devices": header.devices,
         "software_version": str(header.software_version),
         "created_utc": str(header.created_utc),
+        "references": header.references,
     }
     try:
         run_json = json.dumps(run, ensure_ascii=False, allow_nan=False)

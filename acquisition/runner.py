@@ -12,6 +12,7 @@ position i + 1, so the software's time hides behind the hardware's.
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import queue
@@ -28,8 +29,8 @@ from acquisition.catalog import Catalog, RunRecord
 from acquisition.devices import Devices
 from acquisition.models import AutoBracket, FixedBracket, RunRequest
 from acquisition.preview import preview_png
-from acquisition.rig import Rig, rig_from_dict
-from acquisition.runfile import PositionTimes, RunFileWriter, RunHeader
+from acquisition.rig import Rig, RigError, rig_from_dict
+from acquisition.runfile import PositionTimes, RunFileWriter, RunHeader, file_sha256
 from acquisition.settings import DaemonSettings
 from drivers.camera import RawFrame
 from drivers.errors import CommunicationError, DeviceError, DeviceTimeoutError, MoveInterruptedError
@@ -145,9 +146,44 @@ class RunEngine:
             schedule = {"kind": "poses", "poses": [p.model_dump(mode="json") for p in request.poses or []]}
         else:
             schedule = self.presets()[request.preset]
+        if request.preset == "object-arc" and self.rig.object is None:
+            raise RigError(f"preset {request.preset}: the rig has no [object] (the mesh and pose of what is photographed)")
         data = self.rig.model_dump(mode="json", exclude_none=True)
         data["schedule"] = schedule
         return rig_from_dict(data, f"preset {request.preset}")
+
+    def references(self, rig: Rig, request: RunRequest) -> dict:
+        """The files an object run belongs with (``RunHeader.references``), checked now.
+
+        A light model that cannot be read is refused before the run starts, so an
+        hour of captures is never recorded against the wrong file.
+        """
+        refs: dict = {}
+        if rig.object is not None:
+            mesh = Path(rig.object.mesh)
+            if not mesh.is_file():
+                raise RigError(f"object.mesh: {mesh}: no such file")
+            refs["object_mesh"] = {
+                "path": str(mesh.resolve()),
+                "sha256": file_sha256(mesh),
+                "units_m": rig.object.units_m,
+                "pose": rig.object.pose.model_dump(mode="json"),
+            }
+        if request.light_results is not None:
+            path = Path(request.light_results).expanduser()
+            try:
+                model = json.loads(path.read_text(encoding="utf-8"))
+            except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+                raise RunEngineError(f"light_results: {path}: not a readable light model ({type(exc).__name__})") from None
+            if not isinstance(model, dict) or model.get("format") != "mirrorgonio-light-model":
+                raise RunEngineError(f"light_results: {path}: not a mirrorgonio light model file")
+            provenance = model.get("provenance") if isinstance(model.get("provenance"), dict) else {}
+            refs["light_model"] = {
+                "path": str(path.resolve()),
+                "sha256": file_sha256(path),
+                "run_id": str(provenance.get("run_id", "")),
+            }
+        return refs
 
     # --- control ---------------------------------------------------------------------------
     @property
@@ -156,6 +192,7 @@ class RunEngine:
 
     def start_run(self, request: RunRequest) -> RunRecord:
         rig = self.plan_schedule(request)
+        self.references(rig, request)  # refuse unreadable references before anything starts
         with self._lock:
             active = self.catalog.active_run()
             if active is not None or self.busy:
@@ -337,6 +374,7 @@ class RunEngine:
             software_version=__version__,
             created_utc=datetime.now(UTC).isoformat(timespec="seconds"),
             preset=request.preset,
+            references=self.references(plan.rig, request),
         )
 
     def _discard_raw(self, frame: RawFrame) -> None:
