@@ -93,6 +93,76 @@ def serve(
 
 
 # --- process ------------------------------------------------------------------------------
+def _distinct_runs(runs: list[Path]) -> list[Path]:
+    """The runs in the order given, a file named twice kept once (with a note)."""
+    seen: dict[Path, Path] = {}
+    for run in runs:
+        key = run.resolve()
+        if key in seen:
+            typer.echo(f"note: {run} is the same file as {seen[key]}: processed once", err=True)
+            continue
+        seen[key] = run
+    return list(seen.values())
+
+
+def _output_folders(runs: list[Path], out: Path | None) -> dict[Path, Path | None]:
+    """Where each run's results go: ``out`` (files named after the run), or beside the run.
+
+    Runs that share a name (``day1/run-0001.h5``, ``day2/run-0001.h5``) would write the
+    same files in ``out``: each of them goes to a subfolder named after its own folder
+    (``out/day1/``, ``out/day2/``), with a short hash of its path when those names are
+    the same too.
+    """
+    import hashlib
+
+    if out is None:
+        return {run: None for run in runs}
+    by_stem: dict[str, list[Path]] = {}
+    for run in runs:
+        by_stem.setdefault(run.stem, []).append(run)
+    folders: dict[Path, Path | None] = {}
+    for group in by_stem.values():
+        if len(group) == 1:
+            folders[group[0]] = out
+            continue
+        parents = [run.resolve().parent.name for run in group]
+        distinct = len(set(parents)) == len(parents) and all(parents)
+        for run, parent in zip(group, parents, strict=True):
+            digest = hashlib.sha1(str(run.resolve()).encode()).hexdigest()[:8]
+            folders[run] = out / (parent if distinct else f"{parent or 'root'}-{digest}")
+    return folders
+
+
+def _naming(run: Path, message: str) -> str:
+    """An error message on one line, starting with the run when it does not name it."""
+    message = " ".join(message.split())
+    return message if str(run) in message or run.name in message else f"{run}: {message}"
+
+
+def _print_batch_summary(outcomes: list) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    table = Table(title="processed runs", title_justify="left")
+    table.add_column("#", justify="right", no_wrap=True)
+    table.add_column("run", overflow="fold")
+    table.add_column("result", no_wrap=True)
+    table.add_column("positions", justify="right", no_wrap=True)
+    table.add_column("time", justify="right", no_wrap=True)
+    table.add_column("results", overflow="fold")
+    for number, (run, report, seconds, error) in enumerate(outcomes, 1):
+        if error:
+            table.add_row(str(number), str(run), "[red]failed[/red]", "", f"{seconds:.1f} s", "(see the error below)")
+        else:
+            table.add_row(str(number), str(run), "[green]ok[/green]", str(report.positions), f"{seconds:.1f} s",
+                          str(report.results_file))  # fmt: skip
+    failed = sum(1 for *_, error in outcomes if error)
+    console = Console()
+    console.print(table)
+    console.print(f"{len(outcomes) - failed} of {len(outcomes)} runs processed" + (f", {failed} failed" if failed else ""),
+                  highlight=False)  # fmt: skip
+
+
 @app.command("process")
 def process(
     runs: Annotated[list[Path], typer.Argument(help="Run files (HDF5) to process.")],
@@ -106,8 +176,13 @@ def process(
     ball_centre: Annotated[str | None, typer.Option("--ball-centre", help="Measured ball centre X,Y,Z in metres (rig frame; from `calibrate`).")] = None,
 ) -> None:
     """Turn run files into results: HDR radiance per position (OpenEXR, PNG), the light model,
-    and the IES, LDT and TM-25 files."""
-    from rich.progress import Progress
+    and the IES, LDT and TM-25 files.
+
+    Several runs in one call: each is processed in turn, a failed run does not stop the
+    others, a summary table ends the output and the exit status is 2 if any run failed.
+    With --out, each run's results are named after the run (RUN.results.h5, RUN.hdr/, ...);
+    runs of the same name from different folders go to a subfolder each (docs/import.md)."""
+    from rich.progress import Progress, TextColumn
 
     from processing.hdr import HDRError
     from processing.pipeline import ProcessingError, process_run
@@ -122,16 +197,41 @@ def process(
             assert len(centre) == 3
         except (ValueError, AssertionError):
             raise _fail(f"--ball-centre: expected X,Y,Z in metres, got {ball_centre!r}") from None
-    with Progress(transient=True) as bar:
-        for run in runs:
-            task = bar.add_task(f"{run.name}", total=None)
+    from processing.pipeline import STEPS
+
+    unknown = [s for s in step_list if s not in STEPS]
+    if unknown:
+        raise _fail(f"--steps: unknown step {unknown[0]!r} (known: {', '.join(STEPS)})")
+    distinct = _distinct_runs(runs)
+    folders = _output_folders(distinct, out)
+    batch = len(distinct) > 1
+    outcomes: list[tuple[Path, object, float, str]] = []  # run, report or None, seconds, error
+    with Progress(*Progress.get_default_columns(), TextColumn("{task.fields[note]}"), transient=True) as bar:
+        overall = bar.add_task("runs", total=len(distinct), note="") if batch else None
+        for number, run in enumerate(distinct, 1):
+            label = f"[{number}/{len(distinct)}] {run.name}" if batch else run.name
+            task = bar.add_task(label, total=None, note="positions")
+            started = time.perf_counter()
             try:
-                report = process_run(run, out, steps=step_list, method=method, noise=noise, layout=layout,
+                report = process_run(run, folders[run], steps=step_list, method=method, noise=noise, layout=layout,
                                      estimator=estimator, fit_method=fit, ball_centre=centre,
                                      progress=lambda done, total, task=task: bar.update(task, completed=done, total=total))  # fmt: skip
-            except (ProcessingError, HDRError, ValueError) as exc:
-                raise _fail(str(exc)) from None
-            bar.remove_task(task)
+            except (ProcessingError, HDRError, ValueError, OSError) as exc:
+                if not batch:
+                    raise _fail(str(exc)) from None
+                outcomes.append((run, None, time.perf_counter() - started, _naming(run, str(exc))))
+                continue
+            except Exception as exc:  # noqa: BLE001 - one run's failure must not stop the batch
+                if not batch:
+                    raise
+                outcomes.append((run, None, time.perf_counter() - started,
+                                 _naming(run, f"unexpected {type(exc).__name__}: {exc}")))  # fmt: skip
+                continue
+            finally:
+                bar.remove_task(task)
+                if overall is not None:
+                    bar.advance(overall)
+            outcomes.append((run, report, time.perf_counter() - started, ""))
             noise_model = report.noise
             typer.echo(f"{run}: {report.positions} positions -> {report.results_file} "
                        f"(noise {noise_model.source}: gain {noise_model.gain_e_per_dn:.3f} e-/DN, "
@@ -140,6 +240,61 @@ def process(
                 typer.echo(f"  sources: {report.estimator_reason}")
                 typer.echo(f"  light model {report.light_model}; " + ", ".join(
                     f"{kind.upper()} {paths[0]}" for kind, paths in report.outputs.items() if kind in ("ies", "ldt", "tm25", "report")))  # fmt: skip
+    if batch:
+        _print_batch_summary(outcomes)
+    failed = [error for *_, error in outcomes if error]
+    for error in failed:
+        typer.echo(f"error: {error}", err=True)
+    if failed:
+        raise typer.Exit(code=2)
+
+
+# --- import -------------------------------------------------------------------------------
+@app.command("import")
+def import_command(
+    folder: Annotated[Path, typer.Argument(help="Folder of raw files (DNG, NEF, CR2, ARW, ...).")],
+    csv_file: Annotated[Path, typer.Option("--csv", help="CSV giving each file's position: file, position[, exposure_s][, pose].")],
+    rig: Annotated[Path, typer.Option("--rig", help="Rig description (TOML) the frames were taken with.")],
+    out: Annotated[Path, typer.Option("--out", help="Run file (HDF5) to create; it must not exist.")],
+    run_id: Annotated[str | None, typer.Option("--run-id", help="The run's identifier (default: the output file's name).")] = None,
+    operator: Annotated[str, typer.Option(help="Who took the frames (stored in the run).")] = "",
+    light_source: Annotated[str, typer.Option("--light-source", help="The light measured (stored in the run).")] = "",
+    notes: Annotated[str, typer.Option(help="Free notes (stored in the run).")] = "",
+) -> None:
+    """Build a run file from raw files captured elsewhere (docs/import.md).
+
+    Everything is checked before anything is written; on bad input nothing is left behind.
+    Positions the CSV gives no frame for are left incomplete in the run file."""
+    from rich.progress import Progress
+
+    from acquisition.importer import RunImportError, format_ranges, import_run
+
+    with Progress(transient=True) as bar:
+        tasks: dict[str, int] = {}
+
+        def progress(stage: str, done: int, total: int) -> None:
+            if stage not in tasks:
+                tasks[stage] = bar.add_task("checking raw files" if stage == "checking" else "writing the run", total=total)
+            bar.update(tasks[stage], completed=done, total=total)
+
+        try:
+            report = import_run(folder, csv_file, rig, out, run_id=run_id, progress=progress,
+                                metadata={"operator": operator, "light_source": light_source, "notes": notes})  # fmt: skip
+        except (RunImportError, OSError) as exc:
+            raise _fail(" ".join(str(exc).split())) from None
+    height, width = report.frame_shape
+    exposures = ", ".join(f"{t:g}" for t in report.exposures_s)
+    typer.echo(f"imported {report.frames} frames into {report.run_file} (run {report.run_id}): "
+               f"{len(report.positions_with_frames)} of {report.n_positions} positions, {width}x{height} {report.cfa_pattern}, "
+               f"exposures {exposures} s")  # fmt: skip
+    typer.echo(f"  camera: {'; '.join(report.cameras)}")
+    if report.exposure_overrides:
+        typer.echo(f"  exposure times from the CSV for {report.exposure_overrides} frames, from the files for the others")
+    if report.empty_positions:
+        typer.echo(f"  positions without frames (left incomplete): {format_ranges(report.empty_positions)}")
+    if report.ignored_files:
+        shown = ", ".join(report.ignored_files[:5]) + (", ..." if len(report.ignored_files) > 5 else "")
+        typer.echo(f"  not in the CSV, not imported: {len(report.ignored_files)} raw files in {folder} ({shown})")
 
 
 # --- calibrate ----------------------------------------------------------------------------
@@ -183,13 +338,34 @@ def calibrate(
 def simulate_arm(
     port: Annotated[int, typer.Option(help="TCP port of the Modbus server.")] = 5020,
     host: Annotated[str, typer.Option(help="Address to listen on (loopback by default).")] = "127.0.0.1",
+    speed: Annotated[float | None, typer.Option(help="Linear speed in m/s (inf: instantaneous moves); default 0.05.")] = None,
+    accel: Annotated[float | None, typer.Option(help="Linear acceleration in m/s^2; default 0.5.")] = None,
+    angular_speed: Annotated[float | None, typer.Option("--angular-speed", help="Angular speed in rad/s; default 1.")] = None,
 ) -> None:
-    """Serve the simulated stage as a Modbus TCP server until interrupted."""
-    from sim_devices.modbus_server import serve
+    """Serve the simulated stage as a Modbus TCP server until interrupted (Ctrl-C or SIGTERM)."""
+    import signal
 
+    from sim_devices.modbus_server import serve
+    from sim_devices.stage import StageConfig
+
+    mechanics: dict = {}
+    for name, value in (("speed", speed), ("accel", accel), ("angular-speed", angular_speed)):
+        if value is not None and not value > 0:
+            raise _fail(f"--{name}: must be positive, got {value}")
+    if speed is not None:
+        mechanics.update(speed_m_s=speed, accel_m_s2=math.inf if math.isinf(speed) else (accel or 10 * speed))
+    elif accel is not None:
+        mechanics.update(accel_m_s2=accel)
+    if angular_speed is not None:
+        mechanics.update(angular_speed_rad_s=angular_speed, angular_accel_rad_s2=10 * angular_speed)
+
+    def _terminated(signum, frame):  # a container's stop: leave as on Ctrl-C, closing the server
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGTERM, _terminated)
     typer.echo(f"simulated arm: Modbus TCP on {host}:{port} (Ctrl-C to stop)")
     try:
-        serve(port=port, host=host)
+        serve(port=port, host=host, stage_config=StageConfig(**mechanics))
     except KeyboardInterrupt:
         pass
     except OSError as exc:
@@ -386,6 +562,60 @@ def demo(
     typer.echo(f"  exposure:  {frame.exposure_s:g} s (read back from the file)")
     typer.echo(f"  signal:    peak {int(signal.max())} DN above black, "
                f"{int((signal > 50).sum())} photosites above 50 DN")  # fmt: skip
+
+
+# --- reflectance ----------------------------------------------------------------------------
+@app.command("reflectance")
+def reflectance(
+    object_run: Annotated[Path, typer.Argument(help="The object run (HDF5), object-arc on a rig with [object].")],
+    light: Annotated[Path | None, typer.Option("--light", help="Light model: RUN.light.json, or the light run's results folder or file (default: the one the run recorded).")] = None,
+    mesh: Annotated[Path | None, typer.Option("--mesh", help="The object's mesh, PLY/OBJ/STL (default: the rig's [object].mesh).")] = None,
+    out: Annotated[Path | None, typer.Option("--out", help="Folder for the outputs (default: RUN.reflectance beside the run).")] = None,
+    grazing_deg: Annotated[float, typer.Option(help="Exclude lights less than this elevation above the surface.")] = 15.0,
+    view_grazing_deg: Annotated[float, typer.Option(help="Exclude pixels seen at less than this elevation.")] = 15.0,
+    specular_deg: Annotated[float, typer.Option(help="Exclude samples whose half vector is within this angle of the normal (0: off).")] = 10.0,
+    outlier: Annotated[float, typer.Option(help="Drop a light whose radiance exceeds the others' fit by this fraction (3+ lights).")] = 0.05,
+    edge_margin: Annotated[int, typer.Option(help="Superpixels excluded around silhouettes and depth steps.")] = 2,
+    texture_size: Annotated[int, typer.Option(min=16, help="UV texture size in texels (meshes with UVs).")] = 1024,
+) -> None:
+    """The object's diffuse albedo under three light models (collimated, isotropic point, measured),
+    with maps, a UV texture, profiles along its vertical axis and an HTML report (docs/reflectance.md)."""
+    from rich.console import Console
+    from rich.progress import Progress
+    from rich.table import Table
+
+    from processing.reflectance import ReflectanceError, ReflectanceSettings, reflectance_from_run
+
+    try:
+        settings = ReflectanceSettings(grazing_light_deg=grazing_deg, grazing_view_deg=view_grazing_deg,
+                                       specular_deg=specular_deg, outlier=outlier, edge_margin=edge_margin)  # fmt: skip
+        with Progress(transient=True) as bar:
+            tasks: dict[str, object] = {}
+
+            def progress(stage: str, done: int, total: int) -> None:
+                if stage not in tasks:
+                    tasks[stage] = bar.add_task(stage, total=total)
+                bar.update(tasks[stage], completed=done, total=total)
+
+            result = reflectance_from_run(object_run, light, mesh, out, progress=progress, settings=settings,
+                                          texture_size=texture_size)  # fmt: skip
+    except (ReflectanceError, OSError) as exc:
+        raise _fail(" ".join(str(exc).split())) from None
+    summary = result.summary()
+    table = Table(title=f"albedo of {summary['valid']} of {summary['on_object']} superpixels on the object", title_justify="left")
+    for column in ("light model", "median ρ (R, G, B)", "CV", "robust CV"):
+        table.add_column(column)
+    for method, stats in summary["methods"].items():
+        table.add_row(method, ", ".join(f"{v:.4f}" for v in stats.get("median", [])),
+                      f"{100 * stats.get('cv', float('nan')):.2f} %", f"{100 * stats.get('robust_cv', float('nan')):.2f} %")  # fmt: skip
+    console = Console()
+    console.print(table)
+    left_out = {k: v for k, v in summary["pixel_reasons"].items() if v and k not in ("valid", "background")}
+    console.print("left out: " + (", ".join(f"{k} {v}" for k, v in left_out.items()) or "none"), highlight=False)
+    for warning in result.warnings:
+        typer.echo(f"warning: {warning}", err=True)
+    folder = result.outputs["report.html"].parent
+    typer.echo(f"outputs in {folder}: report.html, reflectance.json, reflectance.h5, albedo-*.exr/png, profiles.png")
 
 
 def main() -> None:  # pragma: no cover - console entry

@@ -18,7 +18,9 @@ from pathlib import Path
 import numpy as np
 
 
-def _acquire(rig, truth_name: str, noise: bool, exposures, positions: int, workdir: Path) -> Path:
+def acquire_simulated(rig, truth_name: str, noise: bool, exposures, positions: int | None, workdir: Path, *,
+                      preset: str = "light-sweep", light_results: str | None = None) -> Path:  # fmt: skip
+    """Take one run on the simulated rig through the daemon's run engine; the run file's path."""
     from acquisition.catalog import Catalog
     from acquisition.devices import open_devices
     from acquisition.models import FixedBracket, RunRequest
@@ -36,7 +38,9 @@ def _acquire(rig, truth_name: str, noise: bool, exposures, positions: int, workd
     devices = open_devices(settings, rig)
     try:
         engine = RunEngine(settings, rig, devices, catalog)
-        record = engine.start_run(RunRequest(count=positions, bracket=FixedBracket(exposures_s=list(exposures))))
+        request = RunRequest(preset=preset, count=positions, bracket=FixedBracket(exposures_s=list(exposures)),
+                             light_results=light_results)  # fmt: skip
+        record = engine.start_run(request)
         engine.wait()
         state = catalog.get_run(record.id)
         if state.state != "complete":
@@ -70,7 +74,7 @@ def bench_accuracy(*, noise: bool = True, truth: str = "five-gaussians", positio
     started = time.perf_counter()
     with tempfile.TemporaryDirectory() as tmp:
         base = Path(workdir) if workdir is not None else Path(tmp)
-        run_path = _acquire(rig, truth, noise, exposures, positions, base)
+        run_path = acquire_simulated(rig, truth, noise, exposures, positions, base)
         acquired = time.perf_counter()
         report = process_run(run_path, base / "out", steps=("hdr", "sources"), layout=layout, noise="rig",
                              fit_method=fit_method, units="W/sr")  # fmt: skip

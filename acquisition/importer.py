@@ -1,0 +1,513 @@
+"""Build a run file from raw files captured elsewhere (``mirrorgonio import``).
+
+The input is a folder of raw files (any format :func:`drivers.raw_decode.decode_raw` reads:
+DNG, NEF, CR2, ARW, ...), a CSV that says which schedule position each file belongs to,
+and the rig TOML whose schedule those positions index (``docs/import.md``). The output is
+the same run file the daemon writes (``docs/run-file.md``), so it processes the same way.
+
+Nothing half-done is ever written. The import runs in three stages:
+
+1. the rig and the CSV are read and checked (columns, values, files exist, no file named
+   twice, positions within the schedule) without decoding a single raw file;
+2. every raw file is decoded once to check it (readable, one frame size that matches the
+   rig's ``camera.width`` x ``camera.height``, one CFA layout, a positive exposure, no
+   position with two frames of the same exposure); the mosaics are not kept, so memory
+   stays bounded by one frame;
+3. only then is the run built, in a hidden temporary file in the output's folder, decoding
+   each file again, and renamed onto the output path once complete. Any failure removes
+   the temporary file.
+
+Every error is a :class:`RunImportError` of one line naming the CSV line, the field or
+the file.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import csv
+import math
+import os
+import uuid
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from pathlib import Path
+
+from acquisition.rig import Rig, RigError, load_rig
+from acquisition.runfile import PositionTimes, RunFileError, RunFileWriter, RunHeader, file_sha256
+from drivers.camera import RawFrame
+from drivers.errors import RawFileError
+from drivers.pose import Pose
+from drivers.raw_decode import RAW_EXTENSIONS, decode_raw
+
+#: Columns every import CSV must have.
+REQUIRED_COLUMNS = ("file", "position")
+#: The measured tool pose, optional, all six or none: metres and degrees (like the rig TOML).
+POSE_COLUMNS = ("x_m", "y_m", "z_m", "rx_deg", "ry_deg", "rz_deg")
+#: Every column an import CSV may have.
+KNOWN_COLUMNS = (*REQUIRED_COLUMNS, "exposure_s", *POSE_COLUMNS)
+
+#: Two exposures this close (relative) are the same exposure: a repeated frame.
+SAME_EXPOSURE_RTOL = 1e-6
+
+Progress = Callable[[str, int, int], None]
+"""``progress(stage, done, total)``; ``stage`` is ``"checking"`` or ``"writing"``."""
+
+
+class RunImportError(ValueError):
+    """Input that cannot be imported (one line naming the CSV line, the field or the file)."""
+
+
+@dataclass(frozen=True)
+class ImportRow:
+    """One frame, as the CSV gives it.
+
+    Attributes
+    ----------
+    line : int
+        The CSV line it was read from (the header is line 1).
+    name : str
+        The ``file`` cell as written.
+    path : Path
+        The raw file, resolved against the folder.
+    position : int
+        The schedule position.
+    exposure_s : float or None
+        The CSV's exposure time, which overrides the file's; None to read it from the file.
+    pose : Pose or None
+        The measured tool pose the CSV gives (metres, radians), or None.
+    """
+
+    line: int
+    name: str
+    path: Path
+    position: int
+    exposure_s: float | None = None
+    pose: Pose | None = None
+
+
+@dataclass(frozen=True)
+class _Checked:
+    """What stage 2 learnt of one file (the mosaic itself is not kept)."""
+
+    shape: tuple[int, int]
+    cfa_pattern: str
+    exposure_s: float
+    timestamp: float
+    camera_id: str
+
+
+@dataclass
+class ImportReport:
+    """What an import wrote.
+
+    Attributes
+    ----------
+    run_file : Path
+        The run file written.
+    run_id : str
+        Its run identifier.
+    frames : int
+        Frames imported.
+    n_positions : int
+        Positions of the rig's schedule (the run's length).
+    positions_with_frames : list of int
+        Positions written, complete.
+    empty_positions : list of int
+        Positions the CSV gives no frame for, left incomplete in the run file.
+    frame_shape : tuple of int
+        ``(height, width)`` of the mosaics.
+    cfa_pattern : str
+        The mosaics' CFA tile.
+    exposures_s : list of float
+        Every exposure time imported, sorted, without repeats.
+    cameras : list of str
+        The cameras the files name.
+    ignored_files : list of str
+        Raw files in the folder that the CSV does not name (not imported).
+    exposure_overrides : int
+        Frames whose exposure time came from the CSV rather than from the file.
+    """
+
+    run_file: Path
+    run_id: str
+    frames: int
+    n_positions: int
+    positions_with_frames: list[int]
+    empty_positions: list[int]
+    frame_shape: tuple[int, int]
+    cfa_pattern: str
+    exposures_s: list[float]
+    cameras: list[str]
+    ignored_files: list[str] = field(default_factory=list)
+    exposure_overrides: int = 0
+
+
+def format_ranges(values: list[int]) -> str:
+    """``[0, 1, 2, 5, 7, 8]`` as ``"0-2, 5, 7-8"``."""
+    parts, values = [], sorted(values)
+    i = 0
+    while i < len(values):
+        j = i
+        while j + 1 < len(values) and values[j + 1] == values[j] + 1:
+            j += 1
+        parts.append(str(values[i]) if i == j else f"{values[i]}-{values[j]}")
+        i = j + 1
+    return ", ".join(parts)
+
+
+# --- stage 1: the CSV ---------------------------------------------------------------------
+def _number(text: str, where: str, column: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise RunImportError(f"{where}: {column}: {text!r} is not a number") from None
+    if not math.isfinite(value):
+        raise RunImportError(f"{where}: {column}: must be a finite number (got {text!r})")
+    return value
+
+
+def read_import_csv(csv_path, folder, n_positions: int) -> list[ImportRow]:
+    """Read and check an import CSV without decoding any raw file.
+
+    Parameters
+    ----------
+    csv_path : str or Path
+        The CSV (UTF-8, comma-separated, a header line; ``docs/import.md``).
+    folder : str or Path
+        The folder relative ``file`` cells are resolved against.
+    n_positions : int
+        The schedule's length: a ``position`` must be ``0 <= position < n_positions``.
+
+    Returns
+    -------
+    list of ImportRow
+        One per frame, in the CSV's order.
+
+    Raises
+    ------
+    RunImportError
+        A missing or unknown column, a bad value, a file that does not exist or is named
+        twice, a position outside the schedule, rows of one position giving different
+        poses, or no rows at all; the message names the CSV line and the column.
+    """
+    csv_path, folder = Path(csv_path), Path(folder)
+    try:
+        handle = open(csv_path, encoding="utf-8-sig", newline="")  # noqa: SIM115 - closed below
+    except FileNotFoundError:
+        raise RunImportError(f"{csv_path}: CSV file not found") from None
+    except OSError as exc:
+        raise RunImportError(f"{csv_path}: cannot read the CSV: {exc.strerror}") from None
+    with handle:
+        try:
+            return _read_rows(csv.reader(handle), csv_path, folder, n_positions)
+        except UnicodeDecodeError:
+            raise RunImportError(f"{csv_path}: not UTF-8 text") from None
+        except csv.Error as exc:
+            raise RunImportError(f"{csv_path}: not a valid CSV file ({exc})") from None
+
+
+def _read_rows(reader, csv_path: Path, folder: Path, n_positions: int) -> list[ImportRow]:
+    header = next(reader, None)
+    while header is not None and not any(cell.strip() for cell in header):
+        header = next(reader, None)
+    if header is None:
+        raise RunImportError(f"{csv_path}: empty CSV (expected a header line such as 'file,position,exposure_s')")
+    where = f"{csv_path}: line {reader.line_num}"
+    columns = [cell.strip().lower() for cell in header]
+    for i, name in enumerate(columns):
+        if not name:
+            raise RunImportError(f"{where}: column {i + 1} has no name")
+        if name not in KNOWN_COLUMNS:
+            raise RunImportError(f"{where}: unknown column {name!r} (known: {', '.join(KNOWN_COLUMNS)})")
+        if name in columns[:i]:
+            raise RunImportError(f"{where}: column {name!r} appears twice")
+    for name in REQUIRED_COLUMNS:
+        if name not in columns:
+            raise RunImportError(f"{where}: missing required column {name!r} (the header must name file and position)")
+    pose_given = [name for name in POSE_COLUMNS if name in columns]
+    if pose_given and len(pose_given) < len(POSE_COLUMNS):
+        missing = [name for name in POSE_COLUMNS if name not in columns]
+        raise RunImportError(f"{where}: missing column {missing[0]!r}: pose columns come as a set of six "
+                             f"({', '.join(POSE_COLUMNS)})")  # fmt: skip
+
+    rows: list[ImportRow] = []
+    seen_files: dict[Path, int] = {}
+    position_pose: dict[int, tuple[Pose, int]] = {}
+    for cells in reader:
+        line = reader.line_num
+        where = f"{csv_path}: line {line}"
+        if not any(cell.strip() for cell in cells):
+            continue  # a blank line
+        if len(cells) > len(columns):
+            raise RunImportError(f"{where}: {len(cells)} fields but the header names {len(columns)} columns")
+        values = {name: (cells[i].strip() if i < len(cells) else "") for i, name in enumerate(columns)}
+
+        name = values["file"]
+        if not name:
+            raise RunImportError(f"{where}: file: empty")
+        path = Path(name).expanduser()
+        path = path if path.is_absolute() else folder / path
+        if not path.exists():
+            raise RunImportError(f"{where}: file: {name!r} not found in {folder}")
+        if not path.is_file():
+            raise RunImportError(f"{where}: file: {name!r} is not a file")
+        resolved = path.resolve()
+        if resolved in seen_files:
+            raise RunImportError(f"{where}: file: {name!r} repeats the frame of line {seen_files[resolved]}")
+        seen_files[resolved] = line
+
+        text = values["position"]
+        if not text:
+            raise RunImportError(f"{where}: position: empty")
+        try:
+            position = int(text)
+        except ValueError:
+            raise RunImportError(f"{where}: position: {text!r} is not a whole number") from None
+        if not 0 <= position < n_positions:
+            raise RunImportError(f"{where}: position: {position} is outside the rig's schedule (0 to {n_positions - 1})")
+
+        exposure = None
+        if values.get("exposure_s"):
+            exposure = _number(values["exposure_s"], where, "exposure_s")
+            if not exposure > 0:
+                raise RunImportError(f"{where}: exposure_s: must be a positive number of seconds (got {values['exposure_s']!r})")
+
+        pose = None
+        if pose_given:
+            cells_given = [name for name in POSE_COLUMNS if values[name]]
+            if cells_given and len(cells_given) < len(POSE_COLUMNS):
+                empty = next(name for name in POSE_COLUMNS if not values[name])
+                raise RunImportError(f"{where}: {empty}: empty; give all six pose values or none")
+            if cells_given:
+                x, y, z, rx, ry, rz = (_number(values[name], where, name) for name in POSE_COLUMNS)
+                pose = Pose(x, y, z, math.radians(rx), math.radians(ry), math.radians(rz))
+                if position in position_pose:
+                    other, other_line = position_pose[position]
+                    if other != pose:
+                        raise RunImportError(f"{where}: x_m..rz_deg: position {position} was given another pose on "
+                                             f"line {other_line} (one measured pose per position)")  # fmt: skip
+                else:
+                    position_pose[position] = (pose, line)
+        rows.append(ImportRow(line, name, resolved, position, exposure, pose))
+    if not rows:
+        raise RunImportError(f"{csv_path}: no frames: the CSV has a header but no rows")
+    return rows
+
+
+# --- stage 2: the raw files ---------------------------------------------------------------
+def _decode(row: ImportRow, csv_path: Path) -> RawFrame:
+    try:
+        return decode_raw(row.path)
+    except RawFileError as exc:
+        raise RunImportError(f"{csv_path}: line {row.line}: {exc}") from None
+
+
+def _check_frames(rows: list[ImportRow], csv_path: Path, rig_path: Path, rig: Rig,
+                  progress: Progress | None) -> list[_Checked]:  # fmt: skip
+    checked: list[_Checked] = []
+    first: ImportRow | None = None
+    brackets: dict[int, list[tuple[float, int]]] = {}
+    for done, row in enumerate(rows):
+        frame = _decode(row, csv_path)
+        where = f"{csv_path}: line {row.line}"
+        shape = (int(frame.mosaic.shape[0]), int(frame.mosaic.shape[1]))
+        if checked:
+            size, ref = checked[0], first
+            if shape != size.shape:
+                raise RunImportError(f"{where}: {row.name} is {shape[1]}x{shape[0]} but line {ref.line} ({ref.name}) is "
+                                     f"{size.shape[1]}x{size.shape[0]}: the frames mix sizes")  # fmt: skip
+            if frame.cfa_pattern != size.cfa_pattern:
+                raise RunImportError(f"{where}: {row.name} has CFA {frame.cfa_pattern} but line {ref.line} "
+                                     f"({ref.name}) has {size.cfa_pattern}: the frames mix CFA layouts")  # fmt: skip
+        else:
+            first = row
+            width, height = rig.camera.width, rig.camera.height
+            if (height, width) != shape:
+                raise RunImportError(f"{rig_path}: camera.width x camera.height is {width}x{height} but the raw files "
+                                     f"are {shape[1]}x{shape[0]} (line {row.line}: {row.name})")  # fmt: skip
+        exposure = row.exposure_s if row.exposure_s is not None else float(frame.exposure_s)
+        if not (exposure > 0 and math.isfinite(exposure)):  # decode_raw refuses these; be sure
+            raise RunImportError(f"{where}: exposure_s: {row.name} has no positive exposure time")
+        for other, other_line in brackets.setdefault(row.position, []):
+            if math.isclose(other, exposure, rel_tol=SAME_EXPOSURE_RTOL):
+                raise RunImportError(f"{where}: position {row.position} already has a frame of exposure {exposure:g} s "
+                                     f"(line {other_line}): the frame is repeated")  # fmt: skip
+        brackets[row.position].append((exposure, row.line))
+        checked.append(_Checked(shape, frame.cfa_pattern, exposure, float(frame.timestamp), frame.camera_id))
+        del frame
+        if progress:
+            progress("checking", done + 1, len(rows))
+    return checked
+
+
+# --- stage 3: the run file ----------------------------------------------------------------
+def _bracket(by_position: dict[int, list[int]], checked: list[_Checked]) -> dict:
+    """``fixed`` with the exposures when every position has the same set, else ``auto``."""
+    sets = {tuple(sorted(checked[k].exposure_s for k in ks)) for ks in by_position.values()}
+    if len(sets) == 1:
+        return {"mode": "fixed", "exposures_s": list(next(iter(sets))), "source": "import"}
+    return {"mode": "auto", "source": "import"}
+
+
+def _unused_temp(out: Path) -> Path:
+    return out.with_name(f".{out.name}.import-{uuid.uuid4().hex[:12]}")
+
+
+def _remove_temp(tmp: Path) -> None:
+    for suffix in ("", ".tmp", ".lock"):
+        with contextlib.suppress(OSError):
+            Path(str(tmp) + suffix).unlink()
+
+
+def _publish(tmp: Path, out: Path) -> None:
+    """Move the finished run onto ``out`` without ever replacing an existing file."""
+    try:
+        os.link(tmp, out)  # fails if out exists: never overwrite a run created meanwhile
+    except FileExistsError:
+        raise RunImportError(f"{out}: already exists (not replaced)") from None
+    except OSError:  # a file system without hard links
+        if out.exists():
+            raise RunImportError(f"{out}: already exists (not replaced)") from None
+        os.replace(tmp, out)
+    else:
+        tmp.unlink()
+    with contextlib.suppress(OSError):
+        fd = os.open(out.parent, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+
+
+def import_run(folder, csv_path, rig_path, out, *, run_id: str | None = None, metadata: dict | None = None,
+               progress: Progress | None = None) -> ImportReport:  # fmt: skip
+    """Build a run file from a folder of raw files, a CSV of their positions and a rig.
+
+    Parameters
+    ----------
+    folder : str or Path
+        The raw files' folder; the CSV's relative ``file`` cells are resolved against it.
+    csv_path : str or Path
+        The CSV: ``file``, ``position``, optional ``exposure_s`` and pose columns
+        (``docs/import.md``).
+    rig_path : str or Path
+        The rig TOML the frames were taken with; its schedule defines the positions.
+    out : str or Path
+        The run file to create; it must not exist.
+    run_id : str, optional
+        The run's identifier (default: the output file's stem).
+    metadata : dict, optional
+        ``operator``, ``light_source``, ``notes``, stored in the run's header.
+    progress : callable, optional
+        ``progress(stage, done, total)`` after each file, ``stage`` ``"checking"`` then
+        ``"writing"``.
+
+    Returns
+    -------
+    ImportReport
+        What was written, and which positions were left without frames.
+
+    Raises
+    ------
+    RunImportError
+        Any bad input (one line naming the CSV line, the field or the file); nothing has
+        been written then.
+    """
+    folder, csv_path, rig_path, out = Path(folder), Path(csv_path), Path(rig_path), Path(out)
+    if not folder.is_dir():
+        raise RunImportError(f"{folder}: {'not a folder' if folder.exists() else 'no such folder'}")
+    try:
+        rig = load_rig(rig_path)
+    except RigError as exc:
+        raise RunImportError(str(exc)) from None
+    if out.exists():
+        raise RunImportError(f"{out}: already exists (choose another --out, or remove it)")
+    if out.parent.exists() and not out.parent.is_dir():
+        raise RunImportError(f"{out.parent}: not a folder")
+    tool_poses, light_poses = rig.tool_poses(), rig.light_poses()
+    n = len(tool_poses)
+
+    rows = read_import_csv(csv_path, folder, n)
+    checked = _check_frames(rows, csv_path, rig_path, rig, progress)
+
+    by_position: dict[int, list[int]] = {}
+    for k, row in enumerate(rows):
+        by_position.setdefault(row.position, []).append(k)
+    cameras = sorted({c.camera_id for c in checked})
+    meta = {"operator": "", "light_source": "", "notes": "", **(metadata or {})}
+    meta["imported_from"] = {"folder": str(folder.resolve()), "csv": str(csv_path.resolve()),
+                             "csv_sha256": file_sha256(csv_path), "rig": str(rig_path.resolve())}  # fmt: skip
+    from acquisition import __version__
+
+    header = RunHeader(
+        run_id=run_id or out.stem,
+        rig=rig,
+        tool_poses=tool_poses,
+        light_poses=light_poses,
+        max_exposures=max(len(ks) for ks in by_position.values()),
+        frame_shape=checked[0].shape,
+        bracket=_bracket(by_position, checked),
+        metadata=meta,
+        devices={"arm": "none (imported run: poses as planned unless the CSV gave them)", "camera": "; ".join(cameras)},
+        software_version=__version__,
+        created_utc=datetime.now(UTC).isoformat(timespec="seconds"),
+        preset="import",
+    )
+    empty = [i for i in range(n) if i not in by_position]
+
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise RunImportError(f"{out.parent}: cannot create the folder: {exc.strerror}") from None
+    tmp = _unused_temp(out)
+    try:
+        with RunFileWriter.create(tmp, header) as writer:
+            done = 0
+            for position in sorted(by_position):
+                ks = by_position[position]
+                frames = []
+                for k in ks:
+                    row, info = rows[k], checked[k]
+                    frame = _decode(row, csv_path)
+                    if frame.mosaic.shape != info.shape:  # the file changed since it was checked
+                        raise RunImportError(f"{csv_path}: line {row.line}: {row.name} changed while it was imported")
+                    frame.exposure_s = info.exposure_s
+                    frames.append(frame)
+                    done += 1
+                pose = next((rows[k].pose for k in ks if rows[k].pose is not None), tool_poses[position])
+                stamps = [checked[k].timestamp for k in ks]
+                times = PositionTimes(min(stamps), min(stamps), max(stamps))
+                writer.write_position(position, pose, times, frames)
+                del frames
+                if progress:
+                    progress("writing", done, len(rows))
+            note = f"imported from {folder}: {len(by_position)} of {n} positions have frames"
+            if empty:
+                note += f"; positions {format_ranges(empty)} have none and are left incomplete"
+            writer.set_status("complete", note)
+        _publish(tmp, out)
+    except RunFileError as exc:
+        raise RunImportError(str(exc).replace(str(tmp), str(out))) from None
+    except OSError as exc:
+        raise RunImportError(f"{out}: cannot write the run file: {exc.strerror or exc}") from None
+    finally:
+        _remove_temp(tmp)
+
+    named = {row.path for row in rows}
+    ignored = sorted(p.name for p in folder.iterdir()
+                     if p.suffix.lower() in RAW_EXTENSIONS and p.is_file() and p.resolve() not in named)  # fmt: skip
+    return ImportReport(
+        run_file=out,
+        run_id=header.run_id,
+        frames=len(rows),
+        n_positions=n,
+        positions_with_frames=sorted(by_position),
+        empty_positions=empty,
+        frame_shape=checked[0].shape,
+        cfa_pattern=checked[0].cfa_pattern,
+        exposures_s=sorted({c.exposure_s for c in checked}),
+        cameras=cameras,
+        ignored_files=ignored,
+        exposure_overrides=sum(row.exposure_s is not None for row in rows),
+    )
