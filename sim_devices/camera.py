@@ -1,4 +1,5 @@
-"""The simulated camera: renders the mirrored ball, writes a real DNG, decodes it back.
+"""The simulated camera: renders the mirrored ball (or the rig's object), writes a real DNG,
+decodes it back.
 
 Every frame goes through the same decode path as a real camera's raw file
 (:func:`drivers.raw_decode.decode_raw`), so the acquisition cannot tell the difference.
@@ -26,7 +27,11 @@ from sim_devices.world import SimWorld
 
 
 class SimulatedCamera(Camera):
-    """A pinhole (or thin-lens) camera looking at the mirrored ball.
+    """A pinhole (or thin-lens) camera looking at the mirrored ball, or at the rig's object.
+
+    With ``rig.object`` set the scene is that mesh lit by the truth light
+    (:class:`~sim_devices.object_scene.ObjectSceneRenderer`, reflectance from
+    ``rig.simulation.surface``); ``renderer_options`` go to whichever renderer is used.
 
     Parameters
     ----------
@@ -74,7 +79,14 @@ class SimulatedCamera(Camera):
         self.out_dir.mkdir(parents=True, exist_ok=True)
         self.truth = truth or load_truth(sim.truth)
         seed = sim.seed if seed is None else seed
-        self.renderer = MirrorBallRenderer(
+        # The rig's object, when it has one, is photographed instead of the ball.
+        if rig.object is None:
+            renderer_class = MirrorBallRenderer
+        else:
+            from sim_devices.object_scene import ObjectSceneRenderer  # trimesh: only when needed
+
+            renderer_class = ObjectSceneRenderer
+        self.renderer = renderer_class(
             rig,
             self.truth,
             diffraction=sim.diffraction if diffraction is None else diffraction,
