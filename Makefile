@@ -19,20 +19,29 @@ $(STAMP): pyproject.toml | $(PY)
 
 install: $(STAMP)
 
-demo: $(STAMP)
-	$(VENV)/bin/mirrorgonio demo
+# The whole chain on simulated devices (daemon, REST run, worker, results, accuracy), in a
+# fresh folder under demo-data/ each time; e.g. make demo DEMO_ARGS="--rig rigs/default.toml".
+DEMO_ARGS ?=
 
-# The browser tests/test_web.py drives: Debian's chromium (`playwright install` needs a
-# download site the lab may not reach). Installed once, as root or through sudo.
+demo: $(STAMP)
+	$(VENV)/bin/mirrorgonio demo $(DEMO_ARGS)
+
+# Debian packages the tests use: chromium, the browser tests/test_web.py drives
+# (`playwright install` needs a download site the lab may not reach), and docker-compose,
+# which tests/test_deploy.py runs to validate docker-compose.yml offline (about 1 MB).
+# The missing ones are installed in one apt step, as root or through sudo.
+TEST_DEBS := chromium docker-compose
+
 browser:
-	@command -v chromium >/dev/null || { \
+	@missing=; for deb in $(TEST_DEBS); do command -v $$deb >/dev/null || missing="$$missing $$deb"; done; \
+	[ -z "$$missing" ] || { \
 	  if [ "$$(id -u)" = 0 ]; then SUDO=; \
 	  elif command -v sudo >/dev/null; then SUDO=sudo; \
-	  else echo "chromium is missing; installing it needs root: apt-get install chromium" >&2; exit 1; fi; \
-	  command -v apt-get >/dev/null || { echo "chromium is missing and there is no apt-get: install chromium" >&2; exit 1; }; \
-	  echo "installing chromium (apt-get) for the browser tests"; \
+	  else echo "missing:$$missing; installing needs root: apt-get install$$missing" >&2; exit 1; fi; \
+	  command -v apt-get >/dev/null || { echo "missing:$$missing and there is no apt-get: install$$missing" >&2; exit 1; }; \
+	  echo "installing$$missing (apt-get) for the tests"; \
 	  $$SUDO apt-get update && \
-	  $$SUDO env DEBIAN_FRONTEND=noninteractive apt-get install -y --no-install-recommends chromium; }
+	  $$SUDO env DEBIAN_FRONTEND=noninteractive apt-get install -y --no-install-recommends $$missing; }
 
 test: $(STAMP) browser
 	$(PY) -m pytest
@@ -41,4 +50,4 @@ bench: $(STAMP)
 	$(VENV)/bin/mirrorgonio bench render
 
 clean:
-	rm -rf $(VENV) build *.egg-info demo-output
+	rm -rf $(VENV) build *.egg-info demo-output demo-data

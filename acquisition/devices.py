@@ -40,7 +40,7 @@ def open_devices(settings: DaemonSettings, rig: Rig) -> Devices:
     simulated: dict = {}
     try:
         arm = _open_arm(settings, rig, closers, simulated)
-        camera = _open_camera(settings, rig, simulated)
+        camera = _open_camera(settings, rig, simulated, arm)
         camera.connect()
         closers.append(camera.close)
     except BaseException:
@@ -98,17 +98,21 @@ def _open_arm(settings: DaemonSettings, rig: Rig, closers: list, simulated: dict
     return arm
 
 
-def _open_camera(settings: DaemonSettings, rig: Rig, simulated: dict) -> Camera:
+def _open_camera(settings: DaemonSettings, rig: Rig, simulated: dict, arm: Arm) -> Camera:
     cfg = settings.camera
     spool = Path(settings.data_dir) / "spool"
     if cfg.kind == "simulated":
-        if "stage" not in simulated:
-            raise SettingsError("camera.kind: the simulated camera needs the simulated arm (arm.kind = \"simulated\")")
         from sim_devices.camera import SimulatedCamera
         from sim_devices.lights import load_truth
         from sim_devices.world import SimWorld
 
-        world = SimWorld(simulated["stage"].true_pose, rig.light.light_to_tool.to_pose())
+        light_to_tool = rig.light.light_to_tool.to_pose()
+        if "stage" in simulated:  # the simulated stage in this process: its true pose
+            world = SimWorld(simulated["stage"].true_pose, light_to_tool)
+        else:
+            # Any other arm (the simulated arm in its own process or container, or a real
+            # one): the light is where the arm's controller says the tool is.
+            world = SimWorld.following(arm.position, light_to_tool)
         sim = cfg.simulated
         camera = SimulatedCamera(
             rig, world, spool, truth=load_truth(sim.truth) if sim.truth else None,

@@ -11,11 +11,15 @@ import ipaddress
 from pathlib import Path
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, PositiveFloat, SecretStr
+from pydantic import BaseModel, ConfigDict, Field, PositiveFloat, SecretStr, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from acquisition.rig import DEFAULT_RIG_PATH
 from drivers.config_files import read_toml, validate_model
+from drivers.modbus_profile import SIM_STAGE_PROFILE
+
+#: Register-map profiles shipped with the drivers, named by ``arm.profile = "NAME"``.
+SHIPPED_PROFILES_DIR = SIM_STAGE_PROFILE.parent
 
 
 class SettingsError(ValueError):
@@ -38,7 +42,9 @@ class ArmSettings(_Section):
     """Which arm, and how to reach it.
 
     ``simulated`` starts the simulated stage's Modbus TCP server on loopback (on
-    ``port``, 0 for any free port) and drives it through ``ModbusArm``.
+    ``port``, 0 for any free port) and drives it through ``ModbusArm``. ``profile`` is
+    a register-map TOML file, or the bare name of one shipped with the drivers
+    (``sim_stage``: the simulated arm of ``mirrorgonio simulate arm``).
     """
 
     kind: Literal["simulated", "modbus-tcp", "modbus-rtu", "serial"] = "simulated"
@@ -51,6 +57,16 @@ class ArmSettings(_Section):
     retries: int = Field(default=3, ge=0)
     move_timeout_s: PositiveFloat = 120.0
     simulated: SimulatedStageSettings = SimulatedStageSettings()
+
+    @field_validator("profile")
+    @classmethod
+    def _shipped_profile(cls, value: Path | None) -> Path | None:
+        """A bare name (no folder, no suffix) of a shipped profile means that file."""
+        if value is not None and len(value.parts) == 1 and not value.suffix:
+            shipped = SHIPPED_PROFILES_DIR / f"{value}.toml"
+            if shipped.is_file():
+                return shipped
+        return value
 
 
 class SimulatedCameraSettings(_Section):

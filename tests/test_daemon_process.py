@@ -132,3 +132,101 @@ def test_serve_refuses_a_public_address_without_a_token(tmp_path):
     assert result.returncode == 2
     assert result.stderr.strip() == ("error: host: refusing to listen on 0.0.0.0 without a token "
                                      "(set token in the configuration or MG_TOKEN)")  # fmt: skip
+
+
+# --- the simulated arm in its own process (as in docker-compose.yml) --------------------------
+def _start_sim_arm(tmp_path, port: int):
+    """``mirrorgonio simulate arm`` as its own process; returns it once it accepts connections."""
+    import socket
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    exe = Path(sys.executable).with_name("mirrorgonio")
+    log = open(tmp_path / "sim-arm.log", "ab")
+    proc = subprocess.Popen([str(exe), "simulate", "arm", "--host", "127.0.0.1", "--port", str(port),
+                             "--speed", "0.5", "--accel", "5"], stdout=log, stderr=subprocess.STDOUT)  # fmt: skip
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline:
+        assert proc.poll() is None, (tmp_path / "sim-arm.log").read_text()
+        try:
+            socket.create_connection(("127.0.0.1", port), timeout=1.0).close()
+            return proc, log
+        except OSError:
+            time.sleep(0.1)
+    proc.kill()
+    raise AssertionError("the simulated arm did not start listening")
+
+
+def _sweep_positions(indices):
+    """Light poses of the reduced rig's sweep at ``indices``, as a ``poses`` run request."""
+    from acquisition.rig import load_rig
+    from conftest import REDUCED_RIG
+
+    light = load_rig(REDUCED_RIG).light_poses()
+    return [{"position_m": list(map(float, light[i].position)),
+             "rotation_deg": [math.degrees(a) for a in (light[i].rx, light[i].ry, light[i].rz)]} for i in indices]  # fmt: skip
+
+
+def _run_frames(daemon, request) -> tuple[list[np.ndarray], dict]:
+    with daemon.client() as http:
+        devices = http.get("/devices").json()
+        started = http.post("/runs", json=request)
+        assert started.status_code == 201, started.text
+        final = wait_for(http, started.json()["id"], {"complete", "failed", "aborted"}, timeout=180)
+        assert final["state"] == "complete", final
+    path = daemon.config.parent / "data" / "runs" / f"{final['id']}.h5"
+    with RunFile.open(path) as run_file:
+        for i in range(run_file.n_positions):
+            distance, angle = run_file.measured_pose(i).distance_to(run_file.header.tool_poses[i])
+            assert distance < 50e-6 and angle < 1e-3, (i, distance, angle)
+        return [run_file.frames(i).astype(float) for i in range(run_file.n_positions)], devices
+
+
+def test_simulated_camera_follows_a_simulated_arm_in_another_process(tmp_path, daemon_factory):
+    """The compose deployment's link: the daemon drives `mirrorgonio simulate arm` (another
+    process) with the real Modbus driver, and the simulated camera photographs the light
+    where that arm's controller says it is. Same frames as with the arm in-process."""
+    from conftest import REDUCED_RIG
+
+    arm_port = free_port()
+    sim_arm, sim_arm_log = _start_sim_arm(tmp_path, arm_port)
+    try:
+        remote_dir = tmp_path / "remote"
+        remote_dir.mkdir()
+        config = remote_dir / "daemon.toml"
+        config.write_text(f'data_dir = "{remote_dir / "data"}"\nrig = "{REDUCED_RIG}"\n'
+                          f'[arm]\nkind = "modbus-tcp"\nprofile = "sim_stage"\nhost = "127.0.0.1"\nport = {arm_port}\n'
+                          '[camera]\nkind = "simulated"\n')  # fmt: skip
+        local_dir = tmp_path / "local"
+        local_dir.mkdir()
+        request = {"preset": "poses", "poses": _sweep_positions([20, 33, 45]),
+                   "bracket": {"mode": "fixed", "exposures_s": [0.001, 0.005]}}  # fmt: skip
+
+        remote = daemon_factory(config)
+        remote_frames, devices = _run_frames(remote, request)
+        assert devices["arm"]["identity"].endswith(f"@ tcp://127.0.0.1:{arm_port})"), devices
+        remote.stop()
+        local = daemon_factory(write_config(local_dir / "daemon.toml", local_dir / "data"))
+        local_frames, _ = _run_frames(local, request)
+    finally:
+        sim_arm.terminate()
+        sim_arm.wait(20)
+        sim_arm_log.close()
+    assert sim_arm.returncode == 0, (tmp_path / "sim-arm.log").read_text()  # SIGTERM ends it cleanly
+
+    def similarity(a, b):
+        return float(np.corrcoef(a.ravel(), b.ravel())[0, 1])
+
+    n = len(remote_frames)
+    assert n == 3
+    for i in range(n):
+        # The light is lit where the arm is: the longest exposure shows the sources.
+        assert remote_frames[i][-1].max() > 1000
+        # The same picture as with the simulated arm in the daemon's own process (the
+        # pose differs only by the read-back noise, so the frames nearly coincide)...
+        assert similarity(remote_frames[i][-1], local_frames[i][-1]) > 0.95, i
+        # ...and a different one at every other position.
+        for j in range(n):
+            if j != i:
+                assert similarity(remote_frames[i][-1], remote_frames[j][-1]) < 0.5, (i, j)

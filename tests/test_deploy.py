@@ -1,0 +1,577 @@
+"""The deployment files (docker-compose.yml, Dockerfile, .dockerignore), checked without Docker.
+
+No engine runs here, so nothing is built or started. Instead:
+
+- the compose file is resolved by Debian's ``docker-compose config`` when it is installed
+  (``make test`` installs it), else parsed here with the same interpolation rules;
+- every service's command line is parsed by the real command it runs (``mirrorgonio`` via
+  its click command, ``dask scheduler`` / ``dask worker`` via theirs) without running it, so
+  an unknown option, a bad value or a missing argument is a failure;
+- the addresses, ports and paths the services give each other agree;
+- the Dockerfile installs this project and copies only what exists and is not ignored.
+
+``compose_problems`` returns every problem it finds; a copy of the compose file with one
+planted mistake must give at least one (so the checks can fail).
+"""
+
+from __future__ import annotations
+
+import ast
+import fnmatch
+import json
+import os
+import re
+import shlex
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+from urllib.parse import urlparse
+
+import click
+import pytest
+import typer.main
+import yaml
+
+ROOT = Path(__file__).resolve().parent.parent
+COMPOSE = ROOT / "docker-compose.yml"
+DOCKERFILE = ROOT / "Dockerfile"
+DOCKERIGNORE = ROOT / ".dockerignore"
+TOKEN_MESSAGE = "set MG_TOKEN to the API token"
+DOCKER_COMPOSE = shutil.which("docker-compose")
+#: The services the issue asks for, by profile (None: always on).
+EXPECTED = {"daemon": None, "worker": None, "sim-arm": None, "dask-scheduler": "scale", "dask-worker": "scale"}
+
+
+# --- resolving the compose file ---------------------------------------------------------------
+class ComposeError(Exception):
+    pass
+
+
+_VARIABLE = re.compile(r"\$\{(?P<name>[A-Za-z_][A-Za-z0-9_]*)(?:(?P<op>:?[-?])(?P<arg>[^}]*))?\}|\$(?P<bare>[A-Za-z_][A-Za-z0-9_]*)")
+
+
+def _interpolate(value, env: dict[str, str], where: str):
+    """Compose's ``${VAR}``, ``${VAR:-default}``, ``${VAR-default}``, ``${VAR:?message}``, ``$$``."""
+    if isinstance(value, dict):
+        return {k: _interpolate(v, env, f"{where}.{k}") for k, v in value.items()}
+    if isinstance(value, list):
+        return [_interpolate(v, env, where) for v in value]
+    if not isinstance(value, str):
+        return value
+
+    def one(match: re.Match) -> str:
+        name = match["name"] or match["bare"]
+        op, arg = match["op"], match["arg"] or ""
+        present = name in env
+        empty = not env.get(name)
+        if op in (":?", "?") and (not present or (op == ":?" and empty)):
+            raise ComposeError(f'Missing mandatory value for "{where}": {arg or name}')
+        if op in (":-", "-") and (not present or (op == ":-" and empty)):
+            return arg
+        return env.get(name, "")
+
+    parts = value.split("$$")
+    return "$".join(_VARIABLE.sub(one, part) for part in parts)
+
+
+def _parse_compose(path: Path, env: dict[str, str]) -> dict:
+    """What ``docker-compose config`` does, as far as these tests need (YAML merge keys included)."""
+    data = yaml.safe_load(path.read_text())
+    data = {k: v for k, v in data.items() if not k.startswith("x-")}
+    return _interpolate(data, env, "compose")
+
+
+def resolve_compose(path: Path, env: dict[str, str], tool: str | None = DOCKER_COMPOSE) -> dict:
+    """The resolved compose file: by ``docker-compose config`` if available, else parsed here."""
+    if tool is None:
+        return _parse_compose(path, env)
+    base = {k: v for k, v in os.environ.items() if not k.startswith(("MG_", "COMPOSE_"))}
+    result = subprocess.run([tool, "-f", str(path), "config"], capture_output=True, text=True,
+                            env={**base, **env}, cwd=path.parent, timeout=60)  # fmt: skip
+    if result.returncode != 0:
+        raise ComposeError(result.stderr.strip() or result.stdout.strip())
+    return yaml.safe_load(result.stdout)
+
+
+# --- the image's defaults (Dockerfile) ---------------------------------------------------------
+def dockerfile_instructions(path: Path = DOCKERFILE) -> list[tuple[str, str]]:
+    """``(INSTRUCTION, arguments)`` pairs, continuation lines joined, comments dropped."""
+    instructions, pending = [], ""
+    for line in path.read_text().splitlines():
+        stripped = line.strip()
+        if not pending and (not stripped or stripped.startswith("#")):
+            continue
+        if pending and stripped.startswith("#"):
+            continue
+        pending += " " + stripped[:-1] if stripped.endswith("\\") else " " + stripped
+        if not stripped.endswith("\\"):
+            keyword, _, rest = pending.strip().partition(" ")
+            instructions.append((keyword.upper(), rest.strip()))
+            pending = ""
+    return instructions
+
+
+def _exec_form(arguments: str) -> list[str]:
+    value = json.loads(arguments) if arguments.startswith("[") else shlex.split(arguments)
+    assert isinstance(value, list)
+    return [str(v) for v in value]
+
+
+def image_defaults() -> tuple[list[str], list[str]]:
+    entrypoint: list[str] = []
+    cmd: list[str] = []
+    for keyword, arguments in dockerfile_instructions():
+        if keyword == "ENTRYPOINT":
+            entrypoint = _exec_form(arguments)
+        elif keyword == "CMD":
+            cmd = _exec_form(arguments)
+    return entrypoint, cmd
+
+
+def service_argv(service: dict) -> list[str]:
+    """What the container runs: entrypoint + command, each from the service or the image."""
+    entrypoint, cmd = image_defaults()
+    if "entrypoint" in service:
+        entrypoint = service["entrypoint"] if isinstance(service["entrypoint"], list) else shlex.split(service["entrypoint"])
+        cmd = []  # a service's entrypoint resets the image's CMD
+    if "command" in service:
+        cmd = service["command"] if isinstance(service["command"], list) else shlex.split(service["command"])
+    return [str(a) for a in [*entrypoint, *cmd]]
+
+
+# --- parsing a command line with the real command, without running it --------------------------
+def _mirrorgonio_command() -> click.Command:
+    from acquisition.cli import app
+
+    return typer.main.get_command(app)
+
+
+def _dask_command() -> click.Group:
+    """The ``dask`` program's group with the subcommands its entry points register."""
+    from importlib.metadata import entry_points
+
+    group = click.Group("dask")
+    for ep in entry_points(group="dask_cli"):
+        group.add_command(ep.load(), ep.name)
+    return group
+
+
+PROGRAMS = {"mirrorgonio": _mirrorgonio_command, "dask": _dask_command}
+
+
+def _usage_errors() -> tuple[type[Exception], ...]:
+    """click's errors, and those of the copy of click that newer typer carries inside."""
+    errors: list[type[Exception]] = [click.ClickException]
+    try:
+        from typer._click.exceptions import ClickException
+    except ImportError:  # an older typer on the real click
+        pass
+    else:
+        errors.append(ClickException)
+    return tuple(errors)
+
+
+USAGE_ERRORS = _usage_errors()
+
+
+def parse_command_line(argv: list[str]) -> list[click.Context]:
+    """Parse ``argv`` as its program would, down to the leaf subcommand; raise click's error
+    on an unknown program, subcommand or option, a bad value or a missing argument."""
+    if not argv or argv[0] not in PROGRAMS:
+        raise click.UsageError(f"not a program of this image: {argv[:1]}")
+    command = PROGRAMS[argv[0]]()
+    contexts = [command.make_context(argv[0], list(argv[1:]), resilient_parsing=False)]
+    while hasattr(contexts[-1].command, "resolve_command"):  # a group: on to its subcommand
+        ctx = contexts[-1]
+        protected = ctx._protected_args if hasattr(ctx, "_protected_args") else ctx.protected_args
+        args = [*protected, *ctx.args]
+        if not args:
+            raise click.UsageError("no subcommand", ctx)
+        name, sub, rest = ctx.command.resolve_command(ctx, args)
+        contexts.append(sub.make_context(name, rest, parent=ctx))
+    if contexts[-1].args:
+        raise click.UsageError(f"unexpected arguments {contexts[-1].args}", contexts[-1])
+    return contexts
+
+
+def _option(argv: list[str], name: str) -> str | None:
+    for i, token in enumerate(argv):
+        if token == name and i + 1 < len(argv):
+            return argv[i + 1]
+        if token.startswith(name + "="):
+            return token.split("=", 1)[1]
+    return None
+
+
+def _healthcheck_code(service: dict) -> str | None:
+    test = (service.get("healthcheck") or {}).get("test")
+    if not test or test[0] not in ("CMD", "CMD-SHELL"):
+        return None
+    if test[1:3] == ["python", "-c"]:
+        return test[3]
+    return None
+
+
+def _profiles(service: dict) -> set[str]:
+    return set(service.get("profiles") or [])
+
+
+# --- all the checks, as a list of problems ---------------------------------------------------------
+def compose_problems(path: Path = COMPOSE, env: dict[str, str] | None = None, tool: str | None = DOCKER_COMPOSE) -> list[str]:
+    env = {"MG_TOKEN": "test-token"} if env is None else env
+    try:
+        config = resolve_compose(path, env, tool)
+    except ComposeError as exc:
+        return [f"compose file does not resolve: {exc}"]
+    problems: list[str] = []
+    services: dict = config.get("services") or {}
+    argv = {name: service_argv(svc) for name, svc in services.items()}
+
+    for name, profile in EXPECTED.items():
+        if name not in services:
+            problems.append(f"{name}: missing")
+        elif _profiles(services[name]) != ({profile} if profile else set()):
+            problems.append(f"{name}: profiles {sorted(_profiles(services[name]))}, expected {profile or 'none'}")
+
+    # One image for all.
+    images = {(svc.get("image"), json.dumps(svc.get("build"), sort_keys=True)) for svc in services.values()}
+    if len(images) != 1 or any(image is None or build == "null" for image, build in images):
+        problems.append(f"services do not share one built image: {sorted(map(str, images))}")
+
+    # Every command is a real command line of this image.
+    for name, args in argv.items():
+        try:
+            parse_command_line(args)
+        except USAGE_ERRORS as exc:
+            problems.append(f"{name}: {shlex.join(args)}: {exc.format_message()}")
+
+    # Healthchecks: present where promised, valid Python, on the port the service listens on.
+    for name, svc in services.items():
+        code = _healthcheck_code(svc)
+        if code is None:
+            if not name.startswith("worker"):  # the processing workers have none
+                problems.append(f"{name}: no healthcheck")
+            continue
+        try:
+            ast.parse(code)
+        except SyntaxError as exc:
+            problems.append(f"{name}: healthcheck is not valid Python: {exc}")
+        ports = set(re.findall(r"(?:127\.0\.0\.1|localhost)['\"]?\s*[,:]\s*(\d+)", code))
+        listening = {_option(argv[name], "--port"), (_option(argv[name], "--dashboard-address") or "").rpartition(":")[2]}
+        if not ports or not ports <= listening:
+            problems.append(f"{name}: healthcheck checks port(s) {sorted(ports)}, the service listens on {sorted(p for p in listening if p)}")
+
+    # depends_on: the long form, waiting for health where there is one; no service that is
+    # always on may depend on one that only a profile starts.
+    for name, svc in services.items():
+        for dep, spec in (svc.get("depends_on") or {}).items():
+            if dep not in services:
+                problems.append(f"{name}: depends on unknown service {dep}")
+                continue
+            wanted = "service_healthy" if "healthcheck" in services[dep] else "service_started"
+            if not isinstance(spec, dict) or spec.get("condition") != wanted:
+                problems.append(f"{name}: depends_on {dep} should have condition {wanted}")
+            if not _profiles(svc) and _profiles(services[dep]):
+                problems.append(f"{name}: always on, but depends on {dep} of profile(s) {sorted(_profiles(services[dep]))}")
+
+    # Data on the named volume, at the same path everywhere (the catalog records run paths).
+    declared = set((config.get("volumes") or {}).keys())
+    for name in ("daemon", "worker", "worker-scale", "dask-worker"):
+        if name not in services:
+            continue
+        mounts = [str(v) if isinstance(v, str) else f"{v.get('source')}:{v.get('target')}" for v in services[name].get("volumes") or []]
+        named = [m.split(":")[0] for m in mounts if m.split(":")[1:2] == ["/data"]]
+        if not named or named[0] not in declared:
+            problems.append(f"{name}: /data is not on a named volume declared under volumes: ({mounts})")
+
+    daemon_problems, data_dir = _daemon_problems(services, argv)
+    return problems + daemon_problems + _links_problems(services, argv, data_dir)
+
+
+def _daemon_problems(services: dict, argv: dict) -> tuple[list[str], str | None]:
+    """The daemon's environment and options are a valid configuration that reaches the arm;
+    and its data folder (the catalog and the runs)."""
+    from acquisition.settings import SettingsError, load_settings
+
+    if "daemon" not in services:
+        return [], None
+    env = {k: str(v) for k, v in (services["daemon"].get("environment") or {}).items()}
+    if not env.get("MG_TOKEN"):
+        return ["daemon: MG_TOKEN is not passed to the daemon"], None
+    args = argv["daemon"]
+    saved = {k: v for k, v in os.environ.items() if k.startswith("MG_")}
+    try:
+        for key in saved:
+            del os.environ[key]
+        os.environ.update(env)
+        port = _option(args, "--port")
+        settings = load_settings(_option(args, "--config"), host=_option(args, "--host"),
+                                 port=int(port) if port else None, data_dir=_option(args, "--data-dir"))  # fmt: skip
+        settings.require_token_off_loopback()
+    except (SettingsError, ValueError) as exc:
+        return [f"daemon: its configuration is refused: {exc}"], None
+    finally:
+        for key in env:
+            os.environ.pop(key, None)
+        os.environ.update(saved)
+    problems = []
+    if str(settings.data_dir) != "/data":
+        problems.append(f"daemon: data in {settings.data_dir}, not on the /data volume")
+    if settings.host != "0.0.0.0":
+        problems.append(f"daemon: listens on {settings.host}; other containers cannot reach it")
+    published = [str(p.get("target") if isinstance(p, dict) else p).rpartition(":")[2] for p in services["daemon"].get("ports") or []]
+    if str(settings.port) not in published:
+        problems.append(f"daemon: port {settings.port} is not published ({published})")
+    if settings.arm.kind != "simulated":
+        if settings.arm.profile is None or not Path(settings.arm.profile).is_file():
+            problems.append(f"daemon: arm profile {settings.arm.profile} does not exist")
+        if settings.arm.host not in services:
+            problems.append(f"daemon: arm host {settings.arm.host} is not a service")
+        elif _option(argv[settings.arm.host], "--port") != str(settings.arm.port):
+            problems.append(f"daemon: arm port {settings.arm.port} is not where {settings.arm.host} listens")
+        elif _option(argv[settings.arm.host], "--host") != "0.0.0.0":
+            problems.append(f"{settings.arm.host}: listens on loopback only; the daemon cannot reach it")
+    if settings.camera.kind != "simulated":
+        problems.append(f"daemon: camera {settings.camera.kind}: the deployment has no camera device")
+    return problems, str(settings.data_dir)
+
+
+def _links_problems(services: dict, argv: dict, data_dir: str | None) -> list[str]:
+    """Data folders (the catalog is in it) and scheduler addresses the services give each other agree."""
+    problems = []
+    scheduler = services.get("dask-scheduler")
+    scheduler_at = None
+    if scheduler is not None:
+        scheduler_at = ("dask-scheduler", _option(argv["dask-scheduler"], "--port") or "8786")
+    for name, args in argv.items():
+        if args[:2] == ["mirrorgonio", "worker"]:
+            if data_dir and _option(args, "--data-dir") != data_dir:
+                problems.append(f"{name}: --data-dir {_option(args, '--data-dir')}, the daemon's is {data_dir}")
+            address = _option(args, "--scheduler") or (services[name].get("environment") or {}).get("MG_SCHEDULER")
+            if address not in (None, "local", "none"):
+                if "scale" not in _profiles(services[name]):
+                    problems.append(f"{name}: uses a Dask scheduler outside the scale profile")
+                url = urlparse(address)
+                if (url.hostname, str(url.port)) != scheduler_at:
+                    problems.append(f"{name}: --scheduler {address} is not the dask-scheduler service {scheduler_at}")
+        if args[:2] == ["dask", "worker"]:
+            url = urlparse(args[2] if len(args) > 2 else "")
+            if (url.hostname, str(url.port)) != scheduler_at:
+                problems.append(f"{name}: scheduler {args[2:3]} is not the dask-scheduler service {scheduler_at}")
+    if scheduler is not None and not any(
+        (_option(a, "--scheduler") or "").startswith("tcp://") and "scale" in _profiles(services[n])
+        for n, a in argv.items()
+        if a[:2] == ["mirrorgonio", "worker"]
+    ):
+        problems.append("profile scale: no mirrorgonio worker is pointed at the Dask scheduler")
+    return problems
+
+
+# --- .dockerignore ------------------------------------------------------------------------------
+def dockerignored(relative: str, patterns: list[str]) -> bool:
+    """Docker's rule: the last matching pattern wins; ``!`` re-includes; a folder's match
+    covers what is inside; ``**`` matches any number of folders."""
+    parts = relative.strip("/").split("/")
+    candidates = ["/".join(parts[: i + 1]) for i in range(len(parts))]
+    ignored = False
+    for raw in patterns:
+        negate = raw.startswith("!")
+        pattern = raw[1:] if negate else raw
+        pattern = pattern.strip("/")
+        variants = {pattern}
+        while pattern.startswith("**/"):
+            pattern = pattern[3:]
+            variants.add(pattern)
+        if any(fnmatch.fnmatchcase(c, v) and (v.count("/") == c.count("/") or "**" in v) for c in candidates for v in variants):
+            ignored = not negate
+    return ignored
+
+
+def dockerignore_patterns() -> list[str]:
+    lines = DOCKERIGNORE.read_text().splitlines() if DOCKERIGNORE.exists() else []
+    return [line.strip() for line in lines if line.strip() and not line.strip().startswith("#")]
+
+
+# --- tests ---------------------------------------------------------------------------------------
+def test_compose_file_is_valid_and_consistent():
+    assert compose_problems() == []
+
+
+@pytest.mark.skipif(DOCKER_COMPOSE is None, reason="docker-compose is not installed (make test installs it)")
+def test_docker_compose_config_needs_the_token_and_says_so():
+    resolved = resolve_compose(COMPOSE, {"MG_TOKEN": "x"})
+    assert resolved["services"]["daemon"]["environment"]["MG_TOKEN"] == "x"
+    for env in ({}, {"MG_TOKEN": ""}):
+        result = subprocess.run([DOCKER_COMPOSE, "-f", str(COMPOSE), "config"], capture_output=True, text=True,
+                                env={k: v for k, v in os.environ.items() if k != "MG_TOKEN"} | env, timeout=60)  # fmt: skip
+        assert result.returncode != 0
+        assert TOKEN_MESSAGE in result.stderr
+
+
+def test_the_fallback_parser_needs_the_token_too():
+    with pytest.raises(ComposeError, match=TOKEN_MESSAGE):
+        _parse_compose(COMPOSE, {})
+    assert compose_problems(env={}, tool=None) == [f'compose file does not resolve: Missing mandatory value for '
+                                                   f'"compose.services.daemon.environment.MG_TOKEN": {TOKEN_MESSAGE}']  # fmt: skip
+
+
+def test_the_fallback_parser_resolves_the_file_as_docker_compose_does():
+    parsed = _parse_compose(COMPOSE, {"MG_TOKEN": "x"})
+    assert compose_problems(tool=None) == []
+    if DOCKER_COMPOSE is None:
+        pytest.skip("docker-compose is not installed: nothing to compare with")
+    resolved = resolve_compose(COMPOSE, {"MG_TOKEN": "x"})
+    assert set(parsed["services"]) == set(resolved["services"])
+    for name, svc in parsed["services"].items():
+        assert service_argv(svc) == service_argv(resolved["services"][name]), name
+        assert svc.get("profiles") == resolved["services"][name].get("profiles"), name
+        assert set(svc.get("depends_on") or {}) == set(resolved["services"][name].get("depends_on") or {}), name
+        env = {k: str(v) for k, v in (svc.get("environment") or {}).items()}
+        assert env == {k: str(v) for k, v in (resolved["services"][name].get("environment") or {}).items()}, name
+
+
+def test_every_service_runs_a_real_command_line():
+    """The same check as in compose_problems, spelled out: each argv parses to a leaf command."""
+    services = _parse_compose(COMPOSE, {"MG_TOKEN": "x"})["services"]
+    leaves = {}
+    for name, svc in services.items():
+        contexts = parse_command_line(service_argv(svc))
+        leaves[name] = " ".join(c.info_name for c in contexts)
+    assert leaves == {
+        "sim-arm": "mirrorgonio simulate arm",
+        "daemon": "mirrorgonio serve",
+        "worker": "mirrorgonio worker",
+        "worker-scale": "mirrorgonio worker",
+        "dask-scheduler": "dask scheduler",
+        "dask-worker": "dask worker",
+    }
+
+
+@pytest.mark.parametrize("sub", ["scheduler", "worker"])
+def test_the_dask_program_lists_the_options_the_services_use(sub):
+    """``dask scheduler --help`` / ``dask worker --help`` of this environment's dask program."""
+    services = _parse_compose(COMPOSE, {"MG_TOKEN": "x"})["services"]
+    used = {t.split("=")[0] for svc in services.values() for argv in [service_argv(svc)]
+            if argv[:2] == ["dask", sub] for t in argv[2:] if t.startswith("--")}  # fmt: skip
+    assert used
+    exe = Path(sys.executable).with_name("dask")
+    result = subprocess.run([str(exe), sub, "--help"], capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, result.stderr
+    missing = {option for option in used if not re.search(rf"(^|[\s,/]){re.escape(option)}\b", result.stdout)}
+    assert not missing, result.stdout
+
+
+def test_the_image_default_command_is_valid_too():
+    entrypoint, cmd = image_defaults()
+    assert entrypoint == ["mirrorgonio"]
+    assert [c.info_name for c in parse_command_line([*entrypoint, *cmd])] == ["mirrorgonio", "serve"]
+
+
+PLANTED = [
+    # (what is replaced, by what): each one a mistake a person could make.
+    ('command: ["simulate", "arm", "--host", "0.0.0.0", "--port", "5020"]',
+     'command: ["simulate", "arm", "--host", "0.0.0.0", "--prot", "5020"]'),
+    ('"--port", "8000", "--data-dir", "/data"]', '"--port", "eighty", "--data-dir", "/data"]'),
+    ('command: ["worker", "--data-dir", "/data"]', 'command: ["wroker", "--data-dir", "/data"]'),
+    ('command: ["worker", "--data-dir", "/data"]', 'command: ["worker", "--data-dir"]'),
+    ('command: ["worker", "--data-dir", "/data"]', 'command: ["worker", "--catalog", "/data/catalog.sqlite"]'),
+    ('command: ["worker", "--data-dir", "/data"]', 'command: ["worker", "--data-dir", "/srv"]'),
+    ('"--data-dir", "/data", "--scheduler"', '"--data-dir", "/data", "--sched"'),
+    ('"--nthreads", "2"', '"--nthread", "2"'),
+    ('["scheduler", "--host"', '["schedular", "--host"'),
+    ("MG_ARM__PORT: \"5020\"", "MG_ARM__PORT: \"502\""),
+    ("MG_ARM__KIND: modbus-tcp", "MG_ARM__KIND: modbus"),
+    ("MG_TOKEN: ${MG_TOKEN:?set MG_TOKEN to the API token}", "MG_TOKEN: ${MG_TOKEN:-}"),
+    ("condition: service_healthy  # the daemon", "condition: service_started  # the daemon"),
+    ("'http://127.0.0.1:8000/health'", "'http://127.0.0.1:8080/health'"),
+    ('"tcp://dask-scheduler:8786"]', '"tcp://dask-scheduler:8788"]'),
+]
+
+
+@pytest.mark.parametrize("tool", ["docker-compose", "parser"])
+@pytest.mark.parametrize(("old", "new"), PLANTED, ids=[new for _, new in PLANTED])
+def test_a_planted_mistake_is_found(tmp_path, old, new, tool):
+    if tool == "docker-compose" and DOCKER_COMPOSE is None:
+        pytest.skip("docker-compose is not installed")
+    text = COMPOSE.read_text()
+    assert text.count(old) == 1, f"the compose file changed: update the planted mistake {old!r}"
+    broken = tmp_path / "docker-compose.yml"
+    broken.write_text(text.replace(old, new))
+    env = {} if "MG_TOKEN:-" in new else None
+    chosen = DOCKER_COMPOSE if tool == "docker-compose" else None
+    problems = compose_problems(broken, env=env, tool=chosen)
+    # Found on its own: a problem the real file does not have.
+    assert set(problems) - set(compose_problems(tool=chosen)), f"planting {new!r} went unnoticed"
+
+
+# --- the Dockerfile -------------------------------------------------------------------------------
+def _shell_commands(script: str) -> list[list[str]]:
+    """The simple commands of a RUN line, split at ``&&``, ``||``, ``;`` and ``|`` outside quotes."""
+    lexer = shlex.shlex(script, posix=True, punctuation_chars=True)
+    lexer.whitespace_split = True
+    commands: list[list[str]] = [[]]
+    for token in lexer:
+        if token in ("&&", "||", ";", "|"):
+            commands.append([])
+        else:
+            commands[-1].append(token)
+    return [c for c in commands if c]
+
+
+def test_the_dockerfile_installs_this_project_as_a_user_with_data_on_a_volume():
+    instructions = dockerfile_instructions()
+    keywords = [k for k, _ in instructions]
+    assert instructions[0] == ("FROM", "python:3.11-slim")
+    workdir = next(args for k, args in instructions if k == "WORKDIR")
+    copied_before = set()
+    installs_project = False
+    for keyword, args in instructions:
+        if keyword == "COPY":
+            copied_before.update(shlex.split(args)[:-1])
+        if keyword == "RUN" and "pip install" in args:
+            for words in _shell_commands(args):
+                if words[:2] == ["pip", "install"] and {".", workdir, "-e."} & set(words[2:]):
+                    installs_project = True
+                    assert {"pyproject.toml", "acquisition", "processing", "drivers", "sim_devices"} <= copied_before, copied_before
+    assert installs_project, "no `pip install .` (or -e .) of the project after copying it"
+    user = [args for k, args in instructions if k == "USER"]
+    assert user and user[-1] not in ("root", "0"), user
+    assert keywords.index("USER") > max(i for i, k in enumerate(keywords) if k == "RUN" and "pip install" in instructions[i][1])
+    assert any(k == "VOLUME" and "/data" in args for k, args in instructions)
+    assert any(k == "RUN" and "chown" in args and "/data" in args for k, args in instructions), "/data is not writable by the user"
+
+
+def test_the_dockerfile_copies_what_exists_and_is_not_ignored():
+    patterns = dockerignore_patterns()
+    sources = []
+    for keyword, args in dockerfile_instructions():
+        if keyword in ("COPY", "ADD"):
+            words = [w for w in shlex.split(args) if not w.startswith("--")]
+            sources += words[:-1]
+    assert sources
+    for source in sources:
+        matches = list(ROOT.glob(source))
+        assert matches, f"COPY {source}: nothing in the build context"
+        for match in matches:
+            relative = match.relative_to(ROOT).as_posix()
+            assert not dockerignored(relative, patterns), f"COPY {source}: excluded by .dockerignore"
+    # What the installed project reads at run time is in the context and copied.
+    needed = ["rigs/default.toml", "drivers/profiles/sim_stage.toml", "acquisition/web/index.html", "README.md"]
+    for relative in needed:
+        assert (ROOT / relative).exists(), relative
+        assert not dockerignored(relative, patterns), relative
+        assert any(relative == s or relative.startswith(s.rstrip("/") + "/") for s in sources), f"{relative} is not copied"
+    # The packages setuptools finds are all copied.
+    import tomllib
+
+    include = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"]["find"]["include"]
+    for package in {p.rstrip("*") for p in include}:
+        assert package in sources, f"package {package} is not copied"
+
+
+def test_dockerignore_keeps_the_build_context_small():
+    patterns = dockerignore_patterns()
+    for heavy in (".venv/bin/python", ".git/HEAD", "data/runs/x.h5", "acquisition/__pycache__/cli.cpython-311.pyc", "demo-output/a.dng"):
+        assert dockerignored(heavy, patterns), heavy
+    assert not dockerignored("sim_devices/lights/five-gaussians.toml", patterns)
