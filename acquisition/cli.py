@@ -29,6 +29,11 @@ app.add_typer(simulate_app, name="simulate")
 app.add_typer(bench_app, name="bench")
 
 RigOption = Annotated[Path, typer.Option("--rig", help="Rig description (TOML).")]
+SchedulerOption = Annotated[str, typer.Option(
+    "--scheduler", envvar="MG_SCHEDULER",
+    help="Where positions are processed: local (a Dask cluster on this machine, one process per core), "
+         "tcp://HOST:8786 (an existing Dask scheduler), or none (this process, no Dask).")]  # fmt: skip
+WorkersOption = Annotated[int | None, typer.Option("--workers", min=1, help="Worker processes of the local cluster (default: the cores).")]
 
 
 @app.callback()
@@ -174,6 +179,8 @@ def process(
     estimator: Annotated[str, typer.Option(help="auto (from the footprint), templates, or cell-sums.")] = "auto",
     fit: Annotated[str, typer.Option(help="Fit: gaussian, polynomial, cos-power, gaussian-2d.")] = "gaussian",
     ball_centre: Annotated[str | None, typer.Option("--ball-centre", help="Measured ball centre X,Y,Z in metres (rig frame; from `calibrate`).")] = None,
+    scheduler: SchedulerOption = "local",
+    workers: WorkersOption = None,
 ) -> None:
     """Turn run files into results: HDR radiance per position (OpenEXR, PNG), the light model,
     and the IES, LDT and TM-25 files.
@@ -206,7 +213,13 @@ def process(
     folders = _output_folders(distinct, out)
     batch = len(distinct) > 1
     outcomes: list[tuple[Path, object, float, str]] = []  # run, report or None, seconds, error
-    with Progress(*Progress.get_default_columns(), TextColumn("{task.fields[note]}"), transient=True) as bar:
+    from processing.parallel import ComputeError, open_compute
+
+    try:
+        compute = open_compute(scheduler, workers=workers)
+    except ComputeError as exc:
+        raise _fail(str(exc)) from None
+    with compute, Progress(*Progress.get_default_columns(), TextColumn("{task.fields[note]}"), transient=True) as bar:
         overall = bar.add_task("runs", total=len(distinct), note="") if batch else None
         for number, run in enumerate(distinct, 1):
             label = f"[{number}/{len(distinct)}] {run.name}" if batch else run.name
@@ -214,7 +227,7 @@ def process(
             started = time.perf_counter()
             try:
                 report = process_run(run, folders[run], steps=step_list, method=method, noise=noise, layout=layout,
-                                     estimator=estimator, fit_method=fit, ball_centre=centre,
+                                     estimator=estimator, fit_method=fit, ball_centre=centre, compute=compute,
                                      progress=lambda done, total, task=task: bar.update(task, completed=done, total=total))  # fmt: skip
             except (ProcessingError, HDRError, ValueError, OSError) as exc:
                 if not batch:
@@ -247,6 +260,72 @@ def process(
         typer.echo(f"error: {error}", err=True)
     if failed:
         raise typer.Exit(code=2)
+
+
+# --- worker -------------------------------------------------------------------------------
+@app.command("worker")
+def worker_command(
+    config: Annotated[Path | None, typer.Option("--config", help="daemon.toml: the worker uses its data_dir (the catalog and the runs).")] = None,
+    data_dir: Annotated[Path | None, typer.Option("--data-dir", help="Where the catalog and the run files are (overrides the configuration).")] = None,
+    scheduler: SchedulerOption = "local",
+    workers: WorkersOption = None,
+    once: Annotated[bool, typer.Option("--once", help="Process the jobs that can run now, then exit.")] = False,
+    poll: Annotated[float, typer.Option(min=0.05, help="Seconds between looks at the queue when it is empty.")] = 2.0,
+    heartbeat: Annotated[float, typer.Option(min=0.05, help="Seconds between heartbeats while a job runs.")] = 5.0,
+    stale_after: Annotated[float, typer.Option("--stale-after", min=0.1, help="A running job without a heartbeat for this long is requeued (its worker died).")] = 60.0,
+    wait: Annotated[float, typer.Option(min=0.0, help="Seconds a job whose run is still being acquired waits before it is tried again.")] = 10.0,
+    worker_id: Annotated[str | None, typer.Option("--id", help="This worker's name in the catalog (default HOST-PID).")] = None,
+) -> None:
+    """Take queued processing jobs from the catalog and process their runs (results beside each run).
+
+    Positions are processed on Dask: a local cluster sized to the machine, or the cluster
+    of --scheduler tcp://HOST:8786. A job whose run is still being acquired waits (or, when
+    it asked for partial, gets the positions complete so far); a failed job records its
+    reason and the worker goes on; a job whose worker died is requeued by the next worker
+    that looks at the queue. Stops on Ctrl-C or SIGTERM, after the job at hand.
+    """
+    import logging
+    import signal
+    import threading
+
+    from acquisition.settings import SettingsError, load_settings
+    from acquisition.worker import serve_jobs
+    from processing.parallel import ComputeError, open_compute
+
+    try:
+        settings = load_settings(config, data_dir=data_dir) if data_dir is not None else load_settings(config)
+    except (SettingsError, OSError) as exc:
+        raise _fail(str(exc)) from None
+    if not Path(settings.data_dir).is_dir():
+        raise _fail(f"--data-dir: {settings.data_dir} is not a folder (the daemon's data folder, with catalog.sqlite)")
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    try:
+        compute = open_compute(scheduler, workers=workers)
+    except ComputeError as exc:
+        raise _fail(str(exc)) from None
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+
+    def report(job) -> None:
+        if job.state == "complete":
+            typer.echo(f"{job.id} complete ({job.run_id}): {job.message}")
+            for kind, path in job.artifacts.items():
+                typer.echo(f"  {kind}: {path}")
+        elif job.state == "failed":
+            typer.echo(f"{job.id} failed ({job.run_id}): {job.error}")
+        else:
+            typer.echo(f"{job.id} {job.state} ({job.run_id}): {job.message}")
+
+    typer.echo(f"worker: jobs from {settings.catalog_path}, positions on {compute.description}")
+    from acquisition.catalog import CatalogError
+
+    try:
+        with compute:
+            serve_jobs(settings.catalog_path, compute, stop=stop, once=once, poll_s=poll, on_job=report,
+                       worker_id=worker_id, heartbeat_s=heartbeat, stale_after_s=stale_after, wait_s=wait)  # fmt: skip
+    except CatalogError as exc:
+        raise _fail(str(exc)) from None
 
 
 # --- import -------------------------------------------------------------------------------
@@ -533,47 +612,108 @@ def bench_accuracy_command(
     _print_result(result, as_json)
 
 
+@bench_app.command("reflectance")
+def bench_reflectance_command(
+    object_rig: Annotated[str, typer.Option("--object", help="Object rig: object-vase, object-relief or a TOML path.")] = "object-vase",
+    truth: Annotated[str, typer.Option(help="Shipped truth light (the same lights both runs).")] = "five-gaussians",
+    noise: Annotated[bool, typer.Option(help="Photon, read and quantisation noise.")] = True,
+    light_positions: Annotated[int, typer.Option(min=3, help="Positions of the light sweep (the first N).")] = 66,
+    workdir: Annotated[Path | None, typer.Option(help="Keep the runs and outputs here (default: a temporary folder).")] = None,
+    as_json: Annotated[bool, typer.Option("--json", help="Print JSON only.")] = False,
+) -> None:
+    """Measure the light, photograph an object, score ρ under three light models."""
+    from acquisition.benchmarks.reflectance import bench_reflectance
+    from processing.pipeline import ProcessingError
+    from processing.reflectance import ReflectanceError
+
+    try:
+        result = bench_reflectance(object_rig=object_rig, truth=truth, noise=noise, light_positions=light_positions, workdir=workdir)
+    except (*_domain_errors(), ProcessingError, ReflectanceError) as exc:
+        raise _fail(str(exc)) from None
+    _print_result(result, as_json)
+
+
+@bench_app.command("speed")
+def bench_speed_command(
+    rig: RigOption = None,
+    sizes: Annotated[str, typer.Option(help="Sensor sizes, WIDTHxHEIGHT,... (the same field of view).")] = "2000x1312,4000x2624",
+    positions: Annotated[int, typer.Option(min=3, help="Positions of the sweep (the first N).")] = 66,
+    exposures: Annotated[int, typer.Option(min=1, max=5, help="Frames per position (the first N of the reference bracket).")] = 5,
+    repeat: Annotated[int, typer.Option(min=1, help="Repetitions of the cheap measurements (medians reported).")] = 3,
+    process_repeat: Annotated[int, typer.Option("--process-repeat", min=1, help="Whole-run processings per size (median reported).")] = 1,
+    hdr_positions: Annotated[int, typer.Option("--hdr-positions", min=1, help="Brackets merged by every HDR method (spread over the sweep).")] = 8,
+    peers: Annotated[bool, typer.Option(help="Also time HDRutils and colour-hdri (the bench extra).")] = True,
+    scheduler: SchedulerOption = "local",
+    workers: WorkersOption = None,
+    cache: Annotated[Path | None, typer.Option("--cache", help="Folder of the cached simulated runs (default ~/.cache/mirrorgonio/bench).")] = None,
+    no_cache: Annotated[bool, typer.Option("--no-cache", help="Make the runs afresh in a temporary folder, keep nothing.")] = False,
+    as_json: Annotated[bool, typer.Option("--json", help="Print JSON only (one line; the table is its 'markdown' field).")] = False,
+) -> None:
+    """Speed of the chain at two sensor sizes: acquisition overhead, HDR merge next to its peers,
+    chief rays per second, whole-run processing time and peak memory, and the read floor.
+    Progress goes to standard error; the JSON, then (without --json) the markdown table, to standard output."""
+    from acquisition.benchmarks.speed import DEFAULT_CACHE, SpeedBenchError, bench_speed, parse_size
+    from processing.hdr import HDRError
+    from processing.parallel import ComputeError
+    from processing.pipeline import ProcessingError
+
+    try:
+        size_list = [parse_size(s) for s in sizes.split(",") if s.strip()]
+        if not size_list:
+            raise SpeedBenchError("--sizes: give at least one WIDTHxHEIGHT")
+        result = bench_speed(rig_path=rig, sizes=size_list, positions=positions, exposures=exposures, repeat=repeat,
+                             process_repeat=process_repeat, hdr_positions=hdr_positions, peers=peers,
+                             scheduler=scheduler, workers=workers, cache=None if no_cache else (cache or DEFAULT_CACHE),
+                             log=lambda message: typer.echo(message, err=True))  # fmt: skip
+    except (SpeedBenchError, ComputeError, ProcessingError, HDRError, *_domain_errors()) as exc:
+        raise _fail(str(exc)) from None
+    _print_result(result, as_json)
+    if not as_json:
+        typer.echo("")
+        typer.echo(result["markdown"])
+
+
 # --- demo -------------------------------------------------------------------------------------
 @app.command("demo")
 def demo(
-    out: Annotated[Path, typer.Option(help="Folder for the demo's output.")] = Path("demo-output"),
-    rig: RigOption = None,
+    root: Annotated[Path, typer.Option("--data-root", help="Where the demo's folders go: one per demo, timestamped.")] = Path("demo-data"),
+    rig: Annotated[Path | None, typer.Option("--rig", help="Rig description (TOML); default rigs/demo.toml.")] = None,
+    positions: Annotated[int | None, typer.Option(min=3, help="Take only the first positions of the sweep (default: all).")] = None,
+    workers: WorkersOption = None,
+    keep: Annotated[int, typer.Option(min=0, help="Older demo folders kept under --data-root (the others are removed).")] = 1,
 ) -> None:
-    """Render one simulated capture of the default rig, decode it, and say where it is."""
-    import numpy as np
+    """The whole chain on simulated devices: the daemon and the worker as processes, the
+    default light sweep through the REST API, the worker's processing, the result files and
+    the accuracy against the simulated truth."""
+    from rich.console import Console
 
-    from drivers.raw_decode import decode_raw
+    from acquisition.demo import DemoError, print_summary, run_demo
 
-    out.mkdir(parents=True, exist_ok=True)
-    output = out / "capture-position-33.dng"
-    t0 = time.perf_counter()
+    console = Console()
     try:
-        _capture_one(rig or _default_rig(), 33, 0.001, output, None, True, True, None)
-        frame = decode_raw(output)
+        result = run_demo(root=root, rig=rig, positions=positions, workers=workers, keep=keep, console=console)
+    except KeyboardInterrupt:
+        typer.echo("interrupted: the worker and the daemon are stopped", err=True)
+        raise typer.Exit(code=130) from None
+    except DemoError as exc:
+        if exc.details:
+            typer.echo("\n".join("  | " + line for line in exc.details.splitlines()), err=True)
+        raise _fail(str(exc)) from None
     except _domain_errors() as exc:
         raise _fail(str(exc)) from None
-    elapsed = time.perf_counter() - t0
-    signal = frame.mosaic.astype(np.int64) - int(frame.black_level.mean())
-    typer.echo(f"rendered and decoded one simulated capture in {elapsed:.1f} s")
-    typer.echo(f"  file:      {output.resolve()}")
-    typer.echo(f"  camera:    {frame.camera_id}")
-    typer.echo(f"  mosaic:    {frame.mosaic.shape[1]}x{frame.mosaic.shape[0]} {frame.cfa_pattern}, "
-               f"black {frame.black_level.ravel().tolist()}, white {frame.white_level}")  # fmt: skip
-    typer.echo(f"  exposure:  {frame.exposure_s:g} s (read back from the file)")
-    typer.echo(f"  signal:    peak {int(signal.max())} DN above black, "
-               f"{int((signal > 50).sum())} photosites above 50 DN")  # fmt: skip
+    print_summary(result, console)
 
 
 # --- reflectance ----------------------------------------------------------------------------
 @app.command("reflectance")
 def reflectance(
-    object_run: Annotated[Path, typer.Argument(help="The object run (HDF5), object-arc on a rig with [object].")],
+    object_run: Annotated[Path, typer.Argument(help="The object run (HDF5), object-arc on a rig with \\[object].")],
     light: Annotated[Path | None, typer.Option("--light", help="Light model: RUN.light.json, or the light run's results folder or file (default: the one the run recorded).")] = None,
-    mesh: Annotated[Path | None, typer.Option("--mesh", help="The object's mesh, PLY/OBJ/STL (default: the rig's [object].mesh).")] = None,
+    mesh: Annotated[Path | None, typer.Option("--mesh", help="The object's mesh, PLY/OBJ/STL (default: the rig's \\[object].mesh).")] = None,
     out: Annotated[Path | None, typer.Option("--out", help="Folder for the outputs (default: RUN.reflectance beside the run).")] = None,
     grazing_deg: Annotated[float, typer.Option(help="Exclude lights less than this elevation above the surface.")] = 15.0,
     view_grazing_deg: Annotated[float, typer.Option(help="Exclude pixels seen at less than this elevation.")] = 15.0,
-    specular_deg: Annotated[float, typer.Option(help="Exclude samples whose half vector is within this angle of the normal (0: off).")] = 10.0,
+    specular_deg: Annotated[float, typer.Option(help="Exclude samples whose half vector is within this angle of the normal (0: off).")] = 15.0,
     outlier: Annotated[float, typer.Option(help="Drop a light whose radiance exceeds the others' fit by this fraction (3+ lights).")] = 0.05,
     edge_margin: Annotated[int, typer.Option(help="Superpixels excluded around silhouettes and depth steps.")] = 2,
     texture_size: Annotated[int, typer.Option(min=16, help="UV texture size in texels (meshes with UVs).")] = 1024,
@@ -599,7 +739,7 @@ def reflectance(
 
             result = reflectance_from_run(object_run, light, mesh, out, progress=progress, settings=settings,
                                           texture_size=texture_size)  # fmt: skip
-    except (ReflectanceError, OSError) as exc:
+    except (ReflectanceError, ValueError, OSError) as exc:  # every input error is a one-line ValueError
         raise _fail(" ".join(str(exc).split())) from None
     summary = result.summary()
     table = Table(title=f"albedo of {summary['valid']} of {summary['on_object']} superpixels on the object", title_justify="left")
