@@ -22,7 +22,8 @@ EXPOSURES = [0.0002, 0.001, 0.005]
 @pytest.fixture()
 def daemon(tmp_path):
     def start(speed=0.5, camera_latency_s=0.0, **overrides):
-        settings = load_settings(None, data_dir=tmp_path / "data", rig=REDUCED_RIG, **overrides)
+        overrides.setdefault("rig", REDUCED_RIG)
+        settings = load_settings(None, data_dir=tmp_path / "data", **overrides)
         settings.camera.simulated.latency_s = camera_latency_s
         settings.arm.simulated.speed_m_s = speed
         settings.arm.simulated.accel_m_s2 = 10 * speed
@@ -247,3 +248,34 @@ def test_stop_arm_during_a_capture_also_pauses_the_run(daemon):
     assert paused["state"] == "paused" and "stopped by the operator" in paused["last_error"]
     http.post(f"/runs/{run['id']}/resume")
     assert wait_state(http, run["id"], {"complete", "failed"}, timeout=60)["state"] == "complete"
+
+
+def test_object_arc_run_records_its_object_and_light(daemon, tmp_path):
+    """An object rig's daemon photographs the object on the arc and names its mesh and light."""
+    from acquisition.rig import DEFAULT_RIG_PATH, load_rig
+    from acquisition.runfile import file_sha256
+
+    shipped = DEFAULT_RIG_PATH.parent / "object-vase.toml"
+    text = shipped.read_text().replace("width = 2000", "width = 250").replace("height = 1312", "height = 164")
+    text = text.replace("pixel_pitch_m = 5.9e-6", "pixel_pitch_m = 47.2e-6")
+    text = text.replace('mesh = "objects/vase.obj"', f'mesh = "{shipped.parent / "objects" / "vase.obj"}"')
+    rig_file = tmp_path / "vase.toml"
+    rig_file.write_text(text)
+    assert load_rig(rig_file).camera.width == 250
+    light = tmp_path / "light.json"
+    light.write_text(json.dumps({"format": "mirrorgonio-light-model", "provenance": {"run_id": "run-light"}}))
+    http, engine = daemon(rig=rig_file)
+    presets = http.get("/presets").json()["presets"]
+    assert presets["object-arc"]["valid"] and presets["object-arc"]["positions"] == 5
+
+    bad = http.post("/runs", json={"preset": "object-arc", "light_results": str(tmp_path / "missing.json")})
+    assert bad.status_code == 400 and "light_results" in bad.json()["detail"]
+    run = http.post("/runs", json={"preset": "object-arc", "light_results": str(light),
+                                   "bracket": {"mode": "fixed", "exposures_s": [1.0, 4.0]}}).json()  # fmt: skip
+    status = wait_state(http, run["id"], {"complete", "failed"})
+    assert status["state"] == "complete", status
+    with RunFile.open(engine.catalog.get_run(run["id"]).path) as f:
+        refs = f.header.references
+        assert f.header.preset == "object-arc" and f.complete.all()
+    assert refs["light_model"] == {"path": str(light.resolve()), "sha256": file_sha256(light), "run_id": "run-light"}
+    assert refs["object_mesh"]["sha256"] == file_sha256(load_rig(shipped).object.mesh)
