@@ -63,6 +63,7 @@ from sim_devices.optics import (
     RenderStats,
     Rendering,
     apply_diffraction,
+    environment_rgb,
     unit_disc_samples,
 )
 
@@ -219,10 +220,7 @@ class ObjectSceneRenderer:
 
     def set_environment(self, radiance) -> None:
         """The uniform environment's radiance: a number, or one per channel (R, G, B)."""
-        env = np.broadcast_to(np.asarray(radiance, dtype=float), (3,)).copy()
-        if not np.all(np.isfinite(env)) or np.any(env < 0):
-            raise ValueError(f"environment_radiance must be finite and >= 0, got {radiance!r}")
-        self.environment = env
+        self.environment = environment_rgb(radiance)
 
     # --- which pixels can see the object ------------------------------------------------------
     def blur_radius_px(self) -> float:

@@ -313,6 +313,14 @@ class RenderStats:
     per_emitter_pixels: dict = field(default_factory=dict)
 
 
+def environment_rgb(radiance) -> np.ndarray:
+    """A uniform environment's radiance as (R, G, B): a number or one per channel, finite, ≥ 0."""
+    env = np.broadcast_to(np.asarray(radiance, dtype=float), (3,)).copy()
+    if not np.all(np.isfinite(env)) or np.any(env < 0):
+        raise ValueError(f"environment_radiance must be finite and >= 0, got {radiance!r}")
+    return env
+
+
 @dataclass
 class Rendering:
     """Expected electron rate per second per channel (before noise and the mosaic)."""
@@ -382,10 +390,7 @@ class MirrorBallRenderer:
 
     def set_environment(self, radiance) -> None:
         """The uniform environment's radiance: a number, or one per channel (R, G, B)."""
-        env = np.broadcast_to(np.asarray(radiance, dtype=float), (3,)).copy()
-        if not np.all(np.isfinite(env)) or np.any(env < 0):
-            raise ValueError(f"environment_radiance must be finite and >= 0, got {radiance!r}")
-        self.environment = env
+        self.environment = environment_rgb(radiance)
 
     # Pixels whose chief ray meets the ball ----------------------------------------------------
     def _ball_pixels(self) -> tuple[np.ndarray, np.ndarray]:
