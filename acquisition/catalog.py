@@ -38,7 +38,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, computed_field
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
 
 RunState = Literal["queued", "running", "paused", "complete", "aborted", "failed", "interrupted"]
 JobState = Literal["queued", "running", "complete", "failed"]
@@ -204,6 +204,9 @@ class JobRecord(_Record):
     heartbeat_utc: datetime | None
     error: str | None
     result_dir: str | None
+    artifacts: dict[str, str] = {}
+    message: str | None = None
+    not_before_utc: datetime | None = None
 
 
 # --- schema ----------------------------------------------------------------------------
@@ -254,6 +257,13 @@ _MIGRATIONS: tuple[tuple[str, ...], ...] = (
         "CREATE INDEX jobs_state_seq ON jobs (state, seq)",
         "CREATE INDEX jobs_run ON jobs (run_id)",
     ),
+    # 2: a job's result files by kind, a note for people (why it waits, what it did),
+    # and the time before which a job put back in the queue is not claimed again.
+    (
+        "ALTER TABLE jobs ADD COLUMN artifacts_json TEXT NOT NULL DEFAULT '{}'",
+        "ALTER TABLE jobs ADD COLUMN message TEXT",
+        "ALTER TABLE jobs ADD COLUMN not_before_utc TEXT",
+    ),
 )
 assert len(_MIGRATIONS) == SCHEMA_VERSION
 
@@ -263,7 +273,7 @@ _RUN_COLUMNS = (
 )
 _JOB_COLUMNS = (
     "id, run_id, created_utc, updated_utc, state, steps, options_json, progress, claimed_by, heartbeat_utc, "
-    "error, result_dir"
+    "error, result_dir, artifacts_json, message, not_before_utc"
 )
 
 
@@ -311,7 +321,7 @@ def _check_text(name: str, value) -> str:
 
 def _normalise_steps(steps) -> str:
     if not isinstance(steps, str):
-        raise CatalogError(f"steps must be a comma-separated string such as 'hdr,trace,fit', not {steps!r}")
+        raise CatalogError(f"steps must be a comma-separated string such as 'hdr,sources', not {steps!r}")
     names = [s.strip() for s in steps.split(",")]
     for name in names:
         if not _STEP_NAME.match(name):
@@ -355,6 +365,9 @@ def _job_from_row(row: sqlite3.Row) -> JobRecord:
         heartbeat_utc=_parse(row["heartbeat_utc"]),
         error=row["error"],
         result_dir=row["result_dir"],
+        artifacts=json.loads(row["artifacts_json"]),
+        message=row["message"],
+        not_before_utc=_parse(row["not_before_utc"]),
     )
 
 
@@ -765,7 +778,7 @@ class Catalog:
             return ids
 
     # --- jobs ----------------------------------------------------------------------
-    def create_job(self, run_id: str, *, steps: str = "hdr,trace,fit", options: dict | None = None) -> JobRecord:
+    def create_job(self, run_id: str, *, steps: str = "hdr,sources", options: dict | None = None) -> JobRecord:
         """Queue a processing job for a run.
 
         Parameters
@@ -834,31 +847,70 @@ class Catalog:
             return [_job_from_row(row) for row in rows]
 
     def claim_job(self, worker_id: str) -> JobRecord | None:
-        """Take the oldest queued job: it becomes ``running``, claimed by ``worker_id``.
+        """Take the oldest queued job that may run now: it becomes ``running``, claimed by ``worker_id``.
 
         Atomic across threads and processes (one ``BEGIN IMMEDIATE`` transaction): two
         workers never get the same job. Progress restarts at 0 and the heartbeat at now.
+        A job put back with :meth:`release_job` is skipped until its ``not_before_utc``,
+        so that it does not hold up the jobs queued after it.
 
         Returns
         -------
         JobRecord or None
-            The claimed job, or None when no job is queued.
+            The claimed job, or None when no job is queued (or all wait).
         """
         _check_text("worker_id", worker_id)
         with self._write() as conn:
-            row = conn.execute("SELECT id FROM jobs WHERE state = 'queued' ORDER BY seq LIMIT 1").fetchone()
+            stamp = _fmt(self._now())
+            row = conn.execute(
+                "SELECT id FROM jobs WHERE state = 'queued' AND (not_before_utc IS NULL OR not_before_utc <= ?) "
+                "ORDER BY seq LIMIT 1",
+                (stamp,),
+            ).fetchone()
             if row is None:
                 return None
-            stamp = _fmt(self._now())
             conn.execute(
                 "UPDATE jobs SET state = 'running', claimed_by = ?, heartbeat_utc = ?, updated_utc = ?, "
-                "progress = 0, error = NULL WHERE id = ? AND state = 'queued'",
+                "progress = 0, error = NULL, not_before_utc = NULL WHERE id = ? AND state = 'queued'",
                 (worker_id, stamp, stamp, row["id"]),
             )
             return self._fetch_job(conn, row["id"])
 
-    def heartbeat(self, job_id: str, worker_id: str, progress: float | None = None) -> None:
-        """A worker's proof of life on its running job, with its progress (0..1) if given.
+    def release_job(self, job_id: str, worker_id: str, *, message: str, retry_after_s: float = 0.0) -> JobRecord:
+        """Put a running job back in the queue, untouched, to be claimed again later.
+
+        For a job that cannot run yet (its run is still being acquired): it goes back to
+        ``queued`` with ``message`` saying why, and no worker claims it before
+        ``retry_after_s`` have passed.
+
+        Raises
+        ------
+        UnknownJobError
+            No job has this id.
+        InvalidTransitionError
+            The job is not running.
+        JobClaimError
+            Another worker holds the job.
+        """
+        _check_text("worker_id", worker_id)
+        _check_text("message", message)
+        retry_after_s = _check_real("retry_after_s", retry_after_s, 0.0)
+        with self._write() as conn:
+            now = self._now()
+            changed = conn.execute(
+                "UPDATE jobs SET state = 'queued', claimed_by = NULL, heartbeat_utc = NULL, progress = 0, "
+                "message = ?, not_before_utc = ?, updated_utc = ? WHERE id = ? AND state = 'running' AND claimed_by = ?",
+                (message, _fmt(now + timedelta(seconds=retry_after_s)), _fmt(now), job_id, worker_id),
+            ).rowcount
+            if changed == 0:
+                job = self._fetch_job(conn, job_id)
+                if job.state != "running":
+                    raise InvalidTransitionError(job_id, job.state, "queued", ALLOWED_JOB_TRANSITIONS[job.state])
+                raise JobClaimError(job_id, worker_id, job.state, job.claimed_by)
+            return self._fetch_job(conn, job_id)
+
+    def heartbeat(self, job_id: str, worker_id: str, progress: float | None = None, message: str | None = None) -> None:
+        """A worker's proof of life on its running job, with its progress (0..1) and a note if given.
 
         Raises
         ------
@@ -871,12 +923,14 @@ class Catalog:
         _check_text("worker_id", worker_id)
         if progress is not None:
             progress = _check_real("progress", progress, 0.0, 1.0)
+        if message is not None:
+            _check_text("message", message)
         with self._write() as conn:
             stamp = _fmt(self._now())
             changed = conn.execute(
-                "UPDATE jobs SET heartbeat_utc = ?, updated_utc = ?, progress = COALESCE(?, progress) "
-                "WHERE id = ? AND state = 'running' AND claimed_by = ?",
-                (stamp, stamp, progress, job_id, worker_id),
+                "UPDATE jobs SET heartbeat_utc = ?, updated_utc = ?, progress = COALESCE(?, progress), "
+                "message = COALESCE(?, message) WHERE id = ? AND state = 'running' AND claimed_by = ?",
+                (stamp, stamp, progress, message, job_id, worker_id),
             ).rowcount
             if changed == 0:
                 job = self._fetch_job(conn, job_id)
@@ -889,6 +943,8 @@ class Catalog:
         error: str | None = None,
         result_dir: str | Path | None = None,
         worker_id: str | None = None,
+        artifacts: dict[str, str | Path] | None = None,
+        message: str | None = None,
     ) -> JobRecord:
         """End a running job: ``complete`` (progress 1) without ``error``, ``failed`` with one.
 
@@ -900,6 +956,11 @@ class Catalog:
             Why it failed; its presence makes the job ``failed``.
         result_dir : str or Path, optional
             Where its results are.
+        artifacts : dict, optional
+            Its result files by kind (``report``, ``ies``, ``tm25``, ...): the files the
+            daemon may serve for it.
+        message : str, optional
+            A note for people (replaces the last one).
         worker_id : str, optional
             If given, the job must be claimed by this worker (a worker whose job was
             requeued and claimed by another then cannot finish it).
@@ -922,11 +983,19 @@ class Catalog:
             _check_text("error", error)
         if worker_id is not None:
             _check_text("worker_id", worker_id)
+        if message is not None:
+            _check_text("message", message)
+        files = None
+        if artifacts is not None:
+            if not isinstance(artifacts, dict) or not all(isinstance(k, str) and _STEP_NAME.match(k) for k in artifacts):
+                raise CatalogError(f"{job_id}: artifacts must map kinds (lowercase names) to file paths")
+            files = _to_json({kind: str(path) for kind, path in artifacts.items()}, "the job artifacts")
         new_state = "complete" if error is None else "failed"
         with self._write() as conn:
             changed = conn.execute(
                 "UPDATE jobs SET state = ?, error = ?, result_dir = COALESCE(?, result_dir), updated_utc = ?, "
-                "progress = CASE WHEN ? = 'complete' THEN 1.0 ELSE progress END "
+                "progress = CASE WHEN ? = 'complete' THEN 1.0 ELSE progress END, "
+                "artifacts_json = COALESCE(?, artifacts_json), message = COALESCE(?, message) "
                 "WHERE id = ? AND state = 'running' AND (? IS NULL OR claimed_by = ?)",
                 (
                     new_state,
@@ -934,6 +1003,8 @@ class Catalog:
                     None if result_dir is None else str(result_dir),
                     _fmt(self._now()),
                     new_state,
+                    files,
+                    message,
                     job_id,
                     worker_id,
                     worker_id,
@@ -964,8 +1035,8 @@ class Catalog:
             stale = "state = 'running' AND (heartbeat_utc IS NULL OR heartbeat_utc < ?)"
             ids = [row["id"] for row in conn.execute(f"SELECT id FROM jobs WHERE {stale} ORDER BY seq", (cutoff,))]
             conn.execute(
-                f"UPDATE jobs SET state = 'queued', claimed_by = NULL, heartbeat_utc = NULL, updated_utc = ? "
-                f"WHERE {stale}",
+                f"UPDATE jobs SET state = 'queued', claimed_by = NULL, heartbeat_utc = NULL, updated_utc = ?, "
+                f"message = 'requeued: its worker stopped sending heartbeats' WHERE {stale}",
                 (_fmt(now), cutoff),
             )
             return ids

@@ -5,7 +5,7 @@ from __future__ import annotations
 from datetime import datetime
 from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, PositiveFloat, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, PositiveFloat, StrictBool, field_validator, model_validator
 
 from acquisition.rig import PoseSpec
 
@@ -78,16 +78,37 @@ class RunRequest(BaseModel):
 
 
 class JobRequest(BaseModel):
-    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [{"steps": "hdr,trace,fit"}]})
-    steps: str = Field(default="hdr,trace,fit", pattern=r"^[a-z]+(,[a-z]+)*$", max_length=200)
+    """Process a run: which steps, and how (``docs/daemon.md``, "Worker")."""
+
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [{"steps": "hdr,sources"},
+                                                                             {"steps": "hdr,sources", "partial": True}]})  # fmt: skip
+    steps: str = Field(default="hdr,sources", pattern=r"^[a-z]+(,[a-z]+)*$", max_length=200,
+                       description="hdr, sources (trace and fit are names for parts of sources)")  # fmt: skip
+    partial: StrictBool = Field(default=False, description="process the positions complete now even while the run is "
+                                                     "being acquired (otherwise the job waits for the run to end)")  # fmt: skip
+    estimator: Literal["auto", "templates", "cell-sums"] | None = Field(default=None, description="default: auto")
+    fit: Literal["gaussian", "polynomial", "cos-power", "gaussian-2d"] | None = Field(default=None, description="default: gaussian")
+    layout: str | None = Field(default=None, max_length=4096,
+                               description="the sources' layout, a TOML file on the worker's machine (default: found in the data)")  # fmt: skip
+    noise: Literal["auto", "estimated", "rig"] | None = Field(default=None, description="HDR noise model; default: auto")
 
     @field_validator("steps")
     @classmethod
     def _each_step_once(cls, steps: str) -> str:
+        from processing.steps import StepsError, resolve_steps
+
         names = steps.split(",")
         if len(set(names)) != len(names):
             raise ValueError("names a step twice")
+        try:
+            resolve_steps(steps)
+        except StepsError as exc:
+            raise ValueError(str(exc)) from None
         return steps
+
+    def options(self) -> dict:
+        """The job's options as the catalog stores them (only those given)."""
+        return self.model_dump(exclude={"steps"}, exclude_defaults=True)
 
 
 # --- responses -----------------------------------------------------------------------------
@@ -118,20 +139,32 @@ class RunStatus(BaseModel):
 
 
 class JobStatus(BaseModel):
+    """A processing job: its state and, once complete, where to download its results."""
+
     model_config = ConfigDict(json_schema_extra={"examples": [{
-        "id": "job-20261121-140000-aa01", "run_id": "run-20261121-134501-3f2a", "state": "queued",
-        "steps": "hdr,trace,fit", "progress": 0.0, "error": None, "result_dir": None,
-        "created_utc": "2026-11-21T14:00:00+00:00", "updated_utc": "2026-11-21T14:00:00+00:00",
+        "id": "job-20261121-140000-aa01", "run_id": "run-20261121-134501-3f2a", "state": "complete",
+        "steps": "hdr,sources", "options": {}, "progress": 1.0, "error": None,
+        "message": "66 of 66 positions in 21.4 s on local Dask cluster: 2 worker processes x 1 thread",
+        "result_dir": "/srv/mirrorgonio/runs", "claimed_by": "lab-pc-4242", "heartbeat_utc": "2026-11-21T14:00:25+00:00",
+        "created_utc": "2026-11-21T14:00:00+00:00", "updated_utc": "2026-11-21T14:00:26+00:00",
+        "artifacts": {"report": "/jobs/job-20261121-140000-aa01/artifacts/report",
+                      "ies": "/jobs/job-20261121-140000-aa01/artifacts/ies",
+                      "tm25": "/jobs/job-20261121-140000-aa01/artifacts/tm25"},
     }]})  # fmt: skip
     id: str
     run_id: str
     state: str
     steps: str
+    options: dict = Field(default_factory=dict)
     progress: float
     error: str | None
+    message: str | None = Field(default=None, description="why a queued job waits, what a finished job did")
     result_dir: str | None
+    claimed_by: str | None = None
+    heartbeat_utc: datetime | None = None
     created_utc: datetime
     updated_utc: datetime
+    artifacts: dict[str, str] = Field(default_factory=dict, description="download URL of each result file, by kind")
 
 
 class ArmState(BaseModel):

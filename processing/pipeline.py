@@ -1,14 +1,28 @@
 """The offline processing of one run file, step by step, position by position.
 
-Steps (``--steps``): ``hdr`` — merge each position's bracket (``processing.hdr``) and
-write the results file, an OpenEXR and a PNG preview per position. Later steps (trace,
-fit) build on the results file.
+Steps (``--steps``, :mod:`processing.steps`): ``hdr`` — merge each position's bracket
+(``processing.hdr``) into the results file, an OpenEXR and a PNG per position; ``sources``
+— per position, the chief rays, the sources' templates and their unmixing (or cell sums);
+then per run the fits, the light model, the IES / LDT / TM-25 files and the report.
+
+Positions stream through a :class:`~processing.parallel.Compute` (a Dask cluster, or this
+process): every task opens the run file itself, by path, reads one position and returns
+only that position's result; this process writes each result into the results file as it
+arrives. A run is never loaded whole, and the memory in use is a few positions' worth
+whatever the run's length. When the sources' layout is given, one task per position does
+both steps (the merged radiance goes straight into the unmixing); when it is to be found
+in the data, the merge comes first, the layout is found at three positions, and a second
+pass over the results file unmixes.
+
+A run still being written is processed as far as it goes: the positions complete when it
+is opened (``ProcessReport.partial`` says so).
 """
 
 from __future__ import annotations
 
 import logging
 import math
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -17,12 +31,13 @@ import numpy as np
 
 from acquisition.runfile import RunFile, RunFileError
 from processing.hdr import HDRError, NoiseModel, estimate_noise, merge_raw, superpixels
-from processing.images import write_exr, write_png
-from processing.results import HDRInfo, ResultsWriter, results_path_for
+from processing.parallel import Compute, tune_malloc
+from processing.results import EncodedHDR, HDRInfo, Results, ResultsError, ResultsWriter, encode_hdr, results_path_for
+from processing.steps import STEPS, StepsError, resolve_steps
 
 log = logging.getLogger("mirrorgonio.processing")
-STEPS = ("hdr", "sources")
 ESTIMATORS = ("auto", "templates", "cell-sums")
+__all__ = ["ESTIMATORS", "STEPS", "ProcessReport", "ProcessingError", "process_run"]
 
 
 class ProcessingError(ValueError):
@@ -31,6 +46,13 @@ class ProcessingError(ValueError):
 
 @dataclass
 class ProcessReport:
+    """What :func:`process_run` did and wrote.
+
+    ``outputs`` maps a kind (``exr``, ``png``, ``ies``, ``ldt``, ``tm25``, ``report``) to
+    its files; ``timings`` the stages (``noise``, ``layout``, ``positions``, ``fit``,
+    ``exports``, ``report``, ``total``) to seconds of wall time.
+    """
+
     run_file: Path
     results_file: Path
     positions: int
@@ -43,6 +65,10 @@ class ProcessReport:
     estimator: str = ""
     estimator_reason: str = ""
     spatial_resolution_m: float = float("nan")
+    n_positions: int = 0
+    partial: bool = False
+    compute: str = ""
+    timings: dict[str, float] = field(default_factory=dict)
 
 
 def rig_noise(run: RunFile) -> NoiseModel:
@@ -50,23 +76,30 @@ def rig_noise(run: RunFile) -> NoiseModel:
     return NoiseModel(cam.gain_e_per_dn, cam.read_noise_e / cam.gain_e_per_dn, source="rig")
 
 
-def choose_noise(run: RunFile, positions: np.ndarray, mode: str) -> NoiseModel:
+def _noise_estimate_at(index: int, run_path: str) -> NoiseModel | None:
+    """One position's noise estimate (a task: opens the run itself); None if its bracket allows none."""
+    with _open_run(run_path) as run:
+        if len(run.exposures(index)) < 2:
+            return None
+        try:
+            return estimate_noise(run.frames(index), run.exposures(index), run.black_level(index)[0],
+                                  white_level=int(run.white_level(index)[0]))  # fmt: skip
+        except HDRError as exc:
+            log.info("position %d: %s", index, exc)
+            return None
+
+
+def choose_noise(run: RunFile, positions: np.ndarray, mode: str, compute: Compute | None = None) -> NoiseModel:
     """The noise model: the rig's figures, or estimated from the brackets (median over a
     few positions), falling back to the rig's with the reason logged."""
     from_rig = rig_noise(run)
     if mode == "rig":
         return from_rig
     sample = positions[np.linspace(0, len(positions) - 1, min(5, len(positions))).astype(int)]
-    estimates = []
-    for index in sample:
-        index = int(index)
-        if len(run.exposures(index)) < 2:
-            continue
-        try:
-            estimates.append(estimate_noise(run.frames(index), run.exposures(index), run.black_level(index)[0],
-                                            white_level=int(run.white_level(index)[0])))  # fmt: skip
-        except HDRError as exc:
-            log.info("position %d: %s", index, exc)
+    found: dict[int, NoiseModel | None] = {}
+    (compute or Compute()).map_unordered(_noise_estimate_at, [int(i) for i in sample], str(run.path),
+                                         on_result=found.__setitem__)  # fmt: skip
+    estimates = [found[int(i)] for i in sample if found.get(int(i)) is not None]
     if not estimates:
         if mode == "estimated":
             raise ProcessingError(f"{run.path}: the noise model cannot be estimated from these brackets")
@@ -77,139 +110,419 @@ def choose_noise(run: RunFile, positions: np.ndarray, mode: str) -> NoiseModel:
     return NoiseModel(gain, read, source="estimated")
 
 
-def process_run(run_path, out_dir=None, *, steps=("hdr",), method: str = "optimal", noise: str = "auto",
-                progress: Callable[[int, int], None] | None = None, layout=None, estimator: str = "auto",
-                fit_method: str = "gaussian", units: str = "relative", truth=None, ball_centre=None) -> ProcessReport:  # fmt: skip
-    """Process one run file; results go beside it, or into ``out_dir``.
-
-    ``truth`` (simulated runs only, given by the caller): ``truth(source, theta) -> intensity``,
-    drawn beside the fits in the report (:mod:`processing.report`)."""
-    unknown = [s for s in steps if s not in STEPS]
-    if unknown:
-        raise ProcessingError(f"--steps: unknown step {unknown[0]!r} (known: {', '.join(STEPS)})")
-    run_path = Path(run_path)
+def _open_run(path) -> RunFile:
     try:
-        run = RunFile.open(run_path)
+        return RunFile.open(path)
     except RunFileError as exc:
         raise ProcessingError(str(exc)) from None
-    with run:
-        positions = run.completed_positions()
+
+
+# --- the work of one position (runs in a Dask worker, or here) ------------------------------------
+@dataclass(frozen=True)
+class _HDRWork:
+    method: str
+    noise: NoiseModel
+    cfa: str
+    images_dir: str | None
+
+
+@dataclass(frozen=True)
+class _SourcesPlan:
+    """What every position's source estimate needs, decided once per run."""
+
+    layout: tuple
+    ball_centre: tuple | None
+    estimator: str  # chosen: "templates" or "cell-sums"
+    reason: str
+    footprint: float
+    cell_radius: float
+
+
+@dataclass(frozen=True)
+class _PositionWork:
+    run_path: str
+    results_path: str
+    hdr: _HDRWork | None  # None: read the merged position from the results file
+    sources: _SourcesPlan | None
+    single_threaded: bool  # in a Dask worker: the parallelism is the workers'
+
+
+@dataclass
+class _SourceRow:
+    theta: np.ndarray
+    phi: np.ndarray
+    intensity_rgb: np.ndarray  # (n_sources, 3)
+    sigma_rgb: np.ndarray
+    cell_sum: np.ndarray  # (n_sources,)
+
+
+@dataclass
+class PositionResult:
+    """What one position task returns: its merge (when it merged), compressed as the results
+    file stores it, and its source samples."""
+
+    index: int
+    merged: EncodedHDR | None = None
+    images: dict[str, Path] = field(default_factory=dict)
+    saturated: int = 0
+    all_saturated: bool = False
+    sources: _SourceRow | None = None
+    seconds: float = 0.0
+
+
+def process_position(index: int, work: _PositionWork) -> PositionResult:
+    """Merge and/or estimate one position; opens the run (and results) file by path.
+
+    A module-level function so that Dask workers import it. Domain errors come back as
+    :class:`ProcessingError` naming the file and the position.
+    """
+    started = time.perf_counter()
+    tune_malloc()
+    if work.single_threaded:
+        import numba
+
+        numba.set_num_threads(1)
+    out = PositionResult(index)
+    with _open_run(work.run_path) as run:
+        try:
+            if work.hdr is not None:
+                h = work.hdr
+                merged = merge_raw(run.frames(index), run.exposures(index), run.black_level(index)[0],
+                                   int(run.white_level(index)[0]), h.noise, method=h.method)  # fmt: skip
+                out.merged = encode_hdr(merged)  # compressed here, in parallel; the writer copies bytes
+                if h.images_dir is not None:
+                    out.images = _write_images(Path(h.images_dir), index, merged.radiance, h.cfa)
+                radiance, count, saturated = merged.radiance, merged.count, merged.saturated
+                # As the results file stores it, so that both paths give the same numbers.
+                variance = np.where(np.isfinite(merged.variance), merged.variance, np.inf).astype("f4")
+                gain, cfa = h.noise.gain_e_per_dn, h.cfa
+            else:
+                with Results.open(work.results_path) as results:
+                    radiance, variance = results.radiance(index), results.variance(index)
+                    count, saturated = results.count(index), results.saturated(index)
+                    gain, cfa = results.noise.gain_e_per_dn, results.cfa_pattern
+        except HDRError as exc:
+            raise ProcessingError(f"{run.path}: position {index}: {exc}") from None
+        except RunFileError as exc:
+            raise ProcessingError(str(exc)) from None
+        except ResultsError as exc:
+            raise ProcessingError(str(exc)) from None
+        saturated = np.asarray(saturated, bool)
+        out.saturated = int(saturated.sum())
+        out.all_saturated = bool(saturated.all())
+        if work.sources is not None:
+            rate, var, usable = _rates(radiance, variance, count, saturated, gain)
+            # Lit: 3 sigma above zero; the same test as on the rates, in DN and float32 (cheaper).
+            lit = usable & (radiance > 3.0 * np.sqrt(variance))
+            out.sources = _estimate_at(run, work.sources, index, rate, var, usable, lit, cfa)
+    out.seconds = time.perf_counter() - started
+    return out
+
+
+def _rates(radiance, variance, count, saturated, gain: float):
+    """Electron rates, their variance and the usable pixels of one merged position."""
+    rate = radiance.astype(np.float64) * gain
+    var = variance.astype(np.float64) * gain * gain
+    usable = ~saturated & (count > 0) & np.isfinite(rate)
+    return rate, var, usable
+
+
+def _write_images(folder: Path, index: int, radiance: np.ndarray, cfa: str) -> dict[str, Path]:
+    from processing.images import write_exr, write_png
+
+    rgb = superpixels(np.where(np.isfinite(radiance), radiance, 0.0), cfa)
+    return {"exr": write_exr(folder / f"position-{index:03d}.exr", rgb),
+            "png": write_png(folder / f"position-{index:03d}.png", rgb)}  # fmt: skip
+
+
+def _geometry(run: RunFile, ball_centre):
+    from processing.sources import TemplateBuilder
+    from processing.trace import RigGeometry
+
+    rig = run.header.rig
+    geometry = RigGeometry.from_rig(rig, ball_centre=ball_centre)
+    return geometry, TemplateBuilder(geometry, rig.camera.sensitivity_e_per_s)
+
+
+def _estimate_at(run: RunFile, plan: _SourcesPlan, index: int, rate, variance, usable, lit, cfa: str) -> _SourceRow:
+    """Every source's intensity at one position: templates unmixed, and the cell sums over
+    the ``lit`` pixels."""
+    from processing.sources import cell_sums, unmix_position
+
+    geometry, builder = _geometry(run, plan.ball_centre)
+    layout = list(plan.layout)
+    pose = _light_pose(run, geometry, index)
+    estimate = unmix_position(index, rate, variance, usable, cfa, builder, layout, pose)
+    sums = cell_sums(rate, lit, geometry, run.header.rig.camera.sensitivity_e_per_s, layout, pose,
+                     plan.cell_radius, cfa).mean(axis=1)  # fmt: skip
+    return _SourceRow(estimate.theta, estimate.phi, estimate.intensity, estimate.sigma, sums)
+
+
+# --- one run ---------------------------------------------------------------------------------------
+class _Progress:
+    def __init__(self, callback, total: int):
+        self.callback, self.total, self.done = callback, total, 0
+
+    def step(self) -> None:
+        self.done += 1
+        if self.callback:
+            self.callback(self.done, self.total)
+
+
+def process_run(run_path, out_dir=None, *, steps=("hdr",), method: str = "optimal", noise: str = "auto",
+                progress: Callable[[int, int], None] | None = None, layout=None, estimator: str = "auto",
+                fit_method: str = "gaussian", units: str = "relative", truth=None, ball_centre=None,
+                compute: Compute | None = None, images: bool = True) -> ProcessReport:  # fmt: skip
+    """Process one run file; results go beside it, or into ``out_dir``.
+
+    Parameters
+    ----------
+    run_path : path-like
+        The run file; a run still being written is processed up to its last complete
+        position.
+    out_dir : path-like, optional
+        Folder for the results (default: the run's folder).
+    steps : str or sequence of str
+        ``hdr``, ``sources`` (:func:`processing.steps.resolve_steps`).
+    compute : Compute, optional
+        Where the position tasks run (:func:`processing.parallel.open_compute`); default:
+        in this process, one after the other.
+    progress : callable, optional
+        ``progress(done, total)`` after every position task.
+    images : bool
+        Write an OpenEXR and a PNG preview per position (the ``hdr`` step).
+    truth : callable, optional
+        Simulated runs only, given by the caller: ``truth(source, theta) -> intensity``,
+        drawn beside the fits in the report (:mod:`processing.report`).
+
+    Raises
+    ------
+    ProcessingError
+        One line naming the file: unreadable, truncated or corrupt, nothing complete,
+        bad options, a run the estimate cannot work with.
+    """
+    started = time.perf_counter()
+    try:
+        steps = resolve_steps(steps)
+    except StepsError as exc:
+        raise ProcessingError(f"--steps: {exc}") from None
+    if "sources" in steps and estimator not in ESTIMATORS:
+        raise ProcessingError(f"--estimator: {estimator!r} is not one of {', '.join(ESTIMATORS)}")
+    compute = compute or Compute()
+    run_path = Path(run_path)
+    timings: dict[str, float] = {}
+    sources = None
+    if "sources" in steps and layout is not None:
+        from processing.sources import SourcesError, load_layout
+
+        try:
+            sources = load_layout(layout)
+        except SourcesError as exc:
+            raise ProcessingError(str(exc)) from None
+    with _open_run(run_path) as run:
+        try:
+            positions = run.completed_positions()
+        except RunFileError as exc:
+            raise ProcessingError(str(exc)) from None
         if positions.size == 0:
             raise ProcessingError(f"{run_path}: the run has no complete position (no frames to process)")
         out = Path(out_dir) if out_dir is not None else run_path.parent
         out.mkdir(parents=True, exist_ok=True)
         results_file = results_path_for(run_path, out)
         if "hdr" in steps:
-            report = _hdr_step(run, run_path, out, results_file, positions, method, noise, progress)
-        elif results_file.exists():
-            from processing.results import Results
-
-            with Results.open(results_file) as existing:
-                report = ProcessReport(run_path, results_file, int(existing.hdr_done.sum()), existing.noise, {})
+            clock = time.perf_counter()
+            model = choose_noise(run, positions, noise, compute)
+            timings["noise"] = time.perf_counter() - clock
+            report = ProcessReport(run_path, results_file, int(positions.size), model, {"exr": [], "png": []})
         else:
-            raise ProcessingError(f"{results_file}: no HDR results to build on (run --steps hdr first)")
+            try:
+                with Results.open(results_file) as existing:
+                    done = existing.hdr_done & run.complete
+                    report = ProcessReport(run_path, results_file, int(done.sum()), existing.noise, {})
+            except ResultsError:
+                raise ProcessingError(f"{results_file}: no HDR results to build on (run --steps hdr first)") from None
+            positions = np.flatnonzero(done)
+            if positions.size == 0:
+                raise ProcessingError(f"{run.path}: no position has both frames and an HDR result")
+        report.n_positions = run.n_positions
+        report.partial = positions.size < run.n_positions
+        report.compute = compute.description
+        # With the layout known, each position is merged and unmixed by one task.
+        plan = _plan_sources(run, sources, estimator, ball_centre, positions) if sources is not None else None
+        fused = "hdr" in steps and plan is not None
+        passes = int("hdr" in steps) + int("sources" in steps and not fused)
+        tracker = _Progress(progress, passes * int(positions.size))
+        rows: dict[int, _SourceRow] = {}
+        saturated_all: dict[int, bool] = {}
+        if "hdr" in steps:
+            clock = time.perf_counter()
+            _hdr_pass(run, run_path, out, results_file, positions, method, report, plan, compute, tracker, rows,
+                      saturated_all, images)  # fmt: skip
+            timings["positions"] = time.perf_counter() - clock
     if "sources" in steps:
-        _sources_step(run_path, results_file, out, report, layout=layout, estimator=estimator,
-                      fit_method=fit_method, units=units, truth=truth, ball_centre=ball_centre)  # fmt: skip
+        if not fused:
+            if plan is None:
+                with _open_run(run_path) as run:
+                    clock = time.perf_counter()
+                    sources = layout_from_data(run, results_file, positions, ball_centre, compute)
+                    timings["layout"] = time.perf_counter() - clock
+                    plan = _plan_sources(run, sources, estimator, ball_centre, positions)
+            clock = time.perf_counter()
+            work = _PositionWork(str(run_path), str(results_file), None, plan, compute.dask)
+
+            def collect(index, result: PositionResult):
+                rows[index] = result.sources
+                saturated_all[index] = result.all_saturated
+                tracker.step()
+
+            compute.map_unordered(process_position, [int(i) for i in positions], work, on_result=collect)
+            timings["sources"] = time.perf_counter() - clock
+        if all(saturated_all.get(int(i), False) for i in positions):
+            raise ProcessingError(f"{run_path}: every pixel is saturated even in the shortest exposure: take shorter exposures")
+        _finish_sources(run_path, out, report, plan, positions, rows, fit_method=fit_method, units=units,
+                        truth=truth, layout_path=layout, timings=timings)  # fmt: skip
+    timings["total"] = time.perf_counter() - started
+    report.timings = {k: round(v, 3) for k, v in timings.items()}
     return report
 
 
-def layout_from_data(run: RunFile, results, ball_centre=None) -> list:
-    """The sources found in the data (``processing.sources.find_layout``) at three
-    positions spread over the sweep."""
-    from processing.sources import SourcesError, TemplateBuilder, find_layout
-    from processing.trace import RigGeometry
+def _hdr_pass(run: RunFile, run_path: Path, out: Path, results_file: Path, positions, method, report: ProcessReport,
+              plan, compute: Compute, tracker: _Progress, rows: dict, saturated_all: dict, images: bool) -> None:  # fmt: skip
+    """Merge every position (and unmix it, with a plan) on ``compute``; write the results as they come."""
+    from acquisition import __version__
 
-    rig = run.header.rig
-    geometry = RigGeometry.from_rig(rig, ball_centre=ball_centre)
-    builder = TemplateBuilder(geometry, rig.camera.sensitivity_e_per_s)
-    positions = np.flatnonzero(results.hdr_done & run.complete)
+    folder = out / f"{run_path.stem}.hdr"
+    if images:
+        folder.mkdir(exist_ok=True)
+    try:
+        cfa = run.cfa_pattern(int(positions[0]))[0]
+    except RunFileError as exc:
+        raise ProcessingError(str(exc)) from None
+    hdr = _HDRWork(method, report.noise, cfa, str(folder) if images else None)
+    work = _PositionWork(str(run_path), str(results_file), hdr, plan, compute.dask)
+    found_images: dict[int, dict[str, Path]] = {}
+    with ResultsWriter.create(results_file, run_id=run.header.run_id, run_file=str(run_path),
+                              n_positions=run.n_positions, frame_shape=run.frame_shape,
+                              software_version=__version__,
+                              hdr=HDRInfo(method, report.noise, rig_noise(run), cfa)) as writer:  # fmt: skip
+
+        def write(index: int, result: PositionResult) -> None:
+            writer.write_encoded(index, result.merged)
+            report.saturated_pixels += result.saturated
+            saturated_all[index] = result.all_saturated
+            found_images[index] = result.images
+            if result.sources is not None:
+                rows[index] = result.sources
+            tracker.step()
+
+        compute.map_unordered(process_position, [int(i) for i in positions], work, on_result=write)
+    for index in sorted(found_images):
+        for kind, path in found_images[index].items():
+            report.outputs.setdefault(kind, []).append(path)
+    if report.saturated_pixels:
+        log.warning("%s: %d pixel samples saturated even in the shortest exposure (flagged in the results)",
+                    run_path, report.saturated_pixels)  # fmt: skip
+
+
+def _plan_sources(run: RunFile, layout, estimator: str, ball_centre, positions) -> _SourcesPlan:
+    """Check the view and choose the estimator: geometry only, before any position is read."""
+    geometry, builder = _geometry(run, ball_centre)
+    _check_view(run, geometry, builder, layout, positions)
+    middle = int(positions[len(positions) // 2])
+    chosen, reason, footprint = choose_estimator(geometry, builder, layout, _light_pose(run, geometry, middle), estimator)
+    log.info("%s: %s", run.path, reason)
+    spacing = min((math.dist(a.centre, b.centre) for a in layout for b in layout if a is not b), default=math.inf)
+    cell_radius = min(0.5 * spacing, 3.0 * footprint) if math.isfinite(footprint) else 0.5 * spacing
+    return _SourcesPlan(tuple(layout), tuple(ball_centre) if ball_centre is not None else None, chosen, reason,
+                        footprint, cell_radius)  # fmt: skip
+
+
+def _finish_sources(run_path: Path, out: Path, report: ProcessReport, plan: _SourcesPlan, positions, rows: dict, *,
+                    fit_method, units, truth, layout_path, timings: dict) -> None:  # fmt: skip
+    """Assemble the samples, fit, and write the light model, the light files and the report."""
+    from processing.exports import write_ies, write_ldt, write_tm25
+    from processing.report import write_report
+
+    samples = _assemble(positions, rows, plan)
+    clock = time.perf_counter()
+    with _open_run(run_path) as run:
+        model = fit_light_model(run, list(plan.layout), samples, method=fit_method, units=units,
+                                estimator=plan.estimator, footprint=plan.footprint)  # fmt: skip
+    timings["fit"] = time.perf_counter() - clock
+    clock = time.perf_counter()
+    ball_centre = plan.ball_centre
+    model.provenance["ball_centre_m"] = list(ball_centre) if ball_centre is not None else "as described by the rig"
+    model.provenance["layout"] = str(layout_path) if layout_path is not None else "found in the data (grid of candidates, NNLS)"
+    report.light_model = model.save(out / f"{run_path.stem}.light.json")
+    stem = out / run_path.stem
+    report.outputs["ies"] = [write_ies(model, stem.with_suffix(".ies"), luminaire=f"mirrorgonio run {run_path.stem}")]
+    report.outputs["ldt"] = [write_ldt(model, stem.with_suffix(".ldt"), luminaire=f"mirrorgonio run {run_path.stem}")]
+    report.outputs["tm25"] = [write_tm25(model, stem.with_suffix(".tm25ray"), n_rays=100_000, seed=0)]
+    timings["exports"] = time.perf_counter() - clock
+    report.estimator, report.estimator_reason, report.spatial_resolution_m = plan.estimator, plan.reason, 2.0 * plan.footprint
+    report.samples = samples
+    report.model = model
+    clock = time.perf_counter()
+    with _open_run(run_path) as run:  # the report draws the rig's chief rays at the middle position
+        report.outputs["report"] = [write_report(stem.with_suffix(".report.html"), model, run=run, samples=samples,
+                                                 report=report, truth=truth)]  # fmt: skip
+    timings["report"] = time.perf_counter() - clock
+
+
+def layout_from_data(run: RunFile, results_file, positions=None, ball_centre=None, compute: Compute | None = None) -> list:
+    """The sources found in the data (``processing.sources.find_layout``) at three
+    positions spread over the sweep, each position a task on ``compute``."""
+    from processing.sources import SourcesError, candidate_grid, sources_from_strength
+
+    if positions is None:
+        with Results.open(results_file) as results:
+            positions = np.flatnonzero(results.hdr_done & run.complete)
+    positions = np.asarray(positions)
     if positions.size == 0:
         raise ProcessingError(f"{run.path}: no position has both frames and an HDR result")
     picks = sorted({int(positions[int(q * (len(positions) - 1))]) for q in (0.25, 0.5, 0.75)})
-    gain = results.noise.gain_e_per_dn
-    rates, variances, usable, poses = [], [], [], []
-    for index in picks:
-        rate = results.radiance(index).astype(np.float64) * gain
-        rates.append(rate)
-        variances.append(results.variance(index).astype(np.float64) * gain * gain)
-        usable.append(~results.saturated(index) & (results.count(index) > 0) & np.isfinite(rate))
-        poses.append(_light_pose(run, geometry, index))
+    compute = compute or Compute()
+    args = (str(run.path), str(results_file), ball_centre)
+    boxes: dict[int, tuple | None] = {}
+    compute.map_unordered(_layout_box_at, picks, *args, on_result=boxes.__setitem__)
     try:
-        found = find_layout(rates, usable, variances, poses, builder, results.cfa_pattern)
+        candidates, us, vs = candidate_grid([boxes[i] for i in picks])
+        strengths: dict[int, np.ndarray] = {}
+        compute.map_unordered(_candidate_strength_at, picks, *args, tuple(candidates), on_result=strengths.__setitem__)
+        found = sources_from_strength(sum(strengths[i] for i in picks), us, vs)
     except SourcesError as exc:
         raise ProcessingError(f"{run.path}: the sources could not be found in the data: {exc}") from None
     log.info("%s: %d sources found in the data at positions %s", run.path, len(found), picks)
     return found
 
 
-def _hdr_step(run: RunFile, run_path: Path, out: Path, results_file: Path, positions, method, noise, progress):
-    from acquisition import __version__
-
-    images = out / f"{run_path.stem}.hdr"
-    images.mkdir(exist_ok=True)
-    model = choose_noise(run, positions, noise)
-    cfa = run.cfa_pattern(int(positions[0]))[0]
-    report = ProcessReport(run_path, results_file, int(positions.size), model, {"exr": [], "png": []})
-    with ResultsWriter.create(results_file, run_id=run.header.run_id, run_file=str(run_path),
-                              n_positions=run.n_positions, frame_shape=run.frame_shape,
-                              software_version=__version__,
-                              hdr=HDRInfo(method, model, rig_noise(run), cfa)) as writer:  # fmt: skip
-        for done, index in enumerate(positions, start=1):
-            index = int(index)
-            try:
-                merged = merge_raw(run.frames(index), run.exposures(index), run.black_level(index)[0],
-                                   int(run.white_level(index)[0]), model, method=method)  # fmt: skip
-            except HDRError as exc:
-                raise ProcessingError(f"{run_path}: position {index}: {exc}") from None
-            writer.write_hdr(index, merged)
-            report.saturated_pixels += int(merged.saturated.sum())
-            rgb = superpixels(np.where(np.isfinite(merged.radiance), merged.radiance, 0.0), cfa)
-            report.outputs["exr"].append(write_exr(images / f"position-{index:03d}.exr", rgb))
-            report.outputs["png"].append(write_png(images / f"position-{index:03d}.png", rgb))
-            if progress:
-                progress(done, int(positions.size))
-    if report.saturated_pixels:
-        log.warning("%s: %d pixel samples saturated even in the shortest exposure (flagged in the results)",
-                    run_path, report.saturated_pixels)  # fmt: skip
-    return report
+def _merged_rates(run: RunFile, results_file: str, index: int):
+    with Results.open(results_file) as results:
+        rate, var, usable = _rates(results.radiance(index), results.variance(index), results.count(index),
+                                   results.saturated(index), results.noise.gain_e_per_dn)  # fmt: skip
+        return rate, var, usable, results.cfa_pattern
 
 
-def _sources_step(run_path: Path, results_file: Path, out: Path, report: ProcessReport, *, layout, estimator,
-                  fit_method, units, truth=None, ball_centre=None) -> None:  # fmt: skip
-    from processing.report import write_report
-    from processing.results import Results
-    from processing.sources import SourcesError, load_layout
+def _layout_box_at(index: int, run_path: str, results_file: str, ball_centre):
+    """The lit box of one merged position (a task)."""
+    tune_malloc()
+    from processing.sources import lit_box
 
-    if estimator not in ESTIMATORS:
-        raise ProcessingError(f"--estimator: {estimator!r} is not one of {', '.join(ESTIMATORS)}")
-    with RunFile.open(run_path) as run, Results.open(results_file) as results:
-        if layout is not None:
-            try:
-                sources = load_layout(layout)
-            except SourcesError as exc:
-                raise ProcessingError(str(exc)) from None
-        else:
-            sources = layout_from_data(run, results, ball_centre)
-        samples, chosen, reason, footprint = estimate_sources(run, results, sources, estimator=estimator,
-                                                              ball_centre=ball_centre)  # fmt: skip
-        model = fit_light_model(run, sources, samples, method=fit_method, units=units, estimator=chosen,
-                                footprint=footprint)  # fmt: skip
-    model.provenance["ball_centre_m"] = list(ball_centre) if ball_centre is not None else "as described by the rig"
-    model.provenance["layout"] = str(layout) if layout is not None else "found in the data (grid of candidates, NNLS)"
-    report.light_model = model.save(out / f"{run_path.stem}.light.json")
-    from processing.exports import write_ies, write_ldt, write_tm25
+    with _open_run(run_path) as run:
+        geometry, _ = _geometry(run, ball_centre)
+        rate, _, usable, _ = _merged_rates(run, results_file, index)
+        return lit_box(rate, usable, _light_pose(run, geometry, index), geometry)
 
-    stem = out / run_path.stem
-    report.outputs["ies"] = [write_ies(model, stem.with_suffix(".ies"), luminaire=f"mirrorgonio run {run_path.stem}")]
-    report.outputs["ldt"] = [write_ldt(model, stem.with_suffix(".ldt"), luminaire=f"mirrorgonio run {run_path.stem}")]
-    report.outputs["tm25"] = [write_tm25(model, stem.with_suffix(".tm25ray"), n_rays=100_000, seed=0)]
-    report.estimator, report.estimator_reason, report.spatial_resolution_m = chosen, reason, 2.0 * footprint
-    report.samples = samples
-    report.model = model
-    with RunFile.open(run_path) as run:  # the report draws the rig's chief rays at the middle position
-        report.outputs["report"] = [write_report(stem.with_suffix(".report.html"), model, run=run, samples=samples,
-                                                 report=report, truth=truth)]  # fmt: skip
+
+def _candidate_strength_at(index: int, run_path: str, results_file: str, ball_centre, candidates):
+    """The candidates' strengths at one merged position (a task)."""
+    tune_malloc()
+    from processing.sources import candidate_strength
+
+    with _open_run(run_path) as run:
+        geometry, builder = _geometry(run, ball_centre)
+        rate, var, usable, cfa = _merged_rates(run, results_file, index)
+        return candidate_strength(rate, var, usable, _light_pose(run, geometry, index), builder, list(candidates), cfa)
 
 
 # --- sources and fits (measurement.md steps 2-5) ---------------------------------------------
@@ -224,6 +537,25 @@ class SourceSamples:
     sigma: np.ndarray
     intensity_rgb: np.ndarray  # (n_positions, n_sources, 3)
     cell_sum: np.ndarray  # (n_positions, n_sources), the fast path on the same data
+
+
+def _assemble(positions, rows: dict[int, _SourceRow], plan: _SourcesPlan) -> SourceSamples:
+    """The per-position rows, in position order, as the samples of every source."""
+    n, m = len(positions), len(plan.layout)
+    out = SourceSamples(positions, *(np.full((n, m), np.nan) for _ in range(4)), np.full((n, m, 3), np.nan),
+                        np.full((n, m), np.nan))  # fmt: skip
+    for row, index in enumerate(positions):
+        found = rows[int(index)]
+        out.theta[row], out.phi[row] = found.theta, found.phi
+        out.cell_sum[row] = found.cell_sum
+        if plan.estimator == "cell-sums":
+            out.intensity[row] = found.cell_sum
+            out.sigma[row] = np.nan
+        else:
+            out.intensity_rgb[row] = found.intensity_rgb
+            out.intensity[row] = np.nanmean(found.intensity_rgb, axis=1)
+            out.sigma[row] = np.sqrt(np.nansum(found.sigma_rgb**2, axis=1)) / 3.0
+    return out
 
 
 def _light_pose(run: RunFile, geometry, index: int):
@@ -265,65 +597,19 @@ def choose_estimator(geometry, builder, layout, light_pose, requested: str) -> t
                          f"({1e3 * spacing:.2f} mm) or size ({1e3 * size:.2f} mm): unmixing with templates"), footprint  # fmt: skip
 
 
-def _check_view(run: RunFile, results, geometry, builder, layout, positions) -> None:
-    """Refuse, in one line, a run the estimate cannot work with."""
+def _check_view(run: RunFile, geometry, builder, layout, positions) -> None:
+    """Refuse, in one line, a run the estimate cannot work with (from the geometry alone;
+    a run saturated everywhere is refused once its positions are merged)."""
     from processing.trace import ball_pixel_grid
 
     cols, rows = ball_pixel_grid(geometry)
     if cols.size == 0:
         raise ProcessingError(f"{run.path}: the ball is not in the camera's view (check camera.pose and ball.centre_m)")
-    if all(results.saturated(int(i)).all() for i in positions):
-        raise ProcessingError(f"{run.path}: every pixel is saturated even in the shortest exposure: take shorter exposures")
     seen = any(builder.build(source, _light_pose(run, geometry, int(i))) is not None
                for i in positions[:: max(1, len(positions) // 8)] for source in layout)  # fmt: skip
     if not seen:
         raise ProcessingError(f"{run.path}: the light never reflects into the camera at any position "
                               "(is it facing the ball?)")  # fmt: skip
-
-
-def estimate_sources(run: RunFile, results, layout, *, estimator: str = "auto", progress=None, ball_centre=None):
-    """Per-source samples of radiant intensity at every complete position."""
-    from processing.sources import TemplateBuilder, cell_sums, unmix_position
-    from processing.trace import RigGeometry
-
-    rig = run.header.rig
-    geometry = RigGeometry.from_rig(rig, ball_centre=ball_centre)
-    builder = TemplateBuilder(geometry, rig.camera.sensitivity_e_per_s)
-    positions = np.flatnonzero(results.hdr_done & run.complete)
-    if positions.size == 0:
-        raise ProcessingError(f"{run.path}: no position has both frames and an HDR result")
-    _check_view(run, results, geometry, builder, layout, positions)
-    middle = int(positions[len(positions) // 2])
-    chosen, reason, footprint = choose_estimator(geometry, builder, layout, _light_pose(run, geometry, middle), estimator)
-    log.info("%s: %s", run.path, reason)
-    gain = results.noise.gain_e_per_dn
-    spacing = min((math.dist(a.centre, b.centre) for a in layout for b in layout if a is not b), default=math.inf)
-    cell_radius = min(0.5 * spacing, 3.0 * footprint) if math.isfinite(footprint) else 0.5 * spacing
-    n, m = len(positions), len(layout)
-    out = SourceSamples(positions, *(np.full((n, m), np.nan) for _ in range(4)), np.full((n, m, 3), np.nan),
-                        np.full((n, m), np.nan))  # fmt: skip
-    for row, index in enumerate(positions):
-        index = int(index)
-        pose = _light_pose(run, geometry, index)
-        radiance = results.radiance(index).astype(np.float64) * gain
-        variance = results.variance(index).astype(np.float64) * gain * gain
-        usable = ~results.saturated(index) & (results.count(index) > 0) & np.isfinite(radiance)
-        estimate = unmix_position(index, radiance, variance, usable, results.cfa_pattern, builder, layout, pose)
-        out.theta[row], out.phi[row] = estimate.theta, estimate.phi
-        lit = usable & (radiance > 3.0 * np.sqrt(np.where(np.isfinite(variance), variance, np.inf)))
-        sums = cell_sums(radiance, lit, geometry, rig.camera.sensitivity_e_per_s, layout, pose, cell_radius,
-                         results.cfa_pattern).mean(axis=1)  # fmt: skip
-        out.cell_sum[row] = sums
-        if chosen == "cell-sums":
-            out.intensity[row] = sums
-            out.sigma[row] = np.nan
-        else:
-            out.intensity_rgb[row] = estimate.intensity
-            out.intensity[row] = np.nanmean(estimate.intensity, axis=1)
-            out.sigma[row] = np.sqrt(np.nansum(estimate.sigma**2, axis=1)) / 3.0
-        if progress:
-            progress(row + 1, n)
-    return out, chosen, reason, footprint
 
 
 def fit_light_model(run: RunFile, layout, samples: SourceSamples, *, method: str = "gaussian", units: str = "relative",
@@ -349,5 +635,7 @@ def fit_light_model(run: RunFile, layout, samples: SourceSamples, *, method: str
         sources.append(SourceModel(source.name, source.centre, source.radius, fit, table))
     provenance = {"run_id": run.header.run_id, "run_file": str(run.path), "rig": run.header.rig.name,
                   "software_version": __version__, "method": estimator, "fit": method,
-                  "spatial_resolution_m": 2.0 * footprint}  # fmt: skip
+                  "spatial_resolution_m": 2.0 * footprint,
+                  # the whole rig, so an object run can check it is lit in the same light frame
+                  "rig_description": run.header.rig.model_dump(mode="json", exclude_none=True)}  # fmt: skip
     return LightModel(sources, units=units, provenance=provenance)

@@ -2,6 +2,11 @@
 
 One module defines it (``docs/results-file.md``). It is written position by position, so
 a run is never loaded whole and an interrupted processing keeps what it finished.
+
+The per-position datasets are chunked one position per chunk, so a position can be
+compressed where it was merged (:func:`encode_hdr`, in a worker process) and the chunks
+written as they are by the one process that writes the file
+(:meth:`ResultsWriter.write_encoded`): the file's writer only copies bytes.
 """
 
 from __future__ import annotations
@@ -33,6 +38,55 @@ def results_path_for(run_path: str | Path, out_dir: str | Path | None = None) ->
 def _float_filter() -> dict:
     # Byte-shuffled LZ4 in Blosc: floats compress well, and fast.
     return dict(hdf5plugin.Blosc(cname="lz4", clevel=5, shuffle=hdf5plugin.Blosc.SHUFFLE))
+
+
+def _position_datasets() -> dict[str, tuple[str, dict]]:
+    """The per-position datasets of ``/hdr``: dtype and creation options (chunks aside)."""
+    return {
+        "radiance": ("f4", dict(fillvalue=np.nan, **_float_filter())),
+        "variance": ("f4", dict(fillvalue=np.nan, **_float_filter())),
+        "count": ("u1", dict(hdf5plugin.LZ4())),
+        "saturated": ("u1", dict(hdf5plugin.LZ4())),
+    }
+
+
+def _position_arrays(result: MergeResult) -> dict[str, np.ndarray]:
+    """A merge as the results file stores it (non-finite variances as +inf)."""
+    return {
+        "radiance": result.radiance,
+        "variance": np.where(np.isfinite(result.variance), result.variance, np.inf).astype("f4"),
+        "count": result.count,
+        "saturated": result.saturated.astype("u1"),
+    }
+
+
+@dataclass
+class EncodedHDR:
+    """One position's merge as the results file's compressed chunks: ``chunks`` maps each
+    per-position dataset to (HDF5 filter mask, chunk bytes)."""
+
+    chunks: dict[str, tuple[int, bytes]]
+    saturation_level: np.ndarray
+    shape: tuple[int, int]
+
+
+def encode_hdr(result: MergeResult) -> EncodedHDR:
+    """Compress one position's merge exactly as :class:`ResultsWriter` would store it.
+
+    The datasets are made with the same filters and one-position chunks in an in-memory
+    HDF5 file, and their chunk read back raw: written with
+    :meth:`ResultsWriter.write_encoded`, the file holds the same bytes as with
+    :meth:`ResultsWriter.write_hdr`.
+    """
+    arrays = _position_arrays(result)
+    h, w = result.radiance.shape
+    chunks = {}
+    with h5py.File(f"encode-{id(result)}", "w", driver="core", backing_store=False) as f:
+        for name, (dtype, options) in _position_datasets().items():
+            dset = f.create_dataset(name, (1, h, w), dtype, chunks=(1, h, w), **options)
+            dset[0] = arrays[name]
+            chunks[name] = dset.id.read_direct_chunk((0, 0, 0))
+    return EncodedHDR(chunks, np.asarray(result.saturation_level, float), (h, w))
 
 
 @dataclass(frozen=True)
@@ -67,26 +121,36 @@ class ResultsWriter:
                 noise_source=hdr.noise.source, rig_gain_e_per_dn=hdr.rig_noise.gain_e_per_dn,
                 rig_read_noise_dn=hdr.rig_noise.read_noise_dn,
             )  # fmt: skip
-            chunks = (1, h, w)
-            g.create_dataset("radiance", (n_positions, h, w), "f4", chunks=chunks, fillvalue=np.nan, **_float_filter())
-            g.create_dataset("variance", (n_positions, h, w), "f4", chunks=chunks, fillvalue=np.nan, **_float_filter())
-            g.create_dataset("count", (n_positions, h, w), "u1", chunks=chunks, **hdf5plugin.LZ4())
-            g.create_dataset("saturated", (n_positions, h, w), "u1", chunks=chunks, **hdf5plugin.LZ4())
+            for name, (dtype, options) in _position_datasets().items():
+                g.create_dataset(name, (n_positions, h, w), dtype, chunks=(1, h, w), **options)
             g.create_dataset("saturation_level", data=np.full((n_positions, 2, 2), np.nan))
             g.create_dataset("done", data=np.zeros(n_positions, dtype="u1"))
         tmp.replace(path)
         return cls(path, h5py.File(path, "r+"))
 
     def write_hdr(self, index: int, result: MergeResult) -> None:
+        """Write one position's merge (compressed here)."""
         g = self._f["hdr"]
         g["done"][index] = 0
-        g["radiance"][index] = result.radiance
-        g["variance"][index] = np.where(np.isfinite(result.variance), result.variance, np.inf).astype("f4")
-        g["count"][index] = result.count
-        g["saturated"][index] = result.saturated.astype("u1")
+        for name, array in _position_arrays(result).items():
+            g[name][index] = array
         g["saturation_level"][index] = result.saturation_level
+        self._commit(index)
+
+    def write_encoded(self, index: int, encoded: EncodedHDR) -> None:
+        """Write one position compressed elsewhere (:func:`encode_hdr`): its chunks as they are."""
+        g = self._f["hdr"]
+        if tuple(encoded.shape) != tuple(g["radiance"].shape[1:]):
+            raise ResultsError(f"{self.path}: position {index} is {encoded.shape}, the file holds {g['radiance'].shape[1:]}")
+        g["done"][index] = 0
+        for name, (mask, data) in encoded.chunks.items():
+            g[name].id.write_direct_chunk((index, 0, 0), data, mask)
+        g["saturation_level"][index] = encoded.saturation_level
+        self._commit(index)
+
+    def _commit(self, index: int) -> None:
         self._f.flush()
-        g["done"][index] = 1  # the commit flag, written last
+        self._f["hdr"]["done"][index] = 1  # the commit flag, written last
         self._f.flush()
 
     def close(self) -> None:

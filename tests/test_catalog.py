@@ -296,7 +296,7 @@ def test_schema_version_is_recorded_and_a_newer_one_refused(db, clock):
     Catalog(db, clock=clock).close()
     Catalog(db, clock=clock).close()  # reopening does not migrate twice
     with sqlite3.connect(db) as conn:
-        assert conn.execute("SELECT version FROM schema_version").fetchall() == [(SCHEMA_VERSION,)]
+        assert conn.execute("SELECT version FROM schema_version").fetchall() == [(v,) for v in range(1, SCHEMA_VERSION + 1)]
         assert conn.execute("PRAGMA journal_mode").fetchone()[0] == "wal"
         conn.execute("INSERT INTO schema_version VALUES (?, 'later')", (SCHEMA_VERSION + 1,))
     conn.close()
@@ -321,7 +321,7 @@ def test_create_get_list_jobs(cat, clock):
     run = _run_in(cat, "complete")
     job = cat.create_job(run.id)
     assert re.fullmatch(r"job-20261121-134501-[0-9a-f]{4}", job.id)
-    assert (job.run_id, job.state, job.steps, job.options, job.progress) == (run.id, "queued", "hdr,trace,fit", {}, 0.0)
+    assert (job.run_id, job.state, job.steps, job.options, job.progress) == (run.id, "queued", "hdr,sources", {}, 0.0)
     assert job.claimed_by is None and job.heartbeat_utc is None and job.created_utc == clock.now
     other = cat.create_job(run.id, steps="hdr, fit", options={"sources": 5})
     assert other.steps == "hdr,fit" and cat.get_job(other.id).options == {"sources": 5}
@@ -455,6 +455,77 @@ def test_finish_job(cat):
         cat.finish_job(ok.id, error="late")
     with pytest.raises(UnknownJobError):
         cat.finish_job("job-nope")
+
+
+def test_a_version_1_catalog_is_migrated_and_keeps_its_jobs(db, clock):
+    # The version-1 schema, as the first release wrote it, with one job in it.
+    from acquisition.catalog import _MIGRATIONS
+
+    with sqlite3.connect(db) as conn:
+        conn.execute("CREATE TABLE schema_version (version INTEGER PRIMARY KEY, applied_utc TEXT NOT NULL)")
+        for statement in _MIGRATIONS[0]:
+            conn.execute(statement)
+        conn.execute("INSERT INTO schema_version VALUES (1, '2026-11-20T00:00:00.000000Z')")
+        conn.execute("INSERT INTO runs (id, seq, created_utc, updated_utc, state, n_positions, positions_done, request_json) "
+                     "VALUES ('run-old', 1, 't', 't', 'complete', 3, 3, '{}')")
+        conn.execute("INSERT INTO jobs (id, seq, run_id, created_utc, updated_utc, state, steps, options_json, progress) "
+                     "VALUES ('job-old', 1, 'run-old', '2026-11-20T00:00:00.000000Z', '2026-11-20T00:00:00.000000Z', "
+                     "'queued', 'hdr,trace,fit', '{}', 0)")
+    conn.close()
+    cat = Catalog(db, clock=clock)
+    try:
+        job = cat.get_job("job-old")
+        assert (job.steps, job.artifacts, job.message, job.not_before_utc) == ("hdr,trace,fit", {}, None, None)
+        assert cat.claim_job("w1").id == "job-old"
+    finally:
+        cat.close()
+
+
+def test_a_released_job_waits_without_holding_up_the_queue(cat, clock):
+    run = _run_in(cat, "complete")
+    first, second = cat.create_job(run.id), cat.create_job(run.id)
+    assert cat.claim_job("w1").id == first.id
+    back = cat.release_job(first.id, "w1", message="waiting: run is running", retry_after_s=30)
+    assert (back.state, back.claimed_by, back.message) == ("queued", None, "waiting: run is running")
+    assert back.not_before_utc == clock.now + timedelta(seconds=30)
+    assert cat.claim_job("w1").id == second.id  # the waiting job is skipped
+    assert cat.claim_job("w1") is None
+    clock.advance(31)
+    again = cat.claim_job("w2")
+    assert again.id == first.id and again.not_before_utc is None
+    with pytest.raises(JobClaimError, match="claimed by w2, not by w1"):
+        cat.release_job(first.id, "w1", message="nope")
+    cat.finish_job(second.id, worker_id="w1")
+    with pytest.raises(InvalidTransitionError, match="from complete to queued"):
+        cat.release_job(second.id, "w1", message="late")
+    with pytest.raises(CatalogError, match="message"):
+        cat.release_job(first.id, "w2", message="two\nlines")
+
+
+def test_finish_job_records_artifacts_and_heartbeat_a_note(cat):
+    run = _run_in(cat, "complete")
+    job = cat.create_job(run.id, options={"partial": True})
+    cat.claim_job("w1")
+    cat.heartbeat(job.id, "w1", progress=0.5, message="positions 33 of 66")
+    assert cat.get_job(job.id).message == "positions 33 of 66"
+    cat.heartbeat(job.id, "w1", progress=0.6)  # the note stays
+    assert cat.get_job(job.id).message == "positions 33 of 66"
+    with pytest.raises(CatalogError, match="artifacts must map kinds"):
+        cat.finish_job(job.id, artifacts={"Report!": "/x"})
+    done = cat.finish_job(job.id, worker_id="w1", result_dir="/data/runs",
+                          artifacts={"report": "/data/runs/r.report.html", "ies": "/data/runs/r.ies"},
+                          message="3 of 66 positions (partial run)")
+    assert done.artifacts == {"report": "/data/runs/r.report.html", "ies": "/data/runs/r.ies"}
+    assert done.message == "3 of 66 positions (partial run)" and done.options == {"partial": True}
+
+
+def test_a_requeued_job_says_why(cat, clock):
+    run = _run_in(cat, "complete")
+    job = cat.create_job(run.id)
+    cat.claim_job("w1")
+    clock.advance(100)
+    assert cat.requeue_stale_jobs(30) == [job.id]
+    assert "stopped sending heartbeats" in cat.get_job(job.id).message
 
 
 def test_concurrent_writes_from_threads_do_not_lock(db, clock):

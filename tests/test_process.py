@@ -17,6 +17,12 @@ from sim_devices.camera import SimulatedCamera
 from sim_devices.world import SimWorld
 
 runner = CliRunner()
+
+
+@pytest.fixture(autouse=True)
+def _no_dask(monkeypatch):
+    """These tests are about the numbers: positions in this process (tests/test_dask.py runs them on Dask)."""
+    monkeypatch.setenv("MG_SCHEDULER", "none")
 EXPOSURES = [0.0002, 0.001, 0.005, 0.025]
 POSITIONS = (20, 33, 45)
 

@@ -14,6 +14,7 @@ import pytest
 from playwright.sync_api import expect, sync_playwright
 
 from conftest import write_config
+from test_worker import captured  # noqa: F401 - a finished run of three positions
 
 TOKEN = "t0k"
 # Debian's chromium, not a browser downloaded by `playwright install` (no network for that).
@@ -188,4 +189,54 @@ def test_the_page_shows_what_the_daemon_refuses_and_polls_without_events(tmp_pat
     expect(page.locator("#state")).to_have_text("complete")
     assert page.evaluate("typeof window.EventSource") == "undefined"
     page.wait_for_function("() => { const i = document.getElementById('preview'); return i.complete && i.naturalWidth > 0; }")
+    assert page.script_errors == []
+
+
+def test_the_page_shows_each_job_and_links_its_report_ies_and_ray_file(tmp_path, daemon_factory, page, captured):
+    from acquisition.worker import JobWorker
+    from test_worker import Data
+
+    data = Data(tmp_path / "data")  # a finished run in the daemon's catalog, as a run the daemon took
+    _, _, source = captured
+    run = data.run(source)
+    daemon = daemon_factory(write_config(tmp_path / "daemon.toml", data.root), token=TOKEN)
+    open_page(page, daemon)
+    expect(page.locator("#jobs")).to_contain_text("no processing jobs yet")
+    page.fill("#token", TOKEN)
+    row = page.locator(f'#runs tr[data-run-id="{run.id}"]')
+    expect(row).to_contain_text("complete")
+    row.locator("button.process").click()
+    expect(page.locator("#message")).to_contain_text(f"queued for run {run.id} (steps hdr,sources)")
+    with daemon.client() as http:
+        job = http.get("/jobs", params={"run_id": run.id}).json()[0]
+    job_row = page.locator(f'#jobs tr[data-job-id="{job["id"]}"]')
+    expect(job_row.locator(".job-badge")).to_have_text("queued")
+    expect(job_row).to_contain_text(run.id)
+
+    done = JobWorker(data.catalog, worker_id="page-worker").run_once()  # the worker, beside the daemon
+    assert done.state == "complete", done
+    expect(job_row.locator(".job-badge")).to_have_text("complete", timeout=20_000)
+    expect(job_row).to_contain_text("3 of 66 positions")
+    expect(job_row.locator("progress")).to_have_attribute("value", "100")
+    links = {kind: job_row.locator(f"a.artifact-{kind}") for kind in ("report", "ies", "tm25", "ldt", "light_model", "results")}
+    for kind, link in links.items():
+        expect(link).to_have_attribute("href", f"/jobs/{job['id']}/artifacts/{kind}")
+    expect(links["report"]).to_have_text("report")
+    expect(links["ies"]).to_have_text("IES")
+    expect(links["tm25"]).to_have_text("ray file (TM-25)")
+    # The run's row links the latest job's report, IES and ray file too.
+    expect(row.locator(".job-state")).to_contain_text("complete")
+    assert row.locator("a.artifact").count() == 3
+    for kind in ("report", "ies", "tm25"):
+        answer = httpx.get(daemon.url + links[kind].get_attribute("href"), timeout=30)
+        assert answer.status_code == 200 and answer.content == Path(done.artifacts[kind]).read_bytes()
+    # The report opens in the browser.
+    with page.context.expect_page() as opened:
+        links["report"].click()
+    report = opened.value
+    report.wait_for_load_state()
+    assert "mirrorgonio light report" in report.title()
+    report.close()
+    page.screenshot(path=str(tmp_path / "jobs.png"), full_page=True)
+    data.catalog.close()
     assert page.script_errors == []

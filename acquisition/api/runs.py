@@ -121,6 +121,7 @@ def download(run_id: str, catalog: CatalogDep) -> FileResponse:
 @router.post("/{run_id}/process", status_code=status.HTTP_201_CREATED, response_model=JobStatus,
              dependencies=[TokenDep], responses={**GUARDED_ERRORS, **BODY_ERRORS})  # fmt: skip
 def process(run_id: str, catalog: CatalogDep, body: JobRequest | None = None) -> JobStatus:
-    """Queue a processing job for the run (a worker takes it)."""
+    """Queue a processing job for the run (a worker takes it: ``mirrorgonio worker``). While the
+    run is being acquired the job waits, unless it asks for ``partial``."""
     body = body or JobRequest()
-    return job_status(catalog.create_job(run_id, steps=body.steps))
+    return job_status(catalog.create_job(run_id, steps=body.steps, options=body.options()))

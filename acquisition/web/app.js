@@ -371,9 +371,11 @@ async function refreshRuns() {
       if (!latestJob[job.run_id] || job.created_utc > latestJob[job.run_id].created_utc) latestJob[job.run_id] = job;
     }
     renderRuns(runs, latestJob);
+    renderJobs(jobs);
     if (!followed && runs.length) follow(runs[0].id);
   } catch (err) {
     $("runs").replaceChildren(el("tr", {}, el("td", { colSpan: 7, className: "bad", textContent: err.message })));
+    $("jobs").replaceChildren(el("tr", {}, el("td", { colSpan: 6, className: "bad", textContent: err.message })));
   } finally {
     runsLoading = false;
   }
@@ -402,12 +404,54 @@ function renderRuns(runs, latestJob) {
       el("td", { className: "num percent-cell", textContent: `${fmtPercent(run.percent_done)} (${run.positions_done}/${run.n_positions})` }),
       el("td", { className: "small", textContent: fmtTime(run.created_utc) }),
       el("td", {}, file),
-      el("td", {}, process, el("span", { className: "small job-state", textContent: jobText, title: job ? job.id : "" })),
+      el("td", {}, process, el("span", { className: "small job-state", textContent: jobText, title: job ? job.id : "" }),
+        ...(job ? [" ", resultLinks(job, ["report", "ies", "tm25"])] : [])),
     );
     row.dataset.runId = run.id;
     return row;
   }));
   markSelected();
+}
+
+// --- processing jobs ------------------------------------------------------------------------
+// The result files a job recorded, as the daemon serves them (GET /jobs/{id}/artifacts/{kind}).
+const ARTIFACT_LABELS = {
+  report: "report", ies: "IES", tm25: "ray file (TM-25)", ldt: "LDT", light_model: "light model (JSON)", results: "results (.h5)",
+};
+
+function resultLinks(job, kinds = Object.keys(ARTIFACT_LABELS)) {
+  const span = el("span", { className: "results small" });
+  for (const kind of kinds) {
+    const url = (job.artifacts || {})[kind];
+    if (!url) continue;
+    const link = el("a", { href: url, className: `artifact artifact-${kind}`, textContent: ARTIFACT_LABELS[kind] || kind });
+    if (kind === "report") link.target = "_blank"; else link.download = "";
+    span.append(link);
+  }
+  return span;
+}
+
+function renderJobs(jobs) {
+  if (!jobs.length) {
+    $("jobs").replaceChildren(el("tr", {}, el("td", { colSpan: 6, className: "muted", textContent: "no processing jobs yet" })));
+    return;
+  }
+  $("jobs").replaceChildren(...jobs.map((job) => {
+    const run = el("a", { href: `#${job.run_id}`, className: "run-link", textContent: job.run_id, title: "show this run" });
+    run.addEventListener("click", (e) => { e.preventDefault(); follow(job.run_id); });
+    const progress = el("progress", { className: "job-progress", max: 100, value: Math.round(job.progress * 100) });
+    const note = job.error || job.message || "";
+    const row = el("tr", {},
+      el("td", { className: "mono small", textContent: job.id, title: `steps ${job.steps}${job.claimed_by ? `, worker ${job.claimed_by}` : ""}` }),
+      el("td", {}, run),
+      el("td", {}, el("span", { className: `badge state-${job.state} job-badge`, textContent: job.state })),
+      el("td", { className: "num" }, progress, ` ${Math.round(job.progress * 100)} %`),
+      el("td", { className: `small job-note${job.error ? " bad" : ""}`, textContent: note }),
+      el("td", {}, resultLinks(job)),
+    );
+    row.dataset.jobId = job.id;
+    return row;
+  }));
 }
 
 function markSelected() {

@@ -1,0 +1,184 @@
+"""Positions processed on real Dask clusters: a `dask scheduler` and `dask worker` processes on
+loopback, and the default local cluster. Their results must equal the no-Dask path's."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import h5py
+import hdf5plugin  # noqa: F401 - the results' filters
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from acquisition.cli import app
+from conftest import free_port
+from processing.parallel import ComputeError, default_workers, open_compute
+from test_worker import LAYOUT, Data, captured  # noqa: F401 - the module fixture of three positions
+
+runner = CliRunner()
+
+
+@pytest.fixture(scope="module")
+def scheduler(tmp_path_factory):
+    """A Dask scheduler and two single-threaded worker processes, as separate programs."""
+    from distributed import Client
+
+    logs = tmp_path_factory.mktemp("dask")
+    dask = str(Path(sys.executable).with_name("dask"))
+    port = free_port()
+    address = f"tcp://127.0.0.1:{port}"
+    procs = []
+    try:
+        for name, argv in (("scheduler", [dask, "scheduler", "--host", "127.0.0.1", "--port", str(port), "--no-dashboard"]),
+                           ("worker", [dask, "worker", address, "--host", "127.0.0.1", "--nworkers", "2", "--nthreads", "1",
+                                       "--no-dashboard", "--memory-limit", "2GB"])):  # fmt: skip
+            log = open(logs / f"{name}.log", "wb")
+            procs.append((subprocess.Popen(argv, stdout=log, stderr=subprocess.STDOUT), log))
+            time.sleep(0.5 if name == "scheduler" else 0.0)
+        with Client(address, timeout=60) as client:
+            client.wait_for_workers(2, timeout=120)
+        yield address
+    finally:
+        for proc, log in reversed(procs):
+            proc.terminate()
+            try:
+                proc.wait(30)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait(10)
+            log.close()
+
+
+def _results(folder: Path, stem: str) -> dict:
+    with h5py.File(folder / f"{stem}.results.h5", "r") as f:
+        arrays = {name: f["hdr"][name][()] for name in ("radiance", "variance", "count", "saturated", "done")}
+    model = json.loads((folder / f"{stem}.light.json").read_text())
+    from processing.exports import read_tm25
+
+    _, rays = read_tm25(folder / f"{stem}.tm25ray")  # its header has the time it was written
+    return {"arrays": arrays, "model": model, "ies": (folder / f"{stem}.ies").read_text(), "rays": np.asarray(rays)}
+
+
+def _close(a, b, path="model") -> None:
+    """Equal, numbers to 1e-6 (1e-10 near zero): a Dask worker's BLAS runs one thread, this process's several,
+    and a least-squares solve summed in another order differs in the last bits."""
+    if isinstance(a, dict):
+        assert isinstance(b, dict) and a.keys() == b.keys(), path
+        for key in a:
+            _close(a[key], b[key], f"{path}.{key}")
+    elif isinstance(a, list):
+        assert isinstance(b, list) and len(a) == len(b), path
+        for i, (x, y) in enumerate(zip(a, b, strict=True)):
+            _close(x, y, f"{path}[{i}]")
+    elif isinstance(a, float) and isinstance(b, float):
+        assert b == pytest.approx(a, rel=1e-6, abs=1e-10, nan_ok=True), path
+    else:
+        assert a == b, path
+
+
+def _assert_same(a: dict, b: dict) -> None:
+    for name, array in a["arrays"].items():  # the merge is the same to the bit
+        np.testing.assert_array_equal(array, b["arrays"][name], err_msg=name)
+    _close(a["model"], b["model"])
+    words_a, words_b = a["ies"].split(), b["ies"].split()
+    assert len(words_a) == len(words_b)
+    for x, y in zip(words_a, words_b, strict=True):
+        try:
+            assert float(y) == pytest.approx(float(x), rel=1e-5, abs=1e-6), (x, y)
+        except ValueError:
+            assert x == y
+    np.testing.assert_allclose(a["rays"], b["rays"], rtol=1e-6, atol=1e-12)
+
+
+def _process(run: Path, out: Path, scheduler: str, *extra: str) -> str:
+    result = runner.invoke(app, ["process", str(run), "--out", str(out), "--scheduler", scheduler, *extra])
+    assert result.exit_code == 0, result.output
+    return result.output
+
+
+def test_a_run_processed_through_a_real_scheduler_equals_the_local_path(captured, scheduler, tmp_path):
+    from distributed import Client
+
+    _, _, run = captured
+    # No layout: the sources are found in the data, by tasks on the cluster too.
+    _process(run, tmp_path / "dask", scheduler)
+    _process(run, tmp_path / "here", "none")
+    _assert_same(_results(tmp_path / "dask", run.stem), _results(tmp_path / "here", run.stem))
+    with Client(scheduler, timeout=30) as client:
+        ran = client.run_on_scheduler(lambda dask_scheduler: sorted(dask_scheduler.task_prefixes))
+        workers = client.run(lambda: __import__("os").getpid())
+    for prefix in ("process_position", "noise_estimate_at", "layout_box_at", "candidate_strength_at"):
+        assert prefix in ran, ran
+    assert len(set(workers.values())) == 2  # two worker processes
+
+
+def test_the_worker_command_on_a_real_scheduler(captured, scheduler, tmp_path):
+    _, _, source = captured
+    data = Data(tmp_path / "data")
+    try:
+        run = data.run(source)
+        job = data.catalog.create_job(run.id, options={"layout": LAYOUT})
+        result = runner.invoke(app, ["worker", "--data-dir", str(data.root), "--scheduler", scheduler, "--once"])
+        assert result.exit_code == 0, result.output
+        done = data.catalog.get_job(job.id)
+        assert done.state == "complete", (done, result.output)
+        assert f"on Dask scheduler {scheduler}: 2 workers" in done.message
+        assert Path(done.artifacts["report"]).is_file() and Path(done.artifacts["tm25"]).is_file()
+    finally:
+        data.catalog.close()
+
+
+def test_the_default_local_cluster_is_sized_to_the_machine_and_streams(captured, tmp_path):
+    from processing.pipeline import process_run
+
+    _, _, run = captured
+    with open_compute() as compute:  # the default: "local"
+        assert compute.dask and compute.threads() == default_workers()
+        assert compute.description == f"local Dask cluster: {default_workers()} worker processes x 1 thread"
+        # Bounded: never more than two tasks per worker thread in flight.
+        held = []
+        compute.map_unordered(time.sleep, [0.05] * 12, on_result=lambda item, _: held.append(len(compute.client.futures)))
+        assert len(held) == 12 and max(held) <= compute.max_in_flight() == 2 * default_workers()
+        report = process_run(run, tmp_path / "dask", steps="hdr,sources", layout=LAYOUT, compute=compute)
+        assert report.compute == compute.description and report.timings["positions"] > 0
+        peaks = compute.worker_peak_rss()
+        assert len(peaks) == default_workers() and all(0 < p < 4 << 30 for p in peaks.values())
+    process_run(run, tmp_path / "here", steps="hdr,sources", layout=LAYOUT)
+    _assert_same(_results(tmp_path / "dask", run.stem), _results(tmp_path / "here", run.stem))
+    # The EXR and PNG previews were written by the workers, one per position.
+    assert sorted(p.name for p in (tmp_path / "dask" / f"{run.stem}.hdr").iterdir()) == sorted(
+        p.name for p in (tmp_path / "here" / f"{run.stem}.hdr").iterdir())  # fmt: skip
+
+
+def test_bad_run_files_through_the_scheduler_are_one_line_errors(captured, scheduler, tmp_path):
+    _, _, run = captured
+    content = run.read_bytes()
+    broken = tmp_path / "broken.h5"
+    broken.write_bytes(content[: len(content) // 2])
+    result = runner.invoke(app, ["process", str(broken), "--out", str(tmp_path / "out"), "--scheduler", scheduler])
+    assert result.exit_code == 2 and result.output.startswith(f"error: {broken}: truncated or corrupt"), result.output
+    assert len(result.output.strip().splitlines()) == 1
+    # Garbage in the frames: the header reads, a task's read fails, its error comes back.
+    garbage = tmp_path / "garbage.h5"
+    third = len(content) // 3
+    garbage.write_bytes(content[:third] + bytes(np.random.default_rng(1).integers(0, 256, third, dtype=np.uint8))
+                        + content[2 * third :])  # fmt: skip
+    result = runner.invoke(app, ["process", str(garbage), "--out", str(tmp_path / "out"), "--scheduler", scheduler,
+                                 "--layout", LAYOUT])  # fmt: skip
+    assert result.exit_code == 2 and result.output.startswith(f"error: {garbage}: "), result.output
+    assert len(result.output.strip().splitlines()) == 1
+
+
+def test_a_scheduler_that_is_not_there_is_one_line():
+    address = f"tcp://127.0.0.1:{free_port()}"
+    with pytest.raises(ComputeError, match=f"--scheduler {address}: cannot reach the Dask scheduler"):
+        open_compute(address, timeout_s=2)
+    with pytest.raises(ComputeError, match="is not 'local', 'none', 'synchronous' or a Dask scheduler address"):
+        open_compute("my-cluster")
+    result = runner.invoke(app, ["process", "x.h5", "--scheduler", address.replace("tcp", "udp")])
+    assert result.exit_code == 2 and "--scheduler: 'udp://" in result.output

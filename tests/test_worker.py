@@ -1,0 +1,363 @@
+"""`mirrorgonio worker`: jobs from the catalog, heartbeats, requeues, bad and live run files,
+and the daemon's job endpoints that serve what the worker wrote.
+
+The processing runs without Dask here (``scheduler none``); tests/test_dask.py runs it on
+real Dask clusters.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from acquisition.catalog import Catalog
+from acquisition.rig import load_rig
+from acquisition.runfile import PositionTimes, RunFile, RunFileWriter, RunHeader
+from acquisition.worker import ARTIFACT_KINDS, JobLostError, JobWorker, one_line, writer_alive
+from conftest import REDUCED_RIG
+from processing.results import Results
+from sim_devices.camera import SimulatedCamera
+from sim_devices.lights import LIGHTS_DIR
+from sim_devices.world import SimWorld
+
+EXPOSURES = [0.0002, 0.001, 0.005, 0.025]
+POSITIONS = (20, 33, 45)
+LATE = 27  # a position the live run adds last
+LAYOUT = str(LIGHTS_DIR / "five-gaussians.toml")
+
+
+@pytest.fixture(scope="module")
+def captured(tmp_path_factory):
+    """Brackets of three positions of the reduced rig, and a finished run file of them."""
+    folder = tmp_path_factory.mktemp("frames")
+    rig = load_rig(REDUCED_RIG)
+    tools = rig.tool_poses()
+    here = {"pose": tools[0]}
+    camera = SimulatedCamera(rig, SimWorld(lambda: here["pose"]), folder / "spool", seed=3)
+    frames = {}
+    for index in (*POSITIONS, LATE):
+        here["pose"] = tools[index]
+        frames[index] = [camera.capture(t) for t in EXPOSURES]
+    path = folder / "run-test.h5"
+    with write_run(path, rig, frames, POSITIONS) as writer:
+        writer.set_status("complete", "")
+    return rig, frames, path
+
+
+def write_run(path, rig, frames, positions, status="running") -> RunFileWriter:
+    """A run file with ``positions`` complete, its writer still open (status ``status``)."""
+    header = RunHeader(run_id=Path(path).stem, rig=rig, tool_poses=rig.tool_poses(), light_poses=rig.light_poses(),
+                       max_exposures=len(EXPOSURES), frame_shape=(rig.camera.height, rig.camera.width),
+                       bracket={"mode": "fixed", "exposures_s": EXPOSURES}, metadata={}, devices={},
+                       software_version="test", created_utc="2026-11-21T00:00:00+00:00", preset="light-sweep")  # fmt: skip
+    writer = RunFileWriter.create(path, header)
+    for index in positions:
+        writer.write_position(index, rig.tool_poses()[index], PositionTimes(0.0, 0.0, 0.0), frames[index])
+    writer.set_status(status, "")
+    return writer
+
+
+class Data:
+    """A data folder with a catalog, as the daemon keeps it."""
+
+    def __init__(self, root: Path):
+        self.root = root
+        (root / "runs").mkdir(parents=True, exist_ok=True)
+        self.catalog_path = root / "catalog.sqlite"
+        self.catalog = Catalog(self.catalog_path)
+
+    def run(self, source: Path | None = None, state: str = "complete"):
+        """A catalog run whose file is a copy of ``source`` (none: no file yet), brought to ``state``."""
+        record = self.catalog.create_run(preset="light-sweep", path_for=lambda rid: self.root / "runs" / f"{rid}.h5",
+                                         n_positions=66, request={})  # fmt: skip
+        if source is not None:
+            shutil.copy(source, record.path)
+        for step in {"complete": ["running", "complete"], "running": ["running"], "interrupted": ["running", "interrupted"],
+                     "aborted": ["aborted"]}[state]:  # fmt: skip
+            record = self.catalog.transition_run(record.id, step)
+        return record
+
+    def worker(self, **options) -> JobWorker:
+        options.setdefault("worker_id", "w-test")
+        return JobWorker(self.catalog, **options)
+
+
+@pytest.fixture()
+def data(tmp_path):
+    d = Data(tmp_path / "data")
+    yield d
+    d.catalog.close()
+
+
+def test_a_worker_processes_a_job_and_records_its_result_files(captured, data):
+    _, _, source = captured
+    run = data.run(source)
+    job = data.catalog.create_job(run.id, steps="hdr,trace,fit", options={"layout": LAYOUT})  # the old names
+    done = data.worker().run_once()
+    assert done.id == job.id and done.state == "complete", done
+    assert done.error is None and done.progress == 1.0 and done.claimed_by == "w-test"
+    folder = Path(run.path).parent
+    assert done.result_dir == str(folder)  # beside the run
+    assert set(done.artifacts) == set(ARTIFACT_KINDS)
+    stem = Path(run.path).stem
+    assert done.artifacts["report"] == str(folder / f"{stem}.report.html")
+    assert done.artifacts["tm25"] == str(folder / f"{stem}.tm25ray")
+    for path in done.artifacts.values():
+        assert Path(path).is_file() and Path(path).stat().st_size > 100, path
+    assert done.message.startswith("3 of 66 positions in ") and "this process" in done.message
+    with Results.open(done.artifacts["results"]) as results:
+        assert results.hdr_done.sum() == 3
+    assert data.worker().run_once() is None  # nothing left
+
+
+def test_bad_run_files_fail_their_job_in_one_line_and_the_queue_goes_on(captured, data, tmp_path):
+    _, _, source = captured
+    truncated = data.run(source)
+    size = os.path.getsize(truncated.path)
+    with open(truncated.path, "r+b") as f:
+        f.truncate(size // 2)
+    corrupt = data.run(source)
+    with open(corrupt.path, "r+b") as f:  # garbage over the frames, the header intact
+        f.seek(size // 3)
+        f.write(np.random.default_rng(0).integers(0, 256, size // 3, dtype=np.uint8).tobytes())
+    text = data.run()
+    Path(text.path).write_text("not a run file\n")
+    missing = data.run()  # no file at all
+    good = data.run(source)
+    jobs = [data.catalog.create_job(r.id, options={"layout": LAYOUT}) for r in (truncated, corrupt, text, missing, good)]
+    seen = []
+    assert data.worker().run(once=True, on_job=seen.append) == 5
+    assert [j.id for j in seen] == [j.id for j in jobs]
+    ended = {j.id: data.catalog.get_job(j.id) for j in jobs}
+    for job, run in zip(jobs[:4], (truncated, corrupt, text, missing), strict=True):
+        failed = ended[job.id]
+        assert failed.state == "failed" and failed.artifacts == {}, failed
+        assert "\n" not in failed.error and run.path in failed.error, failed.error
+    assert "truncated or corrupt" in ended[jobs[0].id].error
+    assert "cannot read" in ended[jobs[1].id].error or "corrupt" in ended[jobs[1].id].error
+    assert "not an HDF5 file" in ended[jobs[2].id].error
+    assert "run file not found" in ended[jobs[3].id].error
+    assert ended[jobs[4].id].state == "complete"
+
+
+def test_a_job_for_a_run_being_acquired_waits_or_takes_the_complete_positions(captured, data):
+    rig, frames, source = captured
+    finished = data.run(source)  # queued after the live run's job: must not be held up by it
+    live = data.run(state="running")
+    writer = write_run(live.path, rig, frames, POSITIONS)
+    try:
+        waiting = data.catalog.create_job(live.id, options={"layout": LAYOUT})
+        other = data.catalog.create_job(finished.id, options={"layout": LAYOUT})
+        partial = data.catalog.create_job(live.id, options={"layout": LAYOUT, "partial": True})
+        worker = data.worker(wait_s=1.5)
+        assert worker.run(once=True) == 2  # the two that can run
+        job = data.catalog.get_job(waiting.id)
+        assert job.state == "queued" and job.error is None and job.claimed_by is None
+        assert job.message.startswith(f"waiting: run {live.id} is still being acquired (its state is running)")
+        assert data.catalog.get_job(other.id).state == "complete"
+        done = data.catalog.get_job(partial.id)
+        assert done.state == "complete" and done.message.startswith("3 of 66 positions (partial"), done.message
+        with Results.open(done.artifacts["results"]) as results:
+            assert np.flatnonzero(results.hdr_done).tolist() == list(POSITIONS)
+        # The acquisition ends: the waiting job runs once its wait is over, on every position.
+        writer.write_position(LATE, rig.tool_poses()[LATE], PositionTimes(0.0, 0.0, 0.0), frames[LATE])
+        writer.set_status("complete", "")
+    finally:
+        writer.close()
+    data.catalog.transition_run(live.id, "complete")
+    assert worker.run_once() is None  # still inside its wait
+    time.sleep(1.6)
+    done = worker.run_once()
+    assert done.id == waiting.id and done.state == "complete" and done.message.startswith("4 of 66 positions in")
+
+
+def test_a_run_file_still_held_by_its_writer_waits_even_if_the_catalog_gave_up_on_it(captured, data):
+    rig, frames, _ = captured
+    stuck = data.run(state="interrupted")  # e.g. a daemon restarted while another process still writes
+    writer = write_run(stuck.path, rig, frames, POSITIONS[:1])
+    try:
+        assert writer_alive(stuck.path)
+        job = data.catalog.create_job(stuck.id, steps="hdr")
+        waited = data.worker(wait_s=0.0).run_once()
+        assert waited.state == "queued" and "its run file says running and a writer holds it" in waited.message
+    finally:
+        writer.close()  # the writer is gone; the file still says "running"
+    assert not writer_alive(stuck.path)
+    with RunFile.open(stuck.path) as f:
+        assert f.status == "running"
+    done = data.worker().run_once()
+    assert done.id == job.id and done.state == "complete" and done.message.startswith("1 of 66 positions")
+    assert set(done.artifacts) == {"results"}  # hdr only
+
+
+def test_a_live_run_with_nothing_complete_waits_even_for_a_partial_job(captured, data):
+    rig, frames, _ = captured
+    live = data.run(state="running")
+    writer = write_run(live.path, rig, frames, ())
+    try:
+        data.catalog.create_job(live.id, options={"partial": True})
+        waited = data.worker().run_once()
+        assert waited.state == "queued" and "no complete position yet" in waited.message
+    finally:
+        writer.close()
+
+
+def test_an_orphaned_job_is_requeued_and_taken_by_another_worker(captured, data):
+    _, _, source = captured
+    run = data.run(source)
+    job = data.catalog.create_job(run.id, options={"layout": LAYOUT})
+    assert data.catalog.claim_job("ghost").id == job.id  # a worker that then died
+    worker = data.worker(worker_id="w2", stale_after_s=0.3)
+    assert worker.run_once() is None  # its heartbeat is still fresh
+    time.sleep(0.4)
+    done = worker.run_once()
+    assert done.id == job.id and done.state == "complete" and done.claimed_by == "w2"
+
+
+def test_heartbeats_carry_the_progress_and_a_lost_job_is_abandoned(data, tmp_path):
+    run = data.run(state="complete")
+    job = data.catalog.create_job(run.id)
+    seen = []
+
+    def slow(job, path, steps, progress):
+        for step in range(1, 6):
+            time.sleep(0.12)
+            progress(step, 10)
+        seen.append(data.catalog.get_job(job.id))
+        return tmp_path, {}, "slow work done"
+
+    done = data.worker(heartbeat_s=0.05, process=slow).run_once()
+    assert done.state == "complete" and done.message == "slow work done"
+    beating = seen[0]
+    assert beating.state == "running" and 0.3 <= beating.progress <= 0.5 and beating.message.startswith("positions ")
+    assert beating.heartbeat_utc > beating.created_utc
+
+    # Another worker takes the job over (this one was taken for dead): this one stops.
+    stolen = data.catalog.create_job(run.id)
+
+    def robbed(job, path, steps, progress):
+        with Catalog(data.catalog_path) as other:
+            assert other.requeue_stale_jobs(0) == [job.id]
+            assert other.claim_job("thief").id == job.id
+        for step in range(1, 50):
+            time.sleep(0.05)
+            progress(step, 50)  # raises JobLostError once a heartbeat found the job gone
+        raise AssertionError("the worker did not notice")
+
+    after = data.worker(heartbeat_s=0.05, process=robbed).run_once()
+    assert after.id == stolen.id and after.state == "running" and after.claimed_by == "thief"
+
+
+def test_a_killed_worker_process_leaves_its_job_to_the_next_worker(captured, data, tmp_path):
+    _, _, source = captured
+    run = data.run(source)
+    job = data.catalog.create_job(run.id, options={"layout": LAYOUT})
+    exe = Path(sys.executable).with_name("mirrorgonio")
+    log = open(tmp_path / "worker-1.log", "wb")
+    proc = subprocess.Popen([str(exe), "worker", "--data-dir", str(data.root), "--scheduler", "none", "--id", "doomed",
+                             "--heartbeat", "0.2", "--poll", "0.1"], stdout=log, stderr=subprocess.STDOUT)  # fmt: skip
+    try:
+        deadline = time.monotonic() + 60
+        while data.catalog.get_job(job.id).state != "running":
+            assert proc.poll() is None, (tmp_path / "worker-1.log").read_text()
+            assert time.monotonic() < deadline, "the worker never claimed the job"
+            time.sleep(0.02)
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(10)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        log.close()
+    orphan = data.catalog.get_job(job.id)
+    assert orphan.state == "running" and orphan.claimed_by == "doomed"
+    time.sleep(1.2)
+    done = data.worker(worker_id="survivor", stale_after_s=1.0).run_once()
+    assert done.id == job.id and done.state == "complete" and done.claimed_by == "survivor", done
+
+
+def test_the_worker_command_once_and_its_errors(captured, data, tmp_path):
+    from typer.testing import CliRunner
+
+    from acquisition.cli import app
+
+    _, _, source = captured
+    run = data.run(source)
+    job = data.catalog.create_job(run.id, options={"layout": LAYOUT})
+    runner = CliRunner()
+    result = runner.invoke(app, ["worker", "--data-dir", str(data.root), "--scheduler", "none", "--once"])
+    assert result.exit_code == 0, result.output
+    assert f"{job.id} complete ({run.id}): 3 of 66 positions" in result.output
+    assert "  report: " in result.output and "  tm25: " in result.output
+    missing = runner.invoke(app, ["worker", "--data-dir", str(tmp_path / "nope"), "--once"])
+    assert missing.exit_code == 2 and "is not a folder" in missing.output
+    bad = runner.invoke(app, ["worker", "--data-dir", str(data.root), "--scheduler", "udp://x", "--once"])
+    assert bad.exit_code == 2 and bad.output.startswith("error: --scheduler: 'udp://x' is not")
+    assert len(bad.output.strip().splitlines()) == 1
+
+
+def test_one_line_reasons():
+    from processing.pipeline import ProcessingError
+
+    assert one_line(ProcessingError("run.h5: position 3:\n  bad")) == "run.h5: position 3: bad"
+    assert one_line(KeyError("x")) == "KeyError: 'x'"
+    assert one_line(RuntimeError()) == "RuntimeError"
+    assert len(one_line(ValueError("x" * 5000))) == 1000
+    assert issubclass(JobLostError, RuntimeError)
+
+
+# --- the daemon's job endpoints ----------------------------------------------------------
+def test_the_daemon_serves_a_jobs_state_and_exactly_its_result_files(captured, data, tmp_path):
+    from fastapi.testclient import TestClient
+
+    from acquisition.app import create_app
+    from acquisition.settings import load_settings
+
+    _, _, source = captured
+    run = data.run(source)
+    live = data.run(state="running")
+    settings = load_settings(None, data_dir=data.root, rig=REDUCED_RIG)
+    with TestClient(create_app(settings)) as http:
+        bad = http.post(f"/runs/{run.id}/process", json={"steps": "hdr,dance"})
+        assert bad.status_code == 422 and "unknown step 'dance'" in str(bad.json()["detail"])
+        assert http.post(f"/runs/{run.id}/process", json={"steps": "hdr", "fit": "spline"}).status_code == 422
+        queued = http.post(f"/runs/{run.id}/process", json={"steps": "hdr,sources"})
+        assert queued.status_code == 201
+        job = queued.json()
+        assert (job["state"], job["steps"], job["options"], job["artifacts"]) == ("queued", "hdr,sources", {}, {})
+        partial = http.post(f"/runs/{live.id}/process", json={"partial": True, "estimator": "templates"}).json()
+        assert partial["options"] == {"partial": True, "estimator": "templates"} and partial["steps"] == "hdr,sources"
+        assert http.get(f"/jobs/{job['id']}/artifacts/report").status_code == 404  # nothing yet
+
+        done = data.worker().run_once()  # the oldest job first
+        assert done.id == job["id"] and done.state == "complete", done
+        status = http.get(f"/jobs/{job['id']}").json()
+        assert status["state"] == "complete" and status["progress"] == 1.0 and status["claimed_by"] == "w-test"
+        assert status["artifacts"] == {kind: f"/jobs/{job['id']}/artifacts/{kind}" for kind in ARTIFACT_KINDS}
+        report = http.get(status["artifacts"]["report"])
+        assert report.status_code == 200 and report.headers["content-type"].startswith("text/html")
+        assert report.headers["content-disposition"].startswith("inline") and b"<html" in report.content[:500].lower()
+        ies = http.get(status["artifacts"]["ies"])
+        assert ies.status_code == 200 and ies.text.startswith("IES:LM-63") and "attachment" in ies.headers["content-disposition"]
+        assert ies.content == Path(done.artifacts["ies"]).read_bytes()
+        rays = http.get(status["artifacts"]["tm25"])
+        assert rays.status_code == 200 and rays.content == Path(done.artifacts["tm25"]).read_bytes()
+        assert http.get(status["artifacts"]["results"]).content[:8] == b"\x89HDF\r\n\x1a\n"
+        # Only the files the job recorded, nothing else.
+        assert http.get(f"/jobs/{job['id']}/artifacts/catalog").status_code == 404
+        assert http.get(f"/jobs/{job['id']}/artifacts/..%2F..%2Fcatalog.sqlite").status_code == 404
+        assert http.get(f"/jobs/{job['id']}/artifacts/../../catalog.sqlite").status_code == 404
+        assert http.get("/jobs/job-nope/artifacts/report").status_code == 404
+        Path(done.artifacts["ldt"]).unlink()
+        gone = http.get(status["artifacts"]["ldt"])
+        assert gone.status_code == 404 and "no longer there" in gone.json()["detail"]
+        listed = http.get("/jobs", params={"run_id": run.id}).json()
+        assert [j["id"] for j in listed] == [job["id"]] and listed[0]["artifacts"] == status["artifacts"]
