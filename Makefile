@@ -14,7 +14,7 @@ $(PY):
 
 # Reinstall whenever the dependencies change.
 $(STAMP): pyproject.toml | $(PY)
-	$(PY) -m pip install --quiet -e '.[test]'
+	$(PY) -m pip install --quiet -e '.[test,bench]'  # bench: the peers the speed and HDR benchmarks (and their tests) measure against
 	touch $(STAMP)
 
 install: $(STAMP)
