@@ -730,7 +730,8 @@ def _measure(runs: dict, result: dict, *, repeat, process_repeat, hdr_positions,
                        "load_avg_before": _load(),
                        "run": {"file": str(made.path), "bytes": made.path.stat().st_size, "from_cache": made.from_cache,
                                "created_s": round(made.created_s, 1), "cache_key": made.key,
-                               "created_utc": made.record.get("created_utc"), "how": made.record.get("how")}}  # fmt: skip
+                               "created_utc": made.record.get("created_utc"),
+                               "load_avg_when_made": made.record.get("load_avg_at_end"), "how": made.record.get("how")}}  # fmt: skip
         say(f"{label}: read floor")
         entry["read"] = measure_read(made.path, repeat)
         say(f"{label}: whole-run processing ({scheduler})")
@@ -807,7 +808,9 @@ def markdown_table(result: dict) -> str:
         ("peak memory of the processing (this process + workers)",
          [f"{e['process']['peak_memory_gb']:.2f} GB" for e in entries], f"< {TARGET['peak_memory_gb']:g} GB at 2000×1312"),
         ("making the simulated run (once, cached)",
-         [f"{_fmt_s(e['run']['created_s'])} ({e['run']['bytes'] / 1e6:.0f} MB file)" for e in entries], ""),
+         [f"{_fmt_s(e['run']['created_s'])} ({e['run']['bytes'] / 1e6:.0f} MB file"
+          + (f"; load {e['run']['load_avg_when_made'][0]:.1f} when made" if e["run"].get("load_avg_when_made") else "") + ")"
+          for e in entries], ""),
     ]  # fmt: skip
     target = result.get("target", {})
     verdict = {True: "met", False: "not met", None: "not measured"}[target.get("meets_target")]
