@@ -53,7 +53,8 @@ def test_the_json_has_every_measurement(speed):
     memory = process["memory"]
     assert memory["child_processes"] >= 1 and memory["peak_children_gb"] > 0
     assert memory["peak_total_gb"] >= max(memory["peak_this_process_gb"], memory["peak_children_gb"])
-    assert memory["peak_total_gb"] <= memory["peak_this_process_gb"] + memory["peak_children_gb"] + 1e-3
+    # three figures each rounded to 1 MB: the sum of the parts may trail the total by 1.5 MB
+    assert memory["peak_total_gb"] <= memory["peak_this_process_gb"] + memory["peak_children_gb"] + 2e-3
     assert process["peak_memory_gb"] == memory["peak_total_gb"]
     assert process["outputs"]["exr"] == POSITIONS and process["outputs"]["ies"] == 1
     assert process["stages_s"]["total"] == pytest.approx(process["process_s"], rel=0.05)
