@@ -416,11 +416,18 @@ def test_the_fallback_parser_needs_the_token_too():
                                                    f'"compose.services.daemon.environment.MG_TOKEN": {TOKEN_MESSAGE}']  # fmt: skip
 
 
+def _without_docker_compose(why: str) -> None:
+    """`make test` installs docker-compose (apt, with chromium): under CI its absence is a failure."""
+    if os.environ.get("CI"):
+        pytest.fail("docker-compose is missing under CI: `make test`'s apt step should have installed it")
+    pytest.skip(f"docker-compose is not installed: {why}")
+
+
 def test_the_fallback_parser_resolves_the_file_as_docker_compose_does():
     parsed = _parse_compose(COMPOSE, {"MG_TOKEN": "x"})
     assert compose_problems(tool=None) == []
     if DOCKER_COMPOSE is None:
-        pytest.skip("docker-compose is not installed: nothing to compare with")
+        _without_docker_compose("nothing to compare with")
     resolved = resolve_compose(COMPOSE, {"MG_TOKEN": "x"})
     assert set(parsed["services"]) == set(resolved["services"])
     for name, svc in parsed["services"].items():
@@ -493,7 +500,7 @@ PLANTED = [
 @pytest.mark.parametrize(("old", "new"), PLANTED, ids=[new for _, new in PLANTED])
 def test_a_planted_mistake_is_found(tmp_path, old, new, tool):
     if tool == "docker-compose" and DOCKER_COMPOSE is None:
-        pytest.skip("docker-compose is not installed")
+        _without_docker_compose("the planted mistake is checked by the parser alone")
     text = COMPOSE.read_text()
     assert text.count(old) == 1, f"the compose file changed: update the planted mistake {old!r}"
     broken = tmp_path / "docker-compose.yml"
