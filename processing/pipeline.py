@@ -50,7 +50,9 @@ class ProcessReport:
 
     ``outputs`` maps a kind (``exr``, ``png``, ``ies``, ``ldt``, ``tm25``, ``report``) to
     its files; ``timings`` the stages (``noise``, ``layout``, ``positions``, ``fit``,
-    ``exports``, ``report``, ``total``) to seconds of wall time.
+    ``exports``, ``report``, ``total``) to seconds of wall time; ``task_stages`` the
+    seconds the position tasks spent in each of their stages (``read``, ``merge``,
+    ``encode``, ``images``, ``masks``, ``sources``), summed over the tasks, wherever they ran.
     """
 
     run_file: Path
@@ -69,6 +71,12 @@ class ProcessReport:
     partial: bool = False
     compute: str = ""
     timings: dict[str, float] = field(default_factory=dict)
+    task_stages: dict[str, float] = field(default_factory=dict)
+
+    def add_task(self, result: PositionResult) -> None:
+        for stage, seconds in result.stages.items():
+            self.task_stages[stage] = self.task_stages.get(stage, 0.0) + seconds
+        self.task_stages["tasks"] = self.task_stages.get("tasks", 0.0) + result.seconds
 
 
 def rig_noise(run: RunFile) -> NoiseModel:
@@ -168,6 +176,19 @@ class PositionResult:
     all_saturated: bool = False
     sources: _SourceRow | None = None
     seconds: float = 0.0
+    stages: dict[str, float] = field(default_factory=dict)  # seconds per stage of this task
+
+
+class _StageClock:
+    """Seconds spent in each stage of one task (``read``, ``merge``, ``encode``, ...)."""
+
+    def __init__(self, into: dict[str, float]):
+        self.into, self.last = into, time.perf_counter()
+
+    def lap(self, stage: str) -> None:
+        now = time.perf_counter()
+        self.into[stage] = self.into.get(stage, 0.0) + now - self.last
+        self.last = now
 
 
 def process_position(index: int, work: _PositionWork) -> PositionResult:
@@ -183,15 +204,22 @@ def process_position(index: int, work: _PositionWork) -> PositionResult:
 
         numba.set_num_threads(1)
     out = PositionResult(index)
+    clock = _StageClock(out.stages)
     with _open_run(work.run_path) as run:
         try:
             if work.hdr is not None:
                 h = work.hdr
-                merged = merge_raw(run.frames(index), run.exposures(index), run.black_level(index)[0],
-                                   int(run.white_level(index)[0]), h.noise, method=h.method)  # fmt: skip
+                frames, exposures = run.frames(index), run.exposures(index)
+                black, white = run.black_level(index)[0], int(run.white_level(index)[0])
+                clock.lap("read")
+                merged = merge_raw(frames, exposures, black, white, h.noise, method=h.method)
+                del frames
+                clock.lap("merge")
                 out.merged = encode_hdr(merged)  # compressed here, in parallel; the writer copies bytes
+                clock.lap("encode")
                 if h.images_dir is not None:
                     out.images = _write_images(Path(h.images_dir), index, merged.radiance, h.cfa)
+                    clock.lap("images")
                 radiance, count, saturated = merged.radiance, merged.count, merged.saturated
                 # As the results file stores it, so that both paths give the same numbers.
                 variance = np.where(np.isfinite(merged.variance), merged.variance, np.inf).astype("f4")
@@ -201,6 +229,7 @@ def process_position(index: int, work: _PositionWork) -> PositionResult:
                     radiance, variance = results.radiance(index), results.variance(index)
                     count, saturated = results.count(index), results.saturated(index)
                     gain, cfa = results.noise.gain_e_per_dn, results.cfa_pattern
+                clock.lap("read")
         except HDRError as exc:
             raise ProcessingError(f"{run.path}: position {index}: {exc}") from None
         except RunFileError as exc:
@@ -214,7 +243,9 @@ def process_position(index: int, work: _PositionWork) -> PositionResult:
             rate, var, usable = _rates(radiance, variance, count, saturated, gain)
             # Lit: 3 sigma above zero; the same test as on the rates, in DN and float32 (cheaper).
             lit = usable & (radiance > 3.0 * np.sqrt(variance))
+            clock.lap("masks")
             out.sources = _estimate_at(run, work.sources, index, rate, var, usable, lit, cfa)
+            clock.lap("sources")
     out.seconds = time.perf_counter() - started
     return out
 
@@ -371,6 +402,7 @@ def process_run(run_path, out_dir=None, *, steps=("hdr",), method: str = "optima
             work = _PositionWork(str(run_path), str(results_file), None, plan, compute.dask)
 
             def collect(index, result: PositionResult):
+                report.add_task(result)
                 rows[index] = result.sources
                 saturated_all[index] = result.all_saturated
                 tracker.step()
@@ -383,6 +415,7 @@ def process_run(run_path, out_dir=None, *, steps=("hdr",), method: str = "optima
                         truth=truth, layout_path=layout, timings=timings)  # fmt: skip
     timings["total"] = time.perf_counter() - started
     report.timings = {k: round(v, 3) for k, v in timings.items()}
+    report.task_stages = {k: round(v, 3) for k, v in report.task_stages.items()}
     return report
 
 
@@ -407,6 +440,7 @@ def _hdr_pass(run: RunFile, run_path: Path, out: Path, results_file: Path, posit
                               hdr=HDRInfo(method, report.noise, rig_noise(run), cfa)) as writer:  # fmt: skip
 
         def write(index: int, result: PositionResult) -> None:
+            report.add_task(result)
             writer.write_encoded(index, result.merged)
             report.saturated_pixels += result.saturated
             saturated_all[index] = result.all_saturated

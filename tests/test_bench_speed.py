@@ -22,7 +22,7 @@ W, H, POSITIONS, EXPOSURES = 200, 132, 6, 5
 def speed(tmp_path_factory):
     cache = tmp_path_factory.mktemp("speed-cache")
     args = ["bench", "speed", "--json", "--sizes", f"{W}x{H}", "--positions", str(POSITIONS), "--repeat", "2",
-            "--hdr-positions", "2", "--scheduler", "local", "--workers", "1", "--cache", str(cache)]  # fmt: skip
+            "--process-repeat", "2", "--hdr-positions", "2", "--scheduler", "local", "--workers", "1", "--cache", str(cache)]  # fmt: skip
     first = CliRunner().invoke(app, args)
     assert first.exit_code == 0, first.output
     again = CliRunner().invoke(app, [*args[:-6], "--scheduler", "none", "--no-peers", "--cache", str(cache)])
@@ -47,7 +47,12 @@ def test_the_json_has_every_measurement(speed):
     assert read["mb_per_s"] == pytest.approx(read["frame_bytes_total"] / 1e6 / read["read_s"], rel=0.05)
 
     process = entry["process"]
-    assert process["positions"] == POSITIONS and process["process_s"] > 0
+    assert process["positions"] == POSITIONS and process["process_s"] > 0 and len(process["process_s_all"]) == 2
+    # where a position task's time goes, per position: every stage of the fused hdr + sources task
+    stages = process["task_ms_per_position"]
+    assert set(stages) == {"read", "merge", "encode", "images", "masks", "sources", "tasks"}
+    assert all(v >= 0 for v in stages.values())
+    assert sum(v for k, v in stages.items() if k != "tasks") == pytest.approx(stages["tasks"], rel=0.1, abs=0.5)
     assert process["over_read_floor"] == pytest.approx(process["process_s"] / read["read_s"], rel=0.02)
     assert "Dask" in process["compute"] and process["parallel_read_s"] > 0
     memory = process["memory"]

@@ -376,7 +376,7 @@ def measure_process(run_path: Path, rig, repeat: int, scheduler: str, workers: i
         finally:
             shutil.rmtree(out_dir, ignore_errors=True)
         runs.append({"process_s": process_s, "cluster_start_s": start_s, "cluster_stop_s": stop_s,
-                     "memory": memory.report(), "timings": report.timings, "worker_peak_rss_gb":
+                     "memory": memory.report(), "timings": report.timings, "task_stages": report.task_stages, "worker_peak_rss_gb":
                      {k: round(v / 1e9, 3) for k, v in worker_peaks.items()}, "outputs": outputs,
                      "output_bytes": results_bytes, "compute": description, "estimator": report.estimator})  # fmt: skip
         if log:
@@ -394,6 +394,7 @@ def measure_process(run_path: Path, rig, repeat: int, scheduler: str, workers: i
         "cluster_start_s": round(_median([run["cluster_start_s"] for run in runs]), 2),
         "cluster_stop_s": round(_median([run["cluster_stop_s"] for run in runs]), 2),
         "stages_s": median_run["timings"],
+        "task_ms_per_position": {k: round(1000 * v / report.positions, 1) for k, v in median_run["task_stages"].items()},
         "compute": runs[best]["compute"],
         "estimator": runs[best]["estimator"],
         "peak_memory_gb": max(run["memory"]["peak_total_gb"] for run in runs),
@@ -670,7 +671,7 @@ def parse_size(text: str) -> tuple[int, int]:
 
 
 def bench_speed(*, rig_path=None, sizes=SIZES, positions: int = POSITIONS, exposures: int = len(EXPOSURES_S),
-                repeat: int = 3, process_repeat: int = 1, hdr_positions: int = 8, peers: bool = True,
+                repeat: int = 3, process_repeat: int = 3, hdr_positions: int = 8, peers: bool = True,
                 scheduler: str = "local", workers: int | None = None, cache: Path | None = DEFAULT_CACHE,
                 log=None) -> dict:  # fmt: skip
     """Measure the chain at every size in ``sizes``; see the module's description."""
