@@ -1,23 +1,56 @@
-"""Image outputs: OpenEXR for radiance, tone-mapped PNG for people."""
+"""Image outputs: OpenEXR for radiance, tone-mapped PNG for people.
+
+One of each is written per position, inside the position's task (one core), so the
+settings are the fast ones. Measured on a 656x1000 mirror-ball preview, one core: the EXR
+uncompressed (OpenEXR's NO_COMPRESSION) 14 ms, 7.9 MB — PIZ 42 ms, 1.75 MB; RLE 35 ms,
+6.5 MB; ZIP 67 ms, 1.5 MB (``compression=`` picks one); the PNG with OpenCV at zlib level 1,
+no row filter, Huffman coding only: 14–20 ms, 450 kB — OpenCV's defaults 21 ms, 600 kB.
+The tone mapping is one pass over the image (4 ms in NumPy's temporaries before: 16 ms).
+"""
 
 from __future__ import annotations
 
 from pathlib import Path
 
 import cv2
+import numba
 import numpy as np
 import OpenEXR
 
+#: The lossless OpenEXR compressions :func:`write_exr` takes.
+EXR_COMPRESSIONS = {
+    "none": OpenEXR.NO_COMPRESSION,
+    "rle": OpenEXR.RLE_COMPRESSION,
+    "zips": OpenEXR.ZIPS_COMPRESSION,
+    "zip": OpenEXR.ZIP_COMPRESSION,
+    "piz": OpenEXR.PIZ_COMPRESSION,
+}
+_PNG_FAST = [cv2.IMWRITE_PNG_COMPRESSION, 1, cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FILTER_NONE,
+             cv2.IMWRITE_PNG_STRATEGY, cv2.IMWRITE_PNG_STRATEGY_HUFFMAN_ONLY]  # fmt: skip
 
-def write_exr(path: str | Path, rgb: np.ndarray) -> Path:
-    """Write a linear float32 RGB image (H, W, 3) as a PIZ-compressed OpenEXR file.
 
-    Non-finite values (no usable sample) are written as 0. PIZ is lossless, like ZIP, and
-    a third faster to write for 20 % more bytes (one is written per position).
+def _rgb_float32(rgb: np.ndarray) -> np.ndarray:
+    rgb = np.asarray(rgb)
+    if rgb.ndim != 3 or rgb.shape[2] != 3:
+        raise ValueError(f"an RGB image is (H, W, 3), not {rgb.shape}")
+    return np.ascontiguousarray(rgb, dtype=np.float32)
+
+
+def write_exr(path: str | Path, rgb: np.ndarray, compression: str = "none") -> Path:
+    """Write a linear float32 RGB image (H, W, 3) as a lossless OpenEXR file.
+
+    Non-finite values (no usable sample) are written as 0. ``compression`` is one of
+    :data:`EXR_COMPRESSIONS`; "none" (the default, one file per position) writes in a third
+    of PIZ's time for 4.5 times the bytes.
     """
+    if compression not in EXR_COMPRESSIONS:
+        raise ValueError(f"EXR compression: {compression!r} is not one of {', '.join(EXR_COMPRESSIONS)}")
     path = Path(path)
-    data = np.ascontiguousarray(np.nan_to_num(rgb, nan=0.0, posinf=0.0, neginf=0.0), dtype=np.float32)
-    header = {"compression": OpenEXR.PIZ_COMPRESSION, "type": OpenEXR.scanlineimage}
+    data = _rgb_float32(rgb)
+    finite = np.isfinite(data)
+    if not finite.all():
+        data = np.where(finite, data, np.float32(0.0))
+    header = {"compression": EXR_COMPRESSIONS[compression], "type": OpenEXR.scanlineimage}
     with OpenEXR.File(header, {"RGB": data}) as exr:
         exr.write(str(path))
     return path
@@ -28,27 +61,51 @@ def read_exr(path: str | Path) -> np.ndarray:
         return np.array(exr.channels()["RGB"].pixels, dtype=np.float32)
 
 
-def tonemap(rgb: np.ndarray, percentile: float = 99.9) -> np.ndarray:
-    """8-bit sRGB-ish view of linear radiance: scaled to a high percentile, then the
-    square root, which keeps a mirror ball's bright sources and their faint halo visible.
+@numba.njit(cache=True)
+def _tonemap_kernel(rows, scale, out):
+    """``out = uint8(sqrt(clip(x / scale, 0, 1)) * 255 + 0.5)``, non-finite ``x`` as 0, in
+    float32 as NumPy computes it: one pass, no temporaries."""
+    s = np.float32(scale)
+    zero, one, top = np.float32(0.0), np.float32(1.0), np.float32(3.4028234663852886e38)
+    for i in range(rows.shape[0]):
+        row, dest = rows[i], out[i]
+        for j in range(row.shape[0]):
+            v = row[j]
+            t = min(max(v / s, zero), one) if abs(v) <= top else zero
+            dest[j] = np.uint8(np.sqrt(t) * np.float32(255.0) + np.float32(0.5))
 
-    The percentile of a large image is taken on every other row and column (a quarter of
-    the pixels, the same statistic for a preview at a quarter of the cost)."""
-    finite = np.nan_to_num(rgb, nan=0.0, posinf=0.0)
-    sample = finite[::2, ::2] if finite.shape[0] * finite.shape[1] > 250_000 else finite
-    scale = float(np.percentile(sample, percentile))
+
+def tone_scale(rgb: np.ndarray, percentile: float = 99.9) -> float:
+    """The radiance shown as white: a high percentile of the finite values (non-finite count
+    as 0), taken on every fourth row and column of a large image — a sixteenth of the
+    pixels, the same statistic for a preview (1.5 ms instead of 6 on a quarter)."""
+    sample = rgb[::4, ::4] if rgb.shape[0] * rgb.shape[1] > 250_000 else rgb
+    sample = np.where(np.isfinite(sample), sample, np.float32(0.0))
+    scale = float(np.percentile(sample, percentile)) if sample.size else 0.0
     if scale <= 0:
-        scale = max(float(finite.max()), 1e-30)
-    return (np.sqrt(np.clip(finite / scale, 0.0, 1.0)) * 255.0 + 0.5).astype(np.uint8)
+        finite = np.where(np.isfinite(rgb), rgb, np.float32(0.0))
+        scale = max(float(finite.max(initial=0.0)), 1e-30)
+    return scale
+
+
+def tonemap(rgb: np.ndarray, percentile: float = 99.9) -> np.ndarray:
+    """8-bit sRGB-ish view of linear radiance: scaled to a high percentile
+    (:func:`tone_scale`), then the square root, which keeps a mirror ball's bright sources
+    and their faint halo visible. Non-finite values show as 0."""
+    data = _rgb_float32(rgb)
+    h, w, _ = data.shape
+    out = np.empty(data.shape, np.uint8)
+    _tonemap_kernel(data.reshape(h, 3 * w), tone_scale(data, percentile), out.reshape(h, 3 * w))
+    return out
 
 
 def write_png(path: str | Path, rgb: np.ndarray, max_width: int = 1000) -> Path:
-    """Tone-mapped PNG preview of linear RGB radiance."""
+    """Tone-mapped PNG preview of linear RGB radiance (at most ``max_width`` pixels wide)."""
     path = Path(path)
     image = tonemap(rgb)
     if image.shape[1] > max_width:
         size = (max_width, max(1, round(image.shape[0] * max_width / image.shape[1])))
         image = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
-    if not cv2.imwrite(str(path), cv2.cvtColor(image, cv2.COLOR_RGB2BGR)):
+    if not cv2.imwrite(str(path), cv2.cvtColor(image, cv2.COLOR_RGB2BGR), _PNG_FAST):
         raise OSError(f"{path}: could not write the PNG")
     return path

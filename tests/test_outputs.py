@@ -1,0 +1,216 @@
+"""The per-position outputs, written the fast way: the results file's chunks compressed by
+c-blosc directly, the EXR uncompressed, the PNG tone-mapped in one pass. Everything must
+read back exactly, through the project's readers and through the plain libraries."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import blosc
+import cv2
+import h5py
+import hdf5plugin
+import numpy as np
+import OpenEXR
+import pytest
+from PIL import Image
+
+from processing.hdr import MergeResult, NoiseModel
+from processing.images import read_exr, tonemap, write_exr, write_png
+from processing.results import HDRInfo, Results, ResultsWriter, encode_hdr
+
+NAMES = ("radiance", "variance", "count", "saturated")
+
+
+def _merge(seed: int = 0, shape=(64, 96)) -> MergeResult:
+    """A merge like a mirror ball's: dark noise quantised as the merge leaves it, a few
+    bright blobs, some pixels without a sample (NaN), a saturated core."""
+    rng = np.random.default_rng(seed)
+    h, w = shape
+    y, x = np.mgrid[:h, :w]
+    rate = 80.0 * rng.integers(-2, 3, shape) + 5e5 * np.exp(-((y - h / 3) ** 2 + (x - w / 2) ** 2) / 20.0)
+    radiance = rate.astype(np.float32)
+    radiance[rng.random(shape) < 0.01] = np.nan
+    variance = (2873.18 + np.maximum(rate, 0) * 3.1).astype(np.float32)
+    variance[np.isnan(radiance)] = np.nan
+    saturated = rate > 4e5
+    variance[saturated] = np.inf
+    variance[0, :3] = (-np.inf, np.nan, np.inf)
+    count = rng.integers(0, 6, shape).astype(np.uint8)
+    return MergeResult(radiance, variance, count, saturated, np.full((2, 2), 4000.0), NoiseModel(1.0, 2.0), "optimal")
+
+
+def _writer(path, shape, n=3) -> ResultsWriter:
+    noise = NoiseModel(1.5, 2.5, "rig")
+    return ResultsWriter.create(path, run_id="r", run_file="r.h5", n_positions=n, frame_shape=shape, software_version="t",
+                                hdr=HDRInfo("optimal", noise, noise, "RGGB"))  # fmt: skip
+
+
+def _stored(m: MergeResult) -> dict[str, np.ndarray]:
+    return {"radiance": m.radiance, "variance": np.where(np.isfinite(m.variance), m.variance, np.float32(np.inf)),
+            "count": m.count, "saturated": m.saturated}  # fmt: skip
+
+
+def _assert_bits_equal(a: np.ndarray, b: np.ndarray) -> None:
+    a, b = np.asarray(a), np.asarray(b)
+    assert a.shape == b.shape and a.dtype == b.dtype
+    assert np.array_equal(a.view(f"u{a.itemsize}") if a.dtype.kind == "f" else a, b.view(f"u{b.itemsize}") if b.dtype.kind == "f" else b)
+
+
+def test_c_blosc_runs_on_the_calling_thread_only():
+    assert blosc.nthreads == 1
+
+
+@pytest.mark.parametrize("how", ["write_encoded", "write_hdr"])
+def test_results_round_trip_bit_for_bit(tmp_path, how):
+    m = _merge()
+    path = tmp_path / "r.results.h5"
+    with _writer(path, m.radiance.shape) as writer:
+        writer.write_encoded(1, encode_hdr(m)) if how == "write_encoded" else writer.write_hdr(1, m)
+    with Results.open(path) as results:
+        assert results.hdr_done.tolist() == [False, True, False]
+        got = {name: getattr(results, name)(1) for name in NAMES}
+        with pytest.raises(Exception, match="no HDR result"):
+            results.radiance(0)
+    expected = _stored(m)
+    for name in NAMES:
+        _assert_bits_equal(got[name], expected[name])
+    # Plain h5py + hdf5plugin, without the project: the same numbers.
+    code = (
+        "import sys, h5py, hdf5plugin, numpy as np\n"
+        "with h5py.File(sys.argv[1], 'r') as f:\n"
+        "    np.savez(sys.argv[2], **{k: f['hdr'][k][1] for k in ('radiance', 'variance', 'count', 'saturated')},"
+        " unwritten=f['hdr/radiance'][0])\n"
+    )
+    subprocess.run([sys.executable, "-c", code, str(path), str(tmp_path / "plain.npz")], check=True)
+    plain = np.load(tmp_path / "plain.npz")
+    for name in NAMES:
+        _assert_bits_equal(plain[name], np.asarray(expected[name], dtype=plain[name].dtype))
+    assert np.isnan(plain["unwritten"]).all()
+
+
+def test_both_ways_of_writing_store_the_same_bytes(tmp_path):
+    m = _merge(3)
+    with _writer(tmp_path / "a.h5", m.radiance.shape) as a, _writer(tmp_path / "b.h5", m.radiance.shape) as b:
+        a.write_encoded(2, encode_hdr(m))
+        b.write_hdr(2, m)
+    with h5py.File(tmp_path / "a.h5") as a, h5py.File(tmp_path / "b.h5") as b:
+        for name in NAMES:
+            assert a["hdr"][name].id.read_direct_chunk((2, 0, 0)) == b["hdr"][name].id.read_direct_chunk((2, 0, 0))
+            assert hdf5plugin.BLOSC_ID in {int(k) for k in a["hdr"][name]._filters}
+
+
+def test_results_written_before_read_the_same(tmp_path):
+    """Version-1 files of the first kind: Blosc LZ4 byte shuffle for the floats, the LZ4 filter
+    for the masks, written through HDF5's pipeline."""
+    m = _merge(5)
+    h, w = m.radiance.shape
+    path = tmp_path / "old.results.h5"
+    with _writer(path, (h, w)) as writer:
+        writer.close()
+    with h5py.File(path, "r+") as f:
+        g = f["hdr"]
+        blosc_lz4 = dict(hdf5plugin.Blosc(cname="lz4", clevel=5, shuffle=hdf5plugin.Blosc.SHUFFLE))
+        for name, dtype, options in (("radiance", "f4", dict(fillvalue=np.nan, **blosc_lz4)),
+                                     ("variance", "f4", dict(fillvalue=np.nan, **blosc_lz4)),
+                                     ("count", "u1", dict(hdf5plugin.LZ4())), ("saturated", "u1", dict(hdf5plugin.LZ4()))):  # fmt: skip
+            del g[name]
+            g.create_dataset(name, (3, h, w), dtype, chunks=(1, h, w), **options)
+        for name, array in _stored(m).items():
+            g[name][0] = array
+        noise = np.random.default_rng(0).integers(0, 2**32, (h, w), dtype=np.uint32).view(np.float32)
+        g["radiance"][1] = noise  # a chunk Blosc gives up on is stored as it is (filter mask 1)
+        assert g["radiance"].id.get_chunk_info_by_coord((1, 0, 0)).filter_mask != 0
+        g["done"][:2] = 1
+    with Results.open(path) as results:
+        for name, array in _stored(m).items():
+            _assert_bits_equal(getattr(results, name)(0), np.asarray(array))
+        _assert_bits_equal(results.radiance(1), noise)
+
+
+def test_encoded_chunks_are_smaller_than_the_arrays():
+    m = _merge(1, shape=(256, 384))
+    encoded = encode_hdr(m)
+    assert encoded.shape == m.radiance.shape
+    for name, (mask, data) in encoded.chunks.items():
+        assert mask == 0 and len(data) < _stored(m)[name].nbytes
+
+
+# --- images ---------------------------------------------------------------------------------------
+def _rgb(seed=0, shape=(66, 100)) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    rgb = (np.round(rng.normal(0.0, 2.0, (*shape, 3))) * 20.0).astype(np.float32)
+    y, x = np.mgrid[: shape[0], : shape[1]]
+    rgb += (3e5 * np.exp(-((y - shape[0] / 2) ** 2 + (x - shape[1] / 3) ** 2) / 30.0))[..., None].astype(np.float32)
+    return rgb
+
+
+def _reference_tonemap(rgb: np.ndarray, percentile: float = 99.9) -> np.ndarray:
+    """The tone mapping in plain NumPy: the definition the one-pass kernel meets."""
+    finite = np.nan_to_num(rgb, nan=0.0, posinf=0.0, neginf=0.0)
+    sample = finite[::4, ::4] if finite.shape[0] * finite.shape[1] > 250_000 else finite
+    scale = float(np.percentile(sample, percentile))
+    if scale <= 0:
+        scale = max(float(finite.max()), 1e-30)
+    with np.errstate(over="ignore"):
+        return (np.sqrt(np.clip(finite / scale, 0.0, 1.0)) * 255.0 + 0.5).astype(np.uint8)
+
+
+@pytest.mark.parametrize("shape", [(1, 1), (3, 5), (66, 100), (656, 1000)])
+def test_exr_is_lossless_float32_rgb_with_non_finite_as_zero(tmp_path, shape):
+    rgb = _rgb(1, shape)
+    rgb.flat[::7] = np.nan
+    rgb.flat[1::11] = np.inf
+    rgb.flat[2::13] = -np.inf
+    path = write_exr(tmp_path / "a.exr", rgb)
+    back = read_exr(path)
+    _assert_bits_equal(back, np.nan_to_num(rgb, nan=0.0, posinf=0.0, neginf=0.0))
+    with OpenEXR.File(str(path)) as exr:
+        header = exr.header()
+        assert header["compression"] == OpenEXR.NO_COMPRESSION
+        assert exr.channels()["RGB"].pixels.dtype == np.float32
+        assert tuple(header["dataWindow"][1]) == (shape[1] - 1, shape[0] - 1)
+
+
+@pytest.mark.parametrize("compression", ["piz", "zip", "rle"])
+def test_exr_compressions_through_openexr_stay_lossless(tmp_path, compression):
+    rgb = _rgb(2).astype(np.float64)
+    rgb[0, 0] = np.nan
+    back = read_exr(write_exr(tmp_path / "a.exr", rgb, compression=compression))
+    _assert_bits_equal(back, np.nan_to_num(rgb, nan=0.0, posinf=0.0, neginf=0.0).astype(np.float32))
+    with pytest.raises(ValueError, match="EXR compression: 'dwaa' is not one of"):
+        write_exr(tmp_path / "b.exr", rgb, compression="dwaa")
+
+
+def test_tonemap_matches_the_numpy_definition_exactly():
+    rng = np.random.default_rng(7)
+    cases = [_rgb(3), _rgb(4, (560, 500)), np.zeros((4, 4, 3), np.float32), np.full((3, 3, 3), -2.0, np.float32)]
+    for seed in range(30):
+        h, w = rng.integers(1, 30, 2)
+        x = (rng.normal(size=(h, w, 3)) * 10 ** rng.uniform(-6, 6)).astype(np.float32)
+        if seed % 3 == 0:
+            x[rng.random(x.shape) < 0.2] = np.nan
+            x[rng.random(x.shape) < 0.05] = np.inf
+            x[rng.random(x.shape) < 0.05] = -np.inf
+        if seed % 3 == 1:
+            x = np.round(x)
+        cases.append(x)
+    for x in cases:
+        assert np.array_equal(tonemap(x), _reference_tonemap(x))
+
+
+def test_png_is_the_tone_mapped_image(tmp_path):
+    rgb = _rgb(5)
+    path = write_png(tmp_path / "a.png", rgb)
+    with Image.open(path) as im:
+        im.verify()  # chunk CRCs
+    decoded = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    assert np.array_equal(decoded[..., ::-1], _reference_tonemap(rgb))
+
+
+def test_a_wide_png_is_resized_to_the_preview_width(tmp_path):
+    rgb = _rgb(6, (300, 1500))
+    decoded = cv2.imread(str(write_png(tmp_path / "a.png", rgb)), cv2.IMREAD_UNCHANGED)
+    expected = cv2.resize(_reference_tonemap(rgb), (1000, 200), interpolation=cv2.INTER_AREA)
+    assert np.array_equal(decoded[..., ::-1], expected)
