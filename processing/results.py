@@ -88,7 +88,7 @@ def _position_datasets() -> dict[str, tuple[str, dict]]:
     return {name: (dtypes[name], dict(fillvalue=fill[name], **codec.filter())) for name, codec in _CODECS.items()}
 
 
-def _stored_variance(variance: np.ndarray) -> np.ndarray:
+def stored_variance(variance: np.ndarray) -> np.ndarray:
     """Variances as the results file stores them: float32, non-finite ones as +inf (no copy
     when every one is finite, the usual case)."""
     variance = np.asarray(variance, dtype=np.float32)
@@ -101,7 +101,7 @@ def _position_arrays(result: MergeResult) -> dict[str, np.ndarray]:
     saturated = np.asarray(result.saturated)
     return {
         "radiance": np.asarray(result.radiance, dtype=np.float32),
-        "variance": _stored_variance(result.variance),
+        "variance": stored_variance(result.variance),
         "count": np.asarray(result.count, dtype=np.uint8),
         "saturated": saturated.view(np.uint8) if saturated.dtype == bool else saturated.astype(np.uint8),
     }

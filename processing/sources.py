@@ -488,8 +488,10 @@ def unmix_position(index: int, rate_e: np.ndarray, variance_e: np.ndarray, usabl
                    region: str = "intersection") -> PositionEstimate:  # fmt: skip
     """Variance-weighted NNLS for every source's intensity at one position.
 
-    ``rate_e`` and ``variance_e`` are the merged mosaic in e⁻/s and (e⁻/s)²; ``usable``
-    masks pixels with a valid, unsaturated estimate. ``region``: fit where every template
+    ``rate_e`` and ``variance_e`` are the merged mosaic in e⁻/s and (e⁻/s)², as arrays or
+    anything with a ``shape`` that gives arrays when indexed (only a window is read:
+    ``processing.pipeline.ElectronRates`` converts just that); ``usable`` masks pixels
+    with a valid, unsaturated estimate. ``region``: fit where every template
     is whole (``"intersection"``, exact), or over all of them (``"union"``, for many
     candidates spread wide, at the cost of cutting the far diffraction tails).
     """
@@ -584,7 +586,7 @@ def cell_sums(rate_e: np.ndarray, usable: np.ndarray, geometry: RigGeometry, sen
     """
     boxes = cell_pixel_boxes(geometry, light_pose, sources, cell_radius, rate_e.shape)
     if boxes is None:
-        rows, cols = np.nonzero(usable & (rate_e > 0))
+        rows, cols = np.nonzero(usable & (rate_e[:, :] > 0))  # [:, :]: an array, or a lazy view of one
     else:
         width = rate_e.shape[1]
         flat = [(np.arange(r0, r1)[:, None] * width + np.arange(c0, c1)[None, :]).ravel() for r0, r1, c0, c1 in boxes]
