@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import functools
 import fcntl
 import hashlib
 import json
@@ -361,6 +362,14 @@ _DATASETS = {
 }
 
 
+@functools.lru_cache(maxsize=16)
+def _rig_from_json(rig_json: str, source: str) -> Rig:
+    """The rig a run file's header describes, validated once per process and text: every
+    position task opens the run anew, and the physical checks took half of an open (6 ms).
+    Rig models are frozen, so the one object can be shared."""
+    return rig_from_dict(json.loads(rig_json), source=source)
+
+
 def _read_header(f: h5py.File, path) -> RunHeader:
     """Check the layout and rebuild the :class:`RunHeader`; RunFileError if broken."""
     _check_format(f, path)
@@ -396,7 +405,7 @@ def _read_header(f: h5py.File, path) -> RunHeader:
     if not isinstance(run, dict) or not isinstance(rig_data, dict):
         raise RunFileError(f"{path}: corrupt run file: header is not a JSON object")
     try:
-        rig = rig_from_dict(rig_data, source=f"{path}: /header/rig_json")
+        rig = _rig_from_json(rig_json, f"{path}: /header/rig_json")
     except ValueError as exc:
         raise RunFileError(str(exc)) from None
     return RunHeader(
