@@ -24,6 +24,7 @@ OpenCV's ``CalibrateDebevec`` and ``MergeDebevec``).
 
 from __future__ import annotations
 
+import contextlib
 import math
 from dataclasses import dataclass
 
@@ -76,38 +77,89 @@ class MergeResult:
     method: str
 
 
+# --- threads ------------------------------------------------------------------------------------
+_SERIAL_BELOW = 1 << 18  # samples; a parallel launch costs more than it saves below this
+
+
+@contextlib.contextmanager
+def _serial_if_small(samples: int):
+    """Run the kernels on the calling thread alone for small inputs: a parallel region waits
+    for every worker, and one descheduled on a busy machine stalls it for a time slice or
+    more, which dwarfs a sub-millisecond merge. (``numba.set_num_threads`` is per thread.)"""
+    threads = numba.get_num_threads()
+    if samples >= _SERIAL_BELOW or threads == 1:
+        yield
+        return
+    numba.set_num_threads(1)
+    try:
+        yield
+    finally:
+        numba.set_num_threads(threads)
+
+
 # --- saturation, measured ---------------------------------------------------------------------
+# Both passes read a row's even and odd columns as two strided streams (no ``x & 1`` per
+# sample), so that they vectorise; the per-row results are reduced afterwards. The second
+# pass skips the rows whose maxima lie below its windows (most of a mirror ball's frame).
 @numba.njit(parallel=True, cache=True)
 def _site_maxima(frames):
     k, h, w = frames.shape
     rows = np.zeros((h, 2), np.int64)
+    half = w // 2
     for y in numba.prange(h):
+        m0 = 0
+        m1 = 0
         for i in range(k):
-            for x in range(w):
-                v = frames[i, y, x]
-                if v > rows[y, x & 1]:
-                    rows[y, x & 1] = v
+            row = frames[i, y]
+            for x in range(half):
+                m0 = max(m0, np.int32(row[2 * x]))
+                m1 = max(m1, np.int32(row[2 * x + 1]))
+            if w & 1:
+                m0 = max(m0, np.int32(row[w - 1]))
+        rows[y, 0] = m0
+        rows[y, 1] = m1
     top = np.zeros((2, 2), np.int64)
     for y in range(h):
         for sx in range(2):
             top[y & 1, sx] = max(top[y & 1, sx], rows[y, sx])
-    return top
+    return top, rows
 
 
 @numba.njit(parallel=True, cache=True)
-def _site_counts(frames, top, window):
-    """Per CFA site: samples within ``window`` of the top, and in the 40 windows beneath."""
+def _site_counts(frames, top, window, rows):
+    """Per CFA site: samples within ``window`` of the top, and in the 40 windows beneath
+    (``rows``: each row's maximum per column parity, from :func:`_site_maxima`)."""
     k, h, w = frames.shape
     counts = np.zeros((h, 2, 2), np.int64)
+    half = w // 2
     for y in numba.prange(h):
+        near0 = np.int32(top[y & 1, 0] - window)
+        near1 = np.int32(top[y & 1, 1] - window)
+        far0 = np.int32(top[y & 1, 0] - 41 * window)
+        far1 = np.int32(top[y & 1, 1] - 41 * window)
+        if rows[y, 0] <= far0 and rows[y, 1] <= far1:
+            continue  # nothing in the windows (counts stay zero)
+        a0 = 0
+        a1 = 0
+        b0 = 0
+        b1 = 0
         for i in range(k):
-            for x in range(w):
-                t = top[y & 1, x & 1]
-                v = frames[i, y, x]
-                if v > t - window:
-                    counts[y, x & 1, 0] += 1
-                elif v > t - 41 * window:
-                    counts[y, x & 1, 1] += 1
+            row = frames[i, y]
+            for x in range(half):
+                v0 = np.int32(row[2 * x])
+                v1 = np.int32(row[2 * x + 1])
+                a0 += np.int32(v0 > near0)
+                b0 += np.int32(v0 > far0)
+                a1 += np.int32(v1 > near1)
+                b1 += np.int32(v1 > far1)
+            if w & 1:
+                v0 = np.int32(row[w - 1])
+                a0 += np.int32(v0 > near0)
+                b0 += np.int32(v0 > far0)
+        counts[y, 0, 0] = a0
+        counts[y, 0, 1] = b0 - a0
+        counts[y, 1, 0] = a1
+        counts[y, 1, 1] = b1 - a1
     out = np.zeros((2, 2, 2), np.int64)
     for y in range(h):
         for sx in range(2):
@@ -128,8 +180,9 @@ def measure_saturation(frames: np.ndarray, reported_white: int, *, pile_fraction
     """
     frames = np.ascontiguousarray(frames)
     window = max(2, int(0.001 * reported_white))
-    top = _site_maxima(frames)
-    counts = _site_counts(frames, top, window)
+    with _serial_if_small(frames.size):
+        top, rows = _site_maxima(frames)
+        counts = _site_counts(frames, top, window, rows)
     k, h, w = frames.shape
     levels = np.empty((2, 2))
     for sy in range(2):
@@ -147,95 +200,155 @@ def measure_saturation(frames: np.ndarray, reported_white: int, *, pile_fraction
 _FAST = {"nsz", "arcp", "contract", "afn", "reassoc"}
 
 
-@numba.njit(parallel=True, cache=True, fastmath=_FAST)
-def _merge_kernel(frames, exposures, black, threshold, inv_gain, read_var, near_black, optimal):
-    """Row by row; inside a row, loops run along x with the exposure outside, so that
-    they read memory contiguously and vectorise."""
+_BLOCK = 256  # pixels of a row merged together: their running sums stay in the L1 cache
+
+
+@numba.njit(cache=True, fastmath=_FAST, error_model="numpy", inline="always")  # no call: no array refcounts
+def _merge_pixel(frames, y, x, desc, exposures, inv_t, shortest, thr, b, room, x0, inv_gain, read_var, near_black):
+    """Pass 2 of the optimal estimator at one pixel, given its pass-1 estimate ``x0``.
+
+    The frames are visited from the longest exposure down (``desc``), so the first sample
+    3 sigma clear of clipping is the longest usable one. Returns (radiance, variance, count).
+    """
+    k = frames.shape[0]
+    num = 0.0
+    den = 0.0
+    n1 = 0
+    n2 = 0
+    found = False  # the longest usable sample is already in
+    fallback = -1  # the shortest unsaturated frame
+    for ii in range(k):
+        i = desc[ii]
+        v = np.int32(frames[i, y, x])
+        if v >= thr:
+            continue
+        n1 += 1
+        t = exposures[i]
+        if fallback < 0 or t < exposures[fallback]:
+            fallback = i
+        mu = t * x0
+        var = mu * inv_gain + read_var
+        # mu + 3 sigma < room, without the square root
+        clear = room - mu
+        if not (clear > 0.0 and 9.0 * var < clear * clear):
+            continue  # its mean is too close to clipping to be unbiased
+        if mu >= near_black or not found:  # near black: all but read noise, unless the longest
+            wgt = t * t / var
+            num += wgt * (v - b) * inv_t[i]
+            den += wgt
+            n2 += 1
+        found = True
+    if n1 == 0:
+        # Saturated in every frame: report the shortest frame's lower bound.
+        return (frames[shortest, y, x] - b) * inv_t[shortest], np.inf, 0
+    if n2 == 0:
+        # Only samples near clipping remain: keep the shortest unsaturated one.
+        j = fallback
+        var = exposures[j] * x0 * inv_gain + read_var
+        return (frames[j, y, x] - b) * inv_t[j], var * inv_t[j] * inv_t[j], 1
+    return num / den, 1.0 / den, n2
+
+
+@numba.njit(parallel=True, cache=True, fastmath=_FAST, error_model="numpy")  # x / 0 is no exception
+def _merge_kernel(frames, exposures, desc, black, threshold, room, inv_gain, read_var, near_black, optimal, shortcut,
+                  radiance, variance, count, saturated):  # fmt: skip
+    """Fills ``radiance``, ``variance``, ``count``, ``saturated``.
+
+    ``desc``: the frames in decreasing exposure (ties in index order); ``threshold``: per
+    site, the integer a sample must stay below to count as unsaturated; ``room``: the
+    threshold above black. Row blocks of ``_BLOCK`` pixels: pass 1 runs along x with the
+    exposure outside (contiguous, vectorised); then every pixel gets the "dark" result
+    (nothing clipped and every frame but the longest near black, so the longest alone
+    counts: most of a mirror ball's frame), and only the others (``shortcut`` False: all)
+    go through :func:`_merge_pixel`.
+    """
     k, h, w = frames.shape
-    radiance = np.empty((h, w), np.float32)
-    variance = np.empty((h, w), np.float32)
-    count = np.zeros((h, w), np.uint8)
-    saturated = np.zeros((h, w), np.bool_)
     shortest = np.argmin(exposures)
     inv_t = 1.0 / exposures
-    for y in numba.prange(h):
-        b = np.empty(w)
-        thr = np.empty(w)
+    longest = desc[0]
+    t_long = exposures[longest]
+    t_next = exposures[desc[1]] if k > 1 else 0.0
+    # Per-x constants, for even and odd rows.
+    bx = np.empty((2, w))
+    tx = np.empty((2, w), np.int32)
+    rx = np.empty((2, w))
+    for sy in range(2):
         for x in range(w):
-            b[x] = black[y & 1, x & 1]
-            thr[x] = threshold[y & 1, x & 1]
-        sum_y = np.zeros(w)
-        sum_t = np.zeros(w)
-        n1 = np.zeros(w, np.int64)
-        # Pass 1: Poisson-optimal estimate from every unsaturated sample.
-        for i in range(k):
-            t = exposures[i]
-            for x in range(w):
-                v = frames[i, y, x]
-                if v < thr[x]:
-                    sum_y[x] += v - b[x]
-                    sum_t[x] += t
-                    n1[x] += 1
-        x0 = np.empty(w)
-        for x in range(w):
-            x0[x] = max(sum_y[x] / sum_t[x], 0.0) if n1[x] > 0 else 0.0
-        # The longest exposure whose mean stays 3 sigma clear of clipping, per pixel.
-        longest = np.full(w, -1, np.int64)
-        fallback = np.full(w, -1, np.int64)
-        for i in range(k):
-            t = exposures[i]
-            for x in range(w):
-                if frames[i, y, x] >= thr[x]:
+            bx[sy, x] = black[sy, x & 1]
+            tx[sy, x] = threshold[sy, x & 1]
+            rx[sy, x] = room[sy, x & 1]
+    chunks = min(h, 64)
+    for c in numba.prange(chunks):
+        sum_v = np.empty(_BLOCK, np.int32)
+        n1 = np.empty(_BLOCK, np.int32)
+        sum_t = np.empty(_BLOCK)
+        x0 = np.empty(_BLOCK)
+        dark = np.empty(_BLOCK, np.bool_)
+        for y in range(c * h // chunks, (c + 1) * h // chunks):
+            sy = y & 1
+            for xs in range(0, w, _BLOCK):
+                n = min(_BLOCK, w - xs)
+                b = bx[sy, xs : xs + n]
+                thr = tx[sy, xs : xs + n]
+                lim = rx[sy, xs : xs + n]
+                rad = radiance[y, xs : xs + n]
+                var_out = variance[y, xs : xs + n]
+                cnt = count[y, xs : xs + n]
+                sat = saturated[y, xs : xs + n]
+                # Pass 1: Poisson-optimal estimate from every unsaturated sample.
+                sum_v[:n] = 0
+                n1[:n] = 0
+                sum_t[:n] = 0.0
+                for i in range(k):
+                    t = exposures[i]
+                    row = frames[i, y, xs : xs + n]
+                    for j in range(n):
+                        v = np.int32(row[j])
+                        u = v < thr[j]
+                        sum_v[j] += v if u else 0
+                        n1[j] += 1 if u else 0
+                        sum_t[j] += t if u else 0.0
+                if not optimal:
+                    row = frames[shortest, y, xs : xs + n]
+                    for j in range(n):
+                        sum_y = sum_v[j] - n1[j] * b[j]
+                        if n1[j] == 0:
+                            # Saturated in every frame: report the shortest frame's lower bound.
+                            rad[j] = (row[j] - b[j]) * inv_t[shortest]
+                            var_out[j] = np.inf
+                        else:
+                            m = max(sum_y / sum_t[j], 0.0)
+                            rad[j] = sum_y / sum_t[j]
+                            var_out[j] = (m * sum_t[j] * inv_gain + n1[j] * read_var) / (sum_t[j] * sum_t[j])
+                        cnt[j] = n1[j]
+                        sat[j] = n1[j] == 0
                     continue
-                if fallback[x] < 0 or t < exposures[fallback[x]]:
-                    fallback[x] = i
-                mu = t * x0[x]
-                if mu + 3.0 * math.sqrt(mu * inv_gain + read_var) < thr[x] - b[x]:
-                    if longest[x] < 0 or t > exposures[longest[x]]:
-                        longest[x] = i
-        # Pass 2: weights t^2 / sigma^2 with sigma^2 predicted from x0, not from each sample.
-        num = np.zeros(w)
-        den = np.zeros(w)
-        n2 = np.zeros(w, np.int64)
-        if optimal:
-            for i in range(k):
-                t = exposures[i]
-                for x in range(w):
-                    v = frames[i, y, x]
-                    if v >= thr[x]:
-                        continue
-                    mu = t * x0[x]
+                # Pass 2 where only the longest frame counts, assumed everywhere, then the
+                # other pixels redone: weights t^2 / sigma^2 with sigma^2 predicted from x0.
+                row = frames[longest, y, xs : xs + n]
+                rest = 0
+                for j in range(n):
+                    m = max((sum_v[j] - n1[j] * b[j]) / sum_t[j], 0.0) if n1[j] > 0 else 0.0
+                    x0[j] = m
+                    mu = t_long * m
                     var = mu * inv_gain + read_var
-                    if mu + 3.0 * math.sqrt(var) >= thr[x] - b[x]:
-                        continue  # its mean is too close to clipping to be unbiased
-                    if mu < near_black and i != longest[x]:
-                        continue  # all but read noise; a longer exposure says more
-                    wgt = t * t / var
-                    num[x] += wgt * (v - b[x]) * inv_t[i]
-                    den[x] += wgt
-                    n2[x] += 1
-        for x in range(w):
-            if n1[x] == 0:
-                # Saturated in every frame: report the shortest frame's lower bound.
-                radiance[y, x] = (frames[shortest, y, x] - b[x]) * inv_t[shortest]
-                variance[y, x] = np.inf
-                saturated[y, x] = True
-            elif not optimal:
-                radiance[y, x] = sum_y[x] / sum_t[x]
-                variance[y, x] = (x0[x] * sum_t[x] * inv_gain + n1[x] * read_var) / (sum_t[x] * sum_t[x])
-                count[y, x] = n1[x]
-            elif n2[x] == 0:
-                # Only samples near clipping remain: keep the shortest unsaturated one.
-                j = fallback[x]
-                var = exposures[j] * x0[x] * inv_gain + read_var
-                radiance[y, x] = (frames[j, y, x] - b[x]) * inv_t[j]
-                variance[y, x] = var * inv_t[j] * inv_t[j]
-                count[y, x] = 1
-            else:
-                radiance[y, x] = num[x] / den[x]
-                variance[y, x] = 1.0 / den[x]
-                count[y, x] = n2[x]
-    return radiance, variance, count, saturated
+                    clear = lim[j] - mu
+                    simple = (n1[j] == k) & (clear > 0.0) & (9.0 * var < clear * clear) & (t_next * m < near_black)
+                    dark[j] = simple
+                    rest += 0 if simple else 1
+                    rad[j] = (row[j] - b[j]) * inv_t[longest]
+                    var_out[j] = var * inv_t[longest] * inv_t[longest]
+                    cnt[j] = 1
+                    sat[j] = False
+                if rest or not shortcut:
+                    for j in range(n):
+                        if not (dark[j] and shortcut):
+                            r, vr, nn = _merge_pixel(frames, y, xs + j, desc, exposures, inv_t, shortest, thr[j], b[j],
+                                                     lim[j], x0[j], inv_gain, read_var, near_black)  # fmt: skip
+                            rad[j] = r
+                            var_out[j] = vr
+                            cnt[j] = nn
+                            sat[j] = nn == 0
 
 
 def _as_site_array(value) -> np.ndarray:
@@ -301,16 +414,35 @@ def merge_raw(frames, exposures, black_level, white_level: int, noise: NoiseMode
         raise HDRError(f"method: {method!r} is not one of {sorted(RAW_METHODS)} (use merge_ldr for 'debevec')")
     frames, exposures = _check_bracket(frames, exposures)
     black = _as_site_array(black_level)
-    levels = measure_saturation(frames, int(white_level)) if saturation_level is None else _as_site_array(saturation_level)
-    # Stay clear of the clipping level by 1 % of the range: a pixel's noise near full well
-    # can spread a clipped sensor's values a little below the ADC's top code.
-    threshold = levels - 0.01 * (levels - black)
-    read_var = noise.read_noise_dn**2 + 1.0 / 12.0
-    radiance, variance, count, saturated = _merge_kernel(
-        frames, exposures, black, threshold, 1.0 / noise.gain_e_per_dn, read_var,
-        near_black_sigma * math.sqrt(read_var), method == "optimal",
-    )  # fmt: skip
+    with _serial_if_small(frames.size):
+        if saturation_level is None:
+            levels = measure_saturation(frames, int(white_level))
+        else:
+            levels = _as_site_array(saturation_level)
+        # Stay clear of the clipping level by 1 % of the range: a pixel's noise near full well
+        # can spread a clipped sensor's values a little below the ADC's top code.
+        threshold = levels - 0.01 * (levels - black)
+        read_var = noise.read_noise_dn**2 + 1.0 / 12.0
+        radiance, variance, count, saturated = _run_merge(
+            frames, exposures, black, threshold, 1.0 / noise.gain_e_per_dn, read_var,
+            near_black_sigma * math.sqrt(read_var), method == "optimal",
+        )  # fmt: skip
     return MergeResult(radiance, variance, count, saturated, levels, noise, method)
+
+
+def _run_merge(frames, exposures, black, threshold, inv_gain, read_var, near_black, optimal, *, shortcut=True):
+    """The merge kernel on a checked bracket; ``shortcut=False`` takes the general path everywhere."""
+    k, h, w = frames.shape
+    # An integer sample is below the (float) threshold iff it is below its ceiling.
+    below = np.where(np.isnan(threshold), -1, np.clip(np.ceil(threshold), -1, 65536)).astype(np.int32)
+    desc = np.argsort(-exposures, kind="stable")  # longest first, ties in index order
+    # Allocated by numpy (which asks Linux for huge pages) rather than in the kernel: the
+    # first touch of these large outputs is cheaper, and its cost varies less.
+    out = (np.empty((h, w), np.float32), np.empty((h, w), np.float32), np.empty((h, w), np.uint8),
+           np.empty((h, w), np.bool_))  # fmt: skip
+    _merge_kernel(frames, exposures, desc, black, below, threshold - black, inv_gain, read_var, near_black, optimal,
+                  shortcut, *out)  # fmt: skip
+    return out
 
 
 RAW_METHODS = {"optimal": "minimum-variance weights t²/σ² (Granados 2010, Hanji 2020)",
@@ -318,6 +450,170 @@ RAW_METHODS = {"optimal": "minimum-variance weights t²/σ² (Granados 2010, Han
 
 
 # --- noise model from the data ------------------------------------------------------------------
+@numba.njit(parallel=True, cache=True)
+def _pair_sums(frames, a, b, usable_below, dark_below, shift, centre, chunks):
+    """Sums over the usable pixels of frames ``a`` (shorter) and ``b`` (longer), per CFA site.
+
+    A pixel is usable when both samples are below ``usable_below``. Those whose ``b``
+    sample is below ``dark_below`` (μ_a surely in the first bin: most of a mirror ball's
+    frame) only add to six per-site sums (vectorised): n, Σa, Σb, Σa², Σb², Σab with
+    a, b shifted by ``shift``. The others go to a histogram over (site, b sample) of
+    n, Σa', Σa'², a' = a − ``centre[site, b]`` (integers, exact; a' stays small).
+    """
+    k, h, w = frames.shape
+    levels = centre.shape[2]
+    chunks = max(1, min(h, chunks))  # one set of sums per thread
+    dark = np.zeros((chunks, 2, 2, 6), np.int64)
+    hist = np.zeros((chunks, 2, 2, levels, 3), np.int64)
+    half = w // 2
+    for c in numba.prange(chunks):
+        for y in range(c * h // chunks, (c + 1) * h // chunks):
+            sy = y & 1
+            ra = frames[a, y]
+            rb = frames[b, y]
+            lim0 = usable_below[sy, 0]
+            lim1 = usable_below[sy, 1]
+            dk0 = dark_below[sy, 0]
+            dk1 = dark_below[sy, 1]
+            s0 = shift[sy, 0]
+            s1 = shift[sy, 1]
+            n0 = 0
+            sa0 = 0
+            sb0 = 0
+            saa0 = 0
+            sbb0 = 0
+            sab0 = 0
+            n1 = 0
+            sa1 = 0
+            sb1 = 0
+            saa1 = 0
+            sbb1 = 0
+            sab1 = 0
+            rest = 0
+            for x in range(half):
+                va = np.int64(ra[2 * x])
+                vb = np.int64(rb[2 * x])
+                use = (va < lim0) & (vb < lim0)
+                m = use & (vb < dk0)
+                rest += np.int64(use) - np.int64(m)
+                da = va - s0 if m else 0
+                db = vb - s0 if m else 0
+                n0 += np.int64(m)
+                sa0 += da
+                sb0 += db
+                saa0 += da * da
+                sbb0 += db * db
+                sab0 += da * db
+                va = np.int64(ra[2 * x + 1])
+                vb = np.int64(rb[2 * x + 1])
+                use = (va < lim1) & (vb < lim1)
+                m = use & (vb < dk1)
+                rest += np.int64(use) - np.int64(m)
+                da = va - s1 if m else 0
+                db = vb - s1 if m else 0
+                n1 += np.int64(m)
+                sa1 += da
+                sb1 += db
+                saa1 += da * da
+                sbb1 += db * db
+                sab1 += da * db
+            if w & 1:
+                va = np.int64(ra[w - 1])
+                vb = np.int64(rb[w - 1])
+                use = (va < lim0) & (vb < lim0)
+                if use and vb < dk0:
+                    da = va - s0
+                    db = vb - s0
+                    n0 += 1
+                    sa0 += da
+                    sb0 += db
+                    saa0 += da * da
+                    sbb0 += db * db
+                    sab0 += da * db
+                elif use:
+                    rest += 1
+            sums = dark[c, sy]
+            sums[0, 0] += n0
+            sums[0, 1] += sa0
+            sums[0, 2] += sb0
+            sums[0, 3] += saa0
+            sums[0, 4] += sbb0
+            sums[0, 5] += sab0
+            sums[1, 0] += n1
+            sums[1, 1] += sa1
+            sums[1, 2] += sb1
+            sums[1, 3] += saa1
+            sums[1, 4] += sbb1
+            sums[1, 5] += sab1
+            if rest:
+                for x in range(w):
+                    sx = x & 1
+                    va = np.int64(ra[x])
+                    vb = np.int64(rb[x])
+                    lim = usable_below[sy, sx]
+                    if va < lim and vb < lim and vb >= dark_below[sy, sx]:
+                        d = va - centre[sy, sx, vb]
+                        cell = hist[c, sy, sx, vb]
+                        cell[0] += 1
+                        cell[1] += d
+                        cell[2] += d * d
+    return dark, hist
+
+
+def _pair_bins(frames, a, b, r, black, limit, bins):
+    """Per log-spaced bin of μ_a: pixel count, mean μ_a and variance of ``d`` (None: pair unusable).
+
+    The same statistics as binning every usable pixel, from :func:`_pair_sums`: a pixel's
+    μ_a depends only on its site and ``b`` sample, so each histogram cell falls in one bin,
+    and the cells' (and the dark sums') means and centred sums of squares combine exactly.
+    """
+    # An integer sample is below a (float) limit iff it is below its ceiling.
+    usable_below = np.where(np.isnan(limit), 0, np.clip(np.ceil(limit), 0, 65536)).astype(np.int64)
+    # b − black ≤ 18, so μ_a = r (b − black) < 20 (r ≤ 1): the first bin's.
+    dark_below = np.where(np.isnan(black), 0, np.clip(np.floor(black + 19.0), 0, 65536)).astype(np.int64)
+    shift = np.where(np.isnan(black), 0, np.clip(np.rint(black), 0, 65536)).astype(np.int64)
+    levels = int(usable_below.max())
+    values = np.arange(levels, dtype=np.float64)
+    centre = shift[..., None] + np.rint(r * (values - shift[..., None])).astype(np.int64)
+    dark, hist = _pair_sums(frames, a, b, usable_below, dark_below, shift, centre, numba.get_num_threads())
+    dark, hist = dark.sum(axis=0), hist.sum(axis=0)
+    sy, sx, v = np.nonzero(hist[..., 0])
+    cells = hist[sy, sx, v].astype(np.float64)
+    n, sum_a, sum_aa = cells[:, 0], cells[:, 1], cells[:, 2]
+    beta = black[sy, sx]
+    yb = v.astype(np.float64) - beta
+    mu = r * yb
+    mean_d = sum_a / n + (centre[sy, sx, v] - beta - r * yb)
+    m2 = sum_aa - sum_a * sum_a / n
+    if n.sum() + dark[..., 0].sum() < 1000:
+        return None
+    # Log-spaced bins over the signal range: a mirror ball's frames are mostly dark, and
+    # quantile bins would spend themselves on the background.
+    top = float(mu.max()) if mu.size else -np.inf  # the dark pixels' μ_a are all below 20
+    if top <= 20.0:
+        return None
+    edges = np.concatenate([[-np.inf, 20.0], np.geomspace(20.0, top, bins)[1:]])
+    index = np.digitize(mu, edges[1:-1])
+    # The dark sums, one cell per site, all in the first bin.
+    nd = dark[..., 0].ravel().astype(np.float64)
+    sa, sb, saa, sbb, sab = (dark[..., i].ravel().astype(np.float64) for i in range(1, 6))
+    keep = nd > 0
+    nd, sa, sb, saa, sbb, sab = nd[keep], sa[keep], sb[keep], saa[keep], sbb[keep], sab[keep]
+    delta = (shift - black).ravel()[keep]  # y = sample − shift + delta
+    e = sa - r * sb  # Σ (a − r b), shifted samples
+    n = np.concatenate([n, nd])
+    mu = np.concatenate([mu, r * (sb / nd + delta)])
+    mean_d = np.concatenate([mean_d, e / nd + delta * (1.0 - r)])
+    m2 = np.concatenate([m2, saa - 2.0 * r * sab + r * r * sbb - e * e / nd])
+    index = np.concatenate([index, np.zeros(nd.size, np.int64)])
+    count = np.bincount(index, n, minlength=bins)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean_mu = np.bincount(index, n * mu, minlength=bins) / count
+        mean = np.bincount(index, n * mean_d, minlength=bins) / count
+        var = np.bincount(index, m2 + n * (mean_d - mean[index]) ** 2, minlength=bins) / count
+    return count, mean_mu, var
+
+
 def estimate_noise(frames, exposures, black_level, *, saturation_level=None, white_level: int = 65535,
                    bins: int = 24) -> NoiseModel:  # fmt: skip
     """Gain and read noise from a bracket itself, without flat fields or repeated frames.
@@ -331,35 +627,21 @@ def estimate_noise(frames, exposures, black_level, *, saturation_level=None, whi
     if frames.shape[0] < 2:
         raise HDRError("noise estimate: needs at least two exposures")
     black = _as_site_array(black_level)
-    h, w = frames.shape[1:]
-    black_map = np.tile(black, ((h + 1) // 2, (w + 1) // 2))[:h, :w]
     levels = measure_saturation(frames, white_level) if saturation_level is None else _as_site_array(saturation_level)
-    limit = np.tile(levels - 0.05 * (levels - black), ((h + 1) // 2, (w + 1) // 2))[:h, :w]
+    limit = levels - 0.05 * (levels - black)
     order = np.argsort(exposures)
     rows_x, rows_y, weights = [], [], []
     for a, b in zip(order[:-1], order[1:], strict=True):
         r = exposures[a] / exposures[b]
-        ya = frames[a].astype(np.float64) - black_map
-        yb = frames[b].astype(np.float64) - black_map
-        usable = (frames[a] < limit) & (frames[b] < limit)
-        mu_a = r * yb[usable]
-        d = ya[usable] - r * yb[usable]
-        if mu_a.size < 1000:
+        with _serial_if_small(2 * frames[0].size):
+            binned = _pair_bins(frames, int(a), int(b), r, black, limit, bins)
+        if binned is None:
             continue
-        # Log-spaced bins over the signal range: a mirror ball's frames are mostly dark, and
-        # quantile bins would spend themselves on the background.
-        top = float(mu_a.max())
-        if top <= 20.0:
-            continue
-        edges = np.concatenate([[-np.inf, 20.0], np.geomspace(20.0, top, bins)[1:]])
-        index = np.digitize(mu_a, edges[1:-1])
-        for k in range(len(edges) - 1):
-            sel = index == k
-            n = int(np.count_nonzero(sel))
+        for n, mu, var in zip(*binned, strict=True):
             if n < 100:
                 continue
-            rows_x.append([(1 + r) * mu_a[sel].mean(), 1 + r * r])
-            rows_y.append(d[sel].var() - (1 + r * r) / 12.0)
+            rows_x.append([(1 + r) * mu, 1 + r * r])
+            rows_y.append(var - (1 + r * r) / 12.0)
             weights.append(math.sqrt(n))
     signal_bins = sum(1 for x, _ in rows_x if x > 100.0)
     if len(rows_y) < 3 or signal_bins < 3:
@@ -380,9 +662,39 @@ def estimate_noise(frames, exposures, black_level, *, saturation_level=None, whi
 CHANNEL = {"R": 0, "G": 1, "B": 2}
 
 
+@numba.njit(parallel=True, cache=True)
+def _bayer_superpixels(mosaic, at, rgb):
+    """``rgb`` from a Bayer mosaic whose 2x2 tile has R, G, G, B at ``at`` (4 x (dy, dx)).
+
+    The same float32 arithmetic as numpy's ``rgb += ...; rgb / counts``: a float32 sum of
+    two samples is rounded once, and halving is exact.
+    """
+    h2, w2 = rgb.shape[0], rgb.shape[1]
+    for y in numba.prange(h2):
+        red = mosaic[2 * y + at[0, 0]]
+        green1 = mosaic[2 * y + at[1, 0]]
+        green2 = mosaic[2 * y + at[2, 0]]
+        blue = mosaic[2 * y + at[3, 0]]
+        rx, g1x, g2x, bx = at[0, 1], at[1, 1], at[2, 1], at[3, 1]
+        out = rgb[y]
+        for x in range(w2):
+            out[x, 0] = np.float32(0.0 + np.float64(red[2 * x + rx]))
+            green = np.float32(0.0 + np.float64(green1[2 * x + g1x]))
+            green = np.float32(np.float64(green) + np.float64(green2[2 * x + g2x]))
+            out[x, 1] = green / np.float32(2.0)
+            out[x, 2] = np.float32(0.0 + np.float64(blue[2 * x + bx]))
+
+
 def superpixels(mosaic: np.ndarray, cfa_pattern: str) -> np.ndarray:
     """(H/2, W/2, 3) RGB from 2x2 CFA tiles, the two greens averaged: the display view."""
+    mosaic = np.asarray(mosaic)
     h, w = mosaic.shape
+    if sorted(cfa_pattern) == ["B", "G", "G", "R"] and mosaic.dtype.kind in "fiu":
+        at = np.array([divmod(i, 2) for i in sorted(range(4), key=lambda i: CHANNEL[cfa_pattern[i]])], np.int64)
+        rgb = np.empty((h // 2, w // 2, 3), np.float32)
+        with _serial_if_small(mosaic.size):
+            _bayer_superpixels(mosaic, at, rgb)
+        return rgb
     tiles = mosaic[: h - h % 2, : w - w % 2].reshape(h // 2, 2, w // 2, 2).transpose(0, 2, 1, 3)
     rgb = np.zeros((h // 2, w // 2, 3), dtype=np.float32)
     counts = np.zeros(3)

@@ -193,3 +193,202 @@ def test_merge_dispatches_on_the_method_name():
     assert merge(ldr, [0.01, 0.04, 0.16], method="debevec").shape == (8, 8, 3)
     with pytest.raises(HDRError, match=r"method: 'median' is not one of \['debevec', 'optimal', 'poisson'\]"):
         merge(frames, EXPOSURES, method="median")
+
+
+# --- the fast kernels against direct implementations ---------------------------------------------
+def mirror_ball_bracket(rng, shape=(37, 51), exposures=EXPOSURES, sensor=SENSOR):
+    """Mostly dark (read noise only), with lit patches from faint to saturated in every frame."""
+    rate = np.full(shape, 50.0)
+    lit = rng.random(shape) < 0.15
+    rate[lit] = np.exp(rng.uniform(math.log(1e3), math.log(1e9), lit.sum()))
+    rate[rng.random(shape) < 0.02] = 1e12
+    return bracket(rate, rng, exposures=exposures, sensor=sensor)
+
+
+def reference_merge(frames, exposures, black, threshold, noise, near_black_sigma=2.0, method="optimal"):
+    """The estimator of the module's description, one pixel at a time (float64)."""
+    exposures = np.asarray(exposures, float)
+    read_var = noise.read_noise_dn**2 + 1 / 12
+    inv_gain, near_black = 1 / noise.gain_e_per_dn, near_black_sigma * math.sqrt(read_var)
+    k, h, w = frames.shape
+    radiance, variance = np.empty((h, w)), np.empty((h, w))
+    count, saturated = np.zeros((h, w), int), np.zeros((h, w), bool)
+    index = np.arange(k)
+    for y in range(h):
+        for x in range(w):
+            b, thr = black[y % 2, x % 2], threshold[y % 2, x % 2]
+            v = frames[:, y, x].astype(float)
+            ok = v < thr
+            if not ok.any():
+                j = np.argmin(exposures)
+                radiance[y, x], variance[y, x], saturated[y, x] = (v[j] - b) / exposures[j], np.inf, True
+                continue
+            sum_y, sum_t = (v[ok] - b).sum(), exposures[ok].sum()
+            x0 = max(sum_y / sum_t, 0.0)
+            if method == "poisson":
+                radiance[y, x] = sum_y / sum_t
+                variance[y, x] = (x0 * sum_t * inv_gain + ok.sum() * read_var) / sum_t**2
+                count[y, x] = ok.sum()
+                continue
+            mu = exposures * x0
+            var = mu * inv_gain + read_var
+            clear = ok & (mu + 3 * np.sqrt(var) < thr - b)
+            if clear.any():
+                longest = index[clear & (exposures == exposures[clear].max())][0]
+                use = clear & ((mu >= near_black) | (index == longest))
+                wgt = np.where(use, exposures**2 / var, 0.0)
+                radiance[y, x] = (wgt * (v - b) / exposures).sum() / wgt.sum()
+                variance[y, x], count[y, x] = 1 / wgt.sum(), use.sum()
+            else:
+                j = index[ok & (exposures == exposures[ok].min())][0]
+                radiance[y, x] = (v[j] - b) / exposures[j]
+                variance[y, x], count[y, x] = var[j] / exposures[j] ** 2, 1
+    return radiance, variance, count, saturated
+
+
+# Shuffled, with equal exposures; an odd size; fractional black levels per site.
+AWKWARD = np.array([1.6e-3, 1e-4, 2.56e-2, 1.6e-3, 4e-4, 2.56e-2])
+AWKWARD_BLACK = np.array([[63.7, 64.2], [64.0, 65.1]])
+
+
+@pytest.mark.parametrize(
+    ("exposures", "black", "near_black_sigma", "method"),
+    [
+        (EXPOSURES, 64, 2.0, "optimal"),
+        (AWKWARD, AWKWARD_BLACK, 2.0, "optimal"),
+        (AWKWARD, AWKWARD_BLACK, 0.0, "optimal"),
+        (AWKWARD[:2], 64, 2.0, "optimal"),
+        (AWKWARD[2:3], 64, 2.0, "optimal"),
+        (AWKWARD, AWKWARD_BLACK, 2.0, "poisson"),
+    ],
+)
+def test_merge_matches_a_per_pixel_reference(exposures, black, near_black_sigma, method):
+    rng = np.random.default_rng(11)
+    frames = mirror_ball_bracket(rng, exposures=exposures)
+    frames[0, 0, :6] = [0, 4095, 4054, 4053, 64, 65]  # below black, clipped, at the threshold and next to it
+    if len(exposures) == 6:
+        # Only the two 1.6 ms samples unsaturated, both too near clipping: the first is kept.
+        frames[:, 0, 7] = [4000, 4095, 4095, 3990, 4095, 4095]
+    result = merge_raw(frames, exposures, black, 4095, NOISE, method=method, near_black_sigma=near_black_sigma)
+    black_sites = np.broadcast_to(np.asarray(black, float), (2, 2))
+    threshold = result.saturation_level - 0.01 * (result.saturation_level - black_sites)
+    radiance, variance, count, saturated = reference_merge(frames, exposures, black_sites, threshold, NOISE,
+                                                           near_black_sigma, method)  # fmt: skip
+    np.testing.assert_array_equal(result.count, count)
+    np.testing.assert_array_equal(result.saturated, saturated)
+    assert result.saturated.any() and (result.count >= (2 if len(exposures) > 2 else 1)).any()
+    np.testing.assert_allclose(result.radiance, radiance, rtol=1e-6, atol=1e-3)
+    np.testing.assert_allclose(result.variance, variance, rtol=1e-6)
+
+
+@pytest.mark.parametrize("seed", [12, 13])
+def test_dark_shortcut_agrees_with_the_general_path(seed):
+    from processing.hdr import _run_merge
+
+    rng = np.random.default_rng(seed)
+    exposures = AWKWARD if seed % 2 else EXPOSURES
+    # Several blocks per row and a partial one; big enough for the kernels to run in parallel.
+    frames = mirror_ball_bracket(rng, shape=(97, 601), exposures=exposures)
+    black = AWKWARD_BLACK if seed % 2 else np.full((2, 2), 64.0)
+    threshold = np.full((2, 2), 4095.0) - 0.01 * (4095 - black)
+    read_var = NOISE.read_noise_dn**2 + 1 / 12
+    args = (frames, exposures, black, threshold, 1 / NOISE.gain_e_per_dn, read_var, 2 * math.sqrt(read_var), True)
+    fast, general = _run_merge(*args), _run_merge(*args, shortcut=False)
+    np.testing.assert_array_equal(fast[2], general[2])
+    np.testing.assert_array_equal(fast[3], general[3])
+    np.testing.assert_allclose(fast[0], general[0], rtol=1e-6)
+    np.testing.assert_allclose(fast[1], general[1], rtol=1e-6)
+    assert (fast[2] == 1).mean() > 0.5 and (fast[2] > 1).any()  # both paths taken
+
+
+@pytest.mark.parametrize("shape", [(40, 60), (41, 63)])
+def test_saturation_counts_match_a_direct_count(shape):
+    from processing.hdr import _site_counts, _site_maxima
+
+    rng = np.random.default_rng(14)
+    clipped = SensorModel(20000, 3.0, 64, 3900, "RGGB")
+    frames = mirror_ball_bracket(rng, shape=shape, sensor=clipped)
+    site = frames[:, 1::2, 1::2]  # one site that never clips: its bright samples spread out
+    frames[:, 1::2, 1::2] = np.where(site > 3000, rng.integers(1000, 3000, site.shape), site)
+    top, rows = _site_maxima(frames)
+    counts = _site_counts(frames, top, 4, rows)
+    for sy in range(2):
+        for sx in range(2):
+            v = frames[:, sy::2, sx::2].astype(int)
+            assert top[sy, sx] == v.max()
+            assert counts[sy, sx, 0] == np.count_nonzero(v > v.max() - 4)
+            assert counts[sy, sx, 1] == np.count_nonzero((v > v.max() - 164) & (v <= v.max() - 4))
+    np.testing.assert_array_equal(measure_saturation(frames, 4095), [[3900, 3900], [3900, 4095]])
+
+
+def reference_noise(frames, exposures, black, levels, bins=24):
+    """Every usable pixel binned by its μ_a: the (x, y, weight) rows of estimate_noise's fit."""
+    h, w = frames.shape[1:]
+    black_map = np.tile(black, ((h + 1) // 2, (w + 1) // 2))[:h, :w]
+    limit = np.tile(levels - 0.05 * (levels - black), ((h + 1) // 2, (w + 1) // 2))[:h, :w]
+    order = np.argsort(exposures)
+    rows = []
+    for a, b in zip(order[:-1], order[1:], strict=True):
+        r = exposures[a] / exposures[b]
+        usable = (frames[a] < limit) & (frames[b] < limit)
+        yb = (frames[b] - black_map)[usable]
+        mu_a, d = r * yb, (frames[a] - black_map)[usable] - r * yb
+        if mu_a.size < 1000 or mu_a.max() <= 20.0:
+            continue
+        edges = np.concatenate([[-np.inf, 20.0], np.geomspace(20.0, mu_a.max(), bins)[1:]])
+        index = np.digitize(mu_a, edges[1:-1])
+        for k in range(bins):
+            sel = index == k
+            if sel.sum() >= 100:
+                rows.append([(1 + r) * mu_a[sel].mean(), 1 + r * r, d[sel].var() - (1 + r * r) / 12, sel.sum()])
+    return np.array(rows)
+
+
+@pytest.mark.parametrize(("exposures", "black"), [(EXPOSURES, np.full((2, 2), 64.0)), (AWKWARD, AWKWARD_BLACK)])
+def test_noise_bins_match_binning_every_pixel(exposures, black):
+    from processing.hdr import _pair_bins
+
+    rng = np.random.default_rng(15)
+    rate = np.exp(rng.uniform(math.log(1e2), math.log(1e8), (301, 403)))
+    rate[rng.random(rate.shape) < 0.5] = 50.0  # a dark background
+    frames = bracket(rate, rng, exposures=exposures)
+    levels = measure_saturation(frames, 4095)
+    expected = reference_noise(frames, exposures, black, levels)
+    got = []
+    order = np.argsort(exposures)
+    for a, b in zip(order[:-1], order[1:], strict=True):
+        r = exposures[a] / exposures[b]
+        binned = _pair_bins(frames, int(a), int(b), r, black, levels - 0.05 * (levels - black), 24)
+        if binned is not None:
+            got += [[(1 + r) * mu, 1 + r * r, var - (1 + r * r) / 12, n] for n, mu, var in zip(*binned) if n >= 100]
+    got = np.array(got)
+    assert got.shape == expected.shape and len(got) > 20
+    np.testing.assert_array_equal(got[:, 3], expected[:, 3])
+    np.testing.assert_allclose(got[:, :3], expected[:, :3], rtol=1e-9, atol=1e-12)
+    estimate = estimate_noise(frames, exposures, black, white_level=4095)
+    assert estimate.gain_e_per_dn == pytest.approx(GAIN, rel=0.05)
+
+
+@pytest.mark.parametrize("cfa", ["RGGB", "BGGR", "GRBG", "GBRG"])
+@pytest.mark.parametrize("dtype", [np.float32, np.float64, np.uint16])
+def test_superpixels_match_the_tile_sums(cfa, dtype):
+    rng = np.random.default_rng(16)
+    mosaic = rng.uniform(0, 3000, (37, 52))
+    if dtype != np.uint16:
+        mosaic[rng.random(mosaic.shape) < 0.05] = np.nan
+        mosaic[rng.random(mosaic.shape) < 0.05] = np.inf
+        mosaic[0, :4] = [-0.0, 1e-45, 1e30, -1e30]
+    mosaic = mosaic.astype(dtype)
+    for view in (mosaic, mosaic[:, ::-1], mosaic[1:, 1:]):
+        h, w = view.shape
+        tiles = view[: h - h % 2, : w - w % 2].reshape(h // 2, 2, w // 2, 2).transpose(0, 2, 1, 3)
+        expected = np.zeros((h // 2, w // 2, 3), np.float32)
+        counts = np.zeros(3)
+        for i, colour in enumerate(cfa):
+            expected[..., "RGB".index(colour)] += tiles[..., i // 2, i % 2]
+            counts["RGB".index(colour)] += 1
+        with np.errstate(invalid="ignore"):
+            expected /= counts.astype(np.float32)
+        got = superpixels(view, cfa)
+        assert got.dtype == np.float32
+        np.testing.assert_array_equal(got, expected)
