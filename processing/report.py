@@ -26,8 +26,12 @@ samples leave on both sides of the light's axis; a sample whose azimuth lies wit
 the sweep's main azimuth ``φ_s`` is drawn at +θ, the others at −θ.
 
 The figures are drawn with matplotlib's Agg canvas directly (no pyplot, no global
-backend). Each section that cannot be drawn (missing inputs) says why instead; a section
-that fails is reported in the page and logged, and never stops the processing.
+backend), laid out by hand (no layout engine), the half discs on plain axes (no polar
+projection); one worker thread encodes their PNGs and does the calibration's sensitivity
+and the previews while the next figure is drawn: what the report costs is mostly
+matplotlib's text rendering. Each section that cannot be drawn (missing inputs) says why
+instead; a section that fails is reported in the page and logged, and never stops the
+processing.
 
 The truth, for simulated runs, is a callable ``truth(source, theta) -> intensity`` passed by
 the caller (the processing never imports the simulator). It is called with the source's
@@ -38,20 +42,26 @@ its name; ``None`` means no truth for that source.
 from __future__ import annotations
 
 import base64
+import gc
 import html
 import io
 import logging
 import math
 import re
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass, field, replace
 from datetime import datetime, timezone
 from pathlib import Path
 
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.collections import LineCollection
+from matplotlib.container import ErrorbarContainer
 from matplotlib.figure import Figure
+from matplotlib.lines import Line2D
 from matplotlib.patches import Circle, Polygon
+from matplotlib.ticker import MaxNLocator
 
 from processing.lightmodel import LightModel, SourceModel
 
@@ -74,6 +84,10 @@ _PREVIEW_WIDTH = 320
 _PREVIEW_CROP = 200
 _COLOURS = ("#1f77b4", "#d62728", "#2ca02c", "#9467bd", "#ff7f0e", "#8c564b", "#e377c2", "#17becf", "#bcbd22")
 NO_CALIBRATION = "no calibration image in this run"
+_SECTIONS = ("The light source, source by source", "The sources on the light plane",
+             "Which θ each source was sampled at", "How the ball widens the angles",
+             "How well the fits describe the samples", "Calibration check: the ball's position",
+             "HDR frames over the sweep")  # fmt: skip
 
 
 # --- the data the figures share ------------------------------------------------------------------
@@ -111,6 +125,7 @@ class _Context:
     colours: list[str] = field(default_factory=list)
     geometry: _Geometry | None = None
     geometry_note: str = ""
+    encoder: _Encoder | None = None
 
 
 def _column(table: dict, key: str) -> np.ndarray | None:
@@ -214,10 +229,79 @@ def _new_figure(width: float, height: float, layout: str | None = "constrained")
     return fig
 
 
-def _png(fig: Figure) -> bytes:
+def _axes_in(fig: Figure, left: float, bottom: float, right: float, top: float, **kwargs):
+    """An axes placed by its margins in inches. The report's figures are laid out by hand: a layout
+    engine measures every label at draw time (and ``savefig`` draws twice for it), which cost more
+    than the drawing itself; the margins hold the labels at the fonts' fixed sizes."""
+    w, h = fig.get_size_inches()
+    return fig.add_axes((left / w, bottom / h, 1.0 - (left + right) / w, 1.0 - (bottom + top) / h), **kwargs)
+
+
+def _settle(ax, *, xlabel_pad: float | None = 0.3, ylabel_pad: float | None = 0.5) -> None:
+    """Fix what matplotlib would otherwise work out at draw time, once the axes holds its data: the
+    ticks, to those in view (its locators also make and measure a tick past each end, never drawn),
+    and the axis labels' place, ``xlabel_pad`` inches below and ``ylabel_pad`` inches left of the
+    axes (instead of measuring every tick label)."""
+    for axis, limits in ((ax.xaxis, ax.get_xlim()), (ax.yaxis, ax.get_ylim())):
+        lo, hi = min(limits), max(limits)
+        slack = 1e-9 * (hi - lo)
+        axis.set_ticks([t for t in axis.get_major_locator()() if lo - slack <= t <= hi + slack])
+    box, (w, h) = ax.get_position(), ax.get_figure().get_size_inches()
+    if xlabel_pad is not None:
+        ax.xaxis.set_label_coords(0.5, -xlabel_pad / (box.height * h))
+    if ylabel_pad is not None:
+        ax.yaxis.set_label_coords(-ylabel_pad / (box.width * w), 0.5)
+
+
+def _pixels(fig: Figure) -> np.ndarray:
+    """The figure drawn by Agg, as an (h, w, 3) RGB array (the figures are opaque: no alpha to keep)."""
+    fig.canvas.draw()
+    return np.array(np.asarray(fig.canvas.buffer_rgba())[..., :3])
+
+
+def _encode_png(rgb: np.ndarray) -> bytes:
+    """PNG bytes of an RGB array; zlib level 3: as small as savefig's level 6 without the alpha, in half its time."""
+    from PIL import Image
+
     buffer = io.BytesIO()
-    fig.savefig(buffer, format="png", dpi=_DPI)
+    Image.fromarray(rgb).save(buffer, format="png", compress_level=3)
     return buffer.getvalue()
+
+
+def _png(fig: Figure) -> bytes:
+    return _encode_png(_pixels(fig))
+
+
+class _Encoder:
+    """Encodes the figures' PNGs on a worker thread (PIL's zlib releases the GIL) while the next
+    figure is drawn: :meth:`figure` draws and returns the ``<figure>`` with a placeholder that
+    :meth:`fill` replaces by the embedded image."""
+
+    def __init__(self, pool):
+        self.pool = pool
+        self.pending: dict[str, tuple[object, str]] = {}
+
+    def figure(self, fig: Figure, alt: str, caption: str) -> str:
+        token = f"\x00figure-{len(self.pending)}\x00"
+        self.pending[token] = (self.pool.submit(_encode_png, _pixels(fig)), alt)
+        return f"<figure>{token}<figcaption>{caption}</figcaption></figure>"
+
+    def fill(self, text: str) -> str:
+        for token, (future, alt) in self.pending.items():
+            if token in text:
+                try:
+                    image = _img(future.result(), alt)
+                except Exception as exc:  # noqa: BLE001 - a figure never stops the processing
+                    log.warning("report: %s: %s", alt, exc, exc_info=True)
+                    image = _note(f"this figure could not be encoded: {type(exc).__name__}: {exc}")
+                text = text.replace(token, image)
+        return text
+
+
+def _line(ax, x, y, **kwargs) -> Line2D:
+    """A line added to ``ax`` without ``plot``'s argument parsing nor the data limits' update (the
+    callers set their limits)."""
+    return ax.add_artist(Line2D(x, y, **kwargs))
 
 
 def _runs(mask: np.ndarray) -> np.ndarray:
@@ -241,8 +325,31 @@ def _fit_curve(source: SourceModel, signed_theta: np.ndarray, azimuth: float):
     return values, extrapolated
 
 
+def _polar_frame(ax, rmax: float, clip) -> None:
+    """The half disc's grid, drawn by hand: spokes every 30°, arcs at round radii, their labels."""
+    arc = np.radians(np.linspace(-90.0, 90.0, 181))
+    ticks = MaxNLocator(nbins=6, steps=[1, 2, 2.5, 5, 10]).tick_values(0.0, rmax)
+    ticks = ticks[(ticks >= 0.0) & (ticks < rmax * (1.0 - 1e-9))]
+    segments = [np.column_stack([t / rmax * np.sin(arc), t / rmax * np.cos(arc)]) for t in ticks if t > 0.0]
+    spokes = np.radians(np.arange(-90, 91, 30))
+    segments += [np.array([[0.0, 0.0], [math.sin(a), math.cos(a)]]) for a in spokes]
+    ax.add_artist(LineCollection(segments, colors="#b0b0b0", linewidths=0.8, zorder=1.5))
+    ax.add_artist(clip)  # the rim and the baseline, as a polar plot's spines
+    for a in spokes:  # θ labels outside the rim, 0° up
+        s, c = math.sin(a), math.cos(a)
+        ax.text(1.06 * s, 1.06 * c, f"{round(math.degrees(a))}°", fontsize=8,
+                ha="center" if abs(s) < 0.3 else ("left" if s > 0 else "right"), va="bottom" if c > 0.3 else "center")  # fmt: skip
+    if ticks.size > 1:  # the radial scale under the baseline, left of the axis, with the decimals its step needs
+        step = float(ticks[1] - ticks[0])
+        decimals = max(0, -math.floor(math.log10(step)))
+        decimals += not math.isclose(step * 10**decimals, round(step * 10**decimals), rel_tol=1e-6)
+        for t in ticks:
+            ax.text(-t / rmax, -0.03, f"{t:.{decimals}f}", fontsize=7, ha="center", va="top")
+
+
 def _polar_panel(ax, ctx: _Context, k: int) -> list:
-    """One source's half-polar plot; returns the legend handles it drew."""
+    """One source's half-polar plot, drawn on a Cartesian axes whose unit is the radial scale's top
+    (θ from the vertical, signed by side: x = r sin θ, y = r cos θ); returns the legend handles it drew."""
     source, d, colour = ctx.model.sources[k], ctx.data[k], ctx.colours[k]
     grid = np.radians(np.linspace(-90.0, 90.0, 721))
     fit, extrapolated = _fit_curve(source, grid, ctx.azimuth)
@@ -254,43 +361,58 @@ def _polar_panel(ax, ctx: _Context, k: int) -> list:
     reach += [a for a in (d.cell_sum, true) if a is not None]
     finite = np.concatenate([np.ravel(a)[np.isfinite(np.ravel(a))] for a in reach])
     rmax = 1.12 * max(float(finite.max()) if finite.size else 0.0, 1e-30)
-    handles = []
+    sin_grid, cos_grid = np.sin(grid), np.cos(grid)
+
+    def xy(theta, r):
+        r = np.asarray(r, dtype=float) / rmax
+        return r * np.sin(theta), r * np.cos(theta)
+
+    rim = np.radians(np.linspace(-90.0, 90.0, 181))
+    clip = Polygon(np.column_stack([np.sin(rim), np.cos(rim)]), closed=True, facecolor="none", edgecolor="k",
+                   lw=0.8, zorder=2.5)  # fmt: skip
+    _polar_frame(ax, rmax, clip)
+    handles, drawn = [], []
     # the θ the samples cover, side by side
     for side in (1.0, -1.0):
         on_side = signed[np.isfinite(signed) & (np.sign(signed) == side)] if signed.size else np.zeros(0)
         if on_side.size:
             span = np.linspace(on_side.min(), on_side.max(), 50)
-            ax.fill_between(span, 0.0, rmax, color="0.5", alpha=0.10, linewidth=0)
-    shown = np.where(fit <= 1.05 * rmax, fit, np.nan)
+            wedge = Polygon(np.column_stack([np.r_[0.0, np.sin(span)], np.r_[0.0, np.cos(span)]]), closed=True,
+                            facecolor="0.5", alpha=0.10, linewidth=0)  # fmt: skip
+            drawn.append(ax.add_artist(wedge))
+    shown = np.where(fit <= 1.05 * rmax, fit, np.nan) / rmax
     solid = np.where(~extrapolated, shown, np.nan)
     dashed = np.where(_runs(extrapolated), shown, np.nan)
-    (h,) = ax.plot(grid, solid, color=colour, lw=2.0, label="fit (θ covered)")
-    handles.append(h)
-    (h,) = ax.plot(grid, dashed, color=colour, lw=1.4, ls="--", alpha=0.45, label="fit, extrapolated")
-    handles.append(h)
+    handles.append(_line(ax, solid * sin_grid, solid * cos_grid, color=colour, lw=2.0, label="fit (θ covered)"))
+    handles.append(_line(ax, dashed * sin_grid, dashed * cos_grid, color=colour, lw=1.4, ls="--", alpha=0.45,
+                         label="fit, extrapolated"))  # fmt: skip
+    drawn += handles
     if true is not None:
-        (h,) = ax.plot(grid, np.where(true <= 1.05 * rmax, true, np.nan), color="k", lw=1.2, ls=(0, (6, 3)),
-                       label="truth")  # fmt: skip
+        r = np.where(true <= 1.05 * rmax, true, np.nan) / rmax
+        h = _line(ax, r * sin_grid, r * cos_grid, color="k", lw=1.2, ls=(0, (6, 3)), label="truth")
         handles.append(h)
+        drawn.append(h)
     if d.cell_sum is not None and np.any(np.isfinite(d.cell_sum)) and not np.allclose(
         d.cell_sum, d.intensity, equal_nan=True
     ):
-        (h,) = ax.plot(signed, d.cell_sum, ls="none", marker="^", ms=4, mfc="none", mec="0.35", mew=0.8,
-                       label="chief-ray cell sums")  # fmt: skip
+        h = _line(ax, *xy(signed, d.cell_sum), ls="none", marker="^", ms=4, mfc="none", mec="0.35", mew=0.8,
+                  label="chief-ray cell sums")  # fmt: skip
         handles.append(h)
+        drawn.append(h)
     if d.intensity.size:
-        has_sigma = np.any(np.isfinite(d.sigma) & (d.sigma > 0))
-        h = ax.errorbar(signed, d.intensity, yerr=sigma if has_sigma else None, fmt="o", ms=3.2, color=colour,
-                        mec="k", mew=0.4, ecolor=colour, elinewidth=0.9, capsize=0, label="samples ± 1σ")  # fmt: skip
-        handles.append(h)
-    ax.set_theta_zero_location("N")
-    ax.set_theta_direction(-1)
-    ax.set_thetamin(-90)
-    ax.set_thetamax(90)
-    ax.set_thetagrids(range(-90, 91, 30), [f"{t}°" for t in range(-90, 91, 30)], fontsize=8)
-    ax.set_ylim(0.0, rmax)
-    ax.set_rlabel_position(90)  # the radial scale along the baseline
-    ax.tick_params(axis="y", labelsize=7)
+        has_sigma = bool(np.any(np.isfinite(d.sigma) & (d.sigma > 0)))
+        bars = ()
+        if has_sigma:  # the ±1σ bars run along the radius
+            ends = np.stack([np.column_stack(xy(signed, np.maximum(d.intensity - sigma, 0.0))),
+                             np.column_stack(xy(signed, d.intensity + sigma))], axis=1)  # fmt: skip
+            bars = (ax.add_artist(LineCollection(ends, colors=colour, linewidths=0.9)),)
+            drawn += bars
+        line = _line(ax, *xy(signed, d.intensity), ls="none", marker="o", ms=3.2, color=colour, mec="k", mew=0.4,
+                     label="samples ± 1σ")  # fmt: skip
+        drawn.append(line)
+        handles.append(ErrorbarContainer((line, (), bars), has_xerr=False, has_yerr=has_sigma, label="samples ± 1σ"))
+    for artist in drawn:
+        artist.set_clip_path(clip)
     return handles
 
 
@@ -301,6 +423,10 @@ def polar_figure(model: LightModel, *, samples=None, truth=None) -> Figure:
     dashed where it extrapolates; open triangles: the chief-ray cell sums of the same
     positions (when the estimator was not the cell sums themselves); broken black line:
     the truth, when ``truth`` is given; grey wedges: the θ the samples cover on each side.
+
+    Each half disc is drawn by hand on a Cartesian axes (matplotlib's polar axes cost
+    several times as much to make and draw) whose unit length is the top of its radial
+    scale: a sample at signed angle θ and intensity I sits at ``(I sin θ, I cos θ) / I_top``.
     """
     ctx = _context(model, samples=samples, truth=truth)
     return _polar_figure(ctx)
@@ -309,24 +435,26 @@ def polar_figure(model: LightModel, *, samples=None, truth=None) -> Figure:
 def _polar_figure(ctx: _Context) -> Figure:
     n = len(ctx.model.sources)
     rows, cols = _grid(n)
-    # Placed by hand: a polar axes keeps a square box even for a half disc (matplotlib pads the
-    # wedge to equal aspect), so the boxes overlap where they are empty and the half discs pack.
-    cell_w, cell_h, side = 4.2, 2.6, 3.3  # inches: a cell, and the square box of a half disc 3.3 wide
+    cell_w, cell_h, radius = 4.2, 2.6, 1.65  # inches: a cell, and the radius of its half disc
     top_band, legend_band = 0.3, 0.45
+    pad_x, pad_bottom, pad_top = 0.45, 0.3, 0.3  # around the half disc, for its labels
     width, height = cell_w * cols, top_band + cell_h * rows + legend_band
     fig = _new_figure(width, height, layout=None)
     handles = {}
     for k in range(n):
         r, c = divmod(k, cols)
         cell_top = height - top_band - r * cell_h
-        wedge_top = cell_top - 0.58  # the title and the 0° label above it
-        box_bottom = wedge_top - 0.75 * side  # the half disc fills the upper middle half of its square box
-        left = c * cell_w + 0.5 * (cell_w - side)
-        ax = fig.add_axes((left / width, box_bottom / height, side / width, side / height), projection="polar")
+        base = cell_top - 0.58 - radius  # the baseline: the title and the 0° label above the half disc
+        centre = (c + 0.5) * cell_w
+        ax = fig.add_axes(((centre - radius - pad_x) / width, (base - pad_bottom) / height,
+                           2.0 * (radius + pad_x) / width, (radius + pad_bottom + pad_top) / height))  # fmt: skip
+        ax.set_axis_off()
+        ax.set_xlim(-1.0 - pad_x / radius, 1.0 + pad_x / radius)
+        ax.set_ylim(-pad_bottom / radius, 1.0 + pad_top / radius)
         for h in _polar_panel(ax, ctx, k):
             handles.setdefault(h.get_label(), h)
         source = ctx.model.sources[k]
-        fig.text((c + 0.5) * cell_w / width, (cell_top - 0.02) / height,
+        fig.text(centre / width, (cell_top - 0.02) / height,
                  f"{source.name}  ({source.fit.method}, χ²ᵣ = {source.fit.chi2_reduced:.2g})", ha="center", va="top",
                  fontsize=10)  # fmt: skip
     order = ["samples ± 1σ", "fit (θ covered)", "fit, extrapolated", "chief-ray cell sums", "truth"]
@@ -343,8 +471,12 @@ def layout_figure(model: LightModel, *, resolution_m: float = float("nan"), pixe
     footprint of one pixel: the point spread's (diameter ``resolution_m``) and, when known,
     the chief ray's own (``pixel_polygon``, (4, 2) metres)."""
     colours = [_COLOURS[k % len(_COLOURS)] for k in range(len(model.sources))]
-    fig = _new_figure(6.4, 6.0)
-    ax = fig.add_subplot(1, 1, 1)
+    fig = _new_figure(6.4, 6.0, layout=None)
+    has_footprint = math.isfinite(resolution_m) and resolution_m > 0
+    legend_lines = int(has_footprint) + int(pixel_polygon is not None)
+    bottom = 0.5 + 0.2 * legend_lines
+    side = 6.0 - bottom - 0.1  # a square axes: the limits below span the same in u and v
+    ax = _axes_in(fig, 0.75, bottom, 6.4 - 0.75 - side, 0.1)
     centres = np.array([s.centre_m for s in model.sources], dtype=float) * 1e3
     radii = np.array([s.radius_m for s in model.sources], dtype=float) * 1e3
     spacing = 1.0
@@ -362,7 +494,7 @@ def layout_figure(model: LightModel, *, resolution_m: float = float("nan"), pixe
     handles = []
     lo = (centres - radii[:, None]).min(axis=0)
     hi = (centres + radii[:, None]).max(axis=0)
-    if math.isfinite(resolution_m) and resolution_m > 0:
+    if has_footprint:
         rad = 0.5 * resolution_m * 1e3
         handles.append(ax.add_patch(Circle(tuple(centroid), rad, fill=False, ls="--", lw=1.4, edgecolor="0.3",
                                            label=f"what one pixel gathers light from: the point spread's footprint "
@@ -387,11 +519,12 @@ def layout_figure(model: LightModel, *, resolution_m: float = float("nan"), pixe
     ax.set_xlim(mid[0] - 0.62 * span, mid[0] + 0.62 * span)
     ax.set_ylim(mid[1] - 0.62 * span, mid[1] + 0.62 * span)
     if handles:
-        fig.legend(handles=handles, loc="outside lower center", fontsize=8, frameon=False)
+        fig.legend(handles=handles, loc="lower center", bbox_to_anchor=(0.5, 0.0), fontsize=8, frameon=False)
     ax.set_aspect("equal")
     ax.grid(True, color="0.9", lw=0.6)
     ax.set_xlabel("u [mm]  (light frame x)")
     ax.set_ylabel("v [mm]  (light frame y)")
+    _settle(ax, xlabel_pad=0.25, ylabel_pad=0.4)
     return fig
 
 
@@ -402,8 +535,8 @@ def coverage_figure(model: LightModel, *, samples=None) -> Figure:
 
 
 def _coverage_figure(ctx: _Context, samples=None) -> Figure:
-    fig = _new_figure(7.6, 3.9)
-    ax = fig.add_subplot(1, 1, 1)
+    fig = _new_figure(7.6, 3.9, layout=None)
+    ax = _axes_in(fig, 0.75, 0.5, 0.1, 0.1)
     for k, source in enumerate(ctx.model.sources):
         colour = ctx.colours[k]
         if samples is not None and samples.theta.shape[1] == len(ctx.model.sources):
@@ -424,6 +557,7 @@ def _coverage_figure(ctx: _Context, samples=None) -> Figure:
     ax.set_ylabel(f"θ sampled [°]  (+ towards φ = {_deg(ctx.azimuth)})")
     ax.grid(True, color="0.9", lw=0.6)
     ax.legend(fontsize=8, ncols=min(len(ctx.model.sources), 5), loc="best", frameon=False)
+    _settle(ax, xlabel_pad=0.25, ylabel_pad=0.4)
     return fig
 
 
@@ -438,19 +572,24 @@ def angles_figure(rays, *, index: int | None = None, centre_m=(0.0, 0.0), light_
     ball's radius) a top axis gives the camera ray's angle off the ball's centre: a ray at
     impact angle α has ``sin(view) = sin α · R/D`` and deflection ``π − 2α``.
     """
-    fig = _new_figure(7.2, 4.6)
-    ax = fig.add_subplot(1, 1, 1)
+    fig = _new_figure(7.2, 4.6, layout=None)
     valid = rays.valid
     defl, theta = np.degrees(rays.deflection[valid]), np.degrees(rays.theta[valid])
     dist = np.hypot(rays.u[valid] - centre_m[0], rays.v[valid] - centre_m[1]) * 1e3
-    ax.scatter(defl, theta, s=1.0, c="0.75", linewidths=0, rasterized=True, label="every chief ray on the light plane")
     near = dist <= light_radius_m * 1e3
+    top_margin = 0.75 if ball_half_angle is not None and ball_distance_ratio is not None else 0.35
+    ax = _axes_in(fig, 0.65, 0.5, 1.15 if np.any(near) else 0.15, top_margin)
+    # one marker drawn once and stamped at every ray (a Line2D's markers: far cheaper than a scatter)
+    ax.plot(defl, theta, ls="none", marker="o", ms=1.0, mfc="0.75", mew=0.0, label="every chief ray on the light plane")
     if np.any(near):
         order = np.argsort(-dist[near])
         sc = ax.scatter(defl[near][order], theta[near][order], s=5, c=dist[near][order], cmap="viridis",
-                        vmin=0.0, vmax=light_radius_m * 1e3, linewidths=0, rasterized=True,
+                        vmin=0.0, vmax=light_radius_m * 1e3, linewidths=0,
                         label=f"rays landing within {light_radius_m * 1e3:.0f} mm of the sources")  # fmt: skip
-        fig.colorbar(sc, ax=ax, label="distance on the light plane from the sources' centre [mm]", shrink=0.85)
+        w, h = fig.get_size_inches()
+        box = ax.get_position()
+        cax = fig.add_axes((1.0 - 0.95 / w, box.y0 + 0.075 * box.height, 0.14 / w, 0.85 * box.height))
+        fig.colorbar(sc, cax=cax, label="distance on the light plane from the sources' centre [mm]")
     if ball_half_angle is not None and ball_distance_ratio is not None:
         # the camera's view angle off the ball's centre that gives each deflection (the same for any azimuth)
         k = ball_distance_ratio
@@ -468,6 +607,7 @@ def angles_figure(rays, *, index: int | None = None, centre_m=(0.0, 0.0), light_
     ax.set_ylabel("outgoing angle θ at the light plane [°]")
     ax.grid(True, color="0.9", lw=0.6)
     ax.legend(fontsize=8, loc="upper right", markerscale=4, frameon=False)
+    _settle(ax, xlabel_pad=0.25, ylabel_pad=0.35)
     title = "chief rays across the ball" + (f", position {index}" if index is not None else "")
     if ball_half_angle is not None:
         title += f": the ball spans ±{math.degrees(ball_half_angle):.1f}° of the camera's view"
@@ -484,10 +624,15 @@ def residuals_figure(model: LightModel, *, samples=None) -> Figure:
 def _residuals_figure(ctx: _Context) -> Figure:
     n = len(ctx.model.sources)
     rows, cols = _grid(n)
-    fig = _new_figure(3.6 * cols, 2.4 * rows)
+    width, height = 3.6 * cols, 2.4 * rows
+    fig = _new_figure(width, height, layout=None)
+    left, right, bottom, top, wgap, hgap = 0.75, 0.12, 0.5, 0.3, 0.5, 0.8  # inches
+    grid = fig.add_gridspec(rows, cols, left=left / width, right=1.0 - right / width, bottom=bottom / height,
+                            top=1.0 - top / height, wspace=wgap / ((width - left - right - (cols - 1) * wgap) / cols),
+                            hspace=hgap / ((height - bottom - top - (rows - 1) * hgap) / rows))  # fmt: skip
     axes = []
     for k, source in enumerate(ctx.model.sources):
-        ax = fig.add_subplot(rows, cols, k + 1, sharey=axes[0] if axes else None)
+        ax = fig.add_subplot(grid[divmod(k, cols)], sharey=axes[0] if axes else None)
         axes.append(ax)
         d = ctx.data[k]
         signed = np.degrees(_signed(d.theta, d.phi, ctx.azimuth))
@@ -497,19 +642,22 @@ def _residuals_figure(ctx: _Context) -> Figure:
         ax.axhspan(-1, 1, color="0.85", lw=0)
         ax.axhline(0, color="0.4", lw=0.7)
         ax.plot(signed, r, "o", color=ctx.colours[k], ms=3.5, mec="k", mew=0.3)
-        ax.set_title(f"{source.name}: χ²ᵣ = {source.fit.chi2_reduced:.3g}", fontsize=9)
+        ax.set_title(f"{source.name}: χ²ᵣ = {source.fit.chi2_reduced:.3g}", fontsize=9, y=1.0)  # y: no overlap search
         ax.grid(True, color="0.9", lw=0.5)
         if k % cols == 0:
             ax.set_ylabel("(data − fit) / σ")
         if k >= n - cols:
             ax.set_xlabel("θ [°] (signed by side)")
-        ax.tick_params(labelsize=8)
+        ax.tick_params(labelsize=8, labelleft=k % cols == 0)  # one y scale, read off the left column
+    for ax in axes:
+        _settle(ax, xlabel_pad=0.25, ylabel_pad=0.45)
     return fig
 
 
 # --- geometry from the run --------------------------------------------------------------------------
-def _middle_geometry(run, samples, model: LightModel, max_pixels: int = 60_000) -> _Geometry:
-    from processing.trace import RigGeometry, ball_pixel_grid, light_pose_at, trace_pixels
+def _middle_position(run, samples) -> _Geometry:
+    """The sweep's middle position: its index, the light's pose there and the rig's geometry (no ray yet)."""
+    from processing.trace import RigGeometry, light_pose_at
 
     rig = run.header.rig
     geometry = RigGeometry.from_rig(rig)
@@ -525,11 +673,22 @@ def _middle_geometry(run, samples, model: LightModel, max_pixels: int = 60_000) 
     except (ValueError, KeyError, OSError):
         measured = None
     pose = light_pose_at(geometry, measured if measured is not None else run.header.tool_poses[index])
-    out = _Geometry(index, pose, geometry)
+    return _Geometry(index, pose, geometry)
+
+
+def _trace_middle(position: _Geometry, model: LightModel, max_pixels: int = 60_000) -> _Geometry:
+    """``position`` with the chief rays of (at most about ``max_pixels``) pixels across the ball, and the
+    footprint on the light plane of the pixel whose chief ray lands nearest the sources."""
+    from processing.trace import ball_pixel_grid, trace_pixels
+
+    geometry, pose = position.geometry, position.pose
+    out = replace(position)
     cols, rows = ball_pixel_grid(geometry)
     stride = max(1, int(math.ceil(math.sqrt(cols.size / max_pixels))))
-    keep = (cols % stride == 0) & (rows % stride == 0)
-    rays = trace_pixels(geometry, pose, cols[keep], rows[keep])
+    if stride > 1:  # the grid's coordinates are whole numbers: integer remainders are the cheaper test
+        keep = (cols.astype(np.int64) % stride == 0) & (rows.astype(np.int64) % stride == 0)
+        cols, rows = cols[keep], rows[keep]
+    rays = trace_pixels(geometry, pose, cols, rows)
     out.rays = rays
     centroid = np.mean([s.centre_m for s in model.sources], axis=0)
     if np.any(rays.valid):
@@ -628,7 +787,9 @@ def _img(png: bytes, alt: str, cls: str = "") -> str:
     return f'<img src="data:image/png;base64,{data}" alt="{html.escape(alt)}"{extra}>'
 
 
-def _figure(fig: Figure, alt: str, caption: str) -> str:
+def _figure(fig: Figure, alt: str, caption: str, encoder: _Encoder | None = None) -> str:
+    if encoder is not None:
+        return encoder.figure(fig, alt, caption)
     return f"<figure>{_img(_png(fig), alt)}<figcaption>{caption}</figcaption></figure>"
 
 
@@ -821,45 +982,70 @@ def write_report(path, model: LightModel, *, run=None, samples=None, report=None
     Path
         The file written.
     """
-    path = Path(path)
+    # The report makes some 10⁵ short-lived objects (matplotlib's artists hold reference cycles), which
+    # can set off a full collection: with the process's objects set aside (frozen) it walks only the
+    # report's own, instead of everything the processing built (0.1-0.3 s on a whole run's heap).
+    # A process that froze objects itself manages its collector: it is left alone.
+    freeze = gc.get_freeze_count() == 0
+    if freeze:
+        gc.freeze()
+    try:
+        return _write_report(Path(path), model, run, samples, report, truth, calibration)
+    finally:
+        if freeze:
+            gc.unfreeze()
+
+
+def _write_report(path: Path, model: LightModel, run, samples, report, truth, calibration) -> Path:
     resolution = float(model.provenance.get("spatial_resolution_m") or float("nan"))
     if not math.isfinite(resolution) and report is not None:
         resolution = float(getattr(report, "spatial_resolution_m", float("nan")))
     ctx = _context(model, samples=samples, truth=truth, resolution_m=resolution)
-    geo = None
-    if run is not None:
+
+    def guarded(title: str, build: Callable[[], str]) -> str:
         try:
-            geo = _middle_geometry(run, samples, model)
+            return build()
+        except Exception as exc:  # noqa: BLE001 - one section's failure is reported, not fatal
+            log.warning("report: %s: %s", title, exc, exc_info=True)
+            return _note(f"this section could not be drawn: {type(exc).__name__}: {exc}")
+
+    def traced(step: Callable[[], _Geometry]) -> _Geometry | None:
+        try:
+            return step()
         except Exception as exc:  # a figure never stops the processing
             log.warning("report: chief rays at the middle position: %s", exc, exc_info=True)
             ctx.geometry_note = f"the chief rays could not be traced: {exc}"
-    else:
+            return None
+
+    position = None
+    if run is None:
         ctx.geometry_note = "no run file given to the report: the rig and the poses are unknown"
-    ctx.geometry = geo
-    sections: list[tuple[str, str]] = []
-
-    def section(title: str, build: Callable[[], str]) -> None:
-        try:
-            body = build()
-        except Exception as exc:  # noqa: BLE001 - one section's failure is reported, not fatal
-            log.warning("report: %s: %s", title, exc, exc_info=True)
-            body = _note(f"this section could not be drawn: {type(exc).__name__}: {exc}")
-        sections.append((title, body))
-
-    run_id = model.provenance.get("run_id") or (run.header.run_id if run is not None else "")
-
-    section("The light source, source by source", lambda: _intensity_section(ctx))
-    section("The sources on the light plane", lambda: _layout_section(ctx))
-    section("Which θ each source was sampled at", lambda: _coverage_section(ctx, samples))
-    section("How the ball widens the angles", lambda: _angles_section(ctx))
-    section("How well the fits describe the samples", lambda: _residuals_section(ctx))
-    section("Calibration check: the ball's position", lambda: _calibration_section(model, run, report, calibration, geo))
-    section("HDR frames over the sweep", lambda: _previews_section(report, run, model, path, geo))
-
-    title = f"mirrorgonio light report: {run_id}" if run_id else "mirrorgonio light report"
-    body = [f"<h1>{html.escape(title)}</h1>", _header(model, run, report, samples, resolution)]
-    for name, content in sections:
-        body.append(f"<h2>{html.escape(name)}</h2>\n{content}")
+    else:
+        position = traced(lambda: _middle_position(run, samples))
+    # One worker thread takes what runs mostly in C, outside the GIL, while this thread draws: the
+    # calibration's sensitivity (numpy on large arrays: it overlaps the trace below), the previews'
+    # decoding and the figures' PNG encoding (OpenCV, zlib). Its tasks run in the order given.
+    intensity, layout, coverage, angles, residuals, calibrated, previews = _SECTIONS
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="mirrorgonio-report") as pool:
+        ctx.encoder = _Encoder(pool)
+        built: dict[str, str | Future] = {
+            calibrated: pool.submit(guarded, calibrated,
+                                    lambda: _calibration_section(model, run, report, calibration, position)),
+            previews: pool.submit(guarded, previews, lambda: _previews_section(report, run, model, path, position)),
+        }  # fmt: skip
+        if position is not None:
+            ctx.geometry = traced(lambda: _trace_middle(position, model))
+        built[intensity] = guarded(intensity, lambda: _intensity_section(ctx))
+        built[layout] = guarded(layout, lambda: _layout_section(ctx))
+        built[angles] = guarded(angles, lambda: _angles_section(ctx))
+        built[residuals] = guarded(residuals, lambda: _residuals_section(ctx))
+        built[coverage] = guarded(coverage, lambda: _coverage_section(ctx, samples))  # last: the smallest to encode
+        run_id = model.provenance.get("run_id") or (run.header.run_id if run is not None else "")
+        title = f"mirrorgonio light report: {run_id}" if run_id else "mirrorgonio light report"
+        body = [f"<h1>{html.escape(title)}</h1>", _header(model, run, report, samples, resolution)]
+        for name in _SECTIONS:
+            content = built[name].result() if isinstance(built[name], Future) else built[name]
+            body.append(f"<h2>{html.escape(name)}</h2>\n{ctx.encoder.fill(content)}")
     page = (f'<!DOCTYPE html>\n<html lang="en">\n<head>\n<meta charset="utf-8">\n<title>{html.escape(title)}</title>\n'
             f"<style>{_CSS}</style>\n</head>\n<body>\n" + "\n".join(body) + "\n</body>\n</html>\n")  # fmt: skip
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -885,7 +1071,7 @@ def _intensity_section(ctx: _Context) -> str:
                     "point spread recovers. ")  # fmt: skip
     if ctx.truth is not None:
         caption += "The broken black line is the truth of the simulation."
-    parts = [_figure(_polar_figure(ctx), "radiant intensity per source, half-polar", html.escape(caption))]
+    parts = [_figure(_polar_figure(ctx), "radiant intensity per source, half-polar", html.escape(caption), ctx.encoder)]
     header = ["source", "(u, v) [mm]", "radius [mm]", f"on-axis I [{model.units}]", "half-width at half max",
               "θ covered", "samples", "χ²ᵣ"]  # fmt: skip
     if ctx.truth is not None:
@@ -922,7 +1108,7 @@ def _layout_section(ctx: _Context) -> str:
         caption += (f"The small black patch is where one pixel's chief ray alone would look (pixel "
                     f"{ctx.geometry.pixel_at[0]:.0f}, {ctx.geometry.pixel_at[1]:.0f} at position "
                     f"{ctx.geometry.index}): sharp, but not what the pixel sees.")  # fmt: skip
-    parts = [_figure(fig, "sources on the light plane", html.escape(caption))]
+    parts = [_figure(fig, "sources on the light plane", html.escape(caption), ctx.encoder)]
     if not math.isfinite(ctx.resolution_m):
         parts.append(_note("the spatial resolution is not recorded in the light model: no footprint drawn."))
     if polygon is None and ctx.geometry_note:
@@ -937,7 +1123,7 @@ def _coverage_section(ctx: _Context, samples) -> str:
                "range each line spans.")  # fmt: skip
     if samples is not None:
         caption += " Crosses mark positions where the source was in view but had no estimate."
-    return _figure(_coverage_figure(ctx, samples), "theta sampled per position", html.escape(caption))
+    return _figure(_coverage_figure(ctx, samples), "theta sampled per position", html.escape(caption), ctx.encoder)
 
 
 def _angles_section(ctx: _Context) -> str:
@@ -970,14 +1156,14 @@ def _angles_section(ctx: _Context) -> str:
         caption += (f"The coloured dots are the rays that land on the sources (within {1e3 * reach:.0f} mm of their "
                     f"centre): at this position they carry θ = {t_near.min():.1f}°–{t_near.max():.1f}°, the "
                     "spread the camera's blur mixes into one sample.")  # fmt: skip
-    return _figure(fig, "outgoing angle against deflection", html.escape(caption))
+    return _figure(fig, "outgoing angle against deflection", html.escape(caption), ctx.encoder)
 
 
 def _residuals_section(ctx: _Context) -> str:
     caption = ("Data minus fit at each sample, in units of the sample's σ (dark band ±1σ, light band ±3σ). "
                "A good fit scatters evenly about 0, mostly within the dark band, and has χ²ᵣ near 1; a wave or a "
                "trend with θ means the model's shape does not match the source.")  # fmt: skip
-    parts = [_figure(_residuals_figure(ctx), "normalised residuals per source", html.escape(caption))]
+    parts = [_figure(_residuals_figure(ctx), "normalised residuals per source", html.escape(caption), ctx.encoder)]
     rows = []
     for source in ctx.model.sources:
         rows.extend(_param_rows(source, ctx.model.units))

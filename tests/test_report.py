@@ -108,23 +108,32 @@ def test_a_model_read_back_from_its_file_reports_the_same(tmp_path):
 def test_the_polar_figure_draws_samples_fit_cell_sums_and_truth(tmp_path):
     model = make_model()
     fig = polar_figure(model, truth=truth)
-    axes = [ax for ax in fig.axes if ax.name == "polar"]
+    # one half disc per source, drawn on a Cartesian axes: a point (θ, I) at (I sin θ, I cos θ) / top of the scale
+    axes = fig.axes
     assert len(axes) == len(SOURCES)
-    for ax in axes:
+    for ax, source in zip(axes, model.sources):
         labels = [line.get_label() for line in ax.get_lines()]
-        assert {"fit (θ covered)", "fit, extrapolated", "truth", "chief-ray cell sums"} <= set(labels)
+        assert {"fit (θ covered)", "fit, extrapolated", "truth", "chief-ray cell sums", "samples ± 1σ"} <= set(labels)
         (truth_line,) = [line for line in ax.get_lines() if line.get_label() == "truth"]
         assert truth_line.get_linestyle() != "-"  # a broken line
         # θ runs from −90° (left) to 90° (right), 0° up
-        assert math.isclose(ax.get_thetamin(), -90) and math.isclose(ax.get_thetamax(), 90)
+        marks = {t.get_text(): t.get_position() for t in ax.texts if t.get_text().endswith("°")}
+        assert marks["-90°"][0] < -1 + 1e-6 and marks["90°"][0] > 1 - 1e-6 and marks["0°"][1] > 1
+        assert abs(marks["0°"][0]) < 1e-9
+        # the radius is the intensity (on one scale per panel)
+        (dots,) = [line for line in ax.get_lines() if line.get_marker() == "o"]
+        radius = np.hypot(dots.get_xdata(), dots.get_ydata())
+        intensity = np.asarray(source.samples["intensity"])
+        np.testing.assert_allclose(radius / intensity, radius[0] / intensity[0], rtol=1e-9)
     # the samples sit on both sides: a sweep past the ball, signed by azimuth
-    xs = np.concatenate([line.get_xdata() for ax in axes for line in ax.get_lines() if line.get_marker() == "o"])
-    assert xs.min() < math.radians(-30) and xs.max() > math.radians(30)
+    theta = np.concatenate([np.arctan2(line.get_xdata(), line.get_ydata()) for ax in axes for line in ax.get_lines()
+                            if line.get_marker() == "o"])  # fmt: skip
+    assert theta.min() < math.radians(-30) and theta.max() > math.radians(30)
     out = tmp_path / "polar.png"
     fig.savefig(out, dpi=100)
     assert decode(out.read_bytes()).shape[1] >= 1000
     without = polar_figure(model)
-    assert all("truth" not in [line.get_label() for line in ax.get_lines()] for ax in without.axes if ax.name == "polar")
+    assert all("truth" not in [line.get_label() for line in ax.get_lines()] for ax in without.axes)
 
 
 def test_a_truth_that_only_knows_names_is_asked_by_name(tmp_path):
