@@ -33,8 +33,8 @@ import numpy as np
 from acquisition.runfile import RunFile, RunFileError
 from processing.hdr import HDRError, NoiseModel, estimate_noise, merge_raw, superpixels
 from processing.parallel import Compute, tune_malloc
-from processing.results import (EncodedHDR, HDRInfo, Results, ResultsError, ResultsWriter, encode_hdr, results_path_for,
-                                stored_variance)
+from processing.results import (HDRInfo, Results, ResultsError, ResultsWriter, encode_hdr, position_file_for,
+                                results_path_for, stored_variance, write_position_file)
 from processing.steps import STEPS, StepsError, resolve_steps
 
 log = logging.getLogger("mirrorgonio.processing")
@@ -54,7 +54,8 @@ class ProcessReport:
     its files; ``timings`` the stages (``noise``, ``layout``, ``positions``, ``fit``,
     ``exports``, ``report``, ``total``) to seconds of wall time; ``task_stages`` the
     seconds the position tasks spent in each of their stages (``read``, ``merge``,
-    ``encode``, ``images``, ``masks``, ``sources``), summed over the tasks, wherever they ran.
+    ``encode``, ``write`` (the position file), ``images``, ``masks``, ``sources``), summed
+    over the tasks, wherever they ran.
     """
 
     run_file: Path
@@ -168,11 +169,12 @@ class _SourceRow:
 
 @dataclass
 class PositionResult:
-    """What one position task returns: its merge (when it merged), compressed as the results
-    file stores it, and its source samples."""
+    """What one position task returns: when it merged, the saturation level of the merge it
+    wrote to its position file (the data stay there: only this process's caller commits
+    them), and its source samples."""
 
     index: int
-    merged: EncodedHDR | None = None
+    saturation_level: np.ndarray | None = None
     images: dict[str, Path] = field(default_factory=dict)
     saturated: int = 0
     all_saturated: bool = False
@@ -215,8 +217,12 @@ def process_position(index: int, work: _PositionWork) -> PositionResult:
                 merged = merge_raw(frames, exposures, black, white, h.noise, method=h.method)
                 del frames
                 clock.lap("merge")
-                out.merged = encode_hdr(merged)  # compressed here, in parallel; the writer copies bytes
+                encoded = encode_hdr(merged)  # compressed and written here, in parallel
                 clock.lap("encode")
+                write_position_file(position_file_for(work.results_path, index), encoded)
+                out.saturation_level = encoded.saturation_level
+                del encoded
+                clock.lap("write")
                 if h.images_dir is not None:
                     out.images = _write_images(Path(h.images_dir), index, merged.radiance, h.cfa)
                     clock.lap("images")
@@ -465,9 +471,8 @@ def _hdr_pass(run: RunFile, run_path: Path, out: Path, results_file: Path, posit
     """Merge every position (and unmix it, with a plan) on ``compute``; write the results as they come."""
     from acquisition import __version__
 
-    folder = out / f"{run_path.stem}.hdr"
-    if images:
-        folder.mkdir(exist_ok=True)
+    folder = out / f"{run_path.stem}.hdr"  # the position files, and the images beside them
+    folder.mkdir(exist_ok=True)
     try:
         cfa = run.cfa_pattern(int(positions[0]))[0]
     except RunFileError as exc:
@@ -482,7 +487,7 @@ def _hdr_pass(run: RunFile, run_path: Path, out: Path, results_file: Path, posit
 
         def write(index: int, result: PositionResult) -> None:
             report.add_task(result)
-            writer.write_encoded(index, result.merged)
+            writer.commit_position(index, result.saturation_level)
             report.saturated_pixels += result.saturated
             saturated_all[index] = result.all_saturated
             found_images[index] = result.images

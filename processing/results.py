@@ -3,14 +3,21 @@
 One module defines it (``docs/results-file.md``). It is written position by position, so
 a run is never loaded whole and an interrupted processing keeps what it finished.
 
-The per-position datasets are chunked one position per chunk, so a position can be
-compressed where it was merged (:func:`encode_hdr`, in a worker process) and the chunks
-written as they are by the one process that writes the file
-(:meth:`ResultsWriter.write_encoded`): the file's writer only copies bytes.
+Each position's merge lives in its own small HDF5 file, ``RUN.hdr/position-NNN.h5``,
+compressed and written where the position was merged (:func:`encode_hdr` and
+:func:`write_position_file`, in a worker process); ``RUN.results.h5`` holds the index:
+virtual datasets ``/hdr/radiance`` ... of shape (n, H, W) that map position ``i`` onto its
+file (so plain h5py reads the whole run as one array), and the per-position metadata with
+the ``done`` flags, written by the one process that owns the file
+(:meth:`ResultsWriter.commit_position`). The merged data thus never travels between
+processes: with one process per core, receiving and writing ~10 MB a position in the
+coordinating process took half a core away from the workers (format version 2; version 1
+kept the data inside the results file, and still reads).
 """
 
 from __future__ import annotations
 
+import os
 import threading
 from dataclasses import dataclass
 from pathlib import Path
@@ -23,7 +30,9 @@ import numpy as np
 from processing.hdr import MergeResult, NoiseModel
 
 RESULTS_FORMAT = "mirrorgonio-results"
-RESULTS_VERSION = 1
+RESULTS_VERSION = 2
+POSITION_FORMAT = "mirrorgonio-results-position"
+_FILL = {"radiance": np.nan, "variance": np.nan, "count": 0, "saturated": 0}
 
 
 class ResultsError(ValueError):
@@ -35,6 +44,22 @@ def results_path_for(run_path: str | Path, out_dir: str | Path | None = None) ->
     run_path = Path(run_path)
     folder = Path(out_dir) if out_dir is not None else run_path.parent
     return folder / f"{run_path.stem}.results.h5"
+
+
+def _stem(results_path: Path) -> str:
+    name = results_path.name
+    return name[: -len(".results.h5")] if name.endswith(".results.h5") else results_path.stem
+
+
+def position_file_name(results_path: str | Path, index: int) -> str:
+    """Position ``index``'s file relative to the results file's folder:
+    ``RUN.hdr/position-NNN.h5`` (beside that position's EXR and PNG)."""
+    return f"{_stem(Path(results_path))}.hdr/position-{index:03d}.h5"
+
+
+def position_file_for(results_path: str | Path, index: int) -> Path:
+    """The path of position ``index``'s file (:func:`position_file_name`)."""
+    return Path(results_path).parent / position_file_name(results_path, index)
 
 
 @dataclass(frozen=True)
@@ -129,6 +154,30 @@ def encode_hdr(result: MergeResult) -> EncodedHDR:
     return EncodedHDR(chunks, np.asarray(result.saturation_level, float), (h, w))
 
 
+def write_position_file(path: str | Path, encoded: EncodedHDR) -> Path:
+    """Write one position's encoded merge as its own HDF5 file (:func:`position_file_for`):
+    the four datasets, one chunk each, written as they are (no re-compression), and its
+    saturation level. Written under a temporary name and renamed into place, so a reader
+    finds the whole file or none."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")
+    h, w = encoded.shape
+    try:
+        with h5py.File(tmp, "w") as f:
+            f.attrs.update(format=POSITION_FORMAT, format_version=RESULTS_VERSION)
+            for name, (dtype, options) in _position_datasets().items():
+                dset = f.create_dataset(name, (h, w), dtype, chunks=(h, w), **options)
+                mask, data = encoded.chunks[name]
+                dset.id.write_direct_chunk((0, 0), data, mask)
+            f.create_dataset("saturation_level", data=np.asarray(encoded.saturation_level, float))
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    return path
+
+
 @dataclass(frozen=True)
 class HDRInfo:
     method: str
@@ -161,8 +210,11 @@ class ResultsWriter:
                 noise_source=hdr.noise.source, rig_gain_e_per_dn=hdr.rig_noise.gain_e_per_dn,
                 rig_read_noise_dn=hdr.rig_noise.read_noise_dn,
             )  # fmt: skip
-            for name, (dtype, options) in _position_datasets().items():
-                g.create_dataset(name, (n_positions, h, w), dtype, chunks=(1, h, w), **options)
+            for name, (dtype, _options) in _position_datasets().items():
+                layout = h5py.VirtualLayout((n_positions, h, w), dtype)
+                for i in range(n_positions):
+                    layout[i] = h5py.VirtualSource(position_file_name(path, i), name, shape=(h, w))
+                g.create_virtual_dataset(name, layout, fillvalue=_FILL[name])
             g.create_dataset("saturation_level", data=np.full((n_positions, 2, 2), np.nan))
             g.create_dataset("done", data=np.zeros(n_positions, dtype="u1"))
         tmp.replace(path)
@@ -173,15 +225,25 @@ class ResultsWriter:
         self.write_encoded(index, encode_hdr(result))
 
     def write_encoded(self, index: int, encoded: EncodedHDR) -> None:
-        """Write one position compressed elsewhere (:func:`encode_hdr`): its chunks as they are."""
-        g = self._f["hdr"]
-        if tuple(encoded.shape) != tuple(g["radiance"].shape[1:]):
-            raise ResultsError(f"{self.path}: position {index} is {encoded.shape}, the file holds {g['radiance'].shape[1:]}")
-        g["done"][index] = 0
-        for name, (mask, data) in encoded.chunks.items():
-            g[name].id.write_direct_chunk((index, 0, 0), data, mask)
-        g["saturation_level"][index] = encoded.saturation_level
+        """Write one position compressed elsewhere (:func:`encode_hdr`): its file, then commit it."""
+        self._check_shape(index, encoded.shape)
+        self._f["hdr"]["done"][index] = 0
+        write_position_file(position_file_for(self.path, index), encoded)
+        self.commit_position(index, encoded.saturation_level)
+
+    def commit_position(self, index: int, saturation_level) -> None:
+        """Record a position whose file was written elsewhere (:func:`write_position_file`,
+        by a worker): its saturation level, then its ``done`` flag."""
+        source = position_file_for(self.path, index)
+        if not source.is_file():
+            raise ResultsError(f"{self.path}: position {index}: {source} was not written")
+        self._f["hdr"]["saturation_level"][index] = np.asarray(saturation_level, float)
         self._commit(index)
+
+    def _check_shape(self, index: int, shape) -> None:
+        held = tuple(self._f["hdr"]["radiance"].shape[1:])
+        if tuple(shape) != held:
+            raise ResultsError(f"{self.path}: position {index} is {tuple(shape)}, the file holds {held}")
 
     def _commit(self, index: int) -> None:
         self._f.flush()
@@ -198,20 +260,22 @@ class ResultsWriter:
         self.close()
 
 
-def _read_blosc_chunk(dset: h5py.Dataset, index: int) -> np.ndarray | None:
-    """Position ``index`` of a one-position-per-chunk dataset whose only filter is Blosc,
-    decompressed by c-blosc straight into the array (a third of the time HDF5's pipeline
-    takes); None when the dataset or chunk is not so (the caller reads it through HDF5)."""
-    shape = dset.shape[1:]
-    if dset.chunks != (1, *shape):
+def _read_blosc_chunk(dset: h5py.Dataset, index: int | None = None) -> np.ndarray | None:
+    """Position ``index`` of a one-position-per-chunk dataset (or, with no index, a
+    single-chunk dataset) whose only filter is Blosc, decompressed by c-blosc straight into
+    the array (a third of the time HDF5's pipeline takes); None when the dataset or chunk is
+    not so (the caller reads it through HDF5)."""
+    shape = dset.shape[1:] if index is not None else dset.shape
+    coords = (index, *(0 for _ in shape)) if index is not None else tuple(0 for _ in shape)
+    if dset.chunks != ((1, *shape) if index is not None else shape):
         return None
     plist = dset.id.get_create_plist()
     if plist.get_nfilters() != 1 or plist.get_filter(0)[0] != hdf5plugin.BLOSC_ID:
         return None
-    info = dset.id.get_chunk_info_by_coord((index, 0, 0))
+    info = dset.id.get_chunk_info_by_coord(coords)
     if info.byte_offset is None or info.filter_mask != 0:  # never written, or stored as it is
         return None
-    _, chunk = dset.id.read_direct_chunk((index, 0, 0))
+    _, chunk = dset.id.read_direct_chunk(coords)
     out = np.empty(shape, dset.dtype)
     if blosc.get_cbuffer_sizes(chunk)[0] != out.nbytes:
         return None
@@ -268,8 +332,22 @@ class Results:
         if not self.hdr_done[index]:
             raise ResultsError(f"{self.path}: position {index} has no HDR result")
         dset = self._f["hdr"][name]
-        fast = _read_blosc_chunk(dset, index)
+        if dset.is_virtual:
+            return self._from_position_file(name, index)
+        fast = _read_blosc_chunk(dset, index)  # format version 1: the data inside
         return fast if fast is not None else dset[index]
+
+    def _from_position_file(self, name: str, index: int) -> np.ndarray:
+        source = position_file_for(self.path, index)
+        try:
+            with h5py.File(source, "r") as f:
+                dset = f[name]
+                fast = _read_blosc_chunk(dset)
+                return fast if fast is not None else dset[()]
+        except FileNotFoundError:
+            raise ResultsError(f"{self.path}: position {index}: its file {source} is missing") from None
+        except (OSError, KeyError) as exc:
+            raise ResultsError(f"{self.path}: position {index}: {source} is unreadable ({exc})") from None
 
     def radiance(self, index: int) -> np.ndarray:
         return self._position("radiance", index)

@@ -50,7 +50,7 @@ def test_the_json_has_every_measurement(speed):
     assert process["positions"] == POSITIONS and process["process_s"] > 0 and len(process["process_s_all"]) == 2
     # where a position task's time goes, per position: every stage of the fused hdr + sources task
     stages = process["task_ms_per_position"]
-    assert set(stages) == {"read", "merge", "encode", "images", "masks", "sources", "tasks"}
+    assert set(stages) == {"read", "merge", "encode", "write", "images", "masks", "sources", "tasks"}
     assert all(v >= 0 for v in stages.values())
     assert sum(v for k, v in stages.items() if k != "tasks") == pytest.approx(stages["tasks"], rel=0.1, abs=0.5)
     assert process["over_read_floor"] == pytest.approx(process["process_s"] / read["read_s"], rel=0.02)

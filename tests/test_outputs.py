@@ -18,7 +18,7 @@ from PIL import Image
 
 from processing.hdr import MergeResult, NoiseModel
 from processing.images import read_exr, tonemap, write_exr, write_png
-from processing.results import HDRInfo, Results, ResultsWriter, encode_hdr
+from processing.results import HDRInfo, Results, ResultsError, ResultsWriter, encode_hdr, position_file_for
 
 NAMES = ("radiance", "variance", "count", "saturated")
 
@@ -95,21 +95,57 @@ def test_both_ways_of_writing_store_the_same_bytes(tmp_path):
     with _writer(tmp_path / "a.h5", m.radiance.shape) as a, _writer(tmp_path / "b.h5", m.radiance.shape) as b:
         a.write_encoded(2, encode_hdr(m))
         b.write_hdr(2, m)
-    with h5py.File(tmp_path / "a.h5") as a, h5py.File(tmp_path / "b.h5") as b:
+    with h5py.File(position_file_for(tmp_path / "a.h5", 2)) as a, h5py.File(position_file_for(tmp_path / "b.h5", 2)) as b:
+        assert a.attrs["format"] == "mirrorgonio-results-position"
         for name in NAMES:
-            assert a["hdr"][name].id.read_direct_chunk((2, 0, 0)) == b["hdr"][name].id.read_direct_chunk((2, 0, 0))
-            assert hdf5plugin.BLOSC_ID in {int(k) for k in a["hdr"][name]._filters}
+            assert a[name].id.read_direct_chunk((0, 0)) == b[name].id.read_direct_chunk((0, 0))
+            assert hdf5plugin.BLOSC_ID in {int(k) for k in a[name]._filters}
+
+
+def test_the_results_file_reads_as_whole_arrays_with_plain_h5py(tmp_path, monkeypatch):
+    """The index's virtual datasets map each position onto its file, found relative to the
+    results file wherever the reader runs; positions never written read as the fill value."""
+    m = _merge(4)
+    path = tmp_path / "run-7.results.h5"
+    with _writer(path, m.radiance.shape) as writer:
+        writer.write_encoded(1, encode_hdr(m))
+    assert position_file_for(path, 1) == tmp_path / "run-7.hdr" / "position-001.h5"
+    assert sorted(p.name for p in (tmp_path / "run-7.hdr").iterdir()) == ["position-001.h5"]  # no temporary left
+    monkeypatch.chdir("/")
+    with h5py.File(path, "r") as f:
+        g = f["hdr"]
+        assert g["radiance"].is_virtual and g["radiance"].shape == (3, *m.radiance.shape)
+        whole = g["radiance"][:]
+        _assert_bits_equal(whole[1], m.radiance)
+        assert np.isnan(whole[0]).all() and np.isnan(whole[2]).all()
+        assert (g["count"][0] == 0).all() and g["done"][:].tolist() == [0, 1, 0]
+        assert np.array_equal(g["saturation_level"][1], m.saturation_level)
+
+
+def test_a_missing_or_unwritten_position_file_is_one_line(tmp_path):
+    m = _merge(6)
+    path = tmp_path / "r.results.h5"
+    with _writer(path, m.radiance.shape) as writer:
+        with pytest.raises(ResultsError, match=r"position 0: .*position-000.h5 was not written"):
+            writer.commit_position(0, m.saturation_level)
+        writer.write_hdr(2, m)
+    position_file_for(path, 2).unlink()
+    with Results.open(path) as results:
+        with pytest.raises(ResultsError, match=r"position 2: its file .*position-002.h5 is missing"):
+            results.radiance(2)
+        assert results.hdr_done.tolist() == [False, False, True]
 
 
 def test_results_written_before_read_the_same(tmp_path):
-    """Version-1 files of the first kind: Blosc LZ4 byte shuffle for the floats, the LZ4 filter
-    for the masks, written through HDF5's pipeline."""
+    """Version-1 files: the data inside the results file, one position per chunk, Blosc LZ4
+    byte shuffle for the floats, the LZ4 filter for the masks, written through HDF5's pipeline."""
     m = _merge(5)
     h, w = m.radiance.shape
     path = tmp_path / "old.results.h5"
     with _writer(path, (h, w)) as writer:
         writer.close()
     with h5py.File(path, "r+") as f:
+        f.attrs["format_version"] = 1  # the data inside the results file, chunked one position per chunk
         g = f["hdr"]
         blosc_lz4 = dict(hdf5plugin.Blosc(cname="lz4", clevel=5, shuffle=hdf5plugin.Blosc.SHUFFLE))
         for name, dtype, options in (("radiance", "f4", dict(fillvalue=np.nan, **blosc_lz4)),
