@@ -179,6 +179,7 @@ def process(
     estimator: Annotated[str, typer.Option(help="auto (from the footprint), templates, or cell-sums.")] = "auto",
     fit: Annotated[str, typer.Option(help="Fit: gaussian, polynomial, cos-power, gaussian-2d.")] = "gaussian",
     ball_centre: Annotated[str | None, typer.Option("--ball-centre", help="Measured ball centre X,Y,Z in metres (rig frame; from `calibrate`).")] = None,
+    images: Annotated[bool, typer.Option(help="Write an OpenEXR and a PNG preview of every position (hdr step).")] = True,
     scheduler: SchedulerOption = "local",
     workers: WorkersOption = None,
 ) -> None:
@@ -228,7 +229,7 @@ def process(
             try:
                 report = process_run(run, folders[run], steps=step_list, method=method, noise=noise, layout=layout,
                                      estimator=estimator, fit_method=fit, ball_centre=centre, compute=compute,
-                                     progress=lambda done, total, task=task: bar.update(task, completed=done, total=total))  # fmt: skip
+                                     images=images, progress=lambda done, total, task=task: bar.update(task, completed=done, total=total))  # fmt: skip
             except (ProcessingError, HDRError, ValueError, OSError) as exc:
                 if not batch:
                     raise _fail(str(exc)) from None

@@ -48,6 +48,8 @@ def test_the_json_has_every_measurement(speed):
 
     process = entry["process"]
     assert process["positions"] == POSITIONS and process["process_s"] > 0 and len(process["process_s_all"]) == 2
+    assert process["process_s_without_images"] > 0
+    assert process["without_images_over_read_floor"] == pytest.approx(process["process_s_without_images"] / read["read_s"], rel=0.02)
     # where a position task's time goes, per position: every stage of the fused hdr + sources task
     stages = process["task_ms_per_position"]
     assert set(stages) == {"read", "merge", "encode", "write", "images", "masks", "sources", "tasks"}
@@ -62,7 +64,8 @@ def test_the_json_has_every_measurement(speed):
     assert memory["peak_total_gb"] <= memory["peak_this_process_gb"] + memory["peak_children_gb"] + 2e-3
     assert process["peak_memory_gb"] == memory["peak_total_gb"]
     assert process["outputs"]["exr"] == POSITIONS and process["outputs"]["ies"] == 1
-    assert process["stages_s"]["total"] == pytest.approx(process["process_s"], rel=0.05)
+    # the stages of the median run (with two runs, the slower: process_s is then their mean)
+    assert process["stages_s"]["total"] == pytest.approx(max(process["process_s_all"]), rel=0.05)
 
     trace = entry["trace"]
     assert trace["rays"] == W * H and trace["rays_per_s"] > 0

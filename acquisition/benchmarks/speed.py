@@ -382,6 +382,19 @@ def measure_process(run_path: Path, rig, repeat: int, scheduler: str, workers: i
         if log:
             log(f"  processed in {process_s:.1f} s (cluster start {start_s:.1f} s), peak memory "
                 f"{memory.peak_total / 1e9:.2f} GB; stages {report.timings}")  # fmt: skip
+    # Once more without the per-position EXR and PNG: what those previews cost the run.
+    out_dir = Path(tempfile.mkdtemp(prefix="mirrorgonio-speed-out-"))
+    try:
+        with _quiet_dask():
+            compute = open_compute(scheduler, workers=workers)
+            try:
+                t0 = time.perf_counter()
+                process_run(run_path, out_dir, steps=("hdr", "sources"), layout=layout, compute=compute, images=False)
+                without_images_s = time.perf_counter() - t0
+            finally:
+                compute.close()
+    finally:
+        shutil.rmtree(out_dir, ignore_errors=True)
     best = min(range(len(runs)), key=lambda k: runs[k]["process_s"])
     times = [run["process_s"] for run in runs]
     process_s = _median(times)
@@ -403,11 +416,14 @@ def measure_process(run_path: Path, rig, repeat: int, scheduler: str, workers: i
         "outputs": median_run["outputs"],
         "output_bytes": median_run["output_bytes"],
         "over_read_floor": round(process_s / read_floor_s, 2) if read_floor_s > 0 else None,
+        "process_s_without_images": round(without_images_s, 2),
+        "without_images_over_read_floor": round(without_images_s / read_floor_s, 2) if read_floor_s > 0 else None,
         "how": "processing.pipeline.process_run(run, out, steps=('hdr', 'sources'), layout=<the truth's layout>, "
                "compute=<open_compute(scheduler)>): noise model estimated (the default), per position the merge, "
                "an OpenEXR and a PNG, the chief rays, templates and unmixing; then the fits, the light model, IES, "
                "LDT, TM-25 and the HTML report. process_s excludes the cluster's start (cluster_start_s) and stop; "
-               "the outputs go to a fresh folder under /tmp, deleted afterwards",
+               "the outputs go to a fresh folder under /tmp, deleted afterwards. process_s_without_images: one more "
+               "processing, on a new cluster, without the per-position OpenEXR and PNG (`process --no-images`)",
     }  # fmt: skip
     if parallel_read is not None:
         out.update(parallel_read)
@@ -806,6 +822,12 @@ def markdown_table(result: dict) -> str:
          [f"{_fmt_s(e['process']['process_s'])} ({e['process']['over_read_floor']:.1f}× the read floor; "
           f"cluster start {_fmt_s(e['process']['cluster_start_s'])} more)" for e in entries],
          f"≤ {TARGET['process_s']:g} s and ≤ {TARGET['over_read_floor']:g}× the read floor at 2000×1312"),
+        ("the same without the per-position EXR and PNG (`--no-images`, one run)",
+         [f"{_fmt_s(e['process']['process_s_without_images'])} ({e['process']['without_images_over_read_floor']:.1f}× the read floor)"
+          for e in entries], ""),
+        ("a position task's time, per position (read, merge, encode, write, images, masks, sources)",
+         [" + ".join(f"{e['process']['task_ms_per_position'].get(k, 0):.0f}" for k in ("read", "merge", "encode", "write", "images", "masks", "sources"))
+          + f" = {e['process']['task_ms_per_position'].get('tasks', 0):.0f} ms" for e in entries], ""),
         ("peak memory of the processing (this process + workers)",
          [f"{e['process']['peak_memory_gb']:.2f} GB" for e in entries], f"< {TARGET['peak_memory_gb']:g} GB at 2000×1312"),
         ("making the simulated run (once, cached)",
