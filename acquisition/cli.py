@@ -216,8 +216,10 @@ def process(
     outcomes: list[tuple[Path, object, float, str]] = []  # run, report or None, seconds, error
     from processing.parallel import ComputeError, open_compute
 
+    from processing.pipeline import warm_up_worker
+
     try:
-        compute = open_compute(scheduler, workers=workers)
+        compute = open_compute(scheduler, workers=workers, warm_up=warm_up_worker)
     except ComputeError as exc:
         raise _fail(str(exc)) from None
     with compute, Progress(*Progress.get_default_columns(), TextColumn("{task.fields[note]}"), transient=True) as bar:
@@ -300,8 +302,10 @@ def worker_command(
     if not Path(settings.data_dir).is_dir():
         raise _fail(f"--data-dir: {settings.data_dir} is not a folder (the daemon's data folder, with catalog.sqlite)")
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    from processing.pipeline import warm_up_worker
+
     try:
-        compute = open_compute(scheduler, workers=workers)
+        compute = open_compute(scheduler, workers=workers, warm_up=warm_up_worker)
     except ComputeError as exc:
         raise _fail(str(exc)) from None
     stop = threading.Event()

@@ -178,6 +178,17 @@ class Compute:
             self.client.cancel([future for future, _ in running.values()])
             raise
 
+    def warm_up(self, func: Callable[[], None]) -> None:
+        """Run ``func()`` once on every worker (imports, compiled kernels): the cost of a
+        fresh worker, paid when the cluster starts rather than in a run's first tasks. A
+        worker it fails on is logged and left to warm up on its own. No-op without Dask."""
+        if self.client is None:
+            return
+        try:
+            self.client.run(func)
+        except Exception as exc:  # noqa: BLE001 - a slower first run, not an error
+            log.warning("warming up the Dask workers failed: %s", exc)
+
     def worker_peak_rss(self) -> dict[str, int]:
         """Peak resident memory of every worker process, in bytes (this process without Dask)."""
         if self.client is None:
@@ -202,7 +213,8 @@ class Compute:
         return f"Compute({self.description})"
 
 
-def open_compute(scheduler: str | None = LOCAL, *, workers: int | None = None, timeout_s: float = 30.0) -> Compute:
+def open_compute(scheduler: str | None = LOCAL, *, workers: int | None = None, timeout_s: float = 30.0,
+                 warm_up: Callable[[], None] | None = None) -> Compute:  # fmt: skip
     """Start or reach the Dask cluster that ``scheduler`` names.
 
     Parameters
@@ -215,6 +227,9 @@ def open_compute(scheduler: str | None = LOCAL, *, workers: int | None = None, t
         Worker processes of a local cluster (default: the cores, :func:`default_workers`).
     timeout_s : float
         How long to wait for a scheduler to answer and for its first worker.
+    warm_up : callable, optional
+        Run on every worker once it is up (:meth:`Compute.warm_up`), e.g.
+        :func:`processing.pipeline.warm_up_worker`.
 
     Raises
     ------
@@ -250,7 +265,7 @@ def open_compute(scheduler: str | None = LOCAL, *, workers: int | None = None, t
         except Exception as exc:  # noqa: BLE001
             cluster.close()
             raise ComputeError(f"cannot connect to the local Dask cluster: {exc}") from None
-        return Compute(client, cluster, f"local Dask cluster: {n} worker processes x 1 thread")
+        return _warmed(Compute(client, cluster, f"local Dask cluster: {n} worker processes x 1 thread"), warm_up)
     if not name.startswith(_ADDRESS_SCHEMES):
         raise ComputeError(f"--scheduler: {name!r} is not 'local', 'none', 'synchronous' or a Dask scheduler "
                            "address such as tcp://HOST:8786")  # fmt: skip
@@ -263,4 +278,10 @@ def open_compute(scheduler: str | None = LOCAL, *, workers: int | None = None, t
     except Exception:  # noqa: BLE001
         client.close()
         raise ComputeError(f"--scheduler {name}: the scheduler has no worker (start `dask worker {name}`)") from None
-    return Compute(client, None, f"Dask scheduler {name}: {len(client.nthreads())} workers")
+    return _warmed(Compute(client, None, f"Dask scheduler {name}: {len(client.nthreads())} workers"), warm_up)
+
+
+def _warmed(compute: Compute, warm_up: Callable[[], None] | None) -> Compute:
+    if warm_up is not None:
+        compute.warm_up(warm_up)
+    return compute

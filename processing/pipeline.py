@@ -129,6 +129,33 @@ def _open_run(path) -> RunFile:
 
 
 # --- the work of one position (runs in a Dask worker, or here) ------------------------------------
+def warm_up_worker() -> None:
+    """Ready a worker process for position tasks: import the processing modules and load
+    the compiled kernels from numba's cache, on tiny inputs.
+
+    A fresh worker otherwise pays this (about a second) in the first tasks of its first
+    run; :func:`processing.parallel.open_compute` runs it on every worker it starts, as a
+    part of starting the cluster.
+    """
+    from processing.images import tonemap
+    from processing.sources import _convex_coverage, specular_points
+
+    tune_malloc()
+    numba.set_num_threads(1)  # the worker's parallelism is the workers'
+    rng = np.random.default_rng(0)
+    frames = rng.integers(64, 4000, (2, 8, 8)).astype(np.uint16)
+    merged = merge_raw(frames, [1e-3, 4e-3], 64, 4095, NoiseModel(5.0, 0.6))
+    _position_masks(merged.radiance, stored_variance(merged.variance), merged.count, merged.saturated)
+    tonemap(superpixels(merged.radiance, "RGGB"))
+    encode_hdr(merged)
+    try:
+        estimate_noise(frames, [1e-3, 4e-3], 64, white_level=4095)
+    except HDRError:
+        pass  # too few pixels for an estimate: the kernels ran all the same
+    specular_points(np.array([[0.0, 0.05, 0.1]]), np.array([[0.0, 0.0, 0.2]]), np.zeros(3), 0.0254)
+    square = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]])
+    _convex_coverage(square, np.linspace(-0.5, 1.5, 5), np.linspace(-0.5, 1.5, 5), 0.5)
+
 @dataclass(frozen=True)
 class _HDRWork:
     method: str

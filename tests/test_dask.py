@@ -137,8 +137,13 @@ def test_the_default_local_cluster_is_sized_to_the_machine_and_streams(captured,
     from processing.pipeline import process_run
 
     _, _, run = captured
-    with open_compute() as compute:  # the default: "local"
+    from processing.pipeline import warm_up_worker
+
+    with open_compute(warm_up=warm_up_worker) as compute:  # the default: "local"
         assert compute.dask and compute.threads() == default_workers()
+        # Warmed: every worker has the processing imported and its first kernels loaded.
+        warmed = compute.client.run(lambda: "processing.sources" in sys.modules and "processing.images" in sys.modules)
+        assert len(warmed) == default_workers() and all(warmed.values())
         assert compute.description == f"local Dask cluster: {default_workers()} worker processes x 1 thread"
         # Bounded: never more than two tasks per worker thread in flight.
         held = []

@@ -342,7 +342,7 @@ def measure_parallel_read(run_path: Path, repeat: int, compute) -> dict:
 def measure_process(run_path: Path, rig, repeat: int, scheduler: str, workers: int | None, read_floor_s: float,
                     log=None, parallel_read_repeat: int = 3) -> dict:  # fmt: skip
     from processing.parallel import open_compute
-    from processing.pipeline import process_run
+    from processing.pipeline import process_run, warm_up_worker
     from sim_devices.lights import LIGHTS_DIR
 
     layout = LIGHTS_DIR / f"{rig.simulation.truth}.toml"
@@ -353,7 +353,7 @@ def measure_process(run_path: Path, rig, repeat: int, scheduler: str, workers: i
         try:
             with _quiet_dask(), MemorySampler() as memory:
                 t0 = time.perf_counter()
-                compute = open_compute(scheduler, workers=workers)
+                compute = open_compute(scheduler, workers=workers, warm_up=warm_up_worker)
                 start_s = time.perf_counter() - t0
                 try:
                     t0 = time.perf_counter()
@@ -386,7 +386,7 @@ def measure_process(run_path: Path, rig, repeat: int, scheduler: str, workers: i
     out_dir = Path(tempfile.mkdtemp(prefix="mirrorgonio-speed-out-"))
     try:
         with _quiet_dask():
-            compute = open_compute(scheduler, workers=workers)
+            compute = open_compute(scheduler, workers=workers, warm_up=warm_up_worker)
             try:
                 t0 = time.perf_counter()
                 process_run(run_path, out_dir, steps=("hdr", "sources"), layout=layout, compute=compute, images=False)
@@ -421,7 +421,8 @@ def measure_process(run_path: Path, rig, repeat: int, scheduler: str, workers: i
         "how": "processing.pipeline.process_run(run, out, steps=('hdr', 'sources'), layout=<the truth's layout>, "
                "compute=<open_compute(scheduler)>): noise model estimated (the default), per position the merge, "
                "an OpenEXR and a PNG, the chief rays, templates and unmixing; then the fits, the light model, IES, "
-               "LDT, TM-25 and the HTML report. process_s excludes the cluster's start (cluster_start_s) and stop; "
+               "LDT, TM-25 and the HTML report. process_s excludes the cluster's start (cluster_start_s: the workers up and warmed by "
+               "processing.pipeline.warm_up_worker, as `process` and `worker` start them) and stop; "
                "the outputs go to a fresh folder under /tmp, deleted afterwards. process_s_without_images: one more "
                "processing, on a new cluster, without the per-position OpenEXR and PNG (`process --no-images`)",
     }  # fmt: skip
