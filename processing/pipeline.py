@@ -326,10 +326,8 @@ def _position_masks(radiance, variance, count, saturated):
 
 def _rates(radiance, variance, count, saturated, gain: float):
     """Electron rates, their variance and the usable pixels of one merged position."""
-    rate = radiance.astype(np.float64) * gain
-    var = variance.astype(np.float64) * gain * gain
-    usable = ~saturated & (count > 0) & np.isfinite(rate)
-    return rate, var, usable
+    usable, _, _ = _position_masks(radiance, variance, count, np.asarray(saturated, bool))
+    return ElectronRates(radiance, gain)[...], ElectronRates(variance, gain, gain)[...], usable
 
 
 def _write_images(folder: Path, index: int, radiance: np.ndarray, cfa: str) -> dict[str, Path]:

@@ -21,10 +21,7 @@ import numpy as np
 def acquire_simulated(rig, truth_name: str, noise: bool, exposures, positions: int | None, workdir: Path, *,
                       preset: str = "light-sweep", light_results: str | None = None) -> Path:  # fmt: skip
     """Take one run on the simulated rig through the daemon's run engine; the run file's path."""
-    from acquisition.catalog import Catalog
-    from acquisition.devices import open_devices
     from acquisition.models import FixedBracket, RunRequest
-    from acquisition.runner import RunEngine
     from acquisition.settings import load_settings
 
     settings = load_settings(None, data_dir=workdir / "data")
@@ -33,13 +30,25 @@ def acquire_simulated(rig, truth_name: str, noise: bool, exposures, positions: i
     settings.camera.simulated.truth = truth_name
     settings.camera.simulated.noise = noise
     settings.camera.simulated.diffraction = True
+    request = RunRequest(preset=preset, count=positions, bracket=FixedBracket(exposures_s=list(exposures)),
+                         light_results=light_results)  # fmt: skip
+    return take_run(settings, rig, request)
+
+
+def take_run(settings, rig, request) -> Path:
+    """One run of ``request`` through the daemon's run engine, on the devices ``settings``
+    name (the simulated ones by default), in ``settings.data_dir``; the run file's path.
+
+    Raises RuntimeError when the run does not complete."""
+    from acquisition.catalog import Catalog
+    from acquisition.devices import open_devices
+    from acquisition.runner import RunEngine
+
     settings.data_dir.mkdir(parents=True, exist_ok=True)
     catalog = Catalog(settings.catalog_path)
     devices = open_devices(settings, rig)
     try:
         engine = RunEngine(settings, rig, devices, catalog)
-        request = RunRequest(preset=preset, count=positions, bracket=FixedBracket(exposures_s=list(exposures)),
-                             light_results=light_results)  # fmt: skip
         record = engine.start_run(request)
         engine.wait()
         state = catalog.get_run(record.id)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import math
 import statistics
 import tempfile
@@ -44,50 +45,70 @@ def _plain_h5py_write(path: Path, frames, positions: int, exposures: int) -> flo
     return time.perf_counter() - start
 
 
-def bench_acquire(rig_path=None, positions: int = 20, exposures: int = 3, repeat: int = 3, distinct_frames: int = 6) -> dict:
-    """Run the real engine on zero-latency devices and compare with a plain h5py write."""
-    from acquisition.catalog import Catalog
-    from acquisition.devices import Devices
-    from acquisition.models import FixedBracket, RunRequest
-    from acquisition.rig import load_rig
-    from acquisition.runner import RunEngine
-    from acquisition.settings import load_settings
+@contextlib.contextmanager
+def zero_latency_arm(rig):
+    """The simulated stage at infinite speed behind a real Modbus TCP server on loopback, and
+    the Modbus driver connected to it: the arm whose own time is (nearly) nothing."""
     from drivers.modbus_arm import ModbusArm
     from drivers.modbus_profile import SIM_STAGE_PROFILE
     from sim_devices.modbus_server import SimulatedModbusArm
-    from sim_devices.replay_camera import ReplayCamera
     from sim_devices.stage import SimulatedStage, StageConfig
+
+    stage = SimulatedStage(StageConfig(speed_m_s=math.inf, accel_m_s2=math.inf, angular_speed_rad_s=math.inf,
+                                       angular_accel_rad_s2=math.inf, readback_noise_m=0.0, readback_noise_rad=0.0))  # fmt: skip
+    with SimulatedModbusArm(stage) as server:
+        arm = ModbusArm(SIM_STAGE_PROFILE, port=server.port, limits=rig.soft_limits(), poll_interval_s=0.0)
+        arm.connect()
+        try:
+            yield arm
+        finally:
+            arm.close()
+
+
+def timed_engine_run(settings, rig, devices, request):
+    """One run of ``request`` through the daemon's run engine in ``settings.data_dir``:
+    (seconds from start to the run's end, the run's catalog record). RuntimeError when the
+    run does not complete."""
+    from acquisition.catalog import Catalog
+    from acquisition.runner import RunEngine
+
+    settings.data_dir.mkdir(parents=True)
+    catalog = Catalog(settings.catalog_path)
+    try:
+        engine = RunEngine(settings, rig, devices, catalog)
+        start = time.perf_counter()
+        record = engine.start_run(request)
+        engine.wait()
+        seconds = time.perf_counter() - start
+        state = catalog.get_run(record.id)
+    finally:
+        catalog.close()
+    if state.state != "complete":
+        raise RuntimeError(f"benchmark run ended {state.state}: {state.last_error}")
+    return seconds, state
+
+
+def bench_acquire(rig_path=None, positions: int = 20, exposures: int = 3, repeat: int = 3, distinct_frames: int = 6) -> dict:
+    """Run the real engine on zero-latency devices and compare with a plain h5py write."""
+    from acquisition.devices import Devices
+    from acquisition.models import FixedBracket, RunRequest
+    from acquisition.rig import load_rig
+    from acquisition.settings import load_settings
+    from sim_devices.replay_camera import ReplayCamera
 
     rig = load_rig(rig_path)
     frames = _frames(rig, distinct_frames)
     frame_bytes = frames[0].mosaic.nbytes
     total_frames = positions * exposures
     engine_times, plain_times = [], []
-    with tempfile.TemporaryDirectory() as tmp:
+    request = RunRequest(count=positions, bracket=FixedBracket(exposures_s=[0.0002 * 4**k for k in range(exposures)]))
+    with tempfile.TemporaryDirectory() as tmp, zero_latency_arm(rig) as arm:
         tmp = Path(tmp)
-        stage = SimulatedStage(StageConfig(speed_m_s=math.inf, accel_m_s2=math.inf, angular_speed_rad_s=math.inf,
-                                           angular_accel_rad_s2=math.inf, readback_noise_m=0.0, readback_noise_rad=0.0))  # fmt: skip
-        with SimulatedModbusArm(stage) as server:
-            arm = ModbusArm(SIM_STAGE_PROFILE, port=server.port, limits=rig.soft_limits(), poll_interval_s=0.0)
-            arm.connect()
-            try:
-                for r in range(repeat):
-                    settings = load_settings(None, data_dir=tmp / f"engine-{r}", rig=rig_path or None)
-                    settings.data_dir.mkdir(parents=True)
-                    catalog = Catalog(settings.catalog_path)
-                    engine = RunEngine(settings, rig, Devices(arm=arm, camera=ReplayCamera(frames)), catalog)
-                    request = RunRequest(count=positions, bracket=FixedBracket(exposures_s=[0.0002 * 4**k for k in range(exposures)]))
-                    start = time.perf_counter()
-                    record = engine.start_run(request)
-                    engine.wait()
-                    engine_times.append(time.perf_counter() - start)
-                    state = catalog.get_run(record.id).state
-                    catalog.close()
-                    if state != "complete":
-                        raise RuntimeError(f"benchmark run ended {state}")
-                    plain_times.append(_plain_h5py_write(tmp / f"plain-{r}.h5", frames, positions, exposures))
-            finally:
-                arm.close()
+        for r in range(repeat):
+            settings = load_settings(None, data_dir=tmp / f"engine-{r}", rig=rig_path or None)
+            seconds, _ = timed_engine_run(settings, rig, Devices(arm=arm, camera=ReplayCamera(frames)), request)
+            engine_times.append(seconds)
+            plain_times.append(_plain_h5py_write(tmp / f"plain-{r}.h5", frames, positions, exposures))
     engine_s, plain_s = statistics.median(engine_times), statistics.median(plain_times)
     megabytes = total_frames * frame_bytes / 1e6
     return {

@@ -109,29 +109,14 @@ class CachedRun:
 def _acquire_run(rig, exposures, positions: int, workdir: Path) -> Path:
     """One run of the simulated rig through the daemon's run engine (the camera renders each
     pose once and exposes the bracket from it); the run file's path."""
-    from acquisition.catalog import Catalog
-    from acquisition.devices import open_devices
+    from acquisition.benchmarks.accuracy import take_run
     from acquisition.models import FixedBracket, RunRequest
-    from acquisition.runner import RunEngine
     from acquisition.settings import load_settings
 
     settings = load_settings(None, data_dir=workdir / "data")
     settings.arm.simulated.speed_m_s = math.inf  # the motion is not what is measured here
-    settings.data_dir.mkdir(parents=True, exist_ok=True)
-    catalog = Catalog(settings.catalog_path)
-    devices = open_devices(settings, rig)
-    try:
-        engine = RunEngine(settings, rig, devices, catalog)
-        record = engine.start_run(RunRequest(count=positions, bracket=FixedBracket(exposures_s=list(exposures)),
-                                             notes="bench speed: cached simulated run"))  # fmt: skip
-        engine.wait()
-        state = catalog.get_run(record.id)
-        if state.state != "complete":
-            raise RuntimeError(f"simulated run ended {state.state}: {state.last_error}")
-        return Path(state.path)
-    finally:
-        devices.close()
-        catalog.close()
+    return take_run(settings, rig, RunRequest(count=positions, bracket=FixedBracket(exposures_s=list(exposures)),
+                                              notes="bench speed: cached simulated run"))  # fmt: skip
 
 
 def simulated_run(rig, exposures=EXPOSURES_S, positions: int = POSITIONS, cache: Path | None = DEFAULT_CACHE,
@@ -595,18 +580,12 @@ class _TimedCamera:
 
 
 def measure_acquire(run_path: Path, repeat: int, distinct_positions: int = 4) -> dict:
-    from acquisition.benchmarks.acquire import _plain_h5py_write
-    from acquisition.catalog import Catalog
+    from acquisition.benchmarks.acquire import _plain_h5py_write, timed_engine_run, zero_latency_arm
     from acquisition.devices import Devices
     from acquisition.models import FixedBracket, RunRequest
     from acquisition.runfile import RunFile
-    from acquisition.runner import RunEngine
     from acquisition.settings import load_settings
-    from drivers.modbus_arm import ModbusArm
-    from drivers.modbus_profile import SIM_STAGE_PROFILE
-    from sim_devices.modbus_server import SimulatedModbusArm
     from sim_devices.replay_camera import ReplayCamera
-    from sim_devices.stage import SimulatedStage, StageConfig
 
     with RunFile.open(run_path) as run:
         rig = run.header.rig
@@ -618,37 +597,20 @@ def measure_acquire(run_path: Path, repeat: int, distinct_positions: int = 4) ->
     total = positions * len(exposures)
     frame_bytes = frames[0].mosaic.nbytes
     engine_times, capture_times, plain_times, file_bytes = [], [], [], 0
-    with tempfile.TemporaryDirectory(prefix="mirrorgonio-speed-acquire-") as tmp:
+    request = RunRequest(count=positions, bracket=FixedBracket(exposures_s=exposures))
+    with tempfile.TemporaryDirectory(prefix="mirrorgonio-speed-acquire-") as tmp, zero_latency_arm(rig) as arm:
         tmp = Path(tmp)
-        stage = SimulatedStage(StageConfig(speed_m_s=math.inf, accel_m_s2=math.inf, angular_speed_rad_s=math.inf,
-                                           angular_accel_rad_s2=math.inf, readback_noise_m=0.0, readback_noise_rad=0.0))  # fmt: skip
-        with SimulatedModbusArm(stage) as server:
-            arm = ModbusArm(SIM_STAGE_PROFILE, port=server.port, limits=rig.soft_limits(), poll_interval_s=0.0)
-            arm.connect()
-            try:
-                for r in range(repeat):
-                    settings = load_settings(None, data_dir=tmp / f"engine-{r}")
-                    settings.data_dir.mkdir(parents=True)
-                    catalog = Catalog(settings.catalog_path)
-                    camera = _TimedCamera(ReplayCamera(frames))
-                    engine = RunEngine(settings, rig, Devices(arm=arm, camera=camera), catalog)
-                    request = RunRequest(count=positions, bracket=FixedBracket(exposures_s=exposures))
-                    t0 = time.perf_counter()
-                    record = engine.start_run(request)
-                    engine.wait()
-                    engine_times.append(time.perf_counter() - t0)
-                    capture_times.append(camera.capture_s)
-                    state = catalog.get_run(record.id)
-                    catalog.close()
-                    if state.state != "complete":
-                        raise RuntimeError(f"benchmark run ended {state.state}: {state.last_error}")
-                    file_bytes = Path(state.path).stat().st_size
-                    Path(state.path).unlink()
-                    plain = tmp / f"plain-{r}.h5"
-                    plain_times.append(_plain_h5py_write(plain, frames, positions, len(exposures)))
-                    plain.unlink()
-            finally:
-                arm.close()
+        for r in range(repeat):
+            settings = load_settings(None, data_dir=tmp / f"engine-{r}")
+            camera = _TimedCamera(ReplayCamera(frames))
+            seconds, state = timed_engine_run(settings, rig, Devices(arm=arm, camera=camera), request)
+            engine_times.append(seconds)
+            capture_times.append(camera.capture_s)
+            file_bytes = Path(state.path).stat().st_size
+            Path(state.path).unlink()
+            plain = tmp / f"plain-{r}.h5"
+            plain_times.append(_plain_h5py_write(plain, frames, positions, len(exposures)))
+            plain.unlink()
     engine_s, plain_s, capture_s = _median(engine_times), _median(plain_times), _median(capture_times)
     megabytes = total * frame_bytes / 1e6
     return {
