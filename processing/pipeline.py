@@ -20,6 +20,7 @@ is opened (``ProcessReport.partial`` says so).
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import time
@@ -242,6 +243,8 @@ def process_position(index: int, work: _PositionWork) -> PositionResult:
                 black, white = run.black_level(index)[0], int(run.white_level(index)[0])
                 clock.lap("read")
                 merged = merge_raw(frames, exposures, black, white, h.noise, method=h.method)
+                # As the results file stores it, so that both paths give the same numbers.
+                merged = dataclasses.replace(merged, variance=stored_variance(merged.variance))
                 del frames
                 clock.lap("merge")
                 encoded = encode_hdr(merged)  # compressed and written here, in parallel
@@ -253,9 +256,7 @@ def process_position(index: int, work: _PositionWork) -> PositionResult:
                 if h.images_dir is not None:
                     out.images = _write_images(Path(h.images_dir), index, merged.radiance, h.cfa)
                     clock.lap("images")
-                radiance, count, saturated = merged.radiance, merged.count, merged.saturated
-                # As the results file stores it, so that both paths give the same numbers.
-                variance = stored_variance(merged.variance)
+                radiance, variance, count, saturated = merged.radiance, merged.variance, merged.count, merged.saturated
                 gain, cfa = h.noise.gain_e_per_dn, h.cfa
             else:
                 with Results.open(work.results_path) as results:

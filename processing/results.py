@@ -115,10 +115,12 @@ def _position_datasets() -> dict[str, tuple[str, dict]]:
 
 def stored_variance(variance: np.ndarray) -> np.ndarray:
     """Variances as the results file stores them: float32, non-finite ones as +inf (no copy
-    when every one is finite, the usual case)."""
+    when they are so already: every one finite or +inf, as the merge leaves them)."""
     variance = np.asarray(variance, dtype=np.float32)
     finite = np.isfinite(variance)
-    return variance if finite.all() else np.where(finite, variance, np.float32(np.inf))
+    if finite.all() or (variance[~finite] == np.inf).all():
+        return variance
+    return np.where(finite, variance, np.float32(np.inf))
 
 
 def _position_arrays(result: MergeResult) -> dict[str, np.ndarray]:
