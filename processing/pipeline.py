@@ -33,7 +33,7 @@ import numpy as np
 
 from acquisition.runfile import RunFile, RunFileError
 from processing.hdr import HDRError, NoiseModel, estimate_noise, merge_raw, superpixels
-from processing.parallel import Compute, tune_malloc
+from processing.parallel import Compute, in_dask_worker, tune_malloc
 from processing.results import (HDRInfo, Results, ResultsError, ResultsWriter, encode_hdr, position_file_for,
                                 results_path_for, stored_variance, write_position_file)
 from processing.steps import STEPS, StepsError, resolve_steps
@@ -88,8 +88,25 @@ def rig_noise(run: RunFile) -> NoiseModel:
     return NoiseModel(cam.gain_e_per_dn, cam.read_noise_e / cam.gain_e_per_dn, source="rig")
 
 
+def _prepare_task(single_threaded: bool | None = None) -> None:
+    """What every position task does first: keep freed arrays in the heap (``tune_malloc``)
+    and, in a Dask worker, run the numerical kernels on the task's thread alone.
+
+    The workers are the parallelism: numba's parallel kernels would start a thread per core
+    in every worker, and on 2 cores the noise estimates then took 50-200 ms each instead of
+    40-50. ``numba.set_num_threads`` holds for the calling thread only, so each task sets it
+    on the thread it runs on. ``single_threaded`` None: decide by whether this is a Dask worker.
+    """
+    tune_malloc()
+    if single_threaded is None:
+        single_threaded = in_dask_worker()
+    if single_threaded:
+        numba.set_num_threads(1)
+
+
 def _noise_estimate_at(index: int, run_path: str) -> NoiseModel | None:
     """One position's noise estimate (a task: opens the run itself); None if its bracket allows none."""
+    _prepare_task()
     with _open_run(run_path) as run:
         if len(run.exposures(index)) < 2:
             return None
@@ -230,9 +247,7 @@ def process_position(index: int, work: _PositionWork) -> PositionResult:
     :class:`ProcessingError` naming the file and the position.
     """
     started = time.perf_counter()
-    tune_malloc()
-    if work.single_threaded:
-        numba.set_num_threads(1)
+    _prepare_task(work.single_threaded)
     out = PositionResult(index)
     clock = _StageClock(out.stages)
     with _open_run(work.run_path) as run:
@@ -611,7 +626,7 @@ def _merged_rates(run: RunFile, results_file: str, index: int):
 
 def _layout_box_at(index: int, run_path: str, results_file: str, ball_centre):
     """The lit box of one merged position (a task)."""
-    tune_malloc()
+    _prepare_task()
     from processing.sources import lit_box
 
     with _open_run(run_path) as run:
@@ -622,7 +637,7 @@ def _layout_box_at(index: int, run_path: str, results_file: str, ball_centre):
 
 def _candidate_strength_at(index: int, run_path: str, results_file: str, ball_centre, candidates):
     """The candidates' strengths at one merged position (a task)."""
-    tune_malloc()
+    _prepare_task()
     from processing.sources import candidate_strength
 
     with _open_run(run_path) as run:

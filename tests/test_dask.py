@@ -4,11 +4,13 @@ loopback, and the default local cluster. Their results must equal the no-Dask pa
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 import time
 from pathlib import Path
 
+import dask
 import h5py
 import hdf5plugin  # noqa: F401 - the results' filters
 import numpy as np
@@ -145,6 +147,23 @@ def test_the_default_local_cluster_is_sized_to_the_machine_and_streams(captured,
         warmed = compute.client.run(lambda: "processing.sources" in sys.modules and "processing.images" in sys.modules)
         assert len(warmed) == default_workers() and all(warmed.values())
         assert compute.description == f"local Dask cluster: {default_workers()} worker processes x 1 thread"
+        # The workers run with the local cluster's lean settings (no profiler, slow monitors)
+        # and without Dask's MALLOC_TRIM_THRESHOLD_, which makes every large array an mmap.
+        settings = compute.client.run(lambda: (dask.config.get("distributed.worker.profile.enabled"),
+                                               dask.config.get("distributed.admin.tick.interval"),
+                                               os.environ.get("MALLOC_TRIM_THRESHOLD_")))  # fmt: skip
+        assert set(settings.values()) == {(False, "500ms", None)}
+        assert compute.client.run_on_scheduler(lambda dask_scheduler: "stealing" in dask_scheduler.extensions) is False
+        # Every task runs its numba kernels on its own thread alone (numba's setting is per thread).
+        from processing.pipeline import _prepare_task
+
+        def task_threads():
+            import numba
+
+            _prepare_task()
+            return numba.get_num_threads()
+
+        assert compute.client.submit(task_threads, pure=False).result() == 1
         # Bounded: never more than two tasks per worker thread in flight.
         held = []
         compute.map_unordered(time.sleep, [0.05] * 12, on_result=lambda item, _: held.append(len(compute.client.futures)))
