@@ -4,6 +4,7 @@ read back exactly, through the project's readers and through the plain libraries
 
 from __future__ import annotations
 
+import io
 import subprocess
 import sys
 
@@ -17,7 +18,7 @@ import pytest
 from PIL import Image
 
 from processing.hdr import MergeResult, NoiseModel
-from processing.images import read_exr, tonemap, write_exr, write_png
+from processing.images import encode_png, read_exr, tonemap, write_exr, write_png
 from processing.results import HDRInfo, Results, ResultsError, ResultsWriter, encode_hdr, position_file_for
 
 NAMES = ("radiance", "variance", "count", "saturated")
@@ -243,6 +244,28 @@ def test_png_is_the_tone_mapped_image(tmp_path):
         im.verify()  # chunk CRCs
     decoded = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     assert np.array_equal(decoded[..., ::-1], _reference_tonemap(rgb))
+
+
+@pytest.mark.parametrize("shape", [(1, 1), (1, 7), (5, 1), (33, 47), (656, 1000)])
+def test_encoded_png_decodes_to_the_same_pixels_in_pillow_and_opencv(shape):
+    rng = np.random.default_rng(sum(shape))
+    image = rng.integers(0, 256, (*shape, 3), dtype=np.uint8)
+    image[: shape[0] // 2] //= 16  # some structure for the deflate, and some noise
+    data = encode_png(image)
+    with Image.open(io.BytesIO(data)) as im:
+        assert im.mode == "RGB" and im.size == (shape[1], shape[0])
+        assert np.array_equal(np.asarray(im), image)
+    with Image.open(io.BytesIO(data)) as im:
+        im.verify()  # every chunk's CRC
+    decoded = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    assert np.array_equal(decoded[..., ::-1], image)
+
+
+@pytest.mark.parametrize("bad", [np.zeros((4, 4, 3), np.uint16), np.zeros((4, 4), np.uint8),
+                                 np.zeros((4, 4, 4), np.uint8), np.zeros((0, 4, 3), np.uint8)])  # fmt: skip
+def test_encode_png_refuses_what_is_not_8_bit_rgb(bad):
+    with pytest.raises(ValueError, match=r"\(H, W, 3\) uint8"):
+        encode_png(bad)
 
 
 def test_a_wide_png_is_resized_to_the_preview_width(tmp_path):
