@@ -703,10 +703,7 @@ def angle_sensitivity(rig: Rig, light_pose: Pose, shift_m: float = 1e-3, *, plan
         raise CalibrationError(f"shift_m must be positive, got {shift_m!r}")
     radius = plane_radius_m if plane_radius_m is not None else (rig.light.housing_radius_m or 0.02)
     geometry = RigGeometry.from_rig(rig)
-    cols, rows = ball_pixel_grid(geometry)
-    stride = max(1, int(math.ceil(math.sqrt(cols.size / max_pixels))))
-    keep = (cols % stride == 0) & (rows % stride == 0)
-    cols, rows = cols[keep], rows[keep]
+    cols, rows = ball_pixel_grid(geometry, max_pixels)
     base = trace_pixels(geometry, light_pose, cols, rows)
     on_light = base.valid & (np.hypot(base.u, base.v) <= radius)
 

@@ -198,6 +198,15 @@ class Compute:
             self.client.cancel([future for future, _ in running.values()])
             raise
 
+    def submit(self, func: Callable, *args: Any, **kwargs: Any):
+        """Start ``func(*args, **kwargs)`` on a worker now; a future whose ``result()`` waits for it
+        (and re-raises its exception). Dask only: without Dask there is nowhere to start it, and
+        the caller runs ``func`` itself (ComputeError)."""
+        if self.client is None:
+            raise ComputeError("no Dask workers to submit to: call the function in this process")
+        return self.client.submit(func, *args, key=f"{getattr(func, '__name__', 'task')}-{uuid.uuid4().hex[:8]}",
+                                  pure=False, **kwargs)  # fmt: skip
+
     def warm_up(self, func: Callable[[], None]) -> None:
         """Run ``func()`` once on every worker (imports, compiled kernels): the cost of a
         fresh worker, paid when the cluster starts rather than in a run's first tasks. A

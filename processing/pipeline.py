@@ -151,11 +151,12 @@ def warm_up_worker() -> None:
     """Ready a worker process for position tasks: import the processing modules and load
     the compiled kernels from numba's cache, on tiny inputs.
 
-    A fresh worker otherwise pays this (about a second) in the first tasks of its first
-    run; :func:`processing.parallel.open_compute` runs it on every worker it starts, as a
+    A fresh worker otherwise pays this (about a second, and matplotlib's import and fonts
+    for the report's sections) in the first tasks of its first run; :func:`processing.parallel.open_compute` runs it on every worker it starts, as a
     part of starting the cluster.
     """
     from processing.images import tonemap
+    from processing.report import warm_up_drawing
     from processing.sources import _convex_coverage, specular_points
 
     tune_malloc()
@@ -173,6 +174,7 @@ def warm_up_worker() -> None:
     specular_points(np.array([[0.0, 0.05, 0.1]]), np.array([[0.0, 0.0, 0.2]]), np.zeros(3), 0.0254)
     square = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]])
     _convex_coverage(square, np.linspace(-0.5, 1.5, 5), np.linspace(-0.5, 1.5, 5), 0.5)
+    warm_up_drawing()  # the workers draw report sections at the end of a run
 
 @dataclass(frozen=True)
 class _HDRWork:
@@ -500,7 +502,7 @@ def process_run(run_path, out_dir=None, *, steps=("hdr",), method: str = "optima
         if all(saturated_all.get(int(i), False) for i in positions):
             raise ProcessingError(f"{run_path}: every pixel is saturated even in the shortest exposure: take shorter exposures")
         _finish_sources(run_path, out, report, plan, positions, rows, fit_method=fit_method, units=units,
-                        truth=truth, layout_path=layout, timings=timings)  # fmt: skip
+                        truth=truth, layout_path=layout, timings=timings, compute=compute)  # fmt: skip
     timings["total"] = time.perf_counter() - started
     report.timings = {k: round(v, 3) for k, v in timings.items()}
     report.task_stages = {k: round(v, 3) for k, v in report.task_stages.items()}
@@ -559,7 +561,7 @@ def _plan_sources(run: RunFile, layout, estimator: str, ball_centre, positions) 
 
 
 def _finish_sources(run_path: Path, out: Path, report: ProcessReport, plan: _SourcesPlan, positions, rows: dict, *,
-                    fit_method, units, truth, layout_path, timings: dict) -> None:  # fmt: skip
+                    fit_method, units, truth, layout_path, timings: dict, compute: Compute | None = None) -> None:  # fmt: skip
     """Assemble the samples, fit, and write the light model, the light files and the report."""
     from processing.exports import write_ies, write_ldt, write_tm25
     from processing.report import write_report
@@ -586,7 +588,7 @@ def _finish_sources(run_path: Path, out: Path, report: ProcessReport, plan: _Sou
     clock = time.perf_counter()
     with _open_run(run_path) as run:  # the report draws the rig's chief rays at the middle position
         report.outputs["report"] = [write_report(stem.with_suffix(".report.html"), model, run=run, samples=samples,
-                                                 report=report, truth=truth)]  # fmt: skip
+                                                 report=report, truth=truth, compute=compute)]  # fmt: skip
     timings["report"] = time.perf_counter() - clock
 
 
@@ -721,10 +723,9 @@ def choose_estimator(geometry, builder, layout, light_pose, requested: str) -> t
 def _check_view(run: RunFile, geometry, builder, layout, positions) -> None:
     """Refuse, in one line, a run the estimate cannot work with (from the geometry alone;
     a run saturated everywhere is refused once its positions are merged)."""
-    from processing.trace import ball_pixel_grid
+    from processing.trace import ball_pixel_box
 
-    cols, rows = ball_pixel_grid(geometry)
-    if cols.size == 0:
+    if ball_pixel_box(geometry) is None:
         raise ProcessingError(f"{run.path}: the ball is not in the camera's view (check camera.pose and ball.centre_m)")
     seen = any(builder.build(source, _light_pose(run, geometry, int(i))) is not None
                for i in positions[:: max(1, len(positions) // 8)] for source in layout)  # fmt: skip

@@ -10,6 +10,7 @@ the ``cos⁴β`` fall-off of the sensor, and the pixel's footprint area on the l
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -181,11 +182,12 @@ def trace_pixels(geometry: RigGeometry, light_pose: Pose, cols, rows) -> ChiefRa
                      geometry.cos4(cols, rows), points, deflection)  # fmt: skip
 
 
-def ball_pixel_grid(geometry: RigGeometry) -> tuple[np.ndarray, np.ndarray]:
-    """Pixel coordinates of a box that holds the ball's image (empty if it is out of view)."""
+def ball_pixel_box(geometry: RigGeometry) -> tuple[int, int, int, int] | None:
+    """The pixel box ``(c0, c1, r0, r1)`` (end-exclusive) that holds the ball's image, or None when
+    the ball is out of view or its image misses the sensor."""
     rel = geometry.R @ (geometry.ball_centre - geometry.camera_centre)
     if rel[2] <= geometry.ball_radius:
-        return np.zeros(0), np.zeros(0)
+        return None
     dist = np.linalg.norm(rel)
     half = np.arcsin(min(1.0, geometry.ball_radius / dist))
     f_px = geometry.K[0, 0]
@@ -195,9 +197,33 @@ def ball_pixel_grid(geometry: RigGeometry) -> tuple[np.ndarray, np.ndarray]:
     c0, c1 = int(max(0, np.floor(centre[0] - radius))), int(min(geometry.width, np.ceil(centre[0] + radius)))
     r0, r1 = int(max(0, np.floor(centre[1] - radius))), int(min(geometry.height, np.ceil(centre[1] + radius)))
     if c1 <= c0 or r1 <= r0:
-        return np.zeros(0), np.zeros(0)  # the ball's image misses the sensor
-    rows, cols = np.mgrid[r0:r1, c0:c1]
-    return cols.ravel().astype(float), rows.ravel().astype(float)
+        return None
+    return c0, c1, r0, r1
+
+
+def grid_stride(box: tuple[int, int, int, int] | None, max_pixels: int | None) -> int:
+    """The stride :func:`ball_pixel_grid` takes through ``box`` for at most about ``max_pixels``."""
+    if box is None or max_pixels is None:
+        return 1
+    c0, c1, r0, r1 = box
+    return max(1, int(math.ceil(math.sqrt((c1 - c0) * (r1 - r0) / max_pixels))))
+
+
+def ball_pixel_grid(geometry: RigGeometry, max_pixels: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Pixel coordinates of a box that holds the ball's image (empty if it is out of view).
+
+    With ``max_pixels``, every ``stride``-th column and row only, ``stride`` the smallest whole
+    number that leaves at most about that many (the columns and rows that are multiples of it):
+    the same pixels as taking them out of the whole box, without making the whole box.
+    """
+    box = ball_pixel_box(geometry)
+    if box is None:
+        return np.zeros(0), np.zeros(0)
+    c0, c1, r0, r1 = box
+    stride = grid_stride(box, max_pixels)
+    cols = np.arange(-(-c0 // stride) * stride, c1, stride, dtype=float)
+    rows = np.arange(-(-r0 // stride) * stride, r1, stride, dtype=float)
+    return np.tile(cols, rows.size), np.repeat(rows, cols.size)
 
 
 def footprint_areas(geometry: RigGeometry, light_pose: Pose, rays: ChiefRays, step: float = 0.5) -> np.ndarray:

@@ -4,9 +4,11 @@ loopback, and the default local cluster. Their results must equal the no-Dask pa
 from __future__ import annotations
 
 import json
+import logging
 import os
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -135,7 +137,12 @@ def test_the_worker_command_on_a_real_scheduler(captured, scheduler, tmp_path):
         data.catalog.close()
 
 
-def test_the_default_local_cluster_is_sized_to_the_machine_and_streams(captured, tmp_path):
+def _sections(page: str) -> list[str]:
+    """The report's sections (everything after the header, which names the paths and the compute)."""
+    return page.split("<h2>")[1:]
+
+
+def test_the_default_local_cluster_is_sized_to_the_machine_and_streams(captured, tmp_path, caplog):
     from processing.pipeline import process_run
 
     _, _, run = captured
@@ -168,12 +175,34 @@ def test_the_default_local_cluster_is_sized_to_the_machine_and_streams(captured,
         held = []
         compute.map_unordered(time.sleep, [0.05] * 12, on_result=lambda item, _: held.append(len(compute.client.futures)))
         assert len(held) == 12 and max(held) <= compute.max_in_flight() == 2 * default_workers()
-        report = process_run(run, tmp_path / "dask", steps="hdr,sources", layout=LAYOUT, compute=compute)
+        with caplog.at_level(logging.INFO, logger="mirrorgonio.processing"):
+            report = process_run(run, tmp_path / "dask", steps="hdr,sources", layout=LAYOUT, compute=compute)
+        assert not [r.message for r in caplog.records if "drawn" in r.message]  # the workers drew their sections
+        # A truth that cannot travel to the workers: its sections are drawn here, the page the same.
+        from processing.report import write_report
+
+        lock = threading.Lock()
+
+        def truth(source, theta):
+            with lock:
+                return None
+
+        pages = []
+        for where in (compute, None):
+            with caplog.at_level(logging.INFO, logger="mirrorgonio.processing"):
+                path = write_report(tmp_path / f"truth-{where is None}.html", report.model, samples=report.samples,
+                                    report=report, truth=truth, compute=where)  # fmt: skip
+            pages.append(_sections(path.read_text()))
+        assert pages[0] == pages[1]
+        assert [r.message for r in caplog.records if "drawn" in r.message]
         assert report.compute == compute.description and report.timings["positions"] > 0
         peaks = compute.worker_peak_rss()
         assert len(peaks) == default_workers() and all(0 < p < 4 << 30 for p in peaks.values())
     process_run(run, tmp_path / "here", steps="hdr,sources", layout=LAYOUT)
     _assert_same(_results(tmp_path / "dask", run.stem), _results(tmp_path / "here", run.stem))
+    # The report's sections drawn by the workers are the ones drawn here, figures and all.
+    remote, local = ((tmp_path / where / f"{run.stem}.report.html").read_text() for where in ("dask", "here"))
+    assert _sections(remote) == _sections(local) and len(_sections(local)) == 7
     # The EXR and PNG previews were written by the workers, one per position.
     assert sorted(p.name for p in (tmp_path / "dask" / f"{run.stem}.hdr").iterdir()) == sorted(
         p.name for p in (tmp_path / "here" / f"{run.stem}.hdr").iterdir())  # fmt: skip

@@ -153,3 +153,17 @@ def test_cell_boxes_decline_a_ball_behind_the_light_plane():
     layout = [Source("a", (0.0, 0.0), 0.5e-3)]
     assert cell_pixel_boxes(geometry, flipped, layout, 2e-3, (geometry.height, geometry.width)) is None
     assert cell_pixel_boxes(geometry, pose, layout, math.inf, (geometry.height, geometry.width)) is None
+
+
+@pytest.mark.parametrize("max_pixels", [None, 10**9, 250_000, 60_000, 40_000, 1_000, 1])
+def test_a_strided_ball_grid_is_the_whole_box_thinned(max_pixels):
+    geometry = RigGeometry.from_rig(load_rig())
+    cols, rows = ball_pixel_grid(geometry)
+    stride = 1 if max_pixels is None else max(1, math.ceil(math.sqrt(cols.size / max_pixels)))
+    keep = (cols % stride == 0) & (rows % stride == 0)
+    thin_cols, thin_rows = ball_pixel_grid(geometry, max_pixels)
+    np.testing.assert_array_equal(thin_cols, cols[keep])
+    np.testing.assert_array_equal(thin_rows, rows[keep])
+    if max_pixels is not None:  # about max_pixels: the box's whole rows and columns, one more of each at most
+        width, height = np.ptp(cols) + 1, np.ptp(rows) + 1
+        assert thin_cols.size <= (width / stride + 1) * (height / stride + 1) and thin_cols.size >= min(cols.size, max_pixels) / 4
