@@ -28,6 +28,7 @@ a second writer off a run that is still being written; it is removed on a clean 
 from __future__ import annotations
 
 import contextlib
+import copy
 import errno
 import functools
 import fcntl
@@ -37,7 +38,7 @@ import math
 import os
 import re
 import threading
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import h5py
@@ -368,6 +369,33 @@ def _rig_from_json(rig_json: str, source: str) -> Rig:
     position task opens the run anew, and the physical checks took half of an open (6 ms).
     Rig models are frozen, so the one object can be shared."""
     return rig_from_dict(json.loads(rig_json), source=source)
+
+
+#: Headers already checked, by the file's identity and state: every position task of a
+#: processing opens the run file again, and checking its layout and rebuilding the header took
+#: 3 ms of each (some 30 HDF5 lookups). A file that changes (one being written, one replaced)
+#: is checked again: its modification time, size or inode differ.
+_HEADERS: dict[tuple, RunHeader] = {}
+_HEADERS_KEPT = 8
+
+
+def _read_header_once(f: h5py.File, path: Path) -> RunHeader:
+    """:func:`_read_header`, or the header this process already read from the file unchanged."""
+    try:
+        st = os.stat(path)
+        key = (str(path.resolve()), st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns)
+    except OSError:
+        return _read_header(f, path)
+    header = _HEADERS.get(key)
+    if header is None:
+        header = _read_header(f, path)
+        if len(_HEADERS) >= _HEADERS_KEPT:
+            _HEADERS.pop(next(iter(_HEADERS)))
+        _HEADERS[key] = header
+    # Each RunFile its own containers (the rig is shared, as _rig_from_json shares it).
+    return replace(header, tool_poses=list(header.tool_poses), light_poses=list(header.light_poses),
+                   bracket=copy.deepcopy(header.bracket), metadata=copy.deepcopy(header.metadata),
+                   devices=copy.deepcopy(header.devices), references=copy.deepcopy(header.references))  # fmt: skip
 
 
 def _read_header(f: h5py.File, path) -> RunHeader:
@@ -918,7 +946,7 @@ class RunFile:
                 raise RunFileError(
                     f"{path}: truncated or corrupt HDF5 file (truncated: {truncated[0]} of {truncated[1]} bytes)"
                 )
-            header = _read_header(f, path)
+            header = _read_header_once(f, path)
         except BaseException:
             f.close()
             raise

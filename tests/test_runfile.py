@@ -530,6 +530,24 @@ def test_open_errors_are_one_line_naming_the_file(tmp_path, make, message):
     assert not Path(str(path) + ".lock").exists()
 
 
+def test_a_file_changed_since_it_was_opened_is_checked_again(tmp_path):
+    path = tmp_path / "run.h5"
+    write_run(path, 2, [0])
+    with RunFile.open(path) as first, RunFile.open(path) as second:  # the second from the checked header
+        assert second.header == first.header and second.header is not first.header
+        second.header.metadata["notes"] = "changed by one reader"
+        second.header.tool_poses.pop()
+        assert first.header.metadata.get("notes") != "changed by one reader" and first.header.n_positions == 2
+    with h5py.File(path, "a") as f:  # the same file, changed in place since
+        del f["positions/times"]
+    with pytest.raises(RunFileError, match="corrupt run file: /positions/times is missing"):
+        RunFile.open(path)
+    write_run(tmp_path / "other.h5", 3, [0])
+    (tmp_path / "other.h5").replace(path)  # another file under the same name
+    with RunFile.open(path) as replaced:
+        assert replaced.header.n_positions == 3
+
+
 # --- resuming ----------------------------------------------------------------------------------
 def test_rewrite_completed_position_after_reopen(tmp_path):
     path = tmp_path / "run.h5"
