@@ -185,11 +185,12 @@ class Compute:
             running[future.key] = (future, item)
             return future
 
-        queue = as_completed([submit(item) for item in islice(pending, self.max_in_flight())])
+        # with_results: the client fetches each result as its task ends, in its event loop, rather
+        # than in a round trip to the scheduler and the worker per result here.
+        queue = as_completed([submit(item) for item in islice(pending, self.max_in_flight())], with_results=True)
         try:
-            for future in queue:
+            for future, result in queue:
                 _, item = running.pop(future.key)
-                result = future.result()
                 future.release()
                 on_result(item, result)
                 for following in islice(pending, 1):

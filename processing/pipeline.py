@@ -356,13 +356,28 @@ def _write_images(folder: Path, index: int, radiance: np.ndarray, cfa: str) -> d
             "png": write_png(folder / f"position-{index:03d}.png", rgb)}  # fmt: skip
 
 
+_GEOMETRIES: dict[tuple, tuple] = {}
+
+
 def _geometry(run: RunFile, ball_centre):
+    """The rig's geometry and template builder (ball at ``ball_centre``, or where the rig says).
+
+    Kept per process for the rig object the run file's header shares (``acquisition.runfile``
+    validates a rig once per text): every position task of a run asks for the same one, and
+    making them cost 1 ms a task. The rig itself is held with them, so its ``id`` stays its own.
+    """
     from processing.sources import TemplateBuilder
     from processing.trace import RigGeometry
 
     rig = run.header.rig
-    geometry = RigGeometry.from_rig(rig, ball_centre=ball_centre)
-    return geometry, TemplateBuilder(geometry, rig.camera.sensitivity_e_per_s)
+    key = (id(rig), None if ball_centre is None else tuple(float(x) for x in ball_centre))
+    held = _GEOMETRIES.get(key)
+    if held is None or held[0] is not rig:
+        geometry = RigGeometry.from_rig(rig, ball_centre=ball_centre)
+        if len(_GEOMETRIES) >= 8:
+            _GEOMETRIES.pop(next(iter(_GEOMETRIES)))
+        held = _GEOMETRIES[key] = (rig, geometry, TemplateBuilder(geometry, rig.camera.sensitivity_e_per_s))
+    return held[1], held[2]
 
 
 def _estimate_at(run: RunFile, plan: _SourcesPlan, index: int, rate, variance, usable, lit, cfa: str) -> _SourceRow:
