@@ -645,7 +645,7 @@ def bench_speed_command(
     positions: Annotated[int, typer.Option(min=3, help="Positions of the sweep (the first N).")] = 66,
     exposures: Annotated[int, typer.Option(min=1, max=5, help="Frames per position (the first N of the reference bracket).")] = 5,
     repeat: Annotated[int, typer.Option(min=1, help="Repetitions of the cheap measurements (medians reported).")] = 3,
-    process_repeat: Annotated[int, typer.Option("--process-repeat", min=1, help="Whole-run processings per size (median reported; the first also pays the imports).")] = 3,
+    process_repeat: Annotated[int, typer.Option("--process-repeat", min=1, help="Timed whole-run processings per size, after an untimed first one on the same cluster (median reported).")] = 3,
     hdr_positions: Annotated[int, typer.Option("--hdr-positions", min=1, help="Brackets merged by every HDR method (spread over the sweep).")] = 8,
     peers: Annotated[bool, typer.Option(help="Also time HDRutils and colour-hdri (the bench extra).")] = True,
     scheduler: SchedulerOption = "local",

@@ -49,6 +49,9 @@ def test_the_json_has_every_measurement(speed):
     process = entry["process"]
     assert process["positions"] == POSITIONS and process["process_s"] > 0 and len(process["process_s_all"]) == 2
     assert process["process_s_without_images"] > 0
+    # timed warm on one cluster; the first processing and one on a cluster of its own apart
+    assert process["first_process_s"] > 0 and process["process_s_fresh_cluster"] > 0 and process["fresh_cluster_start_s"] > 0
+    assert process["fresh_cluster_over_read_floor"] == pytest.approx(process["process_s_fresh_cluster"] / read["read_s"], rel=0.02)
     assert process["without_images_over_read_floor"] == pytest.approx(process["process_s_without_images"] / read["read_s"], rel=0.02)
     # where a position task's time goes, per position: every stage of the fused hdr + sources task
     stages = process["task_ms_per_position"]
