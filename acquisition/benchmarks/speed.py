@@ -198,6 +198,8 @@ class MemorySampler:
         self.peak_total = self.peak_self = self.peak_children = 0
         self.max_children = 0
         self.samples = 0
+        self.list_every = max(1, round(1.0 / interval_s))
+        self._kids, self._since_listed = [], 0
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._loop, name="memory-sampler", daemon=True)
 
@@ -205,10 +207,14 @@ class MemorySampler:
         psutil = self._psutil
         own = self.me.memory_info().rss
         children = 0
-        try:
-            kids = self.me.children(recursive=True)
-        except psutil.Error:
-            kids = []
+        # Listing the descendants reads every process's /proc entry: once a second is enough (the
+        # cluster's processes live for the whole processing), the RSS of each every sample.
+        if self._since_listed % self.list_every == 0:
+            try:
+                self._kids = self.me.children(recursive=True)
+            except psutil.Error:
+                self._kids = []
+        kids = self._kids
         for child in kids:
             try:
                 children += child.memory_info().rss
@@ -219,6 +225,7 @@ class MemorySampler:
         self.peak_total = max(self.peak_total, own + children)
         self.max_children = max(self.max_children, len(kids))
         self.samples += 1
+        self._since_listed += 1
 
     def _loop(self) -> None:
         while not self._stop.is_set():
@@ -233,6 +240,7 @@ class MemorySampler:
     def __exit__(self, *exc) -> None:
         self._stop.set()
         self._thread.join()
+        self._since_listed = 0  # the last sample lists the descendants again
         self.sample()
 
     def report(self) -> dict:
