@@ -951,9 +951,12 @@ def _header(model: LightModel, run, report, samples, resolution_m: float) -> str
 #: rays): a cluster's workers can draw them, each in its own process, while this process draws the
 #: rest. Drawing is mostly matplotlib's text rendering, Python holding the GIL: threads would not
 #: share it out, processes do. Measured on 2 cores, a whole run's page: 0.62 s in one process, of
-#: which these three sections 0.4 s (120-150 ms each); 0.4-0.5 s with two workers drawing them.
+#: which these five sections 0.5 s (50-150 ms each); 0.4-0.5 s with two workers drawing the three
+#: largest.
 _REMOTE_SECTIONS: dict[str, Callable[[_Context, object], str]] = {
     _SECTIONS[0]: lambda ctx, samples: _intensity_section(ctx),
+    _SECTIONS[1]: lambda ctx, samples: _layout_section(ctx),
+    _SECTIONS[2]: lambda ctx, samples: _coverage_section(ctx, samples),
     _SECTIONS[3]: lambda ctx, samples: _angles_section(ctx),
     _SECTIONS[4]: lambda ctx, samples: _residuals_section(ctx),
 }
@@ -1082,10 +1085,11 @@ def _write_report(path: Path, model: LightModel, run, samples, report, truth, ca
             return None
 
     intensity, layout, coverage, angles, residuals, calibrated, previews = _SECTIONS
-    # The workers start on the two largest sections, which need no chief rays, while this process
-    # traces them; the third largest (the angles) follows the trace; the small ones are drawn here.
+    # The workers start on the sections that need no chief rays while this process traces them;
+    # those that need them follow the trace. This process's worker thread meanwhile takes the
+    # calibration and the previews.
     elsewhere = _RemoteSections(compute, samples)
-    for name in (intensity, residuals):
+    for name in (intensity, residuals, coverage):
         elsewhere.start(name, ctx)
     position = None
     if run is None:
@@ -1104,10 +1108,9 @@ def _write_report(path: Path, model: LightModel, run, samples, report, truth, ca
         }  # fmt: skip
         if position is not None:
             ctx.geometry = traced(lambda: _trace_middle(position, model))
-        elsewhere.start(angles, ctx)
-        built[layout] = _guarded(layout, lambda: _layout_section(ctx))
-        built[coverage] = _guarded(coverage, lambda: _coverage_section(ctx, samples))
-        for name in (intensity, residuals, angles):
+        for name in (angles, layout):
+            elsewhere.start(name, ctx)
+        for name in (intensity, residuals, coverage, angles, layout):  # drawn here if not by a worker
             built[name] = elsewhere.result(name, ctx)
         run_id = model.provenance.get("run_id") or (run.header.run_id if run is not None else "")
         title = f"mirrorgonio light report: {run_id}" if run_id else "mirrorgonio light report"
