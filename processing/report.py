@@ -29,7 +29,9 @@ The figures are drawn with matplotlib's Agg canvas directly (no pyplot, no globa
 backend), laid out by hand (no layout engine), the half discs on plain axes (no polar
 projection); one worker thread encodes their PNGs and does the calibration's sensitivity
 and the previews while the next figure is drawn: what the report costs is mostly
-matplotlib's text rendering. Each section that cannot be drawn (missing inputs) says why
+matplotlib's text rendering. Given the processing's Dask cluster (``compute=``), its
+workers draw the five sections that need only the model, the samples and the chief rays,
+each in its own process, and the page is the same (:data:`_REMOTE_SECTIONS`). Each section that cannot be drawn (missing inputs) says why
 instead; a section that fails is reported in the page and logged, and never stops the
 processing.
 
