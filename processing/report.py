@@ -46,7 +46,6 @@ from __future__ import annotations
 import base64
 import gc
 import html
-import io
 import logging
 import math
 import re
@@ -262,12 +261,11 @@ def _pixels(fig: Figure) -> np.ndarray:
 
 
 def _encode_png(rgb: np.ndarray) -> bytes:
-    """PNG bytes of an RGB array; zlib level 3: as small as savefig's level 6 without the alpha, in half its time."""
-    from PIL import Image
+    """PNG bytes of an RGB array, deflated by ISA-L (:func:`processing.images.encode_png`, level 2).
+    On a 900x600 figure: 0.5 ms for 76 kB, where Pillow's zlib at level 3 took 10 ms for 71 kB."""
+    from processing.images import encode_png
 
-    buffer = io.BytesIO()
-    Image.fromarray(rgb).save(buffer, format="png", compress_level=3)
-    return buffer.getvalue()
+    return encode_png(np.ascontiguousarray(rgb), level=2)
 
 
 def _png(fig: Figure) -> bytes:
@@ -275,7 +273,7 @@ def _png(fig: Figure) -> bytes:
 
 
 class _Encoder:
-    """Encodes the figures' PNGs on a worker thread (PIL's zlib releases the GIL) while the next
+    """Encodes the figures' PNGs on a worker thread (the deflate releases the GIL) while the next
     figure is drawn: :meth:`figure` draws and returns the ``<figure>`` with a placeholder that
     :meth:`fill` replaces by the embedded image."""
 
@@ -1100,7 +1098,7 @@ def _write_report(path: Path, model: LightModel, run, samples, report, truth, ca
         position = traced(lambda: _middle_position(run, samples))
     # One worker thread takes what runs mostly in C, outside the GIL, while this thread draws: the
     # calibration's sensitivity (numpy on large arrays: it overlaps the trace below), the previews'
-    # decoding and the figures' PNG encoding (OpenCV, zlib). Its tasks run in the order given.
+    # decoding and the figures' PNG encoding (OpenCV, ISA-L). Its tasks run in the order given.
     with ThreadPoolExecutor(max_workers=1, thread_name_prefix="mirrorgonio-report") as pool:
         ctx.encoder = _Encoder(pool)
         built: dict[str, str | Future] = {
