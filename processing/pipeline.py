@@ -25,6 +25,7 @@ import logging
 import math
 import time
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -587,24 +588,35 @@ def _finish_sources(run_path: Path, out: Path, report: ProcessReport, plan: _Sou
         model = fit_light_model(run, list(plan.layout), samples, method=fit_method, units=units,
                                 estimator=plan.estimator, footprint=plan.footprint)  # fmt: skip
     timings["fit"] = time.perf_counter() - clock
-    clock = time.perf_counter()
     ball_centre = plan.ball_centre
     model.provenance["ball_centre_m"] = list(ball_centre) if ball_centre is not None else "as described by the rig"
     model.provenance["layout"] = str(layout_path) if layout_path is not None else "found in the data (grid of candidates, NNLS)"
     report.light_model = model.save(out / f"{run_path.stem}.light.json")
     stem = out / run_path.stem
-    report.outputs["ies"] = [write_ies(model, stem.with_suffix(".ies"), luminaire=f"mirrorgonio run {run_path.stem}")]
-    report.outputs["ldt"] = [write_ldt(model, stem.with_suffix(".ldt"), luminaire=f"mirrorgonio run {run_path.stem}")]
-    report.outputs["tm25"] = [write_tm25(model, stem.with_suffix(".tm25ray"), n_rays=100_000, seed=0)]
-    timings["exports"] = time.perf_counter() - clock
+    luminaire = f"mirrorgonio run {run_path.stem}"
+
+    def light_files() -> dict[str, list[Path]]:
+        started = time.perf_counter()
+        files = {"ies": [write_ies(model, stem.with_suffix(".ies"), luminaire=luminaire)],
+                 "ldt": [write_ldt(model, stem.with_suffix(".ldt"), luminaire=luminaire)],
+                 "tm25": [write_tm25(model, stem.with_suffix(".tm25ray"), n_rays=100_000, seed=0)]}  # fmt: skip
+        timings["exports"] = time.perf_counter() - started
+        return files
+
     report.estimator, report.estimator_reason, report.spatial_resolution_m = plan.estimator, plan.reason, 2.0 * plan.footprint
     report.samples = samples
     report.model = model
-    clock = time.perf_counter()
-    with _open_run(run_path) as run:  # the report draws the rig's chief rays at the middle position
-        report.outputs["report"] = [write_report(stem.with_suffix(".report.html"), model, run=run, samples=samples,
-                                                 report=report, truth=truth, compute=compute)]  # fmt: skip
-    timings["report"] = time.perf_counter() - clock
+    # The light files are written on a thread while the report is drawn (both only read the
+    # model): with a cluster this process mostly waits for the workers' sections meanwhile.
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="mirrorgonio-exports") as pool:
+        exports = pool.submit(light_files)
+        clock = time.perf_counter()
+        with _open_run(run_path) as run:  # the report draws the rig's chief rays at the middle position
+            drawn = write_report(stem.with_suffix(".report.html"), model, run=run, samples=samples, report=report,
+                                 truth=truth, compute=compute)  # fmt: skip
+        timings["report"] = time.perf_counter() - clock
+        report.outputs.update(exports.result())
+    report.outputs["report"] = [drawn]
 
 
 def layout_from_data(run: RunFile, results_file, positions=None, ball_centre=None, compute: Compute | None = None) -> list:
