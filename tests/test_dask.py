@@ -171,10 +171,10 @@ def test_the_default_local_cluster_is_sized_to_the_machine_and_streams(captured,
             return numba.get_num_threads()
 
         assert compute.client.submit(task_threads, pure=False).result() == 1
-        # Bounded: never more than two tasks per worker thread in flight.
+        # Bounded: never more than four tasks per worker thread in flight.
         held = []
         compute.map_unordered(time.sleep, [0.05] * 12, on_result=lambda item, _: held.append(len(compute.client.futures)))
-        assert len(held) == 12 and max(held) <= compute.max_in_flight() == 2 * default_workers()
+        assert len(held) == 12 and max(held) <= compute.max_in_flight() == 4 * default_workers()
         with caplog.at_level(logging.INFO, logger="mirrorgonio.processing"):
             report = process_run(run, tmp_path / "dask", steps="hdr,sources", layout=LAYOUT, compute=compute)
         assert not [r.message for r in caplog.records if "drawn" in r.message]  # the workers drew their sections
