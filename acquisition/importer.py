@@ -298,7 +298,7 @@ def _read_rows(reader, csv_path: Path, folder: Path, n_positions: int) -> list[I
 # --- stage 2: the raw files ---------------------------------------------------------------
 def _decode(row: ImportRow, csv_path: Path) -> RawFrame:
     try:
-        return decode_raw(row.path)
+        return decode_raw(row.path, exposure_s=row.exposure_s)  # the CSV's exposure, when it gives one
     except RawFileError as exc:
         raise RunImportError(f"{csv_path}: line {row.line}: {exc}") from None
 

@@ -10,6 +10,7 @@ RAF...). Nothing is ever assumed: a file without an exposure time is refused.
 
 from __future__ import annotations
 
+import math
 import os
 import re
 from datetime import datetime, timedelta, timezone
@@ -53,7 +54,7 @@ _EXIF_NAMES = {
 }
 
 
-def decode_raw(path: str | os.PathLike, camera_id: str | None = None) -> RawFrame:
+def decode_raw(path: str | os.PathLike, camera_id: str | None = None, exposure_s: float | None = None) -> RawFrame:
     """Decode one raw file into its visible Bayer mosaic and the metadata it needs.
 
     Parameters
@@ -63,6 +64,11 @@ def decode_raw(path: str | os.PathLike, camera_id: str | None = None) -> RawFram
     camera_id : str, optional
         Identity to record when the file names no camera (no Make, Model or
         UniqueCameraModel tag). A camera named in the file always wins.
+    exposure_s : float, optional
+        The exposure time known from elsewhere (an import CSV's ``exposure_s``): it is
+        the frame's, whatever the file says, and a file without one is then accepted
+        (``extra["exposure_source"]`` says "given"; the file's own, if any, is kept in
+        ``extra["file_exposure_s"]``).
 
     Returns
     -------
@@ -78,8 +84,10 @@ def decode_raw(path: str | os.PathLike, camera_id: str | None = None) -> RawFram
     RawFileError
         One line naming the file: it is missing, empty, not a raw file, truncated, not
         a 2x2 Bayer mosaic (X-Trans, Foveon, monochrome, linear DNG), or holds no
-        exposure time.
+        exposure time and none is given.
     """
+    if exposure_s is not None and not (math.isfinite(exposure_s) and exposure_s > 0):
+        raise ValueError(f"exposure_s must be a positive number of seconds, not {exposure_s!r}")
     path = Path(path)
     source = str(path)
     size = _checked_size(path, source)
@@ -93,9 +101,13 @@ def decode_raw(path: str | os.PathLike, camera_id: str | None = None) -> RawFram
     except rawpy.LibRawError as exc:
         raise RawFileError(source, "decode", _libraw_failure(exc, path, size, tiff)) from None
 
-    exposure_s, exposure_source = _exposure_time(tiff, libraw_other.shutter_speed)
+    file_exposure_s, exposure_source = _exposure_time(tiff, libraw_other.shutter_speed)
     if exposure_s is None:
-        raise RawFileError(source, "decode", "no exposure time in the file's metadata")
+        if file_exposure_s is None:
+            raise RawFileError(source, "decode", "no exposure time in the file's metadata")
+        exposure_s = file_exposure_s
+    else:
+        exposure_source = "given"
     timestamp, timestamp_source = _capture_time(tiff, libraw_other.timestamp, path)
 
     make = _text(tiff.ifd0.get(_MAKE))
@@ -119,6 +131,8 @@ def decode_raw(path: str | os.PathLike, camera_id: str | None = None) -> RawFram
         "exposure_source": exposure_source,
         "timestamp_source": timestamp_source,
     }
+    if exposure_source == "given" and file_exposure_s is not None:
+        extra["file_exposure_s"] = file_exposure_s
     for key, value in (
         ("make", make),
         ("model", model),

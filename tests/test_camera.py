@@ -162,6 +162,21 @@ def test_file_without_exposure_time_is_refused_not_assumed(tmp_path):
     with pytest.raises(RawFileError, match="no exposure time in the file's metadata") as caught:
         decode_raw(path)
     assert_one_line_naming(caught.value, path)
+    # Given from elsewhere (an import CSV), the exposure is the frame's, and says so.
+    frame = decode_raw(path, exposure_s=0.03)
+    assert frame.exposure_s == 0.03 and frame.extra["exposure_source"] == "given"
+    assert "file_exposure_s" not in frame.extra
+
+
+def test_a_given_exposure_time_wins_over_the_files(tmp_path):
+    path = write_dng(tmp_path / "exp.dng", random_mosaic((30, 30), 12), exposure_s=0.02)
+    frame = decode_raw(path, exposure_s=0.05)
+    assert frame.exposure_s == 0.05 and frame.extra["exposure_source"] == "given"
+    assert frame.extra["file_exposure_s"] == 0.02
+    assert decode_raw(path).exposure_s == 0.02
+    for bad in (0.0, -1.0, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="exposure_s must be a positive number of seconds"):
+            decode_raw(path, exposure_s=bad)
 
 
 # -- FolderCamera ---------------------------------------------------------------------

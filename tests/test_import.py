@@ -8,6 +8,7 @@ a real camera's NEF or CR2. Frames are small (64 x 48) so the tests stay fast.
 from __future__ import annotations
 
 import math
+import struct
 from pathlib import Path
 
 import numpy as np
@@ -192,6 +193,32 @@ def test_a_rig_whose_sensor_size_does_not_match_is_named(tmp_path, tiny_rig):
     assert result.output.strip() == (f"error: {tiny_rig}: camera.width x camera.height is 64x48 but the raw files are "
                                      f"64x40 (line 2: a.dng)")  # fmt: skip
     assert not (tmp_path / "r.h5").exists()
+
+
+def _strip_exposure_time(path: Path) -> None:
+    """The file's ExposureTime entry (tag 33434, RATIONAL, count 1) renumbered to an unknown tag."""
+    data = path.read_bytes()
+    entry = struct.pack("<HHI", 33434, 5, 1)
+    assert data.count(entry) == 1
+    path.write_bytes(data.replace(entry, struct.pack("<HHI", 33435, 5, 1)))
+
+
+def test_files_without_an_exposure_time_take_the_csvs_and_are_refused_without_it(tmp_path, tiny_rig):
+    raw = tmp_path / "raw"
+    mosaics = write_frames(raw, [("a.dng", 0.001), ("b.dng", 0.004)])
+    _strip_exposure_time(raw / "b.dng")
+    csv = write_csv(tmp_path / "p.csv", "file,position,exposure_s", "a.dng,3,", "b.dng,3,0.008")
+    result = runner.invoke(app, ["import", str(raw), "--csv", str(csv), "--rig", str(tiny_rig), "--out", str(tmp_path / "r.h5")])
+    assert result.exit_code == 0, result.output
+    with RunFile.open(tmp_path / "r.h5") as run:
+        assert run.exposures(3).tolist() == [0.001, 0.008]  # a's from its file, b's from the CSV
+        assert np.array_equal(run.frames(3)[1], mosaics["b.dng"])
+    # Without the CSV's exposure, the file's missing one is named in one line, and nothing is written.
+    csv = write_csv(tmp_path / "q.csv", "file,position", "a.dng,3", "b.dng,3")
+    result = runner.invoke(app, ["import", str(raw), "--csv", str(csv), "--rig", str(tiny_rig), "--out", str(tmp_path / "s.h5")])
+    assert result.exit_code == 2
+    assert result.output.strip().startswith(f"error: {csv}: line 3: ") and "no exposure time in the file's metadata" in result.output
+    assert not (tmp_path / "s.h5").exists()
 
 
 def test_a_file_that_is_not_raw_is_named_with_its_row(tmp_path, tiny_rig):
