@@ -21,14 +21,13 @@ RUN python -c "import tomllib; print('\n'.join(tomllib.load(open('pyproject.toml
     && pip install -r /tmp/requirements.txt \
     && rm /tmp/requirements.txt
 
-# The project itself. Installed in place (-e): the default rig is found beside the
-# packages (rigs/default.toml, acquisition.rig.DEFAULT_RIG_PATH), not inside site-packages.
+# The project itself, installed as a package: the rigs, the device profiles and the web
+# page are package data (acquisition/rigs, drivers/profiles, acquisition/web).
 COPY acquisition ./acquisition
 COPY processing ./processing
 COPY drivers ./drivers
 COPY sim_devices ./sim_devices
-COPY rigs ./rigs
-RUN pip install --no-deps -e . \
+RUN pip install --no-deps . \
     && mirrorgonio --help > /dev/null
 
 # Not root. /data is created owned by that user: a named volume mounted there for the

@@ -37,8 +37,10 @@ from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+from acquisition.rig import RIGS_DIR
+
 #: The demo's default rig: the default geometry at half the resolution (rigs/demo.toml).
-DEMO_RIG_PATH = Path(__file__).resolve().parent.parent / "rigs" / "demo.toml"
+DEMO_RIG_PATH = RIGS_DIR / "demo.toml"
 #: Every demo folder holds this file; only such folders are cleaned up.
 MARKER = ".mirrorgonio-demo"
 #: The bracket of ``mirrorgonio bench accuracy`` (its reference simulation), so that the

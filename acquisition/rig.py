@@ -29,7 +29,10 @@ from drivers.config_files import load_model, validate_model
 from drivers.pose import Pose, rotation_from_angles
 
 RIG_SCHEMA_VERSION = 1
-DEFAULT_RIG_PATH = Path(__file__).resolve().parent.parent / "rigs" / "default.toml"
+#: The rigs shipped with the package (package data: also there in a wheel); ``rigs/`` at the top
+#: of a checkout links here.
+RIGS_DIR = Path(__file__).resolve().parent / "rigs"
+DEFAULT_RIG_PATH = RIGS_DIR / "default.toml"
 
 Vec2 = tuple[float, float]
 Vec3 = tuple[float, float, float]

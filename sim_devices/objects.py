@@ -40,7 +40,7 @@ from acquisition.rig import Rig
 from drivers.config_files import load_model
 
 SURFACES_DIR = Path(__file__).resolve().parent / "surfaces"
-OBJECTS_DIR = Path(__file__).resolve().parent.parent / "rigs" / "objects"
+OBJECTS_DIR = Path(__file__).resolve().parent.parent / "acquisition" / "rigs" / "objects"
 
 
 class SurfaceError(ValueError):

@@ -564,7 +564,7 @@ def test_the_dockerfile_copies_what_exists_and_is_not_ignored():
             relative = match.relative_to(ROOT).as_posix()
             assert not dockerignored(relative, patterns), f"COPY {source}: excluded by .dockerignore"
     # What the installed project reads at run time is in the context and copied.
-    needed = ["rigs/default.toml", "drivers/profiles/sim_stage.toml", "acquisition/web/index.html", "README.md"]
+    needed = ["acquisition/rigs/default.toml", "drivers/profiles/sim_stage.toml", "acquisition/web/index.html", "README.md"]
     for relative in needed:
         assert (ROOT / relative).exists(), relative
         assert not dockerignored(relative, patterns), relative
@@ -582,3 +582,29 @@ def test_dockerignore_keeps_the_build_context_small():
     for heavy in (".venv/bin/python", ".git/HEAD", "data/runs/x.h5", "acquisition/__pycache__/cli.cpython-311.pyc", "demo-output/a.dng"):
         assert dockerignored(heavy, patterns), heavy
     assert not dockerignored("sim_devices/lights/five-gaussians.toml", patterns)
+
+
+def test_the_wheel_carries_the_rigs_and_a_plain_install_finds_the_default_rig(tmp_path):
+    """The rigs are package data: a wheel holds them, and installed from it (not in place)
+    the package loads its default rig from inside site-packages."""
+    import zipfile
+
+    built = subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "-q", "-w", str(tmp_path / "dist"),
+                            str(ROOT)], capture_output=True, text=True)  # fmt: skip
+    assert built.returncode == 0, built.stderr
+    (wheel,) = (tmp_path / "dist").glob("mirrorgonio-*.whl")
+    names = set(zipfile.ZipFile(wheel).namelist())
+    shipped = {p.relative_to(ROOT).as_posix() for p in (ROOT / "acquisition" / "rigs").rglob("*") if p.is_file()}
+    assert shipped and shipped <= names
+    assert "acquisition/web/index.html" in names and "drivers/profiles/sim_stage.toml" in names
+    site = tmp_path / "site"
+    zipfile.ZipFile(wheel).extractall(site)  # what a plain install puts in site-packages
+    probe = ("import acquisition.rig as r, acquisition.demo as d; "
+             "print(r.DEFAULT_RIG_PATH.is_relative_to(r'{site}'), r.load_rig().camera.width, d.DEMO_RIG_PATH.is_file())")
+    # -S: no .pth files, so not this checkout's in-place install; the dependencies from this
+    # environment's site-packages, after the unpacked wheel.
+    libraries = next(p for p in sys.path if p.endswith("site-packages"))
+    ran = subprocess.run([sys.executable, "-S", "-c", probe.format(site=site)], capture_output=True, text=True,
+                         cwd=tmp_path, env={**os.environ, "PYTHONPATH": f"{site}{os.pathsep}{libraries}"})  # fmt: skip
+    assert ran.returncode == 0, ran.stderr
+    assert ran.stdout.split() == ["True", "2000", "True"]

@@ -26,8 +26,9 @@ from pathlib import Path
 import numpy as np
 
 from acquisition.benchmarks.accuracy import acquire_simulated
+from acquisition.rig import RIGS_DIR
 
-OBJECT_RIGS = Path(__file__).resolve().parents[2] / "rigs"
+OBJECT_RIGS = RIGS_DIR
 TARGET = {"median_abs_rel_error": 0.02, "uniform_cv": 0.02}
 LIGHT_EXPOSURES_S = (2e-5, 1e-4, 5e-4, 2.5e-3, 1.25e-2)
 # The object at 30 cm is ~10⁶× dimmer than the light seen in the ball: seconds, not µs.
