@@ -962,6 +962,10 @@ _REMOTE_SECTIONS: dict[str, Callable[[_Context, object], str]] = {
 }
 
 
+#: The remote sections that read the chief rays themselves (the others get the context without them).
+_NEEDS_RAYS = frozenset({_SECTIONS[3]})
+
+
 def warm_up_drawing() -> None:
     """Draw and encode a tiny figure with text: matplotlib's fonts and Agg loaded, so that the
     first section a fresh worker draws costs what the next ones do."""
@@ -993,8 +997,11 @@ class _RemoteSections:
     def start(self, name: str, ctx: _Context) -> None:
         if self.compute is None:
             return
+        shipped = replace(ctx, encoder=None)
+        if name not in _NEEDS_RAYS and ctx.geometry is not None:  # the rays are most of its bytes (~6 MB)
+            shipped.geometry = replace(ctx.geometry, rays=None)
         try:
-            self.futures[name] = self.compute.submit(draw_section, name, replace(ctx, encoder=None), self.samples)
+            self.futures[name] = self.compute.submit(draw_section, name, shipped, self.samples)
         except Exception as exc:  # noqa: BLE001 - e.g. a truth callable that does not pickle: draw it here
             log.info("report: %s drawn in this process (%s: %s)", name, type(exc).__name__, exc)
 
