@@ -67,7 +67,7 @@ def in_dask_worker() -> bool:
 #: share this process, and two worker processes share the cores with it: the statistical
 #: profiler (a sample of every worker thread every 10 ms), the system and memory monitors
 #: polling psutil several times a second, the 20 ms event-loop tick and work stealing (useless
-#: with tasks handed out two per worker) took 0.1 CPU-s of the client and ~4 % of every task on
+#: with a few tasks handed out per worker at a time) took 0.1 CPU-s of the client and ~4 % of every task on
 #: a 66-position run (measured on 2 cores, interleaved runs). A dashboard-less local cluster
 #: loses nothing by them; an existing ``tcp://`` cluster keeps its own settings.
 LOCAL_CLUSTER_CONFIG = {
@@ -82,6 +82,11 @@ LOCAL_CLUSTER_CONFIG = {
 }
 
 _MALLOC_TUNED = False
+
+
+def _task_key(func: Callable, suffix: str) -> str:
+    """A Dask key that names the function (the task stream and errors show it)."""
+    return f"{getattr(func, '__name__', 'task')}-{suffix}"
 
 
 def tune_malloc() -> None:
@@ -186,7 +191,7 @@ class Compute:
         def submit(chunk: list) -> list:
             # One graph update for the whole chunk: the scheduler's cost is per update as much as
             # per task (1.5 ms of this process's CPU a task when they went one by one).
-            keys = [f"{getattr(func, '__name__', 'task')}-{token}-{next(count)}" for _ in chunk]
+            keys = [_task_key(func, f"{token}-{next(count)}") for _ in chunk]
             futures = self.client.map(func, chunk, *[[a] * len(chunk) for a in args], key=keys, pure=False,
                                       **kwargs)  # fmt: skip
             running.update({f.key: (f, item) for f, item in zip(futures, chunk)})
@@ -214,8 +219,7 @@ class Compute:
         the caller runs ``func`` itself (ComputeError)."""
         if self.client is None:
             raise ComputeError("no Dask workers to submit to: call the function in this process")
-        return self.client.submit(func, *args, key=f"{getattr(func, '__name__', 'task')}-{uuid.uuid4().hex[:8]}",
-                                  pure=False, **kwargs)  # fmt: skip
+        return self.client.submit(func, *args, key=_task_key(func, uuid.uuid4().hex[:8]), pure=False, **kwargs)
 
     def warm_up(self, func: Callable[[], None]) -> None:
         """Run ``func()`` once on every worker (imports, compiled kernels): the cost of a

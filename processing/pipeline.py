@@ -89,19 +89,17 @@ def rig_noise(run: RunFile) -> NoiseModel:
     return NoiseModel(cam.gain_e_per_dn, cam.read_noise_e / cam.gain_e_per_dn, source="rig")
 
 
-def _prepare_task(single_threaded: bool | None = None) -> None:
-    """What every position task does first: keep freed arrays in the heap (``tune_malloc``)
-    and, in a Dask worker, run the numerical kernels on the task's thread alone.
+def _prepare_task() -> None:
+    """What every task does first: keep freed arrays in the heap (``tune_malloc``) and, in a
+    Dask worker, run the numerical kernels on the task's thread alone.
 
     The workers are the parallelism: numba's parallel kernels would start a thread per core
     in every worker, and on 2 cores the noise estimates then took 50-200 ms each instead of
     40-50. ``numba.set_num_threads`` holds for the calling thread only, so each task sets it
-    on the thread it runs on. ``single_threaded`` None: decide by whether this is a Dask worker.
+    on the thread it runs on. Without Dask, the kernels keep every core.
     """
     tune_malloc()
-    if single_threaded is None:
-        single_threaded = in_dask_worker()
-    if single_threaded:
+    if in_dask_worker():
         numba.set_num_threads(1)
 
 
@@ -153,15 +151,15 @@ def warm_up_worker() -> None:
     the compiled kernels from numba's cache, on tiny inputs.
 
     A fresh worker otherwise pays this (about a second, and matplotlib's import and fonts
-    for the report's sections) in the first tasks of its first run; :func:`processing.parallel.open_compute` runs it on every worker it starts, as a
-    part of starting the cluster.
+    for the report's sections) in the first tasks of its first run;
+    :func:`processing.parallel.open_compute` runs it on every worker it starts, as a part of
+    starting the cluster.
     """
     from processing.images import tonemap
     from processing.report import warm_up_drawing
     from processing.sources import _convex_coverage, specular_points
 
-    tune_malloc()
-    numba.set_num_threads(1)  # the worker's parallelism is the workers'
+    _prepare_task()
     rng = np.random.default_rng(0)
     frames = rng.integers(64, 4000, (2, 8, 8)).astype(np.uint16)
     merged = merge_raw(frames, [1e-3, 4e-3], 64, 4095, NoiseModel(5.0, 0.6))
@@ -203,7 +201,6 @@ class _PositionWork:
     results_path: str
     hdr: _HDRWork | None  # None: read the merged position from the results file
     sources: _SourcesPlan | None
-    single_threaded: bool  # in a Dask worker: the parallelism is the workers'
 
 
 @dataclass
@@ -250,7 +247,7 @@ def process_position(index: int, work: _PositionWork) -> PositionResult:
     :class:`ProcessingError` naming the file and the position.
     """
     started = time.perf_counter()
-    _prepare_task(work.single_threaded)
+    _prepare_task()
     out = PositionResult(index)
     clock = _StageClock(out.stages)
     with _open_run(work.run_path) as run:
@@ -505,7 +502,7 @@ def process_run(run_path, out_dir=None, *, steps=("hdr",), method: str = "optima
                     timings["layout"] = time.perf_counter() - clock
                     plan = _plan_sources(run, sources, estimator, ball_centre, positions)
             clock = time.perf_counter()
-            work = _PositionWork(str(run_path), str(results_file), None, plan, compute.dask)
+            work = _PositionWork(str(run_path), str(results_file), None, plan)
 
             def collect(index, result: PositionResult):
                 report.add_task(result)
@@ -537,7 +534,7 @@ def _hdr_pass(run: RunFile, run_path: Path, out: Path, results_file: Path, posit
     except RunFileError as exc:
         raise ProcessingError(str(exc)) from None
     hdr = _HDRWork(method, report.noise, cfa, str(folder) if images else None)
-    work = _PositionWork(str(run_path), str(results_file), hdr, plan, compute.dask)
+    work = _PositionWork(str(run_path), str(results_file), hdr, plan)
     found_images: dict[int, dict[str, Path]] = {}
     with ResultsWriter.create(results_file, run_id=run.header.run_id, run_file=str(run_path),
                               n_positions=run.n_positions, frame_shape=run.frame_shape,

@@ -31,9 +31,9 @@ projection); one worker thread encodes their PNGs and does the calibration's sen
 and the previews while the next figure is drawn: what the report costs is mostly
 matplotlib's text rendering. Given the processing's Dask cluster (``compute=``), its
 workers draw the five sections that need only the model, the samples and the chief rays,
-each in its own process, and the page is the same (:data:`_REMOTE_SECTIONS`). Each section that cannot be drawn (missing inputs) says why
-instead; a section that fails is reported in the page and logged, and never stops the
-processing.
+each in its own process, and the page is the same (:data:`_REMOTE_SECTIONS`). Each section
+that cannot be drawn (missing inputs) says why instead; a section that fails is reported in
+the page and logged, and never stops the processing.
 
 The truth, for simulated runs, is a callable ``truth(source, theta) -> intensity`` passed by
 the caller (the processing never imports the simulator). It is called with the source's
@@ -679,12 +679,13 @@ def _middle_position(run, samples) -> _Geometry:
 def _trace_middle(position: _Geometry, model: LightModel, max_pixels: int = 60_000) -> _Geometry:
     """``position`` with the chief rays of (at most about ``max_pixels``) pixels across the ball, and the
     footprint on the light plane of the pixel whose chief ray lands nearest the sources."""
-    from processing.trace import ball_pixel_box, ball_pixel_grid, grid_stride, trace_pixels
+    from processing.trace import ball_pixel_box, box_pixels, grid_stride, trace_pixels
 
     geometry, pose = position.geometry, position.pose
     out = replace(position)
-    cols, rows = ball_pixel_grid(geometry, max_pixels)
-    stride = grid_stride(ball_pixel_box(geometry), max_pixels)
+    box = ball_pixel_box(geometry)
+    stride = grid_stride(box, max_pixels)
+    cols, rows = box_pixels(box, stride)
     rays = trace_pixels(geometry, pose, cols, rows)
     out.rays = rays
     centroid = np.mean([s.centre_m for s in model.sources], axis=0)
@@ -951,8 +952,7 @@ def _header(model: LightModel, run, report, samples, resolution_m: float) -> str
 #: rays): a cluster's workers can draw them, each in its own process, while this process draws the
 #: rest. Drawing is mostly matplotlib's text rendering, Python holding the GIL: threads would not
 #: share it out, processes do. Measured on 2 cores, a whole run's page: 0.62 s in one process, of
-#: which these five sections 0.5 s (50-150 ms each); 0.4-0.5 s with two workers drawing the three
-#: largest.
+#: which these five sections 0.5 s (50-150 ms each); 0.37-0.55 s with two workers drawing them.
 _REMOTE_SECTIONS: dict[str, Callable[[_Context, object], str]] = {
     _SECTIONS[0]: lambda ctx, samples: _intensity_section(ctx),
     _SECTIONS[1]: lambda ctx, samples: _layout_section(ctx),

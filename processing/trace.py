@@ -217,10 +217,15 @@ def ball_pixel_grid(geometry: RigGeometry, max_pixels: int | None = None) -> tup
     the same pixels as taking them out of the whole box, without making the whole box.
     """
     box = ball_pixel_box(geometry)
+    return box_pixels(box, grid_stride(box, max_pixels))
+
+
+def box_pixels(box: tuple[int, int, int, int] | None, stride: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """The columns and rows of ``box`` that are multiples of ``stride``, every pixel's
+    coordinates (row by row, as floats); empty for no box."""
     if box is None:
         return np.zeros(0), np.zeros(0)
     c0, c1, r0, r1 = box
-    stride = grid_stride(box, max_pixels)
     cols = np.arange(-(-c0 // stride) * stride, c1, stride, dtype=float)
     rows = np.arange(-(-r0 // stride) * stride, r1, stride, dtype=float)
     return np.tile(cols, rows.size), np.repeat(rows, cols.size)

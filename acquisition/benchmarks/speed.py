@@ -405,6 +405,7 @@ def measure_process(run_path: Path, rig, repeat: int, scheduler: str, workers: i
     say(f"  on a cluster started for it: {fresh['process_s']:.1f} s (its start {fresh_start_s:.1f} s)")
     times = [run["process_s"] for run in runs]
     process_s = _median(times)
+    memory_report = memory.report()
     median_run = sorted(runs, key=lambda run: run["process_s"])[len(runs) // 2]
     positions = median_run["positions"]
     ratio = (lambda seconds: round(seconds / read_floor_s, 2) if read_floor_s > 0 else None)  # noqa: E731
@@ -423,8 +424,8 @@ def measure_process(run_path: Path, rig, repeat: int, scheduler: str, workers: i
         "task_ms_per_position": {k: round(1000 * v / positions, 1) for k, v in median_run["task_stages"].items()},
         "compute": description,
         "estimator": median_run["estimator"],
-        "peak_memory_gb": memory.report()["peak_total_gb"],
-        "memory": memory.report(),
+        "peak_memory_gb": memory_report["peak_total_gb"],
+        "memory": memory_report,
         "worker_peak_rss_gb": {k: round(v / 1e9, 3) for k, v in worker_peaks.items()},
         "outputs": median_run["outputs"],
         "output_bytes": median_run["output_bytes"],
