@@ -60,6 +60,11 @@ def test_the_json_has_every_measurement(speed):
     assert sum(v for k, v in stages.items() if k != "tasks") == pytest.approx(stages["tasks"], rel=0.1, abs=0.5)
     assert process["over_read_floor"] == pytest.approx(process["process_s"] / read["read_s"], rel=0.02)
     assert "Dask" in process["compute"] and process["parallel_read_s"] > 0
+    # CPU per processing, the client and the workers apart: both did work, within what the cores allow
+    cpu = process["cpu_per_processing"]
+    assert cpu["workers_user_s"] > 0 and cpu["client_user_s"] > 0 and cpu["workers_system_s"] >= 0
+    assert cpu["client_minor_faults"] >= 0 and cpu["workers_minor_faults"] >= 0
+    assert cpu["workers_user_s"] + cpu["workers_system_s"] < 2 * max(process["process_s_all"]) * result["machine"]["cpu_count"]
     memory = process["memory"]
     assert memory["child_processes"] >= 1 and memory["peak_children_gb"] > 0
     assert memory["peak_total_gb"] >= max(memory["peak_this_process_gb"], memory["peak_children_gb"])

@@ -155,11 +155,14 @@ def test_the_default_local_cluster_is_sized_to_the_machine_and_streams(captured,
         assert len(warmed) == default_workers() and all(warmed.values())
         assert compute.description == f"local Dask cluster: {default_workers()} worker processes x 1 thread"
         # The workers run with the local cluster's lean settings (no profiler, slow monitors)
-        # and without Dask's MALLOC_TRIM_THRESHOLD_, which makes every large array an mmap.
+        # and without Dask's MALLOC_TRIM_THRESHOLD_, which makes every large array an mmap;
+        # with one malloc arena, set before the process starts, so that the executor thread's
+        # arrays reuse the heap rather than fault in fresh pages.
         settings = compute.client.run(lambda: (dask.config.get("distributed.worker.profile.enabled"),
                                                dask.config.get("distributed.admin.tick.interval"),
-                                               os.environ.get("MALLOC_TRIM_THRESHOLD_")))  # fmt: skip
-        assert set(settings.values()) == {(False, "500ms", None)}
+                                               os.environ.get("MALLOC_TRIM_THRESHOLD_"),
+                                               os.environ.get("MALLOC_ARENA_MAX")))  # fmt: skip
+        assert set(settings.values()) == {(False, "500ms", None, "1")}
         assert compute.client.run_on_scheduler(lambda dask_scheduler: "stealing" in dask_scheduler.extensions) is False
         # Every task runs its numba kernels on its own thread alone (numba's setting is per thread).
         from processing.pipeline import _prepare_task

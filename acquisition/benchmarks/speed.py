@@ -57,6 +57,7 @@ import hashlib
 import json
 import math
 import os
+import resource
 import shutil
 import statistics
 import tempfile
@@ -341,15 +342,53 @@ def _process_once(run_path: Path, layout, compute, *, images: bool = True) -> di
 
     out_dir = Path(tempfile.mkdtemp(prefix="mirrorgonio-speed-out-"))
     try:
+        before = _cpu_usage(compute)
         t0 = time.perf_counter()
         report = process_run(run_path, out_dir, steps=("hdr", "sources"), layout=layout, compute=compute, images=images)
         seconds = time.perf_counter() - t0
+        used = {key: [a - b for a, b in zip(after, before[key])] for key, after in _cpu_usage(compute).items() if key in before}
         outputs = {kind: len(paths) for kind, paths in report.outputs.items()}
         output_bytes = sum(f.stat().st_size for f in out_dir.rglob("*") if f.is_file())
     finally:
         shutil.rmtree(out_dir, ignore_errors=True)
     return {"process_s": seconds, "timings": report.timings, "task_stages": report.task_stages, "outputs": outputs,
-            "output_bytes": output_bytes, "positions": report.positions, "estimator": report.estimator}  # fmt: skip
+            "output_bytes": output_bytes, "positions": report.positions, "estimator": report.estimator,
+            "cpu": used}  # fmt: skip
+
+
+def _rusage() -> tuple[float, float, int]:
+    """This process's user and system CPU seconds and minor page faults so far."""
+    usage = resource.getrusage(resource.RUSAGE_SELF)
+    return usage.ru_utime, usage.ru_stime, usage.ru_minflt
+
+
+def _cpu_usage(compute) -> dict[str, tuple[float, float, int]]:
+    """:func:`_rusage` of this process (``"client"``) and of every Dask worker (by address)."""
+    usage = {"client": _rusage()}
+    if compute.dask:
+        usage.update(compute.client.run(_rusage))
+    return usage
+
+
+def _cpu_report(runs: list[dict]) -> dict:
+    """CPU seconds (user, system) and minor page faults per processing, medians over ``runs``:
+    the client's and the workers' summed. Faults are worth watching on a VM that hands freed
+    memory back to its host: 8 MB written into such pages took 12-20 ms, into reused ones
+    2.5 ms (this machine, Firecracker with free page reporting)."""
+    def median_of(pick) -> float:
+        return _median([pick(run["cpu"]) for run in runs])
+
+    def workers(cpu: dict, i: int) -> float:
+        return sum(v[i] for k, v in cpu.items() if k != "client")
+
+    return {"client_user_s": round(median_of(lambda c: c["client"][0]), 2),
+            "client_system_s": round(median_of(lambda c: c["client"][1]), 2),
+            "client_minor_faults": int(median_of(lambda c: c["client"][2])),
+            "workers_user_s": round(median_of(lambda c: workers(c, 0)), 2),
+            "workers_system_s": round(median_of(lambda c: workers(c, 1)), 2),
+            "workers_minor_faults": int(median_of(lambda c: workers(c, 2))),
+            "how": "getrusage(RUSAGE_SELF) of this process and of each worker (Client.run) before and after each "
+                   "timed processing; medians of the sums"}  # fmt: skip
 
 
 def measure_process(run_path: Path, rig, repeat: int, scheduler: str, workers: int | None, read_floor_s: float,
@@ -427,6 +466,7 @@ def measure_process(run_path: Path, rig, repeat: int, scheduler: str, workers: i
         "peak_memory_gb": memory_report["peak_total_gb"],
         "memory": memory_report,
         "worker_peak_rss_gb": {k: round(v / 1e9, 3) for k, v in worker_peaks.items()},
+        "cpu_per_processing": _cpu_report(runs),
         "outputs": median_run["outputs"],
         "output_bytes": median_run["output_bytes"],
         "over_read_floor": ratio(process_s),
@@ -828,6 +868,10 @@ def markdown_table(result: dict) -> str:
         ("a position task's time, per position (read, merge, encode, write, images, masks, sources)",
          [" + ".join(f"{e['process']['task_ms_per_position'].get(k, 0):.0f}" for k in ("read", "merge", "encode", "write", "images", "masks", "sources"))
           + f" = {e['process']['task_ms_per_position'].get('tasks', 0):.0f} ms" for e in entries], ""),
+        ("CPU per processing: user + system seconds, minor page faults (this process; workers)",
+         [f"{c['client_user_s']:.1f} + {c['client_system_s']:.1f} s, {c['client_minor_faults'] / 1e3:.0f} k; "
+          f"{c['workers_user_s']:.1f} + {c['workers_system_s']:.1f} s, {c['workers_minor_faults'] / 1e3:.0f} k"
+          for c in (e["process"]["cpu_per_processing"] for e in entries)], ""),
         ("peak memory of the processing (this process + workers)",
          [f"{e['process']['peak_memory_gb']:.2f} GB" for e in entries], f"< {TARGET['peak_memory_gb']:g} GB at 2000×1312"),
         ("making the simulated run (once, cached)",
