@@ -455,6 +455,19 @@ def test_every_service_runs_a_real_command_line():
     }
 
 
+def test_the_dask_workers_get_the_environment_a_local_cluster_gives_its_workers():
+    """What ``LOCAL_CLUSTER_CONFIG`` sets in a local cluster's workers before they start (one
+    malloc arena) the compose file's Dask workers have too: a ``tcp://`` cluster processes
+    the same tasks."""
+    from processing.parallel import LOCAL_CLUSTER_CONFIG
+
+    prefix = "distributed.nanny.pre-spawn-environ."
+    wanted = {k[len(prefix):]: v for k, v in LOCAL_CLUSTER_CONFIG.items() if k.startswith(prefix) and v is not None}
+    assert wanted == {"MALLOC_ARENA_MAX": "1"}
+    env = _parse_compose(COMPOSE, {"MG_TOKEN": "x"})["services"]["dask-worker"].get("environment") or {}
+    assert {k: str(env.get(k)) for k in wanted} == wanted
+
+
 @pytest.mark.parametrize("sub", ["scheduler", "worker"])
 def test_the_dask_program_lists_the_options_the_services_use(sub):
     """``dask scheduler --help`` / ``dask worker --help`` of this environment's dask program."""
