@@ -349,7 +349,7 @@ def _rates(radiance, variance, count, saturated, gain: float):
 def _write_images(folder: Path, index: int, radiance: np.ndarray, cfa: str) -> dict[str, Path]:
     from processing.images import write_exr, write_png
 
-    rgb = superpixels(np.where(np.isfinite(radiance), radiance, 0.0), cfa)
+    rgb = superpixels(radiance, cfa, nonfinite=0.0)
     return {"exr": write_exr(folder / f"position-{index:03d}.exr", rgb),
             "png": write_png(folder / f"position-{index:03d}.png", rgb)}  # fmt: skip
 

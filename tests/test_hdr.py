@@ -392,3 +392,10 @@ def test_superpixels_match_the_tile_sums(cfa, dtype):
         got = superpixels(view, cfa)
         assert got.dtype == np.float32
         np.testing.assert_array_equal(got, expected)
+        # Non-finite samples as 0 in the same pass: what the superpixels of the mosaic with
+        # them set to 0 are, and every value finite.
+        zeroed = superpixels(view, cfa, nonfinite=0.0)
+        np.testing.assert_array_equal(zeroed, superpixels(np.where(np.isfinite(view), view, 0), cfa))
+        assert np.isfinite(zeroed).all()
+        if dtype != np.uint16:
+            assert not np.isfinite(got).all()
