@@ -321,6 +321,14 @@ class Results:
     def hdr_done(self) -> np.ndarray:
         return self._f["hdr/done"][:].astype(bool)
 
+    def files(self) -> list[Path]:
+        """Every file the results' data live in: this one, then (format version 2) the done
+        positions' files in position order. What a copy of the results must carry, at the
+        same paths relative to this file's folder (:func:`position_file_name`)."""
+        if "hdr/radiance" not in self._f or not self._f["hdr/radiance"].is_virtual:
+            return [self.path]
+        return [self.path] + [position_file_for(self.path, int(i)) for i in np.flatnonzero(self.hdr_done)]
+
     @property
     def noise(self) -> NoiseModel:
         a = self._f["hdr"].attrs

@@ -121,6 +121,9 @@ def test_the_results_file_reads_as_whole_arrays_with_plain_h5py(tmp_path, monkey
         assert np.isnan(whole[0]).all() and np.isnan(whole[2]).all()
         assert (g["count"][0] == 0).all() and g["done"][:].tolist() == [0, 1, 0]
         assert np.array_equal(g["saturation_level"][1], m.saturation_level)
+    # A copy must carry the index and the done positions' files (the download packs these).
+    with Results.open(path) as results:
+        assert results.files() == [path, tmp_path / "run-7.hdr" / "position-001.h5"]
 
 
 def test_a_missing_or_unwritten_position_file_is_one_line(tmp_path):
@@ -164,6 +167,7 @@ def test_results_written_before_read_the_same(tmp_path):
         for name, array in _stored(m).items():
             _assert_bits_equal(getattr(results, name)(0), np.asarray(array))
         _assert_bits_equal(results.radiance(1), noise)
+        assert results.files() == [path]  # everything inside
 
 
 def test_encoded_chunks_are_smaller_than_the_arrays():

@@ -7,6 +7,7 @@ real Dask clusters.
 
 from __future__ import annotations
 
+import io
 import os
 import shutil
 import signal
@@ -14,6 +15,7 @@ import subprocess
 import sys
 import threading
 import time
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -24,7 +26,7 @@ from acquisition.rig import load_rig
 from acquisition.runfile import PositionTimes, RunFile, RunFileWriter, RunHeader
 from acquisition.worker import ARTIFACT_KINDS, JobLostError, JobWorker, one_line, writer_alive
 from conftest import REDUCED_RIG
-from processing.results import Results
+from processing.results import Results, position_file_for
 from sim_devices.camera import SimulatedCamera
 from sim_devices.lights import LIGHTS_DIR
 from sim_devices.world import SimWorld
@@ -350,7 +352,30 @@ def test_the_daemon_serves_a_jobs_state_and_exactly_its_result_files(captured, d
         assert ies.content == Path(done.artifacts["ies"]).read_bytes()
         rays = http.get(status["artifacts"]["tm25"])
         assert rays.status_code == 200 and rays.content == Path(done.artifacts["tm25"]).read_bytes()
-        assert http.get(status["artifacts"]["results"]).content[:8] == b"\x89HDF\r\n\x1a\n"
+        # The results download as one ZIP archive (the index and each position's file, stored),
+        # which unpacks, anywhere, to a results file that reads the same numbers.
+        archive = http.get(status["artifacts"]["results"])
+        assert archive.status_code == 200 and archive.headers["content-type"] == "application/zip"
+        results_path = Path(done.artifacts["results"])
+        assert f'filename="{results_path.name.removesuffix(".h5")}.zip"' in archive.headers["content-disposition"]
+        with zipfile.ZipFile(io.BytesIO(archive.content)) as unpacked:
+            assert unpacked.testzip() is None
+            with Results.open(results_path) as here:
+                done_positions = np.flatnonzero(here.hdr_done)
+                assert unpacked.namelist() == [results_path.name] + [
+                    f"{results_path.name.removesuffix('.results.h5')}.hdr/position-{i:03d}.h5" for i in done_positions]
+                assert all(i.compress_type == zipfile.ZIP_STORED for i in unpacked.infolist())
+                unpacked.extractall(tmp_path / "downloaded")
+                with Results.open(tmp_path / "downloaded" / results_path.name) as there:
+                    for i in done_positions:
+                        np.testing.assert_array_equal(there.radiance(i), here.radiance(i))
+                        np.testing.assert_array_equal(there.variance(i), here.variance(i))
+        # A position file gone from the server: the download is refused whole, naming it.
+        moved = position_file_for(results_path, int(done_positions[-1]))
+        moved.rename(moved.with_suffix(".away"))
+        incomplete = http.get(status["artifacts"]["results"])
+        assert incomplete.status_code == 404 and f"{moved.name} is no longer there" in incomplete.json()["detail"]
+        moved.with_suffix(".away").rename(moved)
         # Only the files the job recorded, nothing else.
         assert http.get(f"/jobs/{job['id']}/artifacts/catalog").status_code == 404
         assert http.get(f"/jobs/{job['id']}/artifacts/..%2F..%2Fcatalog.sqlite").status_code == 404
@@ -361,3 +386,23 @@ def test_the_daemon_serves_a_jobs_state_and_exactly_its_result_files(captured, d
         assert gone.status_code == 404 and "no longer there" in gone.json()["detail"]
         listed = http.get("/jobs", params={"run_id": run.id}).json()
         assert [j["id"] for j in listed] == [job["id"]] and listed[0]["artifacts"] == status["artifacts"]
+
+
+def test_the_results_archive_streams_a_block_at_a_time(tmp_path):
+    """The ZIP stream never holds more than one block (plus a header) of a member, and is a
+    valid archive of every member, byte for byte, under its name."""
+    from acquisition.api.jobs import zip_stream
+
+    rng = np.random.default_rng(7)
+    members = []
+    for name, size in (("a.results.h5", 3_000_000), ("a.hdr/position-000.h5", 1), ("a.hdr/position-002.h5", 0)):
+        path = tmp_path / name.replace("/", "_")
+        path.write_bytes(rng.integers(0, 256, size, dtype=np.uint8).tobytes())
+        members.append((path, name))
+    block = 64 * 1024
+    chunks = list(zip_stream(members, block=block))
+    assert max(len(c) for c in chunks) <= block + 200 and len(chunks) > 3_000_000 // block
+    with zipfile.ZipFile(io.BytesIO(b"".join(chunks))) as archive:
+        assert archive.testzip() is None and archive.namelist() == [name for _, name in members]
+        for path, name in members:
+            assert archive.read(name) == path.read_bytes()

@@ -2,15 +2,19 @@
 
 A worker (``mirrorgonio worker``) records the files a job wrote, by kind; the daemon serves
 exactly those files and nothing else: an unknown kind, a job without that file, or a file
-that has gone (or left the job's result folder) is 404.
+that has gone (or left the job's result folder) is 404. The results are several files (the
+index and one file per position, ``docs/results-file.md``): they download as one ZIP
+archive, streamed, that unpacks to a results file that opens.
 """
 
 from __future__ import annotations
 
+import zipfile
+from collections.abc import Iterator
 from pathlib import Path
 
 from fastapi import APIRouter, HTTPException, status
-from fastapi.responses import FileResponse
+from fastapi.responses import FileResponse, Response, StreamingResponse
 
 from acquisition.api.deps import CatalogDep
 from acquisition.catalog import JobRecord
@@ -25,7 +29,7 @@ ARTIFACT_TYPES: dict[str, tuple[str, bool]] = {
     "ldt": ("text/plain; charset=utf-8", False),
     "tm25": ("application/octet-stream", False),
     "light_model": ("application/json", False),
-    "results": ("application/x-hdf5", False),
+    "results": ("application/zip", False),  # the results file and its position files
 }
 
 
@@ -57,18 +61,89 @@ def get_job(job_id: str, catalog: CatalogDep) -> JobStatus:
     200: {"content": {media: {} for media, _ in ARTIFACT_TYPES.values()},
           "description": "the file (the report opens in the browser, the others download)"},
     404: {"model": Problem, "description": "unknown job, or no such file recorded for it"}})  # fmt: skip
-def download_artifact(job_id: str, kind: str, catalog: CatalogDep) -> FileResponse:
+def download_artifact(job_id: str, kind: str, catalog: CatalogDep) -> Response:
     """One of a job's result files: ``report`` (HTML), ``ies``, ``ldt``, ``tm25`` (ray file),
-    ``light_model`` (JSON) or ``results`` (HDF5)."""
+    ``light_model`` (JSON), or ``results``: a ZIP archive of the results file and its
+    per-position files, which unpacks to a results file that opens."""
     job = catalog.get_job(job_id)
     recorded = job.artifacts.get(kind)
     if recorded is None:
         kinds = ", ".join(sorted(job.artifacts)) or "none yet"
         raise HTTPException(status.HTTP_404_NOT_FOUND, f"job {job_id} has no {kind!r} file (it has: {kinds})")
-    path = Path(recorded).resolve()
-    inside = job.result_dir is None or path.is_relative_to(Path(job.result_dir).resolve())
-    if not inside or not path.is_file():
-        raise HTTPException(status.HTTP_404_NOT_FOUND, f"job {job_id}: its {kind} file is no longer there")
+    path = _served_file(job, kind, Path(recorded))
     media, inline = ARTIFACT_TYPES.get(kind, ("application/octet-stream", False))
+    if kind == "results":
+        members = [(file, file.relative_to(path.parent).as_posix()) for file in _results_files(job, path)]
+        name = path.name.removesuffix(".h5") + ".zip"
+        return StreamingResponse(zip_stream(members), media_type=media,
+                                 headers={"Content-Disposition": f'attachment; filename="{name}"'})  # fmt: skip
     return FileResponse(path, media_type=media, filename=path.name,
                         content_disposition_type="inline" if inline else "attachment")  # fmt: skip
+
+
+def _served_file(job: JobRecord, kind: str, recorded: Path) -> Path:
+    """``recorded`` resolved, if it is still a file inside the job's result folder (else 404)."""
+    path = recorded.resolve()
+    inside = job.result_dir is None or path.is_relative_to(Path(job.result_dir).resolve())
+    if not inside or not path.is_file():
+        raise HTTPException(status.HTTP_404_NOT_FOUND, f"job {job.id}: its {kind} file is no longer there")
+    return path
+
+
+def _results_files(job: JobRecord, results_path: Path) -> list[Path]:
+    """The results file and every file its data live in, each checked as :func:`_served_file`
+    checks one, before any byte is sent (a stream cannot turn into a 404 halfway)."""
+    from processing.results import Results, ResultsError
+
+    try:
+        with Results.open(results_path) as results:
+            files = results.files()
+    except ResultsError as exc:
+        raise HTTPException(status.HTTP_404_NOT_FOUND, f"job {job.id}: {exc}") from None
+    folder = results_path.parent
+    for file in files:
+        resolved = file.resolve()
+        if not resolved.is_relative_to(folder) or not resolved.is_file():
+            raise HTTPException(status.HTTP_404_NOT_FOUND,
+                                f"job {job.id}: its results are incomplete: {file.name} is no longer there")  # fmt: skip
+    return [file.resolve() for file in files]
+
+
+class _Chunks:
+    """A write-only stream that hands out what was written to it (``zipfile`` writes to it
+    without seeking: sizes and CRCs go in data descriptors)."""
+
+    def __init__(self) -> None:
+        self._parts: list[bytes] = []
+
+    def write(self, data) -> int:
+        self._parts.append(bytes(data))
+        return len(data)
+
+    def flush(self) -> None:
+        pass
+
+    def take(self) -> bytes:
+        out = b"".join(self._parts)
+        self._parts.clear()
+        return out
+
+
+def zip_stream(members: list[tuple[Path, str]], block: int = 1 << 20) -> Iterator[bytes]:
+    """A ZIP archive of ``members`` (path, name in the archive), stored as they are (the data
+    are compressed already), produced a block at a time: memory stays at one block whatever
+    the run's size. ZIP64 where a member or the archive needs it."""
+    sink = _Chunks()
+    with zipfile.ZipFile(sink, "w", compression=zipfile.ZIP_STORED, allowZip64=True) as archive:
+        for path, name in members:
+            info = zipfile.ZipInfo.from_file(path, name)
+            info.compress_type = zipfile.ZIP_STORED
+            with path.open("rb") as source, archive.open(info, "w", force_zip64=info.file_size >= 1 << 31) as target:
+                while data := source.read(block):
+                    target.write(data)
+                    if chunk := sink.take():
+                        yield chunk
+            if chunk := sink.take():
+                yield chunk
+    if chunk := sink.take():
+        yield chunk

@@ -416,7 +416,7 @@ function renderRuns(runs, latestJob) {
 // --- processing jobs ------------------------------------------------------------------------
 // The result files a job recorded, as the daemon serves them (GET /jobs/{id}/artifacts/{kind}).
 const ARTIFACT_LABELS = {
-  report: "report", ies: "IES", tm25: "ray file (TM-25)", ldt: "LDT", light_model: "light model (JSON)", results: "results (.h5)",
+  report: "report", ies: "IES", tm25: "ray file (TM-25)", ldt: "LDT", light_model: "light model (JSON)", results: "results (.zip)",
 };
 
 function resultLinks(job, kinds = Object.keys(ARTIFACT_LABELS)) {
