@@ -231,3 +231,38 @@ def test_calibrate_measures_the_ball_and_process_uses_the_measured_centre(simula
     assert model.provenance["ball_centre_m"] == pytest.approx([float(v) for v in centre.split(",")])
     bad = runner.invoke(app, ["process", str(path), "--ball-centre", "1,2", "--out", str(tmp_path / "x")])
     assert bad.exit_code == 2 and "--ball-centre: expected X,Y,Z in metres" in bad.output
+
+
+def test_intensities_use_the_rigs_calibrated_gain_whatever_weights_the_merge(simulated_run, tmp_path, monkeypatch, caplog):
+    """The camera's sensitivity was calibrated with the rig's gain, and the reflectance step
+    converts DN to e⁻ with it: so does the light step. A noise model whose gain is 10 %
+    off (an estimate from the brackets can be a few % off) changes the merge's weights
+    only, not the intensities, and is reported in one line."""
+    import logging
+
+    from processing import pipeline
+    from processing.hdr import NoiseModel
+    from sim_devices.lights import LIGHTS_DIR
+
+    path, _, rig = simulated_run
+    layout = LIGHTS_DIR / "five-gaussians.toml"
+    as_rig = pipeline.process_run(path, tmp_path / "rig", steps="hdr,sources", layout=layout, noise="rig")
+    rig_model = as_rig.noise
+    off = NoiseModel(rig_model.gain_e_per_dn * 1.1, rig_model.read_noise_dn, source="estimated")
+    monkeypatch.setattr(pipeline, "choose_noise", lambda *args, **kwargs: off)
+    with caplog.at_level(logging.WARNING, logger="mirrorgonio.processing"):
+        skewed = pipeline.process_run(path, tmp_path / "off", steps="hdr,sources", layout=layout)
+    assert skewed.noise is off
+    a, b = as_rig.samples.intensity, skewed.samples.intensity
+    strong = np.isfinite(a) & np.isfinite(b) & (a > 0.05 * np.nanmax(a))
+    assert strong.sum() >= 10
+    ratio = np.median(b[strong] / a[strong])
+    assert ratio == pytest.approx(1.0, abs=0.005)  # not 1.1
+    warned = [r.getMessage() for r in caplog.records if "calibrated gain" in r.getMessage()]
+    assert len(warned) == 1 and "+10.0 %" in warned[0] and str(path) in warned[0]
+    # The rig's own noise model: nothing to report.
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="mirrorgonio.processing"):
+        monkeypatch.undo()
+        pipeline.process_run(path, tmp_path / "rig2", steps="hdr,sources", layout=layout, noise="rig")
+    assert not [r for r in caplog.records if "calibrated gain" in r.getMessage()]
