@@ -224,12 +224,15 @@ def test_the_page_shows_each_job_and_links_its_report_ies_and_ray_file(tmp_path,
     expect(links["report"]).to_have_text("report")
     expect(links["ies"]).to_have_text("IES")
     expect(links["tm25"]).to_have_text("ray file (TM-25)")
+    expect(links["results"]).to_have_text("results (.zip)")  # the results file and its position files
     # The run's row links the latest job's report, IES and ray file too.
     expect(row.locator(".job-state")).to_contain_text("complete")
     assert row.locator("a.artifact").count() == 3
     for kind in ("report", "ies", "tm25"):
         answer = httpx.get(daemon.url + links[kind].get_attribute("href"), timeout=30)
         assert answer.status_code == 200 and answer.content == Path(done.artifacts[kind]).read_bytes()
+    archive = httpx.get(daemon.url + links["results"].get_attribute("href"), timeout=30)
+    assert archive.status_code == 200 and archive.content[:4] == b"PK\x03\x04"
     # The report opens in the browser.
     with page.context.expect_page() as opened:
         links["report"].click()
