@@ -236,12 +236,16 @@ class Compute:
 
     def warm_up(self, func: Callable[[], None]) -> None:
         """Run ``func()`` once on every worker (imports, compiled kernels): the cost of a
-        fresh worker, paid when the cluster starts rather than in a run's first tasks. A
-        worker it fails on is logged and left to warm up on its own. No-op without Dask."""
+        fresh worker, paid when it starts rather than in a run's first tasks. A worker
+        plugin (``processing.dask_plugins.WarmUpPlugin``), so that workers that join the
+        cluster later are warmed too. A worker it fails on is logged and left to warm up
+        on its own. No-op without Dask."""
         if self.client is None:
             return
+        from processing.dask_plugins import WarmUpPlugin
+
         try:
-            self.client.run(func)
+            self.client.register_plugin(WarmUpPlugin(func))
         except Exception as exc:  # noqa: BLE001 - a slower first run, not an error
             log.warning("warming up the Dask workers failed: %s", exc)
 

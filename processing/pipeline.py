@@ -101,14 +101,24 @@ def radiometric_gain(run: RunFile) -> float:
     return float(run.header.rig.camera.gain_e_per_dn)
 
 
-def _gain_mismatch(run: RunFile, noise: NoiseModel) -> str | None:
-    """A warning when the noise model's gain is more than 1 % from the rig's calibrated gain."""
+#: How far an estimated gain may lie from the rig's before it is worth a warning: the
+#: estimate from the brackets came out 2.1 % above the simulated camera's true gain on the
+#: bench's run, and it only weights the merge; beyond this, the rig's figure is suspect.
+GAIN_MISMATCH_WARNING = 0.05
+
+
+def _report_gain_mismatch(run: RunFile, noise: NoiseModel) -> None:
+    """One line when the noise model's gain is more than 1 % from the rig's calibrated gain:
+    logged, and a warning beyond :data:`GAIN_MISMATCH_WARNING`."""
     rig_gain = radiometric_gain(run)
-    if abs(noise.gain_e_per_dn / rig_gain - 1.0) <= 0.01:
-        return None
-    return (f"{run.path}: the noise model's gain ({noise.source}, {noise.gain_e_per_dn:.4g} e-/DN) differs from the "
-            f"rig's calibrated gain ({rig_gain:.4g} e-/DN) by {100 * (noise.gain_e_per_dn / rig_gain - 1):+.1f} %: "
-            "the merge is weighted with it, intensities use the rig's; check the camera's calibration")  # fmt: skip
+    off = noise.gain_e_per_dn / rig_gain - 1.0
+    if abs(off) <= 0.01:
+        return
+    log.log(logging.WARNING if abs(off) > GAIN_MISMATCH_WARNING else logging.INFO,
+            "%s: the noise model's gain (%s, %.4g e-/DN) differs from the rig's calibrated gain (%.4g e-/DN) by "
+            "%+.1f %%: the merge is weighted with it, intensities use the rig's%s", run.path, noise.source,
+            noise.gain_e_per_dn, rig_gain, 100 * off,
+            "; check the camera's calibration" if abs(off) > GAIN_MISMATCH_WARNING else "")  # fmt: skip
 
 
 def _prepare_task() -> None:
@@ -501,8 +511,8 @@ def process_run(run_path, out_dir=None, *, steps=("hdr",), method: str = "optima
             positions = np.flatnonzero(done)
             if positions.size == 0:
                 raise ProcessingError(f"{run.path}: no position has both frames and an HDR result")
-        if "sources" in steps and (mismatch := _gain_mismatch(run, report.noise)):
-            log.warning("%s", mismatch)
+        if "sources" in steps:
+            _report_gain_mismatch(run, report.noise)
         report.n_positions = run.n_positions
         report.partial = positions.size < run.n_positions
         report.compute = compute.description

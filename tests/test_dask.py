@@ -27,28 +27,26 @@ from test_worker import LAYOUT, Data, captured  # noqa: F401 - the module fixtur
 runner = CliRunner()
 
 
-@pytest.fixture(scope="module")
-def scheduler(tmp_path_factory):
-    """A Dask scheduler and two single-threaded worker processes, as separate programs."""
-    from distributed import Client
+DASK = str(Path(sys.executable).with_name("dask"))
 
-    logs = tmp_path_factory.mktemp("dask")
-    dask = str(Path(sys.executable).with_name("dask"))
-    port = free_port()
-    address = f"tcp://127.0.0.1:{port}"
-    procs = []
-    try:
-        for name, argv in (("scheduler", [dask, "scheduler", "--host", "127.0.0.1", "--port", str(port), "--no-dashboard"]),
-                           ("worker", [dask, "worker", address, "--host", "127.0.0.1", "--nworkers", "2", "--nthreads", "1",
-                                       "--no-dashboard", "--memory-limit", "2GB"])):  # fmt: skip
-            log = open(logs / f"{name}.log", "wb")
-            procs.append((subprocess.Popen(argv, stdout=log, stderr=subprocess.STDOUT), log))
-            time.sleep(0.5 if name == "scheduler" else 0.0)
-        with Client(address, timeout=60) as client:
-            client.wait_for_workers(2, timeout=120)
-        yield address
-    finally:
-        for proc, log in reversed(procs):
+
+def _worker_argv(address: str, nworkers: int) -> list[str]:
+    return [DASK, "worker", address, "--host", "127.0.0.1", "--nworkers", str(nworkers), "--nthreads", "1",
+            "--no-dashboard", "--memory-limit", "2GB"]  # fmt: skip
+
+
+class _Programs:
+    """Dask programs started as separate processes, each logging to a file; stopped in reverse."""
+
+    def __init__(self, logs: Path):
+        self.logs, self.procs = logs, []
+
+    def start(self, name: str, argv: list[str]) -> None:
+        log = open(self.logs / f"{name}.log", "wb")
+        self.procs.append((subprocess.Popen(argv, stdout=log, stderr=subprocess.STDOUT), log))
+
+    def stop(self) -> None:
+        for proc, log in reversed(self.procs):
             proc.terminate()
             try:
                 proc.wait(30)
@@ -56,6 +54,58 @@ def scheduler(tmp_path_factory):
                 proc.kill()
                 proc.wait(10)
             log.close()
+
+    def scheduler(self) -> str:
+        port = free_port()
+        self.start("scheduler", [DASK, "scheduler", "--host", "127.0.0.1", "--port", str(port), "--no-dashboard"])
+        time.sleep(0.5)
+        return f"tcp://127.0.0.1:{port}"
+
+
+@pytest.fixture(scope="module")
+def scheduler(tmp_path_factory):
+    """A Dask scheduler and two single-threaded worker processes, as separate programs."""
+    from distributed import Client
+
+    programs = _Programs(tmp_path_factory.mktemp("dask"))
+    try:
+        address = programs.scheduler()
+        programs.start("worker", _worker_argv(address, 2))
+        with Client(address, timeout=60) as client:
+            client.wait_for_workers(2, timeout=120)
+        yield address
+    finally:
+        programs.stop()
+
+
+def test_workers_that_join_later_are_warmed_up_too(tmp_path):
+    """The warm-up is a worker plugin: a worker started after the processing connected to
+    the cluster loads the processing's modules as it joins, before any task of ours."""
+    from processing.pipeline import warm_up_worker
+
+    def warmed() -> bool:
+        return "processing.sources" in sys.modules and "processing.images" in sys.modules
+
+    programs = _Programs(tmp_path)
+    try:
+        address = programs.scheduler()
+        programs.start("first-worker", _worker_argv(address, 1))
+        with open_compute(address, warm_up=warm_up_worker) as compute:
+            compute.client.wait_for_workers(1, timeout=120)
+            first = set(compute.client.scheduler_info()["workers"])
+            assert list(compute.client.run(warmed).values()) == [True]
+            programs.start("later-worker", _worker_argv(address, 1))
+            compute.client.wait_for_workers(2, timeout=120)
+            later = set(compute.client.scheduler_info()["workers"]) - first
+            assert len(later) == 1
+            assert compute.client.run(warmed, workers=list(later)) == {later.pop(): True}
+            # Registered once: a second processing connecting to the cluster keeps the one plugin.
+            with open_compute(address, warm_up=warm_up_worker) as again:
+                plugins = again.client.run_on_scheduler(lambda dask_scheduler: list(dask_scheduler.worker_plugins))
+                assert [p for p in plugins if p.startswith("mirrorgonio-warm-up")] == [
+                    "mirrorgonio-warm-up:processing.pipeline.warm_up_worker"]
+    finally:
+        programs.stop()
 
 
 def _results(folder: Path, stem: str) -> dict:

@@ -1,0 +1,38 @@
+"""Dask worker plugins of the processing (imported only where Dask is in use).
+
+A worker plugin is registered with the scheduler: it reaches the workers there now and
+every worker that joins later (a ``dask worker`` started after the processing connected,
+or one restarted by its nanny), which ``Client.run`` cannot.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+
+from distributed import WorkerPlugin
+
+log = logging.getLogger("mirrorgonio.compute")
+
+
+class WarmUpPlugin(WorkerPlugin):
+    """Run ``func()`` once on each worker as it joins: imports and compiled kernels, paid
+    when a worker starts rather than in its first tasks. A failure is logged on the worker
+    and leaves it to warm up in its first tasks; the worker runs on.
+
+    ``func`` must be importable on the workers (a module-level function). Registered
+    under a name made from it, idempotently: a second processing that connects to the
+    same cluster does not warm its workers again.
+    """
+
+    idempotent = True
+
+    def __init__(self, func: Callable[[], None]):
+        self.func = func
+        self.name = f"mirrorgonio-warm-up:{func.__module__}.{func.__qualname__}"
+
+    def setup(self, worker) -> None:
+        try:
+            self.func()
+        except Exception as exc:  # noqa: BLE001 - a slower first task, not a broken worker
+            log.warning("%s: warming up failed: %s", getattr(worker, "address", "worker"), exc)
