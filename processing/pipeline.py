@@ -619,6 +619,8 @@ def _finish_sources(run_path: Path, out: Path, report: ProcessReport, plan: _Sou
     with _open_run(run_path) as run:
         model = fit_light_model(run, list(plan.layout), samples, method=fit_method, units=units,
                                 estimator=plan.estimator, footprint=plan.footprint)  # fmt: skip
+        model.provenance["gain_e_per_dn"] = radiometric_gain(run)  # DN/s -> e-/s, as the reflectance step
+        model.provenance["gain_source"] = "rig"
     timings["fit"] = time.perf_counter() - clock
     ball_centre = plan.ball_centre
     model.provenance["ball_centre_m"] = list(ball_centre) if ball_centre is not None else "as described by the rig"

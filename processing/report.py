@@ -934,8 +934,10 @@ def _header(model: LightModel, run, report, samples, resolution_m: float) -> str
     noise = getattr(report, "noise", None)
     if noise is not None:
         where = {"rig": "the rig's camera figures", "estimated": "estimated from the brackets"}.get(noise.source, noise.source)
+        converted = (f"; intensities converted to e⁻/s with the rig's calibrated gain, {prov['gain_e_per_dn']:.4g} e⁻/DN"
+                     if prov.get("gain_source") == "rig" and prov.get("gain_e_per_dn") else "")
         rows.append(["noise model", f"gain {noise.gain_e_per_dn:.4g} e⁻/DN, read noise {noise.read_noise_dn:.4g} DN "
-                                    f"(photon shot + read noise, from {where})"])  # fmt: skip
+                                    f"(photon shot + read noise, from {where}: it weights the merge){converted}"])  # fmt: skip
     else:
         rows.append(["noise model", "not given to the report"])
     if prov.get("layout"):

@@ -253,6 +253,10 @@ def test_intensities_use_the_rigs_calibrated_gain_whatever_weights_the_merge(sim
     with caplog.at_level(logging.WARNING, logger="mirrorgonio.processing"):
         skewed = pipeline.process_run(path, tmp_path / "off", steps="hdr,sources", layout=layout)
     assert skewed.noise is off
+    # The model and its report say which gain the intensities used.
+    assert skewed.model.provenance["gain_e_per_dn"] == rig.camera.gain_e_per_dn
+    page = (tmp_path / "off" / f"{path.stem}.report.html").read_text()
+    assert f"the rig&#x27;s calibrated gain, {rig.camera.gain_e_per_dn:.4g} e⁻/DN" in page  # HTML-escaped
     a, b = as_rig.samples.intensity, skewed.samples.intensity
     strong = np.isfinite(a) & np.isfinite(b) & (a > 0.05 * np.nanmax(a))
     assert strong.sum() >= 10

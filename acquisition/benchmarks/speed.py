@@ -869,8 +869,8 @@ def markdown_table(result: dict) -> str:
          [" + ".join(f"{e['process']['task_ms_per_position'].get(k, 0):.0f}" for k in ("read", "merge", "encode", "write", "images", "masks", "sources"))
           + f" = {e['process']['task_ms_per_position'].get('tasks', 0):.0f} ms" for e in entries], ""),
         ("CPU per processing: user + system seconds, minor page faults (this process; workers)",
-         [f"{c['client_user_s']:.1f} + {c['client_system_s']:.1f} s, {c['client_minor_faults'] / 1e3:.0f} k; "
-          f"{c['workers_user_s']:.1f} + {c['workers_system_s']:.1f} s, {c['workers_minor_faults'] / 1e3:.0f} k"
+         [f"{c['client_user_s']:.1f} + {c['client_system_s']:.1f} s, {c['client_minor_faults'] / 1e3:.1f} k; "
+          f"{c['workers_user_s']:.1f} + {c['workers_system_s']:.1f} s, {c['workers_minor_faults'] / 1e3:.1f} k"
           for c in (e["process"]["cpu_per_processing"] for e in entries)], ""),
         ("peak memory of the processing (this process + workers)",
          [f"{e['process']['peak_memory_gb']:.2f} GB" for e in entries], f"< {TARGET['peak_memory_gb']:g} GB at 2000×1312"),
