@@ -98,6 +98,11 @@ class SourceModel:
     samples : dict
         The samples the fit was made from (:func:`samples_table`): lists ``theta``,
         ``phi``, ``intensity``, ``sigma``, ``position`` and optionally ``cell_sum_intensity``.
+    colour : tuple of float
+        ``(R, G, B)``: the source's intensity in each camera channel relative to ``I_s``
+        (which is the channel mean), scaled to a mean of 1; ``(1, 1, 1)`` for a grey
+        source. Measured through the camera's own channels, as the object is: so the
+        reflectance step's albedo does not take on the light's tint.
     """
 
     name: str
@@ -105,6 +110,7 @@ class SourceModel:
     radius_m: float
     fit: IntensityFit
     samples: dict = field(default_factory=dict)
+    colour: tuple[float, float, float] = (1.0, 1.0, 1.0)
 
     def __post_init__(self):
         self.name = str(self.name)
@@ -122,6 +128,15 @@ class SourceModel:
             raise LightModelError(f"source {self.name!r}: fit must be an IntensityFit, got {type(self.fit).__name__}")
         if not isinstance(self.samples, dict):
             raise LightModelError(f"source {self.name!r}: samples must be a table (dict of lists)")
+        try:
+            colour = np.asarray(self.colour, dtype=float).reshape(3)
+        except (TypeError, ValueError):
+            raise LightModelError(f"source {self.name!r}: colour must be three numbers (R, G, B), got {self.colour!r}") from None
+        if not (np.all(np.isfinite(colour)) and np.all(colour > 0)):
+            raise LightModelError(f"source {self.name!r}: colour must be three finite numbers > 0, got {self.colour!r}")
+        mean = colour.mean()
+        # Scaled to a mean of 1, unless it is so already (to rounding): a saved model reads back bit for bit.
+        self.colour = tuple(float(c) for c in (colour if abs(mean - 1.0) < 1e-12 else colour / mean))
 
     def intensity(self, theta, phi=0.0) -> np.ndarray:
         """``I_s(θ, φ)``: the fit, clipped at zero, and zero behind the plane (θ > 90°)."""
@@ -145,6 +160,7 @@ class SourceModel:
             "centre_m": list(self.centre_m),
             "radius_m": self.radius_m,
             "fit": self.fit.to_dict(),
+            "colour": list(self.colour),
             "samples": _plain(self.samples),
         }
 
@@ -255,6 +271,20 @@ class LightModel:
             total += s.intensity(theta, phi)
         return total
 
+    def colour(self) -> np.ndarray:
+        """``(R, G, B)`` of the whole light, mean 1: the sources' colours weighted by their
+        on-axis intensity ``I_s(0)`` (equally if every ``I_s(0)`` is 0)."""
+        weights = np.array([float(s.intensity(0.0, 0.0)) for s in self.sources])
+        if not weights.sum() > 0:
+            weights = np.ones(len(self.sources))
+        mixed = (weights[:, None] * np.array([s.colour for s in self.sources])).sum(axis=0)
+        return mixed / mixed.mean()
+
+    def irradiance_rgb(self, points, normals) -> np.ndarray:
+        """:meth:`irradiance` per camera channel, (N, 3): each source's term times its
+        :attr:`SourceModel.colour`. Its channel mean is :meth:`irradiance`."""
+        return self._irradiance(points, normals, rgb=True)
+
     def irradiance(self, points, normals) -> np.ndarray:
         """Irradiance on surfaces close to the light, each source an inverse-square point.
 
@@ -275,6 +305,9 @@ class LightModel:
             Irradiance in the model's units per m² (W/m² when ``units`` is ``"W/sr"``);
             zero for points on or behind the light plane (``z <= 0``).
         """
+        return self._irradiance(points, normals, rgb=False)
+
+    def _irradiance(self, points, normals, *, rgb: bool) -> np.ndarray:
         r = np.asarray(points, dtype=float)
         if r.ndim != 2 or r.shape[1] != 3:
             raise LightModelError(f"irradiance: points must be (N, 3), got shape {r.shape}")
@@ -284,7 +317,7 @@ class LightModel:
             raise LightModelError("irradiance: normals must be non-zero and finite")
         n = n / norm[:, None]
         front = r[:, 2] > 0
-        E = np.zeros(len(r))
+        E = np.zeros((len(r), 3) if rgb else len(r))
         rf, nf = r[front], n[front]
         for s in self.sources:
             d = rf - np.array([s.centre_m[0], s.centre_m[1], 0.0])
@@ -293,7 +326,8 @@ class LightModel:
             theta = np.arccos(np.clip(d[:, 2] / dist, -1.0, 1.0))
             phi = np.arctan2(d[:, 1], d[:, 0])
             cos_in = np.maximum(0.0, -np.einsum("ij,ij->i", nf, d) / dist)  # n·ω_s, ω_s = −d/|d|
-            E[front] += s.intensity(theta, phi) * cos_in / dist2
+            term = s.intensity(theta, phi) * cos_in / dist2
+            E[front] += term[:, None] * np.asarray(s.colour) if rgb else term
         return E
 
     def total_flux(self) -> float:
@@ -350,7 +384,8 @@ class LightModel:
             except FitError as e:
                 raise LightModelError(f"{where}.fit: {str(e).removeprefix('fit record: ')}") from None
             try:
-                sources.append(SourceModel(s["name"], tuple(s["centre_m"]), s["radius_m"], fit, s.get("samples", {})))
+                sources.append(SourceModel(s["name"], tuple(s["centre_m"]), s["radius_m"], fit, s.get("samples", {}),
+                                           s.get("colour", (1.0, 1.0, 1.0))))  # files before colour: grey
             except (LightModelError, TypeError, ValueError) as e:
                 raise LightModelError(f"{where}: {e}") from None
         try:

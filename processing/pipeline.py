@@ -795,6 +795,24 @@ def _check_view(run: RunFile, geometry, builder, layout, positions) -> None:
                               "(is it facing the ball?)")  # fmt: skip
 
 
+def source_colour(intensity_rgb: np.ndarray) -> tuple[float, float, float]:
+    """A source's ``(R, G, B)`` (mean 1) from its per-channel intensities at every position
+    (n, 3): each channel's sum over the positions where all three are measured, over the
+    channel means' sum, so that the strong samples count most. Grey (1, 1, 1) where the
+    channels were not measured apart (cell sums) or sum to nothing.
+
+    The colour is taken as one for all directions: an LED's spectrum shifts little with
+    angle next to the intensity's own change, and the samples are too few per direction to
+    fit a colour each.
+    """
+    rgb = np.asarray(intensity_rgb, dtype=float).reshape(-1, 3)
+    both = np.all(np.isfinite(rgb), axis=1)
+    sums = rgb[both].sum(axis=0)
+    if not both.any() or not np.all(sums > 0):
+        return (1.0, 1.0, 1.0)
+    return tuple(float(c) for c in sums / sums.mean())
+
+
 def fit_light_model(run: RunFile, layout, samples: SourceSamples, *, method: str = "gaussian", units: str = "relative",
                     estimator: str = "", footprint: float = float("nan")):  # fmt: skip
     """Fit every source's samples and assemble the light model."""
@@ -815,7 +833,8 @@ def fit_light_model(run: RunFile, layout, samples: SourceSamples, *, method: str
         except FitError as exc:
             raise ProcessingError(f"{run.path}: source {source.name}: {exc}") from None
         table = samples_table(data, samples.positions[ok], samples.cell_sum[:, k][ok])
-        sources.append(SourceModel(source.name, source.centre, source.radius, fit, table))
+        sources.append(SourceModel(source.name, source.centre, source.radius, fit, table,
+                                   source_colour(samples.intensity_rgb[:, k])))  # fmt: skip
     provenance = {"run_id": run.header.run_id, "run_file": str(run.path), "rig": run.header.rig.name,
                   "software_version": __version__, "method": estimator, "fit": method,
                   "spatial_resolution_m": 2.0 * footprint,

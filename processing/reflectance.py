@@ -244,8 +244,27 @@ class MeasuredLight:
         local = (np.asarray(points, float) - origin) @ rot
         return self.model.irradiance(local, np.asarray(normals, float) @ rot)
 
+    def tint(self, points, normals) -> np.ndarray | None:
+        """Each channel's irradiance over :meth:`irradiance` (N, 3): the sources' colours
+        mixed as they light each point; None for a grey light (every channel the same)."""
+        if all(s.colour == (1.0, 1.0, 1.0) for s in self.model.sources):
+            return None
+        rot, origin = self.pose.rotation, self.pose.position
+        local = (np.asarray(points, float) - origin) @ rot
+        rgb = self.model.irradiance_rgb(local, np.asarray(normals, float) @ rot)
+        grey = rgb.mean(axis=1, keepdims=True)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.where(grey > 0, rgb / grey, 1.0)
+
     def describe(self) -> dict:
         return {"sources": len(self.model.sources)}
+
+
+def _uniform_tint(colour: np.ndarray, n: int) -> np.ndarray | None:
+    """One light colour for every point (N, 3); None when it is grey."""
+    if np.allclose(colour, 1.0, rtol=0, atol=1e-12):
+        return None
+    return np.broadcast_to(np.asarray(colour, float), (n, 3))
 
 
 @dataclass
@@ -254,11 +273,15 @@ class IsotropicPointLight:
 
     position: np.ndarray
     intensity: float
+    colour: np.ndarray = field(default_factory=lambda: np.ones(3))  # the whole light's (LightModel.colour)
 
     @classmethod
     def from_model(cls, light_model, pose: Pose, object_centre=None) -> IsotropicPointLight:
         uv, i0 = light_centre(light_model)
-        return cls(_to_rig(pose, uv), i0)
+        return cls(_to_rig(pose, uv), i0, light_model.colour())
+
+    def tint(self, points, normals) -> np.ndarray | None:
+        return _uniform_tint(self.colour, len(points))
 
     def irradiance(self, points, normals) -> np.ndarray:
         d = self.position - np.asarray(points, float)
@@ -281,6 +304,7 @@ class CollimatedLight:
     direction: np.ndarray
     irradiance_0: float
     distance: float
+    colour: np.ndarray = field(default_factory=lambda: np.ones(3))  # the whole light's (LightModel.colour)
 
     @classmethod
     def from_model(cls, light_model, pose: Pose, object_centre=None) -> CollimatedLight:
@@ -291,17 +315,21 @@ class CollimatedLight:
         d0 = float(np.linalg.norm(towards))
         if not d0 > 0:
             raise ReflectanceError("collimated light: the light sits at the object's centre")
-        return cls(towards / d0, i0 / d0**2, d0)
+        return cls(towards / d0, i0 / d0**2, d0, light_model.colour())
 
     def irradiance(self, points, normals) -> np.ndarray:
         return self.irradiance_0 * np.maximum(np.asarray(normals, float) @ self.direction, 0.0)
+
+    def tint(self, points, normals) -> np.ndarray | None:
+        return _uniform_tint(self.colour, len(points))
 
     def describe(self) -> dict:
         return {"direction": self.direction.tolist(), "E0": self.irradiance_0, "distance_m": self.distance}
 
 
 #: The light models by name: ``factory(light_model, light_pose, object_centre)`` → an object
-#: whose ``irradiance(points, normals)`` takes rig-frame arrays (N, 3).
+#: whose ``irradiance(points, normals)`` takes rig-frame arrays (N, 3), and whose
+#: ``tint(points, normals)`` gives each channel's share of it (N, 3), or None for grey.
 LIGHT_MODELS: dict[str, Callable] = {
     "collimated": CollimatedLight.from_model,
     "isotropic": IsotropicPointLight.from_model,
@@ -677,6 +705,7 @@ def estimate_reflectance(radiance_rgb, saturated, camera, mesh_rig, light_poses,
     codes = np.full((n_lights, n_points), SAMPLE_USED, np.uint8)
     codes[:, ~ok] = SAMPLE_PIXEL_EXCLUDED
     E = {m: np.zeros((n_lights, n_points)) for m in all_methods}
+    tints: dict[str, np.ndarray | None] = dict.fromkeys(all_methods)  # (n_lights, n_points, 3), None: grey
     lights = []
     scene = float(np.linalg.norm(np.ptp(mesh_rig.bounds, axis=0)))
     offset = 1e-5 * max(scene, 1e-6)
@@ -692,6 +721,11 @@ def estimate_reflectance(radiance_rgb, saturated, camera, mesh_rig, light_poses,
         models = {m: LIGHT_MODELS[m](light_model, pose, object_centre) for m in all_methods}
         for m, lm in models.items():
             E[m][j] = lm.irradiance(points, normals)
+            tint = lm.tint(points, normals)
+            if tint is not None:
+                if tints[m] is None:
+                    tints[m] = np.ones((n_lights, n_points, 3), np.float32)
+                tints[m][j] = tint
         lights.append({"index": j, "position_m": pose.position.tolist(),
                        "rotation_rad": [pose.rx, pose.ry, pose.rz], "isotropic_point_m": centre_point.tolist(),
                        "I0": i0, **{f"{m}": lm.describe() for m, lm in models.items() if m != "measured"}})  # fmt: skip
@@ -742,10 +776,15 @@ def estimate_reflectance(radiance_rgb, saturated, camera, mesh_rig, light_poses,
     rho_points, rho = {}, {}
     w = used.astype(float)
     for m in methods:
-        num = np.einsum("jn,jnc,jn->nc", w, np.where(used[..., None], L, 0.0), E[m])
-        den = np.einsum("jn,jn->n", w, E[m] ** 2)
+        if tints[m] is None:  # grey: one irradiance for every channel
+            num = np.einsum("jn,jnc,jn->nc", w, np.where(used[..., None], L, 0.0), E[m])
+            den = np.einsum("jn,jn->n", w, E[m] ** 2)[:, None]
+        else:  # each channel's own irradiance: the light's tint is not the surface's
+            channel_e = E[m][..., None] * tints[m]
+            num = np.einsum("jn,jnc,jnc->nc", w, np.where(used[..., None], L, 0.0), channel_e)
+            den = np.einsum("jn,jnc->nc", w, channel_e**2)
         with np.errstate(divide="ignore", invalid="ignore"):
-            values = math.pi * num / den[:, None]
+            values = math.pi * num / den
         values[~enough] = np.nan
         rho_points[m] = values
         grid = np.full((*shape, 3), np.nan)

@@ -226,3 +226,46 @@ def test_model_validation():
         SourceModel("x", (0, 0), -1.0, src.fit)
     with pytest.raises(LightModelError, match="samples: columns differ in length"):
         samples_table(Samples(THETA, THETA, THETA, THETA + 1), positions=[1, 2])
+
+
+def test_a_sources_colour_is_relative_saved_and_mixes_into_the_irradiance(tmp_path):
+    """``colour`` is kept with a mean of 1 (only the channels' ratios are the colour), is
+    written and read back, reads as grey from a file written before it existed, and each
+    channel's irradiance mixes the sources' colours as they light the point; the channel
+    mean is the grey irradiance."""
+    model = five_gaussians()
+    colours = [(2.6, 2.0, 1.4), (1.0, 1.0, 1.0), (0.8, 1.0, 1.2), (1.0, 1.0, 1.0), (1.0, 1.0, 1.0)]
+    model = LightModel([SourceModel(s.name, s.centre_m, s.radius_m, s.fit, s.samples, c)
+                        for s, c in zip(model.sources, colours, strict=True)], model.units, model.provenance)  # fmt: skip
+    assert model.sources[0].colour == pytest.approx((1.3, 1.0, 0.7), rel=1e-12)
+    back = LightModel.load(model.save(tmp_path / "tinted.json"))
+    assert [s.colour for s in back.sources] == [s.colour for s in model.sources]
+    old = json.loads((tmp_path / "tinted.json").read_text())
+    for s in old["sources"]:
+        del s["colour"]
+    (tmp_path / "old.json").write_text(json.dumps(old))
+    assert {s.colour for s in LightModel.load(tmp_path / "old.json").sources} == {(1.0, 1.0, 1.0)}
+
+    rng = np.random.default_rng(3)
+    points = np.column_stack([rng.uniform(-0.05, 0.05, (50, 2)), rng.uniform(0.02, 0.2, 50)])
+    normals = np.tile([0.0, 0.0, -1.0], (50, 1)) + rng.normal(0, 0.2, (50, 3))
+    rgb = model.irradiance_rgb(points, normals)
+    np.testing.assert_allclose(rgb.mean(axis=1), model.irradiance(points, normals), rtol=1e-12)
+    by_hand = np.zeros((50, 3))
+    for s in model.sources:
+        alone = LightModel([SourceModel(s.name, s.centre_m, s.radius_m, s.fit, s.samples)], model.units)
+        by_hand += alone.irradiance(points, normals)[:, None] * np.asarray(s.colour)
+    np.testing.assert_allclose(rgb, by_hand, rtol=1e-12)
+    # The whole light's colour: weighted by each source's on-axis intensity.
+    weights = np.array([s.intensity(0.0) for s in model.sources]).ravel()
+    mixed = (weights[:, None] * np.array(colours) / np.array(colours).mean(axis=1, keepdims=True)).sum(axis=0)
+    np.testing.assert_allclose(model.colour(), mixed / mixed.mean(), rtol=1e-12)
+
+
+@pytest.mark.parametrize("colour", [(1.0, 2.0), (1.0, 0.0, 1.0), (1.0, float("nan"), 1.0), "red"])
+def test_a_bad_colour_is_one_line_naming_the_source(colour):
+    model = five_gaussians()
+    s = model.sources[0]
+    with pytest.raises(LightModelError) as exc:
+        SourceModel(s.name, s.centre_m, s.radius_m, s.fit, s.samples, colour)
+    assert one_line(exc).startswith(f"source {s.name!r}: colour must be")

@@ -176,6 +176,7 @@ def render(mesh, model, poses, *, camera=RIG.camera):
     rho = albedo(points)
     n_src = len(model.sources)
     E = np.zeros((len(poses), len(points)))
+    E_rgb = np.zeros((len(poses), len(points), 3))  # each source's term times its colour
     shadowed = np.zeros((len(poses), len(points), n_src), bool)
     for j, pose in enumerate(poses):
         for s, source in enumerate(model.sources):
@@ -194,11 +195,13 @@ def render(mesh, model, poses, *, camera=RIG.camera):
             theta = np.arccos(local[:, 2] / np.linalg.norm(local, axis=1))
             p = source.fit.params
             intensity = p["a"] * np.exp(-(theta**2) / (2 * p["sigma"] ** 2)) if "a" in p else np.full(len(theta), p["c0"])
-            E[j] += np.where(lit & ~blocked, intensity * np.maximum(cos_in, 0.0) / dist**2, 0.0)
+            term = np.where(lit & ~blocked, intensity * np.maximum(cos_in, 0.0) / dist**2, 0.0)
+            E[j] += term
+            E_rgb[j] += term[:, None] * np.asarray(source.colour)[None, :]
     rates = np.zeros((len(poses), *shape, 3))
     rows, cols = np.divmod(np.flatnonzero(hit), shape[1])
     for j in range(len(poses)):
-        rates[j, rows, cols] = K * cos4[rows, cols, None] * rho / math.pi * E[j][:, None]
+        rates[j, rows, cols] = K * cos4[rows, cols, None] * rho / math.pi * E_rgb[j]
     truth = {"rows": rows, "cols": cols, "points": points, "normals": normals, "face": face[hit], "rho": rho,
              "shadowed": shadowed, "E": E, "view": -flat[hit], "shape": shape}  # fmt: skip
     return rates, truth
@@ -256,6 +259,41 @@ def test_measured_model_with_noise_is_unbiased(mesh, directional):
     rel = at_truth(result, truth, result.rho["measured"])[valid] / truth["rho"][valid] - 1.0
     assert abs(np.median(rel)) < 2e-4  # 0.1 % noise per sample: no bias beyond 0.02 %
     assert np.median(np.abs(rel)) < 1e-3  # and a median error below 0.1 %
+
+
+def _tinted(model: LightModel, colours) -> LightModel:
+    return LightModel([SourceModel(s.name, s.centre_m, s.radius_m, s.fit, s.samples, c)
+                       for s, c in zip(model.sources, colours, strict=True)], model.units, model.provenance)  # fmt: skip
+
+
+def test_a_tinted_light_leaves_no_tint_in_the_albedo(mesh):
+    """Two sources of different colours (a warm and a cool LED): with the colours in the
+    light model, each channel's albedo is the surface's; a grey model of the same light
+    puts the light's tint into the albedo. The simplified models get the light's mean
+    colour: for a light of one colour, their channel ratios are right even where their
+    geometry is not (with two colours, how they mix varies over the object: that is the
+    simplification's error too)."""
+    warm, cool = (1.3, 1.0, 0.7), (0.8, 1.0, 1.2)
+    tinted = _tinted(directional_light(), [warm, cool])
+    rates, truth = render(mesh, tinted, POSES)
+    result = estimate_reflectance(rates, None, RIG.camera, mesh, POSES, tinted)
+    valid = (at_truth(result, truth, result.reason) == PIXEL_VALID) & same_face(result, truth)
+    assert valid.sum() > 2500
+    rho = at_truth(result, truth, result.rho["measured"])[valid]
+    assert np.abs(rho / truth["rho"][valid] - 1.0).max() < 1e-3  # as for a grey light
+    grey = estimate_reflectance(rates, None, RIG.camera, mesh, POSES, _tinted(tinted, [(1, 1, 1)] * 2))
+    off = np.nanmedian(at_truth(grey, truth, grey.rho["measured"])[valid] / truth["rho"][valid], axis=0)
+    assert off[0] > 1.05 and off[2] < 0.95  # red too high, blue too low: the light's tint, not the surface's
+    one_colour = _tinted(directional_light(), [warm, warm])
+    rates, truth = render(mesh, one_colour, POSES)
+    result = estimate_reflectance(rates, None, RIG.camera, mesh, POSES, one_colour)
+    assert np.allclose(one_colour.colour(), np.array(warm) / np.mean(warm))
+    valid = (at_truth(result, truth, result.reason) == PIXEL_VALID) & same_face(result, truth)
+    for method in ("measured", "isotropic", "collimated"):
+        got = at_truth(result, truth, result.rho[method])[valid]
+        ratios = (got[:, 0] / got[:, 2]) / (truth["rho"][valid, 0] / truth["rho"][valid, 2])
+        finite = np.isfinite(ratios)
+        assert finite.mean() > 0.99 and np.abs(ratios[finite] - 1.0).max() < 1e-6, method
 
 
 def test_isotropic_model_is_wrong_where_the_intensity_falls_off(directional):
