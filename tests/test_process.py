@@ -284,21 +284,13 @@ def test_a_tinted_lights_colours_are_measured_through_the_camera(tmp_path):
     from acquisition.rig import rig_from_dict
     from processing.lightmodel import LightModel
     from processing.pipeline import process_run
-    from sim_devices.lights import LIGHTS_DIR
+    from sim_devices.lights import LIGHTS_DIR, load_truth
 
-    spectra = {"centre": (1.2, 1.0, 0.6), "+u": (0.7, 1.0, 1.3), "-v": (1.0, 0.9, 1.1)}
-    truth = tomllib.loads((LIGHTS_DIR / "five-gaussians.toml").read_text())
-    for emitter in truth["emitters"]:
-        emitter["spectrum"] = list(spectra.get(emitter["name"], (1.0, 1.0, 1.0)))
-    lines = ['name = "tinted"']
-    for e in truth["emitters"]:
-        lines += ["[[emitters]]", f'name = "{e["name"]}"', f"centre_m = {e['centre_m']}", f"radius_m = {e['radius_m']}",
-                  f"spectrum = {e['spectrum']}",
-                  "intensity = { " + ", ".join(f"{k} = {v!r}".replace("'", '"') for k, v in e["intensity"].items()) + " }"]  # fmt: skip
-    truth_path = tmp_path / "tinted.toml"
-    truth_path.write_text("\n".join(lines) + "\n")
+    # The shipped tinted truth: the five Gaussians, three of them coloured.
+    spectra = {e.name: e.spectrum for e in load_truth("tinted-five-gaussians").emitters}
+    assert len(set(spectra.values())) == 4
     data = tomllib.loads(REDUCED_RIG.read_text())
-    data.setdefault("simulation", {})["truth"] = str(truth_path)
+    data.setdefault("simulation", {})["truth"] = "tinted-five-gaussians"
     rig = rig_from_dict(data)
     tools = rig.tool_poses()
     here = {"pose": tools[0]}
@@ -316,7 +308,7 @@ def test_a_tinted_lights_colours_are_measured_through_the_camera(tmp_path):
         writer.set_status("aborted", "three positions only")
     report = process_run(path, tmp_path / "out", steps="hdr,sources", layout=LIGHTS_DIR / "five-gaussians.toml")
     got = {s.name: np.array(s.colour) for s in report.model.sources}
-    want = {name: np.array(spectra.get(name, (1.0, 1.0, 1.0))) / np.mean(spectra.get(name, (1.0, 1.0, 1.0))) for name in got}
+    want = {name: np.array(spectra[name]) / np.mean(spectra[name]) for name in got}
     # Three positions of the reduced rig: the centre, between a warm and a cool neighbour 4 mm
     # away, takes 2-3 % of their colour in its weaker channels (measured: blue 0.660 for
     # 0.643); every other channel of every source within 1 % (measured: 0.6 % at most).
