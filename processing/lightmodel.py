@@ -159,8 +159,8 @@ class SourceModel:
             "name": self.name,
             "centre_m": list(self.centre_m),
             "radius_m": self.radius_m,
-            "fit": self.fit.to_dict(),
             "colour": list(self.colour),
+            "fit": self.fit.to_dict(),
             "samples": _plain(self.samples),
         }
 
