@@ -271,13 +271,20 @@ class LightModel:
             total += s.intensity(theta, phi)
         return total
 
+    def on_axis_shares(self) -> tuple[np.ndarray, float]:
+        """Each source's share of the on-axis intensity ``I_s(0) / Σ I_s(0)`` (equal shares
+        if every ``I_s(0)`` is 0), and ``Σ_s I_s(0)``: how the simplified lights of the
+        reflectance step, one point of one colour, weigh the sources."""
+        weights = np.array([float(s.intensity(0.0, 0.0)) for s in self.sources])
+        total = float(weights.sum())
+        shares = weights / total if total > 0 else np.full(len(weights), 1.0 / len(weights))
+        return shares, total
+
     def colour(self) -> np.ndarray:
         """``(R, G, B)`` of the whole light, mean 1: the sources' colours weighted by their
-        on-axis intensity ``I_s(0)`` (equally if every ``I_s(0)`` is 0)."""
-        weights = np.array([float(s.intensity(0.0, 0.0)) for s in self.sources])
-        if not weights.sum() > 0:
-            weights = np.ones(len(self.sources))
-        mixed = (weights[:, None] * np.array([s.colour for s in self.sources])).sum(axis=0)
+        :meth:`on_axis_shares`."""
+        shares, _ = self.on_axis_shares()
+        mixed = (shares[:, None] * np.array([s.colour for s in self.sources])).sum(axis=0)
         return mixed / mixed.mean()
 
     def irradiance_rgb(self, points, normals) -> np.ndarray:

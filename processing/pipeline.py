@@ -107,18 +107,25 @@ def radiometric_gain(run: RunFile) -> float:
 GAIN_MISMATCH_WARNING = 0.05
 
 
-def _report_gain_mismatch(run: RunFile, noise: NoiseModel) -> None:
-    """One line when the noise model's gain is more than 1 % from the rig's calibrated gain:
-    logged, and a warning beyond :data:`GAIN_MISMATCH_WARNING`."""
-    rig_gain = radiometric_gain(run)
+def gain_mismatch(noise: NoiseModel, rig_gain: float) -> tuple[int, str] | None:
+    """How far the noise model's gain lies from the rig's calibrated gain, as a logging level
+    and one line: None within 1 %, a warning beyond :data:`GAIN_MISMATCH_WARNING`, else
+    information. The light and the reflectance steps both say it so."""
     off = noise.gain_e_per_dn / rig_gain - 1.0
     if abs(off) <= 0.01:
-        return
-    log.log(logging.WARNING if abs(off) > GAIN_MISMATCH_WARNING else logging.INFO,
-            "%s: the noise model's gain (%s, %.4g e-/DN) differs from the rig's calibrated gain (%.4g e-/DN) by "
-            "%+.1f %%: the merge is weighted with it, intensities use the rig's%s", run.path, noise.source,
-            noise.gain_e_per_dn, rig_gain, 100 * off,
-            "; check the camera's calibration" if abs(off) > GAIN_MISMATCH_WARNING else "")  # fmt: skip
+        return None
+    warn = abs(off) > GAIN_MISMATCH_WARNING
+    advice = "; check the camera's calibration" if warn else ""
+    return (logging.WARNING if warn else logging.INFO,
+            f"the noise model's gain ({noise.source}, {noise.gain_e_per_dn:.4g} e-/DN) differs from the rig's calibrated "
+            f"gain ({rig_gain:.4g} e-/DN) by {100 * off:+.1f} %: the merge is weighted with it, intensities use the "
+            f"rig's{advice}")  # fmt: skip
+
+
+def _report_gain_mismatch(run: RunFile, noise: NoiseModel) -> None:
+    said = gain_mismatch(noise, radiometric_gain(run))
+    if said is not None:
+        log.log(said[0], "%s: %s", run.path, said[1])
 
 
 def _prepare_task() -> None:
@@ -619,8 +626,6 @@ def _finish_sources(run_path: Path, out: Path, report: ProcessReport, plan: _Sou
     with _open_run(run_path) as run:
         model = fit_light_model(run, list(plan.layout), samples, method=fit_method, units=units,
                                 estimator=plan.estimator, footprint=plan.footprint)  # fmt: skip
-        model.provenance["gain_e_per_dn"] = radiometric_gain(run)  # DN/s -> e-/s, as the reflectance step
-        model.provenance["gain_source"] = "rig"
     timings["fit"] = time.perf_counter() - clock
     ball_centre = plan.ball_centre
     model.provenance["ball_centre_m"] = list(ball_centre) if ball_centre is not None else "as described by the rig"
@@ -838,6 +843,7 @@ def fit_light_model(run: RunFile, layout, samples: SourceSamples, *, method: str
     provenance = {"run_id": run.header.run_id, "run_file": str(run.path), "rig": run.header.rig.name,
                   "software_version": __version__, "method": estimator, "fit": method,
                   "spatial_resolution_m": 2.0 * footprint,
+                  "gain_e_per_dn": radiometric_gain(run), "gain_source": "rig",  # DN/s -> e-/s, as the reflectance step
                   # the whole rig, so an object run can check it is lit in the same light frame
                   "rig_description": run.header.rig.model_dump(mode="json", exclude_none=True)}  # fmt: skip
     return LightModel(sources, units=units, provenance=provenance)

@@ -219,11 +219,9 @@ def light_centre(light_model) -> tuple[tuple[float, float], float]:
     I0 : float
         ``Σ_s I_s(0)``, the light's on-axis intensity in the model's units.
     """
-    weights = np.array([float(s.intensity(0.0, 0.0)) for s in light_model.sources])
+    shares, total = light_model.on_axis_shares()
     centres = np.array([s.centre_m for s in light_model.sources], dtype=float)
-    total = float(weights.sum())
-    w = weights / total if total > 0 else np.full(len(weights), 1.0 / len(weights))
-    u, v = (w[:, None] * centres).sum(axis=0)
+    u, v = (shares[:, None] * centres).sum(axis=0)
     return (float(u), float(v)), total
 
 
@@ -244,17 +242,18 @@ class MeasuredLight:
         local = (np.asarray(points, float) - origin) @ rot
         return self.model.irradiance(local, np.asarray(normals, float) @ rot)
 
-    def tint(self, points, normals) -> np.ndarray | None:
-        """Each channel's irradiance over :meth:`irradiance` (N, 3): the sources' colours
-        mixed as they light each point; None for a grey light (every channel the same)."""
+    def irradiance_and_tint(self, points, normals) -> tuple[np.ndarray, np.ndarray | None]:
+        """:meth:`irradiance`, and each channel's share of it (N, 3): the sources' colours
+        mixed as they light each point; None for a grey light (every channel the same).
+        One pass over the sources either way."""
         if all(s.colour == (1.0, 1.0, 1.0) for s in self.model.sources):
-            return None
+            return self.irradiance(points, normals), None
         rot, origin = self.pose.rotation, self.pose.position
         local = (np.asarray(points, float) - origin) @ rot
         rgb = self.model.irradiance_rgb(local, np.asarray(normals, float) @ rot)
-        grey = rgb.mean(axis=1, keepdims=True)
+        grey = rgb.mean(axis=1)  # the channel mean is the irradiance (colours have mean 1)
         with np.errstate(divide="ignore", invalid="ignore"):
-            return np.where(grey > 0, rgb / grey, 1.0)
+            return grey, np.where(grey[:, None] > 0, rgb / grey[:, None], 1.0)
 
     def describe(self) -> dict:
         return {"sources": len(self.model.sources)}
@@ -280,8 +279,8 @@ class IsotropicPointLight:
         uv, i0 = light_centre(light_model)
         return cls(_to_rig(pose, uv), i0, light_model.colour())
 
-    def tint(self, points, normals) -> np.ndarray | None:
-        return _uniform_tint(self.colour, len(points))
+    def irradiance_and_tint(self, points, normals) -> tuple[np.ndarray, np.ndarray | None]:
+        return self.irradiance(points, normals), _uniform_tint(self.colour, len(points))
 
     def irradiance(self, points, normals) -> np.ndarray:
         d = self.position - np.asarray(points, float)
@@ -320,8 +319,8 @@ class CollimatedLight:
     def irradiance(self, points, normals) -> np.ndarray:
         return self.irradiance_0 * np.maximum(np.asarray(normals, float) @ self.direction, 0.0)
 
-    def tint(self, points, normals) -> np.ndarray | None:
-        return _uniform_tint(self.colour, len(points))
+    def irradiance_and_tint(self, points, normals) -> tuple[np.ndarray, np.ndarray | None]:
+        return self.irradiance(points, normals), _uniform_tint(self.colour, len(points))
 
     def describe(self) -> dict:
         return {"direction": self.direction.tolist(), "E0": self.irradiance_0, "distance_m": self.distance}
@@ -329,7 +328,8 @@ class CollimatedLight:
 
 #: The light models by name: ``factory(light_model, light_pose, object_centre)`` → an object
 #: whose ``irradiance(points, normals)`` takes rig-frame arrays (N, 3), and whose
-#: ``tint(points, normals)`` gives each channel's share of it (N, 3), or None for grey.
+#: ``irradiance_and_tint(points, normals)`` gives it with each channel's share of it (N, 3),
+#: or None for a grey light.
 LIGHT_MODELS: dict[str, Callable] = {
     "collimated": CollimatedLight.from_model,
     "isotropic": IsotropicPointLight.from_model,
@@ -720,8 +720,7 @@ def estimate_reflectance(radiance_rgb, saturated, camera, mesh_rig, light_poses,
         cos_in = np.einsum("ij,ij->i", normals, omega)
         models = {m: LIGHT_MODELS[m](light_model, pose, object_centre) for m in all_methods}
         for m, lm in models.items():
-            E[m][j] = lm.irradiance(points, normals)
-            tint = lm.tint(points, normals)
+            E[m][j], tint = lm.irradiance_and_tint(points, normals)
             if tint is not None:
                 if tints[m] is None:
                     tints[m] = np.ones((n_lights, n_points, 3), np.float32)
@@ -1241,7 +1240,7 @@ def reflectance_from_run(object_run, light=None, mesh=None, out_dir=None, *, pro
     from acquisition.runfile import RunFile, RunFileError, file_sha256
     from processing.hdr import superpixels
     from processing.lightmodel import LightModel, LightModelError
-    from processing.pipeline import _light_pose
+    from processing.pipeline import _light_pose, gain_mismatch, radiometric_gain
     from processing.results import Results, ResultsError
     from processing.trace import RigGeometry
 
@@ -1294,10 +1293,10 @@ def reflectance_from_run(object_run, light=None, mesh=None, out_dir=None, *, pro
                 if positions.size < 2:
                     raise ReflectanceError(f"{run_path}: {positions.size} position(s) with frames and an HDR result: "
                                            "the albedo needs at least 2 light positions")  # fmt: skip
-                # DN/s → e⁻/s with the rig's calibrated gain: k (e⁻/s per unit radiance) is
-                # calibrated with it; the HDR's own estimate only weights the merge.
-                gain, gain_source = rig.camera.gain_e_per_dn, "rig"
-                merge_gain, merge_source = results.noise.gain_e_per_dn, results.noise.source
+                # DN/s → e⁻/s with the rig's calibrated gain, as the light step: k (e⁻/s per unit
+                # radiance) is calibrated with it; the HDR's own estimate only weights the merge.
+                gain, gain_source = radiometric_gain(run), "rig"
+                mismatch = gain_mismatch(results.noise, gain)
                 cfa = results.cfa_pattern
                 rates, saturated, poses = [], [], []
                 for index in positions:
@@ -1310,10 +1309,11 @@ def reflectance_from_run(object_run, light=None, mesh=None, out_dir=None, *, pro
             raise ReflectanceError(str(exc)) from None
         run_id = run.header.run_id
 
-    if abs(merge_gain / gain - 1.0) > 0.01:
-        warnings.append(f"{results_file}: the HDR's noise model ({merge_source}, {merge_gain:.4g} e-/DN) differs from the "
-                        f"rig's gain ({gain:.4g} e-/DN) by {100 * (merge_gain / gain - 1):+.1f} %: check the camera's "
-                        "calibration (ρ uses the rig's)")  # fmt: skip
+    if mismatch is not None:
+        if mismatch[0] >= logging.WARNING:
+            warnings.append(f"{results_file}: {mismatch[1]}")
+        else:
+            log.info("%s: %s", results_file, mismatch[1])
     for text in warnings:
         log.warning("%s", text)
     result = estimate_reflectance(np.stack(rates), np.stack(saturated), rig.camera, mesh_rig, poses, light_model,

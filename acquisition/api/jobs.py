@@ -70,7 +70,8 @@ def download_artifact(job_id: str, kind: str, catalog: CatalogDep) -> Response:
     if recorded is None:
         kinds = ", ".join(sorted(job.artifacts)) or "none yet"
         raise HTTPException(status.HTTP_404_NOT_FOUND, f"job {job_id} has no {kind!r} file (it has: {kinds})")
-    path = _served_file(job, kind, Path(recorded))
+    result_dir = Path(job.result_dir).resolve() if job.result_dir is not None else None
+    path = _served_file(job, Path(recorded), result_dir, f"its {kind} file")
     media, inline = ARTIFACT_TYPES.get(kind, ("application/octet-stream", False))
     if kind == "results":
         members = [(file, file.relative_to(path.parent).as_posix()) for file in _results_files(job, path)]
@@ -81,18 +82,19 @@ def download_artifact(job_id: str, kind: str, catalog: CatalogDep) -> Response:
                         content_disposition_type="inline" if inline else "attachment")  # fmt: skip
 
 
-def _served_file(job: JobRecord, kind: str, recorded: Path) -> Path:
-    """``recorded`` resolved, if it is still a file inside the job's result folder (else 404)."""
+def _served_file(job: JobRecord, recorded: Path, folder: Path | None, what: str) -> Path:
+    """``recorded`` resolved, if it is still a file inside ``folder`` (any, if None); else a 404
+    saying ``what`` is no longer there."""
     path = recorded.resolve()
-    inside = job.result_dir is None or path.is_relative_to(Path(job.result_dir).resolve())
-    if not inside or not path.is_file():
-        raise HTTPException(status.HTTP_404_NOT_FOUND, f"job {job.id}: its {kind} file is no longer there")
+    if not (folder is None or path.is_relative_to(folder)) or not path.is_file():
+        raise HTTPException(status.HTTP_404_NOT_FOUND, f"job {job.id}: {what} is no longer there")
     return path
 
 
 def _results_files(job: JobRecord, results_path: Path) -> list[Path]:
     """The results file and every file its data live in, each checked as :func:`_served_file`
-    checks one, before any byte is sent (a stream cannot turn into a 404 halfway)."""
+    checks one, inside the results file's folder, before any byte is sent (a stream cannot
+    turn into a 404 halfway)."""
     from processing.results import Results, ResultsError
 
     try:
@@ -100,13 +102,7 @@ def _results_files(job: JobRecord, results_path: Path) -> list[Path]:
             files = results.files()
     except ResultsError as exc:
         raise HTTPException(status.HTTP_404_NOT_FOUND, f"job {job.id}: {exc}") from None
-    folder = results_path.parent
-    for file in files:
-        resolved = file.resolve()
-        if not resolved.is_relative_to(folder) or not resolved.is_file():
-            raise HTTPException(status.HTTP_404_NOT_FOUND,
-                                f"job {job.id}: its results are incomplete: {file.name} is no longer there")  # fmt: skip
-    return [file.resolve() for file in files]
+    return [_served_file(job, file, results_path.parent, f"its results are incomplete: {file.name}") for file in files]
 
 
 class _Chunks:
