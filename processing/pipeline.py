@@ -297,8 +297,9 @@ def process_position(index: int, work: _PositionWork) -> PositionResult:
                 black, white = run.black_level(index)[0], int(run.white_level(index)[0])
                 clock.lap("read")
                 merged = merge_raw(frames, exposures, black, white, h.noise, method=h.method)
-                # As the results file stores it, so that both paths give the same numbers.
-                merged = dataclasses.replace(merged, variance=stored_variance(merged.variance))
+                # As the results file stores it, so that both paths give the same numbers
+                # (in place: the merge's array is this task's own).
+                stored_variance(merged.variance, out=merged.variance)
                 del frames
                 clock.lap("merge")
                 encoded = encode_hdr(merged)  # compressed and written here, in parallel

@@ -25,6 +25,7 @@ from pathlib import Path
 import blosc
 import h5py
 import hdf5plugin
+import numba
 import numpy as np
 
 from processing.hdr import MergeResult, NoiseModel
@@ -95,12 +96,13 @@ _blosc_lock = threading.Lock()
 #: Chosen by measurement on a 1312x2000 mirror-ball position (~4 % lit, the rest dark noise
 #: quantised by the merge), one core: compress / decompress ms and MB of 10.5 MB.
 #: Radiance: bit-shuffled LZ4 in 64 KiB blocks, 5 / 3 ms, 1.8 MB (byte-shuffled LZ4 as before:
-#: 10 / 4 ms, 2.9 MB). Variance (a few thousand distinct values): byte-shuffled BloscLZ at
-#: level 1 in 256 KiB blocks, 2.4 / 1.2 ms, 7.9 MB (byte-shuffled LZ4: 13 / 4 ms, 4.5 MB;
-#: bit-shuffled LZ4: 6.5 / 3 ms, 6.5 MB). The masks: LZ4, 0.3 / 0.1 ms, < 40 kB.
+#: 10 / 4 ms, 2.9 MB). Variance, rounded to 12 mantissa bits (:func:`stored_variance`):
+#: bit-shuffled LZ4 in 64 KiB blocks, 4.6 ms, 3.1 MB (unrounded, byte-shuffled BloscLZ as in
+#: 2026-11 before: 4.1 ms, 7.9 MB; bit-shuffled LZ4: 7 ms, 6.3 MB). Every MB written costs
+#: ~2 ms on a VM whose freed memory goes back to its host. The masks: LZ4, 0.3 / 0.1 ms, < 40 kB.
 _CODECS = {
     "radiance": _Codec("lz4", 5, blosc.BITSHUFFLE, 64 * 1024),
-    "variance": _Codec("blosclz", 1, blosc.SHUFFLE, 256 * 1024),
+    "variance": _Codec("lz4", 5, blosc.BITSHUFFLE, 64 * 1024),
     "count": _Codec("lz4", 5, blosc.NOSHUFFLE, 256 * 1024),
     "saturated": _Codec("lz4", 5, blosc.NOSHUFFLE, 256 * 1024),
 }
@@ -113,14 +115,48 @@ def _position_datasets() -> dict[str, tuple[str, dict]]:
     return {name: (dtypes[name], dict(fillvalue=fill[name], **codec.filter())) for name, codec in _CODECS.items()}
 
 
-def stored_variance(variance: np.ndarray) -> np.ndarray:
-    """Variances as the results file stores them: float32, non-finite ones as +inf (no copy
-    when they are so already: every one finite or +inf, as the merge leaves them)."""
-    variance = np.asarray(variance, dtype=np.float32)
-    finite = np.isfinite(variance)
-    if finite.all() or (variance[~finite] == np.inf).all():
-        return variance
-    return np.where(finite, variance, np.float32(np.inf))
+#: Mantissa bits kept of each stored variance (float32 has 23): relative rounding error at
+#: most 2⁻¹³ = 1.2e-4. A variance computed from one noisy sample is itself uncertain by
+#: ~√(2/N) for N electrons (0.3 % at 10⁵ e⁻, the most a merged pixel holds here), so the
+#: dropped bits are noise; zeroing them lets the variance compress to 3.1 MB instead of
+#: 7.9 MB a 1312×2000 position (bit rounding: Klöwer et al. 2021, "Compressing atmospheric
+#: data into its real information content", Nat. Comput. Sci. 1, 713; ``numcodecs.BitRound``).
+VARIANCE_MANTISSA_BITS = 12
+
+
+@numba.njit(cache=True)
+def _round_variance(variance, dropped_bits, out):
+    """One pass: float32, non-finite as +inf, the lowest ``dropped_bits`` mantissa bits
+    rounded away to nearest, ties to even (as ``numcodecs.BitRound``)."""
+    v, o = variance.ravel(), out.ravel()
+    bits = o.view(np.uint32)
+    half = np.uint32((1 << (dropped_bits - 1)) - 1)
+    keep = np.uint32(~((1 << dropped_bits) - 1) & 0xFFFFFFFF)
+    shift = np.uint32(dropped_bits)
+    for i in range(v.size):
+        x = np.float32(v[i])
+        if not np.isfinite(x):
+            x = np.float32(np.inf)
+        o[i] = x
+        b = bits[i]
+        if np.isfinite(x):
+            bits[i] = (b + ((b >> shift) & np.uint32(1)) + half) & keep
+    return out
+
+
+def stored_variance(variance: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    """Variances as the results file stores them: float32 rounded to
+    :data:`VARIANCE_MANTISSA_BITS` mantissa bits, non-finite ones as +inf. Into ``out``
+    (a C-contiguous float32 array of the same shape, which may be ``variance`` itself), else
+    a new array; applying it twice changes nothing more."""
+    variance = np.ascontiguousarray(variance)
+    if variance.dtype.kind != "f":
+        variance = variance.astype(np.float64)
+    if out is None:
+        out = np.empty(variance.shape, np.float32)
+    elif out.dtype != np.float32 or out.shape != variance.shape or not out.flags.c_contiguous:
+        raise ValueError(f"stored_variance: out must be C-contiguous float32 of shape {variance.shape}")
+    return _round_variance(variance, 23 - VARIANCE_MANTISSA_BITS, out)
 
 
 def _position_arrays(result: MergeResult) -> dict[str, np.ndarray]:

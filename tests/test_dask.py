@@ -130,7 +130,10 @@ def _close(a, b, path="model") -> None:
         for i, (x, y) in enumerate(zip(a, b, strict=True)):
             _close(x, y, f"{path}[{i}]")
     elif isinstance(a, float) and isinstance(b, float):
-        assert b == pytest.approx(a, rel=1e-6, abs=1e-10, nan_ok=True), path
+        # A fit's residual is a sample (peak 1) less the fit: the summation order shows in it as
+        # ~1e-9 of the peak, which is large beside a residual that is itself near zero.
+        near_zero = 1e-8 if ".residuals[" in path else 1e-10
+        assert b == pytest.approx(a, rel=1e-6, abs=near_zero, nan_ok=True), path
     else:
         assert a == b, path
 
