@@ -16,6 +16,7 @@ import sys
 import threading
 import time
 import zipfile
+from datetime import UTC, datetime, timedelta
 from pathlib import Path
 
 import numpy as np
@@ -75,7 +76,8 @@ class Data:
         self.root = root
         (root / "runs").mkdir(parents=True, exist_ok=True)
         self.catalog_path = root / "catalog.sqlite"
-        self.catalog = Catalog(self.catalog_path)
+        self.later = timedelta(0)  # the catalog's clock runs this far ahead of the real one
+        self.catalog = Catalog(self.catalog_path, clock=lambda: datetime.now(UTC) + self.later)
 
     def run(self, source: Path | None = None, state: str = "complete"):
         """A catalog run whose file is a copy of ``source`` (none: no file yet), brought to ``state``."""
@@ -160,7 +162,7 @@ def test_a_job_for_a_run_being_acquired_waits_or_takes_the_complete_positions(ca
         waiting = data.catalog.create_job(live.id, options={"layout": LAYOUT})
         other = data.catalog.create_job(finished.id, options={"layout": LAYOUT})
         partial = data.catalog.create_job(live.id, options={"layout": LAYOUT, "partial": True})
-        worker = data.worker(wait_s=1.5)
+        worker = data.worker(wait_s=60.0)
         assert worker.run(once=True) == 2  # the two that can run
         job = data.catalog.get_job(waiting.id)
         assert job.state == "queued" and job.error is None and job.claimed_by is None
@@ -177,7 +179,7 @@ def test_a_job_for_a_run_being_acquired_waits_or_takes_the_complete_positions(ca
         writer.close()
     data.catalog.transition_run(live.id, "complete")
     assert worker.run_once() is None  # still inside its wait
-    time.sleep(1.6)
+    data.later = timedelta(seconds=61)  # its wait is over (the catalog's clock, not a race with the processing)
     done = worker.run_once()
     assert done.id == waiting.id and done.state == "complete" and done.message.startswith("4 of 66 positions in")
 
