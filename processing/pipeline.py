@@ -302,7 +302,7 @@ def process_position(index: int, work: _PositionWork) -> PositionResult:
                 stored_variance(merged.variance, out=merged.variance)
                 del frames
                 clock.lap("merge")
-                encoded = encode_hdr(merged)  # compressed and written here, in parallel
+                encoded = encode_hdr(merged, variance_stored=True)  # compressed and written here, in parallel
                 clock.lap("encode")
                 write_position_file(position_file_for(work.results_path, index), encoded)
                 out.saturation_level = encoded.saturation_level

@@ -159,12 +159,12 @@ def stored_variance(variance: np.ndarray, out: np.ndarray | None = None) -> np.n
     return _round_variance(variance, 23 - VARIANCE_MANTISSA_BITS, out)
 
 
-def _position_arrays(result: MergeResult) -> dict[str, np.ndarray]:
-    """A merge as the results file stores it (non-finite variances as +inf)."""
+def _position_arrays(result: MergeResult, variance_stored: bool) -> dict[str, np.ndarray]:
+    """A merge as the results file stores it (variances rounded, non-finite ones as +inf)."""
     saturated = np.asarray(result.saturated)
     return {
         "radiance": np.asarray(result.radiance, dtype=np.float32),
-        "variance": stored_variance(result.variance),
+        "variance": result.variance if variance_stored else stored_variance(result.variance),
         "count": np.asarray(result.count, dtype=np.uint8),
         "saturated": saturated.view(np.uint8) if saturated.dtype == bool else saturated.astype(np.uint8),
     }
@@ -180,15 +180,18 @@ class EncodedHDR:
     shape: tuple[int, int]
 
 
-def encode_hdr(result: MergeResult) -> EncodedHDR:
+def encode_hdr(result: MergeResult, *, variance_stored: bool = False) -> EncodedHDR:
     """Compress one position's merge as :class:`ResultsWriter` stores it: one chunk per
     dataset, compressed by c-blosc directly (no HDF5), with each dataset's filter settings.
+    ``variance_stored``: ``result.variance`` already went through :func:`stored_variance`
+    (as the position task leaves it), so it is not rounded a second time.
 
     :meth:`ResultsWriter.write_hdr` writes these very chunks too, so a file holds the same
     bytes whichever way a position was written.
     """
     h, w = result.radiance.shape
-    chunks = {name: (0, _CODECS[name].encode(array)) for name, array in _position_arrays(result).items()}
+    arrays = _position_arrays(result, variance_stored)
+    chunks = {name: (0, _CODECS[name].encode(array)) for name, array in arrays.items()}
     return EncodedHDR(chunks, np.asarray(result.saturation_level, float), (h, w))
 
 
