@@ -478,7 +478,11 @@ class ReflectanceResult:
     radiance : ndarray (n_lights, N, 3)
         ``L_o = rate / (k·cos⁴β)`` per light and channel.
     irradiance : dict of str to ndarray (n_lights, N)
-        ``E`` per method and light.
+        ``E`` per method and light: the channel mean.
+    colour : dict of str to ndarray (n_lights, N, 3) or None
+        Each channel's share of ``E`` per method, light and point (mean 1: the sources'
+        colours as they mix there); None for a grey light. Each channel's irradiance,
+        the one ``rho`` divides by, is ``E·colour`` (:meth:`irradiance_rgb`).
     sample_code : ndarray (n_lights, N) of uint8
         Each sample's code (:data:`SAMPLE_CODES`; 0 = used).
     rho_points : dict of str to ndarray (N, 3)
@@ -509,6 +513,7 @@ class ReflectanceResult:
     uv: np.ndarray | None
     radiance: np.ndarray
     irradiance: dict[str, np.ndarray]
+    colour: dict[str, np.ndarray | None]
     sample_code: np.ndarray
     rho_points: dict[str, np.ndarray]
     lights: list[dict]
@@ -517,6 +522,14 @@ class ReflectanceResult:
     warnings: list[str] = field(default_factory=list)
     outputs: dict[str, Path] = field(default_factory=dict)
     metadata: dict = field(default_factory=dict)
+
+    def irradiance_rgb(self, method: str) -> np.ndarray:
+        """Each channel's irradiance per light and point, (n_lights, N, 3) float32: what
+        ``rho[method]`` was solved with, ``ρ_c = π Σ_j L_jc E_jc / Σ_j E_jc²`` over the used
+        samples."""
+        grey = self.irradiance[method].astype(np.float32)[..., None]
+        colour = self.colour[method]
+        return grey * colour if colour is not None else np.repeat(grey, 3, axis=-1)
 
     @property
     def valid(self) -> np.ndarray:
@@ -807,7 +820,8 @@ def estimate_reflectance(radiance_rgb, saturated, camera, mesh_rig, light_poses,
         warnings.append(f"{100 * extrapolated:.0f} % of the valid points are lit at angles the light model "
                         "extrapolates (outside the θ its samples cover)")  # fmt: skip
     return ReflectanceResult(methods, shape, rho, reason, rows, cols, points, normals, faces, heights, uv, L,
-                             {m: E[m] for m in methods}, codes, rho_points, lights, settings, object_centre, warnings)  # fmt: skip
+                             {m: E[m] for m in methods}, {m: tints[m] for m in methods}, codes, rho_points, lights,
+                             settings, object_centre, warnings)  # fmt: skip
 
 
 def _drop_outliers(codes: np.ndarray, luminance: np.ndarray, irradiance: np.ndarray, threshold: float) -> None:
@@ -1167,6 +1181,7 @@ def write_outputs(result: ReflectanceResult, out_dir, *, texture_size: int = 102
         for m in result.methods:
             f[f"rho/{m}"] = result.rho_points[m]
             f[f"irradiance/{m}"] = result.irradiance[m]
+            f[f"irradiance_rgb/{m}"] = result.irradiance_rgb(m)
     files["reflectance.h5"] = h5
 
     summary = {**(metadata or {}), **result.summary(), "png_scale": scale, "profiles": profiles,

@@ -47,6 +47,7 @@ from processing.reflectance import (
     light_centre,
     load_mesh,
     reflectance_from_run,
+    write_outputs,
 )
 
 runner = CliRunner()
@@ -266,7 +267,7 @@ def _tinted(model: LightModel, colours) -> LightModel:
                        for s, c in zip(model.sources, colours, strict=True)], model.units, model.provenance)  # fmt: skip
 
 
-def test_a_tinted_light_leaves_no_tint_in_the_albedo(mesh):
+def test_a_tinted_light_leaves_no_tint_in_the_albedo(mesh, tmp_path):
     """Two sources of different colours (a warm and a cool LED): with the colours in the
     light model, each channel's albedo is the surface's; a grey model of the same light
     puts the light's tint into the albedo. The simplified models get the light's mean
@@ -284,6 +285,22 @@ def test_a_tinted_light_leaves_no_tint_in_the_albedo(mesh):
     grey = estimate_reflectance(rates, None, RIG.camera, mesh, POSES, _tinted(tinted, [(1, 1, 1)] * 2))
     off = np.nanmedian(at_truth(grey, truth, grey.rho["measured"])[valid] / truth["rho"][valid], axis=0)
     assert off[0] > 1.05 and off[2] < 0.95  # red too high, blue too low: the light's tint, not the surface's
+    # The per-point file holds each channel's irradiance, the one ρ was solved with: ρ comes back from it.
+    write_outputs(result, tmp_path / "tinted", texture_size=64)
+    with h5py.File(tmp_path / "tinted" / "reflectance.h5") as f:
+        for method in ("measured", "isotropic", "collimated"):
+            e_rgb, grey_e = f[f"irradiance_rgb/{method}"][()], f[f"irradiance/{method}"][()]
+            assert e_rgb.dtype == np.float32 and e_rgb.shape == (len(POSES), len(result.rows), 3)
+            np.testing.assert_allclose(e_rgb.mean(axis=2), grey_e, rtol=1e-6, atol=1e-6 * grey_e.max())
+            used = (f["sample_code"][()] == 0)[..., None]
+            L = np.where(used, f["radiance"][()], 0.0)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                again = math.pi * (L * e_rgb).sum(axis=0) / np.where(used, e_rgb.astype(float) ** 2, 0.0).sum(axis=0)
+            stored = f[f"rho/{method}"][()]
+            assert np.isfinite(stored).sum() > 2500
+            np.testing.assert_allclose(again[np.isfinite(stored)], stored[np.isfinite(stored)], rtol=1e-5)
+        assert not np.allclose(f["irradiance_rgb/measured"][..., 0], f["irradiance_rgb/measured"][..., 2])  # tinted
+    assert np.array_equal(grey.irradiance_rgb("measured"), np.repeat(grey.irradiance["measured"].astype(np.float32)[..., None], 3, -1))
     one_colour = _tinted(directional_light(), [warm, warm])
     rates, truth = render(mesh, one_colour, POSES)
     result = estimate_reflectance(rates, None, RIG.camera, mesh, POSES, one_colour)
@@ -621,7 +638,7 @@ def test_uv_texture_of_a_plane(tmp_path):
     rates, truth = render(plane, model, POSES)
     result = estimate_reflectance(rates, None, RIG.camera, plane, POSES, model)
     assert result.uv is not None
-    from processing.reflectance import reflectance_profiles, uv_texture, write_outputs
+    from processing.reflectance import reflectance_profiles, uv_texture
 
     texture = uv_texture(result, "measured", 64)
     filled = np.isfinite(texture[..., 0])
