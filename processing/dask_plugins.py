@@ -26,8 +26,8 @@ class WarmUpPlugin(WorkerPlugin):
     (:func:`gc.freeze`). A full collection walks every tracked object: on the two workers
     of a 2000×1312 run, one came about every other run and took 180-240 ms. It now walks
     only the objects made since (10-60 000) and took 50-170 ms, most of it freeing the
-    40-65 000 it found unreachable. What is frozen is never collected: the warm-up's own garbage is
-    collected first.
+    40-65 000 it found unreachable. What is frozen is never collected: the warm-up's own
+    garbage is collected first.
 
     ``func`` must be importable on the workers (a module-level function). Registered
     under a name made from it, idempotently: a second processing that connects to the

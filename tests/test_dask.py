@@ -89,7 +89,8 @@ def test_workers_that_join_later_are_warmed_up_too(tmp_path):
         processing's own modules among them): a full collection walks only newer ones."""
         import gc
 
-        frozen = gc.get_freeze_count() > 100_000 and not any(o is sys.modules["processing.sources"] for o in gc.get_objects())
+        module = sys.modules.get("processing.sources")
+        frozen = gc.get_freeze_count() > 100_000 and not any(o is module for o in gc.get_objects())
         return "processing.sources" in sys.modules and "processing.images" in sys.modules and frozen
 
     programs = _Programs(tmp_path)

@@ -300,7 +300,8 @@ def test_a_tinted_light_leaves_no_tint_in_the_albedo(mesh, tmp_path):
             assert np.isfinite(stored).sum() > 2500
             np.testing.assert_allclose(again[np.isfinite(stored)], stored[np.isfinite(stored)], rtol=1e-5)
         assert not np.allclose(f["irradiance_rgb/measured"][..., 0], f["irradiance_rgb/measured"][..., 2])  # tinted
-    assert np.array_equal(grey.irradiance_rgb("measured"), np.repeat(grey.irradiance["measured"].astype(np.float32)[..., None], 3, -1))
+    grey_e = grey.irradiance["measured"].astype(np.float32)
+    assert np.array_equal(grey.irradiance_rgb("measured"), np.repeat(grey_e[..., None], 3, -1))  # a grey light
     one_colour = _tinted(directional_light(), [warm, warm])
     rates, truth = render(mesh, one_colour, POSES)
     result = estimate_reflectance(rates, None, RIG.camera, mesh, POSES, one_colour)
