@@ -135,12 +135,12 @@ def _round_variance(variance, dropped_bits, out):
     shift = np.uint32(dropped_bits)
     for i in range(v.size):
         x = np.float32(v[i])
-        if not np.isfinite(x):
-            x = np.float32(np.inf)
-        o[i] = x
-        b = bits[i]
         if np.isfinite(x):
+            o[i] = x
+            b = bits[i]
             bits[i] = (b + ((b >> shift) & np.uint32(1)) + half) & keep
+        else:
+            o[i] = np.float32(np.inf)
     return out
 
 
