@@ -527,9 +527,7 @@ class ReflectanceResult:
         """Each channel's irradiance per light and point, (n_lights, N, 3) float32: what
         ``rho[method]`` was solved with, ``ρ_c = π Σ_j L_jc E_jc / Σ_j E_jc²`` over the used
         samples."""
-        grey = self.irradiance[method].astype(np.float32)[..., None]
-        colour = self.colour[method]
-        return grey * colour if colour is not None else np.repeat(grey, 3, axis=-1)
+        return _channel_irradiance(self.irradiance[method], self.colour[method]).astype(np.float32)
 
     @property
     def valid(self) -> np.ndarray:
@@ -792,7 +790,7 @@ def estimate_reflectance(radiance_rgb, saturated, camera, mesh_rig, light_poses,
             num = np.einsum("jn,jnc,jn->nc", w, np.where(used[..., None], L, 0.0), E[m])
             den = np.einsum("jn,jn->n", w, E[m] ** 2)[:, None]
         else:  # each channel's own irradiance: the light's tint is not the surface's
-            channel_e = E[m][..., None] * tints[m]
+            channel_e = _channel_irradiance(E[m], tints[m])
             num = np.einsum("jn,jnc,jnc->nc", w, np.where(used[..., None], L, 0.0), channel_e)
             den = np.einsum("jn,jnc->nc", w, channel_e**2)
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -822,6 +820,12 @@ def estimate_reflectance(radiance_rgb, saturated, camera, mesh_rig, light_poses,
     return ReflectanceResult(methods, shape, rho, reason, rows, cols, points, normals, faces, heights, uv, L,
                              {m: E[m] for m in methods}, {m: tints[m] for m in methods}, codes, rho_points, lights,
                              settings, object_centre, warnings)  # fmt: skip
+
+
+def _channel_irradiance(grey: np.ndarray, colour: np.ndarray | None) -> np.ndarray:
+    """Each channel's irradiance (..., 3) from the channel mean ``grey`` and each channel's
+    share of it (None: grey, every channel the same)."""
+    return grey[..., None] * colour if colour is not None else np.repeat(grey[..., None], 3, axis=-1)
 
 
 def _drop_outliers(codes: np.ndarray, luminance: np.ndarray, irradiance: np.ndarray, threshold: float) -> None:
