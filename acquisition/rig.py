@@ -44,7 +44,8 @@ class RigError(ValueError):
 
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    # inf and nan are TOML literals: a rig holds finite numbers only (one line naming the field).
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 # --- poses at the user's edge ----------------------------------------------------------

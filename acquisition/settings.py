@@ -27,7 +27,7 @@ class SettingsError(ValueError):
 
 
 class _Section(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)  # inf, nan: TOML literals
 
 
 class SimulatedStageSettings(_Section):
@@ -104,7 +104,7 @@ class AutoBracketSettings(_Section):
 class DaemonSettings(BaseSettings):
     """Everything ``mirrorgonio serve`` needs."""
 
-    model_config = SettingsConfigDict(env_prefix="MG_", env_nested_delimiter="__", extra="forbid")
+    model_config = SettingsConfigDict(env_prefix="MG_", env_nested_delimiter="__", extra="forbid", allow_inf_nan=False)
 
     data_dir: Path = Path("data")
     rig: Path = DEFAULT_RIG_PATH

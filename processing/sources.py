@@ -77,8 +77,10 @@ def load_layout(path: str | Path) -> list[Source]:
             radius = float(entry.get("radius_m", 0.5e-3))
         except (KeyError, TypeError, ValueError):
             raise SourcesError(f"{path}: sources[{i}].centre_m: needs [u, v] in metres") from None
-        if radius <= 0:
-            raise SourcesError(f"{path}: sources[{i}].radius_m: must be > 0 (got {radius})")
+        if not (math.isfinite(u) and math.isfinite(v)):  # inf and nan are TOML literals
+            raise SourcesError(f"{path}: sources[{i}].centre_m: must be finite (got [{u}, {v}])")
+        if not 0 < radius < math.inf:
+            raise SourcesError(f"{path}: sources[{i}].radius_m: must be finite and > 0 (got {radius})")
         out.append(Source(str(entry.get("name") or f"source-{i}"), (u, v), radius))
     return out
 

@@ -27,7 +27,7 @@ class TruthError(ValueError):
 
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)  # inf, nan: TOML literals
 
 
 class GaussianIntensity(_Strict):

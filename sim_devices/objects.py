@@ -53,7 +53,7 @@ class ObjectError(ValueError):
 
 # --- surface truth ---------------------------------------------------------------------------
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)  # inf, nan: TOML literals
 
 
 Fraction = Annotated[float, Field(ge=0.0, le=1.0)]

@@ -279,3 +279,18 @@ def test_object_arc_run_records_its_object_and_light(daemon, tmp_path):
         assert f.header.preset == "object-arc" and f.complete.all()
     assert refs["light_model"] == {"path": str(light.resolve()), "sha256": file_sha256(light), "run_id": "run-light"}
     assert refs["object_mesh"]["sha256"] == file_sha256(load_rig(shipped).object.mesh)
+
+
+def test_a_setting_that_is_not_a_finite_number_is_refused_naming_it(tmp_path, monkeypatch):
+    """inf and nan are TOML literals (and strings an environment variable can hold): a capture
+    timeout of inf was accepted before, and a capture that hangs then waited for ever."""
+    from acquisition.settings import SettingsError
+
+    config = tmp_path / "daemon.toml"
+    config.write_text("[camera]\ncapture_timeout_s = inf\n")
+    with pytest.raises(SettingsError) as caught:
+        load_settings(config)
+    assert str(caught.value) == f"{config}: camera.capture_timeout_s: Input should be a finite number (got inf)"
+    monkeypatch.setenv("MG_CAMERA__SIMULATED__LATENCY_S", "nan")
+    with pytest.raises(SettingsError, match=r"camera\.simulated\.latency_s: Input should be a finite number"):
+        load_settings(None)

@@ -354,6 +354,9 @@ def test_truth_errors_are_one_line(tmp_path):
     bad.write_text('[[emitters]]\nradius_m = -1\n')
     with pytest.raises(TruthError, match=r"bad\.toml: emitters\[0\]\.radius_m: must be > 0 \(got -1\)"):
         load_truth(bad)
+    bad.write_text('[[emitters]]\nradius_m = nan\n')  # a TOML literal
+    with pytest.raises(TruthError, match=r"bad\.toml: emitters\[0\]\.radius_m: Input should be a finite number"):
+        load_truth(bad)
 
 
 def test_light_housing_blocks_the_cameras_view_with_the_predicted_silhouette():

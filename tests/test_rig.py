@@ -103,6 +103,10 @@ def _error(data) -> str:
         (lambda d: d["camera"].__setitem__("colour", "red"), r"camera\.colour: unknown field"),
         (lambda d: d["schedule"].__setitem__("kind", "spiral"), r"schedule: .*(discriminator|tag|does not match)"),
         (lambda d: d["camera"].__setitem__("black_level_dn", 5000), r"camera: black_level_dn must be below the white level"),
+        # inf and nan are TOML literals; before, a camera at nan was accepted and every ray came out nan.
+        (lambda d: d["camera"]["pose"].__setitem__("position_m", [0.0, 0.0, math.nan]), r"camera\.pose\.position_m\[2\]: Input should be a finite number \(got nan\)"),
+        (lambda d: d["ball"].__setitem__("radius_m", math.inf), r"ball\.radius_m: Input should be a finite number \(got inf\)"),
+        (lambda d: d["schedule"].__setitem__("step_m", [-math.inf, 0.0, 0.0]), r"schedule\.light-sweep\.step_m\[0\]: Input should be a finite number \(got -inf\)"),
     ],
 )
 def test_impossible_rigs_are_refused_naming_the_field(edit, pattern):
