@@ -604,6 +604,8 @@ def bench_accuracy_command(
     positions: Annotated[int, typer.Option(min=3, help="Schedule positions (the first N of the sweep).")] = 66,
     fit: Annotated[str, typer.Option(help="Fit method: gaussian, polynomial, cos-power.")] = "gaussian",
     rig: RigOption = None,
+    layout_from_data: Annotated[bool, typer.Option("--layout-from-data", help="Find the sources in the data instead of "
+                                                   "giving the truth's layout; score each emitter against the nearest found.")] = False,
     as_json: Annotated[bool, typer.Option("--json", help="Print JSON only.")] = False,
 ) -> None:
     """The reference simulation through the whole chain, scored against the truth."""
@@ -611,7 +613,8 @@ def bench_accuracy_command(
     from processing.pipeline import ProcessingError
 
     try:
-        result = bench_accuracy(noise=noise, truth=truth, positions=positions, rig_path=rig, fit_method=fit)
+        result = bench_accuracy(noise=noise, truth=truth, positions=positions, rig_path=rig, fit_method=fit,
+                                layout_from_data=layout_from_data)  # fmt: skip
     except (*_domain_errors(), ProcessingError) as exc:
         raise _fail(str(exc)) from None
     _print_result(result, as_json)

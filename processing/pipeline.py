@@ -71,6 +71,7 @@ class ProcessReport:
     light_model: Path | None = None
     estimator: str = ""
     estimator_reason: str = ""
+    layout_search: str = ""  # how the sources were found in the data (empty when a layout was given)
     spatial_resolution_m: float = float("nan")
     n_positions: int = 0
     partial: bool = False
@@ -541,8 +542,11 @@ def process_run(run_path, out_dir=None, *, steps=("hdr",), method: str = "optima
             if plan is None:
                 with _open_run(run_path) as run:
                     clock = time.perf_counter()
-                    sources = layout_from_data(run, results_file, positions, ball_centre, compute)
+                    found = layout_from_data(run, results_file, positions, ball_centre, compute)
                     timings["layout"] = time.perf_counter() - clock
+                    sources = found.sources
+                    report.layout_search = ("candidate grid (NNLS), then positions and radius fitted: " if found.refined
+                                            else "candidate grid (NNLS) only: ") + found.message  # fmt: skip
                     plan = _plan_sources(run, sources, estimator, ball_centre, positions)
             clock = time.perf_counter()
             work = _PositionWork(str(run_path), str(results_file), None, plan)
@@ -630,7 +634,7 @@ def _finish_sources(run_path: Path, out: Path, report: ProcessReport, plan: _Sou
     timings["fit"] = time.perf_counter() - clock
     ball_centre = plan.ball_centre
     model.provenance["ball_centre_m"] = list(ball_centre) if ball_centre is not None else "as described by the rig"
-    model.provenance["layout"] = str(layout_path) if layout_path is not None else "found in the data (grid of candidates, NNLS)"
+    model.provenance["layout"] = str(layout_path) if layout_path is not None else f"found in the data: {report.layout_search}"
     report.light_model = model.save(out / f"{run_path.stem}.light.json")
     stem = out / run_path.stem
     luminaire = f"mirrorgonio run {run_path.stem}"
@@ -659,10 +663,12 @@ def _finish_sources(run_path: Path, out: Path, report: ProcessReport, plan: _Sou
     report.outputs["report"] = [drawn]
 
 
-def layout_from_data(run: RunFile, results_file, positions=None, ball_centre=None, compute: Compute | None = None) -> list:
+def layout_from_data(run: RunFile, results_file, positions=None, ball_centre=None, compute: Compute | None = None):
     """The sources found in the data (``processing.sources.find_layout``) at three
-    positions spread over the sweep, each position a task on ``compute``."""
-    from processing.sources import SourcesError, candidate_grid, sources_from_strength
+    positions spread over the sweep: each position's candidate grid a task on ``compute``,
+    then the refinement of the grid's guess (one task: it needs the three positions together).
+    A :class:`processing.sources.LayoutFit`."""
+    from processing.sources import SourcesError, candidate_grid, seeds_from_strength, sources_from_strength
 
     if positions is None:
         with Results.open(results_file) as results:
@@ -679,11 +685,30 @@ def layout_from_data(run: RunFile, results_file, positions=None, ball_centre=Non
         candidates, us, vs = candidate_grid([boxes[i] for i in picks])
         strengths: dict[int, np.ndarray] = {}
         compute.map_unordered(_candidate_strength_at, picks, *args, tuple(candidates), on_result=strengths.__setitem__)
-        found = sources_from_strength(sum(strengths[i] for i in picks), us, vs)
+        strength = sum(strengths[i] for i in picks)
+        first = sources_from_strength(strength, us, vs)
     except SourcesError as exc:
         raise ProcessingError(f"{run.path}: the sources could not be found in the data: {exc}") from None
-    log.info("%s: %d sources found in the data at positions %s", run.path, len(found), picks)
-    return found
+    refine = (_refined_layout, *args, tuple(picks), first, seeds_from_strength(strength, us, vs))
+    fit = compute.submit(*refine).result() if compute.dask else _refined_layout(*refine[1:])
+    if not fit.refined:
+        log.warning("%s: the layout found in the data is the candidate grid's (%s)", run.path, fit.message)
+    log.info("%s: %d sources found in the data at positions %s (%s)", run.path, len(fit.sources), picks, fit.message)
+    return fit
+
+
+def _refined_layout(run_path: str, results_file: str, ball_centre, picks, first, seeds):
+    """:func:`processing.sources.refine_layout` on the merged positions ``picks`` (a task)."""
+    _prepare_task()
+    from processing.sources import LayoutData, refine_layout
+
+    with _open_run(run_path) as run:
+        geometry, builder = _geometry(run, ball_centre)
+        data, cfa = [], "RGGB"
+        for index in picks:
+            rate, var, usable, cfa = _merged_rates(run, results_file, index)
+            data.append(LayoutData(rate, var, usable, _light_pose(run, geometry, index)))
+        return refine_layout(data, builder, cfa, first, seeds)
 
 
 def _merged_rates(run: RunFile, results_file: str, index: int):

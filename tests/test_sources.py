@@ -15,7 +15,7 @@ import pytest
 from acquisition.rig import load_rig
 from conftest import REDUCED_RIG
 from processing.pipeline import choose_estimator
-from processing.sources import Source, SourcesError, TemplateBuilder, load_layout, unmix_position
+from processing.sources import LayoutData, Source, SourcesError, TemplateBuilder, load_layout, refine_layout, unmix_position
 from processing.trace import RigGeometry, ball_pixel_grid, trace_pixels
 from sim_devices.lights import LIGHTS_DIR, TruthLight, load_truth
 from sim_devices.optics import CameraOptics, LightPlane, Mirror, MirrorBallRenderer
@@ -83,6 +83,52 @@ def test_unmixing_recovers_five_sources_4_mm_apart():
     centres = np.array([t.image_centre for t in estimate.templates])
     gaps = [math.dist(centres[0], c) for c in centres[1:]]
     assert 7 < min(gaps) and max(gaps) < 13
+
+
+def test_the_layout_search_moves_a_poor_guess_onto_the_sources_and_adds_the_one_it_missed():
+    """The candidate grid's guess, as it came out at full resolution: the outer sources
+    0.2-0.75 mm too close to the middle, the middle one missing, discs too large. The
+    refinement must put five sources within 30 µm of the truth, with their radius, from
+    the simulator's images (written independently of the templates)."""
+    rig = _crop_rig()
+    truth = load_truth("five-gaussians")
+    renderer = MirrorBallRenderer(rig, truth, diffraction=True, seed=4)
+    data = []
+    for index in (31, 33, 35):
+        pose = rig.light_poses()[index]
+        mosaic = mosaic_of(renderer.render(pose).rate, "RGGB")
+        data.append(LayoutData(mosaic, mosaic / 1e-3 + (3.0 / 1e-3) ** 2, np.ones(mosaic.shape, bool), pose))
+    builder = TemplateBuilder(RigGeometry.from_rig(rig), rig.camera.sensitivity_e_per_s)
+    guess = [Source(f"g{k}", centre, 0.75e-3) for k, centre in
+             enumerate([(-3.25e-3, -0.1e-3), (0.0, -3.78e-3), (3.78e-3, 0.0), (0.0, 3.66e-3)])]  # fmt: skip
+    seeds = [(u * 1.5e-3, v * 1.5e-3) for u in range(-3, 4) for v in range(-3, 4)]
+    fit = refine_layout(data, builder, "RGGB", guess, seeds)
+    assert fit.refined, fit.message
+    found = np.array([s.centre for s in fit.sources])
+    expected = np.array([e.centre_m for e in truth.emitters])
+    assert len(found) == 5, fit.message
+    distance = np.min(np.hypot(*(found[:, None, :] - expected[None, :, :]).transpose(2, 0, 1)), axis=0)
+    assert np.all(distance < 30e-6), distance
+    assert abs(fit.sources[0].radius - 0.5e-3) < 0.05e-3, fit.message
+    # The fifth source explained most of what the four left: χ² fell by more than half.
+    assert [n for n, _ in fit.steps] == [4, 5] and fit.steps[1][1] < 0.5 * fit.steps[0][1], fit.steps
+    assert fit.chi2 / fit.pixels < 1.5, fit.message  # the templates explain the data to about its noise
+
+    # Started from the truth, nothing is added: no seed explains 2 % of what is left.
+    again = refine_layout(data, builder, "RGGB", [Source(s.name, s.centre, 0.5e-3) for s in fit.sources], seeds)
+    assert len(again.sources) == 5 and [n for n, _ in again.steps] == [5]
+
+
+def test_the_layout_search_says_when_it_cannot_refine():
+    rig = _crop_rig()
+    builder = TemplateBuilder(RigGeometry.from_rig(rig), rig.camera.sensitivity_e_per_s)
+    nothing = refine_layout([], builder, "RGGB", [])
+    assert not nothing.refined and nothing.message == "no first guess to refine" and nothing.sources == []
+    guess = [Source("far", (0.5, 0.5), 0.5e-3)]  # half a metre off the axis: the ball never shows it
+    dark = np.zeros((rig.camera.height, rig.camera.width))
+    fit = refine_layout([LayoutData(dark, dark + 1.0, np.ones(dark.shape, bool), rig.light_poses()[33])], builder, "RGGB", guess)
+    assert not fit.refined and fit.sources == guess
+    assert fit.message == "no position has a window where every template is whole"
 
 
 def test_the_estimator_follows_the_footprint():
