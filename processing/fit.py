@@ -345,7 +345,12 @@ def _result(method, names, popt, pcov, samples: Samples, info=None) -> Intensity
         info["warning"] = "covariance could not be estimated: the samples do not determine every parameter"
     with np.errstate(invalid="ignore"):
         errors = np.sqrt(np.where(np.diag(pcov) >= 0, np.diag(pcov), np.nan))
-    errors = np.where(np.isfinite(errors), errors, np.inf)
+    # A variance of exactly 0 is SciPy's pseudo-inverse dropping a Jacobian too small to use: not
+    # a parameter known perfectly, but one the samples do not determine.
+    undetermined = ~np.isfinite(errors) | (errors == 0)
+    if np.any(undetermined) and "warning" not in info:
+        info["warning"] = "covariance could not be estimated: the samples do not determine every parameter"
+    errors = np.where(undetermined, np.inf, errors)
     model = _MODELS[method](samples.theta, samples.phi, params)
     residuals = samples.intensity - model
     dof = len(samples) - len(names)
@@ -390,8 +395,13 @@ def _fit_gaussian(samples: Samples, *, free_centre: bool = False) -> IntensityFi
     names = ["a", "sigma", "theta0"] if free_centre else ["a", "sigma"]
     _checked(samples, method, len(names))
     t = samples.theta
-    span = max(float(np.ptp(t)), 1e-3)
-    a0, s0, t0 = float(np.max(samples.intensity)), span, float(t[np.argmax(samples.intensity)])
+    # Without a downward curvature to start from (a few samples over a few degrees, noise
+    # bending them upwards), start broad: σ twice the largest θ, where the lobe is near flat.
+    # A start as narrow as the samples' span put them in the far tail (e^-355 of the peak
+    # for 3 samples near 5.7°), where no step of the solver changed anything: it returned
+    # its start, with "uncertainties" of 0.
+    s0 = max(2.0 * float(np.max(np.abs(t))), float(np.ptp(t)), 1e-3)
+    a0, t0 = float(np.max(samples.intensity)), float(t[np.argmax(samples.intensity)])
     if free_centre:
         c = _log_linear([np.ones_like(t), t, t**2], samples)
         if c is not None and c[2] < 0:

@@ -67,6 +67,24 @@ def test_gaussian_free_centre():
     assert_pulls(fit, {"a": 1.5, "sigma": 0.15, "theta0": 0.25})
 
 
+def test_a_gaussian_over_a_few_degrees_that_noise_bent_upwards_is_fitted_not_returned_as_started():
+    """Three samples near 5.7° of a Gaussian of σ = 35° (the reference simulation's -v source,
+    three positions), noise making the nearest one the lowest. The fit used to start as
+    narrow as the samples' span, in the far tail where no step changes anything, and came
+    back unmoved: a peak e^-355 below the data, chi2_red 8.5e6, "uncertainties" of 0."""
+    theta = np.array([0.10029702913504539, 0.09653757876653171, 0.09959321843636736])
+    intensity = np.array([0.6923147453320279, 0.6906112589170973, 0.6913178279977806])
+    sigma = np.array([0.000412032082772143, 0.000410843893263291, 0.0004108596223784148])
+    fit = fit_intensity(Samples(theta, np.zeros(3), intensity, sigma), "gaussian")
+    # The flattest lobe the samples allow; within 0.2 % of the truth where they are.
+    truth = 0.7 * np.exp(-(theta**2) / (2 * math.radians(35.0) ** 2))
+    np.testing.assert_allclose(fit.evaluate(theta)[0], truth, rtol=2e-3)
+    assert fit.chi2_reduced < 20
+    # σ is not determined by three samples over 0.2°: said so, not reported as exact.
+    assert fit.uncertainties["sigma"] > fit.params["sigma"] > 1.0
+    assert fit.uncertainties["a"] > 0
+
+
 def test_cos_power():
     truth = 3.0 * np.cos(THETA) ** 7.5
     y, sigma = noisy(truth, seed=4)
