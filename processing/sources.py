@@ -522,15 +522,7 @@ def unmix_position(index: int, rate_e: np.ndarray, variance_e: np.ndarray, usabl
     channel = cfa_channels(cfa_pattern, rows, cols)
     columns = np.zeros((len(shown), bottom - top, right - left))
     for k, i in enumerate(shown):
-        t = templates[i]
-        # Each photosite takes its own channel's template.
-        r_lo, c_lo = max(t.row0, top), max(t.col0, left)
-        r_hi, c_hi = min(t.row0 + t.image.shape[1], bottom), min(t.col0 + t.image.shape[2], right)
-        if r_hi <= r_lo or c_hi <= c_lo:
-            continue
-        patch = t.image[:, r_lo - t.row0 : r_hi - t.row0, c_lo - t.col0 : c_hi - t.col0]
-        ch = channel[r_lo - top : r_hi - top, c_lo - left : c_hi - left]
-        columns[k, r_lo - top : r_hi - top, c_lo - left : c_hi - left] = np.take_along_axis(patch, ch[None], 0)[0]
+        _place(templates[i], (top, bottom, left, right), channel, columns[k])
     data = rate_e[top:bottom, left:right]
     var = variance_e[top:bottom, left:right]
     ok = usable[top:bottom, left:right] & np.isfinite(data) & np.isfinite(var) & (var > 0)
@@ -553,6 +545,20 @@ def unmix_position(index: int, rate_e: np.ndarray, variance_e: np.ndarray, usabl
         dof = max(1, a.shape[0] - len(shown))
         residual[c] = float(np.sqrt(np.sum((a @ solution - b) ** 2) / dof))
     return PositionEstimate(index, intensity, sigma, theta, phi, visible, templates, residual)
+
+
+def _place(template: Template, window: tuple[int, int, int, int], channel: np.ndarray, out: np.ndarray) -> None:
+    """Write the part of ``template`` inside ``window`` (top, bottom, left, right) into ``out``
+    (the window's shape), each photosite taking its own ``channel``'s template."""
+    top, bottom, left, right = window
+    t = template
+    r_lo, c_lo = max(t.row0, top), max(t.col0, left)
+    r_hi, c_hi = min(t.row0 + t.image.shape[1], bottom), min(t.col0 + t.image.shape[2], right)
+    if r_hi <= r_lo or c_hi <= c_lo:
+        return
+    patch = t.image[:, r_lo - t.row0 : r_hi - t.row0, c_lo - t.col0 : c_hi - t.col0]
+    ch = channel[r_lo - top : r_hi - top, c_lo - left : c_hi - left]
+    out[r_lo - top : r_hi - top, c_lo - left : c_hi - left] = np.take_along_axis(patch, ch[None], 0)[0]
 
 
 def _nnls(a: np.ndarray, b: np.ndarray, gram: np.ndarray, maxiter: int) -> np.ndarray:
@@ -886,16 +892,12 @@ class _LayoutProblem:
         column = self._columns.get(key)
         if column is not None:
             return column
-        pose, (top, bottom, left, right), channel, picks, *_ = self.windows[p]
+        pose, window, channel, picks, *_ = self.windows[p]
+        top, bottom, left, right = window
         column = np.zeros((bottom - top, right - left))
-        t = self.builder.build(Source("trial", (u, v), radius), pose)
-        if t is not None:
-            r_lo, c_lo = max(t.row0, top), max(t.col0, left)
-            r_hi, c_hi = min(t.row0 + t.image.shape[1], bottom), min(t.col0 + t.image.shape[2], right)
-            if r_hi > r_lo and c_hi > c_lo:
-                patch = t.image[:, r_lo - t.row0 : r_hi - t.row0, c_lo - t.col0 : c_hi - t.col0]
-                ch = channel[r_lo - top : r_hi - top, c_lo - left : c_hi - left]
-                column[r_lo - top : r_hi - top, c_lo - left : c_hi - left] = np.take_along_axis(patch, ch[None], 0)[0]
+        template = self.builder.build(Source("trial", (u, v), radius), pose)
+        if template is not None:
+            _place(template, window, channel, column)
         column = [column[pick] for pick in picks]
         if len(self._columns) >= 64 * len(self.windows):  # a Jacobian's worth several times over; oldest out
             for old in list(self._columns)[: len(self._columns) // 2]:
