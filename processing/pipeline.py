@@ -664,9 +664,9 @@ def _finish_sources(run_path: Path, out: Path, report: ProcessReport, plan: _Sou
 
 
 def layout_from_data(run: RunFile, results_file, positions=None, ball_centre=None, compute: Compute | None = None):
-    """The sources found in the data (``processing.sources.find_layout``) at three
-    positions spread over the sweep: each position's candidate grid a task on ``compute``,
-    then the refinement of the grid's guess (one task: it needs the three positions together).
+    """The sources found in the data (``processing.sources.find_layout``): the candidate
+    grid at three positions spread over the sweep, each a task on ``compute``, then the
+    refinement of the grid's guess at five (one task: it needs the positions together).
     A :class:`processing.sources.LayoutFit`."""
     from processing.sources import SourcesError, candidate_grid, seeds_from_strength, sources_from_strength
 
@@ -689,7 +689,11 @@ def layout_from_data(run: RunFile, results_file, positions=None, ball_centre=Non
         first = sources_from_strength(strength, us, vs)
     except SourcesError as exc:
         raise ProcessingError(f"{run.path}: the sources could not be found in the data: {exc}") from None
-    refine = (_refined_layout, *args, tuple(picks), first, seeds_from_strength(strength, us, vs))
+    # The refinement fits every source's centre to five positions: with three, noise-free data
+    # came out 1.4-5.6 µm off and the fits 0.06-0.26 % off the truth; with five, 1.1-3.8 µm and
+    # 0.02-0.10 % (the true layout: 0.02-0.17 %), for 5.4 s instead of 3.6.
+    spread = sorted({int(positions[int(q * (len(positions) - 1))]) for q in (1 / 6, 2 / 6, 3 / 6, 4 / 6, 5 / 6)})
+    refine = (_refined_layout, *args, tuple(spread), first, seeds_from_strength(strength, us, vs))
     fit = compute.submit(*refine).result() if compute.dask else _refined_layout(*refine[1:])
     if not fit.refined:
         log.warning("%s: the layout found in the data is the candidate grid's (%s)", run.path, fit.message)
