@@ -1005,6 +1005,17 @@ def _refine_layout(data, builder, cfa_pattern, first, seeds, min_gain, min_share
         return LayoutFit(list(first), False, "no position has a window where every template is whole")
     centres, radius, chi2 = problem.fit(np.array([s.centre for s in first], float), radius, max_radius, max_nfev)
     steps = [(len(centres), chi2)]
+    # Two guesses of one source (the grid shares a source's light out) meet when fitted: the
+    # fainter goes, and the rest are refitted.
+    while len(centres) > 1:
+        pairs = [(math.dist(centres[i], centres[j]), i, j) for i in range(len(centres)) for j in range(i)]
+        gap, i, j = min(pairs)
+        if gap >= min_distance:
+            break
+        light = problem.solve(centres, radius)[1].sum(axis=(0, 1))
+        centres = np.delete(centres, i if light[i] < light[j] else j, axis=0)
+        centres, radius, chi2 = problem.fit(centres, radius, max_radius, max_nfev)
+        steps.append((len(centres), chi2))
     untried = [np.array(seed, float) for seed in seeds]
     while len(centres) < max_sources:
         untried = [seed for seed in untried if np.min(np.hypot(*(centres - seed).T)) >= min_distance]

@@ -117,6 +117,11 @@ def test_the_layout_search_moves_a_poor_guess_onto_the_sources_and_adds_the_one_
     # Started from the truth, nothing is added: no seed explains 2 % of what is left.
     again = refine_layout(data, builder, "RGGB", [Source(s.name, s.centre, 0.5e-3) for s in fit.sources], seeds)
     assert len(again.sources) == 5 and [n for n, _ in again.steps] == [5]
+    # Two guesses of one source meet when fitted: one goes.
+    twice = refine_layout(data, builder, "RGGB", again.sources + [Source("+u again", (4.3e-3, 0.1e-3), 0.5e-3)], seeds)
+    assert [n for n, _ in twice.steps] == [6, 5], twice.steps
+    found = np.array([s.centre for s in twice.sources])
+    assert np.all(np.min(np.hypot(*(found[:, None, :] - expected[None, :, :]).transpose(2, 0, 1)), axis=0) < 30e-6)
 
 
 def test_the_layout_search_says_when_it_cannot_refine():
