@@ -1039,5 +1039,5 @@ def _refine_layout(data, builder, cfa_pattern, first, seeds, min_gain, min_share
         centres, radius, chi2 = problem.fit(centres[keep], radius, max_radius, max_nfev)
         steps.append((len(centres), chi2))
     sources = [Source(f"source-{k}", (float(u), float(v)), radius) for k, (u, v) in enumerate(centres)]
-    return LayoutFit(sources, True, f"{len(sources)} sources of radius {radius * 1e3:.2f} mm, χ² {chi2:.4g} over "
+    return LayoutFit(sources, True, f"{len(sources)} source{'s' * (len(sources) != 1)} of radius {radius * 1e3:.2f} mm, χ² {chi2:.4g} over "
                      f"{problem.pixels} pixels", chi2, problem.pixels, steps)  # fmt: skip
