@@ -824,7 +824,8 @@ class LayoutFit:
     steps: list[tuple[int, float]] = field(default_factory=list)
 
 
-def seeds_from_strength(strength: np.ndarray, us: np.ndarray, vs: np.ndarray, *, threshold: float = 0.05) -> list[tuple[float, float]]:
+def seeds_from_strength(strength: np.ndarray, us: np.ndarray, vs: np.ndarray, *,
+                        threshold: float = 0.05) -> list[tuple[float, float]]:  # fmt: skip
     """The candidates of the grid that took at least ``threshold`` of the strongest one's
     strength: where the unmixing put light, so where a source the local maxima missed can be."""
     grid = np.asarray(strength, float).reshape(len(vs), len(us))
@@ -877,7 +878,8 @@ class _LayoutProblem:
                 continue
             rows, cols = np.mgrid[top:bottom, left:right]
             channel = cfa_channels(cfa_pattern, rows, cols)
-            rate, var = np.asarray(item.rate[top:bottom, left:right], float), np.asarray(item.variance[top:bottom, left:right], float)
+            rate = np.asarray(item.rate[top:bottom, left:right], float)
+            var = np.asarray(item.variance[top:bottom, left:right], float)
             ok = np.asarray(item.usable[top:bottom, left:right], bool) & np.isfinite(rate) & np.isfinite(var) & (var > 0)
             picks = [ok & (channel == c) for c in range(3)]
             weights = [1.0 / np.sqrt(var[pick]) for pick in picks]
@@ -1039,5 +1041,6 @@ def _refine_layout(data, builder, cfa_pattern, first, seeds, min_gain, min_share
         centres, radius, chi2 = problem.fit(centres[keep], radius, max_radius, max_nfev)
         steps.append((len(centres), chi2))
     sources = [Source(f"source-{k}", (float(u), float(v)), radius) for k, (u, v) in enumerate(centres)]
-    return LayoutFit(sources, True, f"{len(sources)} source{'s' * (len(sources) != 1)} of radius {radius * 1e3:.2f} mm, χ² {chi2:.4g} over "
-                     f"{problem.pixels} pixels", chi2, problem.pixels, steps)  # fmt: skip
+    count = f"{len(sources)} source{'s' * (len(sources) != 1)}"
+    return LayoutFit(sources, True, f"{count} of radius {radius * 1e3:.2f} mm, χ² {chi2:.4g} over {problem.pixels} pixels",
+                     chi2, problem.pixels, steps)  # fmt: skip
