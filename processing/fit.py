@@ -341,14 +341,12 @@ def _result(method, names, popt, pcov, samples: Samples, info=None) -> Intensity
     params = {k: float(v) for k, v in zip(names, popt)}
     pcov = np.asarray(pcov, dtype=float)
     info = dict(info or {})
-    if not np.all(np.isfinite(pcov)):
-        info["warning"] = "covariance could not be estimated: the samples do not determine every parameter"
     with np.errstate(invalid="ignore"):
         errors = np.sqrt(np.where(np.diag(pcov) >= 0, np.diag(pcov), np.nan))
     # A variance of exactly 0 is SciPy's pseudo-inverse dropping a Jacobian too small to use: not
     # a parameter known perfectly, but one the samples do not determine.
     undetermined = ~np.isfinite(errors) | (errors == 0)
-    if np.any(undetermined) and "warning" not in info:
+    if not np.all(np.isfinite(pcov)) or np.any(undetermined):
         info["warning"] = "covariance could not be estimated: the samples do not determine every parameter"
     errors = np.where(undetermined, np.inf, errors)
     model = _MODELS[method](samples.theta, samples.phi, params)

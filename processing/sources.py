@@ -927,6 +927,10 @@ class _LayoutProblem:
         r, _ = self.solve(centres, radius)
         return float(r @ r)
 
+    def light(self, centres: np.ndarray, radius: float) -> np.ndarray:
+        """Each source's intensity summed over the positions and channels (0: it explains nothing)."""
+        return self.solve(centres, radius)[1].sum(axis=(0, 1))
+
     def fit(self, centres: np.ndarray, radius: float, max_radius: float, max_nfev: int) -> tuple[np.ndarray, float, float]:
         """Centres (S, 2) and the discs' common radius moved to the least χ²; (centres, radius, χ²).
 
@@ -946,8 +950,8 @@ class _LayoutProblem:
         lower[-1], upper[-1] = 0.02, max_radius * 1e3
         result = least_squares(residuals, start, bounds=(lower, upper), diff_step=0.01, xtol=2e-4, ftol=1e-5,
                                max_nfev=max_nfev)  # fmt: skip
-        moved, fitted = result.x[:-1].reshape(-1, 2) * 1e-3, float(result.x[-1]) * 1e-3
-        return moved, fitted, self.chi2(moved, fitted)
+        # result.fun is the residual at result.x: χ² without solving there again.
+        return result.x[:-1].reshape(-1, 2) * 1e-3, float(result.x[-1]) * 1e-3, float(result.fun @ result.fun)
 
 
 def refine_layout(data: list[LayoutData], builder: TemplateBuilder, cfa_pattern: str, first: list[Source],
@@ -995,52 +999,50 @@ def refine_layout(data: list[LayoutData], builder: TemplateBuilder, cfa_pattern:
     # another order (several threads) into the centres (~1e-11 m) and the rays drawn from them
     # (~3e-8 m). Its matrices are a few columns wide: one thread is no slower.
     with threadpool_limits(limits=1, user_api="blas"):
-        return _refine_layout(data, builder, cfa_pattern, first, seeds, min_gain, min_share, min_distance,
-                              max_radius, max_sources, margin_px, inset_px, max_nfev)  # fmt: skip
+        problem = _LayoutProblem(data, builder, cfa_pattern, first, margin_px, inset_px)
+        if not problem.windows or problem.pixels < 16:
+            return LayoutFit(list(first), False, "no position has a window where every template is whole")
+        radius = float(np.median([s.radius for s in first]))
+        centres, radius, chi2 = problem.fit(np.array([s.centre for s in first], float), radius, max_radius, max_nfev)
+        steps = [(len(centres), chi2)]
+        # Two guesses of one source (the grid shares a source's light out) meet when fitted: the
+        # fainter goes, and the rest are refitted.
+        while len(centres) > 1:
+            gap, i, j = _closest_pair(centres)
+            if gap >= min_distance:
+                break
+            light = problem.light(centres, radius)
+            centres = np.delete(centres, i if light[i] < light[j] else j, axis=0)
+            centres, radius, chi2 = problem.fit(centres, radius, max_radius, max_nfev)
+            steps.append((len(centres), chi2))
+        untried = [np.array(seed, float) for seed in seeds]
+        while len(centres) < max_sources:
+            untried = [seed for seed in untried if np.min(np.hypot(*(centres - seed).T)) >= min_distance]
+            if not untried:
+                break
+            trials = [problem.chi2(np.vstack([centres, seed]), radius) for seed in untried]
+            best = int(np.argmin(trials))
+            if trials[best] > (1.0 - min_gain) * chi2:
+                break
+            grown = np.vstack([centres, untried.pop(best)])
+            grown, grown_radius, grown_chi2 = problem.fit(grown, radius, max_radius, max_nfev)
+            light = problem.light(grown, grown_radius)
+            too_close = _closest_pair(grown)[0] < min_distance
+            if grown_chi2 > (1.0 - min_gain) * chi2 or light[-1] < min_share * light.max() or too_close:
+                break
+            centres, radius, chi2 = grown, grown_radius, grown_chi2
+            steps.append((len(centres), chi2))
+        # A source left with no light (the unmixing gave it nothing anywhere) is not one.
+        keep = problem.light(centres, radius) > 0
+        if not np.all(keep) and np.any(keep):
+            centres, radius, chi2 = problem.fit(centres[keep], radius, max_radius, max_nfev)
+            steps.append((len(centres), chi2))
+        sources = [Source(f"source-{k}", (float(u), float(v)), radius) for k, (u, v) in enumerate(centres)]
+        count = f"{len(sources)} source{'s' * (len(sources) != 1)}"
+        return LayoutFit(sources, True, f"{count} of radius {radius * 1e3:.2f} mm, χ² {chi2:.4g} over {problem.pixels} pixels",
+                         chi2, problem.pixels, steps)  # fmt: skip
 
 
-def _refine_layout(data, builder, cfa_pattern, first, seeds, min_gain, min_share, min_distance, max_radius,
-                   max_sources, margin_px, inset_px, max_nfev) -> LayoutFit:  # fmt: skip
-    radius = float(np.median([s.radius for s in first]))
-    problem = _LayoutProblem(data, builder, cfa_pattern, first, margin_px, inset_px)
-    if not problem.windows or problem.pixels < 16:
-        return LayoutFit(list(first), False, "no position has a window where every template is whole")
-    centres, radius, chi2 = problem.fit(np.array([s.centre for s in first], float), radius, max_radius, max_nfev)
-    steps = [(len(centres), chi2)]
-    # Two guesses of one source (the grid shares a source's light out) meet when fitted: the
-    # fainter goes, and the rest are refitted.
-    while len(centres) > 1:
-        pairs = [(math.dist(centres[i], centres[j]), i, j) for i in range(len(centres)) for j in range(i)]
-        gap, i, j = min(pairs)
-        if gap >= min_distance:
-            break
-        light = problem.solve(centres, radius)[1].sum(axis=(0, 1))
-        centres = np.delete(centres, i if light[i] < light[j] else j, axis=0)
-        centres, radius, chi2 = problem.fit(centres, radius, max_radius, max_nfev)
-        steps.append((len(centres), chi2))
-    untried = [np.array(seed, float) for seed in seeds]
-    while len(centres) < max_sources:
-        untried = [seed for seed in untried if np.min(np.hypot(*(centres - seed).T)) >= min_distance]
-        if not untried:
-            break
-        trials = [problem.chi2(np.vstack([centres, seed]), radius) for seed in untried]
-        best = int(np.argmin(trials))
-        if trials[best] > (1.0 - min_gain) * chi2:
-            break
-        grown, grown_radius, grown_chi2 = problem.fit(np.vstack([centres, untried.pop(best)]), radius, max_radius, max_nfev)
-        light = problem.solve(grown, grown_radius)[1].sum(axis=(0, 1))
-        too_close = min(math.dist(a, b) for i, a in enumerate(grown) for b in grown[:i]) < min_distance
-        if grown_chi2 > (1.0 - min_gain) * chi2 or light[-1] < min_share * light.max() or too_close:
-            break
-        centres, radius, chi2 = grown, grown_radius, grown_chi2
-        steps.append((len(centres), chi2))
-    # A source left with no light (the unmixing gave it nothing anywhere) is not one.
-    light = problem.solve(centres, radius)[1].sum(axis=(0, 1))
-    keep = light > 0
-    if not np.all(keep) and np.any(keep):
-        centres, radius, chi2 = problem.fit(centres[keep], radius, max_radius, max_nfev)
-        steps.append((len(centres), chi2))
-    sources = [Source(f"source-{k}", (float(u), float(v)), radius) for k, (u, v) in enumerate(centres)]
-    count = f"{len(sources)} source{'s' * (len(sources) != 1)}"
-    return LayoutFit(sources, True, f"{count} of radius {radius * 1e3:.2f} mm, χ² {chi2:.4g} over {problem.pixels} pixels",
-                     chi2, problem.pixels, steps)  # fmt: skip
+def _closest_pair(centres: np.ndarray) -> tuple[float, int, int]:
+    """(distance, i, j) of the two closest of ``centres`` (at least two)."""
+    return min((math.dist(centres[i], centres[j]), i, j) for i in range(len(centres)) for j in range(i))
