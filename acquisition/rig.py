@@ -15,17 +15,10 @@ from pathlib import Path
 from typing import Annotated, Literal
 
 import numpy as np
-from pydantic import (
-    BaseModel,
-    ConfigDict,
-    Field,
-    PositiveFloat,
-    PositiveInt,
-    model_validator,
-)
+from pydantic import Field, PositiveFloat, PositiveInt, model_validator
 
 from drivers.arm import SoftLimits
-from drivers.config_files import load_model, validate_model
+from drivers.config_files import ConfigModel, load_model, validate_model
 from drivers.pose import Pose, rotation_from_angles
 
 RIG_SCHEMA_VERSION = 1
@@ -33,6 +26,12 @@ RIG_SCHEMA_VERSION = 1
 #: of a checkout links here.
 RIGS_DIR = Path(__file__).resolve().parent / "rigs"
 DEFAULT_RIG_PATH = RIGS_DIR / "default.toml"
+
+#: Positions in a schedule, and pixels along a sensor's side: bounded so that a typo cannot
+#: ask for a schedule or an image that does not fit in memory (the API's ``count`` agrees).
+MAX_POSITIONS = 100_000
+PositionCount = Annotated[int, Field(gt=0, le=MAX_POSITIONS)]
+SensorSide = Annotated[int, Field(gt=0, le=100_000)]
 
 Vec2 = tuple[float, float]
 Vec3 = tuple[float, float, float]
@@ -43,13 +42,10 @@ class RigError(ValueError):
     """An impossible or unreadable rig description (one line: file, field, cause)."""
 
 
-class _Strict(BaseModel):
-    # inf and nan are TOML literals: a rig holds finite numbers only (one line naming the field).
-    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 # --- poses at the user's edge ----------------------------------------------------------
-class PoseSpec(_Strict):
+class PoseSpec(ConfigModel):
     """A pose: position in metres, fixed-axis X-Y-Z rotation in degrees."""
 
     position_m: Vec3 = (0.0, 0.0, 0.0)
@@ -76,7 +72,7 @@ def look_rotation(forward, x_hint) -> np.ndarray:
     return np.column_stack([x, y, z])
 
 
-class Orientation(_Strict):
+class Orientation(ConfigModel):
     """A fixed light orientation: explicit angles, or the light axis aimed at a point.
 
     With ``aim_at_m`` the light's +z points from the schedule's middle position at that
@@ -96,7 +92,7 @@ class Orientation(_Strict):
 
 
 # --- the parts of the rig ----------------------------------------------------------------
-class CameraPose(_Strict):
+class CameraPose(ConfigModel):
     """Where the camera is and where it looks.
 
     Either ``position_m`` + ``look_at_m`` + ``up`` (the image's up direction), or an
@@ -135,14 +131,14 @@ class CameraPose(_Strict):
         return rot, -rot @ centre
 
 
-class ThinLens(_Strict):
+class ThinLens(ConfigModel):
     """A thin lens focused at ``focus_distance_m`` (along the axis) at ``f_number``."""
 
     focus_distance_m: PositiveFloat
     f_number: PositiveFloat
 
 
-class Camera(_Strict):
+class Camera(ConfigModel):
     """The camera: a pinhole of finite diameter, or a thin lens.
 
     ``sensor_distance_m`` is the pinhole-to-sensor (or lens-to-sensor) distance. The
@@ -154,8 +150,8 @@ class Camera(_Strict):
     sensor_distance_m: PositiveFloat = 0.025
     thin_lens: ThinLens | None = None
     pixel_pitch_m: PositiveFloat = 5.9e-6
-    width: PositiveInt = 2000
-    height: PositiveInt = 1312
+    width: SensorSide = 2000
+    height: SensorSide = 1312
     principal_point_px: Vec2 | None = None
     pose: CameraPose = CameraPose()
     cfa_pattern: Literal["RGGB", "BGGR", "GRBG", "GBRG"] = "RGGB"
@@ -218,7 +214,7 @@ class Camera(_Strict):
         return -rot.T @ t
 
 
-class Ball(_Strict):
+class Ball(ConfigModel):
     """The mirrored ball: a conductor with complex refractive index n + ik per channel.
 
     The defaults are chrome in the red, green and blue channels (normal-incidence
@@ -231,7 +227,7 @@ class Ball(_Strict):
     k: RGB = (3.30, 3.30, 3.20)
 
 
-class Light(_Strict):
+class Light(ConfigModel):
     """The light's mount and housing.
 
     ``light_to_tool`` is the light frame expressed in the arm's tool frame. The housing
@@ -244,7 +240,7 @@ class Light(_Strict):
     housing_depth_m: Annotated[float, Field(ge=0.0)] = 0.05
 
 
-class AxisRange(_Strict):
+class AxisRange(ConfigModel):
     x_m: Vec2 = (-0.25, 0.25)
     y_m: Vec2 = (-0.25, 0.25)
     z_m: Vec2 = (0.0, 0.45)
@@ -273,18 +269,18 @@ class AxisRange(_Strict):
         )
 
 
-class Arm(_Strict):
+class Arm(ConfigModel):
     soft_limits: AxisRange = AxisRange()
 
 
 # --- schedules ---------------------------------------------------------------------------
-class LightSweep(_Strict):
+class LightSweep(ConfigModel):
     """Positions ``start + i * step`` for i in 0..count-1, at one fixed orientation."""
 
     kind: Literal["light-sweep"] = "light-sweep"
     start_m: Vec3 = (-0.08125, 0.04, 0.10)
     step_m: Vec3 = (0.0025, 0.0, 0.0)
-    count: PositiveInt = 66
+    count: PositionCount = 66
     orientation: Orientation = Orientation()
 
     def light_poses(self) -> list[Pose]:
@@ -294,16 +290,22 @@ class LightSweep(_Strict):
         return [Pose.from_rotation(p, rotation) for p in positions]
 
 
-class Raster(_Strict):
+class Raster(ConfigModel):
     """A 2-D grid ``origin + i * step_u + j * step_v``, row by row, fixed orientation."""
 
     kind: Literal["raster"] = "raster"
     origin_m: Vec3 = (-0.01, 0.03, 0.10)
     step_u_m: Vec3 = (0.0025, 0.0, 0.0)
     step_v_m: Vec3 = (0.0, 0.0025, 0.0)
-    count_u: PositiveInt = 9
-    count_v: PositiveInt = 9
+    count_u: PositionCount = 9
+    count_v: PositionCount = 9
     orientation: Orientation = Orientation()
+
+    @model_validator(mode="after")
+    def _not_too_many(self):
+        if self.count_u * self.count_v > MAX_POSITIONS:
+            raise ValueError(f"count_u × count_v = {self.count_u * self.count_v}: more than {MAX_POSITIONS} positions")
+        return self
 
     def light_poses(self) -> list[Pose]:
         origin = np.asarray(self.origin_m)
@@ -317,7 +319,7 @@ class Raster(_Strict):
         ]
 
 
-class ObjectArc(_Strict):
+class ObjectArc(ConfigModel):
     """Light positions on an arc around an object, each aimed at the object.
 
     Position k is ``centre + radius * Rot(axis, angle_k) @ reference_direction``: with
@@ -328,7 +330,8 @@ class ObjectArc(_Strict):
     kind: Literal["object-arc"] = "object-arc"
     centre_m: Vec3 = (0.0, 0.0, 0.0)
     radius_m: PositiveFloat = 0.30
-    angles_deg: list[float] = Field(default_factory=lambda: [10.0, 20.0, 30.0, 40.0, 50.0], min_length=1)
+    angles_deg: list[float] = Field(default_factory=lambda: [10.0, 20.0, 30.0, 40.0, 50.0], min_length=1,
+                                    max_length=MAX_POSITIONS)
     reference_direction: Vec3 = (0.0, 0.0, 1.0)
     axis: Vec3 = (-1.0, 0.0, 0.0)
     x_axis: Vec3 = (1.0, 0.0, 0.0)
@@ -349,11 +352,11 @@ class ObjectArc(_Strict):
         return poses
 
 
-class PoseList(_Strict):
+class PoseList(ConfigModel):
     """An explicit list of light poses."""
 
     kind: Literal["poses"] = "poses"
-    poses: list[PoseSpec] = Field(min_length=1)
+    poses: list[PoseSpec] = Field(min_length=1, max_length=MAX_POSITIONS)
 
     def light_poses(self) -> list[Pose]:
         return [p.to_pose() for p in self.poses]
@@ -362,7 +365,7 @@ class PoseList(_Strict):
 Schedule = Annotated[LightSweep | Raster | ObjectArc | PoseList, Field(discriminator="kind")]
 
 
-class SceneObject(_Strict):
+class SceneObject(ConfigModel):
     """An object photographed in place of the ball (reflectance runs).
 
     ``mesh`` is a PLY, OBJ or STL file (read with trimesh; from a 3D digitiser in real
@@ -388,7 +391,7 @@ class SceneObject(_Strict):
         return path if path.is_absolute() or base is None else base / path
 
 
-class Simulation(_Strict):
+class Simulation(ConfigModel):
     """Settings used only by the simulated devices.
 
     ``surface`` names the simulated object's reflectance (``sim_devices/surfaces/``: a base
@@ -403,7 +406,7 @@ class Simulation(_Strict):
 
 
 # --- the rig -------------------------------------------------------------------------------
-class Rig(_Strict):
+class Rig(ConfigModel):
     """A whole rig: camera, ball, light, arm and the schedule of light poses."""
 
     schema_version: Literal[1] = RIG_SCHEMA_VERSION

@@ -9,13 +9,13 @@ from __future__ import annotations
 
 import ipaddress
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, PositiveFloat, SecretStr, field_validator
+from pydantic import ConfigDict, Field, PositiveFloat, SecretStr, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from acquisition.rig import DEFAULT_RIG_PATH
-from drivers.config_files import read_toml, validate_model
+from drivers.config_files import BoundedNumbers, read_toml, validate_model
 from drivers.modbus_profile import SIM_STAGE_PROFILE
 
 #: Register-map profiles shipped with the drivers, named by ``arm.profile = "NAME"``.
@@ -26,16 +26,22 @@ class SettingsError(ValueError):
     """An unreadable or impossible daemon configuration (one line: file, field, cause)."""
 
 
-class _Section(BaseModel):
+class _Section(BoundedNumbers):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)  # inf, nan: TOML literals
+
+
+#: A wait or an exposure: positive and at most a day (threading refuses waits past ~9e9 s).
+Seconds = Annotated[float, Field(gt=0, le=86400.0)]
+#: A simulated stage's speed or acceleration: ``inf`` makes that part of a move instantaneous.
+StageRate = Annotated[float, Field(gt=0, allow_inf_nan=True)]
 
 
 class SimulatedStageSettings(_Section):
     """Mechanics of the simulated stage (``speed_m_s = inf`` makes moves instantaneous)."""
 
-    speed_m_s: PositiveFloat = 0.05
-    accel_m_s2: PositiveFloat = 0.5
-    angular_speed_rad_s: PositiveFloat = 1.0
+    speed_m_s: StageRate = 0.05
+    accel_m_s2: StageRate = 0.5
+    angular_speed_rad_s: StageRate = 1.0
 
 
 class ArmSettings(_Section):
@@ -53,9 +59,9 @@ class ArmSettings(_Section):
     port: int = Field(default=0, ge=0, le=65535)
     serial_port: str | None = None
     baudrate: int | None = None
-    timeout_s: PositiveFloat = 1.0
+    timeout_s: Seconds = 1.0
     retries: int = Field(default=3, ge=0)
-    move_timeout_s: PositiveFloat = 120.0
+    move_timeout_s: Seconds = 120.0
     simulated: SimulatedStageSettings = SimulatedStageSettings()
 
     @field_validator("profile")
@@ -73,7 +79,7 @@ class SimulatedCameraSettings(_Section):
     truth: str | None = None
     noise: bool | None = None
     diffraction: bool | None = None
-    latency_s: float = Field(default=0.0, ge=0.0)
+    latency_s: float = Field(default=0.0, ge=0.0, le=86400.0)
 
 
 class CameraSettings(_Section):
@@ -83,7 +89,7 @@ class CameraSettings(_Section):
     folder: Path | None = None
     gphoto2_port: str | None = None
     gphoto2_model: str | None = None
-    capture_timeout_s: PositiveFloat = 30.0
+    capture_timeout_s: Seconds = 30.0
     keep_raw_files: bool = False
     simulated: SimulatedCameraSettings = SimulatedCameraSettings()
 
@@ -91,14 +97,14 @@ class CameraSettings(_Section):
 class AutoBracketSettings(_Section):
     """The ``auto`` bracket rule (``docs/daemon.md``, "Auto bracketing")."""
 
-    metering_exposure_s: PositiveFloat = 0.001
+    metering_exposure_s: Seconds = 0.001
     saturation_fraction: float = Field(default=0.8, gt=0.0, le=1.0)
     useful_fraction: float = Field(default=1e-3, gt=0.0, lt=1.0)
     target_snr: PositiveFloat = 20.0
     step_ratio: float = Field(default=4.0, gt=1.0)
     max_exposures: int = Field(default=7, ge=1, le=16)
-    min_exposure_s: PositiveFloat = 1e-5
-    max_exposure_s: PositiveFloat = 30.0
+    min_exposure_s: Seconds = 1e-5
+    max_exposure_s: Seconds = 30.0
 
 
 class DaemonSettings(BaseSettings):
@@ -115,7 +121,7 @@ class DaemonSettings(BaseSettings):
     arm: ArmSettings = ArmSettings()
     camera: CameraSettings = CameraSettings()
     auto_bracket: AutoBracketSettings = AutoBracketSettings()
-    default_exposures_s: list[PositiveFloat] = Field(default_factory=lambda: [0.0002, 0.001, 0.005])
+    default_exposures_s: list[Seconds] = Field(default_factory=lambda: [0.0002, 0.001, 0.005])
 
     @property
     def catalog_path(self) -> Path:

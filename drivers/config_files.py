@@ -7,13 +7,61 @@ daemon settings), so that all of them report a mistake the same way:
 
 from __future__ import annotations
 
+import math
 import tomllib
 from pathlib import Path
 from typing import TypeVar
 
-from pydantic import BaseModel, ValidationError
+from pydantic import BaseModel, ConfigDict, ValidationError, ValidationInfo, field_validator
 
 Model = TypeVar("Model", bound=BaseModel)
+
+#: The largest magnitude a number in a configuration file may have, by the unit its name
+#: ends in. A rig spans metres and an angle a turn, so a length past a kilometre or an
+#: angle past 360° is a typo. Unbounded, 1e300 squared to inf in the geometry and came back
+#: as nonsense ("the camera is inside the ball") or overflow warnings.
+MAGNITUDE_LIMITS: dict[str, tuple[float, str]] = {"_m": (1e3, " m"), "_deg": (360.0, "°")}
+#: Any other number: a direction's component, a refractive index, electrons, a rate.
+UNITLESS_LIMIT = 1e12
+
+
+def magnitude_problem(name: str, value) -> str | None:
+    """Why ``value`` (a float, or a sequence of them) is too large for the field ``name``,
+    or None when it is not. Non-finite numbers are left to ``allow_inf_nan``."""
+    limit, unit = next(((lim, u) for suffix, (lim, u) in MAGNITUDE_LIMITS.items() if name.endswith(suffix)),
+                       (UNITLESS_LIMIT, ""))  # fmt: skip
+    for number in _numbers(value):
+        if math.isfinite(number) and abs(number) > limit:
+            return f"{number:g}{unit} is beyond the ±{limit:g}{unit} allowed"
+    return None
+
+
+def _numbers(value):
+    # Only floats: integers are exact, and counts carry their own bounds.
+    if isinstance(value, float):
+        yield value
+    elif isinstance(value, (tuple, list)):
+        for item in value:
+            yield from _numbers(item)
+
+
+class BoundedNumbers(BaseModel):
+    """A model whose numbers stay within :data:`MAGNITUDE_LIMITS` (by each field's unit)."""
+
+    @field_validator("*", mode="after")
+    @classmethod
+    def _within_magnitude(cls, value, info: ValidationInfo):
+        problem = magnitude_problem(info.field_name or "", value)
+        if problem is not None:
+            raise ValueError(problem)
+        return value
+
+
+class ConfigModel(BoundedNumbers):
+    """A section of a file a person writes: unknown fields refused, numbers finite (``inf``
+    and ``nan`` are TOML literals) and within their unit's bounds, the result frozen."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 def _number(value) -> str:
     return f"{value:g}" if isinstance(value, float) else str(value)

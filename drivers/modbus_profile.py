@@ -16,9 +16,9 @@ import math
 from pathlib import Path
 from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import Field, field_validator, model_validator
 
-from drivers.config_files import load_model, validate_model
+from drivers.config_files import ConfigModel, load_model, validate_model
 from drivers.pose import AXES
 
 SIM_STAGE_PROFILE = Path(__file__).resolve().parent / "profiles" / "sim_stage.toml"
@@ -37,11 +37,9 @@ class ProfileError(ValueError):
     """An impossible or unreadable profile (one line: file, field, cause)."""
 
 
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
 
 
-class DeviceSection(_Strict):
+class DeviceSection(ConfigModel):
     """Identity of the device on the bus."""
 
     name: str = Field(min_length=1)
@@ -49,7 +47,7 @@ class DeviceSection(_Strict):
     word_order: Literal["big", "little"] = "big"
 
 
-class AxisSection(_Strict):
+class AxisSection(ConfigModel):
     """Registers and scaling of one axis.
 
     Attributes
@@ -91,7 +89,7 @@ class AxisSection(_Strict):
         return math.radians(wire) if self.unit == "deg" else wire
 
 
-class CommandSection(_Strict):
+class CommandSection(ConfigModel):
     """The command register and the code of each command."""
 
     address: Address
@@ -111,7 +109,7 @@ class CommandSection(_Strict):
         return self
 
 
-class StatusSection(_Strict):
+class StatusSection(ConfigModel):
     """The status input register and the bit number of each flag."""
 
     address: Address
@@ -132,7 +130,7 @@ class StatusSection(_Strict):
         return self
 
 
-class AlarmSection(_Strict):
+class AlarmSection(ConfigModel):
     """The alarm-code input register and what the codes mean."""
 
     address: Address
@@ -157,14 +155,14 @@ class AlarmSection(_Strict):
         return parsed
 
 
-class WatchdogSection(_Strict):
+class WatchdogSection(ConfigModel):
     """The communication-watchdog register and the timeout the driver arms."""
 
     address: Address
     timeout_ms: int = Field(ge=1, le=65535)
 
 
-class SimulationSection(_Strict):
+class SimulationSection(ConfigModel):
     """Holding registers only the simulator understands (fault injection)."""
 
     inject_alarm_on_move: Annotated[int, Field(ge=0, le=65534)]
@@ -172,7 +170,7 @@ class SimulationSection(_Strict):
     stop_answering_ms: Address
 
 
-class ModbusProfile(_Strict):
+class ModbusProfile(ConfigModel):
     """A controller's register map (see ``drivers/profiles/sim_stage.toml``)."""
 
     device: DeviceSection

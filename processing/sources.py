@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import functools
 import math
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -39,6 +38,7 @@ from scipy import fft as sfft
 from scipy.linalg import solve_triangular
 from scipy.optimize import nnls
 
+from drivers.config_files import magnitude_problem, read_toml
 from drivers.pose import Pose
 from processing.trace import ChiefRays, RigGeometry, _housing_blocks, conductor_reflectance, footprint_areas, trace_pixels
 
@@ -61,12 +61,7 @@ def load_layout(path: str | Path) -> list[Source]:
     """Sources from a TOML file: ``[[sources]]`` (or ``[[emitters]]``, the simulation's
     truth format) with ``name``, ``centre_m = [u, v]`` and ``radius_m``."""
     path = Path(path)
-    try:
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise SourcesError(f"{path}: layout file not found") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise SourcesError(f"{path}: not valid TOML: {exc}") from None
+    data = read_toml(path, "layout file", SourcesError)
     entries = data.get("sources", data.get("emitters"))
     if not entries:
         raise SourcesError(f"{path}: no [[sources]] in the layout")
@@ -81,6 +76,9 @@ def load_layout(path: str | Path) -> list[Source]:
             raise SourcesError(f"{path}: sources[{i}].centre_m: must be finite (got [{u}, {v}])")
         if not 0 < radius < math.inf:
             raise SourcesError(f"{path}: sources[{i}].radius_m: must be finite and > 0 (got {radius})")
+        for name, value in (("centre_m", (u, v)), ("radius_m", radius)):
+            if (problem := magnitude_problem(name, value)) is not None:
+                raise SourcesError(f"{path}: sources[{i}].{name}: {problem}")
         out.append(Source(str(entry.get("name") or f"source-{i}"), (u, v), radius))
     return out
 

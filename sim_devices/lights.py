@@ -15,9 +15,9 @@ from pathlib import Path
 from typing import Annotated, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, PositiveFloat
+from pydantic import Field, PositiveFloat
 
-from drivers.config_files import load_model
+from drivers.config_files import ConfigModel, load_model
 
 LIGHTS_DIR = Path(__file__).resolve().parent / "lights"
 
@@ -26,11 +26,9 @@ class TruthError(ValueError):
     """An unreadable or impossible truth file (one line: file, field, cause)."""
 
 
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)  # inf, nan: TOML literals
 
 
-class GaussianIntensity(_Strict):
+class GaussianIntensity(ConfigModel):
     """``I = peak · exp(-θ² / 2σ²)``: rotationally symmetric, as in the reference simulation."""
 
     model: Literal["gaussian"] = "gaussian"
@@ -42,7 +40,7 @@ class GaussianIntensity(_Strict):
         return self.peak_w_sr * np.exp(-0.5 * (theta / s) ** 2)
 
 
-class CosinePowerIntensity(_Strict):
+class CosinePowerIntensity(ConfigModel):
     """``I = peak · cos^μ θ``: the usual model of an LED."""
 
     model: Literal["cos-power"] = "cos-power"
@@ -53,7 +51,7 @@ class CosinePowerIntensity(_Strict):
         return self.peak_w_sr * np.clip(np.cos(theta), 0.0, None) ** self.mu
 
 
-class AnisotropicIntensity(_Strict):
+class AnisotropicIntensity(ConfigModel):
     """An elliptical Gaussian lobe: widths ``sigma_major`` along azimuth ``azimuth_deg``."""
 
     model: Literal["anisotropic-gaussian"] = "anisotropic-gaussian"
@@ -68,7 +66,7 @@ class AnisotropicIntensity(_Strict):
         return self.peak_w_sr * np.exp(-0.5 * theta**2 * (np.cos(a) ** 2 / sm**2 + np.sin(a) ** 2 / sn**2))
 
 
-class LambertianRadiance(_Strict):
+class LambertianRadiance(ConfigModel):
     """A uniform Lambertian emitter of radiance ``radiance`` (``I = L · cos θ · area``)."""
 
     model: Literal["lambertian"] = "lambertian"
@@ -81,7 +79,7 @@ Intensity = Annotated[
 ]
 
 
-class Emitter(_Strict):
+class Emitter(ConfigModel):
     """One emitting disc on the light plane."""
 
     name: str = ""
@@ -112,7 +110,7 @@ class Emitter(_Strict):
         return self.intensity(theta, phi)
 
 
-class TruthLight(_Strict):
+class TruthLight(ConfigModel):
     """A ground-truth light: the emitters on its plane."""
 
     name: str = "truth"

@@ -34,10 +34,10 @@ from typing import Annotated
 
 import numpy as np
 import trimesh
-from pydantic import BaseModel, ConfigDict, Field, PositiveFloat, model_validator
+from pydantic import Field, PositiveFloat, model_validator
 
 from acquisition.rig import Rig
-from drivers.config_files import load_model
+from drivers.config_files import ConfigModel, load_model
 
 SURFACES_DIR = Path(__file__).resolve().parent / "surfaces"
 OBJECTS_DIR = Path(__file__).resolve().parent.parent / "acquisition" / "rigs" / "objects"
@@ -52,15 +52,13 @@ class ObjectError(ValueError):
 
 
 # --- surface truth ---------------------------------------------------------------------------
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)  # inf, nan: TOML literals
 
 
 Fraction = Annotated[float, Field(ge=0.0, le=1.0)]
 Albedo = tuple[Fraction, Fraction, Fraction]
 
 
-class Patch(_Strict):
+class Patch(ConfigModel):
     """A painted patch: the inside of an ellipse in UV space, axis-aligned.
 
     ``radius_uv`` is one radius, or the semi-axes along u and along v.
@@ -77,7 +75,7 @@ class Patch(_Strict):
         return (float(r), float(r)) if isinstance(r, (int, float)) else (float(r[0]), float(r[1]))
 
 
-class Specular(_Strict):
+class Specular(ConfigModel):
     """Energy-normalised Blinn–Phong lobe, channel-neutral:
     ``L_spec = k_s · (m + 8) / (8π) · (n·h)^m · E`` per emitter (E its irradiance)."""
 
@@ -85,7 +83,7 @@ class Specular(_Strict):
     exponent: PositiveFloat
 
 
-class SurfaceTruth(_Strict):
+class SurfaceTruth(ConfigModel):
     """The reflectance truth of a simulated object's surface.
 
     The diffuse part is Lambertian with albedo ``ρ`` per channel (R, G, B): the base albedo

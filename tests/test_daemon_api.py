@@ -4,6 +4,7 @@ rig over Modbus TCP on loopback): control, faults, auto bracketing, events and f
 from __future__ import annotations
 
 import json
+import math
 import threading
 import time
 
@@ -294,3 +295,14 @@ def test_a_setting_that_is_not_a_finite_number_is_refused_naming_it(tmp_path, mo
     monkeypatch.setenv("MG_CAMERA__SIMULATED__LATENCY_S", "nan")
     with pytest.raises(SettingsError, match=r"camera\.simulated\.latency_s: Input should be a finite number"):
         load_settings(None)
+    monkeypatch.delenv("MG_CAMERA__SIMULATED__LATENCY_S")
+    # Finite but beyond any wait a thread can make (threading refuses ~9e9 s).
+    config.write_text("[camera]\ncapture_timeout_s = 1e300\n")
+    with pytest.raises(SettingsError, match=r"camera\.capture_timeout_s: must be <= 86400 \(got 1e\+300\)$"):
+        load_settings(config)
+    # The one documented infinity: a simulated stage whose moves take no time.
+    config.write_text("[arm.simulated]\nspeed_m_s = inf\naccel_m_s2 = inf\n")
+    assert load_settings(config).arm.simulated.speed_m_s == math.inf
+    config.write_text("[arm.simulated]\nspeed_m_s = nan\n")
+    with pytest.raises(SettingsError, match=r"arm\.simulated\.speed_m_s: must be > 0 \(got nan\)$"):
+        load_settings(config)

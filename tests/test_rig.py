@@ -107,6 +107,14 @@ def _error(data) -> str:
         (lambda d: d["camera"]["pose"].__setitem__("position_m", [0.0, 0.0, math.nan]), r"camera\.pose\.position_m\[2\]: Input should be a finite number \(got nan\)"),
         (lambda d: d["ball"].__setitem__("radius_m", math.inf), r"ball\.radius_m: Input should be a finite number \(got inf\)"),
         (lambda d: d["schedule"].__setitem__("step_m", [-math.inf, 0.0, 0.0]), r"schedule\.light-sweep\.step_m\[0\]: Input should be a finite number \(got -inf\)"),
+        # Finite but absurd: 1e300 squared to inf in the geometry, which then said "the camera
+        # is inside the ball" (or warned of overflow); a count of 1e12 tried to build the schedule.
+        (lambda d: d["camera"]["pose"].__setitem__("position_m", [0.0, 0.0, 1e300]), r"camera\.pose\.position_m: 1e\+300 m is beyond the ±1000 m allowed$"),
+        (lambda d: d["camera"]["pose"].__setitem__("up", [0.0, 1e300, 0.0]), r"camera\.pose\.up: 1e\+300 is beyond the ±1e\+12 allowed$"),
+        (lambda d: d["light"]["light_to_tool"].__setitem__("rotation_deg", [0.0, 400.0, 0.0]), r"light\.light_to_tool\.rotation_deg: 400° is beyond the ±360° allowed$"),
+        (lambda d: d["schedule"].__setitem__("count", 10**12), r"schedule\.light-sweep\.count: must be <= 100000 \(got 1000000000000\)"),
+        (lambda d: d.__setitem__("schedule", {"kind": "raster", "count_u": 1000, "count_v": 1000}), r"schedule\.raster: count_u × count_v = 1000000: more than 100000 positions"),
+        (lambda d: d["camera"].__setitem__("height", 10**9), r"camera\.height: must be <= 100000"),
     ],
 )
 def test_impossible_rigs_are_refused_naming_the_field(edit, pattern):

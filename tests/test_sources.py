@@ -162,4 +162,7 @@ def test_layout_errors_are_one_line(tmp_path):
     bad.write_text('[[sources]]\nname = "a"\ncentre_m = [0.0, 0.0]\nradius_m = inf\n')
     with pytest.raises(SourcesError, match=r"bad\.toml: sources\[0\]\.radius_m: must be finite and > 0 \(got inf\)"):
         load_layout(bad)
+    bad.write_text('[[sources]]\nname = "a"\ncentre_m = [1e300, 0.0]\n')  # finite, but squares to inf
+    with pytest.raises(SourcesError, match=r"bad\.toml: sources\[0\]\.centre_m: 1e\+300 m is beyond the ±1000 m allowed$"):
+        load_layout(bad)
     assert [s.name for s in load_layout(LIGHTS_DIR / "five-gaussians.toml")] == ["centre", "+u", "-u", "+v", "-v"]
