@@ -8,8 +8,9 @@
    session (a Ctrl-C in the terminal reaches only this program, which stops them in
    order); on Linux they also get SIGTERM should this program die.
 3. The default light sweep through the REST API (``POST /runs`` with the token), followed
-   with a progress bar; then ``POST /runs/{id}/process`` with the truth's source layout,
-   and the worker's job followed the same way.
+   with a progress bar; then ``POST /runs/{id}/process``, and the worker's job followed
+   the same way. The worker finds the sources in the data, as it would for a lab's
+   unknown lamp (``truth_layout=True`` gives it the simulated truth's layout instead).
 4. The worker and the daemon are stopped (SIGTERM, then SIGKILL of their whole process
    group if they linger), also on Ctrl-C or an error: no process is left behind.
 5. The light model the worker wrote is scored against the simulated truth as
@@ -67,6 +68,9 @@ class SourceAccuracy:
     theta_min_deg: float
     theta_max_deg: float
     samples: int
+    #: How far the source it was scored against lies from the truth's emitter (0 when the
+    #: worker was given the truth's layout).
+    offset_m: float = 0.0
 
 
 @dataclass
@@ -284,13 +288,14 @@ def score_light_model(light_model: Path, truth) -> list[SourceAccuracy]:
         source = by_name.get(emitter.name)
         if source is None:
             source = min(model.sources, key=lambda s: math.dist(s.centre_m, emitter.centre_m))
+        offset = math.dist(source.centre_m, emitter.centre_m)
         theta = np.asarray(source.samples.get("theta", []), dtype=float)
         theta = theta[np.isfinite(theta)]
         if theta.size == 0:
-            scores.append(SourceAccuracy(emitter.name, float("nan"), float("nan"), float("nan"), 0))
+            scores.append(SourceAccuracy(emitter.name, float("nan"), float("nan"), float("nan"), 0, offset))
             continue
         error, lo, hi = _score(source.fit, emitter, theta)
-        scores.append(SourceAccuracy(emitter.name, error, lo, hi, int(theta.size)))
+        scores.append(SourceAccuracy(emitter.name, error, lo, hi, int(theta.size), offset))
     return scores
 
 
@@ -307,7 +312,7 @@ def truth_and_layout(rig_path: Path):
 
 # --- the demo --------------------------------------------------------------------------------
 def run_demo(*, root: Path = Path("demo-data"), rig: Path | None = None, positions: int | None = None,
-             workers: int | None = None, keep: int = 1, console=None) -> DemoResult:  # fmt: skip
+             workers: int | None = None, keep: int = 1, truth_layout: bool = False, console=None) -> DemoResult:  # fmt: skip
     """Run the whole chain once (module docstring); raises :class:`DemoError` on failure.
 
     Parameters
@@ -403,7 +408,7 @@ def run_demo(*, root: Path = Path("demo-data"), rig: Path | None = None, positio
 
         # --- processing -------------------------------------------------------------------
         t_proc = time.perf_counter()
-        job, layout_note = _post_job(client, run_id, layout)
+        job, layout_note = _post_job(client, run_id, layout if truth_layout else None)
         if layout_note:
             console.print(f"note: {layout_note}", highlight=False)
         job_id = job["id"]
@@ -443,23 +448,24 @@ def run_demo(*, root: Path = Path("demo-data"), rig: Path | None = None, positio
         target=TARGET_WITH_NOISE if rig_model.simulation.noise else None,
         acquire_s=acquire_s, process_s=process_s, total_s=time.perf_counter() - started,
         job_message=job.get("message") or "", pids=pids,
-        layout="found in the data by the worker" if layout_note else f"given to the worker: {_shown(layout)}",
+        layout=f"given to the worker: {_shown(layout)}" if truth_layout and not layout_note else "found in the data by the worker",
     )  # fmt: skip
     (folder / "summary.json").write_text(json.dumps(result.to_json(), indent=2, allow_nan=True) + "\n")
     return result
 
 
-def _post_job(client, run_id: str, layout: Path) -> tuple[dict, str]:
-    """Queue the run's processing, telling the worker the truth's source layout (and the
-    rig's noise model, as ``bench accuracy`` does). A daemon whose job requests do not take
-    those options gets the job without them: the worker then finds the sources in the data,
-    and each truth emitter is scored against the nearest source found (the note says so)."""
+def _post_job(client, run_id: str, layout: Path | None) -> tuple[dict, str]:
+    """Queue the run's processing with the rig's noise model (as ``bench accuracy`` does)
+    and, if given, the truth's source layout. A daemon whose job requests do not take those
+    options gets the job without them: the worker then finds the sources in the data, and
+    each truth emitter is scored against the nearest source found (the note says so)."""
     what = f"POST /runs/{run_id}/process"
-    response = client.post(f"/runs/{run_id}/process", json={"steps": "hdr,sources", "layout": str(layout), "noise": "rig"})
-    if response.status_code == 422 and "layout" in response.text:
+    request = {"steps": "hdr,sources", "noise": "rig"} | ({"layout": str(layout)} if layout is not None else {})
+    response = client.post(f"/runs/{run_id}/process", json=request)
+    if response.status_code == 422 and ("layout" in response.text or "noise" in response.text):
         response = client.post(f"/runs/{run_id}/process", json={"steps": "hdr,sources"})
-        return _answer(response, what), ("this daemon's job requests take no source layout: the worker finds the "
-                                         "sources in the data, and each truth source is scored against the nearest found")  # fmt: skip
+        return _answer(response, what), ("this daemon's job requests take no layout or noise option: the worker finds "
+                                         "the sources in the data, and each truth source is scored against the nearest found")  # fmt: skip
     return _answer(response, what), ""
 
 
@@ -545,13 +551,18 @@ def print_summary(result: DemoResult, console) -> None:
     acc.add_column("error", justify="right", no_wrap=True)
     acc.add_column("θ covered", justify="right", no_wrap=True)
     acc.add_column("samples", justify="right", no_wrap=True)
+    found = result.layout.startswith("found")
+    if found:
+        acc.add_column("found at", justify="right", no_wrap=True)  # the source's distance from the truth's
     for s in result.accuracy:
-        acc.add_row(s.name, f"{100 * s.rms_rel_error:.3f} %", f"{s.theta_min_deg:.1f}–{s.theta_max_deg:.1f}°", str(s.samples))
+        cells = [s.name, f"{100 * s.rms_rel_error:.3f} %", f"{s.theta_min_deg:.1f}–{s.theta_max_deg:.1f}°", str(s.samples)]
+        acc.add_row(*cells, *([f"{1e6 * s.offset_m:.0f} µm off"] if found else []))
     verdict = ""
     if target is not None:
         ok = result.max_rms_rel_error <= target
         verdict = f" ({'within' if ok else '[red]above[/red]'} the {100 * target:g} % target)"
-    acc.add_row("[bold]max[/bold]", f"[bold]{100 * result.max_rms_rel_error:.3f} %[/bold]", "", "", end_section=True)
+    acc.add_row("[bold]max[/bold]", f"[bold]{100 * result.max_rms_rel_error:.3f} %[/bold]", "", "", *([""] if found else []),
+                end_section=True)  # fmt: skip
     console.print(acc)
     console.print(f"error = RMS(I_fit − I_true) / max(I_true) over the θ each source's samples cover; "
                   f"max {100 * result.max_rms_rel_error:.3f} % of peak{verdict}", highlight=False)  # fmt: skip
