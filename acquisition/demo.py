@@ -327,6 +327,9 @@ def run_demo(*, root: Path = Path("demo-data"), rig: Path | None = None, positio
         Dask worker processes of the worker's local cluster (default: the cores).
     keep : int
         Older demo folders kept under ``root``.
+    truth_layout : bool
+        Give the worker the simulated truth's source layout; by default it finds the
+        sources in the data, and each is scored against the nearest source found.
     """
     import httpx
     from rich.console import Console
