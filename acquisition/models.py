@@ -7,7 +7,7 @@ from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, PositiveFloat, StrictBool, field_validator, model_validator
 
-from acquisition.rig import PoseSpec
+from acquisition.rig import MAX_POSITIONS, PoseSpec
 
 
 # --- requests ------------------------------------------------------------------------------
@@ -57,7 +57,7 @@ class RunRequest(BaseModel):
     )
     preset: Literal["light-sweep", "object-arc", "raster", "poses"] = "light-sweep"
     poses: list[PoseSpec] | None = Field(default=None, max_length=10000, description="light poses, for preset 'poses'")
-    count: int | None = Field(default=None, ge=1, le=100000, description="take only the first COUNT positions")
+    count: int | None = Field(default=None, ge=1, le=MAX_POSITIONS, description="take only the first COUNT positions")
     bracket: Bracket = Field(default_factory=lambda: FixedBracket(exposures_s=[0.0002, 0.001, 0.005]))
     operator: str = Field(default="", max_length=200)
     light_source: str = Field(default="", max_length=200)

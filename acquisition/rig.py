@@ -30,8 +30,9 @@ DEFAULT_RIG_PATH = RIGS_DIR / "default.toml"
 #: Positions in a schedule, and pixels along a sensor's side: bounded so that a typo cannot
 #: ask for a schedule or an image that does not fit in memory (the API's ``count`` agrees).
 MAX_POSITIONS = 100_000
+MAX_SENSOR_SIDE = 100_000
 PositionCount = Annotated[int, Field(gt=0, le=MAX_POSITIONS)]
-SensorSide = Annotated[int, Field(gt=0, le=100_000)]
+SensorSide = Annotated[int, Field(gt=0, le=MAX_SENSOR_SIDE)]
 
 Vec2 = tuple[float, float]
 Vec3 = tuple[float, float, float]
@@ -40,8 +41,6 @@ RGB = tuple[float, float, float]
 
 class RigError(ValueError):
     """An impossible or unreadable rig description (one line: file, field, cause)."""
-
-
 
 
 # --- poses at the user's edge ----------------------------------------------------------

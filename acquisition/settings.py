@@ -15,7 +15,7 @@ from pydantic import ConfigDict, Field, PositiveFloat, SecretStr, field_validato
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from acquisition.rig import DEFAULT_RIG_PATH
-from drivers.config_files import BoundedNumbers, read_toml, validate_model
+from drivers.config_files import ConfigModel, read_toml, validate_model
 from drivers.modbus_profile import SIM_STAGE_PROFILE
 
 #: Register-map profiles shipped with the drivers, named by ``arm.profile = "NAME"``.
@@ -26,12 +26,13 @@ class SettingsError(ValueError):
     """An unreadable or impossible daemon configuration (one line: file, field, cause)."""
 
 
-class _Section(BoundedNumbers):
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)  # inf, nan: TOML literals
+class _Section(ConfigModel):
+    model_config = ConfigDict(frozen=False)  # loading resolves relative paths in place
 
 
-#: A wait or an exposure: positive and at most a day (threading refuses waits past ~9e9 s).
-Seconds = Annotated[float, Field(gt=0, le=86400.0)]
+#: The longest wait or exposure: a day (threading refuses waits past ~9e9 s).
+DAY_S = 86400.0
+Seconds = Annotated[float, Field(gt=0, le=DAY_S)]
 #: A simulated stage's speed or acceleration: ``inf`` makes that part of a move instantaneous.
 StageRate = Annotated[float, Field(gt=0, allow_inf_nan=True)]
 
@@ -79,7 +80,7 @@ class SimulatedCameraSettings(_Section):
     truth: str | None = None
     noise: bool | None = None
     diffraction: bool | None = None
-    latency_s: float = Field(default=0.0, ge=0.0, le=86400.0)
+    latency_s: float = Field(default=0.0, ge=0.0, le=DAY_S)
 
 
 class CameraSettings(_Section):

@@ -45,8 +45,12 @@ def _numbers(value):
             yield from _numbers(item)
 
 
-class BoundedNumbers(BaseModel):
-    """A model whose numbers stay within :data:`MAGNITUDE_LIMITS` (by each field's unit)."""
+class ConfigModel(BaseModel):
+    """A section of a file a person writes: unknown fields refused, numbers finite (``inf``
+    and ``nan`` are TOML literals) and within their unit's bounds (:data:`MAGNITUDE_LIMITS`),
+    the result frozen."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     @field_validator("*", mode="after")
     @classmethod
@@ -56,12 +60,6 @@ class BoundedNumbers(BaseModel):
             raise ValueError(problem)
         return value
 
-
-class ConfigModel(BoundedNumbers):
-    """A section of a file a person writes: unknown fields refused, numbers finite (``inf``
-    and ``nan`` are TOML literals) and within their unit's bounds, the result frozen."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 def _number(value) -> str:
     return f"{value:g}" if isinstance(value, float) else str(value)

@@ -37,8 +37,6 @@ class ProfileError(ValueError):
     """An impossible or unreadable profile (one line: file, field, cause)."""
 
 
-
-
 class DeviceSection(ConfigModel):
     """Identity of the device on the bus."""
 

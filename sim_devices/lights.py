@@ -26,8 +26,6 @@ class TruthError(ValueError):
     """An unreadable or impossible truth file (one line: file, field, cause)."""
 
 
-
-
 class GaussianIntensity(ConfigModel):
     """``I = peak · exp(-θ² / 2σ²)``: rotationally symmetric, as in the reference simulation."""
 

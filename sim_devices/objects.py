@@ -52,8 +52,6 @@ class ObjectError(ValueError):
 
 
 # --- surface truth ---------------------------------------------------------------------------
-
-
 Fraction = Annotated[float, Field(ge=0.0, le=1.0)]
 Albedo = tuple[Fraction, Fraction, Fraction]
 
