@@ -955,7 +955,8 @@ class _LayoutProblem:
 def refine_layout(data: list[LayoutData], builder: TemplateBuilder, cfa_pattern: str, first: list[Source],
                   seeds: list[tuple[float, float]] = (), *, min_gain: float = 0.02, min_share: float = 0.02,
                   min_distance: float = 0.5e-3, max_radius: float = 1.5e-3, max_sources: int = 24,
-                  margin_px: int = 48, inset_px: int = 8, max_nfev: int = 40, screen_nfev: int = 4) -> LayoutFit:  # fmt: skip
+                  margin_px: int = 48, inset_px: int = 8, max_nfev: int = 40, screen_nfev: int = 4,
+                  screen_seeds: int = 3) -> LayoutFit:  # fmt: skip
     """Point sources moved to where their templates explain the data best, and added one
     at a time while each addition explains a share of what is left.
 
@@ -970,11 +971,13 @@ def refine_layout(data: list[LayoutData], builder: TemplateBuilder, cfa_pattern:
     carries at least ``min_share`` of the brightest source's light; the search stops at
     the first seed that does not, or at ``max_sources``.
 
-    The best seed is the one that lowers χ² most where it stands, with the other sources
-    and the radius held. It is then judged after ``screen_nfev`` steps of the whole fit,
-    not where it stands: the sources found so far may have widened their discs over a
-    missed source's light (four guesses at 23.6 µm pixels grew to 1.3 mm for 0.5), and
-    then one more source helps only once the discs shrink back.
+    A seed is judged after ``screen_nfev`` steps of the whole fit, not where it stands: the
+    sources found so far may have widened their discs over a missed source's light (four
+    guesses at 23.6 µm pixels grew to 1.3 mm for 0.5), and then one more source helps only
+    once the discs shrink back. Where they stand, with the other sources and the radius
+    held, the seeds' χ² then differ by 0.01-0.1 %: a poor ranking. So the ``screen_seeds``
+    best there are screened in turn and the first that reaches ``min_gain`` is taken (on
+    the demo's reduced rig the best gained 1.2 %, the second 3.4 %).
 
     Parameters
     ----------
@@ -1024,11 +1027,16 @@ def refine_layout(data: list[LayoutData], builder: TemplateBuilder, cfa_pattern:
             untried = [seed for seed in untried if np.min(np.hypot(*(centres - seed).T)) >= min_distance]
             if not untried:
                 break
-            trials = [problem.chi2(np.vstack([centres, seed]), radius) for seed in untried]
-            best = int(np.argmin(trials))
-            grown = np.vstack([centres, untried.pop(best)])
-            grown, grown_radius, grown_chi2 = problem.fit(grown, radius, max_radius, screen_nfev)
-            if grown_chi2 > (1.0 - min_gain) * chi2:
+            trials = np.array([problem.chi2(np.vstack([centres, seed]), radius) for seed in untried])
+            passed = False
+            for k in np.argsort(trials)[:screen_seeds]:
+                grown, grown_radius, grown_chi2 = problem.fit(np.vstack([centres, untried[k]]), radius, max_radius,
+                                                              screen_nfev)  # fmt: skip
+                if grown_chi2 <= (1.0 - min_gain) * chi2:
+                    untried.pop(k)
+                    passed = True
+                    break
+            if not passed:
                 break
             grown, grown_radius, grown_chi2 = problem.fit(grown, grown_radius, max_radius, max_nfev)
             light = problem.light(grown, grown_radius)

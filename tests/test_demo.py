@@ -84,13 +84,14 @@ def test_demo_runs_the_whole_chain_and_leaves_nothing_running(tmp_path, layout_o
     printed = re.findall(r"│ (centre|[+-][uv])\s*│\s*([0-9.]+) %.*│\s*$", done.stdout, flags=re.MULTILINE)
     assert [name for name, _ in printed] == ["centre", "+u", "-u", "+v", "-v"], done.stdout
     assert all(math.isfinite(float(value)) for _, value in printed)
-    # Found in the data, each source's distance from the truth's is shown. The outer four are
-    # found within a millimetre here; the centre one can be missed on this rig (23.6 µm pixels,
-    # the five sources imaged 2-3 px apart, 12 positions on one side): then the nearest source
-    # found is 3.3 mm from it. The search's accuracy is tested in test_sources and test_process.
+    # Found in the data, each source's distance from the truth's is shown. On this rig (23.6 µm
+    # pixels, the five sources imaged 2-3 px apart, 12 positions on one side) all five are found
+    # within 50-180 µm (five runs of this demo measured); before the search screened a second seed the
+    # centre one was missed, and the nearest source found was 3.3 mm from it. The search's
+    # accuracy at the default resolutions is tested in test_sources and test_process.
     offsets = [float(um) for um in re.findall(r"│\s*([0-9]+) µm off\s*│", done.stdout)]
     assert len(offsets) == (0 if layout_option else 5), done.stdout
-    assert all(um < 1000 for um in offsets[1:]), offsets
+    assert all(um < 400 for um in offsets), offsets
     assert re.search(r"│ max\s*│\s*[0-9.]+ %", done.stdout), done.stdout
     for step in ("acquisition", "processing", "whole demo"):
         assert re.search(rf"{step}[^│]*│\s*[0-9.]+ s", done.stdout), step
