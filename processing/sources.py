@@ -956,7 +956,7 @@ def refine_layout(data: list[LayoutData], builder: TemplateBuilder, cfa_pattern:
                   seeds: list[tuple[float, float]] = (), *, min_gain: float = 0.02, min_share: float = 0.02,
                   min_distance: float = 0.5e-3, max_radius: float = 1.5e-3, max_sources: int = 24,
                   margin_px: int = 48, inset_px: int = 8, max_nfev: int = 40, screen_nfev: int = 4,
-                  screen_seeds: int = 3) -> LayoutFit:  # fmt: skip
+                  screen_seeds: int = 2) -> LayoutFit:  # fmt: skip
     """Point sources moved to where their templates explain the data best, and added one
     at a time while each addition explains a share of what is left.
 
