@@ -706,6 +706,9 @@ def angle_sensitivity(rig: Rig, light_pose: Pose, shift_m: float = 1e-3, *, plan
     cols, rows = ball_pixel_grid(geometry, max_pixels)
     base = trace_pixels(geometry, light_pose, cols, rows)
     on_light = base.valid & (np.hypot(base.u, base.v) <= radius)
+    # Only the pixels that see the light are traced again (a fraction of the ball's).
+    cols, rows = np.asarray(cols, float).ravel()[on_light], np.asarray(rows, float).ravel()[on_light]
+    base_theta, base_phi, base_u, base_v = base.theta[on_light], base.phi[on_light], base.u[on_light], base.v[on_light]
 
     def direction(theta, phi):
         return np.stack([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi), np.cos(theta)], axis=-1)
@@ -716,17 +719,17 @@ def angle_sensitivity(rig: Rig, light_pose: Pose, shift_m: float = 1e-3, *, plan
         centre = np.asarray(rig.ball.centre_m, dtype=float).copy()
         centre[i] += shift_m
         moved = trace_pixels(RigGeometry.from_rig(rig, ball_centre=centre), light_pose, cols, rows)
-        use = on_light & moved.valid
+        use = moved.valid
         if not use.any():
             raise CalibrationError(
                 f"no pixel of the ball sees the light within {radius * 1e3:.0f} mm of its axis at this pose"
             )
-        d_theta = np.degrees(np.abs(moved.theta[use] - base.theta[use]))
-        off_axis = base.theta[use] > math.radians(5.0)
-        d_phi = np.degrees(_wrapped(moved.phi[use] - base.phi[use]))[off_axis]
-        cosang = np.clip(np.sum(direction(moved.theta[use], moved.phi[use]) * direction(base.theta[use], base.phi[use]), axis=1), -1, 1)
+        d_theta = np.degrees(np.abs(moved.theta[use] - base_theta[use]))
+        off_axis = base_theta[use] > math.radians(5.0)
+        d_phi = np.degrees(_wrapped(moved.phi[use] - base_phi[use]))[off_axis]
+        cosang = np.clip(np.sum(direction(moved.theta[use], moved.phi[use]) * direction(base_theta[use], base_phi[use]), axis=1), -1, 1)
         d_dir = np.degrees(np.arccos(cosang))
-        d_uv = np.hypot(moved.u[use] - base.u[use], moved.v[use] - base.v[use]) * 1e3
+        d_uv = np.hypot(moved.u[use] - base_u[use], moved.v[use] - base_v[use]) * 1e3
         out[name] = {
             "theta_median_deg": float(np.median(d_theta)),
             "theta_max_deg": float(d_theta.max()),
