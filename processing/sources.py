@@ -977,7 +977,7 @@ def refine_layout(data: list[LayoutData], builder: TemplateBuilder, cfa_pattern:
     once the discs shrink back. Where they stand, with the other sources and the radius
     held, the seeds' χ² then differ by 0.01-0.1 %: a poor ranking. So the ``screen_seeds``
     best there are screened in turn and the first that reaches ``min_gain`` is taken (on
-    the demo's reduced rig the best gained 1.2 %, the second 3.4 %).
+    the demo's reduced rig, in its test, the best gained 1.2 %, the second 3.4 %).
 
     Parameters
     ----------
