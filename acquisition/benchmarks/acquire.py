@@ -10,7 +10,6 @@ import time
 from pathlib import Path
 
 
-
 def _frames(rig, count: int, seed: int = 0):
     """Realistic raw frames: rendered mirror-ball images with sensor noise."""
     from sim_devices.camera import SimulatedCamera
