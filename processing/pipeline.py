@@ -665,10 +665,12 @@ def _finish_sources(run_path: Path, out: Path, report: ProcessReport, plan: _Sou
 
 
 def layout_from_data(run: RunFile, results_file, positions=None, ball_centre=None, compute: Compute | None = None):
-    """The sources found in the data (``processing.sources.find_layout``): the candidate
-    grid at three positions spread over the sweep, each a task on ``compute``, then the
-    refinement of the grid's guess at five (one task: it needs the positions together).
-    A :class:`processing.sources.LayoutFit`."""
+    """The sources found in the data (``docs/light-model.md``): the candidate grid at three
+    positions spread over the sweep (:func:`~processing.sources.lit_box`,
+    :func:`~processing.sources.candidate_grid`, :func:`~processing.sources.candidate_strength`,
+    each position a task on ``compute``), its local maxima as the first guess, then
+    :func:`~processing.sources.refine_layout` at five positions (one task: it needs the
+    positions together). A :class:`processing.sources.LayoutFit`."""
     from processing.sources import SourcesError, candidate_grid, seeds_from_strength, sources_from_strength
 
     if positions is None:

@@ -691,33 +691,6 @@ def cell_pixel_boxes(geometry: RigGeometry, light_pose: Pose, sources: list[Sour
 
 
 # --- the layout from the data -----------------------------------------------------------------
-def find_layout(rates: list[np.ndarray], usable: list[np.ndarray], variances: list[np.ndarray], poses: list[Pose],
-                builder: TemplateBuilder, cfa_pattern: str, *, spacing: float = 1.5e-3, threshold: float = 0.05,
-                core_fraction: float = 0.2, margin: float = 3e-3, min_separation: float = 2e-3) -> LayoutFit:  # fmt: skip
-    """Find the emitters from the data: a grid of candidate point sources, unmixed by
-    non-negative least squares at a few positions (non-negativity keeps the solution
-    sparse), summed; its local maxima are the first guess, which :func:`refine_layout`
-    moves to where the templates explain the data best, adding the sources the grid
-    missed.
-
-    ``rates``, ``variances`` and ``usable`` are merged mosaics (e⁻/s) at the light poses
-    ``poses``. The candidates cover the light plane seen by the brightest pixels, plus
-    ``margin``.
-
-    The work per position is in :func:`lit_box` and :func:`candidate_strength`, and the
-    refinement is one call, so that a caller can spread the positions over processes
-    (``processing.pipeline``).
-    """
-    boxes = [lit_box(rate, ok, pose, builder.geometry, core_fraction)
-             for rate, ok, pose in zip(rates, usable, poses, strict=True)]  # fmt: skip
-    candidates, us, vs = candidate_grid(boxes, spacing=spacing, margin=margin)
-    strength = sum(candidate_strength(rate, var, ok, pose, builder, candidates, cfa_pattern)
-                   for rate, var, ok, pose in zip(rates, variances, usable, poses, strict=True))  # fmt: skip
-    start = sources_from_strength(strength, us, vs, spacing=spacing, threshold=threshold, min_separation=min_separation)
-    data = [LayoutData(*item) for item in zip(rates, variances, usable, poses, strict=True)]
-    return refine_layout(data, builder, cfa_pattern, start, seeds_from_strength(strength, us, vs, threshold=threshold))
-
-
 def lit_box(rate: np.ndarray, ok: np.ndarray, pose: Pose, geometry: RigGeometry,
             core_fraction: float = 0.2) -> tuple[float, float, float, float] | None:  # fmt: skip
     """(u0, u1, v0, v1) on the light plane of the chief rays of one position's brightest
