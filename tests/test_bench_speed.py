@@ -104,6 +104,9 @@ def test_the_json_has_every_measurement(speed):
     assert result["target"]["measured"] is False and result["target"]["meets_target"] is None
     table = result["markdown"]
     assert table.startswith("| `bench speed` |") and f"{W}×{H}" in table and "not measured" in table
+    # the paired ratios' spread beside their median: how far the host moved within the run
+    low, high = min(process["over_read_floor_all"]), max(process["over_read_floor_all"])
+    assert f"{process['over_read_floor']:.2f}× the read floor read just before each, {low:.2f}–{high:.2f}× over 2 runs" in table
 
 
 def test_the_run_is_made_once_and_then_cached(speed):
