@@ -641,6 +641,46 @@ def bench_reflectance_command(
     _print_result(result, as_json)
 
 
+def _rig_error_names() -> list[str]:
+    from acquisition.benchmarks.tolerance import RIG_ERRORS
+
+    return list(RIG_ERRORS)
+
+
+@bench_app.command("tolerance")
+def bench_tolerance_command(
+    rig: RigOption = None,
+    truth: Annotated[str, typer.Option(help="Shipped truth light.")] = "five-gaussians",
+    positions: Annotated[int, typer.Option(min=3, help="Schedule positions (the first N of the sweep).")] = 66,
+    errors: Annotated[str | None, typer.Option(help="Comma-separated errors of the rig description to try "
+                                              "(default all): " + ", ".join(_rig_error_names()))] = None,
+    layout_from_data: Annotated[bool, typer.Option("--layout-from-data", help="Also find the sources in the data "
+                                                   "with each description.")] = False,
+    noise: Annotated[bool, typer.Option(help="Photon, read and quantisation noise.")] = True,
+    scheduler: SchedulerOption = "local",
+    as_json: Annotated[bool, typer.Option("--json", help="Print JSON only.")] = False,
+) -> None:
+    """How exact the rig description must be: one simulated run (the demo rig by default)
+    processed with one number of its description wrong at a time, scored against the truth.
+    Progress goes to standard error; the JSON, then (without --json) the markdown table, to
+    standard output."""
+    from acquisition.benchmarks.tolerance import bench_tolerance
+    from processing.parallel import ComputeError
+    from processing.pipeline import ProcessingError
+
+    chosen = None if errors is None else [e.strip() for e in errors.split(",") if e.strip()]
+    try:
+        result = bench_tolerance(rig_path=rig, truth=truth, positions=positions, errors=chosen,
+                                 layout_from_data=layout_from_data, noise=noise, scheduler=scheduler,
+                                 log=lambda message: typer.echo(message, err=True))  # fmt: skip
+    except (ValueError, ComputeError, ProcessingError, *_domain_errors()) as exc:
+        raise _fail(str(exc)) from None
+    _print_result(result, as_json)
+    if not as_json:
+        typer.echo("")
+        typer.echo(result["markdown"])
+
+
 @bench_app.command("speed")
 def bench_speed_command(
     rig: RigOption = None,

@@ -68,6 +68,50 @@ def _score(fit, truth_emitter, theta_samples) -> tuple[float, float, float]:
     return error, math.degrees(lo), math.degrees(hi)
 
 
+def score_sources(model, samples, truth_light, *, matched: bool, fit_method: str = "gaussian",
+                  cell_sums: bool = True) -> dict:  # fmt: skip
+    """Each truth emitter's fitted source scored against it (:func:`_score`).
+
+    ``matched``: the sources were found in the data, so each emitter is scored against the
+    nearest source found (``sources[i]["centre_error_um"]`` says how far; ``matched`` in the
+    result lists which source each took); otherwise source k is emitter k. ``cell_sums``:
+    also score a fit of the chief-ray cell sums at the same positions."""
+    from processing.fit import FitError, Samples, fit_intensity
+
+    found = np.array([s.centre_m for s in model.sources], float).reshape(-1, 2)
+    out_sources, taken = [], []
+    for k, emitter in enumerate(truth_light.emitters):
+        if matched:  # the source found nearest the emitter
+            distances = np.hypot(*(found - np.asarray(emitter.centre_m, float)).T)
+            k = int(np.argmin(distances))
+            taken.append(k)
+        source = model.sources[k]
+        theta = np.asarray(source.samples["theta"])
+        error, lo, hi = _score(source.fit, emitter, theta)
+        entry = {"name": emitter.name, "rms_rel_error": round(error, 6), "theta_min_deg": round(lo, 2),
+                 "theta_max_deg": round(hi, 2), "fit": {k2: round(v, 6) for k2, v in source.fit.params.items()}}  # fmt: skip
+        if matched:
+            entry["found_as"] = source.name
+            entry["centre_error_um"] = round(1e6 * float(distances[k]), 1)
+            entry["found_radius_mm"] = round(1e3 * source.radius_m, 3)
+            entry["true_radius_mm"] = round(1e3 * emitter.radius_m, 3)
+        if cell_sums:
+            ok = np.isfinite(samples.cell_sum[:, k]) & np.isfinite(samples.theta[:, k])
+            try:
+                cell = Samples(samples.theta[ok, k], samples.phi[ok, k], samples.cell_sum[ok, k],
+                               np.full(ok.sum(), 0.01 * np.nanmax(samples.cell_sum[:, k])))  # fmt: skip
+                cell_fit = fit_intensity(cell, method=fit_method)
+                entry["cell_sum_rms_rel_error"] = round(_score(cell_fit, emitter, theta)[0], 6)
+            except FitError as exc:
+                entry["cell_sum_rms_rel_error"] = None
+                entry["cell_sum_note"] = str(exc)
+        if fit_method == "cos-power":
+            entry["mu_fit"] = source.fit.params.get("mu")
+            entry["mu_true"] = getattr(emitter.intensity, "mu", None)
+        out_sources.append(entry)
+    return {"sources": out_sources, "matched": taken}
+
+
 def bench_accuracy(*, noise: bool = True, truth: str = "five-gaussians", positions: int = 66, rig_path=None,
                    exposures=(2e-5, 1e-4, 5e-4, 2.5e-3, 1.25e-2), fit_method: str = "gaussian",
                    workdir: str | Path | None = None, layout_from_data: bool = False) -> dict:  # fmt: skip
@@ -78,7 +122,6 @@ def bench_accuracy(*, noise: bool = True, truth: str = "five-gaussians", positio
     and the distance between them is reported too. The target then also asks for as many
     sources as the truth has, each the nearest of a different emitter."""
     from acquisition.rig import load_rig
-    from processing.fit import FitError, Samples, fit_intensity
     from processing.pipeline import process_run
     from sim_devices.lights import LIGHTS_DIR, load_truth
 
@@ -94,39 +137,11 @@ def bench_accuracy(*, noise: bool = True, truth: str = "five-gaussians", positio
                              fit_method=fit_method, units="W/sr")  # fmt: skip
         processed = time.perf_counter()
     samples, model = report.samples, report.model
-    found = np.array([s.centre_m for s in model.sources], float).reshape(-1, 2)
-    out_sources, matched = [], []
-    for k, emitter in enumerate(truth_light.emitters):
-        if layout_from_data:  # the source found nearest the emitter
-            distances = np.hypot(*(found - np.asarray(emitter.centre_m, float)).T)
-            k = int(np.argmin(distances))
-            matched.append(k)
-        source = model.sources[k]
-        theta = np.asarray(source.samples["theta"])
-        error, lo, hi = _score(source.fit, emitter, theta)
-        entry = {"name": emitter.name, "rms_rel_error": round(error, 6), "theta_min_deg": round(lo, 2),
-                 "theta_max_deg": round(hi, 2), "fit": {k2: round(v, 6) for k2, v in source.fit.params.items()}}  # fmt: skip
-        if layout_from_data:
-            entry["found_as"] = source.name
-            entry["centre_error_um"] = round(1e6 * float(distances[k]), 1)
-            entry["found_radius_mm"] = round(1e3 * source.radius_m, 3)
-            entry["true_radius_mm"] = round(1e3 * emitter.radius_m, 3)
-        ok = np.isfinite(samples.cell_sum[:, k]) & np.isfinite(samples.theta[:, k])
-        try:
-            cell = Samples(samples.theta[ok, k], samples.phi[ok, k], samples.cell_sum[ok, k],
-                           np.full(ok.sum(), 0.01 * np.nanmax(samples.cell_sum[:, k])))  # fmt: skip
-            cell_fit = fit_intensity(cell, method=fit_method)
-            entry["cell_sum_rms_rel_error"] = round(_score(cell_fit, emitter, theta)[0], 6)
-        except FitError as exc:
-            entry["cell_sum_rms_rel_error"] = None
-            entry["cell_sum_note"] = str(exc)
-        if fit_method == "cos-power":
-            entry["mu_fit"] = source.fit.params.get("mu")
-            entry["mu_true"] = getattr(emitter.intensity, "mu", None)
-        out_sources.append(entry)
+    scored = score_sources(model, samples, truth_light, matched=layout_from_data, fit_method=fit_method)
+    out_sources = scored["sources"]
     worst = max(s["rms_rel_error"] for s in out_sources)
     target = 0.01 if noise else 0.003
-    layout_ok = not layout_from_data or (len(model.sources) == len(truth_light.emitters) == len(set(matched)))
+    layout_ok = not layout_from_data or (len(model.sources) == len(truth_light.emitters) == len(set(scored["matched"])))
     return {
         "benchmark": "accuracy",
         "noise": noise,
