@@ -180,6 +180,9 @@ def process(
     fit: Annotated[str, typer.Option(help="Fit: gaussian, polynomial, cos-power, gaussian-2d.")] = "gaussian",
     ball_centre: Annotated[str | None, typer.Option("--ball-centre", help="Measured ball centre X,Y,Z in metres (rig frame; from `calibrate`).")] = None,
     images: Annotated[bool, typer.Option(help="Write an OpenEXR and a PNG preview of every position (hdr step).")] = True,
+    fit_aperture: Annotated[bool, typer.Option("--fit-aperture", help="With --layout: fit the camera's aperture (pinhole) "
+                                               "diameter to the data before the sources are estimated "
+                                               "(docs/light-model.md).")] = False,
     scheduler: SchedulerOption = "local",
     workers: WorkersOption = None,
 ) -> None:
@@ -198,6 +201,9 @@ def process(
     if noise not in ("auto", "estimated", "rig"):
         raise _fail(f"--noise: {noise!r} is not one of auto, estimated, rig")
     step_list = tuple(s for s in steps.split(",") if s)
+    if fit_aperture and layout is None:
+        raise _fail("--fit-aperture: needs the sources' layout (--layout): the aperture is fitted at the sources' "
+                    "known places")  # fmt: skip
     centre = None
     if ball_centre is not None:
         try:
@@ -231,7 +237,7 @@ def process(
             try:
                 report = process_run(run, folders[run], steps=step_list, method=method, noise=noise, layout=layout,
                                      estimator=estimator, fit_method=fit, ball_centre=centre, compute=compute,
-                                     images=images, progress=lambda done, total, task=task: bar.update(task, completed=done, total=total))  # fmt: skip
+                                     images=images, fit_aperture=fit_aperture, progress=lambda done, total, task=task: bar.update(task, completed=done, total=total))  # fmt: skip
             except (ProcessingError, HDRError, ValueError, OSError) as exc:
                 if not batch:
                     raise _fail(str(exc)) from None
@@ -656,6 +662,8 @@ def bench_tolerance_command(
                                               "(default all): " + ", ".join(_rig_error_names()))] = None,
     layout_from_data: Annotated[bool, typer.Option("--layout-from-data", help="Also find the sources in the data "
                                                    "with each description.")] = False,
+    fit_aperture: Annotated[bool, typer.Option("--fit-aperture", help="Also process with the layout given and the "
+                                               "aperture fitted to the data (process --fit-aperture).")] = False,
     noise: Annotated[bool, typer.Option(help="Photon, read and quantisation noise.")] = True,
     scheduler: SchedulerOption = "local",
     as_json: Annotated[bool, typer.Option("--json", help="Print JSON only.")] = False,
@@ -671,7 +679,8 @@ def bench_tolerance_command(
     chosen = None if errors is None else [e.strip() for e in errors.split(",") if e.strip()]
     try:
         result = bench_tolerance(rig_path=rig, truth=truth, positions=positions, errors=chosen,
-                                 layout_from_data=layout_from_data, noise=noise, scheduler=scheduler,
+                                 layout_from_data=layout_from_data, fit_aperture=fit_aperture, noise=noise,
+                                 scheduler=scheduler,
                                  log=lambda message: typer.echo(message, err=True))  # fmt: skip
     except (ValueError, ComputeError, ProcessingError, *_domain_errors()) as exc:
         raise _fail(str(exc)) from None

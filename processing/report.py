@@ -942,6 +942,11 @@ def _header(model: LightModel, run, report, samples, resolution_m: float) -> str
         rows.append(["noise model", "not given to the report"])
     if prov.get("layout"):
         rows.append(["layout of the sources", str(prov["layout"])])
+    aperture = prov.get("aperture_m")
+    if isinstance(aperture, dict) and aperture.get("fitted_m"):
+        rows.append(["camera aperture", f"{1e3 * aperture['fitted_m']:.4g} mm fitted to the data (the rig says "
+                                        f"{1e3 * aperture['described_m']:.4g} mm; χ²/pixel {aperture['chi2_per_pixel']:.4g} "
+                                        f"against {aperture['chi2_per_pixel_described']:.4g} there)"])  # fmt: skip
     fits = sorted({s.fit.method for s in model.sources})
     rows.append(["fit", ", ".join(fits)])
     if prov.get("software_version"):

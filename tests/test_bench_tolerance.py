@@ -35,23 +35,53 @@ def test_an_unknown_error_is_refused_in_one_line_before_anything_is_acquired(tmp
     assert len(lines) == 1 and "--errors: 'ball-y+1mm' is not one of" in lines[0], result.output
 
 
-def test_a_wrong_pinhole_in_the_description_costs_the_fits_what_the_table_says():
+def test_a_wrong_pinhole_costs_the_fits_and_fitting_the_aperture_wins_them_back():
     """The reduced rig (500 x 328), its first 12 positions: processed as taken, the five sources'
     fits are within a few % of the truth; with the pinhole described 10 % too wide the
-    templates spread the light too far and the fits go wrong several times over."""
+    templates spread the light too far and the fits go wrong several times over. With the
+    aperture fitted to the data (`process --fit-aperture`), the true 0.2 mm comes back from
+    either description, and the fits with it."""
     result = CliRunner().invoke(app, ["bench", "tolerance", "--rig", str(REDUCED_RIG), "--positions", "12",
-                                      "--errors", "pinhole+10%", "--scheduler", "none", "--json"])  # fmt: skip
+                                      "--errors", "pinhole+10%,ball-x+0.2mm", "--fit-aperture", "--scheduler", "none",
+                                      "--json"])  # fmt: skip
     assert result.exit_code == 0, result.output
     out = json.loads(result.stdout.strip().splitlines()[-1])
     runs = {(row["error"], row["layout"]): row for row in out["runs"]}
-    assert set(runs) == {("none", "given"), ("pinhole+10%", "given")}
+    fitted = "given, aperture fitted"
+    assert set(runs) == {(error, way) for error in ("none", "pinhole+10%", "ball-x+0.2mm") for way in ("given", fitted)}
     as_taken, wrong = runs["none", "given"], runs["pinhole+10%", "given"]
     assert as_taken["sources_found"] == wrong["sources_found"] == 5
     assert wrong["what"] == f"camera.pinhole_diameter_m × {RIG_ERRORS['pinhole+10%'][2]}"
     assert as_taken["max_rms_rel_error"] < 0.03, as_taken
     assert wrong["max_rms_rel_error"] > 3 * as_taken["max_rms_rel_error"], (wrong, as_taken)
     assert wrong["max_rms_rel_error"] == max(s["rms_rel_error"] for s in wrong["sources"])
+    for error, described in (("none", 2e-4), ("pinhole+10%", 2.2e-4)):
+        aperture = runs[error, fitted]["aperture_fit"]
+        assert aperture["described_m"] == pytest.approx(described, rel=1e-9)
+        assert aperture["fitted_m"] == pytest.approx(2e-4, rel=0.01), aperture  # the simulated pinhole
+        assert aperture["chi2_per_pixel"] <= aperture["chi2_per_pixel_described"]
+        assert len(aperture["positions"]) == 5 and aperture["pixels"] > 1000
+        # the fits as good as with the description right, to within the run's noise
+        assert runs[error, fitted]["max_rms_rel_error"] < 2 * as_taken["max_rms_rel_error"] + 0.005, runs[error, fitted]
+    # An error the aperture cannot take up leaves the templates far from the data: the fit's χ² says
+    # so (the processing warns above 1.2 a pixel), where the pinhole's error left none.
+    from processing.pipeline import _CHI2_PER_PIXEL_WARNING
+
+    assert runs["none", fitted]["aperture_fit"]["chi2_per_pixel"] < _CHI2_PER_PIXEL_WARNING
+    assert runs["pinhole+10%", fitted]["aperture_fit"]["chi2_per_pixel"] < _CHI2_PER_PIXEL_WARNING
+    assert runs["ball-x+0.2mm", fitted]["aperture_fit"]["chi2_per_pixel"] > 2 * _CHI2_PER_PIXEL_WARNING
+    assert runs["ball-x+0.2mm", fitted]["max_rms_rel_error"] > 0.2
     table = out["markdown"].splitlines()
-    assert table[0].startswith("| rig description |") and len(table) == 4
+    assert table[0].startswith("| rig description |") and len(table) == 5
     assert table[2].startswith(f"| as taken | {100 * as_taken['max_rms_rel_error']:.2f} % |")
     assert table[3].startswith("| pinhole+10% (`camera.pinhole_diameter_m × 1.1`) |")
+    assert f"| {1e3 * runs['pinhole+10%', fitted]['aperture_fit']['fitted_m']:.4f} mm, " in table[3]
+
+
+def test_the_aperture_is_fitted_only_where_the_sources_are_known(tmp_path):
+    """`process --fit-aperture` without `--layout` is refused in one line, before anything is read."""
+    from acquisition.cli import app as cli
+
+    result = CliRunner().invoke(cli, ["process", str(tmp_path / "missing.h5"), "--fit-aperture", "--scheduler", "none"])
+    assert result.exit_code != 0
+    assert "--fit-aperture: needs the sources' layout (--layout)" in result.output, result.output

@@ -68,12 +68,13 @@ def _copy_described(run_path: Path, dst: Path, error: str | None) -> Path:
 
 
 def bench_tolerance(*, rig_path=None, truth: str = "five-gaussians", positions: int = 66, errors=None,
-                    layout_from_data: bool = False, noise: bool = True,
+                    layout_from_data: bool = False, fit_aperture: bool = False, noise: bool = True,
                     exposures=(2e-5, 1e-4, 5e-4, 2.5e-3, 1.25e-2), scheduler: str = "local",
                     workdir: str | Path | None = None, log=None) -> dict:  # fmt: skip
     """Take one simulated run, then process it with the rig described as taken and with each
     of ``errors`` (names of :data:`RIG_ERRORS`, default all), given the truth's layout and,
-    with ``layout_from_data``, also finding the sources in the data.
+    with ``layout_from_data``, also finding the sources in the data; with ``fit_aperture``,
+    also given the layout with the aperture fitted to the data (``process --fit-aperture``).
 
     Returns the JSON the command prints: per error and layout, the sources found and how far
     from the truth's, and each source's error against the truth. ``log(text)`` hears of each
@@ -91,9 +92,12 @@ def bench_tolerance(*, rig_path=None, truth: str = "five-gaussians", positions: 
         raise ValueError(f"--errors: {unknown[0]!r} is not one of {', '.join(RIG_ERRORS)}")
     rig = load_rig(rig_path or DEMO_RIG_PATH)
     truth_light = load_truth(truth)
-    layouts = {"given": LIGHTS_DIR / f"{truth}.toml"}
+    given = LIGHTS_DIR / f"{truth}.toml"
+    ways = {"given": (given, False)}
+    if fit_aperture:
+        ways["given, aperture fitted"] = (given, True)
     if layout_from_data:
-        layouts["found"] = None
+        ways["found"] = (None, False)
     rows = []
     started = time.perf_counter()
     with tempfile.TemporaryDirectory() as tmp:
@@ -105,10 +109,11 @@ def bench_tolerance(*, rig_path=None, truth: str = "five-gaussians", positions: 
         with open_compute(scheduler, warm_up=warm_up_worker) as compute:
             for k, error in enumerate([None, *errors]):
                 copy = _copy_described(run_path, base / f"described-{k}.h5", error)
-                for layout_name, layout in layouts.items():
+                for w, (layout_name, (layout, fitted)) in enumerate(ways.items()):
                     t0 = time.perf_counter()
-                    report = process_run(copy, base / f"out-{k}-{layout_name}", steps=("hdr", "sources"), layout=layout,
-                                         noise="rig", units="W/sr", compute=compute, images=False)  # fmt: skip
+                    report = process_run(copy, base / f"out-{k}-{w}", steps=("hdr", "sources"), layout=layout,
+                                         noise="rig", units="W/sr", compute=compute, images=False,
+                                         fit_aperture=fitted)  # fmt: skip
                     scored = score_sources(report.model, report.samples, truth_light, matched=layout is None,
                                            cell_sums=False)  # fmt: skip
                     row = {"error": error or "none", "layout": layout_name, "sources_found": len(report.model.sources),
@@ -119,6 +124,8 @@ def bench_tolerance(*, rig_path=None, truth: str = "five-gaussians", positions: 
                         row["what"] = f"{field} {'×' if how == 'scale' else '+'} {amount}"
                     if layout is None:
                         row["max_centre_error_um"] = max(s["centre_error_um"] for s in scored["sources"])
+                    if fitted:
+                        row["aperture_fit"] = report.aperture_fit
                     rows.append(row)
                     if log:
                         log(f"{row['error']}, layout {layout_name}: {row['sources_found']} sources, fits up to "
@@ -147,8 +154,12 @@ def markdown_table(result: dict) -> str:
     for row in result["runs"]:
         by_error.setdefault(row["error"], {})[row["layout"]] = row
     found = any("found" in rows for rows in by_error.values())
+    fitted = any("given, aperture fitted" in rows for rows in by_error.values())
     head = "| rig description | fits, layout given (max RMS / peak) |"
     rule = "| --- | --- |"
+    if fitted:
+        head += " the aperture fitted to the data: diameter, fits |"
+        rule += " --- |"
     if found:
         head += " layout found in the data: sources, farthest from the truth's, fits |"
         rule += " --- |"
@@ -157,6 +168,9 @@ def markdown_table(result: dict) -> str:
         given = rows["given"]
         what = "as taken" if error == "none" else f"{error} (`{given['what']}`)"
         line = f"| {what} | {100 * given['max_rms_rel_error']:.2f} % |"
+        if fitted:
+            row = rows["given, aperture fitted"]
+            line += f" {1e3 * row['aperture_fit']['fitted_m']:.4f} mm, {100 * row['max_rms_rel_error']:.2f} % |"
         if found:
             row = rows["found"]
             line += (f" {row['sources_found']} sources, {row['max_centre_error_um']:.0f} µm, "
