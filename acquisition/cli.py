@@ -260,6 +260,11 @@ def process(
                        f"read noise {noise_model.read_noise_dn:.3f} DN; EXR and PNG in {report.results_file.parent / (run.stem + '.hdr')})")  # fmt: skip
             if report.light_model:
                 typer.echo(f"  sources: {report.estimator_reason}")
+                if report.aperture_fit:
+                    fitted = report.aperture_fit
+                    typer.echo(f"  aperture: {1e3 * fitted['fitted_m']:.4g} mm fitted to the data (the rig says "
+                               f"{1e3 * fitted['described_m']:.4g} mm; χ²/pixel {fitted['chi2_per_pixel']:.4g} against "
+                               f"{fitted['chi2_per_pixel_described']:.4g})")  # fmt: skip
                 typer.echo(f"  light model {report.light_model}; " + ", ".join(
                     f"{kind.upper()} {paths[0]}" for kind, paths in report.outputs.items() if kind in ("ies", "ldt", "tm25", "report")))  # fmt: skip
     if batch:

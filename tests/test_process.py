@@ -349,3 +349,29 @@ def test_a_tinted_lights_colours_are_measured_through_the_camera(tmp_path):
     assert got["centre"][0] / got["centre"][2] > 2.0  # warm, as its emitter (2.17): far from grey
     light = LightModel.load(tmp_path / "out" / "run-tinted.light.json")
     assert [s.colour for s in light.sources] == [s.colour for s in report.model.sources]
+
+
+def test_process_fits_the_aperture_where_the_layout_is_known(simulated_run, tmp_path):
+    """`process --layout L --fit-aperture`: the pinhole's diameter fitted to the merged positions,
+    said on the command line and kept in the light model's provenance (the simulated camera's
+    pinhole is the rig's 0.2 mm)."""
+    import json
+
+    from sim_devices.lights import LIGHTS_DIR
+
+    path, _, rig = simulated_run
+    result = runner.invoke(app, ["process", str(path), "--layout", str(LIGHTS_DIR / "five-gaussians.toml"),
+                                 "--fit-aperture", "--no-images", "--out", str(tmp_path)])  # fmt: skip
+    assert result.exit_code == 0, result.output
+    aperture = json.loads((tmp_path / "run-test.light.json").read_text())["provenance"]["aperture_m"]
+    assert aperture["described_m"] == pytest.approx(rig.camera.pinhole_diameter_m)
+    assert aperture["fitted_m"] == pytest.approx(rig.camera.pinhole_diameter_m, rel=0.01), aperture
+    # at five fractions of the way through the positions merged: of three, the first two
+    assert aperture["positions"] == [20, 33] and aperture["how"] == "fitted to the data (--fit-aperture)"
+    assert f"aperture: {1e3 * aperture['fitted_m']:.4g} mm fitted to the data (the rig says 0.2 mm" in result.output
+    # Without --fit-aperture the provenance says the rig's figure was used.
+    again = runner.invoke(app, ["process", str(path), "--layout", str(LIGHTS_DIR / "five-gaussians.toml"), "--no-images",
+                                "--out", str(tmp_path / "plain")])  # fmt: skip
+    assert again.exit_code == 0, again.output
+    plain = json.loads((tmp_path / "plain" / "run-test.light.json").read_text())["provenance"]
+    assert plain["aperture_m"] == "as described by the rig" and "aperture:" not in again.output
