@@ -180,9 +180,8 @@ def process(
     fit: Annotated[str, typer.Option(help="Fit: gaussian, polynomial, cos-power, gaussian-2d.")] = "gaussian",
     ball_centre: Annotated[str | None, typer.Option("--ball-centre", help="Measured ball centre X,Y,Z in metres (rig frame; from `calibrate`).")] = None,
     images: Annotated[bool, typer.Option(help="Write an OpenEXR and a PNG preview of every position (hdr step).")] = True,
-    fit_aperture: Annotated[bool, typer.Option("--fit-aperture", help="With --layout: fit the camera's aperture (pinhole) "
-                                               "diameter to the data before the sources are estimated "
-                                               "(docs/light-model.md).")] = False,
+    fit_aperture: Annotated[bool, typer.Option("--fit-aperture", help="Fit the camera's aperture (pinhole) diameter to "
+                                               "the data before the sources are estimated (docs/light-model.md).")] = False,
     scheduler: SchedulerOption = "local",
     workers: WorkersOption = None,
 ) -> None:
@@ -201,9 +200,6 @@ def process(
     if noise not in ("auto", "estimated", "rig"):
         raise _fail(f"--noise: {noise!r} is not one of auto, estimated, rig")
     step_list = tuple(s for s in steps.split(",") if s)
-    if fit_aperture and layout is None:
-        raise _fail("--fit-aperture: needs the sources' layout (--layout): the aperture is fitted at the sources' "
-                    "known places")  # fmt: skip
     centre = None
     if ball_centre is not None:
         try:
@@ -667,8 +663,8 @@ def bench_tolerance_command(
                                               "(default all): " + ", ".join(_rig_error_names()))] = None,
     layout_from_data: Annotated[bool, typer.Option("--layout-from-data", help="Also find the sources in the data "
                                                    "with each description.")] = False,
-    fit_aperture: Annotated[bool, typer.Option("--fit-aperture", help="Also process with the layout given and the "
-                                               "aperture fitted to the data (process --fit-aperture).")] = False,
+    fit_aperture: Annotated[bool, typer.Option("--fit-aperture", help="Also process each way with the aperture fitted "
+                                               "to the data (process --fit-aperture).")] = False,
     noise: Annotated[bool, typer.Option(help="Photon, read and quantisation noise.")] = True,
     scheduler: SchedulerOption = "local",
     as_json: Annotated[bool, typer.Option("--json", help="Print JSON only.")] = False,

@@ -91,14 +91,8 @@ class JobRequest(BaseModel):
     layout: str | None = Field(default=None, max_length=4096,
                                description="the sources' layout, a TOML file on the worker's machine (default: found in the data)")  # fmt: skip
     noise: Literal["auto", "estimated", "rig"] | None = Field(default=None, description="HDR noise model; default: auto")
-    fit_aperture: StrictBool = Field(default=False, description="with layout: fit the camera's aperture (pinhole) "
-                                                              "diameter to the data (docs/light-model.md)")  # fmt: skip
-
-    @model_validator(mode="after")
-    def _aperture_needs_layout(self) -> JobRequest:
-        if self.fit_aperture and self.layout is None:
-            raise ValueError("fit_aperture: needs the sources' layout (layout)")
-        return self
+    fit_aperture: StrictBool = Field(default=False, description="fit the camera's aperture (pinhole) diameter to the "
+                                                              "data (docs/light-model.md)")  # fmt: skip
 
     @field_validator("steps")
     @classmethod

@@ -45,7 +45,7 @@ JOB_OPTIONS = {
     "estimator": "auto, templates or cell-sums",
     "fit": "gaussian, polynomial, cos-power or gaussian-2d",
     "noise": "auto, estimated or rig",
-    "fit_aperture": "with layout: fit the camera's aperture (pinhole) diameter to the data",
+    "fit_aperture": "fit the camera's aperture (pinhole) diameter to the data",
 }
 #: The result files a job records, by kind: the daemon serves exactly these.
 ARTIFACT_KINDS = ("report", "ies", "ldt", "tm25", "light_model", "results")

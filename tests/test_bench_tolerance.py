@@ -78,10 +78,22 @@ def test_a_wrong_pinhole_costs_the_fits_and_fitting_the_aperture_wins_them_back(
     assert f"| {1e3 * runs['pinhole+10%', fitted]['aperture_fit']['fitted_m']:.4f} mm, " in table[3]
 
 
-def test_the_aperture_is_fitted_only_where_the_sources_are_known(tmp_path):
-    """`process --fit-aperture` without `--layout` is refused in one line, before anything is read."""
-    from acquisition.cli import app as cli
-
-    result = CliRunner().invoke(cli, ["process", str(tmp_path / "missing.h5"), "--fit-aperture", "--scheduler", "none"])
-    assert result.exit_code != 0
-    assert "--fit-aperture: needs the sources' layout (--layout)" in result.output, result.output
+def test_the_search_and_the_aperture_fit_alternate_where_the_sources_are_not_known():
+    """`process --fit-aperture` without a layout: the search made with the pinhole described 10 %
+    wide puts the sources a millimetre off (the reduced rig, 12 positions); the aperture fitted at
+    them and the search made again with it bring them back to where the search puts them with
+    the description right, with the true diameter."""
+    result = CliRunner().invoke(app, ["bench", "tolerance", "--rig", str(REDUCED_RIG), "--positions", "12",
+                                      "--errors", "pinhole+10%", "--layout-from-data", "--fit-aperture",
+                                      "--scheduler", "local", "--json"])  # fmt: skip
+    assert result.exit_code == 0, result.output
+    out = json.loads(result.stdout.strip().splitlines()[-1])
+    runs = {(row["error"], row["layout"]): row for row in out["runs"]}
+    right, wrong, mended = runs["none", "found"], runs["pinhole+10%", "found"], runs["pinhole+10%", "found, aperture fitted"]
+    assert wrong["max_centre_error_um"] > 500 and wrong["max_rms_rel_error"] > 0.3, wrong
+    assert mended["aperture_fit"]["fitted_m"] == pytest.approx(2e-4, rel=0.01), mended["aperture_fit"]
+    assert 2 <= mended["aperture_fit"]["searches"] <= 3  # the first search's sources gave a wrong aperture
+    assert mended["sources_found"] == 5 and mended["max_centre_error_um"] < 2 * right["max_centre_error_um"], mended
+    assert mended["max_rms_rel_error"] < 2 * right["max_rms_rel_error"], (mended, right)
+    header = out["markdown"].splitlines()[0]
+    assert header.endswith("| found, the aperture fitted: sources, farthest, diameter, fits |")

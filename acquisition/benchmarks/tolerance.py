@@ -74,7 +74,7 @@ def bench_tolerance(*, rig_path=None, truth: str = "five-gaussians", positions: 
     """Take one simulated run, then process it with the rig described as taken and with each
     of ``errors`` (names of :data:`RIG_ERRORS`, default all), given the truth's layout and,
     with ``layout_from_data``, also finding the sources in the data; with ``fit_aperture``,
-    also given the layout with the aperture fitted to the data (``process --fit-aperture``).
+    each of those again with the aperture fitted to the data (``process --fit-aperture``).
 
     Returns the JSON the command prints: per error and layout, the sources found and how far
     from the truth's, and each source's error against the truth. ``log(text)`` hears of each
@@ -98,6 +98,8 @@ def bench_tolerance(*, rig_path=None, truth: str = "five-gaussians", positions: 
         ways["given, aperture fitted"] = (given, True)
     if layout_from_data:
         ways["found"] = (None, False)
+        if fit_aperture:
+            ways["found, aperture fitted"] = (None, True)
     rows = []
     started = time.perf_counter()
     with tempfile.TemporaryDirectory() as tmp:
@@ -155,6 +157,7 @@ def markdown_table(result: dict) -> str:
         by_error.setdefault(row["error"], {})[row["layout"]] = row
     found = any("found" in rows for rows in by_error.values())
     fitted = any("given, aperture fitted" in rows for rows in by_error.values())
+    found_fitted = any("found, aperture fitted" in rows for rows in by_error.values())
     head = "| rig description | fits, layout given (max RMS / peak) |"
     rule = "| --- | --- |"
     if fitted:
@@ -162,6 +165,9 @@ def markdown_table(result: dict) -> str:
         rule += " --- |"
     if found:
         head += " layout found in the data: sources, farthest from the truth's, fits |"
+        rule += " --- |"
+    if found_fitted:
+        head += " found, the aperture fitted: sources, farthest, diameter, fits |"
         rule += " --- |"
     lines = [head, rule]
     for error, rows in by_error.items():
@@ -175,5 +181,9 @@ def markdown_table(result: dict) -> str:
             row = rows["found"]
             line += (f" {row['sources_found']} sources, {row['max_centre_error_um']:.0f} µm, "
                      f"{100 * row['max_rms_rel_error']:.2f} % |")  # fmt: skip
+        if found_fitted:
+            row = rows["found, aperture fitted"]
+            line += (f" {row['sources_found']} sources, {row['max_centre_error_um']:.0f} µm, "
+                     f"{1e3 * row['aperture_fit']['fitted_m']:.4f} mm, {100 * row['max_rms_rel_error']:.2f} % |")  # fmt: skip
         lines.append(line)
     return "\n".join(lines)
