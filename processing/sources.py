@@ -878,6 +878,13 @@ class _LayoutProblem:
         self._columns[key] = column
         return column
 
+    def set_aperture(self, radius: float) -> None:
+        """Build the templates through an aperture of ``radius`` from now on (the pixels stay)."""
+        from dataclasses import replace
+
+        self.builder = replace(self.builder, geometry=replace(self.builder.geometry, aperture_radius=radius))
+        self._columns.clear()
+
     def solve(self, centres: np.ndarray, radius) -> tuple[np.ndarray, np.ndarray]:
         """(weighted residuals, intensities (positions, 3, sources)) for discs of ``radius`` (one
         for all, or one per source) at ``centres`` (S, 2), in metres."""
@@ -1093,14 +1100,12 @@ def fit_aperture(data: list[LayoutData], builder: TemplateBuilder, cfa_pattern: 
         problem = _LayoutProblem(data, narrowest, cfa_pattern, list(layout), margin_px, inset_px)
         if not problem.windows or problem.pixels < 16:
             raise SourcesError("no position has a window where every template is whole")
-        base = problem.builder
         evaluations = 0
 
         def chi2(scale: float) -> float:
             nonlocal evaluations
             evaluations += 1
-            problem.builder = replace(base, geometry=replace(base.geometry, aperture_radius=described * scale))
-            problem._columns.clear()
+            problem.set_aperture(described * scale)
             return problem.chi2(centres, radii)
 
         best = minimize_scalar(chi2, bounds=bounds, method="bounded", options={"xatol": xatol})

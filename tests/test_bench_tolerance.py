@@ -16,6 +16,15 @@ RIG = {"camera": {"pinhole_diameter_m": 2e-4}, "ball": {"centre_m": [0.0, 0.0, 0
        "light": {"light_to_tool": {"position_m": [0.0, 0.0, 0.0]}}}  # fmt: skip
 
 
+def _tolerance(*args: str) -> tuple[dict, dict]:
+    """`bench tolerance --json` on the reduced rig's first 12 positions: its JSON, and its runs by
+    (error, way)."""
+    result = CliRunner().invoke(app, ["bench", "tolerance", "--rig", str(REDUCED_RIG), "--positions", "12", *args, "--json"])
+    assert result.exit_code == 0, result.output
+    out = json.loads(result.stdout.strip().splitlines()[-1])
+    return out, {(row["error"], row["layout"]): row for row in out["runs"]}
+
+
 def test_each_error_changes_one_number_of_the_description_and_nothing_else():
     wider = described_wrong(RIG, "pinhole+10%")
     assert wider["camera"]["pinhole_diameter_m"] == pytest.approx(2.2e-4, rel=1e-12)
@@ -41,12 +50,7 @@ def test_a_wrong_pinhole_costs_the_fits_and_fitting_the_aperture_wins_them_back(
     templates spread the light too far and the fits go wrong several times over. With the
     aperture fitted to the data (`process --fit-aperture`), the true 0.2 mm comes back from
     either description, and the fits with it."""
-    result = CliRunner().invoke(app, ["bench", "tolerance", "--rig", str(REDUCED_RIG), "--positions", "12",
-                                      "--errors", "pinhole+10%,ball-x+0.2mm", "--fit-aperture", "--scheduler", "none",
-                                      "--json"])  # fmt: skip
-    assert result.exit_code == 0, result.output
-    out = json.loads(result.stdout.strip().splitlines()[-1])
-    runs = {(row["error"], row["layout"]): row for row in out["runs"]}
+    out, runs = _tolerance("--errors", "pinhole+10%,ball-x+0.2mm", "--fit-aperture", "--scheduler", "none")
     fitted = "given, aperture fitted"
     assert set(runs) == {(error, way) for error in ("none", "pinhole+10%", "ball-x+0.2mm") for way in ("given", fitted)}
     as_taken, wrong = runs["none", "given"], runs["pinhole+10%", "given"]
@@ -85,12 +89,7 @@ def test_the_search_and_the_aperture_fit_alternate_where_the_sources_are_not_kno
     than half that distance (this coarse rig's search puts them 0.2-0.45 mm off even so: the
     simulated arm's read-back noise differs from run to run) and the fits to those of the
     search with the description right."""
-    result = CliRunner().invoke(app, ["bench", "tolerance", "--rig", str(REDUCED_RIG), "--positions", "12",
-                                      "--errors", "pinhole+10%", "--layout-from-data", "--fit-aperture",
-                                      "--scheduler", "local", "--json"])  # fmt: skip
-    assert result.exit_code == 0, result.output
-    out = json.loads(result.stdout.strip().splitlines()[-1])
-    runs = {(row["error"], row["layout"]): row for row in out["runs"]}
+    out, runs = _tolerance("--errors", "pinhole+10%", "--layout-from-data", "--fit-aperture", "--scheduler", "local")
     right, wrong, mended = runs["none", "found"], runs["pinhole+10%", "found"], runs["pinhole+10%", "found, aperture fitted"]
     assert wrong["max_centre_error_um"] > 500 and wrong["max_rms_rel_error"] > 0.3, wrong
     assert mended["aperture_fit"]["fitted_m"] == pytest.approx(2e-4, rel=0.01), mended["aperture_fit"]

@@ -33,10 +33,15 @@ RIG_ERRORS: dict[str, tuple[str, str, float | tuple[float, float, float]]] = {
 }
 
 
+def _require_known(errors) -> None:
+    unknown = [error for error in errors if error not in RIG_ERRORS]
+    if unknown:
+        raise ValueError(f"--errors: {unknown[0]!r} is not one of {', '.join(RIG_ERRORS)}")
+
+
 def described_wrong(rig: dict, error: str) -> dict:
     """``rig`` (the run file's JSON description) with :data:`RIG_ERRORS` ``[error]`` made in it."""
-    if error not in RIG_ERRORS:
-        raise ValueError(f"--errors: {error!r} is not one of {', '.join(RIG_ERRORS)}")
+    _require_known([error])
     field, how, amount = RIG_ERRORS[error]
     out = json.loads(json.dumps(rig))
     *parents, key = field.split(".")
@@ -87,9 +92,7 @@ def bench_tolerance(*, rig_path=None, truth: str = "five-gaussians", positions: 
     from sim_devices.lights import LIGHTS_DIR, load_truth
 
     errors = list(RIG_ERRORS) if errors is None else list(errors)
-    unknown = [error for error in errors if error not in RIG_ERRORS]
-    if unknown:
-        raise ValueError(f"--errors: {unknown[0]!r} is not one of {', '.join(RIG_ERRORS)}")
+    _require_known(errors)
     rig = load_rig(rig_path or DEMO_RIG_PATH)
     truth_light = load_truth(truth)
     given = LIGHTS_DIR / f"{truth}.toml"
@@ -178,12 +181,15 @@ def markdown_table(result: dict) -> str:
             row = rows["given, aperture fitted"]
             line += f" {1e3 * row['aperture_fit']['fitted_m']:.4f} mm, {100 * row['max_rms_rel_error']:.2f} % |"
         if found:
-            row = rows["found"]
-            line += (f" {row['sources_found']} sources, {row['max_centre_error_um']:.0f} µm, "
-                     f"{100 * row['max_rms_rel_error']:.2f} % |")  # fmt: skip
+            line += _found_cell(rows["found"])
         if found_fitted:
-            row = rows["found, aperture fitted"]
-            line += (f" {row['sources_found']} sources, {row['max_centre_error_um']:.0f} µm, "
-                     f"{1e3 * row['aperture_fit']['fitted_m']:.4f} mm, {100 * row['max_rms_rel_error']:.2f} % |")  # fmt: skip
+            line += _found_cell(rows["found, aperture fitted"])
         lines.append(line)
     return "\n".join(lines)
+
+
+def _found_cell(row: dict) -> str:
+    """A table cell for sources found in the data: how many, the farthest from the truth's,
+    the aperture when it was fitted, the fits."""
+    aperture = f"{1e3 * row['aperture_fit']['fitted_m']:.4f} mm, " if "aperture_fit" in row else ""
+    return f" {row['sources_found']} sources, {row['max_centre_error_um']:.0f} µm, {aperture}{100 * row['max_rms_rel_error']:.2f} % |"
