@@ -648,10 +648,12 @@ def bench_reflectance_command(
     _print_result(result, as_json)
 
 
-def _rig_error_names() -> list[str]:
-    from acquisition.benchmarks.tolerance import RIG_ERRORS
+def _rig_errors_help() -> str:
+    from acquisition.benchmarks.tolerance import DEFAULT_ERRORS, ERROR_PARTS
 
-    return list(RIG_ERRORS)
+    return ("Comma-separated errors of the rig description to try, each PART±SIZE: PART one of "
+            f"{', '.join(ERROR_PARTS)}; SIZE in mm or um, or in % of the pinhole, the sensor distance or the "
+            f"ball's radius (e.g. pinhole+1%, ball-x-20um). Default: {', '.join(DEFAULT_ERRORS)}.")  # fmt: skip
 
 
 @bench_app.command("tolerance")
@@ -659,8 +661,7 @@ def bench_tolerance_command(
     rig: RigOption = None,
     truth: Annotated[str, typer.Option(help="Shipped truth light.")] = "five-gaussians",
     positions: Annotated[int, typer.Option(min=3, help="Schedule positions (the first N of the sweep).")] = 66,
-    errors: Annotated[str | None, typer.Option(help="Comma-separated errors of the rig description to try "
-                                              "(default all): " + ", ".join(_rig_error_names()))] = None,
+    errors: Annotated[str | None, typer.Option(help=_rig_errors_help())] = None,
     layout_from_data: Annotated[bool, typer.Option("--layout-from-data", help="Also find the sources in the data "
                                                    "with each description.")] = False,
     fit_aperture: Annotated[bool, typer.Option("--fit-aperture", help="Also process each way with the aperture fitted "

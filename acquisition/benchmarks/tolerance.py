@@ -12,49 +12,97 @@ RMS(I_fit − I_true) / max(I_true) over the θ each source's samples cover.
 from __future__ import annotations
 
 import json
+import re
 import shutil
 import tempfile
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
-#: The errors of the description tried, by name: (the rig field, "scale" or "add", by how much).
-#: Sizes a lab can plausibly get wrong: a 0.2 mm pinhole drilled or measured 10 % off, the
-#: sensor distance of a camera without a datasheet, the ball placed by eye, the light's
-#: mount measured with a rule.
-RIG_ERRORS: dict[str, tuple[str, str, float | tuple[float, float, float]]] = {
-    "pinhole+10%": ("camera.pinhole_diameter_m", "scale", 1.10),
-    "pinhole-10%": ("camera.pinhole_diameter_m", "scale", 0.90),
-    "sensor-distance+1%": ("camera.sensor_distance_m", "scale", 1.01),
-    "ball-x+0.2mm": ("ball.centre_m", "add", (2e-4, 0.0, 0.0)),
-    "ball-z+0.2mm": ("ball.centre_m", "add", (0.0, 0.0, 2e-4)),
-    "ball-radius+0.1mm": ("ball.radius_m", "add", 1e-4),
-    "light-x+0.2mm": ("light.light_to_tool.position_m", "add", (2e-4, 0.0, 0.0)),
-    "light-z+0.5mm": ("light.light_to_tool.position_m", "add", (0.0, 0.0, 5e-4)),
+#: The numbers of the description an error can touch, by name: (the rig field, the component
+#: of a 3-vector or None, whether a relative error in % makes sense for it).
+ERROR_PARTS: dict[str, tuple[str, int | None, bool]] = {
+    "pinhole": ("camera.pinhole_diameter_m", None, True),
+    "sensor-distance": ("camera.sensor_distance_m", None, True),
+    "ball-x": ("ball.centre_m", 0, False),
+    "ball-y": ("ball.centre_m", 1, False),
+    "ball-z": ("ball.centre_m", 2, False),
+    "ball-radius": ("ball.radius_m", None, True),
+    "light-x": ("light.light_to_tool.position_m", 0, False),
+    "light-y": ("light.light_to_tool.position_m", 1, False),
+    "light-z": ("light.light_to_tool.position_m", 2, False),
 }
+#: The errors tried by default. Sizes a lab can plausibly get wrong: a 0.2 mm pinhole drilled or
+#: measured 10 % off, the sensor distance of a camera without a datasheet, the ball placed by eye,
+#: the light's mount measured with a rule.
+DEFAULT_ERRORS = ("pinhole+10%", "pinhole-10%", "sensor-distance+1%", "ball-x+0.2mm", "ball-z+0.2mm",
+                  "ball-radius+0.1mm", "light-x+0.2mm", "light-z+0.5mm")  # fmt: skip
+_ERROR_SYNTAX = re.compile(r"(?P<part>[a-z-]+?)(?P<sign>[+-])(?P<size>\d+(?:\.\d+)?)(?P<unit>%|mm|um|µm)")
+_METRES = {"mm": 1e-3, "um": 1e-6, "µm": 1e-6}
 
 
-def _require_known(errors) -> None:
-    unknown = [error for error in errors if error not in RIG_ERRORS]
-    if unknown:
-        raise ValueError(f"--errors: {unknown[0]!r} is not one of {', '.join(RIG_ERRORS)}")
+@dataclass(frozen=True)
+class RigError:
+    """One number of the rig description made wrong: ``field`` scaled by ``amount`` (``how`` is
+    "scale") or ``amount`` added to it (a 3-vector for a vector field), in metres."""
+
+    name: str
+    field: str
+    how: str
+    amount: float | tuple[float, float, float]
+
+    @property
+    def what(self) -> str:
+        return f"{self.field} {'×' if self.how == 'scale' else '+'} {self.amount}"
+
+
+def parse_error(name: str) -> RigError:
+    """The error a name such as ``pinhole+10%``, ``ball-x-20um`` or ``light-z+0.5mm`` stands for:
+    PART±SIZE with PART one of :data:`ERROR_PARTS` and SIZE in % (of the pinhole, the sensor
+    distance, the ball's radius) or in mm or µm.
+
+    Raises
+    ------
+    ValueError
+        One line naming the error and what an error looks like.
+    """
+    syntax = (f"PART±SIZE, PART one of {', '.join(ERROR_PARTS)}, SIZE in mm or um (or % of pinhole, "
+              f"sensor-distance, ball-radius), e.g. pinhole+10%, ball-x-20um")  # fmt: skip
+    match = _ERROR_SYNTAX.fullmatch(name.strip())
+    if match is None or match["part"] not in ERROR_PARTS:
+        raise ValueError(f"--errors: {name!r} is not an error of the rig description: {syntax}")
+    field, component, relative = ERROR_PARTS[match["part"]]
+    size = float(match["size"]) * (-1.0 if match["sign"] == "-" else 1.0)
+    if match["unit"] == "%":
+        if not relative:
+            raise ValueError(f"--errors: {name!r}: {match['part']} is a position: give its error in mm or um, not %")
+        if size <= -100.0:
+            raise ValueError(f"--errors: {name!r}: a length cannot shrink by 100 % or more")
+        return RigError(name, field, "scale", round(1.0 + size / 100.0, 12))
+    metres = round(size * _METRES[match["unit"]], 15)
+    if component is None:
+        return RigError(name, field, "add", metres)
+    vector = [0.0, 0.0, 0.0]
+    vector[component] = metres
+    return RigError(name, field, "add", (vector[0], vector[1], vector[2]))
 
 
 def described_wrong(rig: dict, error: str) -> dict:
-    """``rig`` (the run file's JSON description) with :data:`RIG_ERRORS` ``[error]`` made in it."""
-    _require_known([error])
-    field, how, amount = RIG_ERRORS[error]
+    """``rig`` (the run file's JSON description) with the error named ``error`` made in it
+    (:func:`parse_error`)."""
+    wrong = parse_error(error)
     out = json.loads(json.dumps(rig))
-    *parents, key = field.split(".")
+    *parents, key = wrong.field.split(".")
     holder = out
     for name in parents:
         holder = holder[name]
     value = holder[key]
-    if how == "scale":
-        holder[key] = value * amount
-    elif isinstance(amount, tuple):
-        holder[key] = [v + a for v, a in zip(value, amount, strict=True)]
+    if wrong.how == "scale":
+        holder[key] = value * wrong.amount
+    elif isinstance(wrong.amount, tuple):
+        holder[key] = [v + a for v, a in zip(value, wrong.amount, strict=True)]
     else:
-        holder[key] = value + amount
+        holder[key] = value + wrong.amount
     return out
 
 
@@ -77,7 +125,7 @@ def bench_tolerance(*, rig_path=None, truth: str = "five-gaussians", positions: 
                     exposures=(2e-5, 1e-4, 5e-4, 2.5e-3, 1.25e-2), scheduler: str = "local",
                     workdir: str | Path | None = None, log=None) -> dict:  # fmt: skip
     """Take one simulated run, then process it with the rig described as taken and with each
-    of ``errors`` (names of :data:`RIG_ERRORS`, default all), given the truth's layout and,
+    of ``errors`` (names :func:`parse_error` reads, default :data:`DEFAULT_ERRORS`), given the truth's layout and,
     with ``layout_from_data``, also finding the sources in the data; with ``fit_aperture``,
     each of those again with the aperture fitted to the data (``process --fit-aperture``).
 
@@ -88,11 +136,12 @@ def bench_tolerance(*, rig_path=None, truth: str = "five-gaussians", positions: 
     from acquisition.demo import DEMO_RIG_PATH
     from acquisition.rig import load_rig
     from processing.parallel import open_compute
-    from processing.pipeline import process_run, warm_up_worker
+    from processing.pipeline import ProcessingError, process_run, warm_up_worker
     from sim_devices.lights import LIGHTS_DIR, load_truth
 
-    errors = list(RIG_ERRORS) if errors is None else list(errors)
-    _require_known(errors)
+    errors = list(DEFAULT_ERRORS) if errors is None else list(errors)
+    for error in errors:
+        parse_error(error)  # every name checked before anything is acquired
     rig = load_rig(rig_path or DEMO_RIG_PATH)
     truth_light = load_truth(truth)
     given = LIGHTS_DIR / f"{truth}.toml"
@@ -116,17 +165,24 @@ def bench_tolerance(*, rig_path=None, truth: str = "five-gaussians", positions: 
                 copy = _copy_described(run_path, base / f"described-{k}.h5", error)
                 for w, (layout_name, (layout, fitted)) in enumerate(ways.items()):
                     t0 = time.perf_counter()
-                    report = process_run(copy, base / f"out-{k}-{w}", steps=("hdr", "sources"), layout=layout,
-                                         noise="rig", units="W/sr", compute=compute, images=False,
-                                         fit_aperture=fitted)  # fmt: skip
+                    row = {"error": error or "none", "layout": layout_name}
+                    if error is not None:
+                        row["what"] = parse_error(error).what
+                    try:
+                        report = process_run(copy, base / f"out-{k}-{w}", steps=("hdr", "sources"), layout=layout,
+                                             noise="rig", units="W/sr", compute=compute, images=False,
+                                             fit_aperture=fitted)  # fmt: skip
+                    except ProcessingError as exc:  # e.g. an aperture fit at its bound: said, and on to the next
+                        row.update(failed=str(exc), process_s=round(time.perf_counter() - t0, 1))
+                        rows.append(row)
+                        if log:
+                            log(f"{row['error']}, layout {layout_name}: failed: {exc}")
+                        continue
                     scored = score_sources(report.model, report.samples, truth_light, matched=layout is None,
                                            cell_sums=False)  # fmt: skip
-                    row = {"error": error or "none", "layout": layout_name, "sources_found": len(report.model.sources),
-                           "max_rms_rel_error": max(s["rms_rel_error"] for s in scored["sources"]),
-                           "sources": scored["sources"], "process_s": round(time.perf_counter() - t0, 1)}  # fmt: skip
-                    if error is not None:
-                        field, how, amount = RIG_ERRORS[error]
-                        row["what"] = f"{field} {'×' if how == 'scale' else '+'} {amount}"
+                    row.update(sources_found=len(report.model.sources),
+                               max_rms_rel_error=max(s["rms_rel_error"] for s in scored["sources"]),
+                               sources=scored["sources"], process_s=round(time.perf_counter() - t0, 1))  # fmt: skip
                     if layout is None:
                         row["max_centre_error_um"] = max(s["centre_error_um"] for s in scored["sources"])
                     if fitted:
@@ -173,23 +229,23 @@ def markdown_table(result: dict) -> str:
         head += " found, the aperture fitted: sources, farthest, diameter, fits |"
         rule += " --- |"
     lines = [head, rule]
+    ways = ["given", *(["given, aperture fitted"] if fitted else []), *(["found"] if found else []),
+            *(["found, aperture fitted"] if found_fitted else [])]  # fmt: skip
     for error, rows in by_error.items():
-        given = rows["given"]
-        what = "as taken" if error == "none" else f"{error} (`{given['what']}`)"
-        line = f"| {what} | {100 * given['max_rms_rel_error']:.2f} % |"
-        if fitted:
-            row = rows["given, aperture fitted"]
-            line += f" {1e3 * row['aperture_fit']['fitted_m']:.4f} mm, {100 * row['max_rms_rel_error']:.2f} % |"
-        if found:
-            line += _found_cell(rows["found"])
-        if found_fitted:
-            line += _found_cell(rows["found, aperture fitted"])
-        lines.append(line)
+        what = "as taken" if error == "none" else f"{error} (`{rows['given']['what']}`)"
+        lines.append(f"| {what} |" + "".join(_cell(rows[way]) for way in ways))
     return "\n".join(lines)
 
 
-def _found_cell(row: dict) -> str:
-    """A table cell for sources found in the data: how many, the farthest from the truth's,
-    the aperture when it was fitted, the fits."""
-    aperture = f"{1e3 * row['aperture_fit']['fitted_m']:.4f} mm, " if "aperture_fit" in row else ""
-    return f" {row['sources_found']} sources, {row['max_centre_error_um']:.0f} µm, {aperture}{100 * row['max_rms_rel_error']:.2f} % |"
+def _cell(row: dict) -> str:
+    """A table cell for one processing: for sources found in the data, how many and the farthest
+    from the truth's; the aperture when it was fitted; the fits; or why it failed."""
+    if "failed" in row:
+        return f" failed: {row['failed'].replace('|', '/')} |"
+    parts = []
+    if "max_centre_error_um" in row:
+        parts += [f"{row['sources_found']} sources", f"{row['max_centre_error_um']:.0f} µm"]
+    if "aperture_fit" in row:
+        parts.append(f"{1e3 * row['aperture_fit']['fitted_m']:.4f} mm")
+    parts.append(f"{100 * row['max_rms_rel_error']:.2f} %")
+    return f" {', '.join(parts)} |"
