@@ -828,23 +828,23 @@ class _LayoutProblem:
 
         # Every template must cover the whole window, so each is given ``margin_px`` beyond the
         # spread of the first guess's images as well (the window is the patches' intersection).
-        spread = 0
-        for item in data:
-            built = [t for t in (builder.build(s, item.pose) for s in first) if t is not None]
-            if built:
-                spread = max(spread, np.ptp([t.row0 for t in built]), np.ptp([t.col0 for t in built]))
+        # A wider diffraction margin only pads a template's patch (``TemplateBuilder._render``), so
+        # the windows follow from the first guess's templates built once, at the builder's margin.
+        first_built = [[t for t in (builder.build(s, item.pose) for s in first) if t is not None] for item in data]
+        spread = max([max(np.ptp([t.row0 for t in built]), np.ptp([t.col0 for t in built]))
+                      for built in first_built if built], default=0)  # fmt: skip
         self.builder = replace(builder, airy_margin_px=max(builder.airy_margin_px, margin_px + int(spread)))
+        pad = self.builder.airy_margin_px - builder.airy_margin_px if builder.diffraction else 0
         self.windows = []
         self._columns: dict[tuple, np.ndarray] = {}
-        for item in data:
-            built = [t for t in (self.builder.build(s, item.pose) for s in first) if t is not None]
+        for item, built in zip(data, first_built):
             if not built:
                 continue
             h, w = item.rate.shape
-            top = max(0, max(t.row0 for t in built) + inset_px)
-            left = max(0, max(t.col0 for t in built) + inset_px)
-            bottom = min(h, min(t.row0 + t.image.shape[1] for t in built) - inset_px)
-            right = min(w, min(t.col0 + t.image.shape[2] for t in built) - inset_px)
+            top = max(0, max(t.row0 for t in built) - pad + inset_px)
+            left = max(0, max(t.col0 for t in built) - pad + inset_px)
+            bottom = min(h, min(t.row0 + t.image.shape[1] for t in built) + pad - inset_px)
+            right = min(w, min(t.col0 + t.image.shape[2] for t in built) + pad - inset_px)
             if bottom - top < 8 or right - left < 8:
                 continue
             rows, cols = np.mgrid[top:bottom, left:right]
