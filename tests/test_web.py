@@ -243,3 +243,38 @@ def test_the_page_shows_each_job_and_links_its_report_ies_and_ray_file(tmp_path,
     page.screenshot(path=str(tmp_path / "jobs.png"), full_page=True)
     data.catalog.close()
     assert page.script_errors == []
+
+
+def test_the_next_job_takes_the_options_set_on_the_page(tmp_path, daemon_factory, page, captured):
+    """The processing options on the page (the aperture fitted, the intensity model) go with the
+    next `process` click as the job's options, as `POST /runs/{id}/process` takes them; only those
+    that differ from the worker's defaults."""
+    from test_worker import Data
+
+    data = Data(tmp_path / "data")
+    run = data.run(captured[2])
+    daemon = daemon_factory(write_config(tmp_path / "daemon.toml", data.root), token=TOKEN)
+    open_page(page, daemon)
+    page.fill("#token", TOKEN)
+    row = page.locator(f'#runs tr[data-run-id="{run.id}"]')
+    expect(row).to_contain_text("complete")
+    expect(page.locator("#fit-aperture")).not_to_be_checked()
+    expect(page.locator("#fit-model")).to_have_value("gaussian")
+    page.check("#fit-aperture")
+    page.select_option("#fit-model", "polynomial")
+    row.locator("button.process").click()
+    message = page.locator("#message")
+    expect(message).to_contain_text(f"queued for run {run.id} (steps hdr,sources, aperture fitted, polynomial fits)")
+    page.uncheck("#fit-aperture")
+    page.select_option("#fit-model", "gaussian")
+    row.locator("button.process").click()
+    expect(message).to_contain_text(f"queued for run {run.id} (steps hdr,sources).")
+    with daemon.client() as http:
+        jobs = http.get("/jobs", params={"run_id": run.id}).json()
+    assert sorted((job["options"] for job in jobs), key=len) == [{}, {"fit_aperture": True, "fit": "polynomial"}]
+    page.screenshot(path=str(tmp_path / "options.png"), full_page=True)
+    fitted = next(job for job in jobs if job["options"])
+    expect(page.locator(f'#jobs tr[data-job-id="{fitted["id"]}"] td').first).to_have_attribute(
+        "title", "steps hdr,sources, aperture fitted, polynomial fits")
+    data.catalog.close()
+    assert page.script_errors == []

@@ -442,7 +442,7 @@ function renderJobs(jobs) {
     const progress = el("progress", { className: "job-progress", max: 100, value: Math.round(job.progress * 100) });
     const note = job.error || job.message || "";
     const row = el("tr", {},
-      el("td", { className: "mono small", textContent: job.id, title: `steps ${job.steps}${job.claimed_by ? `, worker ${job.claimed_by}` : ""}` }),
+      el("td", { className: "mono small", textContent: job.id, title: `steps ${job.steps}${describeOptions(job.options)}${job.claimed_by ? `, worker ${job.claimed_by}` : ""}` }),
       el("td", {}, run),
       el("td", {}, el("span", { className: `badge state-${job.state} job-badge`, textContent: job.state })),
       el("td", { className: "num" }, progress, ` ${Math.round(job.progress * 100)} %`),
@@ -460,10 +460,25 @@ function markSelected() {
   }
 }
 
+// The options of the next job (JobRequest): only those that differ from the worker's defaults.
+function jobRequest() {
+  const body = { steps: "hdr,sources" };
+  if ($("fit-aperture").checked) body.fit_aperture = true;
+  if ($("fit-model").value !== "gaussian") body.fit = $("fit-model").value;
+  return body;
+}
+
+function describeOptions(options) {
+  const parts = [];
+  if (options && options.fit_aperture) parts.push("aperture fitted");
+  if (options && options.fit) parts.push(`${options.fit} fits`);
+  return parts.length ? `, ${parts.join(", ")}` : "";
+}
+
 async function processRun(id) {
   try {
-    const job = await api("POST", `/runs/${encodeURIComponent(id)}/process`);
-    showMessage(`Job ${job.id} queued for run ${id} (steps ${job.steps}).`, "info");
+    const job = await api("POST", `/runs/${encodeURIComponent(id)}/process`, jobRequest());
+    showMessage(`Job ${job.id} queued for run ${id} (steps ${job.steps}${describeOptions(job.options)}).`, "info");
     refreshRuns();
   } catch (err) {
     showMessage(`Process refused: ${err.message}`);
