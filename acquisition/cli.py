@@ -180,8 +180,11 @@ def process(
     fit: Annotated[str, typer.Option(help="Fit: gaussian, polynomial, cos-power, gaussian-2d.")] = "gaussian",
     ball_centre: Annotated[str | None, typer.Option("--ball-centre", help="Measured ball centre X,Y,Z in metres (rig frame; from `calibrate`).")] = None,
     images: Annotated[bool, typer.Option(help="Write an OpenEXR and a PNG preview of every position (hdr step).")] = True,
-    fit_aperture: Annotated[bool, typer.Option("--fit-aperture", help="Fit the camera's aperture (pinhole) diameter to "
-                                               "the data before the sources are estimated (docs/light-model.md).")] = False,
+    fit_aperture: Annotated[bool | None, typer.Option("--fit-aperture/--no-fit-aperture", help="Fit the camera's aperture "
+                                                      "(pinhole) diameter to the data before the sources are estimated "
+                                                      "(docs/light-model.md). Default: fitted when the sources are searched "
+                                                      "for in the data (no --layout), the rig's diameter kept if that "
+                                                      "fit fails.", show_default=False)] = None,
     scheduler: SchedulerOption = "local",
     workers: WorkersOption = None,
 ) -> None:
@@ -256,11 +259,14 @@ def process(
                        f"read noise {noise_model.read_noise_dn:.3f} DN; EXR and PNG in {report.results_file.parent / (run.stem + '.hdr')})")  # fmt: skip
             if report.light_model:
                 typer.echo(f"  sources: {report.estimator_reason}")
-                if report.aperture_fit:
+                if report.aperture_fit.get("failed") and report.aperture_fit.get("fitted_m") is None:
+                    typer.echo(f"  aperture: as the rig describes it (the fit to the data failed: {report.aperture_fit['failed']})")
+                elif report.aperture_fit:
                     fitted = report.aperture_fit
                     typer.echo(f"  aperture: {1e3 * fitted['fitted_m']:.4g} mm fitted to the data (the rig says "
                                f"{1e3 * fitted['described_m']:.4g} mm; χ²/pixel {fitted['chi2_per_pixel']:.4g} against "
-                               f"{fitted['chi2_per_pixel_described']:.4g})")  # fmt: skip
+                               f"{fitted['chi2_per_pixel_described']:.4g})"
+                               + (f" (a later fit failed: {fitted['failed']})" if fitted.get("failed") else ""))  # fmt: skip
                 typer.echo(f"  light model {report.light_model}; " + ", ".join(
                     f"{kind.upper()} {paths[0]}" for kind, paths in report.outputs.items() if kind in ("ies", "ldt", "tm25", "report")))  # fmt: skip
     if batch:

@@ -93,6 +93,8 @@ class DemoResult:
     total_s: float
     job_message: str = ""
     layout: str = ""
+    #: The camera's aperture the sources were estimated with (the light model's provenance).
+    aperture: str = ""
     pids: dict[str, int] = field(default_factory=dict)
 
     def to_json(self) -> dict:
@@ -452,9 +454,21 @@ def run_demo(*, root: Path = Path("demo-data"), rig: Path | None = None, positio
         acquire_s=acquire_s, process_s=process_s, total_s=time.perf_counter() - started,
         job_message=job.get("message") or "", pids=pids,
         layout=f"given to the worker: {_shown(layout)}" if truth_layout and not layout_note else "found in the data by the worker",
+        aperture=aperture_used(artifacts["light_model"]),
     )  # fmt: skip
     (folder / "summary.json").write_text(json.dumps(result.to_json(), indent=2, allow_nan=True) + "\n")
     return result
+
+
+def aperture_used(light_model: Path) -> str:
+    """The camera's aperture the light model's sources were estimated with, in words: fitted to
+    the data (the worker's default when it searches for the sources) or the rig's."""
+    from processing.lightmodel import LightModel
+
+    aperture = LightModel.load(light_model).provenance.get("aperture_m", "")
+    if isinstance(aperture, dict) and aperture.get("fitted_m") is not None:
+        return f"{1e3 * aperture['fitted_m']:.4g} mm, fitted to the data (the rig says {1e3 * aperture['described_m']:.4g} mm)"
+    return str(aperture)
 
 
 def _post_job(client, run_id: str, layout: Path | None) -> tuple[dict, str]:
@@ -546,6 +560,8 @@ def print_summary(result: DemoResult, console) -> None:
             files.add_row(label, where(result.artifacts[kind]))
     files.add_row("logs, settings", _shown(result.data_dir) + "/")
     files.add_row("source layout", result.layout)
+    if result.aperture:
+        files.add_row("camera aperture", result.aperture)
     console.print(files)
 
     target = result.target

@@ -91,8 +91,9 @@ class JobRequest(BaseModel):
     layout: str | None = Field(default=None, max_length=4096,
                                description="the sources' layout, a TOML file on the worker's machine (default: found in the data)")  # fmt: skip
     noise: Literal["auto", "estimated", "rig"] | None = Field(default=None, description="HDR noise model; default: auto")
-    fit_aperture: StrictBool = Field(default=False, description="fit the camera's aperture (pinhole) diameter to the "
-                                                              "data (docs/light-model.md)")  # fmt: skip
+    fit_aperture: StrictBool | None = Field(default=None, description="fit the camera's aperture (pinhole) diameter to "
+                                            "the data (docs/light-model.md); default: fitted when the sources are "
+                                            "searched for in the data (no layout)")  # fmt: skip
 
     @field_validator("steps")
     @classmethod

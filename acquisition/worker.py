@@ -45,7 +45,8 @@ JOB_OPTIONS = {
     "estimator": "auto, templates or cell-sums",
     "fit": "gaussian, polynomial, cos-power or gaussian-2d",
     "noise": "auto, estimated or rig",
-    "fit_aperture": "fit the camera's aperture (pinhole) diameter to the data",
+    "fit_aperture": "fit the camera's aperture (pinhole) diameter to the data (true), or not (false); default: when "
+                    "the sources are searched for in the data",
 }
 #: The result files a job records, by kind: the daemon serves exactly these.
 ARTIFACT_KINDS = ("report", "ies", "ldt", "tm25", "light_model", "results")
@@ -298,7 +299,7 @@ class JobWorker:
         report = process_run(run_path, run_path.parent, steps=steps, progress=progress, compute=self.compute,
                              layout=options.get("layout"), estimator=options.get("estimator", "auto"),
                              fit_method=options.get("fit", "gaussian"), noise=options.get("noise", "auto"),
-                             fit_aperture=bool(options.get("fit_aperture", False)))  # fmt: skip
+                             fit_aperture=options.get("fit_aperture"))  # fmt: skip
         artifacts = {"results": report.results_file}
         if report.light_model is not None:
             artifacts["light_model"] = report.light_model

@@ -71,7 +71,7 @@ class ProcessReport:
     estimator: str = ""
     estimator_reason: str = ""
     layout_search: str = ""  # how the sources were found in the data (empty when a layout was given)
-    aperture_fit: dict = field(default_factory=dict)  # the aperture fitted to the data (fit_aperture), if asked
+    aperture_fit: dict = field(default_factory=dict)  # the aperture fitted to the data (fit_aperture), or why it failed
     spatial_resolution_m: float = float("nan")
     n_positions: int = 0
     partial: bool = False
@@ -454,7 +454,7 @@ class _Progress:
 def process_run(run_path, out_dir=None, *, steps=("hdr",), method: str = "optimal", noise: str = "auto",
                 progress: Callable[[int, int], None] | None = None, layout=None, estimator: str = "auto",
                 fit_method: str = "gaussian", units: str = "relative", truth=None, ball_centre=None,
-                compute: Compute | None = None, images: bool = True, fit_aperture: bool = False) -> ProcessReport:  # fmt: skip
+                compute: Compute | None = None, images: bool = True, fit_aperture: bool | None = None) -> ProcessReport:  # fmt: skip
     """Process one run file; results go beside it, or into ``out_dir``.
 
     Parameters
@@ -473,12 +473,16 @@ def process_run(run_path, out_dir=None, *, steps=("hdr",), method: str = "optima
         ``progress(done, total)`` after every position task.
     images : bool
         Write an OpenEXR and a PNG preview per position (the ``hdr`` step).
-    fit_aperture : bool
+    fit_aperture : bool, optional
         Fit the camera's aperture diameter (the pinhole's) to the data before the sources are
         estimated, and estimate them with it (:func:`processing.sources.fit_aperture`;
         ``report.aperture_fit``, the light model's provenance). With ``layout`` given, the
         merge and the estimate then take two passes over the positions; without, the search
         for the sources and the aperture's fit alternate (:func:`_layout_and_aperture`).
+        None (the default): fitted when the sources are searched for in the data (no
+        ``layout``), where it never cost the fits and mended a pinhole described 1-10 % off
+        (``docs/light-model.md``); a fit that fails there is said and the described aperture
+        kept. True: fitted with a layout too, and a failed fit fails the processing.
     truth : callable, optional
         Simulated runs only, given by the caller: ``truth(source, theta) -> intensity``,
         drawn beside the fits in the report (:mod:`processing.report`).
@@ -539,6 +543,8 @@ def process_run(run_path, out_dir=None, *, steps=("hdr",), method: str = "optima
         report.compute = compute.description
         # With the layout known, each position is merged and unmixed by one task.
         plan = _plan_sources(run, sources, estimator, ball_centre, positions) if sources is not None else None
+        aperture_optional = fit_aperture is None  # the default: fitted where the sources are searched for
+        fit_aperture = (sources is None) if fit_aperture is None else fit_aperture
         fused = "hdr" in steps and plan is not None and not fit_aperture
         passes = int("hdr" in steps) + int("sources" in steps and not fused)
         tracker = _Progress(progress, passes * int(positions.size))
@@ -555,7 +561,7 @@ def process_run(run_path, out_dir=None, *, steps=("hdr",), method: str = "optima
                 with _open_run(run_path) as run:
                     clock = time.perf_counter()
                     found, report.aperture_fit = _layout_and_aperture(run, results_file, positions, ball_centre, compute,
-                                                                      fit_aperture)  # fmt: skip
+                                                                      fit_aperture, optional=aperture_optional)  # fmt: skip
                     timings["layout"] = time.perf_counter() - clock
                     sources = found.sources
                     report.layout_search = ("candidate grid (NNLS), then positions and radius fitted: " if found.refined
@@ -658,8 +664,7 @@ def _finish_sources(run_path: Path, out: Path, report: ProcessReport, plan: _Sou
     ball_centre = plan.ball_centre
     model.provenance["ball_centre_m"] = list(ball_centre) if ball_centre is not None else "as described by the rig"
     model.provenance["layout"] = str(layout_path) if layout_path is not None else f"found in the data: {report.layout_search}"
-    model.provenance["aperture_m"] = (dict(report.aperture_fit, how="fitted to the data (--fit-aperture)")
-                                      if report.aperture_fit else "as described by the rig")  # fmt: skip
+    model.provenance["aperture_m"] = _aperture_provenance(report.aperture_fit)
     report.light_model = model.save(out / f"{run_path.stem}.light.json")
     stem = out / run_path.stem
     luminaire = f"mirrorgonio run {run_path.stem}"
@@ -791,7 +796,7 @@ def _layout_data(run: RunFile, results_file: str, ball_centre, picks, aperture_d
 
 
 def _layout_and_aperture(run: RunFile, results_file, positions, ball_centre, compute: Compute, fit_aperture: bool,
-                         *, max_searches: int = 3, settle: float = 0.01):  # fmt: skip
+                         *, optional: bool = False, max_searches: int = 3, settle: float = 0.01):  # fmt: skip
     """The sources found in the data (:func:`layout_from_data`) and, with ``fit_aperture``, the
     aperture fitted at them (:func:`aperture_from_data`, else ``{}``).
 
@@ -803,15 +808,26 @@ def _layout_and_aperture(run: RunFile, results_file, positions, ball_centre, com
     rig: the second search found the five sources 21-73 µm off and the aperture 0.4-0.7 %
     off; the third, 27-28 µm and 0.1-0.4 % (fits 0.49-1.12 % of peak; with the description
     right, one search: 20 µm, 0.2 %, 0.61 %).
+
+    ``optional``: a fit that fails (its best at a bound of the search) is logged and the last
+    search's sources kept, with the aperture they were found with (the dict then says
+    ``failed``); otherwise it raises :class:`ProcessingError`.
     """
     aperture, fitted = None, {}
     for search in range(1, max_searches + 1):
         found = layout_from_data(run, results_file, positions, ball_centre, compute, aperture_diameter=aperture)
         if not fit_aperture:
             return found, {}
-        fitted = aperture_from_data(run, results_file, positions, found.sources, ball_centre, compute)
-        previous = aperture if aperture is not None else fitted["described_m"]
-        aperture = fitted["fitted_m"]
+        try:
+            attempt = aperture_from_data(run, results_file, positions, found.sources, ball_centre, compute)
+        except ProcessingError as exc:
+            if not optional:
+                raise
+            kept = "the rig's aperture" if aperture is None else f"the aperture fitted before, {1e3 * aperture:.4g} mm"
+            log.warning("%s (the sources are estimated with %s)", exc, kept)
+            return found, dict(fitted, failed=str(exc))
+        previous = aperture if aperture is not None else attempt["described_m"]
+        fitted, aperture = attempt, attempt["fitted_m"]
         fitted["searches"] = search
         if abs(aperture / previous - 1.0) < settle:
             break
@@ -821,6 +837,15 @@ def _layout_and_aperture(run: RunFile, results_file, positions, ball_centre, com
                     100 * abs(aperture / previous - 1.0))  # fmt: skip
     _warn_if_unexplained(run, fitted)  # the last fit's: the searches before it may have left spurious sources
     return found, fitted
+
+
+def _aperture_provenance(fitted: dict):
+    """The light model's ``aperture_m``: the fit's record, or how the rig's diameter came to be used."""
+    if fitted.get("fitted_m") is not None:
+        return dict(fitted, how="fitted to the data (--fit-aperture)")
+    if fitted.get("failed"):
+        return f"as described by the rig (the fit to the data failed: {fitted['failed']})"
+    return "as described by the rig"
 
 
 def _spread_over(positions: np.ndarray, fractions) -> list[int]:

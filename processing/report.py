@@ -947,6 +947,8 @@ def _header(model: LightModel, run, report, samples, resolution_m: float) -> str
         rows.append(["camera aperture", f"{1e3 * aperture['fitted_m']:.4g} mm fitted to the data (the rig says "
                                         f"{1e3 * aperture['described_m']:.4g} mm; χ²/pixel {aperture['chi2_per_pixel']:.4g} "
                                         f"against {aperture['chi2_per_pixel_described']:.4g} there)"])  # fmt: skip
+    elif isinstance(aperture, str) and "failed" in aperture:
+        rows.append(["camera aperture", aperture])
     fits = sorted({s.fit.method for s in model.sources})
     rows.append(["fit", ", ".join(fits)])
     if prov.get("software_version"):

@@ -103,6 +103,13 @@ def test_demo_runs_the_whole_chain_and_leaves_nothing_running(tmp_path, layout_o
     assert summary["pids"] == pids
     assert {Path(summary["artifacts"][k]).name for k in ("report", "ies", "tm25", "light_model")} <= set(rows.values())
     assert summary["layout"].startswith("given to the worker" if layout_option else "found in the data")
+    # The worker fits the pinhole's diameter where it searches for the sources (its default), and
+    # keeps the rig's with the layout given; the summary says which.
+    if layout_option:
+        assert summary["aperture"] == "as described by the rig", summary["aperture"]
+    else:
+        assert re.fullmatch(r"0\.\d+ mm, fitted to the data \(the rig says 0\.2 mm\)", summary["aperture"]), summary["aperture"]
+    assert re.search(r"│ camera aperture\s*│ " + re.escape(summary["aperture"][:20]), done.stdout), done.stdout
     assert len(summary["accuracy"]) == 5
     for source in summary["accuracy"]:
         assert math.isfinite(source["rms_rel_error"]) and source["rms_rel_error"] >= 0

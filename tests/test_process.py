@@ -375,3 +375,47 @@ def test_process_fits_the_aperture_where_the_layout_is_known(simulated_run, tmp_
     assert again.exit_code == 0, again.output
     plain = json.loads((tmp_path / "plain" / "run-test.light.json").read_text())["provenance"]
     assert plain["aperture_m"] == "as described by the rig" and "aperture:" not in again.output
+
+
+def test_process_fits_the_aperture_by_default_where_it_searches_for_the_sources(simulated_run, tmp_path):
+    """Without --layout the pinhole's diameter is fitted by default (docs/light-model.md, "When
+    the aperture is fitted"); --no-fit-aperture keeps the rig's. A fit that fails (the pinhole
+    described 40 % wide: the truth below the search's 0.75 x) is said and the rig's diameter
+    kept by default, and fails the run when --fit-aperture asked for it."""
+    import json
+
+    from acquisition.benchmarks.tolerance import _copy_described
+
+    path, _, rig = simulated_run
+
+    def process(run, out, *options):
+        result = runner.invoke(app, ["process", str(run), "--no-images", "--out", str(out), *options])
+        light = out / f"{run.stem}.light.json"
+        return result, (json.loads(light.read_text())["provenance"]["aperture_m"] if light.exists() else None)
+
+    result, aperture = process(path, tmp_path / "default")
+    assert result.exit_code == 0, result.output
+    assert aperture["fitted_m"] == pytest.approx(rig.camera.pinhole_diameter_m, rel=0.02), aperture
+    assert aperture["searches"] >= 1 and aperture["how"] == "fitted to the data (--fit-aperture)"
+    assert f"aperture: {1e3 * aperture['fitted_m']:.4g} mm fitted to the data" in result.output
+    result, aperture = process(path, tmp_path / "off", "--no-fit-aperture")
+    assert result.exit_code == 0, result.output
+    assert aperture == "as described by the rig" and "aperture:" not in result.output
+
+    # 40 % wide: the first search's spurious sources take a fit to 0.24 mm; the search with that finds
+    # the sources, and the fit at them hits the 0.75 x bound: said, and the 0.24 mm kept.
+    wide = _copy_described(path, tmp_path / "run-wide.h5", "pinhole+40%")
+    result, aperture = process(wide, tmp_path / "wide")
+    assert result.exit_code == 0, result.output
+    assert "the best aperture lies at the search's bound" in aperture["failed"], aperture
+    assert 0.21e-3 < aperture["fitted_m"] < 0.28e-3 and aperture["searches"] == 1, aperture
+    assert "(a later fit failed: " in result.output
+    # 80 % wide: the first fit already fails: the rig's diameter is kept, and said so.
+    wider = _copy_described(path, tmp_path / "run-wider.h5", "pinhole+80%")
+    result, aperture = process(wider, tmp_path / "wider")
+    assert result.exit_code == 0, result.output
+    assert aperture.startswith("as described by the rig (the fit to the data failed: "), aperture
+    assert "aperture: as the rig describes it (the fit to the data failed:" in result.output
+    result, aperture = process(wide, tmp_path / "wide-asked", "--fit-aperture")
+    assert result.exit_code != 0 and aperture is None
+    assert "--fit-aperture: the best aperture lies at the search's bound" in result.output

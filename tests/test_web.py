@@ -246,9 +246,9 @@ def test_the_page_shows_each_job_and_links_its_report_ies_and_ray_file(tmp_path,
 
 
 def test_the_next_job_takes_the_options_set_on_the_page(tmp_path, daemon_factory, page, captured):
-    """The processing options on the page (the aperture fitted, the intensity model) go with the
-    next `process` click as the job's options, as `POST /runs/{id}/process` takes them; only those
-    that differ from the worker's defaults."""
+    """The processing options on the page (the pinhole's diameter fitted or not, the intensity
+    model) go with the next `process` click as the job's options, as `POST /runs/{id}/process`
+    takes them; only those that differ from the worker's defaults."""
     from test_worker import Data
 
     data = Data(tmp_path / "data")
@@ -258,23 +258,24 @@ def test_the_next_job_takes_the_options_set_on_the_page(tmp_path, daemon_factory
     page.fill("#token", TOKEN)
     row = page.locator(f'#runs tr[data-run-id="{run.id}"]')
     expect(row).to_contain_text("complete")
-    expect(page.locator("#fit-aperture")).not_to_be_checked()
+    expect(page.locator("#fit-aperture")).to_have_value("")  # the worker's default
     expect(page.locator("#fit-model")).to_have_value("gaussian")
-    page.check("#fit-aperture")
-    page.select_option("#fit-model", "polynomial")
-    row.locator("button.process").click()
     message = page.locator("#message")
-    expect(message).to_contain_text(f"queued for run {run.id} (steps hdr,sources, aperture fitted, polynomial fits)")
-    page.uncheck("#fit-aperture")
-    page.select_option("#fit-model", "gaussian")
-    row.locator("button.process").click()
-    expect(message).to_contain_text(f"queued for run {run.id} (steps hdr,sources).")
-    with daemon.client() as http:
-        jobs = http.get("/jobs", params={"run_id": run.id}).json()
-    assert sorted((job["options"] for job in jobs), key=len) == [{}, {"fit_aperture": True, "fit": "polynomial"}]
+    choices = [("true", "polynomial", "steps hdr,sources, aperture fitted, polynomial fits"),
+               ("false", "gaussian", "steps hdr,sources, aperture as described"),
+               ("", "gaussian", "steps hdr,sources")]  # fmt: skip
+    for aperture, model, said in choices:
+        page.select_option("#fit-aperture", aperture)
+        page.select_option("#fit-model", model)
+        row.locator("button.process").click()
+        expect(message).to_contain_text(f"queued for run {run.id} ({said}).")
     page.screenshot(path=str(tmp_path / "options.png"), full_page=True)
-    fitted = next(job for job in jobs if job["options"])
-    expect(page.locator(f'#jobs tr[data-job-id="{fitted["id"]}"] td').first).to_have_attribute(
-        "title", "steps hdr,sources, aperture fitted, polynomial fits")
+    with daemon.client() as http:
+        jobs = sorted(http.get("/jobs", params={"run_id": run.id}).json(), key=lambda job: job["created_utc"])
+    options = [{"fit_aperture": True, "fit": "polynomial"}, {"fit_aperture": False}, {}]
+    assert sorted((job["options"] for job in jobs), key=len) == sorted(options, key=len)
+    for job in jobs:
+        said = next(said for (aperture, model, said), opts in zip(choices, options) if opts == job["options"])
+        expect(page.locator(f'#jobs tr[data-job-id="{job["id"]}"] td').first).to_have_attribute("title", said)
     data.catalog.close()
     assert page.script_errors == []

@@ -463,14 +463,14 @@ function markSelected() {
 // The options of the next job (JobRequest): only those that differ from the worker's defaults.
 function jobRequest() {
   const body = { steps: "hdr,sources" };
-  if ($("fit-aperture").checked) body.fit_aperture = true;
+  if ($("fit-aperture").value) body.fit_aperture = $("fit-aperture").value === "true";
   if ($("fit-model").value !== "gaussian") body.fit = $("fit-model").value;
   return body;
 }
 
 function describeOptions(options) {
   const parts = [];
-  if (options && options.fit_aperture) parts.push("aperture fitted");
+  if (options && options.fit_aperture !== undefined) parts.push(options.fit_aperture ? "aperture fitted" : "aperture as described");
   if (options && options.fit) parts.push(`${options.fit} fits`);
   return parts.length ? `, ${parts.join(", ")}` : "";
 }
