@@ -174,6 +174,8 @@ def test_bench_accuracy_scores_the_sources_found_in_the_data(tmp_path):
     out = json.loads(result.output)
     assert out["layout"].startswith("found in the data: candidate grid (NNLS), then positions and radius fitted")
     assert out["sources_found"] == 5
+    # searched for, so the pinhole's diameter fitted to the data (the default): the simulated 0.2 mm
+    assert out["aperture"]["fitted_m"] == pytest.approx(2e-4, rel=0.02), out["aperture"]
     assert sorted(s["found_as"] for s in out["sources"]) == [f"source-{k}" for k in range(5)]  # one each
     for source in out["sources"]:
         assert source["centre_error_um"] < 50, source

@@ -147,6 +147,7 @@ def bench_accuracy(*, noise: bool = True, truth: str = "five-gaussians", positio
         "noise": noise,
         "truth": truth,
         "layout": model.provenance.get("layout", ""),
+        "aperture": model.provenance.get("aperture_m", ""),  # fitted to the data where the sources were searched for
         "sources_found": len(model.sources),
         "positions": positions,
         "exposures_s": list(exposures),
