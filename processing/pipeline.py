@@ -480,8 +480,8 @@ def process_run(run_path, out_dir=None, *, steps=("hdr",), method: str = "optima
         merge and the estimate then take two passes over the positions; without, the search
         for the sources and the aperture's fit alternate (:func:`_layout_and_aperture`).
         None (the default): fitted when the sources are searched for in the data (no
-        ``layout``), where it mended a pinhole described 1-10 % off and cost at most 0.3 % of
-        peak with the description exactly right (``docs/light-model.md``); a fit that fails
+        ``layout``), where it mended a pinhole described 1-10 % off and cost 0.3-0.5 % of peak
+        with the description exactly right (``docs/light-model.md``); a fit that fails
         there is said and the last aperture kept. True: fitted with a layout too, and a failed
         fit fails the processing.
     truth : callable, optional
