@@ -185,6 +185,9 @@ def process(
                                                       "(docs/light-model.md). Default: fitted when the sources are searched "
                                                       "for in the data (no --layout), the rig's diameter kept if that "
                                                       "fit fails.", show_default=False)] = None,
+    fit_sensor_distance: Annotated[bool, typer.Option("--fit-sensor-distance", help="Fit the sensor distance (pinhole "
+                                                      "to sensor) to the data too, before the aperture: about a minute "
+                                                      "more on the demo rig (docs/light-model.md).")] = False,
     scheduler: SchedulerOption = "local",
     workers: WorkersOption = None,
 ) -> None:
@@ -236,7 +239,7 @@ def process(
             try:
                 report = process_run(run, folders[run], steps=step_list, method=method, noise=noise, layout=layout,
                                      estimator=estimator, fit_method=fit, ball_centre=centre, compute=compute,
-                                     images=images, fit_aperture=fit_aperture, progress=lambda done, total, task=task: bar.update(task, completed=done, total=total))  # fmt: skip
+                                     images=images, fit_aperture=fit_aperture, fit_sensor_distance=fit_sensor_distance, progress=lambda done, total, task=task: bar.update(task, completed=done, total=total))  # fmt: skip
             except (ProcessingError, HDRError, ValueError, OSError) as exc:
                 if not batch:
                     raise _fail(str(exc)) from None
@@ -267,6 +270,11 @@ def process(
                                f"{1e3 * fitted['described_m']:.4g} mm; χ²/pixel {fitted['chi2_per_pixel']:.4g} against "
                                f"{fitted['chi2_per_pixel_described']:.4g})"
                                + (f" (a later fit failed: {fitted['failed']})" if fitted.get("failed") else ""))  # fmt: skip
+                if report.sensor_distance_fit:
+                    fitted = report.sensor_distance_fit
+                    typer.echo(f"  sensor distance: {1e3 * fitted['fitted_m']:.5g} mm fitted to the data (the rig says "
+                               f"{1e3 * fitted['described_m']:.5g} mm; χ²/pixel {fitted['chi2_per_pixel']:.4g} against "
+                               f"{fitted['chi2_per_pixel_described']:.4g})")  # fmt: skip
                 typer.echo(f"  light model {report.light_model}; " + ", ".join(
                     f"{kind.upper()} {paths[0]}" for kind, paths in report.outputs.items() if kind in ("ies", "ldt", "tm25", "report")))  # fmt: skip
     if batch:

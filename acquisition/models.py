@@ -94,6 +94,8 @@ class JobRequest(BaseModel):
     fit_aperture: StrictBool | None = Field(default=None, description="fit the camera's aperture (pinhole) diameter to "
                                             "the data (docs/light-model.md); default: fitted when the sources are "
                                             "searched for in the data (no layout)")  # fmt: skip
+    fit_sensor_distance: StrictBool = Field(default=False, description="fit the sensor distance (pinhole to sensor) to "
+                                                                      "the data too (docs/light-model.md)")  # fmt: skip
 
     @field_validator("steps")
     @classmethod

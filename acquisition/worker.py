@@ -47,6 +47,7 @@ JOB_OPTIONS = {
     "noise": "auto, estimated or rig",
     "fit_aperture": "fit the camera's aperture (pinhole) diameter to the data (true), or not (false); default: when "
                     "the sources are searched for in the data",
+    "fit_sensor_distance": "fit the sensor distance (pinhole to sensor) to the data too",
 }
 #: The result files a job records, by kind: the daemon serves exactly these.
 ARTIFACT_KINDS = ("report", "ies", "ldt", "tm25", "light_model", "results")
@@ -299,7 +300,8 @@ class JobWorker:
         report = process_run(run_path, run_path.parent, steps=steps, progress=progress, compute=self.compute,
                              layout=options.get("layout"), estimator=options.get("estimator", "auto"),
                              fit_method=options.get("fit", "gaussian"), noise=options.get("noise", "auto"),
-                             fit_aperture=options.get("fit_aperture"))  # fmt: skip
+                             fit_aperture=options.get("fit_aperture"),
+                             fit_sensor_distance=bool(options.get("fit_sensor_distance", False)))  # fmt: skip
         artifacts = {"results": report.results_file}
         if report.light_model is not None:
             artifacts["light_model"] = report.light_model

@@ -72,6 +72,7 @@ class ProcessReport:
     estimator_reason: str = ""
     layout_search: str = ""  # how the sources were found in the data (empty when a layout was given)
     aperture_fit: dict = field(default_factory=dict)  # the aperture fitted to the data (fit_aperture), or why it failed
+    sensor_distance_fit: dict = field(default_factory=dict)  # the sensor distance fitted to the data (fit_sensor_distance)
     spatial_resolution_m: float = float("nan")
     n_positions: int = 0
     partial: bool = False
@@ -224,6 +225,15 @@ class _HDRWork:
 
 
 @dataclass(frozen=True)
+class CameraFit:
+    """The camera's numbers fitted to the data (``--fit-aperture``, ``--fit-sensor-distance``);
+    each None where the rig's description stands."""
+
+    aperture_m: float | None = None
+    sensor_distance_m: float | None = None
+
+
+@dataclass(frozen=True)
 class _SourcesPlan:
     """What every position's source estimate needs, decided once per run."""
 
@@ -233,7 +243,7 @@ class _SourcesPlan:
     reason: str
     footprint: float
     cell_radius: float
-    aperture_diameter: float | None = None  # fitted to the data; None: as the rig describes it
+    camera: CameraFit | None = None  # fitted to the data; None: as the rig describes it
 
 
 @dataclass(frozen=True)
@@ -402,9 +412,9 @@ def _write_images(folder: Path, index: int, radiance: np.ndarray, cfa: str) -> d
 _GEOMETRIES: dict[tuple, tuple] = {}
 
 
-def _geometry(run: RunFile, ball_centre, aperture_diameter: float | None = None):
+def _geometry(run: RunFile, ball_centre, camera: CameraFit | None = None):
     """The rig's geometry and template builder (ball at ``ball_centre``, or where the rig says;
-    the camera's aperture ``aperture_diameter`` across, or as the rig says).
+    the camera's aperture and sensor distance as ``camera`` has them, or as the rig says).
 
     Kept per process for the rig object the run file's header shares (``acquisition.runfile``
     validates a rig once per text): every position task of a run asks for the same one, and
@@ -414,12 +424,15 @@ def _geometry(run: RunFile, ball_centre, aperture_diameter: float | None = None)
     from processing.trace import RigGeometry
 
     rig = run.header.rig
-    key = (id(rig), None if ball_centre is None else tuple(float(x) for x in ball_centre), aperture_diameter)
+    camera = camera or CameraFit()
+    key = (id(rig), None if ball_centre is None else tuple(float(x) for x in ball_centre), camera)
     held = _GEOMETRIES.get(key)
     if held is None or held[0] is not rig:
         geometry = RigGeometry.from_rig(rig, ball_centre=ball_centre)
-        if aperture_diameter is not None:
-            geometry = replace(geometry, aperture_radius=0.5 * float(aperture_diameter))
+        if camera.aperture_m is not None:
+            geometry = replace(geometry, aperture_radius=0.5 * float(camera.aperture_m))
+        if camera.sensor_distance_m is not None:
+            geometry = geometry.with_sensor_distance(float(camera.sensor_distance_m))
         if len(_GEOMETRIES) >= 8:
             _GEOMETRIES.pop(next(iter(_GEOMETRIES)))
         held = _GEOMETRIES[key] = (rig, geometry, TemplateBuilder(geometry, rig.camera.sensitivity_e_per_s))
@@ -431,7 +444,7 @@ def _estimate_at(run: RunFile, plan: _SourcesPlan, index: int, rate, variance, u
     the ``lit`` pixels."""
     from processing.sources import cell_sums, unmix_position
 
-    geometry, builder = _geometry(run, plan.ball_centre, plan.aperture_diameter)
+    geometry, builder = _geometry(run, plan.ball_centre, plan.camera)
     layout = list(plan.layout)
     pose = _light_pose(run, geometry, index)
     estimate = unmix_position(index, rate, variance, usable, cfa, builder, layout, pose)
@@ -454,7 +467,8 @@ class _Progress:
 def process_run(run_path, out_dir=None, *, steps=("hdr",), method: str = "optimal", noise: str = "auto",
                 progress: Callable[[int, int], None] | None = None, layout=None, estimator: str = "auto",
                 fit_method: str = "gaussian", units: str = "relative", truth=None, ball_centre=None,
-                compute: Compute | None = None, images: bool = True, fit_aperture: bool | None = None) -> ProcessReport:  # fmt: skip
+                compute: Compute | None = None, images: bool = True, fit_aperture: bool | None = None,
+                fit_sensor_distance: bool = False) -> ProcessReport:  # fmt: skip
     """Process one run file; results go beside it, or into ``out_dir``.
 
     Parameters
@@ -478,12 +492,18 @@ def process_run(run_path, out_dir=None, *, steps=("hdr",), method: str = "optima
         estimated, and estimate them with it (:func:`processing.sources.fit_aperture`;
         ``report.aperture_fit``, the light model's provenance). With ``layout`` given, the
         merge and the estimate then take two passes over the positions; without, the search
-        for the sources and the aperture's fit alternate (:func:`_layout_and_aperture`).
+        for the sources and the aperture's fit alternate (:func:`_layout_and_camera`).
         None (the default): fitted when the sources are searched for in the data (no
         ``layout``), where it mended a pinhole described 1-10 % off and cost 0.3-0.5 % of peak
         with the description exactly right (``docs/light-model.md``); a fit that fails
         there is said and the last aperture kept. True: fitted with a layout too, and a failed
         fit fails the processing.
+    fit_sensor_distance : bool
+        Fit the sensor distance (pinhole to sensor) to the data as well, before the aperture
+        (:func:`processing.sources.fit_sensor_distance`; ``report.sensor_distance_fit``, the
+        light model's provenance): at a given layout's sources, held; without a layout, with
+        the sources refitted at each trial distance, in the alternation with the search
+        (:func:`_layout_and_camera`). About a minute more on the demo rig.
     truth : callable, optional
         Simulated runs only, given by the caller: ``truth(source, theta) -> intensity``,
         drawn beside the fits in the report (:mod:`processing.report`).
@@ -546,7 +566,7 @@ def process_run(run_path, out_dir=None, *, steps=("hdr",), method: str = "optima
         plan = _plan_sources(run, sources, estimator, ball_centre, positions) if sources is not None else None
         aperture_optional = fit_aperture is None  # the default: fitted where the sources are searched for
         fit_aperture = (sources is None) if fit_aperture is None else fit_aperture
-        fused = "hdr" in steps and plan is not None and not fit_aperture
+        fused = "hdr" in steps and plan is not None and not fit_aperture and not fit_sensor_distance
         passes = int("hdr" in steps) + int("sources" in steps and not fused)
         tracker = _Progress(progress, passes * int(positions.size))
         rows: dict[int, _SourceRow] = {}
@@ -561,22 +581,30 @@ def process_run(run_path, out_dir=None, *, steps=("hdr",), method: str = "optima
             if plan is None:
                 with _open_run(run_path) as run:
                     clock = time.perf_counter()
-                    found, report.aperture_fit = _layout_and_aperture(run, results_file, positions, ball_centre, compute,
-                                                                      fit_aperture, optional=aperture_optional)  # fmt: skip
+                    found, camera, report.aperture_fit, report.sensor_distance_fit = _layout_and_camera(
+                        run, results_file, positions, ball_centre, compute, fit_aperture, fit_sensor_distance,
+                        optional=aperture_optional)  # fmt: skip
                     timings["layout"] = time.perf_counter() - clock
                     sources = found.sources
                     report.layout_search = ("candidate grid (NNLS), then positions and radius fitted: " if found.refined
                                             else "candidate grid (NNLS) only: ") + found.message  # fmt: skip
-                    plan = _plan_sources(run, sources, estimator, ball_centre, positions,
-                                         report.aperture_fit.get("fitted_m"))  # fmt: skip
-            elif fit_aperture:
+                    plan = _plan_sources(run, sources, estimator, ball_centre, positions, camera)
+            elif fit_aperture or fit_sensor_distance:
                 with _open_run(run_path) as run:
                     clock = time.perf_counter()
-                    fitted = aperture_from_data(run, results_file, positions, sources, ball_centre, compute)
-                    _warn_if_unexplained(run, fitted)
-                    timings["aperture"] = time.perf_counter() - clock
-                    report.aperture_fit = fitted
-                    plan = _plan_sources(run, sources, estimator, ball_centre, positions, fitted["fitted_m"])
+                    camera = CameraFit()
+                    if fit_sensor_distance:  # the sources' places known: held at each trial
+                        report.sensor_distance_fit = sensor_distance_from_data(run, results_file, positions, sources,
+                                                                               ball_centre, compute, refit=False)  # fmt: skip
+                        camera = replace(camera, sensor_distance_m=report.sensor_distance_fit["fitted_m"])
+                    if fit_aperture:
+                        fitted = aperture_from_data(run, results_file, positions, sources, ball_centre, compute,
+                                                    sensor_distance=camera.sensor_distance_m)  # fmt: skip
+                        _warn_if_unexplained(run, fitted)
+                        report.aperture_fit = fitted
+                        camera = replace(camera, aperture_m=fitted["fitted_m"])
+                    timings["camera"] = time.perf_counter() - clock
+                    plan = _plan_sources(run, sources, estimator, ball_centre, positions, camera)
             clock = time.perf_counter()
             work = _PositionWork(str(run_path), str(results_file), None, plan)
 
@@ -637,9 +665,9 @@ def _hdr_pass(run: RunFile, run_path: Path, out: Path, results_file: Path, posit
 
 
 def _plan_sources(run: RunFile, layout, estimator: str, ball_centre, positions,
-                  aperture_diameter: float | None = None) -> _SourcesPlan:  # fmt: skip
+                  camera: CameraFit | None = None) -> _SourcesPlan:  # fmt: skip
     """Check the view and choose the estimator: geometry only, before any position is read."""
-    geometry, builder = _geometry(run, ball_centre, aperture_diameter)
+    geometry, builder = _geometry(run, ball_centre, camera)
     _check_view(run, geometry, builder, layout, positions)
     middle = int(positions[len(positions) // 2])
     chosen, reason, footprint = choose_estimator(geometry, builder, layout, _light_pose(run, geometry, middle), estimator)
@@ -647,7 +675,7 @@ def _plan_sources(run: RunFile, layout, estimator: str, ball_centre, positions,
     spacing = min((math.dist(a.centre, b.centre) for a in layout for b in layout if a is not b), default=math.inf)
     cell_radius = min(0.5 * spacing, 3.0 * footprint) if math.isfinite(footprint) else 0.5 * spacing
     return _SourcesPlan(tuple(layout), tuple(ball_centre) if ball_centre is not None else None, chosen, reason,
-                        footprint, cell_radius, aperture_diameter)  # fmt: skip
+                        footprint, cell_radius, camera)  # fmt: skip
 
 
 def _finish_sources(run_path: Path, out: Path, report: ProcessReport, plan: _SourcesPlan, positions, rows: dict, *,
@@ -666,6 +694,8 @@ def _finish_sources(run_path: Path, out: Path, report: ProcessReport, plan: _Sou
     model.provenance["ball_centre_m"] = list(ball_centre) if ball_centre is not None else "as described by the rig"
     model.provenance["layout"] = str(layout_path) if layout_path is not None else f"found in the data: {report.layout_search}"
     model.provenance["aperture_m"] = _aperture_provenance(report.aperture_fit)
+    model.provenance["sensor_distance_m"] = (dict(report.sensor_distance_fit, how="fitted to the data (--fit-sensor-distance)")
+                                             if report.sensor_distance_fit else "as described by the rig")  # fmt: skip
     report.light_model = model.save(out / f"{run_path.stem}.light.json")
     stem = out / run_path.stem
     luminaire = f"mirrorgonio run {run_path.stem}"
@@ -702,7 +732,7 @@ _FIT_FRACTIONS = (1 / 6, 2 / 6, 3 / 6, 4 / 6, 5 / 6)
 
 
 def layout_from_data(run: RunFile, results_file, positions=None, ball_centre=None, compute: Compute | None = None,
-                     aperture_diameter: float | None = None):  # fmt: skip
+                     camera: CameraFit | None = None):  # fmt: skip
     """The sources found in the data (``docs/light-model.md``): the candidate grid at three
     positions spread over the sweep (:func:`~processing.sources.lit_box`,
     :func:`~processing.sources.candidate_grid`, :func:`~processing.sources.candidate_strength`,
@@ -719,7 +749,7 @@ def layout_from_data(run: RunFile, results_file, positions=None, ball_centre=Non
         raise ProcessingError(f"{run.path}: no position has both frames and an HDR result")
     picks = _spread_over(positions, (0.25, 0.5, 0.75))
     compute = compute or Compute()
-    args = (str(run.path), str(results_file), ball_centre, aperture_diameter)
+    args = (str(run.path), str(results_file), ball_centre, camera)
     boxes: dict[int, tuple | None] = {}
     compute.map_unordered(_layout_box_at, picks, *args, on_result=boxes.__setitem__)
     try:
@@ -746,22 +776,51 @@ _CHI2_PER_PIXEL_WARNING = 1.2
 
 
 def aperture_from_data(run: RunFile, results_file, positions, layout, ball_centre=None,
-                       compute: Compute | None = None) -> dict:  # fmt: skip
+                       compute: Compute | None = None, sensor_distance: float | None = None) -> dict:  # fmt: skip
     """The camera's aperture diameter fitted to five merged positions spread over the sweep,
     at the sources of ``layout`` (:func:`processing.sources.fit_aperture`, one task on
-    ``compute``): a dict for ``ProcessReport.aperture_fit`` and the light model's provenance."""
-    from processing.sources import SourcesError
-
+    ``compute``; the sensor ``sensor_distance`` behind it, or as the rig says): a dict for
+    ``ProcessReport.aperture_fit`` and the light model's provenance."""
     picks = _spread_over(np.asarray(positions), _FIT_FRACTIONS)
-    task = (_fitted_aperture, str(run.path), str(results_file), ball_centre, tuple(picks), tuple(layout))
-    compute = compute or Compute()
-    try:
-        fit = compute.submit(*task).result() if compute.dask else _fitted_aperture(*task[1:])
-    except SourcesError as exc:
-        raise ProcessingError(f"{run.path}: --fit-aperture: {exc}") from None
+    camera = CameraFit(sensor_distance_m=sensor_distance)
+    fit = _fit_from_data(run, "--fit-aperture", _fitted_aperture, results_file, ball_centre, picks, layout, camera, compute)
     log.info("%s: aperture %.4g mm fitted to the data (the rig says %.4g mm; χ²/pixel %.4f, %.4f there)", run.path,
              1e3 * fit.diameter_m, 1e3 * fit.described_m, fit.chi2 / fit.pixels, fit.chi2_described / fit.pixels)  # fmt: skip
-    return {"fitted_m": fit.diameter_m, "described_m": fit.described_m, "chi2_per_pixel": round(fit.chi2 / fit.pixels, 5),
+    return _fit_record(fit, fit.diameter_m, fit.described_m, picks)
+
+
+def sensor_distance_from_data(run: RunFile, results_file, positions, layout, ball_centre=None,
+                              compute: Compute | None = None, *, aperture: float | None = None,
+                              refit: bool = True) -> dict:  # fmt: skip
+    """The sensor distance fitted to five merged positions spread over the sweep, at the sources
+    of ``layout``, refitted at each trial distance with ``refit`` (sources found in the data;
+    :func:`processing.sources.fit_sensor_distance`, one task on ``compute``; the aperture
+    ``aperture`` across, or as the rig says): a dict for ``ProcessReport.sensor_distance_fit``
+    and the light model's provenance."""
+    picks = _spread_over(np.asarray(positions), _FIT_FRACTIONS)
+    camera = CameraFit(aperture_m=aperture)
+    fit = _fit_from_data(run, "--fit-sensor-distance", _fitted_sensor_distance, results_file, ball_centre, picks, layout,
+                         camera, compute, refit)  # fmt: skip
+    log.info("%s: sensor distance %.5g mm fitted to the data (the rig says %.5g mm; χ²/pixel %.4f, %.4f there)",
+             run.path, 1e3 * fit.sensor_distance_m, 1e3 * fit.described_m, fit.chi2 / fit.pixels,
+             fit.chi2_described / fit.pixels)  # fmt: skip
+    return _fit_record(fit, fit.sensor_distance_m, fit.described_m, picks) | {"sources_refitted": fit.sources_refitted}
+
+
+def _fit_from_data(run: RunFile, option: str, task, results_file, ball_centre, picks, layout, camera, compute, *extra):
+    """One of the camera's fits as a task on ``compute``; its failure as one line naming ``option``."""
+    from processing.sources import SourcesError
+
+    args = (str(run.path), str(results_file), ball_centre, tuple(picks), tuple(layout), camera, *extra)
+    compute = compute or Compute()
+    try:
+        return compute.submit(task, *args).result() if compute.dask else task(*args)
+    except SourcesError as exc:
+        raise ProcessingError(f"{run.path}: {option}: {exc}") from None
+
+
+def _fit_record(fit, fitted_m: float, described_m: float, picks) -> dict:
+    return {"fitted_m": fitted_m, "described_m": described_m, "chi2_per_pixel": round(fit.chi2 / fit.pixels, 5),
             "chi2_per_pixel_described": round(fit.chi2_described / fit.pixels, 5), "pixels": fit.pixels,
             "positions": [int(i) for i in picks], "evaluations": fit.evaluations}  # fmt: skip
 
@@ -774,21 +833,31 @@ def _warn_if_unexplained(run: RunFile, fitted: dict) -> None:
                     "(docs/light-model.md)", run.path, fitted["chi2_per_pixel"])  # fmt: skip
 
 
-def _fitted_aperture(run_path: str, results_file: str, ball_centre, picks, layout):
+def _fitted_aperture(run_path: str, results_file: str, ball_centre, picks, layout, camera: CameraFit):
     """:func:`processing.sources.fit_aperture` on the merged positions ``picks`` (a task)."""
     _prepare_task()
     from processing.sources import fit_aperture
 
     with _open_run(run_path) as run:
-        data, builder, cfa = _layout_data(run, results_file, ball_centre, picks)
+        data, builder, cfa = _layout_data(run, results_file, ball_centre, picks, camera)
         return fit_aperture(data, builder, cfa, list(layout))
 
 
-def _layout_data(run: RunFile, results_file: str, ball_centre, picks, aperture_diameter: float | None = None):
+def _fitted_sensor_distance(run_path: str, results_file: str, ball_centre, picks, layout, camera: CameraFit, refit: bool):
+    """:func:`processing.sources.fit_sensor_distance` on the merged positions ``picks`` (a task)."""
+    _prepare_task()
+    from processing.sources import fit_sensor_distance
+
+    with _open_run(run_path) as run:
+        data, builder, cfa = _layout_data(run, results_file, ball_centre, picks, camera)
+        return fit_sensor_distance(data, builder, cfa, list(layout), refit=refit)
+
+
+def _layout_data(run: RunFile, results_file: str, ball_centre, picks, camera: CameraFit | None = None):
     """The merged positions ``picks`` as the layout fits take them: (data, builder, cfa pattern)."""
     from processing.sources import LayoutData
 
-    geometry, builder = _geometry(run, ball_centre, aperture_diameter)
+    geometry, builder = _geometry(run, ball_centre, camera)
     data, cfa = [], "RGGB"
     for index in picks:
         rate, var, usable, cfa = _merged_rates(run, results_file, index)
@@ -796,48 +865,71 @@ def _layout_data(run: RunFile, results_file: str, ball_centre, picks, aperture_d
     return data, builder, cfa
 
 
-def _layout_and_aperture(run: RunFile, results_file, positions, ball_centre, compute: Compute, fit_aperture: bool,
-                         *, optional: bool = False, max_searches: int = 3, settle: float = 0.01):  # fmt: skip
-    """The sources found in the data (:func:`layout_from_data`) and, with ``fit_aperture``, the
-    aperture fitted at them (:func:`aperture_from_data`, else ``{}``).
+def _layout_and_camera(run: RunFile, results_file, positions, ball_centre, compute: Compute, fit_aperture: bool,
+                       fit_sensor_distance: bool = False, *, optional: bool = False, max_searches: int = 3,
+                       settle: float = 0.01, settle_distance: float = 5e-4):  # fmt: skip
+    """The sources found in the data (:func:`layout_from_data`) and the camera's numbers fitted
+    at them: the sensor distance with ``fit_sensor_distance`` (:func:`sensor_distance_from_data`,
+    the sources refitted at each trial), then the aperture with ``fit_aperture``
+    (:func:`aperture_from_data`). Returns (layout fit, :class:`CameraFit` to estimate with,
+    aperture record, sensor distance record); the records are ``{}`` when not fitted.
 
     A search made with a wrong aperture explains the templates' wrong width with sources that
     are not there (the pinhole described 10 % wide: six sources on the demo rig, 150-730 µm
-    off), and the aperture fitted at those is off too (2 %). So the search is made again with
-    the aperture fitted, and the aperture fitted again at what it finds, until the aperture
-    moves by less than ``settle`` (at most ``max_searches`` searches). From ±10 % on the demo
-    rig: the second search found the five sources 21-73 µm off and the aperture 0.4-0.7 %
+    off), and the aperture fitted at those is off too (2 %); a wrong sensor distance (0.5 %)
+    adds sources as well. So the search is made again with what was fitted, and the fits made
+    again at what it finds, until the aperture moves by less than ``settle`` and the distance
+    by less than ``settle_distance`` (at most ``max_searches`` searches). From ±10 % on the
+    demo rig: the second search found the five sources 21-73 µm off and the aperture 0.4-0.7 %
     off; the third, 27-28 µm and 0.1-0.4 % (fits 0.49-1.12 % of peak; with the description
     right, one search: 20 µm, 0.2 %, 0.61 %).
 
-    ``optional``: a fit that fails (its best at a bound of the search) is logged and the last
-    search's sources kept, with the aperture they were found with (the dict then says
-    ``failed``); otherwise it raises :class:`ProcessingError`.
+    ``optional``: an aperture fit that fails (its best at a bound of the search) is logged and
+    the last search's sources kept, with the camera they were found with (the aperture's
+    record then says ``failed``); otherwise it raises :class:`ProcessingError`.
     """
-    aperture, fitted = None, {}
+    camera, aperture_fit, distance_fit = CameraFit(), {}, {}
     for search in range(1, max_searches + 1):
-        found = layout_from_data(run, results_file, positions, ball_centre, compute, aperture_diameter=aperture)
-        if not fit_aperture:
-            return found, {}
-        try:
-            attempt = aperture_from_data(run, results_file, positions, found.sources, ball_centre, compute)
-        except ProcessingError as exc:
-            if not optional:
-                raise
-            kept = "the rig's aperture" if aperture is None else f"the aperture fitted before, {1e3 * aperture:.4g} mm"
-            log.warning("%s (the sources are estimated with %s)", exc, kept)
-            return found, dict(fitted, failed=str(exc))
-        previous = aperture if aperture is not None else attempt["described_m"]
-        fitted, aperture = attempt, attempt["fitted_m"]
-        fitted["searches"] = search
-        if abs(aperture / previous - 1.0) < settle:
+        found = layout_from_data(run, results_file, positions, ball_centre, compute, camera=camera)
+        if not (fit_aperture or fit_sensor_distance):
+            return found, camera, {}, {}
+        new, new_distance_fit = camera, distance_fit
+        if fit_sensor_distance:
+            new_distance_fit = sensor_distance_from_data(run, results_file, positions, found.sources, ball_centre, compute,
+                                                         aperture=camera.aperture_m) | {"searches": search}  # fmt: skip
+            new = replace(new, sensor_distance_m=new_distance_fit["fitted_m"])
+        if fit_aperture:
+            try:
+                attempt = aperture_from_data(run, results_file, positions, found.sources, ball_centre, compute,
+                                             sensor_distance=new.sensor_distance_m)  # fmt: skip
+            except ProcessingError as exc:
+                if not optional:
+                    raise
+                kept = "the rig's aperture" if camera.aperture_m is None else f"the aperture fitted before, {1e3 * camera.aperture_m:.4g} mm"
+                log.warning("%s (the sources are estimated with %s)", exc, kept)
+                return found, camera, dict(aperture_fit, failed=str(exc)), distance_fit
+            aperture_fit = attempt | {"searches": search}
+            new = replace(new, aperture_m=attempt["fitted_m"])
+        distance_fit = new_distance_fit
+        moved_aperture = _moved(camera.aperture_m, new.aperture_m, aperture_fit.get("described_m"))
+        moved_distance = _moved(camera.sensor_distance_m, new.sensor_distance_m, distance_fit.get("described_m"))
+        camera = new
+        if moved_aperture < settle and moved_distance < settle_distance:
             break
     else:
-        log.warning("%s: the aperture fitted to the data had not settled after %d searches for the sources "
-                    "(%.4g mm, %.2g %% from the one before)", run.path, max_searches, 1e3 * aperture,
-                    100 * abs(aperture / previous - 1.0))  # fmt: skip
-    _warn_if_unexplained(run, fitted)  # the last fit's: the searches before it may have left spurious sources
-    return found, fitted
+        log.warning("%s: the camera's numbers fitted to the data had not settled after %d searches for the sources "
+                    "(the aperture moved %.2g %%, the sensor distance %.2g %% at the last)", run.path, max_searches,
+                    100 * moved_aperture, 100 * moved_distance)  # fmt: skip
+    if aperture_fit:
+        _warn_if_unexplained(run, aperture_fit)  # the last fit's: the searches before it may have left spurious sources
+    return found, camera, aperture_fit, distance_fit
+
+
+def _moved(before: float | None, after: float | None, described: float | None) -> float:
+    """How far a fitted number moved, relative (0 when it was not fitted)."""
+    if after is None:
+        return 0.0
+    return abs(after / (before if before is not None else described) - 1.0)
 
 
 def _aperture_provenance(fitted: dict):
@@ -854,13 +946,13 @@ def _spread_over(positions: np.ndarray, fractions) -> list[int]:
     return sorted({int(positions[int(q * (len(positions) - 1))]) for q in fractions})
 
 
-def _refined_layout(run_path: str, results_file: str, ball_centre, aperture_diameter, picks, first, seeds):
+def _refined_layout(run_path: str, results_file: str, ball_centre, camera, picks, first, seeds):
     """:func:`processing.sources.refine_layout` on the merged positions ``picks`` (a task)."""
     _prepare_task()
     from processing.sources import refine_layout
 
     with _open_run(run_path) as run:
-        data, builder, cfa = _layout_data(run, results_file, ball_centre, picks, aperture_diameter)
+        data, builder, cfa = _layout_data(run, results_file, ball_centre, picks, camera)
         return refine_layout(data, builder, cfa, first, seeds)
 
 
@@ -871,24 +963,24 @@ def _merged_rates(run: RunFile, results_file: str, index: int):
         return rate, var, usable, results.cfa_pattern
 
 
-def _layout_box_at(index: int, run_path: str, results_file: str, ball_centre, aperture_diameter):
+def _layout_box_at(index: int, run_path: str, results_file: str, ball_centre, camera):
     """The lit box of one merged position (a task)."""
     _prepare_task()
     from processing.sources import lit_box
 
     with _open_run(run_path) as run:
-        geometry, _ = _geometry(run, ball_centre, aperture_diameter)
+        geometry, _ = _geometry(run, ball_centre, camera)
         rate, _, usable, _ = _merged_rates(run, results_file, index)
         return lit_box(rate, usable, _light_pose(run, geometry, index), geometry)
 
 
-def _candidate_strength_at(index: int, run_path: str, results_file: str, ball_centre, aperture_diameter, candidates):
+def _candidate_strength_at(index: int, run_path: str, results_file: str, ball_centre, camera, candidates):
     """The candidates' strengths at one merged position (a task)."""
     _prepare_task()
     from processing.sources import candidate_strength
 
     with _open_run(run_path) as run:
-        geometry, builder = _geometry(run, ball_centre, aperture_diameter)
+        geometry, builder = _geometry(run, ball_centre, camera)
         rate, var, usable, cfa = _merged_rates(run, results_file, index)
         return candidate_strength(rate, var, usable, _light_pose(run, geometry, index), builder, list(candidates), cfa)
 

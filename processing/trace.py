@@ -43,6 +43,18 @@ class RigGeometry:
     height: int
     inverse_focal: float = 0.0  # 1/F of a thin lens; 0 for a pinhole
 
+    def with_sensor_distance(self, sensor_distance: float) -> RigGeometry:
+        """The same rig with the sensor ``sensor_distance`` behind the pinhole (or lens): the
+        focal length in pixels scales with it; a thin lens keeps its focus distance."""
+        from dataclasses import replace
+
+        K = self.K.copy()
+        K[0, 0] = K[1, 1] = sensor_distance / self.pitch
+        inverse_focal = self.inverse_focal
+        if inverse_focal:  # 1/F = 1/f + 1/focus: the focus distance held
+            inverse_focal += 1.0 / sensor_distance - 1.0 / self.sensor_distance
+        return replace(self, K=K, K_inv=np.linalg.inv(K), sensor_distance=float(sensor_distance), inverse_focal=inverse_focal)
+
     @classmethod
     def from_rig(cls, rig: Rig, ball_centre=None) -> RigGeometry:
         cam = rig.camera

@@ -250,3 +250,29 @@ def test_the_aperture_fit_finds_the_pinhole_the_data_were_taken_through():
         fit_aperture(data, builder, "RGGB", layout, bounds=(1.05, 1.25))
     with pytest.raises(SourcesError, match="no sources"):
         fit_aperture(data, builder, "RGGB", [])
+
+
+def test_the_sensor_distance_fit_finds_the_distance_the_data_were_taken_at():
+    """`fit_sensor_distance` on the reduced rig's five noisy positions, the rig described 0.5 %
+    long: with the sources held at the truth's places, and with them refitted at each trial
+    from places 100 µm off (as a search leaves them), the simulated camera's distance comes back
+    within 0.1 % (measured: 0.99983 and 1.00034 of it, 9 evaluations each), χ² no higher than as
+    described. A search whose bounds leave the truth outside fails clearly."""
+    from dataclasses import replace
+
+    from processing.sources import fit_sensor_distance
+
+    data, builder, truth = _reduced_rig_positions()
+    true_distance = builder.geometry.sensor_distance
+    long = replace(builder, geometry=builder.geometry.with_sensor_distance(1.005 * true_distance))
+    layout = [Source(e.name, tuple(e.centre_m), e.radius_m) for e in truth.emitters]
+    shifted = [Source(s.name, (s.centre[0] + 1e-4, s.centre[1]), s.radius) for s in layout]
+    for sources, refit in ((layout, False), (shifted, True)):
+        fit = fit_sensor_distance(data, long, "RGGB", sources, refit=refit)
+        assert fit.described_m == pytest.approx(1.005 * true_distance) and fit.sources_refitted == refit
+        assert fit.sensor_distance_m == pytest.approx(true_distance, rel=1e-3), (refit, fit.sensor_distance_m / true_distance)
+        assert fit.chi2 <= fit.chi2_described and fit.pixels > 1000 and 5 <= fit.evaluations <= 30
+    with pytest.raises(SourcesError, match="the best sensor distance lies at the search's bound"):
+        fit_sensor_distance(data, long, "RGGB", layout, refit=False, bounds=(1.0, 1.02))
+    with pytest.raises(SourcesError, match="no sources"):
+        fit_sensor_distance(data, long, "RGGB", [])

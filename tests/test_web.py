@@ -261,21 +261,22 @@ def test_the_next_job_takes_the_options_set_on_the_page(tmp_path, daemon_factory
     expect(page.locator("#fit-aperture")).to_have_value("")  # the worker's default
     expect(page.locator("#fit-model")).to_have_value("gaussian")
     message = page.locator("#message")
-    choices = [("true", "polynomial", "steps hdr,sources, aperture fitted, polynomial fits"),
-               ("false", "gaussian", "steps hdr,sources, aperture as described"),
-               ("", "gaussian", "steps hdr,sources")]  # fmt: skip
-    for aperture, model, said in choices:
+    choices = [("true", True, "polynomial", "steps hdr,sources, aperture fitted, sensor distance fitted, polynomial fits"),
+               ("false", False, "gaussian", "steps hdr,sources, aperture as described"),
+               ("", False, "gaussian", "steps hdr,sources")]  # fmt: skip
+    for aperture, distance, model, said in choices:
         page.select_option("#fit-aperture", aperture)
+        page.set_checked("#fit-sensor-distance", distance)
         page.select_option("#fit-model", model)
         row.locator("button.process").click()
         expect(message).to_contain_text(f"queued for run {run.id} ({said}).")
     page.screenshot(path=str(tmp_path / "options.png"), full_page=True)
     with daemon.client() as http:
         jobs = sorted(http.get("/jobs", params={"run_id": run.id}).json(), key=lambda job: job["created_utc"])
-    options = [{"fit_aperture": True, "fit": "polynomial"}, {"fit_aperture": False}, {}]
+    options = [{"fit_aperture": True, "fit_sensor_distance": True, "fit": "polynomial"}, {"fit_aperture": False}, {}]
     assert sorted((job["options"] for job in jobs), key=len) == sorted(options, key=len)
     for job in jobs:
-        said = next(said for (aperture, model, said), opts in zip(choices, options) if opts == job["options"])
+        said = next(said for (*_, said), opts in zip(choices, options) if opts == job["options"])
         expect(page.locator(f'#jobs tr[data-job-id="{job["id"]}"] td').first).to_have_attribute("title", said)
     data.catalog.close()
     assert page.script_errors == []

@@ -464,6 +464,7 @@ function markSelected() {
 function jobRequest() {
   const body = { steps: "hdr,sources" };
   if ($("fit-aperture").value) body.fit_aperture = $("fit-aperture").value === "true";
+  if ($("fit-sensor-distance").checked) body.fit_sensor_distance = true;
   if ($("fit-model").value !== "gaussian") body.fit = $("fit-model").value;
   return body;
 }
@@ -471,6 +472,7 @@ function jobRequest() {
 function describeOptions(options) {
   const parts = [];
   if (options && options.fit_aperture !== undefined) parts.push(options.fit_aperture ? "aperture fitted" : "aperture as described");
+  if (options && options.fit_sensor_distance) parts.push("sensor distance fitted");
   if (options && options.fit) parts.push(`${options.fit} fits`);
   return parts.length ? `, ${parts.join(", ")}` : "";
 }
