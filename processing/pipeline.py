@@ -830,7 +830,7 @@ def _warn_if_unexplained(run: RunFile, fitted: dict) -> None:
     if fitted.get("chi2_per_pixel", 0.0) > _CHI2_PER_PIXEL_WARNING:
         log.warning("%s: with the aperture fitted the templates still explain the data only to χ²/pixel %.3g: other "
                     "numbers of the rig description (the ball's place and radius, the sensor distance) may be off "
-                    "(docs/light-model.md)", run.path, fitted["chi2_per_pixel"])  # fmt: skip
+                    "(docs/light-model.md; --fit-sensor-distance fits the last)", run.path, fitted["chi2_per_pixel"])  # fmt: skip
 
 
 def _fitted_aperture(run_path: str, results_file: str, ball_centre, picks, layout, camera: CameraFit):
@@ -905,7 +905,8 @@ def _layout_and_camera(run: RunFile, results_file, positions, ball_centre, compu
             except ProcessingError as exc:
                 if not optional:
                     raise
-                kept = "the rig's aperture" if camera.aperture_m is None else f"the aperture fitted before, {1e3 * camera.aperture_m:.4g} mm"
+                kept = ("the rig's aperture" if camera.aperture_m is None
+                        else f"the aperture fitted before, {1e3 * camera.aperture_m:.4g} mm")  # fmt: skip
                 log.warning("%s (the sources are estimated with %s)", exc, kept)
                 return found, camera, dict(aperture_fit, failed=str(exc)), distance_fit
             aperture_fit = attempt | {"searches": search}
