@@ -680,6 +680,8 @@ def bench_tolerance_command(
                                                    "with each description.")] = False,
     fit_aperture: Annotated[bool, typer.Option("--fit-aperture", help="Also process each way with the aperture fitted "
                                                "to the data (process --fit-aperture).")] = False,
+    fit_sensor_distance: Annotated[bool, typer.Option("--fit-sensor-distance", help="Also process each way with the "
+                                                      "sensor distance fitted (process --fit-sensor-distance).")] = False,
     noise: Annotated[bool, typer.Option(help="Photon, read and quantisation noise.")] = True,
     scheduler: SchedulerOption = "local",
     as_json: Annotated[bool, typer.Option("--json", help="Print JSON only.")] = False,
@@ -695,7 +697,8 @@ def bench_tolerance_command(
     chosen = None if errors is None else [e.strip() for e in errors.split(",") if e.strip()]
     try:
         result = bench_tolerance(rig_path=rig, truth=truth, positions=positions, errors=chosen,
-                                 layout_from_data=layout_from_data, fit_aperture=fit_aperture, noise=noise,
+                                 layout_from_data=layout_from_data, fit_aperture=fit_aperture,
+                                 fit_sensor_distance=fit_sensor_distance, noise=noise,
                                  scheduler=scheduler,
                                  log=lambda message: typer.echo(message, err=True))  # fmt: skip
     except (ValueError, ComputeError, ProcessingError, *_domain_errors()) as exc:

@@ -120,14 +120,30 @@ def _copy_described(run_path: Path, dst: Path, error: str | None) -> Path:
     return dst
 
 
+#: The ways each description is processed: (the truth's layout given, ``fit_aperture``,
+#: ``fit_sensor_distance``, the table's column). The sensor distance is fitted as ``process
+#: --fit-sensor-distance`` fits it: with the layout given, alone; found, with the aperture after it.
+WAYS = {
+    "given": (True, False, False, "fits, layout given (max RMS / peak)"),
+    "given, aperture fitted": (True, True, False, "the aperture fitted to the data: diameter, fits"),
+    "given, sensor distance fitted": (True, False, True, "the sensor distance fitted: distance, fits"),
+    "found": (False, False, False, "layout found in the data: sources, farthest from the truth's, fits"),
+    "found, aperture fitted": (False, True, False, "found, the aperture fitted: sources, farthest, diameter, fits"),
+    "found, sensor distance fitted": (False, True, True, "found, the sensor distance and the aperture fitted: sources, "
+                                                         "farthest, distance, diameter, fits"),
+}
+
+
 def bench_tolerance(*, rig_path=None, truth: str = "five-gaussians", positions: int = 66, errors=None,
-                    layout_from_data: bool = False, fit_aperture: bool = False, noise: bool = True,
+                    layout_from_data: bool = False, fit_aperture: bool = False, fit_sensor_distance: bool = False,
+                    noise: bool = True,
                     exposures=(2e-5, 1e-4, 5e-4, 2.5e-3, 1.25e-2), scheduler: str = "local",
                     workdir: str | Path | None = None, log=None) -> dict:  # fmt: skip
     """Take one simulated run, then process it with the rig described as taken and with each
     of ``errors`` (names :func:`parse_error` reads, default :data:`DEFAULT_ERRORS`), given the truth's layout and,
     with ``layout_from_data``, also finding the sources in the data; with ``fit_aperture``,
-    each of those again with the aperture fitted to the data (``process --fit-aperture``).
+    each of those again with the aperture fitted to the data (``process --fit-aperture``), and
+    with ``fit_sensor_distance`` with the sensor distance fitted (:data:`WAYS`).
 
     Returns the JSON the command prints: per error and layout, the sources found and how far
     from the truth's, and each source's error against the truth. ``log(text)`` hears of each
@@ -145,13 +161,10 @@ def bench_tolerance(*, rig_path=None, truth: str = "five-gaussians", positions: 
     rig = load_rig(rig_path or DEMO_RIG_PATH)
     truth_light = load_truth(truth)
     given = LIGHTS_DIR / f"{truth}.toml"
-    ways = {"given": (given, False)}
-    if fit_aperture:
-        ways["given, aperture fitted"] = (given, True)
-    if layout_from_data:
-        ways["found"] = (None, False)
-        if fit_aperture:
-            ways["found, aperture fitted"] = (None, True)
+    asked = {"aperture fitted": fit_aperture, "sensor distance fitted": fit_sensor_distance}
+    ways = {name: (given if given_layout else None, aperture, distance)
+            for name, (given_layout, aperture, distance, _) in WAYS.items()
+            if (given_layout or layout_from_data) and asked.get(name.partition(", ")[2], True)}  # fmt: skip
     rows = []
     started = time.perf_counter()
     with tempfile.TemporaryDirectory() as tmp:
@@ -163,7 +176,7 @@ def bench_tolerance(*, rig_path=None, truth: str = "five-gaussians", positions: 
         with open_compute(scheduler, warm_up=warm_up_worker) as compute:
             for k, error in enumerate([None, *errors]):
                 copy = _copy_described(run_path, base / f"described-{k}.h5", error)
-                for w, (layout_name, (layout, fitted)) in enumerate(ways.items()):
+                for w, (layout_name, (layout, fitted, distance)) in enumerate(ways.items()):
                     t0 = time.perf_counter()
                     row = {"error": error or "none", "layout": layout_name}
                     if error is not None:
@@ -171,7 +184,7 @@ def bench_tolerance(*, rig_path=None, truth: str = "five-gaussians", positions: 
                     try:
                         report = process_run(copy, base / f"out-{k}-{w}", steps=("hdr", "sources"), layout=layout,
                                              noise="rig", units="W/sr", compute=compute, images=False,
-                                             fit_aperture=fitted)  # fmt: skip
+                                             fit_aperture=fitted, fit_sensor_distance=distance)  # fmt: skip
                     except ProcessingError as exc:  # e.g. an aperture fit at its bound: said, and on to the next
                         row.update(failed=str(exc), process_s=round(time.perf_counter() - t0, 1))
                         rows.append(row)
@@ -187,6 +200,8 @@ def bench_tolerance(*, rig_path=None, truth: str = "five-gaussians", positions: 
                         row["max_centre_error_um"] = max(s["centre_error_um"] for s in scored["sources"])
                     if fitted:
                         row["aperture_fit"] = report.aperture_fit
+                    if distance:
+                        row["sensor_distance_fit"] = report.sensor_distance_fit
                     rows.append(row)
                     if log:
                         log(f"{row['error']}, layout {layout_name}: {row['sources_found']} sources, fits up to "
@@ -214,23 +229,8 @@ def markdown_table(result: dict) -> str:
     by_error: dict[str, dict[str, dict]] = {}
     for row in result["runs"]:
         by_error.setdefault(row["error"], {})[row["layout"]] = row
-    found = any("found" in rows for rows in by_error.values())
-    fitted = any("given, aperture fitted" in rows for rows in by_error.values())
-    found_fitted = any("found, aperture fitted" in rows for rows in by_error.values())
-    head = "| rig description | fits, layout given (max RMS / peak) |"
-    rule = "| --- | --- |"
-    if fitted:
-        head += " the aperture fitted to the data: diameter, fits |"
-        rule += " --- |"
-    if found:
-        head += " layout found in the data: sources, farthest from the truth's, fits |"
-        rule += " --- |"
-    if found_fitted:
-        head += " found, the aperture fitted: sources, farthest, diameter, fits |"
-        rule += " --- |"
-    lines = [head, rule]
-    ways = ["given", *(["given, aperture fitted"] if fitted else []), *(["found"] if found else []),
-            *(["found, aperture fitted"] if found_fitted else [])]  # fmt: skip
+    ways = [way for way in WAYS if any(way in rows for rows in by_error.values())]
+    lines = ["| rig description |" + "".join(f" {WAYS[way][3]} |" for way in ways), "| --- |" + " --- |" * len(ways)]
     for error, rows in by_error.items():
         what = "as taken" if error == "none" else f"{error} (`{rows['given']['what']}`)"
         lines.append(f"| {what} |" + "".join(_cell(rows[way]) for way in ways))
@@ -239,12 +239,15 @@ def markdown_table(result: dict) -> str:
 
 def _cell(row: dict) -> str:
     """A table cell for one processing: for sources found in the data, how many and the farthest
-    from the truth's; the aperture when it was fitted; the fits; or why it failed."""
+    from the truth's; the sensor distance and the aperture when they were fitted; the fits; or
+    why it failed."""
     if "failed" in row:
         return f" failed: {row['failed'].replace('|', '/')} |"
     parts = []
     if "max_centre_error_um" in row:
         parts += [f"{row['sources_found']} sources", f"{row['max_centre_error_um']:.0f} µm"]
+    if "sensor_distance_fit" in row:
+        parts.append(f"{1e3 * row['sensor_distance_fit']['fitted_m']:.5g} mm")
     if "aperture_fit" in row:
         parts.append(f"{1e3 * row['aperture_fit']['fitted_m']:.4f} mm")
     parts.append(f"{100 * row['max_rms_rel_error']:.2f} %")
