@@ -272,8 +272,8 @@ def process(
                                + (f" (a later fit failed: {fitted['failed']})" if fitted.get("failed") else ""))  # fmt: skip
                 if report.sensor_distance_fit:
                     fitted = report.sensor_distance_fit
-                    typer.echo(f"  sensor distance: {1e3 * fitted['fitted_m']:.5g} mm fitted to the data (the rig says "
-                               f"{1e3 * fitted['described_m']:.5g} mm; χ²/pixel {fitted['chi2_per_pixel']:.4g} against "
+                    typer.echo(f"  sensor distance: {1e3 * fitted['fitted_m']:.3f} mm fitted to the data (the rig says "
+                               f"{1e3 * fitted['described_m']:.3f} mm; χ²/pixel {fitted['chi2_per_pixel']:.4g} against "
                                f"{fitted['chi2_per_pixel_described']:.4g})")  # fmt: skip
                 typer.echo(f"  light model {report.light_model}; " + ", ".join(
                     f"{kind.upper()} {paths[0]}" for kind, paths in report.outputs.items() if kind in ("ies", "ldt", "tm25", "report")))  # fmt: skip

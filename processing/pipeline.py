@@ -801,7 +801,7 @@ def sensor_distance_from_data(run: RunFile, results_file, positions, layout, bal
     camera = CameraFit(aperture_m=aperture)
     fit = _fit_from_data(run, "--fit-sensor-distance", _fitted_sensor_distance, results_file, ball_centre, picks, layout,
                          camera, compute, refit)  # fmt: skip
-    log.info("%s: sensor distance %.5g mm fitted to the data (the rig says %.5g mm; χ²/pixel %.4f, %.4f there)",
+    log.info("%s: sensor distance %.3f mm fitted to the data (the rig says %.3f mm; χ²/pixel %.4f, %.4f there)",
              run.path, 1e3 * fit.sensor_distance_m, 1e3 * fit.described_m, fit.chi2 / fit.pixels,
              fit.chi2_described / fit.pixels)  # fmt: skip
     return _fit_record(fit, fit.sensor_distance_m, fit.described_m, picks) | {"sources_refitted": fit.sources_refitted}

@@ -951,8 +951,8 @@ def _header(model: LightModel, run, report, samples, resolution_m: float) -> str
         rows.append(["camera aperture", aperture])
     distance = prov.get("sensor_distance_m")
     if isinstance(distance, dict) and distance.get("fitted_m"):
-        rows.append(["sensor distance", f"{1e3 * distance['fitted_m']:.5g} mm fitted to the data (the rig says "
-                                        f"{1e3 * distance['described_m']:.5g} mm; χ²/pixel {distance['chi2_per_pixel']:.4g} "
+        rows.append(["sensor distance", f"{1e3 * distance['fitted_m']:.3f} mm fitted to the data (the rig says "
+                                        f"{1e3 * distance['described_m']:.3f} mm; χ²/pixel {distance['chi2_per_pixel']:.4g} "
                                         f"against {distance['chi2_per_pixel_described']:.4g} there)"])  # fmt: skip
     fits = sorted({s.fit.method for s in model.sources})
     rows.append(["fit", ", ".join(fits)])

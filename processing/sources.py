@@ -1190,7 +1190,7 @@ def fit_sensor_distance(data: list[LayoutData], builder: TemplateBuilder, cfa_pa
 
     scale, chi2, chi2_described, pixels, evaluations = _fit_scale(
         data, builder, cfa_pattern, layout, margin_px, inset_px, bounds, xatol, chi2_at,
-        "sensor distance", lambda x: f"{1e3 * described * x:.5g} mm")  # fmt: skip
+        "sensor distance", lambda x: f"{1e3 * described * x:.3f} mm")  # fmt: skip
     return SensorDistanceFit(described * scale, described, chi2, chi2_described, pixels, evaluations, refit)
 
 

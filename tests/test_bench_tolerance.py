@@ -162,5 +162,5 @@ def test_a_long_sensor_distance_costs_the_fits_and_fitting_it_wins_them_back():
     assert table[0] == ("| rig description | fits, layout given (max RMS / peak) | the sensor distance fitted: distance, "
                         "fits |")  # fmt: skip
     distance = runs["sensor-distance+0.5%", fitted]
-    assert table[3].endswith(f"| {1e3 * distance['sensor_distance_fit']['fitted_m']:.5g} mm, "
+    assert table[3].endswith(f"| {1e3 * distance['sensor_distance_fit']['fitted_m']:.3f} mm, "
                              f"{100 * distance['max_rms_rel_error']:.2f} % |")  # fmt: skip

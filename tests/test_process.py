@@ -446,8 +446,8 @@ def test_process_fits_the_sensor_distance_when_asked(simulated_run, tmp_path):
         assert distance["fitted_m"] == pytest.approx(truth, rel=2e-3), (way, distance["fitted_m"] / truth)
         assert distance["sources_refitted"] == (way == "found") and distance["how"] == "fitted to the data (--fit-sensor-distance)"
         assert distance["chi2_per_pixel"] <= distance["chi2_per_pixel_described"]
-        assert f"sensor distance: {1e3 * distance['fitted_m']:.5g} mm fitted to the data (the rig says 25.125 mm" in result.output
+        assert f"sensor distance: {1e3 * distance['fitted_m']:.3f} mm fitted to the data (the rig says 25.125 mm" in result.output
         report = (out / "run-long.report.html").read_text()
-        assert f"{1e3 * distance['fitted_m']:.5g} mm fitted to the data (the rig says 25.125 mm" in report
+        assert f"{1e3 * distance['fitted_m']:.3f} mm fitted to the data (the rig says 25.125 mm" in report
         # given: the rig's aperture (the default there); found: the aperture fitted after the distance
         assert (provenance["aperture_m"] == "as described by the rig") == (way == "given")

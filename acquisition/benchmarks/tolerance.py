@@ -247,7 +247,7 @@ def _cell(row: dict) -> str:
     if "max_centre_error_um" in row:
         parts += [f"{row['sources_found']} sources", f"{row['max_centre_error_um']:.0f} µm"]
     if "sensor_distance_fit" in row:
-        parts.append(f"{1e3 * row['sensor_distance_fit']['fitted_m']:.5g} mm")
+        parts.append(f"{1e3 * row['sensor_distance_fit']['fitted_m']:.3f} mm")
     if "aperture_fit" in row:
         parts.append(f"{1e3 * row['aperture_fit']['fitted_m']:.4f} mm")
     parts.append(f"{100 * row['max_rms_rel_error']:.2f} %")
