@@ -201,6 +201,7 @@ def process(
     from rich.progress import Progress, TextColumn
 
     from processing.hdr import HDRError
+    from processing.lightmodel import describe_fitted
     from processing.pipeline import ProcessingError, process_run
 
     if noise not in ("auto", "estimated", "rig"):
@@ -262,19 +263,13 @@ def process(
                        f"read noise {noise_model.read_noise_dn:.3f} DN; EXR and PNG in {report.results_file.parent / (run.stem + '.hdr')})")  # fmt: skip
             if report.light_model:
                 typer.echo(f"  sources: {report.estimator_reason}")
-                if report.aperture_fit.get("failed") and report.aperture_fit.get("fitted_m") is None:
-                    typer.echo(f"  aperture: as the rig describes it (the fit to the data failed: {report.aperture_fit['failed']})")
-                elif report.aperture_fit:
-                    fitted = report.aperture_fit
-                    typer.echo(f"  aperture: {1e3 * fitted['fitted_m']:.4g} mm fitted to the data (the rig says "
-                               f"{1e3 * fitted['described_m']:.4g} mm; χ²/pixel {fitted['chi2_per_pixel']:.4g} against "
-                               f"{fitted['chi2_per_pixel_described']:.4g})"
-                               + (f" (a later fit failed: {fitted['failed']})" if fitted.get("failed") else ""))  # fmt: skip
-                if report.sensor_distance_fit:
-                    fitted = report.sensor_distance_fit
-                    typer.echo(f"  sensor distance: {1e3 * fitted['fitted_m']:.3f} mm fitted to the data (the rig says "
-                               f"{1e3 * fitted['described_m']:.3f} mm; χ²/pixel {fitted['chi2_per_pixel']:.4g} against "
-                               f"{fitted['chi2_per_pixel_described']:.4g})")  # fmt: skip
+                for label, fitted, digits in (("aperture", report.aperture_fit, ".4g"),
+                                              ("sensor distance", report.sensor_distance_fit, ".3f")):  # fmt: skip
+                    if fitted.get("fitted_m") is not None:
+                        later = f" (a later fit failed: {fitted['failed']})" if fitted.get("failed") else ""
+                        typer.echo(f"  {label}: {describe_fitted(fitted, digits)}{later}")
+                    elif fitted.get("failed"):
+                        typer.echo(f"  {label}: as the rig describes it (the fit to the data failed: {fitted['failed']})")
                 typer.echo(f"  light model {report.light_model}; " + ", ".join(
                     f"{kind.upper()} {paths[0]}" for kind, paths in report.outputs.items() if kind in ("ies", "ldt", "tm25", "report")))  # fmt: skip
     if batch:

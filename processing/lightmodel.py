@@ -32,6 +32,7 @@ __all__ = [
     "LightModel",
     "LightModelError",
     "SourceModel",
+    "describe_fitted",
     "samples_table",
 ]
 
@@ -44,6 +45,14 @@ _HALF_PI = 0.5 * math.pi
 
 class LightModelError(ValueError):
     """An invalid light model, or an unreadable or foreign light-model file (one line naming it)."""
+
+
+def describe_fitted(record: dict, digits: str) -> str:
+    """One of the camera's numbers fitted to the data, in words, from its record (the light
+    model's provenance ``aperture_m`` or ``sensor_distance_m``; ``digits`` formats it in mm):
+    "0.2004 mm fitted to the data (the rig says 0.2 mm; χ²/pixel 1.063 against 1.07)"."""
+    return (f"{1e3 * record['fitted_m']:{digits}} mm fitted to the data (the rig says {1e3 * record['described_m']:{digits}} "
+            f"mm; χ²/pixel {record['chi2_per_pixel']:.4g} against {record['chi2_per_pixel_described']:.4g})")
 
 
 def samples_table(samples: Samples, positions=None, cell_sum_intensity=None) -> dict:

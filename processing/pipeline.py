@@ -581,30 +581,28 @@ def process_run(run_path, out_dir=None, *, steps=("hdr",), method: str = "optima
             if plan is None:
                 with _open_run(run_path) as run:
                     clock = time.perf_counter()
-                    found, camera, report.aperture_fit, report.sensor_distance_fit = _layout_and_camera(
+                    found, report.aperture_fit, report.sensor_distance_fit = _layout_and_camera(
                         run, results_file, positions, ball_centre, compute, fit_aperture, fit_sensor_distance,
                         optional=aperture_optional)  # fmt: skip
                     timings["layout"] = time.perf_counter() - clock
                     sources = found.sources
                     report.layout_search = ("candidate grid (NNLS), then positions and radius fitted: " if found.refined
                                             else "candidate grid (NNLS) only: ") + found.message  # fmt: skip
-                    plan = _plan_sources(run, sources, estimator, ball_centre, positions, camera)
+                    plan = _plan_sources(run, sources, estimator, ball_centre, positions,
+                                         _fitted_camera(report.aperture_fit, report.sensor_distance_fit))  # fmt: skip
             elif fit_aperture or fit_sensor_distance:
                 with _open_run(run_path) as run:
                     clock = time.perf_counter()
-                    camera = CameraFit()
                     if fit_sensor_distance:  # the sources' places known: held at each trial
                         report.sensor_distance_fit = sensor_distance_from_data(run, results_file, positions, sources,
                                                                                ball_centre, compute, refit=False)  # fmt: skip
-                        camera = replace(camera, sensor_distance_m=report.sensor_distance_fit["fitted_m"])
                     if fit_aperture:
-                        fitted = aperture_from_data(run, results_file, positions, sources, ball_centre, compute,
-                                                    sensor_distance=camera.sensor_distance_m)  # fmt: skip
-                        _warn_if_unexplained(run, fitted)
-                        report.aperture_fit = fitted
-                        camera = replace(camera, aperture_m=fitted["fitted_m"])
+                        report.aperture_fit = aperture_from_data(run, results_file, positions, sources, ball_centre, compute,
+                                                                 sensor_distance=report.sensor_distance_fit.get("fitted_m"))  # fmt: skip
+                        _warn_if_unexplained(run, report.aperture_fit)
                     timings["camera"] = time.perf_counter() - clock
-                    plan = _plan_sources(run, sources, estimator, ball_centre, positions, camera)
+                    plan = _plan_sources(run, sources, estimator, ball_centre, positions,
+                                         _fitted_camera(report.aperture_fit, report.sensor_distance_fit))  # fmt: skip
             clock = time.perf_counter()
             work = _PositionWork(str(run_path), str(results_file), None, plan)
 
@@ -693,9 +691,8 @@ def _finish_sources(run_path: Path, out: Path, report: ProcessReport, plan: _Sou
     ball_centre = plan.ball_centre
     model.provenance["ball_centre_m"] = list(ball_centre) if ball_centre is not None else "as described by the rig"
     model.provenance["layout"] = str(layout_path) if layout_path is not None else f"found in the data: {report.layout_search}"
-    model.provenance["aperture_m"] = _aperture_provenance(report.aperture_fit)
-    model.provenance["sensor_distance_m"] = (dict(report.sensor_distance_fit, how="fitted to the data (--fit-sensor-distance)")
-                                             if report.sensor_distance_fit else "as described by the rig")  # fmt: skip
+    model.provenance["aperture_m"] = _fit_provenance(report.aperture_fit, "--fit-aperture")
+    model.provenance["sensor_distance_m"] = _fit_provenance(report.sensor_distance_fit, "--fit-sensor-distance")
     report.light_model = model.save(out / f"{run_path.stem}.light.json")
     stem = out / run_path.stem
     luminaire = f"mirrorgonio run {run_path.stem}"
@@ -871,8 +868,9 @@ def _layout_and_camera(run: RunFile, results_file, positions, ball_centre, compu
     """The sources found in the data (:func:`layout_from_data`) and the camera's numbers fitted
     at them: the sensor distance with ``fit_sensor_distance`` (:func:`sensor_distance_from_data`,
     the sources refitted at each trial), then the aperture with ``fit_aperture``
-    (:func:`aperture_from_data`). Returns (layout fit, :class:`CameraFit` to estimate with,
-    aperture record, sensor distance record); the records are ``{}`` when not fitted.
+    (:func:`aperture_from_data`). Returns (layout fit, aperture record, sensor distance record):
+    the records are ``{}`` when not fitted, and give the camera to estimate with
+    (:func:`_fitted_camera`).
 
     A search made with a wrong aperture explains the templates' wrong width with sources that
     are not there (the pinhole described 10 % wide: six sources on the demo rig, 150-730 µm
@@ -892,7 +890,7 @@ def _layout_and_camera(run: RunFile, results_file, positions, ball_centre, compu
     for search in range(1, max_searches + 1):
         found = layout_from_data(run, results_file, positions, ball_centre, compute, camera=camera)
         if not (fit_aperture or fit_sensor_distance):
-            return found, camera, {}, {}
+            return found, {}, {}
         new, new_distance_fit = camera, distance_fit
         if fit_sensor_distance:
             new_distance_fit = sensor_distance_from_data(run, results_file, positions, found.sources, ball_centre, compute,
@@ -908,7 +906,7 @@ def _layout_and_camera(run: RunFile, results_file, positions, ball_centre, compu
                 kept = ("the rig's aperture" if camera.aperture_m is None
                         else f"the aperture fitted before, {1e3 * camera.aperture_m:.4g} mm")  # fmt: skip
                 log.warning("%s (the sources are estimated with %s)", exc, kept)
-                return found, camera, dict(aperture_fit, failed=str(exc)), distance_fit
+                return found, dict(aperture_fit, failed=str(exc)), distance_fit
             aperture_fit = attempt | {"searches": search}
             new = replace(new, aperture_m=attempt["fitted_m"])
         distance_fit = new_distance_fit
@@ -923,7 +921,7 @@ def _layout_and_camera(run: RunFile, results_file, positions, ball_centre, compu
                     100 * moved_aperture, 100 * moved_distance)  # fmt: skip
     if aperture_fit:
         _warn_if_unexplained(run, aperture_fit)  # the last fit's: the searches before it may have left spurious sources
-    return found, camera, aperture_fit, distance_fit
+    return found, aperture_fit, distance_fit
 
 
 def _moved(before: float | None, after: float | None, described: float | None) -> float:
@@ -933,10 +931,16 @@ def _moved(before: float | None, after: float | None, described: float | None) -
     return abs(after / (before if before is not None else described) - 1.0)
 
 
-def _aperture_provenance(fitted: dict):
-    """The light model's ``aperture_m``: the fit's record, or how the rig's diameter came to be used."""
+def _fitted_camera(aperture_fit: dict, distance_fit: dict) -> CameraFit:
+    """The camera the sources are estimated with: each number its fit's, where it was fitted."""
+    return CameraFit(aperture_fit.get("fitted_m"), distance_fit.get("fitted_m"))
+
+
+def _fit_provenance(fitted: dict, option: str):
+    """The light model's ``aperture_m`` or ``sensor_distance_m``: the fit's record, or how the
+    rig's number came to be used."""
     if fitted.get("fitted_m") is not None:
-        return dict(fitted, how="fitted to the data (--fit-aperture)")
+        return dict(fitted, how=f"fitted to the data ({option})")
     if fitted.get("failed"):
         return f"as described by the rig (the fit to the data failed: {fitted['failed']})"
     return "as described by the rig"

@@ -64,7 +64,7 @@ from matplotlib.lines import Line2D
 from matplotlib.patches import Circle, Polygon
 from matplotlib.ticker import MaxNLocator
 
-from processing.lightmodel import LightModel, SourceModel
+from processing.lightmodel import LightModel, SourceModel, describe_fitted
 
 __all__ = [
     "angles_figure",
@@ -942,18 +942,12 @@ def _header(model: LightModel, run, report, samples, resolution_m: float) -> str
         rows.append(["noise model", "not given to the report"])
     if prov.get("layout"):
         rows.append(["layout of the sources", str(prov["layout"])])
-    aperture = prov.get("aperture_m")
-    if isinstance(aperture, dict) and aperture.get("fitted_m"):
-        rows.append(["camera aperture", f"{1e3 * aperture['fitted_m']:.4g} mm fitted to the data (the rig says "
-                                        f"{1e3 * aperture['described_m']:.4g} mm; χ²/pixel {aperture['chi2_per_pixel']:.4g} "
-                                        f"against {aperture['chi2_per_pixel_described']:.4g} there)"])  # fmt: skip
-    elif isinstance(aperture, str) and "failed" in aperture:
-        rows.append(["camera aperture", aperture])
-    distance = prov.get("sensor_distance_m")
-    if isinstance(distance, dict) and distance.get("fitted_m"):
-        rows.append(["sensor distance", f"{1e3 * distance['fitted_m']:.3f} mm fitted to the data (the rig says "
-                                        f"{1e3 * distance['described_m']:.3f} mm; χ²/pixel {distance['chi2_per_pixel']:.4g} "
-                                        f"against {distance['chi2_per_pixel_described']:.4g} there)"])  # fmt: skip
+    for label, key, digits in (("camera aperture", "aperture_m", ".4g"), ("sensor distance", "sensor_distance_m", ".3f")):
+        record = prov.get(key)
+        if isinstance(record, dict) and record.get("fitted_m"):
+            rows.append([label, describe_fitted(record, digits)])
+        elif isinstance(record, str) and "failed" in record:
+            rows.append([label, record])
     fits = sorted({s.fit.method for s in model.sources})
     rows.append(["fit", ", ".join(fits)])
     if prov.get("software_version"):

@@ -1043,7 +1043,7 @@ def refine_layout(data: list[LayoutData], builder: TemplateBuilder, cfa_pattern:
                          chi2, problem.pixels, steps)  # fmt: skip
 
 
-@dataclass
+@dataclass(frozen=True)
 class ApertureFit:
     """The camera's aperture diameter (the pinhole's) that the data favour, :func:`fit_aperture`.
 
