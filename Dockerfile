@@ -22,7 +22,7 @@ RUN python -c "import tomllib; print('\n'.join(tomllib.load(open('pyproject.toml
     && rm /tmp/requirements.txt
 
 # The project itself, installed as a package: the rigs, the device profiles and the web
-# page are package data (acquisition/rigs, drivers/profiles, acquisition/web).
+# page are package data (drivers/contracts/rigs, drivers/profiles, acquisition/web).
 COPY acquisition ./acquisition
 COPY processing ./processing
 COPY drivers ./drivers

@@ -1,12 +1,6 @@
-"""Acquisition: the rig description, the run file, and the daemon that drives the devices.
+"""Acquisition: the daemon that drives the arm and the camera, the command line, the demo
+and the benchmarks.
 
-Importing this package stays light (no web framework): the processing side reads the
-rig description and run files through :mod:`acquisition.rig` and the run-file module.
+The rig description and the run-file format it writes are contracts on the ground floor
+(:mod:`drivers.contracts`), read by the processing and the simulated devices too.
 """
-
-from importlib.metadata import PackageNotFoundError, version
-
-try:
-    __version__ = version("mirrorgonio")
-except PackageNotFoundError:  # running from a source tree that was not installed
-    __version__ = "0+unknown"

@@ -15,8 +15,7 @@ from fastapi.encoders import jsonable_encoder
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse, HTMLResponse, JSONResponse
 
-from acquisition import __version__
-from acquisition.api import arm, health, jobs, preview, presets, runs
+from acquisition.api import arm, health, jobs, presets, preview, runs
 from acquisition.catalog import (
     ActiveRunError,
     Catalog,
@@ -26,9 +25,10 @@ from acquisition.catalog import (
     UnknownRunError,
 )
 from acquisition.devices import open_devices
-from acquisition.rig import RigError, load_rig
 from acquisition.runner import RunConflictError, RunEngine, RunEngineError
 from acquisition.settings import DaemonSettings
+from drivers.contracts.rig import RigError, load_rig
+from drivers.contracts.version import __version__
 from drivers.errors import DeviceError
 
 log = logging.getLogger("mirrorgonio.daemon")

@@ -423,9 +423,7 @@ class Catalog:
         self._pid = os.getpid()
         busy_timeout_s = _check_real("busy_timeout_s", busy_timeout_s, 0.0)
         try:
-            conn = sqlite3.connect(
-                self.path, timeout=busy_timeout_s, isolation_level=None, check_same_thread=False
-            )
+            conn = sqlite3.connect(self.path, timeout=busy_timeout_s, isolation_level=None, check_same_thread=False)
         except sqlite3.Error as exc:
             raise CatalogError(f"cannot open catalog {self.path}: {exc}") from None
         conn.row_factory = sqlite3.Row
@@ -899,7 +897,8 @@ class Catalog:
             now = self._now()
             changed = conn.execute(
                 "UPDATE jobs SET state = 'queued', claimed_by = NULL, heartbeat_utc = NULL, progress = 0, "
-                "message = ?, not_before_utc = ?, updated_utc = ? WHERE id = ? AND state = 'running' AND claimed_by = ?",
+                "message = ?, not_before_utc = ?, updated_utc = ? WHERE id = ? AND state = 'running' AND "
+                "claimed_by = ?",
                 (message, _fmt(now + timedelta(seconds=retry_after_s)), _fmt(now), job_id, worker_id),
             ).rowcount
             if changed == 0:
@@ -987,7 +986,9 @@ class Catalog:
             _check_text("message", message)
         files = None
         if artifacts is not None:
-            if not isinstance(artifacts, dict) or not all(isinstance(k, str) and _STEP_NAME.match(k) for k in artifacts):
+            if not isinstance(artifacts, dict) or not all(
+                isinstance(k, str) and _STEP_NAME.match(k) for k in artifacts
+            ):
                 raise CatalogError(f"{job_id}: artifacts must map kinds (lowercase names) to file paths")
             files = _to_json({kind: str(path) for kind, path in artifacts.items()}, "the job artifacts")
         new_state = "complete" if error is None else "failed"

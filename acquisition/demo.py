@@ -38,7 +38,7 @@ from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-from acquisition.rig import RIGS_DIR
+from drivers.contracts.rig import RIGS_DIR
 
 #: The demo's default rig: the default geometry at half the resolution (rigs/demo.toml).
 DEMO_RIG_PATH = RIGS_DIR / "demo.toml"
@@ -108,8 +108,10 @@ class DemoResult:
 def new_data_dir(root: Path, keep: int = 1, note: Callable[[str], None] = print) -> Path:
     """A fresh, timestamped demo folder under ``root``; older demo folders beyond ``keep`` removed."""
     root.mkdir(parents=True, exist_ok=True)
-    previous = sorted((p for p in root.iterdir() if p.is_dir() and (p / MARKER).is_file()),
-                      key=lambda p: ((p / MARKER).stat().st_mtime_ns, p.name))  # oldest first
+    previous = sorted(
+        (p for p in root.iterdir() if p.is_dir() and (p / MARKER).is_file()),
+        key=lambda p: ((p / MARKER).stat().st_mtime_ns, p.name),
+    )  # oldest first
     for old in previous[: max(0, len(previous) - keep)]:
         shutil.rmtree(old, ignore_errors=True)
         note(f"removed an older demo folder: {old}")
@@ -178,9 +180,15 @@ class Child:
         exe = Path(sys.executable).with_name("mirrorgonio")
         command = [str(exe)] if exe.exists() else [sys.executable, "-m", "acquisition.cli"]
         self._log = open(log, "ab")  # noqa: SIM115 - closed in stop()
-        self.proc = subprocess.Popen(command + args, stdout=self._log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                     env=env, start_new_session=True,
-                                     preexec_fn=_parent_death_signal())  # fmt: skip
+        self.proc = subprocess.Popen(
+            command + args,
+            stdout=self._log,
+            stderr=subprocess.STDOUT,
+            stdin=subprocess.DEVNULL,
+            env=env,
+            start_new_session=True,
+            preexec_fn=_parent_death_signal(),
+        )
 
     @property
     def pid(self) -> int:
@@ -198,8 +206,9 @@ class Child:
 
     def check(self) -> None:
         if not self.alive():
-            raise DemoError(f"the {self.name} exited (status {self.proc.returncode}): see its log, {self.log_path}",
-                            self.log_tail())  # fmt: skip
+            raise DemoError(
+                f"the {self.name} exited (status {self.proc.returncode}): see its log, {self.log_path}", self.log_tail()
+            )
 
     def _group_alive(self) -> bool:
         """Whether a process of its group still runs (zombies, which only wait to be reaped, do not count)."""
@@ -259,7 +268,9 @@ def _wait_for_daemon(client, daemon: Child, timeout: float = 120.0) -> None:
             return
         except httpx.HTTPError:
             time.sleep(0.2)
-    raise DemoError(f"the daemon did not answer within {timeout:.0f} s: see its log, {daemon.log_path}", daemon.log_tail())
+    raise DemoError(
+        f"the daemon did not answer within {timeout:.0f} s: see its log, {daemon.log_path}", daemon.log_tail()
+    )
 
 
 def _answer(response, what: str) -> dict:
@@ -303,7 +314,7 @@ def score_light_model(light_model: Path, truth) -> list[SourceAccuracy]:
 
 def truth_and_layout(rig_path: Path):
     """The rig's simulated truth light and its TOML file (which also serves as the source layout)."""
-    from acquisition.rig import load_rig
+    from drivers.contracts.rig import load_rig
     from sim_devices.lights import LIGHTS_DIR, load_truth
 
     rig = load_rig(rig_path)
@@ -313,8 +324,16 @@ def truth_and_layout(rig_path: Path):
 
 
 # --- the demo --------------------------------------------------------------------------------
-def run_demo(*, root: Path = Path("demo-data"), rig: Path | None = None, positions: int | None = None,
-             workers: int | None = None, keep: int = 1, truth_layout: bool = False, console=None) -> DemoResult:  # fmt: skip
+def run_demo(
+    *,
+    root: Path = Path("demo-data"),
+    rig: Path | None = None,
+    positions: int | None = None,
+    workers: int | None = None,
+    keep: int = 1,
+    truth_layout: bool = False,
+    console=None,
+) -> DemoResult:
     """Run the whole chain once (module docstring); raises :class:`DemoError` on failure.
 
     Parameters
@@ -335,7 +354,14 @@ def run_demo(*, root: Path = Path("demo-data"), rig: Path | None = None, positio
     """
     import httpx
     from rich.console import Console
-    from rich.progress import BarColumn, Progress, TaskProgressColumn, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+    from rich.progress import (
+        BarColumn,
+        Progress,
+        TaskProgressColumn,
+        TextColumn,
+        TimeElapsedColumn,
+        TimeRemainingColumn,
+    )
 
     console = console or Console()
     started = time.perf_counter()
@@ -359,11 +385,16 @@ def run_demo(*, root: Path = Path("demo-data"), rig: Path | None = None, positio
         with console.status("starting the daemon and the simulated devices"):
             for attempt in range(3):
                 port = free_port()  # another program may take it before the daemon does: try again
-                daemon = Child("daemon", ["serve", "--config", str(config), "--port", str(port)], folder / "daemon.log",
-                               _child_env(token))  # fmt: skip
+                daemon = Child(
+                    "daemon",
+                    ["serve", "--config", str(config), "--port", str(port)],
+                    folder / "daemon.log",
+                    _child_env(token),
+                )
                 children.append(daemon)
-                client = httpx.Client(base_url=f"http://127.0.0.1:{port}", headers={"Authorization": f"Bearer {token}"},
-                                      timeout=30.0)  # fmt: skip
+                client = httpx.Client(
+                    base_url=f"http://127.0.0.1:{port}", headers={"Authorization": f"Bearer {token}"}, timeout=30.0
+                )
                 try:
                     _wait_for_daemon(client, daemon)
                     break
@@ -380,36 +411,58 @@ def run_demo(*, root: Path = Path("demo-data"), rig: Path | None = None, positio
         # cluster while the sweep is acquired.
         worker = Child("worker", worker_args, folder / "worker.log", _child_env())
         children.append(worker)
-        console.print(f"daemon pid {daemon.pid} on http://127.0.0.1:{port} (log {_shown(daemon.log_path)}), "
-                      f"worker pid {worker.pid} (log {_shown(worker.log_path)})", highlight=False)  # fmt: skip
+        console.print(
+            f"daemon pid {daemon.pid} on http://127.0.0.1:{port} (log {_shown(daemon.log_path)}), "
+            f"worker pid {worker.pid} (log {_shown(worker.log_path)})",
+            highlight=False,
+        )
 
         # --- acquisition ------------------------------------------------------------------
-        body: dict = {"preset": "light-sweep", "bracket": {"mode": "fixed", "exposures_s": list(DEMO_EXPOSURES_S)},
-                      "operator": "mirrorgonio demo", "light_source": f"simulated: {truth.name}",
-                      "notes": "the default light sweep on the simulated rig"}  # fmt: skip
+        body: dict = {
+            "preset": "light-sweep",
+            "bracket": {"mode": "fixed", "exposures_s": list(DEMO_EXPOSURES_S)},
+            "operator": "mirrorgonio demo",
+            "light_source": f"simulated: {truth.name}",
+            "notes": "the default light sweep on the simulated rig",
+        }
         if positions:
             body["count"] = int(positions)
         t_acq = time.perf_counter()
         run = _answer(client.post("/runs", json=body), "POST /runs")
         run_id = run["id"]
-        console.print(f"run {run_id}: {run['n_positions']} positions x {len(DEMO_EXPOSURES_S)} exposures "
-                      f"(POST /runs)", highlight=False)  # fmt: skip
-        columns = (TextColumn("{task.description:<10}"), BarColumn(bar_width=30), TaskProgressColumn(),
-                   TextColumn("{task.fields[note]:<18}"), TimeElapsedColumn(), TextColumn("eta"), TimeRemainingColumn())  # fmt: skip
+        console.print(
+            f"run {run_id}: {run['n_positions']} positions x {len(DEMO_EXPOSURES_S)} exposures (POST /runs)",
+            highlight=False,
+        )
+        columns = (
+            TextColumn("{task.description:<10}"),
+            BarColumn(bar_width=30),
+            TaskProgressColumn(),
+            TextColumn("{task.fields[note]:<18}"),
+            TimeElapsedColumn(),
+            TextColumn("eta"),
+            TimeRemainingColumn(),
+        )
         with Progress(*columns, console=console, transient=False) as bar:
             task = bar.add_task("acquiring", total=run["n_positions"], note="")
             while True:
                 daemon.check()
                 run = _answer(client.get(f"/runs/{run_id}"), f"GET /runs/{run_id}")
-                bar.update(task, completed=run["positions_done"], total=run["n_positions"],
-                           note=f"{run['positions_done']} of {run['n_positions']} positions")  # fmt: skip
+                bar.update(
+                    task,
+                    completed=run["positions_done"],
+                    total=run["n_positions"],
+                    note=f"{run['positions_done']} of {run['n_positions']} positions",
+                )
                 if run["state"] in FINAL_RUN_STATES:
                     break
                 time.sleep(0.5)
         acquire_s = time.perf_counter() - t_acq
         if run["state"] != "complete":
-            raise DemoError(f"run {run_id} ended {run['state']}: {run.get('last_error') or 'no reason given'} "
-                            f"(daemon log {daemon.log_path})")  # fmt: skip
+            raise DemoError(
+                f"run {run_id} ended {run['state']}: {run.get('last_error') or 'no reason given'} "
+                f"(daemon log {daemon.log_path})"
+            )
 
         # --- processing -------------------------------------------------------------------
         t_proc = time.perf_counter()
@@ -424,8 +477,9 @@ def run_demo(*, root: Path = Path("demo-data"), rig: Path | None = None, positio
                 worker.check()
                 job = _answer(client.get(f"/jobs/{job_id}"), f"GET /jobs/{job_id}")
                 note = job["state"] if job["state"] in FINAL_JOB_STATES else (job.get("message") or job["state"])
-                bar.update(task, completed=1.0 if job["state"] == "complete" else job.get("progress") or 0.0,
-                           note=note[:30])  # fmt: skip
+                bar.update(
+                    task, completed=1.0 if job["state"] == "complete" else job.get("progress") or 0.0, note=note[:30]
+                )
                 if job["state"] in FINAL_JOB_STATES:
                     break
                 time.sleep(0.5)
@@ -447,15 +501,29 @@ def run_demo(*, root: Path = Path("demo-data"), rig: Path | None = None, positio
     accuracy = score_light_model(artifacts["light_model"], truth)
     errors = [s.rms_rel_error for s in accuracy]
     result = DemoResult(
-        data_dir=folder, rig=rig_path, run_id=run_id, job_id=job_id, positions=int(run["n_positions"]), frame=frame,
-        run_file=run_file, artifacts=artifacts, accuracy=accuracy,
-        max_rms_rel_error=max(errors) if errors and all(e == e for e in errors) else float("nan"),  # NaN: a source unscored
+        data_dir=folder,
+        rig=rig_path,
+        run_id=run_id,
+        job_id=job_id,
+        positions=int(run["n_positions"]),
+        frame=frame,
+        run_file=run_file,
+        artifacts=artifacts,
+        accuracy=accuracy,
+        max_rms_rel_error=max(errors)
+        if errors and all(e == e for e in errors)
+        else float("nan"),  # NaN: a source unscored
         target=TARGET_WITH_NOISE if rig_model.simulation.noise else None,
-        acquire_s=acquire_s, process_s=process_s, total_s=time.perf_counter() - started,
-        job_message=job.get("message") or "", pids=pids,
-        layout=f"given to the worker: {_shown(layout)}" if truth_layout and not layout_note else "found in the data by the worker",
+        acquire_s=acquire_s,
+        process_s=process_s,
+        total_s=time.perf_counter() - started,
+        job_message=job.get("message") or "",
+        pids=pids,
+        layout=f"given to the worker: {_shown(layout)}"
+        if truth_layout and not layout_note
+        else "found in the data by the worker",
         aperture=aperture_used(artifacts["light_model"]),
-    )  # fmt: skip
+    )
     (folder / "summary.json").write_text(json.dumps(result.to_json(), indent=2, allow_nan=True) + "\n")
     return result
 
@@ -467,7 +535,10 @@ def aperture_used(light_model: Path) -> str:
 
     aperture = LightModel.load(light_model).provenance.get("aperture_m", "")
     if isinstance(aperture, dict) and aperture.get("fitted_m") is not None:
-        return f"{1e3 * aperture['fitted_m']:.4g} mm, fitted to the data (the rig says {1e3 * aperture['described_m']:.4g} mm)"
+        return (
+            f"{1e3 * aperture['fitted_m']:.4g} mm, fitted to the data (the rig says "
+            f"{1e3 * aperture['described_m']:.4g} mm)"
+        )
     return str(aperture)
 
 
@@ -481,8 +552,10 @@ def _post_job(client, run_id: str, layout: Path | None) -> tuple[dict, str]:
     response = client.post(f"/runs/{run_id}/process", json=request)
     if response.status_code == 422 and ("layout" in response.text or "noise" in response.text):
         response = client.post(f"/runs/{run_id}/process", json={"steps": "hdr,sources"})
-        return _answer(response, what), ("this daemon's job requests take no layout or noise option: the worker finds "
-                                         "the sources in the data, and each truth source is scored against the nearest found")  # fmt: skip
+        return _answer(response, what), (
+            "this daemon's job requests take no layout or noise option: the worker finds "
+            "the sources in the data, and each truth source is scored against the nearest found"
+        )
     return _answer(response, what), ""
 
 
@@ -537,8 +610,14 @@ def _shown(path: Path) -> str:
         return str(path)
 
 
-ARTIFACT_LABELS = (("report", "report (HTML)"), ("ies", "IES"), ("ldt", "EULUMDAT (LDT)"),
-                   ("tm25", "TM-25 ray file"), ("light_model", "light model (JSON)"), ("results", "HDR results"))  # fmt: skip
+ARTIFACT_LABELS = (
+    ("report", "report (HTML)"),
+    ("ies", "IES"),
+    ("ldt", "EULUMDAT (LDT)"),
+    ("tm25", "TM-25 ray file"),
+    ("light_model", "light model (JSON)"),
+    ("results", "HDR results"),
+)
 
 
 def print_summary(result: DemoResult, console) -> None:
@@ -574,17 +653,31 @@ def print_summary(result: DemoResult, console) -> None:
     if found:
         acc.add_column("found at", justify="right", no_wrap=True)  # the source's distance from the truth's
     for s in result.accuracy:
-        cells = [s.name, f"{100 * s.rms_rel_error:.3f} %", f"{s.theta_min_deg:.1f}–{s.theta_max_deg:.1f}°", str(s.samples)]
+        cells = [
+            s.name,
+            f"{100 * s.rms_rel_error:.3f} %",
+            f"{s.theta_min_deg:.1f}–{s.theta_max_deg:.1f}°",
+            str(s.samples),
+        ]
         acc.add_row(*cells, *([f"{1e6 * s.offset_m:.0f} µm off"] if found else []))
     verdict = ""
     if target is not None:
         ok = result.max_rms_rel_error <= target
         verdict = f" ({'within' if ok else '[red]above[/red]'} the {100 * target:g} % target)"
-    acc.add_row("[bold]max[/bold]", f"[bold]{100 * result.max_rms_rel_error:.3f} %[/bold]", "", "", *([""] if found else []),
-                end_section=True)  # fmt: skip
+    acc.add_row(
+        "[bold]max[/bold]",
+        f"[bold]{100 * result.max_rms_rel_error:.3f} %[/bold]",
+        "",
+        "",
+        *([""] if found else []),
+        end_section=True,
+    )
     console.print(acc)
-    console.print(f"error = RMS(I_fit − I_true) / max(I_true) over the θ each source's samples cover; "
-                  f"max {100 * result.max_rms_rel_error:.3f} % of peak{verdict}", highlight=False)  # fmt: skip
+    console.print(
+        f"error = RMS(I_fit − I_true) / max(I_true) over the θ each source's samples cover; "
+        f"max {100 * result.max_rms_rel_error:.3f} % of peak{verdict}",
+        highlight=False,
+    )
 
     times = Table(title="times", title_justify="left", show_header=False)
     times.add_column("step", no_wrap=True)
@@ -595,4 +688,3 @@ def print_summary(result: DemoResult, console) -> None:
     console.print(times)
     if result.job_message:
         console.print(f"worker: {result.job_message}", highlight=False)
-

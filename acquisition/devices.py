@@ -10,10 +10,10 @@ import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from acquisition.rig import Rig
 from acquisition.settings import DaemonSettings, SettingsError
 from drivers.arm import Arm
 from drivers.camera import Camera
+from drivers.contracts.rig import Rig
 
 
 @dataclass
@@ -71,8 +71,14 @@ def _open_arm(settings: DaemonSettings, rig: Rig, closers: list, simulated: dict
         server.start()
         closers.append(server.stop)
         simulated.update(stage=stage, modbus_server=server)
-        arm: Arm = ModbusArm(SIM_STAGE_PROFILE, host="127.0.0.1", port=server.port, limits=limits,
-                             timeout_s=cfg.timeout_s, retries=cfg.retries)  # fmt: skip
+        arm: Arm = ModbusArm(
+            SIM_STAGE_PROFILE,
+            host="127.0.0.1",
+            port=server.port,
+            limits=limits,
+            timeout_s=cfg.timeout_s,
+            retries=cfg.retries,
+        )
     elif cfg.kind in ("modbus-tcp", "modbus-rtu"):
         from drivers.modbus_arm import ModbusArm
 
@@ -84,15 +90,17 @@ def _open_arm(settings: DaemonSettings, rig: Rig, closers: list, simulated: dict
         else:
             if not cfg.serial_port:
                 raise SettingsError("arm.serial_port: Modbus RTU needs a serial port")
-            arm = ModbusArm(cfg.profile, transport="rtu", serial_port=cfg.serial_port,
-                            baudrate=cfg.baudrate or 19200, **options)  # fmt: skip
+            arm = ModbusArm(
+                cfg.profile, transport="rtu", serial_port=cfg.serial_port, baudrate=cfg.baudrate or 19200, **options
+            )
     else:
         from drivers.serial_arm import MelfaSerialArm
 
         if not cfg.serial_port:
             raise SettingsError("arm.serial_port: a serial arm needs a serial port")
-        arm = MelfaSerialArm(cfg.serial_port, baudrate=cfg.baudrate or 9600, timeout_s=cfg.timeout_s,
-                             retries=cfg.retries, limits=limits)  # fmt: skip
+        arm = MelfaSerialArm(
+            cfg.serial_port, baudrate=cfg.baudrate or 9600, timeout_s=cfg.timeout_s, retries=cfg.retries, limits=limits
+        )
     arm.connect()
     closers.append(arm.close)
     return arm
@@ -115,9 +123,14 @@ def _open_camera(settings: DaemonSettings, rig: Rig, simulated: dict, arm: Arm) 
             world = SimWorld.following(arm.position, light_to_tool)
         sim = cfg.simulated
         camera = SimulatedCamera(
-            rig, world, spool, truth=load_truth(sim.truth) if sim.truth else None,
-            noise=sim.noise, diffraction=sim.diffraction, latency_s=sim.latency_s,
-        )  # fmt: skip
+            rig,
+            world,
+            spool,
+            truth=load_truth(sim.truth) if sim.truth else None,
+            noise=sim.noise,
+            diffraction=sim.diffraction,
+            latency_s=sim.latency_s,
+        )
         simulated["world"] = world
         return camera
     if cfg.kind == "folder":

@@ -33,9 +33,9 @@ from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
 
-from acquisition.rig import Rig, RigError, load_rig
-from acquisition.runfile import PositionTimes, RunFileError, RunFileWriter, RunHeader, file_sha256
 from drivers.camera import RawFrame
+from drivers.contracts.rig import Rig, RigError, load_rig
+from drivers.contracts.runfile import PositionTimes, RunFileError, RunFileWriter, RunHeader, file_sha256
 from drivers.errors import RawFileError
 from drivers.pose import Pose
 from drivers.raw_decode import RAW_EXTENSIONS, decode_raw
@@ -228,8 +228,9 @@ def _read_rows(reader, csv_path: Path, folder: Path, n_positions: int) -> list[I
     pose_given = [name for name in POSE_COLUMNS if name in columns]
     if pose_given and len(pose_given) < len(POSE_COLUMNS):
         missing = [name for name in POSE_COLUMNS if name not in columns]
-        raise RunImportError(f"{where}: missing column {missing[0]!r}: pose columns come as a set of six "
-                             f"({', '.join(POSE_COLUMNS)})")  # fmt: skip
+        raise RunImportError(
+            f"{where}: missing column {missing[0]!r}: pose columns come as a set of six ({', '.join(POSE_COLUMNS)})"
+        )
 
     rows: list[ImportRow] = []
     seen_files: dict[Path, int] = {}
@@ -265,13 +266,17 @@ def _read_rows(reader, csv_path: Path, folder: Path, n_positions: int) -> list[I
         except ValueError:
             raise RunImportError(f"{where}: position: {text!r} is not a whole number") from None
         if not 0 <= position < n_positions:
-            raise RunImportError(f"{where}: position: {position} is outside the rig's schedule (0 to {n_positions - 1})")
+            raise RunImportError(
+                f"{where}: position: {position} is outside the rig's schedule (0 to {n_positions - 1})"
+            )
 
         exposure = None
         if values.get("exposure_s"):
             exposure = _number(values["exposure_s"], where, "exposure_s")
             if not exposure > 0:
-                raise RunImportError(f"{where}: exposure_s: must be a positive number of seconds (got {values['exposure_s']!r})")
+                raise RunImportError(
+                    f"{where}: exposure_s: must be a positive number of seconds (got {values['exposure_s']!r})"
+                )
 
         pose = None
         if pose_given:
@@ -285,8 +290,10 @@ def _read_rows(reader, csv_path: Path, folder: Path, n_positions: int) -> list[I
                 if position in position_pose:
                     other, other_line = position_pose[position]
                     if other != pose:
-                        raise RunImportError(f"{where}: x_m..rz_deg: position {position} was given another pose on "
-                                             f"line {other_line} (one measured pose per position)")  # fmt: skip
+                        raise RunImportError(
+                            f"{where}: x_m..rz_deg: position {position} was given another pose on "
+                            f"line {other_line} (one measured pose per position)"
+                        )
                 else:
                     position_pose[position] = (pose, line)
         rows.append(ImportRow(line, name, resolved, position, exposure, pose))
@@ -303,8 +310,9 @@ def _decode(row: ImportRow, csv_path: Path) -> RawFrame:
         raise RunImportError(f"{csv_path}: line {row.line}: {exc}") from None
 
 
-def _check_frames(rows: list[ImportRow], csv_path: Path, rig_path: Path, rig: Rig,
-                  progress: Progress | None) -> list[_Checked]:  # fmt: skip
+def _check_frames(
+    rows: list[ImportRow], csv_path: Path, rig_path: Path, rig: Rig, progress: Progress | None
+) -> list[_Checked]:
     checked: list[_Checked] = []
     first: ImportRow | None = None
     brackets: dict[int, list[tuple[float, int]]] = {}
@@ -315,24 +323,32 @@ def _check_frames(rows: list[ImportRow], csv_path: Path, rig_path: Path, rig: Ri
         if checked:
             size, ref = checked[0], first
             if shape != size.shape:
-                raise RunImportError(f"{where}: {row.name} is {shape[1]}x{shape[0]} but line {ref.line} ({ref.name}) is "
-                                     f"{size.shape[1]}x{size.shape[0]}: the frames mix sizes")  # fmt: skip
+                raise RunImportError(
+                    f"{where}: {row.name} is {shape[1]}x{shape[0]} but line {ref.line} ({ref.name}) is "
+                    f"{size.shape[1]}x{size.shape[0]}: the frames mix sizes"
+                )
             if frame.cfa_pattern != size.cfa_pattern:
-                raise RunImportError(f"{where}: {row.name} has CFA {frame.cfa_pattern} but line {ref.line} "
-                                     f"({ref.name}) has {size.cfa_pattern}: the frames mix CFA layouts")  # fmt: skip
+                raise RunImportError(
+                    f"{where}: {row.name} has CFA {frame.cfa_pattern} but line {ref.line} "
+                    f"({ref.name}) has {size.cfa_pattern}: the frames mix CFA layouts"
+                )
         else:
             first = row
             width, height = rig.camera.width, rig.camera.height
             if (height, width) != shape:
-                raise RunImportError(f"{rig_path}: camera.width x camera.height is {width}x{height} but the raw files "
-                                     f"are {shape[1]}x{shape[0]} (line {row.line}: {row.name})")  # fmt: skip
+                raise RunImportError(
+                    f"{rig_path}: camera.width x camera.height is {width}x{height} but the raw files "
+                    f"are {shape[1]}x{shape[0]} (line {row.line}: {row.name})"
+                )
         exposure = row.exposure_s if row.exposure_s is not None else float(frame.exposure_s)
         if not (exposure > 0 and math.isfinite(exposure)):  # decode_raw refuses these; be sure
             raise RunImportError(f"{where}: exposure_s: {row.name} has no positive exposure time")
         for other, other_line in brackets.setdefault(row.position, []):
             if math.isclose(other, exposure, rel_tol=SAME_EXPOSURE_RTOL):
-                raise RunImportError(f"{where}: position {row.position} already has a frame of exposure {exposure:g} s "
-                                     f"(line {other_line}): the frame is repeated")  # fmt: skip
+                raise RunImportError(
+                    f"{where}: position {row.position} already has a frame of exposure {exposure:g} s "
+                    f"(line {other_line}): the frame is repeated"
+                )
         brackets[row.position].append((exposure, row.line))
         checked.append(_Checked(shape, frame.cfa_pattern, exposure, float(frame.timestamp), frame.camera_id))
         del frame
@@ -380,8 +396,16 @@ def _publish(tmp: Path, out: Path) -> None:
             os.close(fd)
 
 
-def import_run(folder, csv_path, rig_path, out, *, run_id: str | None = None, metadata: dict | None = None,
-               progress: Progress | None = None) -> ImportReport:  # fmt: skip
+def import_run(
+    folder,
+    csv_path,
+    rig_path,
+    out,
+    *,
+    run_id: str | None = None,
+    metadata: dict | None = None,
+    progress: Progress | None = None,
+) -> ImportReport:
     """Build a run file from a folder of raw files, a CSV of their positions and a rig.
 
     Parameters
@@ -436,9 +460,13 @@ def import_run(folder, csv_path, rig_path, out, *, run_id: str | None = None, me
         by_position.setdefault(row.position, []).append(k)
     cameras = sorted({c.camera_id for c in checked})
     meta = {"operator": "", "light_source": "", "notes": "", **(metadata or {})}
-    meta["imported_from"] = {"folder": str(folder.resolve()), "csv": str(csv_path.resolve()),
-                             "csv_sha256": file_sha256(csv_path), "rig": str(rig_path.resolve())}  # fmt: skip
-    from acquisition import __version__
+    meta["imported_from"] = {
+        "folder": str(folder.resolve()),
+        "csv": str(csv_path.resolve()),
+        "csv_sha256": file_sha256(csv_path),
+        "rig": str(rig_path.resolve()),
+    }
+    from drivers.contracts.version import __version__
 
     header = RunHeader(
         run_id=run_id or out.stem,
@@ -495,8 +523,11 @@ def import_run(folder, csv_path, rig_path, out, *, run_id: str | None = None, me
         _remove_temp(tmp)
 
     named = {row.path for row in rows}
-    ignored = sorted(p.name for p in folder.iterdir()
-                     if p.suffix.lower() in RAW_EXTENSIONS and p.is_file() and p.resolve() not in named)  # fmt: skip
+    ignored = sorted(
+        p.name
+        for p in folder.iterdir()
+        if p.suffix.lower() in RAW_EXTENSIONS and p.is_file() and p.resolve() not in named
+    )
     return ImportReport(
         run_file=out,
         run_id=header.run_id,

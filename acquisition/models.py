@@ -7,7 +7,7 @@ from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, PositiveFloat, StrictBool, field_validator, model_validator
 
-from acquisition.rig import MAX_POSITIONS, PoseSpec
+from drivers.contracts.rig import MAX_POSITIONS, PoseSpec
 
 
 # --- requests ------------------------------------------------------------------------------
@@ -16,8 +16,13 @@ from acquisition.rig import MAX_POSITIONS, PoseSpec
 class FixedBracket(BaseModel):
     """A fixed list of exposure times, taken at every position in this order."""
 
-    model_config = ConfigDict(extra="forbid", json_schema_extra={"required": ["mode", "exposures_s"],
-                                                                 "examples": [{"mode": "fixed", "exposures_s": [0.0002, 0.001, 0.005]}]})  # fmt: skip
+    model_config = ConfigDict(
+        extra="forbid",
+        json_schema_extra={
+            "required": ["mode", "exposures_s"],
+            "examples": [{"mode": "fixed", "exposures_s": [0.0002, 0.001, 0.005]}],
+        },
+    )
     mode: Literal["fixed"] = "fixed"
     exposures_s: list[Annotated[float, Field(gt=0.0, le=3600.0)]] = Field(min_length=1, max_length=16)
 
@@ -25,7 +30,9 @@ class FixedBracket(BaseModel):
 class AutoBracket(BaseModel):
     """Exposures chosen per position from a metering frame (``docs/daemon.md``)."""
 
-    model_config = ConfigDict(extra="forbid", json_schema_extra={"required": ["mode"], "examples": [{"mode": "auto", "target_snr": 20}]})
+    model_config = ConfigDict(
+        extra="forbid", json_schema_extra={"required": ["mode"], "examples": [{"mode": "auto", "target_snr": 20}]}
+    )
     mode: Literal["auto"] = "auto"
     target_snr: PositiveFloat | None = Field(default=None, le=1000.0)
     useful_fraction: float | None = Field(default=None, gt=0.0, lt=1.0)
@@ -80,22 +87,42 @@ class RunRequest(BaseModel):
 class JobRequest(BaseModel):
     """Process a run: which steps, and how (``docs/daemon.md``, "Worker")."""
 
-    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [{"steps": "hdr,sources"},
-                                                                             {"steps": "hdr,sources", "partial": True}]})  # fmt: skip
-    steps: str = Field(default="hdr,sources", pattern=r"^[a-z]+(,[a-z]+)*$", max_length=200,
-                       description="hdr, sources (trace and fit are names for parts of sources)")  # fmt: skip
-    partial: StrictBool = Field(default=False, description="process the positions complete now even while the run is "
-                                                     "being acquired (otherwise the job waits for the run to end)")  # fmt: skip
+    model_config = ConfigDict(
+        extra="forbid",
+        json_schema_extra={"examples": [{"steps": "hdr,sources"}, {"steps": "hdr,sources", "partial": True}]},
+    )
+    steps: str = Field(
+        default="hdr,sources",
+        pattern=r"^[a-z]+(,[a-z]+)*$",
+        max_length=200,
+        description="hdr, sources (trace and fit are names for parts of sources)",
+    )
+    partial: StrictBool = Field(
+        default=False,
+        description="process the positions complete now even while the run is "
+        "being acquired (otherwise the job waits for the run to end)",
+    )
     estimator: Literal["auto", "templates", "cell-sums"] | None = Field(default=None, description="default: auto")
-    fit: Literal["gaussian", "polynomial", "cos-power", "gaussian-2d"] | None = Field(default=None, description="default: gaussian")
-    layout: str | None = Field(default=None, max_length=4096,
-                               description="the sources' layout, a TOML file on the worker's machine (default: found in the data)")  # fmt: skip
-    noise: Literal["auto", "estimated", "rig"] | None = Field(default=None, description="HDR noise model; default: auto")
-    fit_aperture: StrictBool | None = Field(default=None, description="fit the camera's aperture (pinhole) diameter to "
-                                            "the data (docs/light-model.md); default: fitted when the sources are "
-                                            "searched for in the data (no layout)")  # fmt: skip
-    fit_sensor_distance: StrictBool = Field(default=False, description="fit the sensor distance (pinhole to sensor) to "
-                                                                      "the data too (docs/light-model.md)")  # fmt: skip
+    fit: Literal["gaussian", "polynomial", "cos-power", "gaussian-2d"] | None = Field(
+        default=None, description="default: gaussian"
+    )
+    layout: str | None = Field(
+        default=None,
+        max_length=4096,
+        description="the sources' layout, a TOML file on the worker's machine (default: found in the data)",
+    )
+    noise: Literal["auto", "estimated", "rig"] | None = Field(
+        default=None, description="HDR noise model; default: auto"
+    )
+    fit_aperture: StrictBool | None = Field(
+        default=None,
+        description="fit the camera's aperture (pinhole) diameter to "
+        "the data (docs/light-model.md); default: fitted when the sources are "
+        "searched for in the data (no layout)",
+    )
+    fit_sensor_distance: StrictBool = Field(
+        default=False, description="fit the sensor distance (pinhole to sensor) to the data too (docs/light-model.md)"
+    )
 
     @field_validator("steps")
     @classmethod
@@ -120,13 +147,28 @@ class JobRequest(BaseModel):
 class RunStatus(BaseModel):
     """Everything about a run in one answer."""
 
-    model_config = ConfigDict(json_schema_extra={"examples": [{
-        "id": "run-20261121-134501-3f2a", "state": "running", "preset": "light-sweep",
-        "n_positions": 66, "positions_done": 12, "percent_done": 18.2, "current_position": 12,
-        "eta_s": 310.0, "last_error": None, "created_utc": "2026-11-21T13:45:01+00:00",
-        "started_utc": "2026-11-21T13:45:02+00:00", "finished_utc": None,
-        "exposures_per_position": 3, "file_url": "/runs/run-20261121-134501-3f2a/file",
-    }]})  # fmt: skip
+    model_config = ConfigDict(
+        json_schema_extra={
+            "examples": [
+                {
+                    "id": "run-20261121-134501-3f2a",
+                    "state": "running",
+                    "preset": "light-sweep",
+                    "n_positions": 66,
+                    "positions_done": 12,
+                    "percent_done": 18.2,
+                    "current_position": 12,
+                    "eta_s": 310.0,
+                    "last_error": None,
+                    "created_utc": "2026-11-21T13:45:01+00:00",
+                    "started_utc": "2026-11-21T13:45:02+00:00",
+                    "finished_utc": None,
+                    "exposures_per_position": 3,
+                    "file_url": "/runs/run-20261121-134501-3f2a/file",
+                }
+            ]
+        }
+    )
     id: str
     state: str
     preset: str | None
@@ -146,16 +188,32 @@ class RunStatus(BaseModel):
 class JobStatus(BaseModel):
     """A processing job: its state and, once complete, where to download its results."""
 
-    model_config = ConfigDict(json_schema_extra={"examples": [{
-        "id": "job-20261121-140000-aa01", "run_id": "run-20261121-134501-3f2a", "state": "complete",
-        "steps": "hdr,sources", "options": {}, "progress": 1.0, "error": None,
-        "message": "66 of 66 positions in 21.4 s on local Dask cluster: 2 worker processes x 1 thread",
-        "result_dir": "/srv/mirrorgonio/runs", "claimed_by": "lab-pc-4242", "heartbeat_utc": "2026-11-21T14:00:25+00:00",
-        "created_utc": "2026-11-21T14:00:00+00:00", "updated_utc": "2026-11-21T14:00:26+00:00",
-        "artifacts": {"report": "/jobs/job-20261121-140000-aa01/artifacts/report",
-                      "ies": "/jobs/job-20261121-140000-aa01/artifacts/ies",
-                      "tm25": "/jobs/job-20261121-140000-aa01/artifacts/tm25"},
-    }]})  # fmt: skip
+    model_config = ConfigDict(
+        json_schema_extra={
+            "examples": [
+                {
+                    "id": "job-20261121-140000-aa01",
+                    "run_id": "run-20261121-134501-3f2a",
+                    "state": "complete",
+                    "steps": "hdr,sources",
+                    "options": {},
+                    "progress": 1.0,
+                    "error": None,
+                    "message": "66 of 66 positions in 21.4 s on local Dask cluster: 2 worker processes x 1 thread",
+                    "result_dir": "/srv/mirrorgonio/runs",
+                    "claimed_by": "lab-pc-4242",
+                    "heartbeat_utc": "2026-11-21T14:00:25+00:00",
+                    "created_utc": "2026-11-21T14:00:00+00:00",
+                    "updated_utc": "2026-11-21T14:00:26+00:00",
+                    "artifacts": {
+                        "report": "/jobs/job-20261121-140000-aa01/artifacts/report",
+                        "ies": "/jobs/job-20261121-140000-aa01/artifacts/ies",
+                        "tm25": "/jobs/job-20261121-140000-aa01/artifacts/tm25",
+                    },
+                }
+            ]
+        }
+    )
     id: str
     run_id: str
     state: str
@@ -175,7 +233,9 @@ class JobStatus(BaseModel):
 class ArmState(BaseModel):
     connected: bool
     identity: str
-    position: dict[str, float] | None = Field(default=None, description="read-back pose: x, y, z in m; rx, ry, rz in degrees")
+    position: dict[str, float] | None = Field(
+        default=None, description="read-back pose: x, y, z in m; rx, ry, rz in degrees"
+    )
     moving: bool | None = None
     in_position: bool | None = None
     alarm_code: int | None = None
@@ -195,7 +255,13 @@ class DevicesStatus(BaseModel):
 
 
 class Health(BaseModel):
-    model_config = ConfigDict(json_schema_extra={"examples": [{"status": "degraded", "reasons": ["arm: connection refused"], "version": "0.1.0", "active_run": None}]})
+    model_config = ConfigDict(
+        json_schema_extra={
+            "examples": [
+                {"status": "degraded", "reasons": ["arm: connection refused"], "version": "0.1.0", "active_run": None}
+            ]
+        }
+    )
     status: Literal["ok", "degraded"]
     reasons: list[str]
     version: str

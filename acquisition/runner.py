@@ -23,16 +23,16 @@ from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
 
-from acquisition import __version__
 from acquisition.bracketing import NoiseModel, exposures_from_metering, is_saturated
 from acquisition.catalog import Catalog, RunRecord
 from acquisition.devices import Devices
 from acquisition.models import AutoBracket, FixedBracket, RunRequest
 from acquisition.preview import preview_png
-from acquisition.rig import Rig, RigError, rig_from_dict
-from acquisition.runfile import PositionTimes, RunFileWriter, RunHeader, file_sha256
 from acquisition.settings import DaemonSettings
 from drivers.camera import RawFrame
+from drivers.contracts.rig import Rig, RigError, rig_from_dict
+from drivers.contracts.runfile import PositionTimes, RunFileWriter, RunHeader, file_sha256
+from drivers.contracts.version import __version__
 from drivers.errors import CommunicationError, DeviceError, DeviceTimeoutError, MoveInterruptedError
 from drivers.pose import Pose
 
@@ -134,7 +134,7 @@ class RunEngine:
     # --- presets ---------------------------------------------------------------------------
     def presets(self) -> dict[str, dict]:
         """Schedules a run can use: the rig's own, and the other kinds' defaults."""
-        from acquisition.rig import LightSweep, ObjectArc, Raster
+        from drivers.contracts.rig import LightSweep, ObjectArc, Raster
 
         base = {"light-sweep": LightSweep(), "object-arc": ObjectArc(), "raster": Raster()}
         base[self.rig.schedule.kind] = self.rig.schedule
@@ -147,7 +147,9 @@ class RunEngine:
         else:
             schedule = self.presets()[request.preset]
         if request.preset == "object-arc" and self.rig.object is None:
-            raise RigError(f"preset {request.preset}: the rig has no [object] (the mesh and pose of what is photographed)")
+            raise RigError(
+                f"preset {request.preset}: the rig has no [object] (the mesh and pose of what is photographed)"
+            )
         data = self.rig.model_dump(mode="json", exclude_none=True)
         data["schedule"] = schedule
         return rig_from_dict(data, f"preset {request.preset}")
@@ -174,7 +176,9 @@ class RunEngine:
             try:
                 model = json.loads(path.read_text(encoding="utf-8"))
             except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-                raise RunEngineError(f"light_results: {path}: not a readable light model ({type(exc).__name__})") from None
+                raise RunEngineError(
+                    f"light_results: {path}: not a readable light model ({type(exc).__name__})"
+                ) from None
             if not isinstance(model, dict) or model.get("format") != "mirrorgonio-light-model":
                 raise RunEngineError(f"light_results: {path}: not a mirrorgonio light model file")
             provenance = model.get("provenance") if isinstance(model.get("provenance"), dict) else {}
@@ -222,7 +226,9 @@ class RunEngine:
                 self._notify()
                 return record
             if record.state not in ("interrupted", "failed", "paused"):
-                raise RunConflictError(f"run {run_id} is {record.state}: only a paused, interrupted or failed run can resume")
+                raise RunConflictError(
+                    f"run {run_id} is {record.state}: only a paused, interrupted or failed run can resume"
+                )
             active = self.catalog.active_run()
             if self.busy or (active is not None and active.id != run_id):
                 raise RunConflictError(f"run {self._current or active.id} is already active on this rig")
@@ -303,7 +309,9 @@ class RunEngine:
     def _launch(self, plan: RunPlan, resume: bool) -> None:
         self._control = _Control()
         self._current = plan.run_id
-        self._thread = threading.Thread(target=self._execute, args=(plan, resume), name=f"run-{plan.run_id}", daemon=True)
+        self._thread = threading.Thread(
+            target=self._execute, args=(plan, resume), name=f"run-{plan.run_id}", daemon=True
+        )
         self._thread.start()
 
     def _checkpoint(self) -> None:
@@ -409,9 +417,13 @@ class RunEngine:
                         self._discard_raw(frame)
                     done = int(writer.complete.sum())
                     per_position = sum(durations[-10:]) / len(durations[-10:]) if durations else None
-                    self.catalog.update_progress(run_id, positions_done=done, current_position=index,
-                                                 seconds_per_position=per_position,
-                                                 exposures_per_position=len(frames))  # fmt: skip
+                    self.catalog.update_progress(
+                        run_id,
+                        positions_done=done,
+                        current_position=index,
+                        seconds_per_position=per_position,
+                        exposures_per_position=len(frames),
+                    )
                     self.events.publish()
                 finally:
                     write_queue.task_done()
@@ -479,8 +491,9 @@ class RunEngine:
         self.catalog.update_progress(plan.run_id, positions_done=self._done(plan), current_position=index)
         self.events.publish()
         move_started = self._wall()
-        measured = self._device("move", self.devices.arm.move_to, plan.tool_poses[index],
-                                timeout=self.settings.arm.move_timeout_s)  # fmt: skip
+        measured = self._device(
+            "move", self.devices.arm.move_to, plan.tool_poses[index], timeout=self.settings.arm.move_timeout_s
+        )
         in_position = self._wall()
         exposures = self._bracket(plan.request.bracket)
         frames: list[RawFrame] = []

@@ -14,8 +14,8 @@ from typing import Annotated, Literal
 from pydantic import ConfigDict, Field, PositiveFloat, SecretStr, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
-from acquisition.rig import DEFAULT_RIG_PATH
 from drivers.config_files import ConfigModel, read_toml, validate_model
+from drivers.contracts.rig import DEFAULT_RIG_PATH
 from drivers.modbus_profile import SIM_STAGE_PROFILE
 
 #: Register-map profiles shipped with the drivers, named by ``arm.profile = "NAME"``.
@@ -138,8 +138,7 @@ class DaemonSettings(BaseSettings):
             return
         if not is_loopback(self.host):
             raise SettingsError(
-                f"host: refusing to listen on {self.host} without a token "
-                "(set token in the configuration or MG_TOKEN)"
+                f"host: refusing to listen on {self.host} without a token (set token in the configuration or MG_TOKEN)"
             )
 
 

@@ -46,7 +46,7 @@ JOB_OPTIONS = {
     "fit": "gaussian, polynomial, cos-power or gaussian-2d",
     "noise": "auto, estimated or rig",
     "fit_aperture": "fit the camera's aperture (pinhole) diameter to the data (true), or not (false); default: when "
-                    "the sources are searched for in the data",
+    "the sources are searched for in the data",
     "fit_sensor_distance": "fit the sensor distance (pinhole to sensor) to the data too",
 }
 #: The result files a job records, by kind: the daemon serves exactly these.
@@ -59,7 +59,7 @@ class JobLostError(RuntimeError):
 
 def one_line(exc: BaseException, limit: int = 1000) -> str:
     """An exception as the one-line reason a failed job records."""
-    from acquisition.runfile import RunFileError
+    from drivers.contracts.runfile import RunFileError
     from processing.hdr import HDRError
     from processing.parallel import ComputeError
     from processing.pipeline import ProcessingError
@@ -122,8 +122,17 @@ class JobWorker:
         the default runs ``processing.pipeline.process_run`` (tests substitute their own).
     """
 
-    def __init__(self, catalog: Catalog, compute=None, *, worker_id: str | None = None, heartbeat_s: float = 5.0,
-                 stale_after_s: float = 60.0, wait_s: float = 10.0, process: Callable | None = None):  # fmt: skip
+    def __init__(
+        self,
+        catalog: Catalog,
+        compute=None,
+        *,
+        worker_id: str | None = None,
+        heartbeat_s: float = 5.0,
+        stale_after_s: float = 60.0,
+        wait_s: float = 10.0,
+        process: Callable | None = None,
+    ):
         from processing.parallel import Compute
 
         if heartbeat_s <= 0 or stale_after_s <= 0 or wait_s < 0:
@@ -140,8 +149,14 @@ class JobWorker:
         self._lost = threading.Event()
 
     # --- the loop ------------------------------------------------------------------------
-    def run(self, stop: threading.Event | None = None, *, once: bool = False, poll_s: float = 2.0,
-            on_job: Callable[[JobRecord], None] | None = None) -> int:  # fmt: skip
+    def run(
+        self,
+        stop: threading.Event | None = None,
+        *,
+        once: bool = False,
+        poll_s: float = 2.0,
+        on_job: Callable[[JobRecord], None] | None = None,
+    ) -> int:
         """Process jobs until ``stop`` is set (or, with ``once``, until none can be claimed).
 
         Returns
@@ -205,13 +220,18 @@ class JobWorker:
         partial = bool(job.options.get("partial", False))
         acquiring = self._acquiring(run)
         if acquiring and not partial:
-            return self._wait(job, f"waiting: run {run.id} is still being acquired ({acquiring}); "
-                                   "ask for partial to process the positions complete so far")  # fmt: skip
+            return self._wait(
+                job,
+                f"waiting: run {run.id} is still being acquired ({acquiring}); "
+                "ask for partial to process the positions complete so far",
+            )
         if not run.path:
             return self._fail(job, f"run {run.id} has no run file")
         path = Path(run.path)
         if acquiring and not _has_complete_position(path):
-            return self._wait(job, f"waiting: run {run.id} is being acquired ({acquiring}) and has no complete position yet")
+            return self._wait(
+                job, f"waiting: run {run.id} is being acquired ({acquiring}) and has no complete position yet"
+            )
         self._progress, self._note = 0.0, None
         self._lost.clear()
         stop = threading.Event()
@@ -236,8 +256,9 @@ class JobWorker:
             log.warning("%s: job %s was taken from this worker: its results are not recorded", self.worker_id, job.id)
             return self.catalog.get_job(job.id)
         try:
-            done = self.catalog.finish_job(job.id, worker_id=self.worker_id, result_dir=result_dir,
-                                           artifacts=artifacts, message=message)  # fmt: skip
+            done = self.catalog.finish_job(
+                job.id, worker_id=self.worker_id, result_dir=result_dir, artifacts=artifacts, message=message
+            )
         except JobClaimError as exc:
             log.warning("%s: %s", self.worker_id, exc)
             return self.catalog.get_job(job.id)
@@ -250,7 +271,7 @@ class JobWorker:
             return f"its state is {run.state}"
         if not run.path:
             return ""
-        from acquisition.runfile import RunFile, RunFileError
+        from drivers.contracts.runfile import RunFile, RunFileError
 
         try:
             with RunFile.open(run.path) as f:
@@ -297,11 +318,19 @@ class JobWorker:
         from processing.pipeline import process_run
 
         options = job.options
-        report = process_run(run_path, run_path.parent, steps=steps, progress=progress, compute=self.compute,
-                             layout=options.get("layout"), estimator=options.get("estimator", "auto"),
-                             fit_method=options.get("fit", "gaussian"), noise=options.get("noise", "auto"),
-                             fit_aperture=options.get("fit_aperture"),
-                             fit_sensor_distance=bool(options.get("fit_sensor_distance", False)))  # fmt: skip
+        report = process_run(
+            run_path,
+            run_path.parent,
+            steps=steps,
+            progress=progress,
+            compute=self.compute,
+            layout=options.get("layout"),
+            estimator=options.get("estimator", "auto"),
+            fit_method=options.get("fit", "gaussian"),
+            noise=options.get("noise", "auto"),
+            fit_aperture=options.get("fit_aperture"),
+            fit_sensor_distance=bool(options.get("fit_sensor_distance", False)),
+        )
         artifacts = {"results": report.results_file}
         if report.light_model is not None:
             artifacts["light_model"] = report.light_model
@@ -309,14 +338,16 @@ class JobWorker:
             if report.outputs.get(kind):
                 artifacts[kind] = report.outputs[kind][0]
         seconds = report.timings.get("total", 0.0)
-        message = (f"{report.positions} of {report.n_positions} positions"
-                   f"{' (partial: the run was still being acquired)' if report.partial and job.options.get('partial') else ''}"
-                   f" in {seconds:.1f} s on {report.compute}")  # fmt: skip
+        message = (
+            f"{report.positions} of {report.n_positions} positions"
+            f"{' (partial: the run was still being acquired)' if report.partial and job.options.get('partial') else ''}"
+            f" in {seconds:.1f} s on {report.compute}"
+        )
         return run_path.parent, {k: str(v) for k, v in artifacts.items()}, message
 
 
 def _has_complete_position(path: Path) -> bool:
-    from acquisition.runfile import RunFile, RunFileError
+    from drivers.contracts.runfile import RunFile, RunFileError
 
     try:
         with RunFile.open(path) as f:
@@ -325,8 +356,16 @@ def _has_complete_position(path: Path) -> bool:
         return True  # let the processing report what is wrong with the file
 
 
-def serve_jobs(catalog_path: str | Path, compute, *, stop: threading.Event | None = None, once: bool = False,
-               poll_s: float = 2.0, on_job=None, **options) -> int:  # fmt: skip
+def serve_jobs(
+    catalog_path: str | Path,
+    compute,
+    *,
+    stop: threading.Event | None = None,
+    once: bool = False,
+    poll_s: float = 2.0,
+    on_job=None,
+    **options,
+) -> int:
     """Open the catalog and run a :class:`JobWorker` on it (``mirrorgonio worker``)."""
     with contextlib.closing(Catalog(catalog_path)) as catalog:
         worker = JobWorker(catalog, compute, **options)

@@ -191,7 +191,5 @@ class Arm(abc.ABC):
                 try:
                     self.stop()
                 finally:
-                    raise DeviceTimeoutError(
-                        self.name, command, f"not in position after {timeout:g} s"
-                    )
+                    raise DeviceTimeoutError(self.name, command, f"not in position after {timeout:g} s")
             self._sleep(self.poll_interval_s)

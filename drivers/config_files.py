@@ -28,8 +28,9 @@ UNITLESS_LIMIT = 1e12
 def magnitude_problem(name: str, value) -> str | None:
     """Why ``value`` (a float, or a sequence of them) is too large for the field ``name``,
     or None when it is not. Non-finite numbers are left to ``allow_inf_nan``."""
-    limit, unit = next(((lim, u) for suffix, (lim, u) in MAGNITUDE_LIMITS.items() if name.endswith(suffix)),
-                       (UNITLESS_LIMIT, ""))  # fmt: skip
+    limit, unit = next(
+        ((lim, u) for suffix, (lim, u) in MAGNITUDE_LIMITS.items() if name.endswith(suffix)), (UNITLESS_LIMIT, "")
+    )
     for number in _numbers(value):
         if math.isfinite(number) and abs(number) > limit:
             return f"{number:g}{unit} is beyond the ±{limit:g}{unit} allowed"

@@ -76,9 +76,7 @@ class FolderCamera(Camera):
         self.trigger = trigger
         self.timeout_s = float(timeout_s)
         self.settle_s = float(settle_s)
-        self.extensions = frozenset(
-            ext.lower() if ext.startswith(".") else f".{ext.lower()}" for ext in extensions
-        )
+        self.extensions = frozenset(ext.lower() if ext.startswith(".") else f".{ext.lower()}" for ext in extensions)
         self.name = name
         self._clock = clock
         self._sleep = sleep

@@ -258,9 +258,7 @@ class Gphoto2Camera(Camera):
             if not matches:
                 listing = "; ".join(f"{m} at {p}" for m, p in found) or "none"
                 wanted = f"model {model!r}" if model else f"port {port!r}"
-                raise DeviceError(
-                    self.name, "connect", f"no camera with {wanted} detected (detected: {listing})"
-                )
+                raise DeviceError(self.name, "connect", f"no camera with {wanted} detected (detected: {listing})")
             model, port = matches[0]
         abilities = gp.CameraAbilitiesList()
         abilities.load()
@@ -295,16 +293,12 @@ class Gphoto2Camera(Camera):
         try:
             widget = config.get_child_by_name("shutterspeed")
         except gp.GPhoto2Error:
-            raise DeviceError(
-                self.name, "capture", "the camera has no 'shutterspeed' setting"
-            ) from None
+            raise DeviceError(self.name, "capture", "the camera has no 'shutterspeed' setting") from None
         choices: Sequence[str] = [str(choice) for choice in widget.get_choices()]
         try:
             choice = nearest_shutter_choice(choices, exposure_s)
         except ValueError as exc:
-            raise DeviceError(
-                self.name, "capture", f"{exc} (is the camera in manual exposure mode?)"
-            ) from None
+            raise DeviceError(self.name, "capture", f"{exc} (is the camera in manual exposure mode?)") from None
         if widget.get_value() == choice:
             return choice
         if widget.get_readonly():
@@ -349,9 +343,7 @@ class Gphoto2Camera(Camera):
 
     def _download(self, camera: Any, folder: str, name: str) -> Path:
         gp = self._gp
-        camera_file = self._retry_busy(
-            lambda: camera.file_get(folder, name, gp.GP_FILE_TYPE_NORMAL)
-        )
+        camera_file = self._retry_busy(lambda: camera.file_get(folder, name, gp.GP_FILE_TYPE_NORMAL))
         target = _unused_path(self.download_dir / name)
         partial = target.with_name(f".{target.name}.part")  # hidden from folder watchers
         camera_file.save(str(partial))
@@ -393,9 +385,7 @@ class Gphoto2Camera(Camera):
             )
         if code == gp.GP_ERROR_CAMERA_BUSY:
             waited = self.busy_retries * self.busy_wait_s
-            return DeviceTimeoutError(
-                self.name, command, f"camera still busy after {waited:g} s of retries"
-            )
+            return DeviceTimeoutError(self.name, command, f"camera still busy after {waited:g} s of retries")
         if code == gp.GP_ERROR_TIMEOUT:
             return DeviceTimeoutError(self.name, command, f"gphoto2 error {code}: {text}")
         if code in io_errors:

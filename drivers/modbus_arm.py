@@ -325,7 +325,7 @@ class ModbusArm(Arm):
                 raise CommunicationError(
                     self.name, command, f"asked {count} registers at {start}, got {len(response.registers)}"
                 )
-            registers.update(zip(range(start, start + count), response.registers))
+            registers.update(zip(range(start, start + count), response.registers, strict=False))
         return registers
 
     def _transact(
@@ -392,9 +392,7 @@ class ModbusArm(Arm):
         # pymodbus's own retries are off: retries, back-off and reconnection happen in
         # _transact, so that `retries` means the same for every failure.
         if self.transport == "tcp":
-            return ModbusTcpClient(
-                self.host, port=self.port, timeout=self.timeout_s, retries=0, name=self.name
-            )
+            return ModbusTcpClient(self.host, port=self.port, timeout=self.timeout_s, retries=0, name=self.name)
         return ModbusSerialClient(
             self.serial_port,
             baudrate=self.baudrate,

@@ -224,9 +224,7 @@ class ModbusProfile(ConfigModel):
             for field_name, start, count in table:
                 for address in range(start, start + count):
                     if address in owner:
-                        raise ValueError(
-                            f"{field_name}: register {address} is also used by {owner[address]}"
-                        )
+                        raise ValueError(f"{field_name}: register {address} is also used by {owner[address]}")
                     owner[address] = field_name
         return self
 

@@ -26,11 +26,32 @@ from drivers.errors import RawFileError
 
 RAW_EXTENSIONS: frozenset[str] = frozenset(
     {
-        ".3fr", ".arw", ".cr2", ".cr3", ".crw", ".dcr", ".dng", ".erf", ".iiq", ".kdc",
-        ".mef", ".mos", ".mrw", ".nef", ".nrw", ".orf", ".pef", ".raf", ".rw2", ".rwl",
-        ".sr2", ".srf", ".srw", ".x3f",
+        ".3fr",
+        ".arw",
+        ".cr2",
+        ".cr3",
+        ".crw",
+        ".dcr",
+        ".dng",
+        ".erf",
+        ".iiq",
+        ".kdc",
+        ".mef",
+        ".mos",
+        ".mrw",
+        ".nef",
+        ".nrw",
+        ".orf",
+        ".pef",
+        ".raf",
+        ".rw2",
+        ".rwl",
+        ".sr2",
+        ".srf",
+        ".srw",
+        ".x3f",
     }
-)  # fmt: skip
+)
 """Lower-case file suffixes of the raw formats :func:`decode_raw` hands to LibRaw.
 
 Some of these formats can hold sensors that are not a 2x2 Bayer mosaic (Fujifilm's
@@ -177,9 +198,7 @@ def _checked_size(path: Path, source: str) -> int:
 def _read_mosaic(raw: rawpy.RawPy, source: str) -> tuple[np.ndarray, np.ndarray, str]:
     """Copy the visible mosaic, and name its CFA tile and black level per tile site."""
     if raw.raw_type != rawpy.RawType.Flat:
-        raise RawFileError(
-            source, "decode", "not a CFA mosaic (a linear or demosaiced raw, e.g. linear DNG)"
-        )
+        raise RawFileError(source, "decode", "not a CFA mosaic (a linear or demosaiced raw, e.g. linear DNG)")
     try:
         pattern = raw.raw_pattern
     except NotImplementedError as exc:
@@ -197,15 +216,12 @@ def _read_mosaic(raw: rawpy.RawPy, source: str) -> tuple[np.ndarray, np.ndarray,
     # raw_color takes coordinates in the full raw image; asking at the visible area's
     # origin gives the tile of the mosaic returned, whatever the margins' parity.
     color_index = np.array(
-        [[raw.raw_color(sizes.top_margin + row, sizes.left_margin + col) for col in (0, 1)]
-         for row in (0, 1)]
-    )  # fmt: skip
+        [[raw.raw_color(sizes.top_margin + row, sizes.left_margin + col) for col in (0, 1)] for row in (0, 1)]
+    )
     color_desc = raw.color_desc.decode("ascii", "replace")
     tile = "".join(color_desc[index] for index in color_index.flat)
     if tile not in _BAYER_TILES:
-        raise RawFileError(
-            source, "decode", f"CFA tile {tile!r} is not an RGB Bayer pattern"
-        )
+        raise RawFileError(source, "decode", f"CFA tile {tile!r} is not an RGB Bayer pattern")
     # LibRaw gives one black level per colour index (the two greens have their own).
     per_channel = np.asarray(raw.black_level_per_channel, dtype=float)
     black_level = per_channel[color_index]
@@ -293,14 +309,10 @@ def _libraw_failure(exc: rawpy.LibRawError, path: Path, size: int, tiff: _TiffMe
         data_end = _image_data_end(path)
         if data_end > size:
             return (
-                f"truncated: its image data ends at byte {data_end} but the file has "
-                f"{size} bytes (LibRaw: {message})"
+                f"truncated: its image data ends at byte {data_end} but the file has {size} bytes (LibRaw: {message})"
             )
     if tiff.structure_error:
-        return (
-            f"truncated or corrupt: its TIFF structure cannot be read "
-            f"({tiff.structure_error}; LibRaw: {message})"
-        )
+        return f"truncated or corrupt: its TIFF structure cannot be read ({tiff.structure_error}; LibRaw: {message})"
     return f"unreadable, truncated or not a raw file (LibRaw: {message})"
 
 
@@ -384,7 +396,7 @@ def _text(value: Any) -> str:
 
 
 def _camera_identity(make: str, model: str, unique_model: str, serial: str) -> str:
-    """"Make Model, serial N", without repeating the make that many models start with."""
+    """ "Make Model, serial N", without repeating the make that many models start with."""
     if model and make and model.lower().startswith(make.split()[0].lower()):
         name = model
     else:

@@ -116,9 +116,7 @@ def parse_pposf(data: str) -> Pose:
             raise ValueError(f"{key}={fields[key]} is not a finite number")
         values.append(value)
     x, y, z, a, b, c = values
-    return Pose(
-        x / 1000.0, y / 1000.0, z / 1000.0, math.radians(a), math.radians(b), math.radians(c)
-    )
+    return Pose(x / 1000.0, y / 1000.0, z / 1000.0, math.radians(a), math.radians(b), math.radians(c))
 
 
 def parse_state(data: str) -> dict[str, bool]:
@@ -447,9 +445,7 @@ class MelfaSerialArm(Arm):
                     try:
                         return parse(data)
                     except ValueError as exc:
-                        raise CommunicationError(
-                            self.name, where, f"unexpected reply {_quote(raw)}: {exc}"
-                        ) from exc
+                        raise CommunicationError(self.name, where, f"unexpected reply {_quote(raw)}: {exc}") from exc
                 except CommunicationError as garbled:
                     failure = garbled
             raise failure  # attempts >= 1, so the loop has set it
@@ -466,9 +462,7 @@ class MelfaSerialArm(Arm):
         except serial.SerialTimeoutException:
             return None
         except (serial.SerialException, OSError) as exc:
-            raise CommunicationError(
-                self.name, where, f"serial port {self.port} failed: {_one_line(exc)}"
-            ) from exc
+            raise CommunicationError(self.name, where, f"serial port {self.port} failed: {_one_line(exc)}") from exc
         if not raw.endswith(TERMINATOR):
             return None
         return raw

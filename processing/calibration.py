@@ -53,7 +53,7 @@ import numpy as np
 from scipy import ndimage
 from scipy.optimize import least_squares
 
-from acquisition.rig import Rig
+from drivers.contracts.rig import Rig
 from drivers.pose import Pose
 
 
@@ -267,14 +267,18 @@ def _coarse_outline(img: np.ndarray):
         )
     on_border = (contour[:, 0] <= 1) | (contour[:, 1] <= 1) | (contour[:, 0] >= w - 2) | (contour[:, 1] >= h - 2)
     if on_border.mean() > 0.25:
-        raise CalibrationError(f"the ball is cut off by the image border ({100 * on_border.mean():.0f} % of its outline)")
+        raise CalibrationError(
+            f"the ball is cut off by the image border ({100 * on_border.mean():.0f} % of its outline)"
+        )
     free = contour[~on_border]
     if len(free) < 20:
         raise CalibrationError("no ball in the calibration image: no bright disc-like region")
     ellipse = Ellipse.from_cv(cv2.fitEllipse(free.astype(np.float32)))
     a, b = ellipse.semi_axes
     if not (min(a, b) >= 4.0 and min(a, b) / max(a, b) > 0.5):
-        raise CalibrationError(f"no ball in the calibration image: the bright region is not disc-like (axes {2 * a:.0f} x {2 * b:.0f} px)")
+        raise CalibrationError(
+            f"no ball in the calibration image: the bright region is not disc-like (axes {2 * a:.0f} x {2 * b:.0f} px)"
+        )
     rho = ellipse.normalised_radius(free)
     spread = float(np.median(np.abs(rho - 1.0)))
     area_ratio = float(inside.sum()) / (math.pi * a * b)
@@ -391,8 +395,9 @@ def detect_silhouette(image, *, method: str = "ellipse", profiles: int | None = 
     if method == "contour":
         rho_pts = contour - np.asarray(ellipse.centre)
         normals = rho_pts / np.linalg.norm(rho_pts, axis=1, keepdims=True)
-        return Silhouette(contour, normals, ellipse, "contour", (0.0, 0.0), float("nan"),
-                          (level_out, level_in), 0, (h, w))  # fmt: skip
+        return Silhouette(
+            contour, normals, ellipse, "contour", (0.0, 0.0), float("nan"), (level_out, level_in), 0, (h, w)
+        )
 
     a, b = ellipse.semi_axes
     small = min(a, b)
@@ -416,13 +421,17 @@ def detect_silhouette(image, *, method: str = "ellipse", profiles: int | None = 
     x1 = step * math.floor((1.25 * blur + 2.0) / step)  # windows on the sampling grid
     x2 = x1 + step * math.ceil(max(4.0, blur) / step)
     if x2 > 0.6 * small:
-        raise CalibrationError(f"the ball's image is too small for its blur (radius {small:.0f} px, edge {blur:.0f} px wide)")
+        raise CalibrationError(
+            f"the ball's image is too small for its blur (radius {small:.0f} px, edge {blur:.0f} px wide)"
+        )
 
     rejected = 0
     for _ in range(2):
         pts, normals = ellipse.points(count)
         far = pts[:, None, :] + (x2 + 0.5 * x1) * np.array([-1.0, 1.0])[None, :, None] * normals[:, None, :]
-        inside_image = np.all((far[..., 0] >= 1) & (far[..., 0] <= w - 2) & (far[..., 1] >= 1) & (far[..., 1] <= h - 2), axis=1)
+        inside_image = np.all(
+            (far[..., 0] >= 1) & (far[..., 0] <= w - 2) & (far[..., 1] >= 1) & (far[..., 1] <= h - 2), axis=1
+        )
         pts, normals = pts[inside_image], normals[inside_image]
 
         curvature = ellipse.curvature(count)[inside_image]
@@ -435,13 +444,16 @@ def detect_silhouette(image, *, method: str = "ellipse", profiles: int | None = 
         typical = np.median(contrast)
         noise = np.median(rms)
         good = (
-            (contrast > 0.7 * typical) & (contrast < 1.3 * typical)
+            (contrast > 0.7 * typical)
+            & (contrast < 1.3 * typical)
             & (rms < 3.0 * noise + 0.01 * abs(typical))
             & (np.abs(offset) < 0.5 * x1)
-        )  # fmt: skip
+        )
         edge = pts + offset[:, None] * normals
         if good.sum() < max(20, 0.25 * count):
-            raise CalibrationError(f"the ball's outline is not clear enough: {good.sum()} of {count} edge profiles usable")
+            raise CalibrationError(
+                f"the ball's outline is not clear enough: {good.sum()} of {count} edge profiles usable"
+            )
         fitted = Ellipse.from_cv(cv2.fitEllipse(edge[good].astype(np.float32)))
         dev = (fitted.normalised_radius(edge) - 1.0) * min(fitted.semi_axes)
         mad = 1.4826 * np.median(np.abs(dev[good] - np.median(dev[good])))
@@ -458,9 +470,19 @@ def detect_silhouette(image, *, method: str = "ellipse", profiles: int | None = 
     lsf = -np.gradient(esf, step)
     lsf = np.clip(0.5 * (lsf + lsf[::-1]), 0.0, None)
     lsf = lsf / lsf.sum() if lsf.sum() > 0 else np.eye(1, t.size, m)[0]
-    return Silhouette(points, normals, ellipse, "ellipse", (x1, x2), blur,
-                      (float(np.median(a_out[good])), float(np.median(a_in[good]))), rejected, (h, w),
-                      curvature[good], (t, lsf))  # fmt: skip
+    return Silhouette(
+        points,
+        normals,
+        ellipse,
+        "ellipse",
+        (x1, x2),
+        blur,
+        (float(np.median(a_out[good])), float(np.median(a_in[good]))),
+        rejected,
+        (h, w),
+        curvature[good],
+        (t, lsf),
+    )
 
 
 # --- the centre -----------------------------------------------------------------------------------
@@ -490,8 +512,15 @@ def _mean_reflectance(ball_index, cos_i: np.ndarray) -> np.ndarray:
     return (0.5 * (np.abs(r_s) ** 2 + np.abs(r_p) ** 2)).mean(axis=1)
 
 
-def fresnel_rim_shift_px(kappa, sin_beta: float, ball_index, window_px: tuple[float, float], curvature: float = 0.0,
-                         line_spread=None, step: float = 0.05) -> np.ndarray:  # fmt: skip
+def fresnel_rim_shift_px(
+    kappa,
+    sin_beta: float,
+    ball_index,
+    window_px: tuple[float, float],
+    curvature: float = 0.0,
+    line_spread=None,
+    step: float = 0.05,
+) -> np.ndarray:
     """Outward shift (px) of the flux-balanced edge caused by the Fresnel rim.
 
     For a sharp silhouette, the profile a pixel ``δ`` inside the edge sees is the ball's
@@ -527,7 +556,7 @@ def fresnel_rim_shift_px(kappa, sin_beta: float, ball_index, window_px: tuple[fl
     blurred = np.stack([np.convolve(row, kernel, mode="same") for row in sharp])
 
     def profile_at(offsets):
-        return np.stack([np.interp(o, grid, b) for o, b in zip(offsets, blurred)])
+        return np.stack([np.interp(o, grid, b) for o, b in zip(offsets, blurred, strict=True)])
 
     shift, *_ = _flux_edges(profile_at, kappa.size, x1, x2, step, curvature, iterations=6)
     return shift
@@ -603,8 +632,9 @@ def solve_ball_centre(
             grid = np.linspace(kappa.min(), kappa.max(), 9) if np.ptp(kappa) > 0 else kappa[:1]
             # A straight edge blurred in 1-D, so no curvature weighting: the detection's
             # weighting undoes the 2-D blur of the curved outline, which the model lacks.
-            per_grid = fresnel_rim_shift_px(grid, sin_beta, ball_index, silhouette.window_px, 0.0,
-                                            silhouette.line_spread)  # fmt: skip
+            per_grid = fresnel_rim_shift_px(
+                grid, sin_beta, ball_index, silhouette.window_px, 0.0, silhouette.line_spread
+            )
             shift = np.interp(kappa, grid, per_grid) if grid.size > 1 else np.full(len(pts), per_grid[0])
             use = pts - shift[:, None] * normals
             d = _rays(k_inv, use)
@@ -628,9 +658,15 @@ def solve_ball_centre(
     naive = axis * radius / math.sin(half)
 
     fit_result = BallFit(
-        centre_camera=centre, sigma_camera=sigma, covariance_camera=covariance, residuals=residuals,
-        radius_m=radius, naive_centre_camera=naive, rim_shift_px=float(np.median(shift)), points_used=len(pts),
-    )  # fmt: skip
+        centre_camera=centre,
+        sigma_camera=sigma,
+        covariance_camera=covariance,
+        residuals=residuals,
+        radius_m=radius,
+        naive_centre_camera=naive,
+        rim_shift_px=float(np.median(shift)),
+        points_used=len(pts),
+    )
     if extrinsics is not None:
         rot, t = (np.asarray(x, dtype=float) for x in extrinsics)
         fit_result.centre_rig = rot.T @ (centre - t)
@@ -641,8 +677,13 @@ def solve_ball_centre(
 def calibrate_ball(image, rig: Rig, *, method: str = "ellipse") -> BallFit:
     """Silhouette and centre in one call, with the rig's intrinsics, extrinsics and ball."""
     silhouette = detect_silhouette(image, method=method)
-    fit = solve_ball_centre(silhouette, rig.camera.camera_matrix(), rig.ball.radius_m,
-                            extrinsics=rig.camera.pose.extrinsics(), ball_index=(rig.ball.n, rig.ball.k))  # fmt: skip
+    fit = solve_ball_centre(
+        silhouette,
+        rig.camera.camera_matrix(),
+        rig.ball.radius_m,
+        extrinsics=rig.camera.pose.extrinsics(),
+        ball_index=(rig.ball.n, rig.ball.k),
+    )
     fit.extra["silhouette"] = silhouette
     return fit
 
@@ -682,8 +723,9 @@ def _wrapped(angle: np.ndarray) -> np.ndarray:
     return np.abs((angle + math.pi) % (2.0 * math.pi) - math.pi)
 
 
-def angle_sensitivity(rig: Rig, light_pose: Pose, shift_m: float = 1e-3, *, plane_radius_m: float | None = None,
-                      max_pixels: int = 250_000) -> dict:  # fmt: skip
+def angle_sensitivity(
+    rig: Rig, light_pose: Pose, shift_m: float = 1e-3, *, plane_radius_m: float | None = None, max_pixels: int = 250_000
+) -> dict:
     """How far the recovered outgoing angles move when the ball is ``shift_m`` off.
 
     Chief rays of a grid of pixels on the ball are traced (``processing.trace``) with the
@@ -727,7 +769,11 @@ def angle_sensitivity(rig: Rig, light_pose: Pose, shift_m: float = 1e-3, *, plan
         d_theta = np.degrees(np.abs(moved.theta[use] - base_theta[use]))
         off_axis = base_theta[use] > math.radians(5.0)
         d_phi = np.degrees(_wrapped(moved.phi[use] - base_phi[use]))[off_axis]
-        cosang = np.clip(np.sum(direction(moved.theta[use], moved.phi[use]) * direction(base_theta[use], base_phi[use]), axis=1), -1, 1)
+        cosang = np.clip(
+            np.sum(direction(moved.theta[use], moved.phi[use]) * direction(base_theta[use], base_phi[use]), axis=1),
+            -1,
+            1,
+        )
         d_dir = np.degrees(np.arccos(cosang))
         d_uv = np.hypot(moved.u[use] - base_u[use], moved.v[use] - base_v[use]) * 1e3
         out[name] = {

@@ -117,14 +117,18 @@ def _far_field_table(model: LightModel, gamma_deg, c_deg) -> np.ndarray:
 def _scaling(path, model: LightModel, table: np.ndarray, calibration, lamp_lumens):
     """``(factor, lamp_flux, absolute)``: what multiplies the model's intensities, and the lamp flux."""
     if calibration is not None and lamp_lumens is not None:
-        raise ExportError(f"{path}: give calibration (absolute candela) or lamp_lumens (relative, lumen scaled), not both")
+        raise ExportError(
+            f"{path}: give calibration (absolute candela) or lamp_lumens (relative, lumen scaled), not both"
+        )
     flux = model.total_flux()
     if not (flux > 0) or not np.any(table > 0):
         raise ExportError(f"{path}: the light model emits no flux in front of its plane")
     if calibration is not None:
         calibration = float(calibration)
         if not (calibration > 0 and math.isfinite(calibration)):
-            raise ExportError(f"{path}: calibration: must be a positive factor (cd per model unit), got {calibration!r}")
+            raise ExportError(
+                f"{path}: calibration: must be a positive factor (cd per model unit), got {calibration!r}"
+            )
         return calibration, calibration * flux, True
     if lamp_lumens is not None:
         lamp_lumens = float(lamp_lumens)
@@ -190,11 +194,24 @@ def _describe(model: LightModel) -> tuple[str, str, str]:
     return run, rig, ", ".join(methods)
 
 
-def write_ies(model: LightModel, path, *, calibration: float | None = None, lamp_lumens: float | None = None,
-              vertical_step_deg: float = 1.0, vertical_max_deg: float = 90.0, horizontal_step_deg: float = 5.0,
-              manufacturer: str = "unknown", luminaire: str | None = None, lumcat: str | None = None,
-              test: str | None = None, testlab: str | None = None, issue_date: str | None = None,
-              file_generation_type: str | None = None, input_watts: float = 0.0) -> Path:  # fmt: skip
+def write_ies(
+    model: LightModel,
+    path,
+    *,
+    calibration: float | None = None,
+    lamp_lumens: float | None = None,
+    vertical_step_deg: float = 1.0,
+    vertical_max_deg: float = 90.0,
+    horizontal_step_deg: float = 5.0,
+    manufacturer: str = "unknown",
+    luminaire: str | None = None,
+    lumcat: str | None = None,
+    test: str | None = None,
+    testlab: str | None = None,
+    issue_date: str | None = None,
+    file_generation_type: str | None = None,
+    input_watts: float = 0.0,
+) -> Path:
     """Write the light's far field as an IES LM-63-2019 file (type C photometry).
 
     Parameters
@@ -252,21 +269,29 @@ def write_ies(model: LightModel, path, *, calibration: float | None = None, lamp
     if file_generation_type is None:
         file_generation_type = "1.01100" if lamp_lumens is not None else "1.01000"
     if file_generation_type not in FILE_GENERATION_TYPES:
-        raise ExportError(f"{path}: file_generation_type: {file_generation_type!r} is not a token of LM-63-2019 Table 2 "
-                          f"({', '.join(FILE_GENERATION_TYPES)})")  # fmt: skip
+        raise ExportError(
+            f"{path}: file_generation_type: {file_generation_type!r} is not a token of LM-63-2019 Table 2 "
+            f"({', '.join(FILE_GENERATION_TYPES)})"
+        )
     run, rig, methods = _describe(model)
     lo, hi = _theta_cover(model)
     length, width = _opening(model)
     today = _dt.date.today().isoformat()
     if absolute:
         units_word = "candela"
-        other = (f"Absolute photometry: candela = {calibration:.6g} cd per model unit x the model's {model.units} "
-                 "intensities.")  # fmt: skip
+        other = (
+            f"Absolute photometry: candela = {calibration:.6g} cd per model unit x the model's {model.units} "
+            "intensities."
+        )
     else:
         units_word = "relative intensity"
-        scaled = f"scaled to a lamp flux of {lamp_lumens:.6g} lm" if lamp_lumens is not None else "scaled to a peak of 1000"
-        other = (f"Relative intensity, not candela: the light model is {model.units} and uncalibrated "
-                 f"photometrically; values {scaled}, lumens per lamp is the flux of this table.")  # fmt: skip
+        scaled = (
+            f"scaled to a lamp flux of {lamp_lumens:.6g} lm" if lamp_lumens is not None else "scaled to a peak of 1000"
+        )
+        other = (
+            f"Relative intensity, not candela: the light model is {model.units} and uncalibrated "
+            f"photometrically; values {scaled}, lumens per lamp is the flux of this table."
+        )
     lines = ["IES:LM-63-2019"]
     lines += _keyword("TEST", test or f"mirrorgonio run {run}")
     lines += _keyword("TESTLAB", testlab or f"mirrorgonio mirror-ball goniophotometer, rig {rig}")
@@ -274,11 +299,15 @@ def write_ies(model: LightModel, path, *, calibration: float | None = None, lamp
     lines += _keyword("MANUFAC", manufacturer)
     lines += _keyword("LUMCAT", lumcat or run)
     lines += _keyword("LUMINAIRE", luminaire or f"near-field light model of {len(model.sources)} point sources")
-    lines += _keyword("FILEGENINFO", (
-        f"Far field (sum of the sources' intensities) of a light model fitted ({methods}) to a mirror-ball "
-        f"goniophotometer measurement, resampled on a {vertical_step_deg:g} x {horizontal_step_deg:g} degree grid. "
-        f"The measurement covered vertical angles {lo:.1f} to {hi:.1f} degrees; values outside are extrapolated "
-        f"from the fits. Generated by mirrorgonio {_software_version()} on {today}."))  # fmt: skip
+    lines += _keyword(
+        "FILEGENINFO",
+        (
+            f"Far field (sum of the sources' intensities) of a light model fitted ({methods}) to a mirror-ball "
+            f"goniophotometer measurement, resampled on a {vertical_step_deg:g} x {horizontal_step_deg:g} degree grid. "
+            f"The measurement covered vertical angles {lo:.1f} to {hi:.1f} degrees; values outside are extrapolated "
+            f"from the fits. Generated by mirrorgonio {_software_version()} on {today}."
+        ),
+    )
     lines += _keyword("OTHER", other)
     lines += _keyword("_UNITS", units_word)
     lines += _keyword("_SOFTWARE", f"mirrorgonio {_software_version()}")
@@ -293,9 +322,18 @@ def write_ies(model: LightModel, path, *, calibration: float | None = None, lamp
     return _write_text(path, lines, "\r\n")
 
 
-def write_ldt(model: LightModel, path, *, calibration: float | None = None, lamp_lumens: float | None = None,
-              c_step_deg: float = 15.0, gamma_step_deg: float = 5.0, company: str = "mirrorgonio",
-              luminaire: str | None = None, luminaire_number: str | None = None) -> Path:  # fmt: skip
+def write_ldt(
+    model: LightModel,
+    path,
+    *,
+    calibration: float | None = None,
+    lamp_lumens: float | None = None,
+    c_step_deg: float = 15.0,
+    gamma_step_deg: float = 5.0,
+    company: str = "mirrorgonio",
+    luminaire: str | None = None,
+    luminaire_number: str | None = None,
+) -> Path:
     """Write the light's far field as an EULUMDAT (``.ldt``) file.
 
     Parameters
@@ -356,16 +394,25 @@ def write_ldt(model: LightModel, path, *, calibration: float | None = None, lamp
         line(luminaire_number or run, 78),
         line(path.name, 8 + 4 + 66),
         line(f"{_dt.date.today().isoformat()} / mirrorgonio {_software_version()} / rig {rig}", 78),
-        _num(length), _num(width), "0",  # luminaire length, width, height (mm)
-        _num(length), _num(width), "0", "0", "0", "0",  # luminous area and its heights (mm)
-        "100", "100",  # DFF, LORL (%)
+        _num(length),
+        _num(width),
+        "0",  # luminaire length, width, height (mm)
+        _num(length),
+        _num(width),
+        "0",
+        "0",
+        "0",
+        "0",  # luminous area and its heights (mm)
+        "100",
+        "100",  # DFF, LORL (%)
         "1",  # conversion factor for luminous intensities
         "0",  # tilt during measurement
         "1",  # one standard set of lamps
         "1",  # number of lamps
         "mirrorgonio (candela)" if absolute else "mirrorgonio (relative)",  # lamp type, 24 characters at most
         _num(lamp_flux),  # total luminous flux of the lamps (relative units unless calibrated)
-        "", "",  # colour appearance, colour rendering
+        "",
+        "",  # colour appearance, colour rendering
         "0",  # wattage including ballast
     ]
     lines += ["0"] * 10  # direct ratios, not computed
@@ -377,11 +424,37 @@ def write_ldt(model: LightModel, path, *, calibration: float | None = None, lamp
 
 # --------------------------------------------------------------------------- TM-25-13
 
-TM25_COLUMNS = ("x", "y", "z", "kx", "ky", "kz", "phi", "lambda", "Tri_Y", "S1", "S2", "S3",
-                "PolEllipseX", "PolEllipseY", "PolEllipseZ", "Tri_X", "Tri_Z", "spectrumIdx")  # fmt: skip
+TM25_COLUMNS = (
+    "x",
+    "y",
+    "z",
+    "kx",
+    "ky",
+    "kz",
+    "phi",
+    "lambda",
+    "Tri_Y",
+    "S1",
+    "S2",
+    "S3",
+    "PolEllipseX",
+    "PolEllipseY",
+    "PolEllipseZ",
+    "Tri_X",
+    "Tri_Z",
+    "spectrumIdx",
+)
 """The standard ray columns in file order (``phi`` radiant flux W, ``Tri_Y`` luminous flux lm)."""
-_FLAG_NAMES = ("position", "direction", "radiant_flux", "wavelength", "luminous_flux", "stokes",
-               "tristimulus", "spectrum_index")  # fmt: skip
+_FLAG_NAMES = (
+    "position",
+    "direction",
+    "radiant_flux",
+    "wavelength",
+    "luminous_flux",
+    "stokes",
+    "tristimulus",
+    "spectrum_index",
+)
 _FLAG_COLUMNS = {
     "position": ("x", "y", "z"),
     "direction": ("kx", "ky", "kz"),
@@ -392,8 +465,17 @@ _FLAG_COLUMNS = {
     "tristimulus": ("Tri_X", "Tri_Z"),
     "spectrum_index": ("spectrumIdx",),
 }
-_TEXT_FIELDS = ("name", "manufacturer", "model_creator", "rayfile_creator", "equipment", "camera",
-                "light_source_operation", "additional_info", "data_reference")  # fmt: skip
+_TEXT_FIELDS = (
+    "name",
+    "manufacturer",
+    "model_creator",
+    "rayfile_creator",
+    "equipment",
+    "camera",
+    "light_source_operation",
+    "additional_info",
+    "data_reference",
+)
 _HEADER = struct.Struct("<4siiffQ28siifffiii168x")  # 4.7.1, 256 bytes
 _TEXT_START, _TEXT_BYTES, _SPECTRA_START = 288, 4000, 36288
 assert _HEADER.size == 256
@@ -449,8 +531,16 @@ def _allocate(fluxes: np.ndarray, n_rays: int) -> np.ndarray:
     return counts
 
 
-def write_tm25(model: LightModel, path, n_rays: int, *, seed: int, name: str | None = None,
-               manufacturer: str = "unknown", creation_method: int = 1) -> Path:  # fmt: skip
+def write_tm25(
+    model: LightModel,
+    path,
+    n_rays: int,
+    *,
+    seed: int,
+    name: str | None = None,
+    manufacturer: str = "unknown",
+    creation_method: int = 1,
+) -> Path:
     """Write the light's near field as an IES TM-25-13 binary ray file.
 
     Rays are sampled from the near-field model: each source gets a share of ``n_rays``
@@ -490,17 +580,21 @@ def write_tm25(model: LightModel, path, n_rays: int, *, seed: int, name: str | N
     if isinstance(n_rays, bool) or not isinstance(n_rays, (int, np.integer)) or n_rays < 1:
         raise ExportError(f"{path}: n_rays: must be a positive integer, got {n_rays!r}")
     if creation_method not in (0, 1):
-        raise ExportError(f"{path}: creation_method: must be 0 (simulation) or 1 (measurement), got {creation_method!r}")
+        raise ExportError(
+            f"{path}: creation_method: must be 0 (simulation) or 1 (measurement), got {creation_method!r}"
+        )
     fluxes = np.array([s.flux() for s in model.sources])
     if not np.all(np.isfinite(fluxes)) or not fluxes.sum() > 0:
         raise ExportError(f"{path}: the light model emits no flux in front of its plane")
     if n_rays < int(np.count_nonzero(fluxes > 0)):
-        raise ExportError(f"{path}: n_rays: {n_rays} is fewer than the {int(np.count_nonzero(fluxes > 0))} emitting sources")
+        raise ExportError(
+            f"{path}: n_rays: {n_rays} is fewer than the {int(np.count_nonzero(fluxes > 0))} emitting sources"
+        )
     rng = np.random.default_rng(seed)
     counts = _allocate(fluxes, int(n_rays))
     rays = np.empty((int(n_rays), 7), dtype=np.float64)
     row = 0
-    for s, flux, k in zip(model.sources, fluxes, counts):
+    for s, flux, k in zip(model.sources, fluxes, counts, strict=True):
         if k == 0:
             continue
         r = s.radius_m * np.sqrt(rng.random(k))
@@ -524,14 +618,31 @@ def write_tm25(model: LightModel, path, n_rays: int, *, seed: int, name: str | N
         "equipment": f"mirror-ball goniophotometer, rig {prov.get('rig') or 'unknown'}",
         "camera": str(prov.get("camera") or ""),
         "light_source_operation": str(prov.get("operation") or ""),
-        "additional_info": (f"Rays sampled (seed {seed}) from a near-field model of {len(model.sources)} point sources "
-                            f"on emitting discs; ray flux column phi in {unit_note}; positions in mm in the light "
-                            f"frame (emission towards +z)."),  # fmt: skip
+        "additional_info": (
+            f"Rays sampled (seed {seed}) from a near-field model of {len(model.sources)} point sources "
+            f"on emitting discs; ray flux column phi in {unit_note}; positions in mm in the light "
+            f"frame (emission towards +z)."
+        ),
         "data_reference": f"run {run}, file {prov.get('run_file') or 'unknown'}",
     }
-    now = _dt.datetime.now(_dt.timezone.utc).replace(microsecond=0).isoformat()
-    header = _HEADER.pack(b"TM25", 2013, int(creation_method), float("nan"), total, int(n_rays),
-                          now.encode("ascii")[:28], 0, 0, float("nan"), float("nan"), float("nan"), 0, 0, 0)  # fmt: skip
+    now = _dt.datetime.now(_dt.UTC).replace(microsecond=0).isoformat()
+    header = _HEADER.pack(
+        b"TM25",
+        2013,
+        int(creation_method),
+        float("nan"),
+        total,
+        int(n_rays),
+        now.encode("ascii")[:28],
+        0,
+        0,
+        float("nan"),
+        float("nan"),
+        float("nan"),
+        0,
+        0,
+        0,
+    )
     flags = struct.pack("<8i", 1, 1, 1, 0, 0, 0, 0, 0)
     text = b"".join(_utf32(texts[k], _TEXT_BYTES) for k in _TEXT_FIELDS)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -584,25 +695,44 @@ def read_tm25(path) -> tuple[dict, np.ndarray]:
             head = f.read(_SPECTRA_START)
             if len(head) < _SPECTRA_START:
                 raise TM25Error(f"{path}: {len(head)} bytes, shorter than a TM-25 header ({_SPECTRA_START} bytes)")
-            (magic, version, method, lum, rad, n_rays, date, start, spectrum, lam, lam_min, lam_max,
-             n_spectra, n_addtl, addtl_text) = _HEADER.unpack_from(head, 0)  # fmt: skip
+            (
+                magic,
+                version,
+                method,
+                lum,
+                rad,
+                n_rays,
+                date,
+                start,
+                spectrum,
+                lam,
+                lam_min,
+                lam_max,
+                n_spectra,
+                n_addtl,
+                addtl_text,
+            ) = _HEADER.unpack_from(head, 0)
             if magic != b"TM25":
                 raise TM25Error(f"{path}: not a TM-25 ray file (file type {magic!r}, expected b'TM25')")
             if version != 2013:
                 raise TM25Error(f"{path}: file version: {version}, this reader knows TM-25-13 (2013)")
             flag_values = struct.unpack_from("<8i", head, 256)
             flags = {}
-            for name, value in zip(_FLAG_NAMES, flag_values):
+            for name, value in zip(_FLAG_NAMES, flag_values, strict=True):
                 if value not in (0, 1):
                     raise TM25Error(f"{path}: {name} flag: {value}, must be 0 or 1")
                 flags[name] = bool(value)
             if not (flags["position"] and flags["direction"]):
-                raise TM25Error(f"{path}: position and direction flags must be 1, are {flag_values[0]} and {flag_values[1]}")
+                raise TM25Error(
+                    f"{path}: position and direction flags must be 1, are {flag_values[0]} and {flag_values[1]}"
+                )
             if not (flags["radiant_flux"] or flags["luminous_flux"]):
                 raise TM25Error(f"{path}: neither the radiant nor the luminous flux flag is set")
             if n_spectra < 0 or n_addtl < 0 or addtl_text < 0 or addtl_text % 4:
-                raise TM25Error(f"{path}: header: negative counts or a text size that is not whole characters "
-                                f"(spectra {n_spectra}, items {n_addtl}, text {addtl_text} bytes)")  # fmt: skip
+                raise TM25Error(
+                    f"{path}: header: negative counts or a text size that is not whole characters "
+                    f"(spectra {n_spectra}, items {n_addtl}, text {addtl_text} bytes)"
+                )
             texts = {
                 k: _from_utf32(head[_TEXT_START + i * _TEXT_BYTES : _TEXT_START + (i + 1) * _TEXT_BYTES])
                 for i, k in enumerate(_TEXT_FIELDS)

@@ -263,8 +263,21 @@ class IntensityFit:
         """Rebuild a fit from :meth:`to_dict`'s record (:class:`FitError` naming a bad field)."""
         if not isinstance(d, dict):
             raise FitError(f"fit record: expected an object, got {type(d).__name__}")
-        missing = [k for k in ("method", "params", "uncertainties", "covariance", "residuals", "chi2_reduced",
-                               "n_samples", "theta_range", "phi_range") if k not in d]  # fmt: skip
+        missing = [
+            k
+            for k in (
+                "method",
+                "params",
+                "uncertainties",
+                "covariance",
+                "residuals",
+                "chi2_reduced",
+                "n_samples",
+                "theta_range",
+                "phi_range",
+            )
+            if k not in d
+        ]
         if missing:
             raise FitError(f"fit record: missing {', '.join(missing)}")
         method = d["method"]
@@ -283,7 +296,10 @@ class IntensityFit:
             raise FitError(f"fit record: {e}") from None
         expected = _expected_params(method, params)
         if set(params) != expected:
-            raise FitError(f"fit record: params: {method} needs {', '.join(sorted(expected))}, got {', '.join(sorted(params)) or 'none'}")
+            raise FitError(
+                f"fit record: params: {method} needs {', '.join(sorted(expected))}, got "
+                f"{', '.join(sorted(params)) or 'none'}"
+            )
         if covariance.shape != (len(params), len(params)):
             raise FitError(f"fit record: covariance: shape {covariance.shape}, expected {(len(params),) * 2}")
         if len(theta_range) != 2 or len(phi_range) != 2:
@@ -291,8 +307,7 @@ class IntensityFit:
         info = d.get("info", {})
         if not isinstance(info, dict):
             raise FitError("fit record: info: expected an object")
-        return cls(method, params, uncertainties, covariance, residuals,
-                   chi2, n, theta_range, phi_range, info)  # fmt: skip
+        return cls(method, params, uncertainties, covariance, residuals, chi2, n, theta_range, phi_range, info)
 
     def __eq__(self, other) -> bool:
         if not isinstance(other, IntensityFit):
@@ -338,7 +353,7 @@ def _ranges(samples: Samples) -> tuple[tuple[float, float], tuple[float, float]]
 
 
 def _result(method, names, popt, pcov, samples: Samples, info=None) -> IntensityFit:
-    params = {k: float(v) for k, v in zip(names, popt)}
+    params = {k: float(v) for k, v in zip(names, popt, strict=True)}
     pcov = np.asarray(pcov, dtype=float)
     info = dict(info or {})
     with np.errstate(invalid="ignore"):
@@ -354,8 +369,18 @@ def _result(method, names, popt, pcov, samples: Samples, info=None) -> Intensity
     dof = len(samples) - len(names)
     chi2 = float(np.sum((residuals / samples.sigma) ** 2) / dof)
     theta_range, phi_range = _ranges(samples)
-    return IntensityFit(method, params, {k: float(e) for k, e in zip(names, errors)}, pcov, residuals,
-                        chi2, len(samples), theta_range, phi_range, info)  # fmt: skip
+    return IntensityFit(
+        method,
+        params,
+        {k: float(e) for k, e in zip(names, errors, strict=True)},
+        pcov,
+        residuals,
+        chi2,
+        len(samples),
+        theta_range,
+        phi_range,
+        info,
+    )
 
 
 def _curve_fit(method, f, samples: Samples, p0, bounds=(-np.inf, np.inf)):
@@ -364,8 +389,9 @@ def _curve_fit(method, f, samples: Samples, p0, bounds=(-np.inf, np.inf)):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", OptimizeWarning)
         try:
-            popt, pcov = curve_fit(f, x, samples.intensity, p0=p0, sigma=samples.sigma, absolute_sigma=True,
-                                   bounds=bounds, maxfev=20000)  # fmt: skip
+            popt, pcov = curve_fit(
+                f, x, samples.intensity, p0=p0, sigma=samples.sigma, absolute_sigma=True, bounds=bounds, maxfev=20000
+            )
         except RuntimeError as e:
             raise FitError(f"{who}: did not converge ({str(e).splitlines()[0]})") from None
         except ValueError as e:
@@ -450,8 +476,11 @@ def _fit_gaussian_2d(samples: Samples, *, min_phi_span: float = math.radians(60.
     _, span = _angle_arc(2.0 * samples.phi[off_axis])  # azimuth modulo π, doubled
     span *= 0.5
     if span < min_phi_span:
-        raise FitError(f"{who}: the samples span only {math.degrees(span):.1f}° of azimuth (modulo 180°), "
-                       f"an elliptical lobe needs {math.degrees(min_phi_span):.0f}°: use a 1-D method or a schedule that covers azimuth")  # fmt: skip
+        raise FitError(
+            f"{who}: the samples span only {math.degrees(span):.1f}° of azimuth (modulo 180°), "
+            f"an elliptical lobe needs {math.degrees(min_phi_span):.0f}°: use a 1-D method or a schedule that "
+            "covers azimuth"
+        )
     t, p = samples.theta, samples.phi
     x, y = t * np.cos(p), t * np.sin(p)
     a0, s10, s20, phi0 = float(np.max(samples.intensity)), max(float(np.max(t)), 1e-3), None, 0.0
@@ -477,8 +506,7 @@ def _fit_gaussian_2d(samples: Samples, *, min_phi_span: float = math.radians(60.
         popt, pcov = popt[swap], pcov[np.ix_(swap, swap)]
         popt[3] += 0.5 * math.pi
     popt[3] = popt[3] % math.pi  # the lobe repeats every 180°
-    return _result(method, ["a", "sigma1", "sigma2", "phi0"], popt, pcov, samples,
-                   {"phi_span_mod_pi": span})  # fmt: skip
+    return _result(method, ["a", "sigma1", "sigma2", "phi0"], popt, pcov, samples, {"phi_span_mod_pi": span})
 
 
 def _wls(theta: np.ndarray, y: np.ndarray, sigma: np.ndarray, degree: int):
@@ -497,8 +525,9 @@ def _wls(theta: np.ndarray, y: np.ndarray, sigma: np.ndarray, degree: int):
     return coef, cov
 
 
-def _fit_polynomial(samples: Samples, *, degree: int | None = None, max_degree: int = 8, folds: int = 5,
-                    rule: str = "one-se") -> IntensityFit:  # fmt: skip
+def _fit_polynomial(
+    samples: Samples, *, degree: int | None = None, max_degree: int = 8, folds: int = 5, rule: str = "one-se"
+) -> IntensityFit:
     """``I = Σ_k c_k θ^k``: weighted linear least squares, degree by K-fold cross-validation.
 
     The samples are sorted by θ and dealt round-robin into ``folds`` folds, so that each
@@ -544,14 +573,19 @@ def _fit_polynomial(samples: Samples, *, degree: int | None = None, max_degree: 
                 scores[str(d)] = float(np.mean(per_fold))
                 errors[str(d)] = float(np.std(per_fold, ddof=1) / math.sqrt(k))
         if not scores:
-            raise FitError(f"{who}: {n} samples at {len(np.unique(samples.theta))} distinct θ are too few to choose a degree by cross-validation")
+            raise FitError(
+                f"{who}: {n} samples at {len(np.unique(samples.theta))} distinct θ are too few to choose a "
+                "degree by cross-validation"
+            )
         best = min(scores, key=lambda d: (scores[d], int(d)))
         limit = scores[best] + (errors[best] if rule == "one-se" else 0.0)
         degree = min(int(d) for d in scores if scores[d] <= limit)
         info.update(degree_source="cross-validation", rule=rule, folds=k, cv_scores=scores, cv_errors=errors)
     fit = _wls(samples.theta, samples.intensity, samples.sigma, degree)
     if fit is None:
-        raise FitError(f"{who}: degree {degree} is not determined by samples at {len(np.unique(samples.theta))} distinct θ")
+        raise FitError(
+            f"{who}: degree {degree} is not determined by samples at {len(np.unique(samples.theta))} distinct θ"
+        )
     info["degree"] = degree
     return _result(method, [f"c{k}" for k in range(degree + 1)], fit[0], fit[1], samples, info)
 
@@ -613,5 +647,7 @@ def fit_intensity(samples: Samples, method: str = "gaussian", **options) -> Inte
     allowed = [p.name for p in inspect.signature(estimator).parameters.values() if p.kind is p.KEYWORD_ONLY]
     unknown = sorted(set(options) - set(allowed))
     if unknown:
-        raise FitError(f"{_label(method, samples)}: unknown option {', '.join(unknown)} (allowed: {', '.join(allowed) or 'none'})")
+        raise FitError(
+            f"{_label(method, samples)}: unknown option {', '.join(unknown)} (allowed: {', '.join(allowed) or 'none'})"
+        )
     return estimator(samples, **options)

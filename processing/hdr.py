@@ -250,8 +250,23 @@ def _merge_pixel(frames, y, x, desc, exposures, inv_t, shortest, thr, b, room, x
 
 
 @numba.njit(parallel=True, cache=True, fastmath=_FAST, error_model="numpy")  # x / 0 is no exception
-def _merge_kernel(frames, exposures, desc, black, threshold, room, inv_gain, read_var, near_black, optimal, shortcut,
-                  radiance, variance, count, saturated):  # fmt: skip
+def _merge_kernel(
+    frames,
+    exposures,
+    desc,
+    black,
+    threshold,
+    room,
+    inv_gain,
+    read_var,
+    near_black,
+    optimal,
+    shortcut,
+    radiance,
+    variance,
+    count,
+    saturated,
+):
     """Fills ``radiance``, ``variance``, ``count``, ``saturated``.
 
     ``desc``: the frames in decreasing exposure (ties in index order); ``threshold``: per
@@ -343,8 +358,22 @@ def _merge_kernel(frames, exposures, desc, black, threshold, room, inv_gain, rea
                 if rest or not shortcut:
                     for j in range(n):
                         if not (dark[j] and shortcut):
-                            r, vr, nn = _merge_pixel(frames, y, xs + j, desc, exposures, inv_t, shortest, thr[j], b[j],
-                                                     lim[j], x0[j], inv_gain, read_var, near_black)  # fmt: skip
+                            r, vr, nn = _merge_pixel(
+                                frames,
+                                y,
+                                xs + j,
+                                desc,
+                                exposures,
+                                inv_t,
+                                shortest,
+                                thr[j],
+                                b[j],
+                                lim[j],
+                                x0[j],
+                                inv_gain,
+                                read_var,
+                                near_black,
+                            )
                             rad[j] = r
                             var_out[j] = vr
                             cnt[j] = nn
@@ -386,8 +415,17 @@ def _check_bracket(frames, exposures) -> tuple[np.ndarray, np.ndarray]:
     return np.ascontiguousarray(frames), exposures
 
 
-def merge_raw(frames, exposures, black_level, white_level: int, noise: NoiseModel, *, method: str = "optimal",
-              saturation_level=None, near_black_sigma: float = 2.0) -> MergeResult:  # fmt: skip
+def merge_raw(
+    frames,
+    exposures,
+    black_level,
+    white_level: int,
+    noise: NoiseModel,
+    *,
+    method: str = "optimal",
+    saturation_level=None,
+    near_black_sigma: float = 2.0,
+) -> MergeResult:
     """Merge one position's raw bracket.
 
     Parameters
@@ -424,9 +462,15 @@ def merge_raw(frames, exposures, black_level, white_level: int, noise: NoiseMode
         threshold = levels - 0.01 * (levels - black)
         read_var = noise.read_noise_dn**2 + 1.0 / 12.0
         radiance, variance, count, saturated = _run_merge(
-            frames, exposures, black, threshold, 1.0 / noise.gain_e_per_dn, read_var,
-            near_black_sigma * math.sqrt(read_var), method == "optimal",
-        )  # fmt: skip
+            frames,
+            exposures,
+            black,
+            threshold,
+            1.0 / noise.gain_e_per_dn,
+            read_var,
+            near_black_sigma * math.sqrt(read_var),
+            method == "optimal",
+        )
     return MergeResult(radiance, variance, count, saturated, levels, noise, method)
 
 
@@ -438,15 +482,33 @@ def _run_merge(frames, exposures, black, threshold, inv_gain, read_var, near_bla
     desc = np.argsort(-exposures, kind="stable")  # longest first, ties in index order
     # Allocated by numpy (which asks Linux for huge pages) rather than in the kernel: the
     # first touch of these large outputs is cheaper, and its cost varies less.
-    out = (np.empty((h, w), np.float32), np.empty((h, w), np.float32), np.empty((h, w), np.uint8),
-           np.empty((h, w), np.bool_))  # fmt: skip
-    _merge_kernel(frames, exposures, desc, black, below, threshold - black, inv_gain, read_var, near_black, optimal,
-                  shortcut, *out)  # fmt: skip
+    out = (
+        np.empty((h, w), np.float32),
+        np.empty((h, w), np.float32),
+        np.empty((h, w), np.uint8),
+        np.empty((h, w), np.bool_),
+    )
+    _merge_kernel(
+        frames,
+        exposures,
+        desc,
+        black,
+        below,
+        threshold - black,
+        inv_gain,
+        read_var,
+        near_black,
+        optimal,
+        shortcut,
+        *out,
+    )
     return out
 
 
-RAW_METHODS = {"optimal": "minimum-variance weights t²/σ² (Granados 2010, Hanji 2020)",
-               "poisson": "Σ y / Σ t, optimal for shot noise alone (HDRutils)"}  # fmt: skip
+RAW_METHODS = {
+    "optimal": "minimum-variance weights t²/σ² (Granados 2010, Hanji 2020)",
+    "poisson": "Σ y / Σ t, optimal for shot noise alone (HDRutils)",
+}
 
 
 # --- noise model from the data ------------------------------------------------------------------
@@ -633,8 +695,9 @@ def _pair_bins(frames, a, b, r, black, limit, bins):
     return count, mean_mu, var
 
 
-def estimate_noise(frames, exposures, black_level, *, saturation_level=None, white_level: int = 65535,
-                   bins: int = 24) -> NoiseModel:  # fmt: skip
+def estimate_noise(
+    frames, exposures, black_level, *, saturation_level=None, white_level: int = 65535, bins: int = 24
+) -> NoiseModel:
     """Gain and read noise from a bracket itself, without flat fields or repeated frames.
 
     For two exposures ``t_a < t_b`` of a static scene, ``d = y_a − (t_a / t_b) y_b`` has

@@ -118,8 +118,14 @@ def encode_png(image: np.ndarray, level: int = 1) -> bytes:
     rows[:, 0] = 0  # filter type "None" before every row
     rows[:, 1:] = image.reshape(h, 3 * w)
     header = struct.pack(">IIBBBBB", w, h, 8, 2, 0, 0, 0)  # 8 bits, truecolour, deflate, no interlace
-    return b"".join((_PNG_SIGNATURE, _png_chunk(b"IHDR", header),
-                     _png_chunk(b"IDAT", isal_zlib.compress(rows, level)), _png_chunk(b"IEND", b"")))  # fmt: skip
+    return b"".join(
+        (
+            _PNG_SIGNATURE,
+            _png_chunk(b"IHDR", header),
+            _png_chunk(b"IDAT", isal_zlib.compress(rows, level)),
+            _png_chunk(b"IEND", b""),
+        )
+    )
 
 
 def write_png(path: str | Path, rgb: np.ndarray, max_width: int = 1000) -> Path:

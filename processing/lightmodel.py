@@ -51,8 +51,11 @@ def describe_fitted(record: dict, digits: str) -> str:
     """One of the camera's numbers fitted to the data, in words, from its record (the light
     model's provenance ``aperture_m`` or ``sensor_distance_m``; ``digits`` formats it in mm):
     "0.2004 mm fitted to the data (the rig says 0.2 mm; χ²/pixel 1.063 against 1.07)"."""
-    return (f"{1e3 * record['fitted_m']:{digits}} mm fitted to the data (the rig says {1e3 * record['described_m']:{digits}} "
-            f"mm; χ²/pixel {record['chi2_per_pixel']:.4g} against {record['chi2_per_pixel_described']:.4g})")
+    return (
+        f"{1e3 * record['fitted_m']:{digits}} mm fitted to the data (the rig says "
+        f"{1e3 * record['described_m']:{digits}} "
+        f"mm; χ²/pixel {record['chi2_per_pixel']:.4g} against {record['chi2_per_pixel_described']:.4g})"
+    )
 
 
 def samples_table(samples: Samples, positions=None, cell_sum_intensity=None) -> dict:
@@ -86,7 +89,9 @@ def samples_table(samples: Samples, positions=None, cell_sum_intensity=None) -> 
         table["cell_sum_intensity"] = [float(v) for v in np.asarray(cell_sum_intensity, dtype=float)]
     lengths = {k: len(v) for k, v in table.items()}
     if len(set(lengths.values())) != 1:
-        raise LightModelError(f"samples: columns differ in length ({', '.join(f'{k} {v}' for k, v in lengths.items())})")
+        raise LightModelError(
+            f"samples: columns differ in length ({', '.join(f'{k} {v}' for k, v in lengths.items())})"
+        )
     return table
 
 
@@ -126,7 +131,9 @@ class SourceModel:
         try:
             u, v = (float(c) for c in self.centre_m)
         except (TypeError, ValueError):
-            raise LightModelError(f"source {self.name!r}: centre_m must be two numbers (u, v), got {self.centre_m!r}") from None
+            raise LightModelError(
+                f"source {self.name!r}: centre_m must be two numbers (u, v), got {self.centre_m!r}"
+            ) from None
         self.centre_m = (u, v)
         self.radius_m = float(self.radius_m)
         if not (math.isfinite(u) and math.isfinite(v)):
@@ -140,7 +147,9 @@ class SourceModel:
         try:
             colour = np.asarray(self.colour, dtype=float).reshape(3)
         except (TypeError, ValueError):
-            raise LightModelError(f"source {self.name!r}: colour must be three numbers (R, G, B), got {self.colour!r}") from None
+            raise LightModelError(
+                f"source {self.name!r}: colour must be three numbers (R, G, B), got {self.colour!r}"
+            ) from None
         if not (np.all(np.isfinite(colour)) and np.all(colour > 0)):
             raise LightModelError(f"source {self.name!r}: colour must be three finite numbers > 0, got {self.colour!r}")
         mean = colour.mean()
@@ -375,13 +384,17 @@ class LightModel:
             raise LightModelError(f"{origin}: not a mirrorgonio light model (a JSON {type(d).__name__}, not an object)")
         fmt = d.get("format")
         if fmt != LIGHT_MODEL_FORMAT:
-            raise LightModelError(f"{origin}: not a mirrorgonio light model (format {fmt!r}, expected {LIGHT_MODEL_FORMAT!r})")
+            raise LightModelError(
+                f"{origin}: not a mirrorgonio light model (format {fmt!r}, expected {LIGHT_MODEL_FORMAT!r})"
+            )
         version = d.get("format_version")
         if isinstance(version, bool) or not isinstance(version, int) or version < 1:
             raise LightModelError(f"{origin}: format_version: {version!r} is not a version number")
         if version > LIGHT_MODEL_VERSION:
-            raise LightModelError(f"{origin}: format_version {version} is newer than this software reads "
-                                  f"(up to {LIGHT_MODEL_VERSION}): update mirrorgonio")  # fmt: skip
+            raise LightModelError(
+                f"{origin}: format_version {version} is newer than this software reads "
+                f"(up to {LIGHT_MODEL_VERSION}): update mirrorgonio"
+            )
         for key in ("units", "sources"):
             if key not in d:
                 raise LightModelError(f"{origin}: {key}: missing")
@@ -400,8 +413,16 @@ class LightModel:
             except FitError as e:
                 raise LightModelError(f"{where}.fit: {str(e).removeprefix('fit record: ')}") from None
             try:
-                sources.append(SourceModel(s["name"], tuple(s["centre_m"]), s["radius_m"], fit, s.get("samples", {}),
-                                           s.get("colour", (1.0, 1.0, 1.0))))  # files before colour: grey
+                sources.append(
+                    SourceModel(
+                        s["name"],
+                        tuple(s["centre_m"]),
+                        s["radius_m"],
+                        fit,
+                        s.get("samples", {}),
+                        s.get("colour", (1.0, 1.0, 1.0)),
+                    )
+                )  # files before colour: grey
             except (LightModelError, TypeError, ValueError) as e:
                 raise LightModelError(f"{where}: {e}") from None
         try:

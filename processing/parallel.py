@@ -153,8 +153,9 @@ class Compute:
         update each), and bounds the results held at once.
     """
 
-    def __init__(self, client=None, cluster=None, description: str = "this process (no Dask)",
-                 in_flight_per_thread: int = 4):  # fmt: skip
+    def __init__(
+        self, client=None, cluster=None, description: str = "this process (no Dask)", in_flight_per_thread: int = 4
+    ):
         self.client = client
         self.cluster = cluster
         self.description = description
@@ -177,8 +178,9 @@ class Compute:
     def max_in_flight(self) -> int:
         return self.threads() * self.in_flight_per_thread
 
-    def map_unordered(self, func: Callable, items: Iterable, *args: Any,
-                      on_result: Callable[[Any, Any], None], **kwargs: Any) -> None:  # fmt: skip
+    def map_unordered(
+        self, func: Callable, items: Iterable, *args: Any, on_result: Callable[[Any, Any], None], **kwargs: Any
+    ) -> None:
         """Call ``func(item, *args, **kwargs)`` for every item; ``on_result(item, result)`` as each completes.
 
         With Dask at most :meth:`max_in_flight` tasks are submitted at a time, the next
@@ -205,9 +207,8 @@ class Compute:
             # One graph update for the whole chunk: the scheduler's cost is per update as much as
             # per task (1.5 ms of this process's CPU a task when they went one by one).
             keys = [_task_key(func, f"{token}-{next(count)}") for _ in chunk]
-            futures = self.client.map(func, chunk, *[[a] * len(chunk) for a in args], key=keys, pure=False,
-                                      **kwargs)  # fmt: skip
-            running.update({f.key: (f, item) for f, item in zip(futures, chunk)})
+            futures = self.client.map(func, chunk, *[[a] * len(chunk) for a in args], key=keys, pure=False, **kwargs)
+            running.update({f.key: (f, item) for f, item in zip(futures, chunk, strict=True)})
             return futures
 
         # with_results: the client fetches each result as its task ends, in its event loop, rather
@@ -273,8 +274,13 @@ class Compute:
         return f"Compute({self.description})"
 
 
-def open_compute(scheduler: str | None = LOCAL, *, workers: int | None = None, timeout_s: float = 30.0,
-                 warm_up: Callable[[], None] | None = None) -> Compute:  # fmt: skip
+def open_compute(
+    scheduler: str | None = LOCAL,
+    *,
+    workers: int | None = None,
+    timeout_s: float = 30.0,
+    warm_up: Callable[[], None] | None = None,
+) -> Compute:
     """Start or reach the Dask cluster that ``scheduler`` names.
 
     Parameters
@@ -313,9 +319,15 @@ def open_compute(scheduler: str | None = LOCAL, *, workers: int | None = None, t
             with dask.config.set(LOCAL_CLUSTER_CONFIG):
                 # No dashboard; the scheduler's small HTTP server (health, metrics) on a free
                 # port rather than 8787, which another cluster may hold.
-                cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, host="127.0.0.1",
-                                       dashboard_address=None, scheduler_kwargs={"dashboard_address": "127.0.0.1:0"},
-                                       silence_logs=logging.ERROR)  # fmt: skip
+                cluster = LocalCluster(
+                    n_workers=n,
+                    threads_per_worker=1,
+                    processes=True,
+                    host="127.0.0.1",
+                    dashboard_address=None,
+                    scheduler_kwargs={"dashboard_address": "127.0.0.1:0"},
+                    silence_logs=logging.ERROR,
+                )
         except Exception as exc:  # noqa: BLE001 - any failure to start is one line for the user
             raise ComputeError(f"cannot start a local Dask cluster of {n} workers: {exc}") from None
         try:
@@ -325,12 +337,16 @@ def open_compute(scheduler: str | None = LOCAL, *, workers: int | None = None, t
             raise ComputeError(f"cannot connect to the local Dask cluster: {exc}") from None
         return _warmed(Compute(client, cluster, f"local Dask cluster: {n} worker processes x 1 thread"), warm_up)
     if not name.startswith(_ADDRESS_SCHEMES):
-        raise ComputeError(f"--scheduler: {name!r} is not 'local', 'none', 'synchronous' or a Dask scheduler "
-                           "address such as tcp://HOST:8786")  # fmt: skip
+        raise ComputeError(
+            f"--scheduler: {name!r} is not 'local', 'none', 'synchronous' or a Dask scheduler "
+            "address such as tcp://HOST:8786"
+        )
     try:
         client = Client(name, timeout=timeout_s)
     except Exception as exc:  # noqa: BLE001 - OSError, TimeoutError, CommClosedError ...
-        raise ComputeError(f"--scheduler {name}: cannot reach the Dask scheduler ({' '.join(str(exc).split()) or type(exc).__name__})") from None
+        raise ComputeError(
+            f"--scheduler {name}: cannot reach the Dask scheduler ({' '.join(str(exc).split()) or type(exc).__name__})"
+        ) from None
     try:
         client.wait_for_workers(1, timeout=timeout_s)
     except Exception:  # noqa: BLE001

@@ -31,11 +31,20 @@ from pathlib import Path
 import numba
 import numpy as np
 
-from acquisition.runfile import RunFile, RunFileError
+from drivers.contracts.runfile import RunFile, RunFileError
 from processing.hdr import HDRError, NoiseModel, estimate_noise, merge_raw, superpixels
 from processing.parallel import Compute, in_dask_worker, tune_malloc
-from processing.results import (HDRInfo, Results, ResultsError, ResultsWriter, encode_hdr, position_file_for,
-                                results_path_for, stored_variance, write_position_file)
+from processing.results import (
+    HDRInfo,
+    Results,
+    ResultsError,
+    ResultsWriter,
+    encode_hdr,
+    position_file_for,
+    results_path_for,
+    stored_variance,
+    write_position_file,
+)
 from processing.steps import STEPS, StepsError, resolve_steps
 
 log = logging.getLogger("mirrorgonio.processing")
@@ -72,7 +81,9 @@ class ProcessReport:
     estimator_reason: str = ""
     layout_search: str = ""  # how the sources were found in the data (empty when a layout was given)
     aperture_fit: dict = field(default_factory=dict)  # the aperture fitted to the data (fit_aperture), or why it failed
-    sensor_distance_fit: dict = field(default_factory=dict)  # the sensor distance fitted to the data (fit_sensor_distance)
+    sensor_distance_fit: dict = field(
+        default_factory=dict
+    )  # the sensor distance fitted to the data (fit_sensor_distance)
     spatial_resolution_m: float = float("nan")
     n_positions: int = 0
     partial: bool = False
@@ -118,10 +129,12 @@ def gain_mismatch(noise: NoiseModel, rig_gain: float) -> tuple[int, str] | None:
         return None
     warn = abs(off) > GAIN_MISMATCH_WARNING
     advice = "; check the camera's calibration" if warn else ""
-    return (logging.WARNING if warn else logging.INFO,
-            f"the noise model's gain ({noise.source}, {noise.gain_e_per_dn:.4g} e-/DN) differs from the rig's calibrated "
-            f"gain ({rig_gain:.4g} e-/DN) by {100 * off:+.1f} %: the merge is weighted with it, intensities use the "
-            f"rig's{advice}")  # fmt: skip
+    return (
+        logging.WARNING if warn else logging.INFO,
+        f"the noise model's gain ({noise.source}, {noise.gain_e_per_dn:.4g} e-/DN) differs from the rig's calibrated "
+        f"gain ({rig_gain:.4g} e-/DN) by {100 * off:+.1f} %: the merge is weighted with it, intensities use the "
+        f"rig's{advice}",
+    )
 
 
 def _report_gain_mismatch(run: RunFile, noise: NoiseModel) -> None:
@@ -151,8 +164,12 @@ def _noise_estimate_at(index: int, run_path: str) -> NoiseModel | None:
         if len(run.exposures(index)) < 2:
             return None
         try:
-            return estimate_noise(run.frames(index), run.exposures(index), run.black_level(index)[0],
-                                  white_level=int(run.white_level(index)[0]))  # fmt: skip
+            return estimate_noise(
+                run.frames(index),
+                run.exposures(index),
+                run.black_level(index)[0],
+                white_level=int(run.white_level(index)[0]),
+            )
         except HDRError as exc:
             log.info("position %d: %s", index, exc)
             return None
@@ -166,8 +183,9 @@ def choose_noise(run: RunFile, positions: np.ndarray, mode: str, compute: Comput
         return from_rig
     sample = positions[np.linspace(0, len(positions) - 1, min(5, len(positions))).astype(int)]
     found: dict[int, NoiseModel | None] = {}
-    (compute or Compute()).map_unordered(_noise_estimate_at, [int(i) for i in sample], str(run.path),
-                                         on_result=found.__setitem__)  # fmt: skip
+    (compute or Compute()).map_unordered(
+        _noise_estimate_at, [int(i) for i in sample], str(run.path), on_result=found.__setitem__
+    )
     estimates = [found[int(i)] for i in sample if found.get(int(i)) is not None]
     if not estimates:
         if mode == "estimated":
@@ -215,6 +233,7 @@ def warm_up_worker() -> None:
     square = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]])
     _convex_coverage(square, np.linspace(-0.5, 1.5, 5), np.linspace(-0.5, 1.5, 5), 0.5)
     warm_up_drawing()  # the workers draw report sections at the end of a run
+
 
 @dataclass(frozen=True)
 class _HDRWork:
@@ -405,8 +424,10 @@ def _write_images(folder: Path, index: int, radiance: np.ndarray, cfa: str) -> d
     from processing.images import write_exr, write_png
 
     rgb = superpixels(radiance, cfa, nonfinite=0.0)
-    return {"exr": write_exr(folder / f"position-{index:03d}.exr", rgb),
-            "png": write_png(folder / f"position-{index:03d}.png", rgb)}  # fmt: skip
+    return {
+        "exr": write_exr(folder / f"position-{index:03d}.exr", rgb),
+        "png": write_png(folder / f"position-{index:03d}.png", rgb),
+    }
 
 
 _GEOMETRIES: dict[tuple, tuple] = {}
@@ -416,7 +437,7 @@ def _geometry(run: RunFile, ball_centre, camera: CameraFit | None = None):
     """The rig's geometry and template builder (ball at ``ball_centre``, or where the rig says;
     the camera's aperture and sensor distance as ``camera`` has them, or as the rig says).
 
-    Kept per process for the rig object the run file's header shares (``acquisition.runfile``
+    Kept per process for the rig object the run file's header shares (``drivers.contracts.runfile``
     validates a rig once per text): every position task of a run asks for the same one, and
     making them cost 1 ms a task. The rig itself is held with them, so its ``id`` stays its own.
     """
@@ -448,8 +469,9 @@ def _estimate_at(run: RunFile, plan: _SourcesPlan, index: int, rate, variance, u
     layout = list(plan.layout)
     pose = _light_pose(run, geometry, index)
     estimate = unmix_position(index, rate, variance, usable, cfa, builder, layout, pose)
-    sums = cell_sums(rate, lit, geometry, run.header.rig.camera.sensitivity_e_per_s, layout, pose,
-                     plan.cell_radius, cfa).mean(axis=1)  # fmt: skip
+    sums = cell_sums(
+        rate, lit, geometry, run.header.rig.camera.sensitivity_e_per_s, layout, pose, plan.cell_radius, cfa
+    ).mean(axis=1)
     return _SourceRow(estimate.theta, estimate.phi, estimate.intensity, estimate.sigma, sums)
 
 
@@ -464,11 +486,25 @@ class _Progress:
             self.callback(self.done, self.total)
 
 
-def process_run(run_path, out_dir=None, *, steps=("hdr",), method: str = "optimal", noise: str = "auto",
-                progress: Callable[[int, int], None] | None = None, layout=None, estimator: str = "auto",
-                fit_method: str = "gaussian", units: str = "relative", truth=None, ball_centre=None,
-                compute: Compute | None = None, images: bool = True, fit_aperture: bool | None = None,
-                fit_sensor_distance: bool = False) -> ProcessReport:  # fmt: skip
+def process_run(
+    run_path,
+    out_dir=None,
+    *,
+    steps=("hdr",),
+    method: str = "optimal",
+    noise: str = "auto",
+    progress: Callable[[int, int], None] | None = None,
+    layout=None,
+    estimator: str = "auto",
+    fit_method: str = "gaussian",
+    units: str = "relative",
+    truth=None,
+    ball_centre=None,
+    compute: Compute | None = None,
+    images: bool = True,
+    fit_aperture: bool | None = None,
+    fit_sensor_distance: bool = False,
+) -> ProcessReport:
     """Process one run file; results go beside it, or into ``out_dir``.
 
     Parameters
@@ -573,8 +609,21 @@ def process_run(run_path, out_dir=None, *, steps=("hdr",), method: str = "optima
         saturated_all: dict[int, bool] = {}
         if "hdr" in steps:
             clock = time.perf_counter()
-            _hdr_pass(run, run_path, out, results_file, positions, method, report, plan, compute, tracker, rows,
-                      saturated_all, images)  # fmt: skip
+            _hdr_pass(
+                run,
+                run_path,
+                out,
+                results_file,
+                positions,
+                method,
+                report,
+                plan,
+                compute,
+                tracker,
+                rows,
+                saturated_all,
+                images,
+            )
             timings["positions"] = time.perf_counter() - clock
     if "sources" in steps:
         if not fused:
@@ -582,27 +631,57 @@ def process_run(run_path, out_dir=None, *, steps=("hdr",), method: str = "optima
                 with _open_run(run_path) as run:
                     clock = time.perf_counter()
                     found, report.aperture_fit, report.sensor_distance_fit = _layout_and_camera(
-                        run, results_file, positions, ball_centre, compute, fit_aperture, fit_sensor_distance,
-                        optional=aperture_optional)  # fmt: skip
+                        run,
+                        results_file,
+                        positions,
+                        ball_centre,
+                        compute,
+                        fit_aperture,
+                        fit_sensor_distance,
+                        optional=aperture_optional,
+                    )
                     timings["layout"] = time.perf_counter() - clock
                     sources = found.sources
-                    report.layout_search = ("candidate grid (NNLS), then positions and radius fitted: " if found.refined
-                                            else "candidate grid (NNLS) only: ") + found.message  # fmt: skip
-                    plan = _plan_sources(run, sources, estimator, ball_centre, positions,
-                                         _fitted_camera(report.aperture_fit, report.sensor_distance_fit))  # fmt: skip
+                    report.layout_search = (
+                        "candidate grid (NNLS), then positions and radius fitted: "
+                        if found.refined
+                        else "candidate grid (NNLS) only: "
+                    ) + found.message
+                    plan = _plan_sources(
+                        run,
+                        sources,
+                        estimator,
+                        ball_centre,
+                        positions,
+                        _fitted_camera(report.aperture_fit, report.sensor_distance_fit),
+                    )
             elif fit_aperture or fit_sensor_distance:
                 with _open_run(run_path) as run:
                     clock = time.perf_counter()
                     if fit_sensor_distance:  # the sources' places known: held at each trial
-                        report.sensor_distance_fit = sensor_distance_from_data(run, results_file, positions, sources,
-                                                                               ball_centre, compute, refit=False)  # fmt: skip
+                        report.sensor_distance_fit = sensor_distance_from_data(
+                            run, results_file, positions, sources, ball_centre, compute, refit=False
+                        )
                     if fit_aperture:
-                        report.aperture_fit = aperture_from_data(run, results_file, positions, sources, ball_centre, compute,
-                                                                 sensor_distance=report.sensor_distance_fit.get("fitted_m"))  # fmt: skip
+                        report.aperture_fit = aperture_from_data(
+                            run,
+                            results_file,
+                            positions,
+                            sources,
+                            ball_centre,
+                            compute,
+                            sensor_distance=report.sensor_distance_fit.get("fitted_m"),
+                        )
                         _warn_if_unexplained(run, report.aperture_fit)
                     timings["camera"] = time.perf_counter() - clock
-                    plan = _plan_sources(run, sources, estimator, ball_centre, positions,
-                                         _fitted_camera(report.aperture_fit, report.sensor_distance_fit))  # fmt: skip
+                    plan = _plan_sources(
+                        run,
+                        sources,
+                        estimator,
+                        ball_centre,
+                        positions,
+                        _fitted_camera(report.aperture_fit, report.sensor_distance_fit),
+                    )
             clock = time.perf_counter()
             work = _PositionWork(str(run_path), str(results_file), None, plan)
 
@@ -615,19 +694,46 @@ def process_run(run_path, out_dir=None, *, steps=("hdr",), method: str = "optima
             compute.map_unordered(process_position, [int(i) for i in positions], work, on_result=collect)
             timings["sources"] = time.perf_counter() - clock
         if all(saturated_all.get(int(i), False) for i in positions):
-            raise ProcessingError(f"{run_path}: every pixel is saturated even in the shortest exposure: take shorter exposures")
-        _finish_sources(run_path, out, report, plan, positions, rows, fit_method=fit_method, units=units,
-                        truth=truth, layout_path=layout, timings=timings, compute=compute)  # fmt: skip
+            raise ProcessingError(
+                f"{run_path}: every pixel is saturated even in the shortest exposure: take shorter exposures"
+            )
+        _finish_sources(
+            run_path,
+            out,
+            report,
+            plan,
+            positions,
+            rows,
+            fit_method=fit_method,
+            units=units,
+            truth=truth,
+            layout_path=layout,
+            timings=timings,
+            compute=compute,
+        )
     timings["total"] = time.perf_counter() - started
     report.timings = {k: round(v, 3) for k, v in timings.items()}
     report.task_stages = {k: round(v, 3) for k, v in report.task_stages.items()}
     return report
 
 
-def _hdr_pass(run: RunFile, run_path: Path, out: Path, results_file: Path, positions, method, report: ProcessReport,
-              plan, compute: Compute, tracker: _Progress, rows: dict, saturated_all: dict, images: bool) -> None:  # fmt: skip
+def _hdr_pass(
+    run: RunFile,
+    run_path: Path,
+    out: Path,
+    results_file: Path,
+    positions,
+    method,
+    report: ProcessReport,
+    plan,
+    compute: Compute,
+    tracker: _Progress,
+    rows: dict,
+    saturated_all: dict,
+    images: bool,
+) -> None:
     """Merge every position (and unmix it, with a plan) on ``compute``; write the results as they come."""
-    from acquisition import __version__
+    from drivers.contracts.version import __version__
 
     folder = out / f"{run_path.stem}.hdr"  # the position files, and the images beside them
     folder.mkdir(exist_ok=True)
@@ -638,10 +744,15 @@ def _hdr_pass(run: RunFile, run_path: Path, out: Path, results_file: Path, posit
     hdr = _HDRWork(method, report.noise, cfa, str(folder) if images else None)
     work = _PositionWork(str(run_path), str(results_file), hdr, plan)
     found_images: dict[int, dict[str, Path]] = {}
-    with ResultsWriter.create(results_file, run_id=run.header.run_id, run_file=str(run_path),
-                              n_positions=run.n_positions, frame_shape=run.frame_shape,
-                              software_version=__version__,
-                              hdr=HDRInfo(method, report.noise, rig_noise(run), cfa)) as writer:  # fmt: skip
+    with ResultsWriter.create(
+        results_file,
+        run_id=run.header.run_id,
+        run_file=str(run_path),
+        n_positions=run.n_positions,
+        frame_shape=run.frame_shape,
+        software_version=__version__,
+        hdr=HDRInfo(method, report.noise, rig_noise(run), cfa),
+    ) as writer:
 
         def write(index: int, result: PositionResult) -> None:
             report.add_task(result)
@@ -658,26 +769,52 @@ def _hdr_pass(run: RunFile, run_path: Path, out: Path, results_file: Path, posit
         for kind, path in found_images[index].items():
             report.outputs.setdefault(kind, []).append(path)
     if report.saturated_pixels:
-        log.warning("%s: %d pixel samples saturated even in the shortest exposure (flagged in the results)",
-                    run_path, report.saturated_pixels)  # fmt: skip
+        log.warning(
+            "%s: %d pixel samples saturated even in the shortest exposure (flagged in the results)",
+            run_path,
+            report.saturated_pixels,
+        )
 
 
-def _plan_sources(run: RunFile, layout, estimator: str, ball_centre, positions,
-                  camera: CameraFit | None = None) -> _SourcesPlan:  # fmt: skip
+def _plan_sources(
+    run: RunFile, layout, estimator: str, ball_centre, positions, camera: CameraFit | None = None
+) -> _SourcesPlan:
     """Check the view and choose the estimator: geometry only, before any position is read."""
     geometry, builder = _geometry(run, ball_centre, camera)
     _check_view(run, geometry, builder, layout, positions)
     middle = int(positions[len(positions) // 2])
-    chosen, reason, footprint = choose_estimator(geometry, builder, layout, _light_pose(run, geometry, middle), estimator)
+    chosen, reason, footprint = choose_estimator(
+        geometry, builder, layout, _light_pose(run, geometry, middle), estimator
+    )
     log.info("%s: %s", run.path, reason)
     spacing = min((math.dist(a.centre, b.centre) for a in layout for b in layout if a is not b), default=math.inf)
     cell_radius = min(0.5 * spacing, 3.0 * footprint) if math.isfinite(footprint) else 0.5 * spacing
-    return _SourcesPlan(tuple(layout), tuple(ball_centre) if ball_centre is not None else None, chosen, reason,
-                        footprint, cell_radius, camera)  # fmt: skip
+    return _SourcesPlan(
+        tuple(layout),
+        tuple(ball_centre) if ball_centre is not None else None,
+        chosen,
+        reason,
+        footprint,
+        cell_radius,
+        camera,
+    )
 
 
-def _finish_sources(run_path: Path, out: Path, report: ProcessReport, plan: _SourcesPlan, positions, rows: dict, *,
-                    fit_method, units, truth, layout_path, timings: dict, compute: Compute | None = None) -> None:  # fmt: skip
+def _finish_sources(
+    run_path: Path,
+    out: Path,
+    report: ProcessReport,
+    plan: _SourcesPlan,
+    positions,
+    rows: dict,
+    *,
+    fit_method,
+    units,
+    truth,
+    layout_path,
+    timings: dict,
+    compute: Compute | None = None,
+) -> None:
     """Assemble the samples, fit, and write the light model, the light files and the report."""
     from processing.exports import write_ies, write_ldt, write_tm25
     from processing.report import write_report
@@ -685,12 +822,21 @@ def _finish_sources(run_path: Path, out: Path, report: ProcessReport, plan: _Sou
     samples = _assemble(positions, rows, plan)
     clock = time.perf_counter()
     with _open_run(run_path) as run:
-        model = fit_light_model(run, list(plan.layout), samples, method=fit_method, units=units,
-                                estimator=plan.estimator, footprint=plan.footprint)  # fmt: skip
+        model = fit_light_model(
+            run,
+            list(plan.layout),
+            samples,
+            method=fit_method,
+            units=units,
+            estimator=plan.estimator,
+            footprint=plan.footprint,
+        )
     timings["fit"] = time.perf_counter() - clock
     ball_centre = plan.ball_centre
     model.provenance["ball_centre_m"] = list(ball_centre) if ball_centre is not None else "as described by the rig"
-    model.provenance["layout"] = str(layout_path) if layout_path is not None else f"found in the data: {report.layout_search}"
+    model.provenance["layout"] = (
+        str(layout_path) if layout_path is not None else f"found in the data: {report.layout_search}"
+    )
     model.provenance["aperture_m"] = _fit_provenance(report.aperture_fit, "--fit-aperture")
     model.provenance["sensor_distance_m"] = _fit_provenance(report.sensor_distance_fit, "--fit-sensor-distance")
     report.light_model = model.save(out / f"{run_path.stem}.light.json")
@@ -699,13 +845,19 @@ def _finish_sources(run_path: Path, out: Path, report: ProcessReport, plan: _Sou
 
     def light_files() -> dict[str, list[Path]]:
         started = time.perf_counter()
-        files = {"ies": [write_ies(model, stem.with_suffix(".ies"), luminaire=luminaire)],
-                 "ldt": [write_ldt(model, stem.with_suffix(".ldt"), luminaire=luminaire)],
-                 "tm25": [write_tm25(model, stem.with_suffix(".tm25ray"), n_rays=100_000, seed=0)]}  # fmt: skip
+        files = {
+            "ies": [write_ies(model, stem.with_suffix(".ies"), luminaire=luminaire)],
+            "ldt": [write_ldt(model, stem.with_suffix(".ldt"), luminaire=luminaire)],
+            "tm25": [write_tm25(model, stem.with_suffix(".tm25ray"), n_rays=100_000, seed=0)],
+        }
         timings["exports"] = time.perf_counter() - started
         return files
 
-    report.estimator, report.estimator_reason, report.spatial_resolution_m = plan.estimator, plan.reason, 2.0 * plan.footprint
+    report.estimator, report.estimator_reason, report.spatial_resolution_m = (
+        plan.estimator,
+        plan.reason,
+        2.0 * plan.footprint,
+    )
     report.samples = samples
     report.model = model
     # The light files are written on a thread while the report is drawn (both only read the
@@ -714,8 +866,15 @@ def _finish_sources(run_path: Path, out: Path, report: ProcessReport, plan: _Sou
         exports = pool.submit(light_files)
         clock = time.perf_counter()
         with _open_run(run_path) as run:  # the report draws the rig's chief rays at the middle position
-            drawn = write_report(stem.with_suffix(".report.html"), model, run=run, samples=samples, report=report,
-                                 truth=truth, compute=compute)  # fmt: skip
+            drawn = write_report(
+                stem.with_suffix(".report.html"),
+                model,
+                run=run,
+                samples=samples,
+                report=report,
+                truth=truth,
+                compute=compute,
+            )
         timings["report"] = time.perf_counter() - clock
         report.outputs.update(exports.result())
     report.outputs["report"] = [drawn]
@@ -728,8 +887,14 @@ def _finish_sources(run_path: Path, out: Path, report: ProcessReport, plan: _Sou
 _FIT_FRACTIONS = (1 / 6, 2 / 6, 3 / 6, 4 / 6, 5 / 6)
 
 
-def layout_from_data(run: RunFile, results_file, positions=None, ball_centre=None, compute: Compute | None = None,
-                     camera: CameraFit | None = None):  # fmt: skip
+def layout_from_data(
+    run: RunFile,
+    results_file,
+    positions=None,
+    ball_centre=None,
+    compute: Compute | None = None,
+    camera: CameraFit | None = None,
+):
     """The sources found in the data (``docs/light-model.md``): the candidate grid at three
     positions spread over the sweep (:func:`~processing.sources.lit_box`,
     :func:`~processing.sources.candidate_grid`, :func:`~processing.sources.candidate_strength`,
@@ -772,23 +937,46 @@ def layout_from_data(run: RunFile, results_file, positions=None, ball_centre=Non
 _CHI2_PER_PIXEL_WARNING = 1.2
 
 
-def aperture_from_data(run: RunFile, results_file, positions, layout, ball_centre=None,
-                       compute: Compute | None = None, sensor_distance: float | None = None) -> dict:  # fmt: skip
+def aperture_from_data(
+    run: RunFile,
+    results_file,
+    positions,
+    layout,
+    ball_centre=None,
+    compute: Compute | None = None,
+    sensor_distance: float | None = None,
+) -> dict:
     """The camera's aperture diameter fitted to five merged positions spread over the sweep,
     at the sources of ``layout`` (:func:`processing.sources.fit_aperture`, one task on
     ``compute``; the sensor ``sensor_distance`` behind it, or as the rig says): a dict for
     ``ProcessReport.aperture_fit`` and the light model's provenance."""
     picks = _spread_over(np.asarray(positions), _FIT_FRACTIONS)
     camera = CameraFit(sensor_distance_m=sensor_distance)
-    fit = _fit_from_data(run, "--fit-aperture", _fitted_aperture, results_file, ball_centre, picks, layout, camera, compute)
-    log.info("%s: aperture %.4g mm fitted to the data (the rig says %.4g mm; χ²/pixel %.4f, %.4f there)", run.path,
-             1e3 * fit.diameter_m, 1e3 * fit.described_m, fit.chi2 / fit.pixels, fit.chi2_described / fit.pixels)  # fmt: skip
+    fit = _fit_from_data(
+        run, "--fit-aperture", _fitted_aperture, results_file, ball_centre, picks, layout, camera, compute
+    )
+    log.info(
+        "%s: aperture %.4g mm fitted to the data (the rig says %.4g mm; χ²/pixel %.4f, %.4f there)",
+        run.path,
+        1e3 * fit.diameter_m,
+        1e3 * fit.described_m,
+        fit.chi2 / fit.pixels,
+        fit.chi2_described / fit.pixels,
+    )
     return _fit_record(fit, fit.diameter_m, fit.described_m, picks)
 
 
-def sensor_distance_from_data(run: RunFile, results_file, positions, layout, ball_centre=None,
-                              compute: Compute | None = None, *, aperture: float | None = None,
-                              refit: bool = True) -> dict:  # fmt: skip
+def sensor_distance_from_data(
+    run: RunFile,
+    results_file,
+    positions,
+    layout,
+    ball_centre=None,
+    compute: Compute | None = None,
+    *,
+    aperture: float | None = None,
+    refit: bool = True,
+) -> dict:
     """The sensor distance fitted to five merged positions spread over the sweep, at the sources
     of ``layout``, refitted at each trial distance with ``refit`` (sources found in the data;
     :func:`processing.sources.fit_sensor_distance`, one task on ``compute``; the aperture
@@ -796,11 +984,26 @@ def sensor_distance_from_data(run: RunFile, results_file, positions, layout, bal
     and the light model's provenance."""
     picks = _spread_over(np.asarray(positions), _FIT_FRACTIONS)
     camera = CameraFit(aperture_m=aperture)
-    fit = _fit_from_data(run, "--fit-sensor-distance", _fitted_sensor_distance, results_file, ball_centre, picks, layout,
-                         camera, compute, refit)  # fmt: skip
-    log.info("%s: sensor distance %.3f mm fitted to the data (the rig says %.3f mm; χ²/pixel %.4f, %.4f there)",
-             run.path, 1e3 * fit.sensor_distance_m, 1e3 * fit.described_m, fit.chi2 / fit.pixels,
-             fit.chi2_described / fit.pixels)  # fmt: skip
+    fit = _fit_from_data(
+        run,
+        "--fit-sensor-distance",
+        _fitted_sensor_distance,
+        results_file,
+        ball_centre,
+        picks,
+        layout,
+        camera,
+        compute,
+        refit,
+    )
+    log.info(
+        "%s: sensor distance %.3f mm fitted to the data (the rig says %.3f mm; χ²/pixel %.4f, %.4f there)",
+        run.path,
+        1e3 * fit.sensor_distance_m,
+        1e3 * fit.described_m,
+        fit.chi2 / fit.pixels,
+        fit.chi2_described / fit.pixels,
+    )
     return _fit_record(fit, fit.sensor_distance_m, fit.described_m, picks) | {"sources_refitted": fit.sources_refitted}
 
 
@@ -817,17 +1020,27 @@ def _fit_from_data(run: RunFile, option: str, task, results_file, ball_centre, p
 
 
 def _fit_record(fit, fitted_m: float, described_m: float, picks) -> dict:
-    return {"fitted_m": fitted_m, "described_m": described_m, "chi2_per_pixel": round(fit.chi2 / fit.pixels, 5),
-            "chi2_per_pixel_described": round(fit.chi2_described / fit.pixels, 5), "pixels": fit.pixels,
-            "positions": [int(i) for i in picks], "evaluations": fit.evaluations}  # fmt: skip
+    return {
+        "fitted_m": fitted_m,
+        "described_m": described_m,
+        "chi2_per_pixel": round(fit.chi2 / fit.pixels, 5),
+        "chi2_per_pixel_described": round(fit.chi2_described / fit.pixels, 5),
+        "pixels": fit.pixels,
+        "positions": [int(i) for i in picks],
+        "evaluations": fit.evaluations,
+    }
 
 
 def _warn_if_unexplained(run: RunFile, fitted: dict) -> None:
     """Say so when the templates, with the aperture fitted, still leave the data unexplained."""
     if fitted.get("chi2_per_pixel", 0.0) > _CHI2_PER_PIXEL_WARNING:
-        log.warning("%s: with the aperture fitted the templates still explain the data only to χ²/pixel %.3g: other "
-                    "numbers of the rig description (the ball's place and radius, the sensor distance) may be off "
-                    "(docs/light-model.md; --fit-sensor-distance fits the last)", run.path, fitted["chi2_per_pixel"])  # fmt: skip
+        log.warning(
+            "%s: with the aperture fitted the templates still explain the data only to χ²/pixel %.3g: other "
+            "numbers of the rig description (the ball's place and radius, the sensor distance) may be off "
+            "(docs/light-model.md; --fit-sensor-distance fits the last)",
+            run.path,
+            fitted["chi2_per_pixel"],
+        )
 
 
 def _fitted_aperture(run_path: str, results_file: str, ball_centre, picks, layout, camera: CameraFit):
@@ -840,7 +1053,9 @@ def _fitted_aperture(run_path: str, results_file: str, ball_centre, picks, layou
         return fit_aperture(data, builder, cfa, list(layout))
 
 
-def _fitted_sensor_distance(run_path: str, results_file: str, ball_centre, picks, layout, camera: CameraFit, refit: bool):
+def _fitted_sensor_distance(
+    run_path: str, results_file: str, ball_centre, picks, layout, camera: CameraFit, refit: bool
+):
     """:func:`processing.sources.fit_sensor_distance` on the merged positions ``picks`` (a task)."""
     _prepare_task()
     from processing.sources import fit_sensor_distance
@@ -862,9 +1077,20 @@ def _layout_data(run: RunFile, results_file: str, ball_centre, picks, camera: Ca
     return data, builder, cfa
 
 
-def _layout_and_camera(run: RunFile, results_file, positions, ball_centre, compute: Compute, fit_aperture: bool,
-                       fit_sensor_distance: bool = False, *, optional: bool = False, max_searches: int = 3,
-                       settle: float = 0.01, settle_distance: float = 5e-4):  # fmt: skip
+def _layout_and_camera(
+    run: RunFile,
+    results_file,
+    positions,
+    ball_centre,
+    compute: Compute,
+    fit_aperture: bool,
+    fit_sensor_distance: bool = False,
+    *,
+    optional: bool = False,
+    max_searches: int = 3,
+    settle: float = 0.01,
+    settle_distance: float = 5e-4,
+):
     """The sources found in the data (:func:`layout_from_data`) and the camera's numbers fitted
     at them: the sensor distance with ``fit_sensor_distance`` (:func:`sensor_distance_from_data`,
     the sources refitted at each trial), then the aperture with ``fit_aperture``
@@ -893,18 +1119,29 @@ def _layout_and_camera(run: RunFile, results_file, positions, ball_centre, compu
             return found, {}, {}
         new, new_distance_fit = camera, distance_fit
         if fit_sensor_distance:
-            new_distance_fit = sensor_distance_from_data(run, results_file, positions, found.sources, ball_centre, compute,
-                                                         aperture=camera.aperture_m) | {"searches": search}  # fmt: skip
+            new_distance_fit = sensor_distance_from_data(
+                run, results_file, positions, found.sources, ball_centre, compute, aperture=camera.aperture_m
+            ) | {"searches": search}
             new = replace(new, sensor_distance_m=new_distance_fit["fitted_m"])
         if fit_aperture:
             try:
-                attempt = aperture_from_data(run, results_file, positions, found.sources, ball_centre, compute,
-                                             sensor_distance=new.sensor_distance_m)  # fmt: skip
+                attempt = aperture_from_data(
+                    run,
+                    results_file,
+                    positions,
+                    found.sources,
+                    ball_centre,
+                    compute,
+                    sensor_distance=new.sensor_distance_m,
+                )
             except ProcessingError as exc:
                 if not optional:
                     raise
-                kept = ("the rig's aperture" if camera.aperture_m is None
-                        else f"the aperture fitted before, {1e3 * camera.aperture_m:.4g} mm")  # fmt: skip
+                kept = (
+                    "the rig's aperture"
+                    if camera.aperture_m is None
+                    else f"the aperture fitted before, {1e3 * camera.aperture_m:.4g} mm"
+                )
                 log.warning("%s (the sources are estimated with %s)", exc, kept)
                 return found, dict(aperture_fit, failed=str(exc)), distance_fit
             aperture_fit = attempt | {"searches": search}
@@ -916,9 +1153,14 @@ def _layout_and_camera(run: RunFile, results_file, positions, ball_centre, compu
         if moved_aperture < settle and moved_distance < settle_distance:
             break
     else:
-        log.warning("%s: the camera's numbers fitted to the data had not settled after %d searches for the sources "
-                    "(the aperture moved %.2g %%, the sensor distance %.2g %% at the last)", run.path, max_searches,
-                    100 * moved_aperture, 100 * moved_distance)  # fmt: skip
+        log.warning(
+            "%s: the camera's numbers fitted to the data had not settled after %d searches for the sources "
+            "(the aperture moved %.2g %%, the sensor distance %.2g %% at the last)",
+            run.path,
+            max_searches,
+            100 * moved_aperture,
+            100 * moved_distance,
+        )
     if aperture_fit:
         _warn_if_unexplained(run, aperture_fit)  # the last fit's: the searches before it may have left spurious sources
     return found, aperture_fit, distance_fit
@@ -963,8 +1205,13 @@ def _refined_layout(run_path: str, results_file: str, ball_centre, camera, picks
 
 def _merged_rates(run: RunFile, results_file: str, index: int):
     with Results.open(results_file) as results:
-        rate, var, usable = _rates(results.radiance(index), results.variance(index), results.count(index),
-                                   results.saturated(index), radiometric_gain(run))  # fmt: skip
+        rate, var, usable = _rates(
+            results.radiance(index),
+            results.variance(index),
+            results.count(index),
+            results.saturated(index),
+            radiometric_gain(run),
+        )
         return rate, var, usable, results.cfa_pattern
 
 
@@ -1007,8 +1254,9 @@ class SourceSamples:
 def _assemble(positions, rows: dict[int, _SourceRow], plan: _SourcesPlan) -> SourceSamples:
     """The per-position rows, in position order, as the samples of every source."""
     n, m = len(positions), len(plan.layout)
-    out = SourceSamples(positions, *(np.full((n, m), np.nan) for _ in range(4)), np.full((n, m, 3), np.nan),
-                        np.full((n, m), np.nan))  # fmt: skip
+    out = SourceSamples(
+        positions, *(np.full((n, m), np.nan) for _ in range(4)), np.full((n, m, 3), np.nan), np.full((n, m), np.nan)
+    )
     for row, index in enumerate(positions):
         found = rows[int(index)]
         out.theta[row], out.phi[row] = found.theta, found.phi
@@ -1042,8 +1290,10 @@ def choose_estimator(geometry, builder, layout, light_pose, requested: str) -> t
             continue
         col, row = template.image_centre
         rays = trace_pixels(geometry, light_pose, np.array([col, col + 1.0, col]), np.array([row, row, row + 1.0]))
-        per_pixel = max(math.hypot(rays.u[1] - rays.u[0], rays.v[1] - rays.v[0]),
-                        math.hypot(rays.u[2] - rays.u[0], rays.v[2] - rays.v[0]))  # fmt: skip
+        per_pixel = max(
+            math.hypot(rays.u[1] - rays.u[0], rays.v[1] - rays.v[0]),
+            math.hypot(rays.u[2] - rays.u[0], rays.v[2] - rays.v[0]),
+        )
         footprint = per_pixel * template.blur_radius_px
         break
     spacing = min((math.dist(a.centre, b.centre) for a in layout for b in layout if a is not b), default=math.inf)
@@ -1053,13 +1303,25 @@ def choose_estimator(geometry, builder, layout, light_pose, requested: str) -> t
         return "templates", "no source in view to size the footprint", footprint
     size = 2.0 * min(source.radius for source in layout)
     if 2.0 * footprint < spacing and 2.0 * footprint <= 2.0 * size:
-        return "cell-sums", (f"the footprint ({2e3 * footprint:.2f} mm across) is smaller than the sources' spacing "
-                             f"({1e3 * spacing:.2f} mm) and comparable to their size: flux sums are exact enough"), footprint  # fmt: skip
+        return (
+            "cell-sums",
+            (
+                f"the footprint ({2e3 * footprint:.2f} mm across) is smaller than the sources' spacing "
+                f"({1e3 * spacing:.2f} mm) and comparable to their size: flux sums are exact enough"
+            ),
+            footprint,
+        )
     # Measured: even a lone 2 mm LED under a 13 mm footprint is 3 % off with flux sums
     # (each pixel's chief ray misstates the direction its light left in), so a footprint
     # much larger than the emitters also calls for templates.
-    return "templates", (f"the footprint ({2e3 * footprint:.2f} mm across) exceeds the sources' spacing "
-                         f"({1e3 * spacing:.2f} mm) or size ({1e3 * size:.2f} mm): unmixing with templates"), footprint  # fmt: skip
+    return (
+        "templates",
+        (
+            f"the footprint ({2e3 * footprint:.2f} mm across) exceeds the sources' spacing "
+            f"({1e3 * spacing:.2f} mm) or size ({1e3 * size:.2f} mm): unmixing with templates"
+        ),
+        footprint,
+    )
 
 
 def _check_view(run: RunFile, geometry, builder, layout, positions) -> None:
@@ -1069,11 +1331,15 @@ def _check_view(run: RunFile, geometry, builder, layout, positions) -> None:
 
     if ball_pixel_box(geometry) is None:
         raise ProcessingError(f"{run.path}: the ball is not in the camera's view (check camera.pose and ball.centre_m)")
-    seen = any(builder.build(source, _light_pose(run, geometry, int(i))) is not None
-               for i in positions[:: max(1, len(positions) // 8)] for source in layout)  # fmt: skip
+    seen = any(
+        builder.build(source, _light_pose(run, geometry, int(i))) is not None
+        for i in positions[:: max(1, len(positions) // 8)]
+        for source in layout
+    )
     if not seen:
-        raise ProcessingError(f"{run.path}: the light never reflects into the camera at any position "
-                              "(is it facing the ball?)")  # fmt: skip
+        raise ProcessingError(
+            f"{run.path}: the light never reflects into the camera at any position (is it facing the ball?)"
+        )
 
 
 def source_colour(intensity_rgb: np.ndarray) -> tuple[float, float, float]:
@@ -1094,10 +1360,18 @@ def source_colour(intensity_rgb: np.ndarray) -> tuple[float, float, float]:
     return tuple(float(c) for c in sums / sums.mean())
 
 
-def fit_light_model(run: RunFile, layout, samples: SourceSamples, *, method: str = "gaussian", units: str = "relative",
-                    estimator: str = "", footprint: float = float("nan")):  # fmt: skip
+def fit_light_model(
+    run: RunFile,
+    layout,
+    samples: SourceSamples,
+    *,
+    method: str = "gaussian",
+    units: str = "relative",
+    estimator: str = "",
+    footprint: float = float("nan"),
+):
     """Fit every source's samples and assemble the light model."""
-    from acquisition import __version__
+    from drivers.contracts.version import __version__
     from processing.fit import FitError, Samples, fit_intensity
     from processing.lightmodel import LightModel, SourceModel, samples_table
 
@@ -1114,12 +1388,22 @@ def fit_light_model(run: RunFile, layout, samples: SourceSamples, *, method: str
         except FitError as exc:
             raise ProcessingError(f"{run.path}: source {source.name}: {exc}") from None
         table = samples_table(data, samples.positions[ok], samples.cell_sum[:, k][ok])
-        sources.append(SourceModel(source.name, source.centre, source.radius, fit, table,
-                                   source_colour(samples.intensity_rgb[:, k])))  # fmt: skip
-    provenance = {"run_id": run.header.run_id, "run_file": str(run.path), "rig": run.header.rig.name,
-                  "software_version": __version__, "method": estimator, "fit": method,
-                  "spatial_resolution_m": 2.0 * footprint,
-                  "gain_e_per_dn": radiometric_gain(run), "gain_source": "rig",  # DN/s -> e-/s, as the reflectance step
-                  # the whole rig, so an object run can check it is lit in the same light frame
-                  "rig_description": run.header.rig.model_dump(mode="json", exclude_none=True)}  # fmt: skip
+        sources.append(
+            SourceModel(
+                source.name, source.centre, source.radius, fit, table, source_colour(samples.intensity_rgb[:, k])
+            )
+        )
+    provenance = {
+        "run_id": run.header.run_id,
+        "run_file": str(run.path),
+        "rig": run.header.rig.name,
+        "software_version": __version__,
+        "method": estimator,
+        "fit": method,
+        "spatial_resolution_m": 2.0 * footprint,
+        "gain_e_per_dn": radiometric_gain(run),
+        "gain_source": "rig",  # DN/s -> e-/s, as the reflectance step
+        # the whole rig, so an object run can check it is lit in the same light frame
+        "rig_description": run.header.rig.model_dump(mode="json", exclude_none=True),
+    }
     return LightModel(sources, units=units, provenance=provenance)

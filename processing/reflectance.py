@@ -134,17 +134,51 @@ PIXEL_CODES = {
     PIXEL_FEW_NO_IRRADIANCE: "too few lights: no irradiance",
     PIXEL_FEW_SPECULAR: "too few lights: specular highlights",
 }
-PIXEL_SHORT = {0: "valid", 1: "background", 2: "edge", 3: "grazing-view", 4: "few-lights-housing",
-               5: "few-lights-grazing", 6: "few-lights-shadow", 7: "few-lights-saturated",
-               8: "few-lights-no-irradiance", 9: "few-lights-specular"}  # fmt: skip
-SAMPLE_SHORT = {0: "used", 1: "pixel-excluded", 2: "housing", 3: "grazing", 4: "shadow", 5: "saturated",
-                6: "no-irradiance", 7: "specular-geometry", 8: "specular-outlier"}  # fmt: skip
+PIXEL_SHORT = {
+    0: "valid",
+    1: "background",
+    2: "edge",
+    3: "grazing-view",
+    4: "few-lights-housing",
+    5: "few-lights-grazing",
+    6: "few-lights-shadow",
+    7: "few-lights-saturated",
+    8: "few-lights-no-irradiance",
+    9: "few-lights-specular",
+}
+SAMPLE_SHORT = {
+    0: "used",
+    1: "pixel-excluded",
+    2: "housing",
+    3: "grazing",
+    4: "shadow",
+    5: "saturated",
+    6: "no-irradiance",
+    7: "specular-geometry",
+    8: "specular-outlier",
+}
 # The reason map's colours (RGB, 0..255).
-PIXEL_COLOURS = {0: (200, 200, 200), 1: (0, 0, 0), 2: (255, 140, 0), 3: (148, 103, 189), 4: (140, 86, 75),
-                 5: (31, 119, 180), 6: (44, 60, 160), 7: (214, 39, 40), 8: (188, 189, 34), 9: (23, 190, 207)}  # fmt: skip
-_FEW_FROM_SAMPLE = {SAMPLE_HOUSING: PIXEL_FEW_HOUSING, SAMPLE_GRAZING: PIXEL_FEW_GRAZING, SAMPLE_SHADOW: PIXEL_FEW_SHADOW,
-                    SAMPLE_SATURATED: PIXEL_FEW_SATURATED, SAMPLE_NO_IRRADIANCE: PIXEL_FEW_NO_IRRADIANCE,
-                    SAMPLE_SPECULAR_GEOMETRY: PIXEL_FEW_SPECULAR, SAMPLE_SPECULAR_OUTLIER: PIXEL_FEW_SPECULAR}  # fmt: skip
+PIXEL_COLOURS = {
+    0: (200, 200, 200),
+    1: (0, 0, 0),
+    2: (255, 140, 0),
+    3: (148, 103, 189),
+    4: (140, 86, 75),
+    5: (31, 119, 180),
+    6: (44, 60, 160),
+    7: (214, 39, 40),
+    8: (188, 189, 34),
+    9: (23, 190, 207),
+}
+_FEW_FROM_SAMPLE = {
+    SAMPLE_HOUSING: PIXEL_FEW_HOUSING,
+    SAMPLE_GRAZING: PIXEL_FEW_GRAZING,
+    SAMPLE_SHADOW: PIXEL_FEW_SHADOW,
+    SAMPLE_SATURATED: PIXEL_FEW_SATURATED,
+    SAMPLE_NO_IRRADIANCE: PIXEL_FEW_NO_IRRADIANCE,
+    SAMPLE_SPECULAR_GEOMETRY: PIXEL_FEW_SPECULAR,
+    SAMPLE_SPECULAR_OUTLIER: PIXEL_FEW_SPECULAR,
+}
 
 
 @dataclass(frozen=True)
@@ -548,8 +582,11 @@ class ReflectanceResult:
         """
         reasons = {PIXEL_SHORT[c]: int((self.reason == c).sum()) for c in PIXEL_CODES}
         considered = self.sample_code != SAMPLE_PIXEL_EXCLUDED
-        samples = {SAMPLE_SHORT[c]: int(((self.sample_code == c) & considered).sum())
-                   for c in SAMPLE_CODES if c != SAMPLE_PIXEL_EXCLUDED}  # fmt: skip
+        samples = {
+            SAMPLE_SHORT[c]: int(((self.sample_code == c) & considered).sum())
+            for c in SAMPLE_CODES
+            if c != SAMPLE_PIXEL_EXCLUDED
+        }
         valid = self.valid
         methods = {}
         for m in self.methods:
@@ -560,11 +597,16 @@ class ReflectanceResult:
                 median = float(np.median(grey))
                 mean = float(grey.mean())
                 stats.update(
-                    median=[float(v) for v in np.median(rho, axis=0)], median_mean=median, mean=mean,
+                    median=[float(v) for v in np.median(rho, axis=0)],
+                    median_mean=median,
+                    mean=mean,
                     cv=float(grey.std() / mean) if mean != 0 else float("nan"),
-                    robust_cv=float(1.4826 * np.median(np.abs(grey - median)) / median) if median != 0 else float("nan"),
-                    q25=float(np.percentile(grey, 25)), q75=float(np.percentile(grey, 75)),
-                )  # fmt: skip
+                    robust_cv=float(1.4826 * np.median(np.abs(grey - median)) / median)
+                    if median != 0
+                    else float("nan"),
+                    q25=float(np.percentile(grey, 25)),
+                    q75=float(np.percentile(grey, 75)),
+                )
             methods[m] = stats
         return {
             "superpixels": list(self.shape),
@@ -588,10 +630,22 @@ def _superpixel_any(mask: np.ndarray) -> np.ndarray:
     return m.reshape(*m.shape[:-2], h // 2, 2, w // 2, 2).any(axis=(-3, -1))
 
 
-def estimate_reflectance(radiance_rgb, saturated, camera, mesh_rig, light_poses, light_model, *,
-                         object_pose: Pose | None = None, up=(0.0, 1.0, 0.0), housing=None,
-                         settings: ReflectanceSettings | None = None, methods=METHODS, mesh_name: str = "the mesh",
-                         progress: Callable[[str, int, int], None] | None = None) -> ReflectanceResult:  # fmt: skip
+def estimate_reflectance(
+    radiance_rgb,
+    saturated,
+    camera,
+    mesh_rig,
+    light_poses,
+    light_model,
+    *,
+    object_pose: Pose | None = None,
+    up=(0.0, 1.0, 0.0),
+    housing=None,
+    settings: ReflectanceSettings | None = None,
+    methods=METHODS,
+    mesh_name: str = "the mesh",
+    progress: Callable[[str, int, int], None] | None = None,
+) -> ReflectanceResult:
     """Albedo per pixel under three light models, from one object run's HDR radiance.
 
     Parameters
@@ -602,7 +656,7 @@ def estimate_reflectance(radiance_rgb, saturated, camera, mesh_rig, light_poses,
         Non-finite values are samples without data.
     saturated : array_like (n_lights, H/2, W/2) of bool, or None
         Superpixels with a site saturated in every exposure.
-    camera : acquisition.rig.Camera (or a Rig)
+    camera : drivers.contracts.rig.Camera (or a Rig)
         Intrinsics, pose and ``sensitivity_e_per_s`` = k; its sensor is ``(H, W)``.
     mesh_rig : trimesh.Trimesh
         The object in the rig frame, metres (:func:`load_mesh`).
@@ -649,7 +703,9 @@ def estimate_reflectance(radiance_rgb, saturated, camera, mesh_rig, light_poses,
     methods = tuple(methods)
     unknown = [m for m in methods if m not in LIGHT_MODELS]
     if unknown or not methods:
-        raise ReflectanceError(f"methods: {unknown[0] if unknown else 'none'!r} is not one of {', '.join(LIGHT_MODELS)}")
+        raise ReflectanceError(
+            f"methods: {unknown[0] if unknown else 'none'!r} is not one of {', '.join(LIGHT_MODELS)}"
+        )
     radiance_rgb = np.asarray(radiance_rgb, dtype=np.float64)
     n_lights = len(light_poses)
     expected = (n_lights, camera.height // 2, camera.width // 2, 3)
@@ -677,8 +733,10 @@ def estimate_reflectance(radiance_rgb, saturated, camera, mesh_rig, light_poses,
     hit_flat = (faces_all >= 0) & np.isfinite(depth_all) & (depth_all > 0)
     if not hit_flat.any():
         centre = mesh_rig.bounds.mean(axis=0)
-        raise ReflectanceError(f"no camera ray meets {mesh_name} (its centre is at {np.round(centre, 4).tolist()} m "
-                               f"in the rig frame); check [object] pose and units_m")  # fmt: skip
+        raise ReflectanceError(
+            f"no camera ray meets {mesh_name} (its centre is at {np.round(centre, 4).tolist()} m "
+            f"in the rig frame); check [object] pose and units_m"
+        )
     face_normals = np.asarray(mesh_rig.face_normals, dtype=float)
     hit = hit_flat.reshape(shape)
     depth = np.where(hit_flat, depth_all, np.nan).reshape(shape)
@@ -690,8 +748,12 @@ def estimate_reflectance(radiance_rgb, saturated, camera, mesh_rig, light_poses,
     bad_normal = hit & ~(np.linalg.norm(normals_grid, axis=-1) > 0.5)  # a degenerate face
     normals_grid[bad_normal] = -rays.directions[bad_normal]  # any unit vector: these pixels are edges
 
-    core = _edge_core(hit, depth, points_grid, normals_grid, rays.directions, rays.centre, rays.angle,
-                      settings.depth_tolerance) | bad_normal  # fmt: skip
+    core = (
+        _edge_core(
+            hit, depth, points_grid, normals_grid, rays.directions, rays.centre, rays.angle, settings.depth_tolerance
+        )
+        | bad_normal
+    )
     band = _dilate(core, settings.edge_margin)
     cos_view = -np.einsum("...k,...k->...", normals_grid, rays.directions)
     grazing_view = cos_view < math.sin(math.radians(settings.grazing_view_deg))
@@ -736,9 +798,16 @@ def estimate_reflectance(radiance_rgb, saturated, camera, mesh_rig, light_poses,
                 if tints[m] is None:
                     tints[m] = np.ones((n_lights, n_points, 3), np.float32)
                 tints[m][j] = tint
-        lights.append({"index": j, "position_m": pose.position.tolist(),
-                       "rotation_rad": [pose.rx, pose.ry, pose.rz], "isotropic_point_m": centre_point.tolist(),
-                       "I0": i0, **{f"{m}": lm.describe() for m, lm in models.items() if m != "measured"}})  # fmt: skip
+        lights.append(
+            {
+                "index": j,
+                "position_m": pose.position.tolist(),
+                "rotation_rad": [pose.rx, pose.ry, pose.rz],
+                "isotropic_point_m": centre_point.tolist(),
+                "I0": i0,
+                **{f"{m}": lm.describe() for m, lm in models.items() if m != "measured"},
+            }
+        )
         # Cast shadows: a ray to every source of the measured model.
         lit_side = cos_in > 0
         shadow = np.zeros(n_points, bool)
@@ -756,8 +825,9 @@ def estimate_reflectance(radiance_rgb, saturated, camera, mesh_rig, light_poses,
         if housing is not None and housing[0] > 0:
             from processing.trace import _housing_blocks
 
-            housing_blocks = _housing_blocks(np.broadcast_to(rays.centre, points.shape), points, pose,
-                                             float(housing[0]), float(housing[1]))  # fmt: skip
+            housing_blocks = _housing_blocks(
+                np.broadcast_to(rays.centre, points.shape), points, pose, float(housing[0]), float(housing[1])
+            )
         no_data = sat[j, rows, cols] | ~np.all(np.isfinite(radiance_rgb[j, rows, cols, :]), axis=1)
         no_irradiance = np.zeros(n_points, bool)
         for m in all_methods:
@@ -766,9 +836,14 @@ def estimate_reflectance(radiance_rgb, saturated, camera, mesh_rig, light_poses,
         half /= np.linalg.norm(half, axis=1, keepdims=True)
         specular = np.einsum("ij,ij->i", half, normals) > cos_spec
         code = codes[j]
-        for mask, value in ((housing_blocks, SAMPLE_HOUSING), (cos_in < sin_graze, SAMPLE_GRAZING),
-                            (shadow, SAMPLE_SHADOW), (no_data, SAMPLE_SATURATED),
-                            (no_irradiance, SAMPLE_NO_IRRADIANCE), (specular, SAMPLE_SPECULAR_GEOMETRY)):  # fmt: skip
+        for mask, value in (
+            (housing_blocks, SAMPLE_HOUSING),
+            (cos_in < sin_graze, SAMPLE_GRAZING),
+            (shadow, SAMPLE_SHADOW),
+            (no_data, SAMPLE_SATURATED),
+            (no_irradiance, SAMPLE_NO_IRRADIANCE),
+            (specular, SAMPLE_SPECULAR_GEOMETRY),
+        ):
             code[(code == SAMPLE_USED) & mask] = value
 
     _drop_outliers(codes, L.mean(axis=2), E["measured"], settings.outlier)
@@ -803,9 +878,14 @@ def estimate_reflectance(radiance_rgb, saturated, camera, mesh_rig, light_poses,
     report("lights", n_lights + 1, n_lights + 1)
 
     if not enough.any():
-        counts = ", ".join(f"{PIXEL_SHORT[c]} {int((reason == c).sum())}" for c in PIXEL_CODES
-                           if c not in (PIXEL_VALID, PIXEL_BACKGROUND) and (reason == c).any())  # fmt: skip
-        raise ReflectanceError(f"no valid points: {n_points} superpixels on {mesh_name}, all excluded ({counts or 'none'})")
+        counts = ", ".join(
+            f"{PIXEL_SHORT[c]} {int((reason == c).sum())}"
+            for c in PIXEL_CODES
+            if c not in (PIXEL_VALID, PIXEL_BACKGROUND) and (reason == c).any()
+        )
+        raise ReflectanceError(
+            f"no valid points: {n_points} superpixels on {mesh_name}, all excluded ({counts or 'none'})"
+        )
 
     object_pose = object_pose or Pose(0.0, 0.0, 0.0)
     up = np.asarray(up, float)
@@ -815,11 +895,32 @@ def estimate_reflectance(radiance_rgb, saturated, camera, mesh_rig, light_poses,
     warnings = []
     extrapolated = _extrapolated_fraction(light_model, light_poses, points[enough])
     if extrapolated > 0.01:
-        warnings.append(f"{100 * extrapolated:.0f} % of the valid points are lit at angles the light model "
-                        "extrapolates (outside the θ its samples cover)")  # fmt: skip
-    return ReflectanceResult(methods, shape, rho, reason, rows, cols, points, normals, faces, heights, uv, L,
-                             {m: E[m] for m in methods}, {m: tints[m] for m in methods}, codes, rho_points, lights,
-                             settings, object_centre, warnings)  # fmt: skip
+        warnings.append(
+            f"{100 * extrapolated:.0f} % of the valid points are lit at angles the light model "
+            "extrapolates (outside the θ its samples cover)"
+        )
+    return ReflectanceResult(
+        methods,
+        shape,
+        rho,
+        reason,
+        rows,
+        cols,
+        points,
+        normals,
+        faces,
+        heights,
+        uv,
+        L,
+        {m: E[m] for m in methods},
+        {m: tints[m] for m in methods},
+        codes,
+        rho_points,
+        lights,
+        settings,
+        object_centre,
+        warnings,
+    )
 
 
 def _channel_irradiance(grey: np.ndarray, colour: np.ndarray | None) -> np.ndarray:
@@ -846,13 +947,13 @@ def _drop_outliers(codes: np.ndarray, luminance: np.ndarray, irradiance: np.ndar
         if not candidates.any():
             return
         idx = np.flatnonzero(candidates)
-        u, l, e = used[:, idx], L[:, idx], E[:, idx]
-        s_le = np.where(u, l * e, 0.0).sum(axis=0)
+        u, lum, e = used[:, idx], L[:, idx], E[:, idx]
+        s_le = np.where(u, lum * e, 0.0).sum(axis=0)
         s_ee = np.where(u, e * e, 0.0).sum(axis=0)
         with np.errstate(divide="ignore", invalid="ignore"):
-            rho_others = (s_le[None] - l * e) / (s_ee[None] - e * e)
+            rho_others = (s_le[None] - lum * e) / (s_ee[None] - e * e)
             predicted = rho_others * e
-            excess = np.where(u & (predicted > 0), l / predicted - 1.0, -np.inf)
+            excess = np.where(u & (predicted > 0), lum / predicted - 1.0, -np.inf)
         worst = np.argmax(excess, axis=0)
         value = excess[worst, np.arange(len(idx))]
         drop = value > threshold
@@ -965,8 +1066,9 @@ def uv_texture(result: ReflectanceResult, method: str, size: int = 1024, fill: i
         if known.all() or not known.any():
             break
         weight = uniform_filter(known.astype(float), size=3, mode="constant")
-        summed = np.stack([uniform_filter(np.where(known, texture[..., c], 0.0), size=3, mode="constant")
-                           for c in range(3)], axis=-1)  # fmt: skip
+        summed = np.stack(
+            [uniform_filter(np.where(known, texture[..., c], 0.0), size=3, mode="constant") for c in range(3)], axis=-1
+        )
         grow = ~known & (weight > 0.5 / 9.0)  # at least one filled neighbour (not round-off)
         texture[grow] = summed[grow] / weight[grow, None]
     return texture
@@ -992,7 +1094,9 @@ def load_mesh(path, units_m: float = 1.0, pose: Pose | None = None):
     try:
         mesh = trimesh.load(str(path), force="mesh")
     except Exception as exc:  # noqa: BLE001 - trimesh's loaders raise anything
-        raise ReflectanceError(f"{path}: cannot read the mesh ({type(exc).__name__}: {' '.join(str(exc).split())})") from None
+        raise ReflectanceError(
+            f"{path}: cannot read the mesh ({type(exc).__name__}: {' '.join(str(exc).split())})"
+        ) from None
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
         raise ReflectanceError(f"{path}: cannot read the mesh (no triangles in it)")
     mesh = mesh.copy()
@@ -1017,8 +1121,9 @@ def find_light_model(light) -> Path:
             return found[0]
         if not found:
             raise ReflectanceError(f"{path}: no *.light.json light model in this folder (process the light run first)")
-        raise ReflectanceError(f"{path}: {len(found)} light models in this folder ({', '.join(p.name for p in found)}): "
-                               "give the file")  # fmt: skip
+        raise ReflectanceError(
+            f"{path}: {len(found)} light models in this folder ({', '.join(p.name for p in found)}): give the file"
+        )
     if path.name.endswith(".json"):
         if not path.is_file():
             raise ReflectanceError(f"{path}: light model not found")
@@ -1028,13 +1133,15 @@ def find_light_model(light) -> Path:
         candidate = path.with_name(f"{stem}.light.json")
         if candidate.is_file():
             return candidate
-        raise ReflectanceError(f"{path}: no light model {candidate.name} beside it (process the light run with the sources step)")
+        raise ReflectanceError(
+            f"{path}: no light model {candidate.name} beside it (process the light run with the sources step)"
+        )
     raise ReflectanceError(f"{path}: not a light model, a results folder or a results file")
 
 
 def _light_section(rig_like) -> dict | None:
     """The ``[light]`` of a rig (a Rig or its dict) as comparable numbers, or None."""
-    from acquisition.rig import Light
+    from drivers.contracts.rig import Light
 
     if rig_like is None:
         return None
@@ -1043,9 +1150,12 @@ def _light_section(rig_like) -> dict | None:
         light = section if isinstance(section, Light) else Light.model_validate(section)
     except ValueError:
         return None
-    return {"light_to_tool.position_m": tuple(light.light_to_tool.position_m),
-            "light_to_tool.rotation_deg": tuple(light.light_to_tool.rotation_deg),
-            "housing_radius_m": light.housing_radius_m, "housing_depth_m": light.housing_depth_m}  # fmt: skip
+    return {
+        "light_to_tool.position_m": tuple(light.light_to_tool.position_m),
+        "light_to_tool.rotation_deg": tuple(light.light_to_tool.rotation_deg),
+        "housing_radius_m": light.housing_radius_m,
+        "housing_depth_m": light.housing_depth_m,
+    }
 
 
 def _light_run_rig(light_model):
@@ -1057,7 +1167,7 @@ def _light_run_rig(light_model):
             return rig
     run_file = light_model.provenance.get("run_file")
     if run_file and Path(run_file).is_file():
-        from acquisition.runfile import RunFile, RunFileError
+        from drivers.contracts.runfile import RunFile, RunFileError
 
         try:
             with RunFile.open(run_file) as run:
@@ -1080,8 +1190,10 @@ def check_light_frame(light_model, light_path, rig, run_path) -> str | None:
     """
     theirs = _light_run_rig(light_model)
     if theirs is None:
-        return (f"{light_path}: the light model does not record its rig's [light] section and its run file is not at "
-                "hand: the light frame could not be checked")  # fmt: skip
+        return (
+            f"{light_path}: the light model does not record its rig's [light] section and its run file is not at "
+            "hand: the light frame could not be checked"
+        )
     a, b = _light_section(theirs), _light_section(rig)
     if a is None or b is None:
         return f"{light_path}: the light run's [light] section is unreadable: the light frame could not be checked"
@@ -1093,7 +1205,7 @@ def check_light_frame(light_model, light_path, rig, run_path) -> str | None:
             f"{light_path}: light results from a different rig: the light run's rig {name_a!r} has [light] "
             f"{key} = {list(np.atleast_1d(a[key]))}, the object run {run_path}'s rig {rig.name!r} has "
             f"{list(np.atleast_1d(b[key]))}: the light frame would not be the same"
-        )  # fmt: skip
+        )
     return None
 
 
@@ -1133,8 +1245,9 @@ def _reason_png(path: Path, reason: np.ndarray) -> Path:
     return _write_rgba_png(path, rgba)
 
 
-def write_outputs(result: ReflectanceResult, out_dir, *, texture_size: int = 1024, bins: int = 24,
-                  metadata: dict | None = None) -> dict[str, Path]:  # fmt: skip
+def write_outputs(
+    result: ReflectanceResult, out_dir, *, texture_size: int = 1024, bins: int = 24, metadata: dict | None = None
+) -> dict[str, Path]:
     """Write the files of ``docs/reflectance.md`` into ``out_dir``; returns them by name.
 
     Per method ``albedo-<method>.exr`` (NaN where invalid) and ``.png``; ``reasons.png``;
@@ -1170,9 +1283,13 @@ def write_outputs(result: ReflectanceResult, out_dir, *, texture_size: int = 102
 
     h5 = out / "reflectance.h5"
     with h5py.File(h5, "w") as f:
-        f.attrs.update(format="mirrorgonio-reflectance", format_version=1,
-                       pixel_codes=json.dumps(PIXEL_CODES), sample_codes=json.dumps(SAMPLE_CODES),
-                       methods=json.dumps(list(result.methods)))  # fmt: skip
+        f.attrs.update(
+            format="mirrorgonio-reflectance",
+            format_version=1,
+            pixel_codes=json.dumps(PIXEL_CODES),
+            sample_codes=json.dumps(SAMPLE_CODES),
+            methods=json.dumps(list(result.methods)),
+        )
         f["reason"] = result.reason
         f["rows"], f["cols"] = result.rows, result.cols
         f["points"], f["normals"], f["faces"] = result.points, result.normals, result.faces
@@ -1188,19 +1305,30 @@ def write_outputs(result: ReflectanceResult, out_dir, *, texture_size: int = 102
             f[f"irradiance_rgb/{m}"] = result.irradiance_rgb(m)
     files["reflectance.h5"] = h5
 
-    summary = {**(metadata or {}), **result.summary(), "png_scale": scale, "profiles": profiles,
-               "pixel_codes": {str(c): PIXEL_SHORT[c] for c in PIXEL_CODES},
-               "sample_codes": {str(c): SAMPLE_SHORT[c] for c in SAMPLE_CODES}}  # fmt: skip
+    summary = {
+        **(metadata or {}),
+        **result.summary(),
+        "png_scale": scale,
+        "profiles": profiles,
+        "pixel_codes": {str(c): PIXEL_SHORT[c] for c in PIXEL_CODES},
+        "sample_codes": {str(c): SAMPLE_SHORT[c] for c in SAMPLE_CODES},
+    }
     files["report.html"] = out / "report.html"
     files["reflectance.json"] = out / "reflectance.json"
     summary["outputs"] = {name: str(path) for name, path in files.items()}
     from processing.lightmodel import _plain
 
     (out / "reflectance.json").write_text(json.dumps(_plain(summary), indent=2) + "\n", encoding="utf-8")
-    write_reflectance_report(out / "report.html", summary, images={
-        **{f"albedo-{m}": out / f"albedo-{m}.png" for m in result.methods},
-        "reasons": out / "reasons.png", "profiles": out / "profiles.png",
-        **{f"texture-{m}": p for m, p in textures.items()}})  # fmt: skip
+    write_reflectance_report(
+        out / "report.html",
+        summary,
+        images={
+            **{f"albedo-{m}": out / f"albedo-{m}.png" for m in result.methods},
+            "reasons": out / "reasons.png",
+            "profiles": out / "profiles.png",
+            **{f"texture-{m}": p for m, p in textures.items()},
+        },
+    )
     result.outputs = files
     return files
 
@@ -1217,16 +1345,25 @@ def _results_for(run_path: Path, out: Path, progress) -> Path:
             return candidate
     log.info("%s: no HDR results yet: merging the brackets into %s", run_path, out)
     try:
-        report = process_run(run_path, out, steps=("hdr",),
-                             progress=(lambda d, t: progress("hdr", d, t)) if progress else None)  # fmt: skip
+        report = process_run(
+            run_path, out, steps=("hdr",), progress=(lambda d, t: progress("hdr", d, t)) if progress else None
+        )
     except ProcessingError as exc:
         raise ReflectanceError(str(exc)) from None
     return report.results_file
 
 
-def reflectance_from_run(object_run, light=None, mesh=None, out_dir=None, *, progress=None,
-                         settings: ReflectanceSettings | None = None, texture_size: int = 1024,
-                         bins: int = 24) -> ReflectanceResult:  # fmt: skip
+def reflectance_from_run(
+    object_run,
+    light=None,
+    mesh=None,
+    out_dir=None,
+    *,
+    progress=None,
+    settings: ReflectanceSettings | None = None,
+    texture_size: int = 1024,
+    bins: int = 24,
+) -> ReflectanceResult:
     """Estimate an object's albedo from its run file and write every output.
 
     Parameters
@@ -1256,7 +1393,7 @@ def reflectance_from_run(object_run, light=None, mesh=None, out_dir=None, *, pro
         ``[object]`` and no mesh, light results from a different rig, a mesh out of the
         camera's view, no valid point.
     """
-    from acquisition.runfile import RunFile, RunFileError, file_sha256
+    from drivers.contracts.runfile import RunFile, RunFileError, file_sha256
     from processing.hdr import superpixels
     from processing.lightmodel import LightModel, LightModelError
     from processing.pipeline import _light_pose, gain_mismatch, radiometric_gain
@@ -1276,7 +1413,9 @@ def reflectance_from_run(object_run, light=None, mesh=None, out_dir=None, *, pro
         obj = rig.object
         if mesh is None:
             if obj is None:
-                raise ReflectanceError(f"{run_path}: the run's rig {rig.name!r} has no [object] and no mesh was given (--mesh)")
+                raise ReflectanceError(
+                    f"{run_path}: the run's rig {rig.name!r} has no [object] and no mesh was given (--mesh)"
+                )
             mesh_path = obj.mesh_path()
         else:
             mesh_path = Path(mesh)
@@ -1284,7 +1423,9 @@ def reflectance_from_run(object_run, light=None, mesh=None, out_dir=None, *, pro
         mesh_rig = load_mesh(mesh_path, obj.units_m if obj is not None else 1.0, object_pose)
         recorded_mesh = references.get("object_mesh") or {}
         if recorded_mesh.get("sha256") and recorded_mesh["sha256"] != file_sha256(mesh_path):
-            warnings.append(f"{mesh_path}: not the mesh the run recorded ({recorded_mesh.get('path')}): its contents differ")
+            warnings.append(
+                f"{mesh_path}: not the mesh the run recorded ({recorded_mesh.get('path')}): its contents differ"
+            )
 
         recorded_light = references.get("light_model") or {}
         if light is None:
@@ -1310,8 +1451,10 @@ def reflectance_from_run(object_run, light=None, mesh=None, out_dir=None, *, pro
             with Results.open(results_file) as results:
                 positions = np.flatnonzero(results.hdr_done & run.complete)
                 if positions.size < 2:
-                    raise ReflectanceError(f"{run_path}: {positions.size} position(s) with frames and an HDR result: "
-                                           "the albedo needs at least 2 light positions")  # fmt: skip
+                    raise ReflectanceError(
+                        f"{run_path}: {positions.size} position(s) with frames and an HDR result: "
+                        "the albedo needs at least 2 light positions"
+                    )
                 # DN/s → e⁻/s with the rig's calibrated gain, as the light step: k (e⁻/s per unit
                 # radiance) is calibrated with it; the HDR's own estimate only weights the merge.
                 gain, gain_source = radiometric_gain(run), "rig"
@@ -1335,15 +1478,34 @@ def reflectance_from_run(object_run, light=None, mesh=None, out_dir=None, *, pro
             log.info("%s: %s", results_file, mismatch[1])
     for text in warnings:
         log.warning("%s", text)
-    result = estimate_reflectance(np.stack(rates), np.stack(saturated), rig.camera, mesh_rig, poses, light_model,
-                                  object_pose=object_pose, up=obj.up if obj is not None else (0.0, 1.0, 0.0),
-                                  housing=(rig.light.housing_radius_m, rig.light.housing_depth_m),
-                                  settings=settings, mesh_name=str(mesh_path), progress=progress)  # fmt: skip
+    result = estimate_reflectance(
+        np.stack(rates),
+        np.stack(saturated),
+        rig.camera,
+        mesh_rig,
+        poses,
+        light_model,
+        object_pose=object_pose,
+        up=obj.up if obj is not None else (0.0, 1.0, 0.0),
+        housing=(rig.light.housing_radius_m, rig.light.housing_depth_m),
+        settings=settings,
+        mesh_name=str(mesh_path),
+        progress=progress,
+    )
     result.warnings[:0] = warnings
-    result.metadata = {"object_run": str(run_path), "run_id": run_id, "rig": rig.name, "results_file": str(results_file),
-                       "positions": [int(i) for i in positions], "light_model": str(light_path),
-                       "light_run_id": light_model.provenance.get("run_id", ""), "light_units": light_model.units,
-                       "mesh": str(mesh_path), "camera_sensitivity_e_per_s": rig.camera.sensitivity_e_per_s,
-                       "gain_e_per_dn": gain, "gain_source": gain_source}  # fmt: skip
+    result.metadata = {
+        "object_run": str(run_path),
+        "run_id": run_id,
+        "rig": rig.name,
+        "results_file": str(results_file),
+        "positions": [int(i) for i in positions],
+        "light_model": str(light_path),
+        "light_run_id": light_model.provenance.get("run_id", ""),
+        "light_units": light_model.units,
+        "mesh": str(mesh_path),
+        "camera_sensitivity_e_per_s": rig.camera.sensitivity_e_per_s,
+        "gain_e_per_dn": gain,
+        "gain_source": gain_source,
+    }
     write_outputs(result, out, texture_size=texture_size, bins=bins, metadata=result.metadata)
     return result

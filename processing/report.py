@@ -52,7 +52,7 @@ import re
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 
 import numpy as np
@@ -85,10 +85,15 @@ _PREVIEW_WIDTH = 320
 _PREVIEW_CROP = 200
 _COLOURS = ("#1f77b4", "#d62728", "#2ca02c", "#9467bd", "#ff7f0e", "#8c564b", "#e377c2", "#17becf", "#bcbd22")
 NO_CALIBRATION = "no calibration image in this run"
-_SECTIONS = ("The light source, source by source", "The sources on the light plane",
-             "Which θ each source was sampled at", "How the ball widens the angles",
-             "How well the fits describe the samples", "Calibration check: the ball's position",
-             "HDR frames over the sweep")  # fmt: skip
+_SECTIONS = (
+    "The light source, source by source",
+    "The sources on the light plane",
+    "Which θ each source was sampled at",
+    "How the ball widens the angles",
+    "How well the fits describe the samples",
+    "Calibration check: the ball's position",
+    "HDR frames over the sweep",
+)
 
 
 # --- the data the figures share ------------------------------------------------------------------
@@ -145,9 +150,16 @@ def _source_data(model: LightModel, samples=None) -> list[_SourceData]:
         if theta is None and samples is not None:
             ok = np.isfinite(samples.intensity[:, k]) & np.isfinite(samples.theta[:, k])
             cell = np.asarray(samples.cell_sum[:, k], dtype=float)[ok]
-            out.append(_SourceData(np.asarray(samples.theta[:, k])[ok], np.asarray(samples.phi[:, k])[ok],
-                                   np.asarray(samples.intensity[:, k])[ok], np.asarray(samples.sigma[:, k])[ok],
-                                   np.asarray(samples.positions)[ok].astype(float), cell))  # fmt: skip
+            out.append(
+                _SourceData(
+                    np.asarray(samples.theta[:, k])[ok],
+                    np.asarray(samples.phi[:, k])[ok],
+                    np.asarray(samples.intensity[:, k])[ok],
+                    np.asarray(samples.sigma[:, k])[ok],
+                    np.asarray(samples.positions)[ok].astype(float),
+                    cell,
+                )
+            )
             continue
         if theta is None:
             empty = np.zeros(0)
@@ -155,15 +167,22 @@ def _source_data(model: LightModel, samples=None) -> list[_SourceData]:
             continue
         n = len(theta)
 
-        def col(key, default=np.nan):
+        def col(key, default=np.nan, table=table, n=n):
             value = _column(table, key)
             return value if value is not None and len(value) == n else np.full(n, default)
 
         position = _column(table, "position")
         cell = _column(table, "cell_sum_intensity")
-        out.append(_SourceData(theta, col("phi", 0.0), col("intensity"), col("sigma"),
-                               position if position is not None and len(position) == n else np.arange(n, dtype=float),
-                               cell if cell is not None and len(cell) == n else None))  # fmt: skip
+        out.append(
+            _SourceData(
+                theta,
+                col("phi", 0.0),
+                col("intensity"),
+                col("sigma"),
+                position if position is not None and len(position) == n else np.arange(n, dtype=float),
+                cell if cell is not None and len(cell) == n else None,
+            )
+        )
     return out
 
 
@@ -337,8 +356,14 @@ def _polar_frame(ax, rmax: float, clip) -> None:
     ax.add_artist(clip)  # the rim and the baseline, as a polar plot's spines
     for a in spokes:  # θ labels outside the rim, 0° up
         s, c = math.sin(a), math.cos(a)
-        ax.text(1.06 * s, 1.06 * c, f"{round(math.degrees(a))}°", fontsize=8,
-                ha="center" if abs(s) < 0.3 else ("left" if s > 0 else "right"), va="bottom" if c > 0.3 else "center")  # fmt: skip
+        ax.text(
+            1.06 * s,
+            1.06 * c,
+            f"{round(math.degrees(a))}°",
+            fontsize=8,
+            ha="center" if abs(s) < 0.3 else ("left" if s > 0 else "right"),
+            va="bottom" if c > 0.3 else "center",
+        )
     if ticks.size > 1:  # the radial scale under the baseline, left of the axis, with the decimals its step needs
         step = float(ticks[1] - ticks[0])
         decimals = max(0, -math.floor(math.log10(step)))
@@ -368,8 +393,9 @@ def _polar_panel(ax, ctx: _Context, k: int) -> list:
         return r * np.sin(theta), r * np.cos(theta)
 
     rim = np.radians(np.linspace(-90.0, 90.0, 181))
-    clip = Polygon(np.column_stack([np.sin(rim), np.cos(rim)]), closed=True, facecolor="none", edgecolor="k",
-                   lw=0.8, zorder=2.5)  # fmt: skip
+    clip = Polygon(
+        np.column_stack([np.sin(rim), np.cos(rim)]), closed=True, facecolor="none", edgecolor="k", lw=0.8, zorder=2.5
+    )
     _polar_frame(ax, rmax, clip)
     handles, drawn = [], []
     # the θ the samples cover, side by side
@@ -377,38 +403,78 @@ def _polar_panel(ax, ctx: _Context, k: int) -> list:
         on_side = signed[np.isfinite(signed) & (np.sign(signed) == side)] if signed.size else np.zeros(0)
         if on_side.size:
             span = np.linspace(on_side.min(), on_side.max(), 50)
-            wedge = Polygon(np.column_stack([np.r_[0.0, np.sin(span)], np.r_[0.0, np.cos(span)]]), closed=True,
-                            facecolor="0.5", alpha=0.10, linewidth=0)  # fmt: skip
+            wedge = Polygon(
+                np.column_stack([np.r_[0.0, np.sin(span)], np.r_[0.0, np.cos(span)]]),
+                closed=True,
+                facecolor="0.5",
+                alpha=0.10,
+                linewidth=0,
+            )
             drawn.append(ax.add_artist(wedge))
     shown = np.where(fit <= 1.05 * rmax, fit, np.nan) / rmax
     solid = np.where(~extrapolated, shown, np.nan)
     dashed = np.where(_runs(extrapolated), shown, np.nan)
     handles.append(_line(ax, solid * sin_grid, solid * cos_grid, color=colour, lw=2.0, label="fit (θ covered)"))
-    handles.append(_line(ax, dashed * sin_grid, dashed * cos_grid, color=colour, lw=1.4, ls="--", alpha=0.45,
-                         label="fit, extrapolated"))  # fmt: skip
+    handles.append(
+        _line(
+            ax,
+            dashed * sin_grid,
+            dashed * cos_grid,
+            color=colour,
+            lw=1.4,
+            ls="--",
+            alpha=0.45,
+            label="fit, extrapolated",
+        )
+    )
     drawn += handles
     if true is not None:
         r = np.where(true <= 1.05 * rmax, true, np.nan) / rmax
         h = _line(ax, r * sin_grid, r * cos_grid, color="k", lw=1.2, ls=(0, (6, 3)), label="truth")
         handles.append(h)
         drawn.append(h)
-    if d.cell_sum is not None and np.any(np.isfinite(d.cell_sum)) and not np.allclose(
-        d.cell_sum, d.intensity, equal_nan=True
+    if (
+        d.cell_sum is not None
+        and np.any(np.isfinite(d.cell_sum))
+        and not np.allclose(d.cell_sum, d.intensity, equal_nan=True)
     ):
-        h = _line(ax, *xy(signed, d.cell_sum), ls="none", marker="^", ms=4, mfc="none", mec="0.35", mew=0.8,
-                  label="chief-ray cell sums")  # fmt: skip
+        h = _line(
+            ax,
+            *xy(signed, d.cell_sum),
+            ls="none",
+            marker="^",
+            ms=4,
+            mfc="none",
+            mec="0.35",
+            mew=0.8,
+            label="chief-ray cell sums",
+        )
         handles.append(h)
         drawn.append(h)
     if d.intensity.size:
         has_sigma = bool(np.any(np.isfinite(d.sigma) & (d.sigma > 0)))
         bars = ()
         if has_sigma:  # the ±1σ bars run along the radius
-            ends = np.stack([np.column_stack(xy(signed, np.maximum(d.intensity - sigma, 0.0))),
-                             np.column_stack(xy(signed, d.intensity + sigma))], axis=1)  # fmt: skip
+            ends = np.stack(
+                [
+                    np.column_stack(xy(signed, np.maximum(d.intensity - sigma, 0.0))),
+                    np.column_stack(xy(signed, d.intensity + sigma)),
+                ],
+                axis=1,
+            )
             bars = (ax.add_artist(LineCollection(ends, colors=colour, linewidths=0.9)),)
             drawn += bars
-        line = _line(ax, *xy(signed, d.intensity), ls="none", marker="o", ms=3.2, color=colour, mec="k", mew=0.4,
-                     label="samples ± 1σ")  # fmt: skip
+        line = _line(
+            ax,
+            *xy(signed, d.intensity),
+            ls="none",
+            marker="o",
+            ms=3.2,
+            color=colour,
+            mec="k",
+            mew=0.4,
+            label="samples ± 1σ",
+        )
         drawn.append(line)
         handles.append(ErrorbarContainer((line, (), bars), has_xerr=False, has_yerr=has_sigma, label="samples ± 1σ"))
     for artist in drawn:
@@ -446,23 +512,48 @@ def _polar_figure(ctx: _Context) -> Figure:
         cell_top = height - top_band - r * cell_h
         base = cell_top - 0.58 - radius  # the baseline: the title and the 0° label above the half disc
         centre = (c + 0.5) * cell_w
-        ax = fig.add_axes(((centre - radius - pad_x) / width, (base - pad_bottom) / height,
-                           2.0 * (radius + pad_x) / width, (radius + pad_bottom + pad_top) / height))  # fmt: skip
+        ax = fig.add_axes(
+            (
+                (centre - radius - pad_x) / width,
+                (base - pad_bottom) / height,
+                2.0 * (radius + pad_x) / width,
+                (radius + pad_bottom + pad_top) / height,
+            )
+        )
         ax.set_axis_off()
         ax.set_xlim(-1.0 - pad_x / radius, 1.0 + pad_x / radius)
         ax.set_ylim(-pad_bottom / radius, 1.0 + pad_top / radius)
         for h in _polar_panel(ax, ctx, k):
             handles.setdefault(h.get_label(), h)
         source = ctx.model.sources[k]
-        fig.text(centre / width, (cell_top - 0.02) / height,
-                 f"{source.name}  ({source.fit.method}, χ²ᵣ = {source.fit.chi2_reduced:.2g})", ha="center", va="top",
-                 fontsize=10)  # fmt: skip
+        fig.text(
+            centre / width,
+            (cell_top - 0.02) / height,
+            f"{source.name}  ({source.fit.method}, χ²ᵣ = {source.fit.chi2_reduced:.2g})",
+            ha="center",
+            va="top",
+            fontsize=10,
+        )
     order = ["samples ± 1σ", "fit (θ covered)", "fit, extrapolated", "chief-ray cell sums", "truth"]
     shown = [handles[label] for label in order if label in handles]
-    fig.legend(shown, [h.get_label() for h in shown], loc="lower center", bbox_to_anchor=(0.5, 0.0),
-               ncols=len(shown), fontsize=9, frameon=False)  # fmt: skip
-    fig.text(0.5, 1.0 - 0.08 / height, f"radiant intensity I(θ) [{ctx.model.units}] as the radius; θ from the "
-             "light's axis (up), signed by side", ha="center", va="top", fontsize=9, color="0.3")  # fmt: skip
+    fig.legend(
+        shown,
+        [h.get_label() for h in shown],
+        loc="lower center",
+        bbox_to_anchor=(0.5, 0.0),
+        ncols=len(shown),
+        fontsize=9,
+        frameon=False,
+    )
+    fig.text(
+        0.5,
+        1.0 - 0.08 / height,
+        f"radiant intensity I(θ) [{ctx.model.units}] as the radius; θ from the light's axis (up), signed by side",
+        ha="center",
+        va="top",
+        fontsize=9,
+        color="0.3",
+    )
     return fig
 
 
@@ -484,21 +575,39 @@ def layout_figure(model: LightModel, *, resolution_m: float = float("nan"), pixe
         dist = np.hypot(*(centres[:, None, :] - centres[None, :, :]).transpose(2, 0, 1))
         spacing = float(np.min(dist[dist > 0])) if np.any(dist > 0) else 1.0
     marker_floor = 0.04 * spacing
-    for k, (source, (u, v), r) in enumerate(zip(model.sources, centres, radii)):
-        ax.add_patch(Circle((u, v), max(r, marker_floor), facecolor=colours[k], alpha=0.55, edgecolor=colours[k],
-                            lw=1.2))  # fmt: skip
+    for k, (source, (u, v), r) in enumerate(zip(model.sources, centres, radii, strict=True)):
+        ax.add_patch(
+            Circle((u, v), max(r, marker_floor), facecolor=colours[k], alpha=0.55, edgecolor=colours[k], lw=1.2)
+        )
         ax.plot([u], [v], "+", color="k", ms=6, mew=0.8)
-        ax.annotate(source.name, (u, v), xytext=(6, 6), textcoords="offset points", fontsize=10, color=colours[k],
-                    fontweight="bold")  # fmt: skip
+        ax.annotate(
+            source.name,
+            (u, v),
+            xytext=(6, 6),
+            textcoords="offset points",
+            fontsize=10,
+            color=colours[k],
+            fontweight="bold",
+        )
     centroid = centres.mean(axis=0)
     handles = []
     lo = (centres - radii[:, None]).min(axis=0)
     hi = (centres + radii[:, None]).max(axis=0)
     if has_footprint:
         rad = 0.5 * resolution_m * 1e3
-        handles.append(ax.add_patch(Circle(tuple(centroid), rad, fill=False, ls="--", lw=1.4, edgecolor="0.3",
-                                           label=f"what one pixel gathers light from: the point spread's footprint "
-                                                 f"({2 * rad:.1f} mm across)")))  # fmt: skip
+        handles.append(
+            ax.add_patch(
+                Circle(
+                    tuple(centroid),
+                    rad,
+                    fill=False,
+                    ls="--",
+                    lw=1.4,
+                    edgecolor="0.3",
+                    label=f"what one pixel gathers light from: the point spread's footprint ({2 * rad:.1f} mm across)",
+                )
+            )
+        )
         lo = np.minimum(lo, centroid - rad)
         hi = np.maximum(hi, centroid + rad)
     if pixel_polygon is not None:
@@ -510,8 +619,11 @@ def layout_figure(model: LightModel, *, resolution_m: float = float("nan"), pixe
         clear = np.all(np.hypot(*(centres - (corner + 0.5 * size)).T) > radii + 0.75 * float(np.hypot(*size)))
         poly = poly + (corner if clear else lo - size - 0.05 * max(float(np.max(hi - lo)), 1.0))
         label = f"one pixel's chief-ray footprint ({size[0]:.2f} × {size[1]:.2f} mm), to scale, lower left"
-        handles.append(ax.add_patch(Polygon(poly, closed=True, facecolor="0.2", edgecolor="k", lw=0.8, alpha=0.8,
-                                            zorder=3, label=label)))  # fmt: skip
+        handles.append(
+            ax.add_patch(
+                Polygon(poly, closed=True, facecolor="0.2", edgecolor="k", lw=0.8, alpha=0.8, zorder=3, label=label)
+            )
+        )
         lo = np.minimum(lo, poly.min(axis=0))
         hi = np.maximum(hi, poly.max(axis=0))
     span = max(float(np.max(hi - lo)), 2.0 * spacing, 1.0)
@@ -550,8 +662,15 @@ def _coverage_figure(ctx: _Context, samples=None) -> Figure:
         else:
             d = ctx.data[k]
             order = np.argsort(d.position)
-            ax.plot(d.position[order], np.degrees(_signed(d.theta, d.phi, ctx.azimuth))[order], "o-", color=colour,
-                    ms=3.5, lw=0.8, label=source.name)  # fmt: skip
+            ax.plot(
+                d.position[order],
+                np.degrees(_signed(d.theta, d.phi, ctx.azimuth))[order],
+                "o-",
+                color=colour,
+                ms=3.5,
+                lw=0.8,
+                label=source.name,
+            )
     ax.axhline(0.0, color="0.5", lw=0.6)
     ax.set_xlabel("schedule position")
     ax.set_ylabel(f"θ sampled [°]  (+ towards φ = {_deg(ctx.azimuth)})")
@@ -561,8 +680,15 @@ def _coverage_figure(ctx: _Context, samples=None) -> Figure:
     return fig
 
 
-def angles_figure(rays, *, index: int | None = None, centre_m=(0.0, 0.0), light_radius_m: float = 0.01,
-                  ball_half_angle: float | None = None, ball_distance_ratio: float | None = None) -> Figure:  # fmt: skip
+def angles_figure(
+    rays,
+    *,
+    index: int | None = None,
+    centre_m=(0.0, 0.0),
+    light_radius_m: float = 0.01,
+    ball_half_angle: float | None = None,
+    ball_distance_ratio: float | None = None,
+) -> Figure:
     """Outgoing angle θ at the light plane against the deflection the ball gives each chief
     ray (the reference paper's Fig. 5), for the chief rays of pixels across the ball.
 
@@ -583,9 +709,17 @@ def angles_figure(rays, *, index: int | None = None, centre_m=(0.0, 0.0), light_
     ax.plot(defl, theta, ls="none", marker="o", ms=1.0, mfc="0.75", mew=0.0, label="every chief ray on the light plane")
     if np.any(near):
         order = np.argsort(-dist[near])
-        sc = ax.scatter(defl[near][order], theta[near][order], s=5, c=dist[near][order], cmap="viridis",
-                        vmin=0.0, vmax=light_radius_m * 1e3, linewidths=0,
-                        label=f"rays landing within {light_radius_m * 1e3:.0f} mm of the sources")  # fmt: skip
+        sc = ax.scatter(
+            defl[near][order],
+            theta[near][order],
+            s=5,
+            c=dist[near][order],
+            cmap="viridis",
+            vmin=0.0,
+            vmax=light_radius_m * 1e3,
+            linewidths=0,
+            label=f"rays landing within {light_radius_m * 1e3:.0f} mm of the sources",
+        )
         w, h = fig.get_size_inches()
         box = ax.get_position()
         cax = fig.add_axes((1.0 - 0.95 / w, box.y0 + 0.075 * box.height, 0.14 / w, 0.85 * box.height))
@@ -627,9 +761,16 @@ def _residuals_figure(ctx: _Context) -> Figure:
     width, height = 3.6 * cols, 2.4 * rows
     fig = _new_figure(width, height, layout=None)
     left, right, bottom, top, wgap, hgap = 0.75, 0.12, 0.5, 0.3, 0.5, 0.8  # inches
-    grid = fig.add_gridspec(rows, cols, left=left / width, right=1.0 - right / width, bottom=bottom / height,
-                            top=1.0 - top / height, wspace=wgap / ((width - left - right - (cols - 1) * wgap) / cols),
-                            hspace=hgap / ((height - bottom - top - (rows - 1) * hgap) / rows))  # fmt: skip
+    grid = fig.add_gridspec(
+        rows,
+        cols,
+        left=left / width,
+        right=1.0 - right / width,
+        bottom=bottom / height,
+        top=1.0 - top / height,
+        wspace=wgap / ((width - left - right - (cols - 1) * wgap) / cols),
+        hspace=hgap / ((height - bottom - top - (rows - 1) * hgap) / rows),
+    )
     axes = []
     for k, source in enumerate(ctx.model.sources):
         ax = fig.add_subplot(grid[divmod(k, cols)], sharey=axes[0] if axes else None)
@@ -699,8 +840,9 @@ def _trace_middle(position: _Geometry, model: LightModel, max_pixels: int = 60_0
             d2 = np.where(fine.valid, np.hypot(fine.u - centroid[0], fine.v - centroid[1]), np.inf)
             j = int(np.argmin(d2))
             col, row = fine.cols[j], fine.rows[j]
-        corners = trace_pixels(geometry, pose, col + np.array([-0.5, 0.5, 0.5, -0.5]),
-                               row + np.array([-0.5, -0.5, 0.5, 0.5]))  # fmt: skip
+        corners = trace_pixels(
+            geometry, pose, col + np.array([-0.5, 0.5, 0.5, -0.5]), row + np.array([-0.5, -0.5, 0.5, 0.5])
+        )
         if np.all(corners.valid):
             out.pixel_polygon = np.column_stack([corners.u, corners.v])
             out.pixel_at = (float(col), float(row))
@@ -735,8 +877,12 @@ def _calibration_section(model: LightModel, run, report, calibration, geo: _Geom
         parts.append(_note("a calibration result is present, but without the run's rig it cannot be compared."))
     if comparison is not None:
         rows = []
-        for label, key in (("measured (rig frame)", "measured_mm"), ("described by the rig", "described_mm"),
-                           ("measured − described", "discrepancy_mm"), ("1σ of the measurement", "sigma_mm")):  # fmt: skip
+        for label, key in (
+            ("measured (rig frame)", "measured_mm"),
+            ("described by the rig", "described_mm"),
+            ("measured − described", "discrepancy_mm"),
+            ("1σ of the measurement", "sigma_mm"),
+        ):
             value = comparison.get(key)
             if value is not None:
                 fmt = "{:.3f}" if key == "sigma_mm" else "{:+.3f}"
@@ -755,16 +901,37 @@ def _calibration_section(model: LightModel, run, report, calibration, geo: _Geom
             angle_sensitivity = None
         if angle_sensitivity is not None:
             sens = angle_sensitivity(rig, geo.pose, 1e-3, max_pixels=40_000)
-            rows = [[axis, f"{sens[axis]['theta_median_deg']:.3f}", f"{sens[axis]['theta_max_deg']:.3f}",
-                     f"{sens[axis]['direction_median_deg']:.3f}", f"{sens[axis]['uv_median_mm']:.3f}"]
-                    for axis in "xyz"]  # fmt: skip
-            parts.append(f"<p>What 1 mm of error in the ball's position costs, at position {geo.index} "
-                         f"(chief rays landing within {sens['plane_radius_mm']:.0f} mm of the light's axis):</p>")  # fmt: skip
-            parts.append(_table(["ball moved 1 mm along", "Δθ median [°]", "Δθ max [°]", "Δdirection median [°]",
-                                 "Δ(u, v) median [mm]"], rows))  # fmt: skip
+            rows = [
+                [
+                    axis,
+                    f"{sens[axis]['theta_median_deg']:.3f}",
+                    f"{sens[axis]['theta_max_deg']:.3f}",
+                    f"{sens[axis]['direction_median_deg']:.3f}",
+                    f"{sens[axis]['uv_median_mm']:.3f}",
+                ]
+                for axis in "xyz"
+            ]
+            parts.append(
+                f"<p>What 1 mm of error in the ball's position costs, at position {geo.index} "
+                f"(chief rays landing within {sens['plane_radius_mm']:.0f} mm of the light's axis):</p>"
+            )
+            parts.append(
+                _table(
+                    [
+                        "ball moved 1 mm along",
+                        "Δθ median [°]",
+                        "Δθ max [°]",
+                        "Δdirection median [°]",
+                        "Δ(u, v) median [mm]",
+                    ],
+                    rows,
+                )
+            )
             if comparison is not None and comparison.get("distance_mm") is not None:
                 shift = float(comparison["distance_mm"]) * sens["theta_median_deg"]
-                parts.append(f"<p>At the measured discrepancy that is about {shift:.3f}° of θ (median, worst axis).</p>")
+                parts.append(
+                    f"<p>At the measured discrepancy that is about {shift:.3f}° of θ (median, worst axis).</p>"
+                )
     return "\n".join(parts)
 
 
@@ -914,35 +1081,65 @@ def _header(model: LightModel, run, report, samples, resolution_m: float) -> str
     rows = [["run", run_id], ["rig", rig]]
     if header is not None:
         rows.append(["run started (UTC)", header.created_utc])
-    rows.append(["report written (UTC)", datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M:%S")])
+    rows.append(["report written (UTC)", datetime.now(UTC).strftime("%Y-%m-%d %H:%M:%S")])
     if run is not None:
         rows.append(["positions", f"{len(run.completed_positions())} complete of {run.n_positions} scheduled"])
     n = [len(d.theta) for d in _source_data(model, samples)]
-    rows.append(["sources", f"{len(model.sources)} ({', '.join(s.name for s in model.sources)}), "
-                            f"{min(n)}–{max(n)} samples each" if n else str(len(model.sources))])  # fmt: skip
+    rows.append(
+        [
+            "sources",
+            f"{len(model.sources)} ({', '.join(s.name for s in model.sources)}), {min(n)}–{max(n)} samples each"
+            if n
+            else str(len(model.sources)),
+        ]
+    )
     if model.units == "W/sr":
         rows.append(["units", "W/sr (radiometrically calibrated)"])
     else:
-        rows.append(["units", f"{model.units} (not calibrated: the shapes and the ratios between sources are "
-                              "measured, not the absolute scale)"])  # fmt: skip
-    estimator = (getattr(report, "estimator", "") or prov.get("method") or "not recorded")
+        rows.append(
+            [
+                "units",
+                f"{model.units} (not calibrated: the shapes and the ratios between sources are "
+                "measured, not the absolute scale)",
+            ]
+        )
+    estimator = getattr(report, "estimator", "") or prov.get("method") or "not recorded"
     reason = getattr(report, "estimator_reason", "") or prov.get("estimator_reason")
-    rows.append(["estimator", f"{estimator}: {reason}" if reason else f"{estimator} (why is not recorded in the light model)"])
-    rows.append(["spatial resolution on the light plane",
-                 f"{_mm(resolution_m)}: the point spread's footprint, the patch of the light plane one pixel "
-                 "gathers light from; sources closer than this are told apart only by unmixing with templates"])  # fmt: skip
+    rows.append(
+        ["estimator", f"{estimator}: {reason}" if reason else f"{estimator} (why is not recorded in the light model)"]
+    )
+    rows.append(
+        [
+            "spatial resolution on the light plane",
+            f"{_mm(resolution_m)}: the point spread's footprint, the patch of the light plane one pixel "
+            "gathers light from; sources closer than this are told apart only by unmixing with templates",
+        ]
+    )
     noise = getattr(report, "noise", None)
     if noise is not None:
-        where = {"rig": "the rig's camera figures", "estimated": "estimated from the brackets"}.get(noise.source, noise.source)
-        converted = (f"; intensities converted to e⁻/s with the rig's calibrated gain, {prov['gain_e_per_dn']:.4g} e⁻/DN"
-                     if prov.get("gain_source") == "rig" and prov.get("gain_e_per_dn") else "")
-        rows.append(["noise model", f"gain {noise.gain_e_per_dn:.4g} e⁻/DN, read noise {noise.read_noise_dn:.4g} DN "
-                                    f"(photon shot + read noise, from {where}: it weights the merge){converted}"])  # fmt: skip
+        where = {"rig": "the rig's camera figures", "estimated": "estimated from the brackets"}.get(
+            noise.source, noise.source
+        )
+        converted = (
+            f"; intensities converted to e⁻/s with the rig's calibrated gain, {prov['gain_e_per_dn']:.4g} e⁻/DN"
+            if prov.get("gain_source") == "rig" and prov.get("gain_e_per_dn")
+            else ""
+        )
+        rows.append(
+            [
+                "noise model",
+                f"gain {noise.gain_e_per_dn:.4g} e⁻/DN, read noise {noise.read_noise_dn:.4g} DN "
+                f"(photon shot + read noise, from {where}: it weights the merge){converted}",
+            ]
+        )
     else:
         rows.append(["noise model", "not given to the report"])
     if prov.get("layout"):
         rows.append(["layout of the sources", str(prov["layout"])])
-    for label, key, digits in (("camera aperture", "aperture_m", ".4g"), ("sensor distance", "sensor_distance_m", ".3f")):
+    for label, key, digits in (
+        ("camera aperture", "aperture_m", ".4g"),
+        ("sensor distance", "sensor_distance_m", ".3f"),
+    ):
         record = prov.get(key)
         if isinstance(record, dict) and record.get("fitted_m"):
             rows.append([label, describe_fitted(record, digits)])
@@ -1019,13 +1216,15 @@ class _RemoteSections:
             try:
                 return future.result()
             except Exception as exc:  # noqa: BLE001 - a lost worker, an unpicklable result: draw it here
-                log.warning("report: %s: the worker could not draw it (%s: %s); drawn here", name,
-                            type(exc).__name__, exc)  # fmt: skip
+                log.warning(
+                    "report: %s: the worker could not draw it (%s: %s); drawn here", name, type(exc).__name__, exc
+                )
         return _guarded(name, lambda: _REMOTE_SECTIONS[name](ctx, self.samples))
 
 
-def write_report(path, model: LightModel, *, run=None, samples=None, report=None, truth=None,
-                 calibration=None, compute=None) -> Path:  # fmt: skip
+def write_report(
+    path, model: LightModel, *, run=None, samples=None, report=None, truth=None, calibration=None, compute=None
+) -> Path:
     """Write the run's report: one self-contained HTML file.
 
     Parameters
@@ -1117,10 +1316,11 @@ def _write_report(path: Path, model: LightModel, run, samples, report, truth, ca
     with ThreadPoolExecutor(max_workers=1, thread_name_prefix="mirrorgonio-report") as pool:
         ctx.encoder = _Encoder(pool)
         built: dict[str, str | Future] = {
-            calibrated: pool.submit(_guarded, calibrated,
-                                    lambda: _calibration_section(model, run, report, calibration, position)),
+            calibrated: pool.submit(
+                _guarded, calibrated, lambda: _calibration_section(model, run, report, calibration, position)
+            ),
             previews: pool.submit(_guarded, previews, lambda: _previews_section(report, run, model, path, position)),
-        }  # fmt: skip
+        }
         if position is not None:
             ctx.geometry = traced(lambda: _trace_middle(position, model))
         for name in (angles, layout):
@@ -1133,8 +1333,10 @@ def _write_report(path: Path, model: LightModel, run, samples, report, truth, ca
         for name in _SECTIONS:
             content = built[name].result() if isinstance(built[name], Future) else built[name]
             body.append(f"<h2>{html.escape(name)}</h2>\n{ctx.encoder.fill(content)}")
-    page = (f'<!DOCTYPE html>\n<html lang="en">\n<head>\n<meta charset="utf-8">\n<title>{html.escape(title)}</title>\n'
-            f"<style>{_CSS}</style>\n</head>\n<body>\n" + "\n".join(body) + "\n</body>\n</html>\n")  # fmt: skip
+    page = (
+        f'<!DOCTYPE html>\n<html lang="en">\n<head>\n<meta charset="utf-8">\n<title>{html.escape(title)}</title>\n'
+        f"<style>{_CSS}</style>\n</head>\n<body>\n" + "\n".join(body) + "\n</body>\n</html>\n"
+    )
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + ".tmp")
     tmp.write_text(page, encoding="utf-8")
@@ -1146,55 +1348,81 @@ def _write_report(path: Path, model: LightModel, run, samples, report, truth, ca
 def _intensity_section(ctx: _Context) -> str:
     model = ctx.model
     side = f"{_deg(ctx.azimuth)}"
-    caption = (f"Radiant intensity of each source [{model.units}] against the angle θ from the light's axis "
-               f"(up), the radius being the intensity. Dots are the samples (one per position, bars ±1σ); the solid "
-               f"line is the fit where the samples cover θ (grey wedges), dashed where it extrapolates — read "
-               f"nothing into the dashed part. θ is signed by side: + for directions towards azimuth φ = {side} in "
-               f"the light frame, − for the opposite side; the fitted model is rotationally symmetric unless it "
-               f"is a 2-D one. ")  # fmt: skip
+    caption = (
+        f"Radiant intensity of each source [{model.units}] against the angle θ from the light's axis "
+        f"(up), the radius being the intensity. Dots are the samples (one per position, bars ±1σ); the solid "
+        f"line is the fit where the samples cover θ (grey wedges), dashed where it extrapolates — read "
+        f"nothing into the dashed part. θ is signed by side: + for directions towards azimuth φ = {side} in "
+        f"the light frame, − for the opposite side; the fitted model is rotationally symmetric unless it "
+        f"is a 2-D one. "
+    )
     if any(d.cell_sum is not None for d in ctx.data):
-        caption += ("Open triangles are the chief-ray cell sums at the same positions: the light a cell of the "
-                    "sharp-looking (u, v) map holds; their distance from the dots is what unmixing with the "
-                    "point spread recovers. ")  # fmt: skip
+        caption += (
+            "Open triangles are the chief-ray cell sums at the same positions: the light a cell of the "
+            "sharp-looking (u, v) map holds; their distance from the dots is what unmixing with the "
+            "point spread recovers. "
+        )
     if ctx.truth is not None:
         caption += "The broken black line is the truth of the simulation."
     parts = [_figure(_polar_figure(ctx), "radiant intensity per source, half-polar", html.escape(caption), ctx.encoder)]
-    header = ["source", "(u, v) [mm]", "radius [mm]", f"on-axis I [{model.units}]", "half-width at half max",
-              "θ covered", "samples", "χ²ᵣ"]  # fmt: skip
+    header = [
+        "source",
+        "(u, v) [mm]",
+        "radius [mm]",
+        f"on-axis I [{model.units}]",
+        "half-width at half max",
+        "θ covered",
+        "samples",
+        "χ²ᵣ",
+    ]
     if ctx.truth is not None:
         header.append("error vs truth (RMS / peak)")
     rows = []
-    for k, (source, d) in enumerate(zip(model.sources, ctx.data)):
+    for k, (source, d) in enumerate(zip(model.sources, ctx.data, strict=True)):
         lo, hi = source.fit.theta_range
         hw = _half_width(source)
-        row = [source.name, f"({1e3 * source.centre_m[0]:+.2f}, {1e3 * source.centre_m[1]:+.2f})",
-               f"{1e3 * source.radius_m:.2f}", f"{float(source.intensity(0.0)):.4g}",
-               f"{hw:.1f}°" if hw is not None else "beyond 90°", f"{math.degrees(lo):.1f}° – {math.degrees(hi):.1f}°",
-               str(len(d.theta)), f"{source.fit.chi2_reduced:.3g}"]  # fmt: skip
+        row = [
+            source.name,
+            f"({1e3 * source.centre_m[0]:+.2f}, {1e3 * source.centre_m[1]:+.2f})",
+            f"{1e3 * source.radius_m:.2f}",
+            f"{float(source.intensity(0.0)):.4g}",
+            f"{hw:.1f}°" if hw is not None else "beyond 90°",
+            f"{math.degrees(lo):.1f}° – {math.degrees(hi):.1f}°",
+            str(len(d.theta)),
+            f"{source.fit.chi2_reduced:.3g}",
+        ]
         if ctx.truth is not None:
             err = _truth_error(source, ctx.truth, k)
             row.append(f"{100 * err:.3g} %" if err is not None else "no truth for this source")
         rows.append(row)
     parts.append(_table(header, rows))
     if ctx.truth is not None:
-        parts.append("<p>Error vs truth: RMS(I<sub>fit</sub> − I<sub>true</sub>) / max(I<sub>true</sub>) over the θ "
-                     "the source's samples cover (<code>measurement.md</code>).</p>")  # fmt: skip
+        parts.append(
+            "<p>Error vs truth: RMS(I<sub>fit</sub> − I<sub>true</sub>) / max(I<sub>true</sub>) over the θ "
+            "the source's samples cover (<code>measurement.md</code>).</p>"
+        )
     return "\n".join(parts)
 
 
 def _layout_section(ctx: _Context) -> str:
     polygon = ctx.geometry.pixel_polygon if ctx.geometry is not None else None
     fig = layout_figure(ctx.model, resolution_m=ctx.resolution_m, pixel_polygon=polygon)
-    caption = ("The sources where the layout puts them on the light plane (circles of their emitting radius), "
-               "seen from the front (the light emits towards the viewer). ")  # fmt: skip
+    caption = (
+        "The sources where the layout puts them on the light plane (circles of their emitting radius), "
+        "seen from the front (the light emits towards the viewer). "
+    )
     if math.isfinite(ctx.resolution_m):
-        caption += (f"The dashed circle, drawn to the same scale, is the patch one camera pixel gathers light from "
-                    f"(the point spread's footprint, {_mm(ctx.resolution_m)} across): where it covers several "
-                    f"sources, a pixel mixes them and only the templates' unmixing tells them apart. ")  # fmt: skip
+        caption += (
+            f"The dashed circle, drawn to the same scale, is the patch one camera pixel gathers light from "
+            f"(the point spread's footprint, {_mm(ctx.resolution_m)} across): where it covers several "
+            f"sources, a pixel mixes them and only the templates' unmixing tells them apart. "
+        )
     if polygon is not None:
-        caption += (f"The small black patch is where one pixel's chief ray alone would look (pixel "
-                    f"{ctx.geometry.pixel_at[0]:.0f}, {ctx.geometry.pixel_at[1]:.0f} at position "
-                    f"{ctx.geometry.index}): sharp, but not what the pixel sees.")  # fmt: skip
+        caption += (
+            f"The small black patch is where one pixel's chief ray alone would look (pixel "
+            f"{ctx.geometry.pixel_at[0]:.0f}, {ctx.geometry.pixel_at[1]:.0f} at position "
+            f"{ctx.geometry.index}): sharp, but not what the pixel sees."
+        )
     parts = [_figure(fig, "sources on the light plane", html.escape(caption), ctx.encoder)]
     if not math.isfinite(ctx.resolution_m):
         parts.append(_note("the spatial resolution is not recorded in the light model: no footprint drawn."))
@@ -1204,10 +1432,12 @@ def _layout_section(ctx: _Context) -> str:
 
 
 def _coverage_section(ctx: _Context, samples) -> str:
-    caption = ("The angle θ each source's sample leaves at, position by position (signed by side as in the polar "
-               "plots). A sweep past the ball draws one line per source crossing 0 near the middle; the gaps "
-               "between the lines are the sources' different view of the ball. The fits are valid over the θ "
-               "range each line spans.")  # fmt: skip
+    caption = (
+        "The angle θ each source's sample leaves at, position by position (signed by side as in the polar "
+        "plots). A sweep past the ball draws one line per source crossing 0 near the middle; the gaps "
+        "between the lines are the sources' different view of the ball. The fits are valid over the θ "
+        "range each line spans."
+    )
     if samples is not None:
         caption += " Crosses mark positions where the source was in view but had no estimate."
     return _figure(_coverage_figure(ctx, samples), "theta sampled per position", html.escape(caption), ctx.encoder)
@@ -1227,35 +1457,49 @@ def _angles_section(ctx: _Context) -> str:
     g = geo.geometry
     distance = float(np.linalg.norm(g.ball_centre - g.camera_centre))
     half = math.asin(min(1.0, g.ball_radius / distance))
-    fig = angles_figure(rays, index=geo.index, centre_m=tuple(centroid), light_radius_m=reach, ball_half_angle=half,
-                        ball_distance_ratio=distance / g.ball_radius)  # fmt: skip
+    fig = angles_figure(
+        rays,
+        index=geo.index,
+        centre_m=tuple(centroid),
+        light_radius_m=reach,
+        ball_half_angle=half,
+        ball_distance_ratio=distance / g.ball_radius,
+    )
     valid = rays.valid
     near = valid & (np.hypot(rays.u - centroid[0], rays.v - centroid[1]) <= reach)
     d_all = np.degrees(rays.deflection[valid])
     t_all = np.degrees(rays.theta[valid])
-    caption = (f"Each dot is the chief ray of one pixel on the ball at position {geo.index} (the middle of the "
-               f"sweep). The camera sees the whole ball within ±{math.degrees(half):.1f}°; the convex mirror turns "
-               f"those rays by {d_all.min():.0f}°–{d_all.max():.0f}°, so they leave the light plane over θ = "
-               f"{t_all.min():.0f}°–{t_all.max():.0f}°: one photograph samples a wide cone of directions, which is "
-               f"what lets a short sweep measure I(θ). ")  # fmt: skip
+    caption = (
+        f"Each dot is the chief ray of one pixel on the ball at position {geo.index} (the middle of the "
+        f"sweep). The camera sees the whole ball within ±{math.degrees(half):.1f}°; the convex mirror turns "
+        f"those rays by {d_all.min():.0f}°–{d_all.max():.0f}°, so they leave the light plane over θ = "
+        f"{t_all.min():.0f}°–{t_all.max():.0f}°: one photograph samples a wide cone of directions, which is "
+        f"what lets a short sweep measure I(θ). "
+    )
     if np.any(near):
         t_near = np.degrees(rays.theta[near])
-        caption += (f"The coloured dots are the rays that land on the sources (within {1e3 * reach:.0f} mm of their "
-                    f"centre): at this position they carry θ = {t_near.min():.1f}°–{t_near.max():.1f}°, the "
-                    "spread the camera's blur mixes into one sample.")  # fmt: skip
+        caption += (
+            f"The coloured dots are the rays that land on the sources (within {1e3 * reach:.0f} mm of their "
+            f"centre): at this position they carry θ = {t_near.min():.1f}°–{t_near.max():.1f}°, the "
+            "spread the camera's blur mixes into one sample."
+        )
     return _figure(fig, "outgoing angle against deflection", html.escape(caption), ctx.encoder)
 
 
 def _residuals_section(ctx: _Context) -> str:
-    caption = ("Data minus fit at each sample, in units of the sample's σ (dark band ±1σ, light band ±3σ). "
-               "A good fit scatters evenly about 0, mostly within the dark band, and has χ²ᵣ near 1; a wave or a "
-               "trend with θ means the model's shape does not match the source.")  # fmt: skip
+    caption = (
+        "Data minus fit at each sample, in units of the sample's σ (dark band ±1σ, light band ±3σ). "
+        "A good fit scatters evenly about 0, mostly within the dark band, and has χ²ᵣ near 1; a wave or a "
+        "trend with θ means the model's shape does not match the source."
+    )
     parts = [_figure(_residuals_figure(ctx), "normalised residuals per source", html.escape(caption), ctx.encoder)]
     rows = []
     for source in ctx.model.sources:
         rows.extend(_param_rows(source, ctx.model.units))
-    parts.append("<p>The fitted parameters, with their 1σ uncertainties (from the covariance of the weighted fit; "
-                 "angles in degrees):</p>")  # fmt: skip
+    parts.append(
+        "<p>The fitted parameters, with their 1σ uncertainties (from the covariance of the weighted fit; "
+        "angles in degrees):</p>"
+    )
     parts.append(_table(["source", "parameter", "value", "± 1σ", "relative", "unit"], rows))
     warnings = [f"{s.name}: {s.fit.info['warning']}" for s in ctx.model.sources if s.fit.info.get("warning")]
     parts.extend(_note(w) for w in warnings)
@@ -1270,10 +1514,12 @@ def _previews_section(report, run, model: LightModel, path: Path, geo: _Geometry
     strip = _preview_strip(pngs, box)
     if not strip:
         return _note("the HDR previews could not be read.")
-    caption = (f"{min(_PREVIEWS, len(pngs))} of the {len(pngs)} merged HDR frames, spread over the sweep "
-               f"(tone-mapped: square root of the radiance{', cropped to the ball' if box else ''}). The light "
-               "appears as a blurred spot, its reflection on the ball, that moves across the ball as the light "
-               "passes.")  # fmt: skip
+    caption = (
+        f"{min(_PREVIEWS, len(pngs))} of the {len(pngs)} merged HDR frames, spread over the sweep "
+        f"(tone-mapped: square root of the radiance{', cropped to the ball' if box else ''}). The light "
+        "appears as a blurred spot, its reflection on the ball, that moves across the ball as the light "
+        "passes."
+    )
     return f"{strip}<p class='caption'>{html.escape(caption)}</p>"
 
 
@@ -1299,7 +1545,7 @@ def reflectance_profiles_figure(profiles: dict, methods=("collimated", "isotropi
         ok = np.isfinite(med)
         if ok.any():
             reference = float(np.average(med[ok], weights=counts[ok]))
-    for ax, m, colour in zip(axes, methods, _COLOURS):
+    for ax, m, colour in zip(axes, methods, _COLOURS, strict=False):
         p = profiles[m]
         med, q25, q75 = (np.asarray(p[k], dtype=float) for k in ("median", "q25", "q75"))
         ok = np.isfinite(med)
@@ -1319,8 +1565,10 @@ def reflectance_profiles_figure(profiles: dict, methods=("collimated", "isotropi
 
 def _swatch(rgb) -> str:
     r, g, b = (int(c) for c in rgb)
-    return (f'<span style="display:inline-block;width:1.2em;height:1em;border:1px solid #888;'
-            f'background:rgb({r},{g},{b})"></span>')  # fmt: skip
+    return (
+        f'<span style="display:inline-block;width:1.2em;height:1em;border:1px solid #888;'
+        f'background:rgb({r},{g},{b})"></span>'
+    )
 
 
 def _fmt(value, digits: int = 4) -> str:
@@ -1359,48 +1607,90 @@ def reflectance_section(summary: dict, images: dict | None = None) -> str:
         return f"<figure>{_img(images[key].read_bytes(), alt)}{cap}</figure>"
 
     parts.append("<h2>Albedo under three light models</h2>")
-    parts.append("<p>ρ = π·L / E per pixel (<code>measurement.md</code>, last section), solved in least squares "
-                 "over the lights that see each point, with the same samples for the three light models. "
-                 "<b>collimated</b>: one direction and one irradiance for the whole object; <b>isotropic point</b>: "
-                 "E = I₀·cos/d², I₀ the light's total on-axis intensity, from the sources' centroid weighted by "
-                 "their on-axis intensity; <b>measured</b>: the fitted near-field model.</p>")  # fmt: skip
+    parts.append(
+        "<p>ρ = π·L / E per pixel (<code>measurement.md</code>, last section), solved in least squares "
+        "over the lights that see each point, with the same samples for the three light models. "
+        "<b>collimated</b>: one direction and one irradiance for the whole object; <b>isotropic point</b>: "
+        "E = I₀·cos/d², I₀ the light's total on-axis intensity, from the sources' centroid weighted by "
+        "their on-axis intensity; <b>measured</b>: the fitted near-field model.</p>"
+    )
     strip = "".join(embed(f"albedo-{m}", f"albedo, {m}", _METHOD_NAMES[m]) for m in methods)
     if strip:
         parts.append(f'<div class="strip wide">{strip}</div>')
-        parts.append(f"<p class='caption'>Same scale in every image (ρ = {_fmt(summary.get('png_scale'))} is white, "
-                     "display gamma 2.2); transparent pixels have no albedo (see the reasons below).</p>")  # fmt: skip
+        parts.append(
+            f"<p class='caption'>Same scale in every image (ρ = {_fmt(summary.get('png_scale'))} is white, "
+            "display gamma 2.2); transparent pixels have no albedo (see the reasons below).</p>"
+        )
     rows = []
     for m in methods:
         s = summary["methods"][m]
-        rows.append([_METHOD_NAMES[m], str(s.get("valid_points", 0)), _fmt(s.get("median")), _fmt(s.get("median_mean")),
-                     _fmt(s.get("q25")) + " – " + _fmt(s.get("q75")),
-                     f"{100 * s['cv']:.2f} %" if s.get("cv") is not None else "—",
-                     f"{100 * s['robust_cv']:.2f} %" if s.get("robust_cv") is not None else "—"])  # fmt: skip
-    parts.append(_table(["light model", "valid points", "median ρ (R, G, B)", "median ρ (mean of R, G, B)",
-                         "interquartile range", "CV", "robust CV (1.4826·MAD/median)"], rows))  # fmt: skip
-    parts.append("<p class='caption'>The CV is over every valid point: painted patches of another albedo count as "
-                 "variation too.</p>")  # fmt: skip
+        rows.append(
+            [
+                _METHOD_NAMES[m],
+                str(s.get("valid_points", 0)),
+                _fmt(s.get("median")),
+                _fmt(s.get("median_mean")),
+                _fmt(s.get("q25")) + " – " + _fmt(s.get("q75")),
+                f"{100 * s['cv']:.2f} %" if s.get("cv") is not None else "—",
+                f"{100 * s['robust_cv']:.2f} %" if s.get("robust_cv") is not None else "—",
+            ]
+        )
+    parts.append(
+        _table(
+            [
+                "light model",
+                "valid points",
+                "median ρ (R, G, B)",
+                "median ρ (mean of R, G, B)",
+                "interquartile range",
+                "CV",
+                "robust CV (1.4826·MAD/median)",
+            ],
+            rows,
+        )
+    )
+    parts.append(
+        "<p class='caption'>The CV is over every valid point: painted patches of another albedo count as "
+        "variation too.</p>"
+    )
 
     parts.append("<h2>Profiles along the object's vertical axis</h2>")
-    parts.append(embed("profiles", "albedo profiles per light model",
-                       "Median (line) and interquartile range (band) of ρ per height bin, the three light models side "
-                       "by side (the reference paper's Fig. 11). On an object of uniform albedo the measured model "
-                       "should be straight; the other two fall off towards the top and bottom, where the light "
-                       "leaves at larger angles and travels farther.") or _note("no profile figure."))  # fmt: skip
+    parts.append(
+        embed(
+            "profiles",
+            "albedo profiles per light model",
+            "Median (line) and interquartile range (band) of ρ per height bin, the three light models side "
+            "by side (the reference paper's Fig. 11). On an object of uniform albedo the measured model "
+            "should be straight; the other two fall off towards the top and bottom, where the light "
+            "leaves at larger angles and travels farther.",
+        )
+        or _note("no profile figure.")
+    )
 
     parts.append("<h2>Which points have an albedo, and why not</h2>")
     parts.append(embed("reasons", "reason code per pixel"))
     counts = summary.get("pixel_reasons", {})
-    body = "".join(f"<tr><td>{_swatch(PIXEL_COLOURS[c])}</td><td>{c}</td><td>{html.escape(PIXEL_SHORT[c])}</td>"
-                   f"<td>{html.escape(PIXEL_CODES[c])}</td><td>{counts.get(PIXEL_SHORT[c], 0)}</td></tr>"
-                   for c in PIXEL_CODES)  # fmt: skip
-    parts.append("<table><thead><tr><th></th><th>code</th><th>name</th><th>meaning</th><th>superpixels</th></tr>"
-                 f"</thead><tbody>{body}</tbody></table>")  # fmt: skip
+    body = "".join(
+        f"<tr><td>{_swatch(PIXEL_COLOURS[c])}</td><td>{c}</td><td>{html.escape(PIXEL_SHORT[c])}</td>"
+        f"<td>{html.escape(PIXEL_CODES[c])}</td><td>{counts.get(PIXEL_SHORT[c], 0)}</td></tr>"
+        for c in PIXEL_CODES
+    )
+    parts.append(
+        "<table><thead><tr><th></th><th>code</th><th>name</th><th>meaning</th><th>superpixels</th></tr>"
+        f"</thead><tbody>{body}</tbody></table>"
+    )
     samples = summary.get("sample_reasons", {})
     parts.append("<p>Samples (one per light and point on the object, not counting pixels excluded as a whole):</p>")
-    parts.append(_table(["code", "name", "meaning", "samples"],
-                        [[str(c), SAMPLE_SHORT[c], SAMPLE_CODES[c], str(samples.get(SAMPLE_SHORT[c], 0))]
-                         for c in SAMPLE_CODES if SAMPLE_SHORT[c] in samples]))  # fmt: skip
+    parts.append(
+        _table(
+            ["code", "name", "meaning", "samples"],
+            [
+                [str(c), SAMPLE_SHORT[c], SAMPLE_CODES[c], str(samples.get(SAMPLE_SHORT[c], 0))]
+                for c in SAMPLE_CODES
+                if SAMPLE_SHORT[c] in samples
+            ],
+        )
+    )
 
     textures = "".join(embed(f"texture-{m}", f"UV texture, {m}", _METHOD_NAMES[m]) for m in methods)
     if textures:
@@ -1411,12 +1701,31 @@ def reflectance_section(summary: dict, images: dict | None = None) -> str:
     rows = []
     for light in summary.get("light_positions", []):
         col = light.get("collimated", {})
-        rows.append([str(light["index"]), _fmt([1e3 * v for v in light["position_m"]]),
-                     _fmt([1e3 * v for v in light["isotropic_point_m"]]), _fmt(light.get("I0")),
-                     _fmt(col.get("direction")), _fmt(col.get("E0")),
-                     _fmt(1e3 * col["distance_m"]) if "distance_m" in col else "—"])  # fmt: skip
-    parts.append(_table(["light", "position [mm]", "isotropic point [mm]", "I₀ (Σ on-axis)", "collimated ω₀",
-                         "E₀ = I₀/d₀²", "d₀ [mm]"], rows))  # fmt: skip
+        rows.append(
+            [
+                str(light["index"]),
+                _fmt([1e3 * v for v in light["position_m"]]),
+                _fmt([1e3 * v for v in light["isotropic_point_m"]]),
+                _fmt(light.get("I0")),
+                _fmt(col.get("direction")),
+                _fmt(col.get("E0")),
+                _fmt(1e3 * col["distance_m"]) if "distance_m" in col else "—",
+            ]
+        )
+    parts.append(
+        _table(
+            [
+                "light",
+                "position [mm]",
+                "isotropic point [mm]",
+                "I₀ (Σ on-axis)",
+                "collimated ω₀",
+                "E₀ = I₀/d₀²",
+                "d₀ [mm]",
+            ],
+            rows,
+        )
+    )
     settings = summary.get("settings", {})
     if settings:
         parts.append("<p>Thresholds:</p>")
@@ -1443,13 +1752,27 @@ def write_reflectance_report(path, summary: dict, *, images: dict | None = None)
     path = Path(path)
     run_id = summary.get("run_id", "")
     title = f"mirrorgonio reflectance: {run_id}" if run_id else "mirrorgonio reflectance"
-    rows = [[k + ":", str(summary[key])] for k, key in (
-        ("object run", "object_run"), ("rig", "rig"), ("mesh", "mesh"), ("light model", "light_model"),
-        ("light run", "light_run_id"), ("light model units", "light_units")) if summary.get(key)]  # fmt: skip
-    rows.append(["superpixels on the object:", f"{summary.get('on_object', 0)} of "
-                 f"{'×'.join(str(v) for v in summary.get('superpixels', []))}, {summary.get('valid', 0)} with an albedo"])  # fmt: skip
+    rows = [
+        [k + ":", str(summary[key])]
+        for k, key in (
+            ("object run", "object_run"),
+            ("rig", "rig"),
+            ("mesh", "mesh"),
+            ("light model", "light_model"),
+            ("light run", "light_run_id"),
+            ("light model units", "light_units"),
+        )
+        if summary.get(key)
+    ]
+    rows.append(
+        [
+            "superpixels on the object:",
+            f"{summary.get('on_object', 0)} of "
+            f"{'×'.join(str(v) for v in summary.get('superpixels', []))}, {summary.get('valid', 0)} with an albedo",
+        ]
+    )
     rows.append(["light positions:", str(summary.get("lights", ""))])
-    rows.append(["generated:", datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")])
+    rows.append(["generated:", datetime.now(UTC).strftime("%Y-%m-%d %H:%M UTC")])
     body = [f"<h1>{html.escape(title)}</h1>", _table(None, rows)]
     body.extend(_note(w) for w in summary.get("warnings", []))
     try:
@@ -1458,8 +1781,10 @@ def write_reflectance_report(path, summary: dict, *, images: dict | None = None)
         log.warning("reflectance report: %s", exc, exc_info=True)
         body.append(_note(f"the reflectance section could not be drawn: {type(exc).__name__}: {exc}"))
     css = _CSS + ".strip.wide img { width: 360px; }\n"
-    page = (f'<!DOCTYPE html>\n<html lang="en">\n<head>\n<meta charset="utf-8">\n<title>{html.escape(title)}</title>\n'
-            f"<style>{css}</style>\n</head>\n<body>\n" + "\n".join(body) + "\n</body>\n</html>\n")  # fmt: skip
+    page = (
+        f'<!DOCTYPE html>\n<html lang="en">\n<head>\n<meta charset="utf-8">\n<title>{html.escape(title)}</title>\n'
+        f"<style>{css}</style>\n</head>\n<body>\n" + "\n".join(body) + "\n</body>\n</html>\n"
+    )
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + ".tmp")
     tmp.write_text(page, encoding="utf-8")

@@ -84,7 +84,9 @@ class _Codec:
         array = np.ascontiguousarray(array)
         with _blosc_lock:  # the blocksize is c-blosc's global setting
             blosc.set_blocksize(self.blocksize)
-            return blosc.compress(array, typesize=array.itemsize, clevel=self.clevel, shuffle=self.shuffle, cname=self.cname)
+            return blosc.compress(
+                array, typesize=array.itemsize, clevel=self.clevel, shuffle=self.shuffle, cname=self.cname
+            )
 
 
 # One worker process per core: c-blosc must not start threads of its own (python-blosc
@@ -240,22 +242,40 @@ class ResultsWriter:
         self._f = f
 
     @classmethod
-    def create(cls, path, *, run_id: str, run_file: str, n_positions: int, frame_shape: tuple[int, int],
-               software_version: str, hdr: HDRInfo) -> ResultsWriter:  # fmt: skip
+    def create(
+        cls,
+        path,
+        *,
+        run_id: str,
+        run_file: str,
+        n_positions: int,
+        frame_shape: tuple[int, int],
+        software_version: str,
+        hdr: HDRInfo,
+    ) -> ResultsWriter:
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_name(path.name + ".tmp")
         h, w = frame_shape
         with h5py.File(tmp, "w") as f:
-            f.attrs.update(format=RESULTS_FORMAT, format_version=RESULTS_VERSION, run_id=run_id,
-                           run_file=str(run_file), software_version=software_version)  # fmt: skip
+            f.attrs.update(
+                format=RESULTS_FORMAT,
+                format_version=RESULTS_VERSION,
+                run_id=run_id,
+                run_file=str(run_file),
+                software_version=software_version,
+            )
             g = f.create_group("hdr")
             g.attrs.update(
-                method=hdr.method, cfa_pattern=hdr.cfa_pattern, units="DN/s above black, per Bayer site",
-                gain_e_per_dn=hdr.noise.gain_e_per_dn, read_noise_dn=hdr.noise.read_noise_dn,
-                noise_source=hdr.noise.source, rig_gain_e_per_dn=hdr.rig_noise.gain_e_per_dn,
+                method=hdr.method,
+                cfa_pattern=hdr.cfa_pattern,
+                units="DN/s above black, per Bayer site",
+                gain_e_per_dn=hdr.noise.gain_e_per_dn,
+                read_noise_dn=hdr.noise.read_noise_dn,
+                noise_source=hdr.noise.source,
+                rig_gain_e_per_dn=hdr.rig_noise.gain_e_per_dn,
                 rig_read_noise_dn=hdr.rig_noise.read_noise_dn,
-            )  # fmt: skip
+            )
             for name, (dtype, _options) in _position_datasets().items():
                 layout = h5py.VirtualLayout((n_positions, h, w), dtype)
                 for i in range(n_positions):
@@ -349,7 +369,10 @@ class Results:
             raise ResultsError(f"{path}: not a mirrorgonio results file")
         if int(f.attrs.get("format_version", 0)) > RESULTS_VERSION:
             f.close()
-            raise ResultsError(f"{path}: results format version {f.attrs['format_version']} is newer than this software reads ({RESULTS_VERSION})")
+            raise ResultsError(
+                f"{path}: results format version {f.attrs['format_version']} is newer than this software "
+                f"reads ({RESULTS_VERSION})"
+            )
         return cls(path, f)
 
     def __enter__(self) -> Results:

@@ -40,7 +40,14 @@ from scipy.optimize import nnls
 
 from drivers.config_files import magnitude_problem, read_toml
 from drivers.pose import Pose
-from processing.trace import ChiefRays, RigGeometry, _housing_blocks, conductor_reflectance, footprint_areas, trace_pixels
+from processing.trace import (
+    ChiefRays,
+    RigGeometry,
+    _housing_blocks,
+    conductor_reflectance,
+    footprint_areas,
+    trace_pixels,
+)
 
 CHANNEL_OF = {"R": 0, "G": 1, "B": 2}
 
@@ -84,8 +91,9 @@ def load_layout(path: str | Path) -> list[Source]:
 
 
 # --- specular paths -------------------------------------------------------------------------
-def specular_points(sources: np.ndarray, targets: np.ndarray, centre: np.ndarray, radius: float,
-                    iterations: int = 60) -> np.ndarray:  # fmt: skip
+def specular_points(
+    sources: np.ndarray, targets: np.ndarray, centre: np.ndarray, radius: float, iterations: int = 60
+) -> np.ndarray:
     """Points on a convex sphere where light from ``sources`` reflects to ``targets``.
 
     The normal at the reflection point bisects the directions to the source and to the
@@ -97,8 +105,12 @@ def specular_points(sources: np.ndarray, targets: np.ndarray, centre: np.ndarray
     """
     s, t = np.broadcast_arrays(np.asarray(sources, float) - centre, np.asarray(targets, float) - centre)
     shape = s.shape
-    found = _specular_kernel(np.ascontiguousarray(s.reshape(-1, 3).T), np.ascontiguousarray(t.reshape(-1, 3).T),
-                             float(radius), int(iterations))  # fmt: skip
+    found = _specular_kernel(
+        np.ascontiguousarray(s.reshape(-1, 3).T),
+        np.ascontiguousarray(t.reshape(-1, 3).T),
+        float(radius),
+        int(iterations),
+    )
     return found.T.reshape(shape) + centre
 
 
@@ -200,7 +212,9 @@ def _convex_coverage(polygon: np.ndarray, xs: np.ndarray, ys: np.ndarray, sample
 
 
 @numba.njit(cache=True, error_model="numpy")
-def _coverage_kernel(normals: np.ndarray, offsets: np.ndarray, xs: np.ndarray, ys: np.ndarray, sample: float) -> np.ndarray:
+def _coverage_kernel(
+    normals: np.ndarray, offsets: np.ndarray, xs: np.ndarray, ys: np.ndarray, sample: float
+) -> np.ndarray:
     """The loop of :func:`_convex_coverage`, compiled: per row, the interval where every
     edge's ``n·(x, y) - offset`` is at most ``-half`` (coverage 1) and the one where it
     is at most ``+half`` (beyond it, coverage 0), and the ramp in between.
@@ -283,8 +297,16 @@ def _airy_kernel_spectrum(padded, pitch, aperture, sensor_distance, wavelength, 
     return spectrum
 
 
-def _diffract(geometric: np.ndarray, size: int, margin: int, padded: int, pitch: float, aperture: float,
-              sensor_distance: float, wavelengths) -> np.ndarray:  # fmt: skip
+def _diffract(
+    geometric: np.ndarray,
+    size: int,
+    margin: int,
+    padded: int,
+    pitch: float,
+    aperture: float,
+    sensor_distance: float,
+    wavelengths,
+) -> np.ndarray:
     """``geometric`` (n × n, placed ``margin`` in from the corner of a ``size`` square)
     convolved with each channel's Airy pattern as the OTF on a ``padded`` grid does it;
     the ``size`` square back, (channels, size, size).
@@ -373,12 +395,22 @@ class TemplateBuilder:
         # Every specular path of the template in one batch: the chief path (source centre
         # to pinhole), the pinhole's rim, and the source disc's outline.
         angles = np.linspace(0.0, 2.0 * math.pi, self.rim_points, endpoint=False)
-        rim_cam = np.stack([g.aperture_radius * np.cos(angles), g.aperture_radius * np.sin(angles), np.zeros_like(angles)], -1)
+        rim_cam = np.stack(
+            [g.aperture_radius * np.cos(angles), g.aperture_radius * np.sin(angles), np.zeros_like(angles)], -1
+        )
         rim = pinhole + rim_cam @ g.R  # camera -> rig
         disc_angles = np.linspace(0.0, 2.0 * math.pi, 24, endpoint=False)
-        disc = origin + (np.stack([source.centre[0] + source.radius * np.cos(disc_angles),
-                                   source.centre[1] + source.radius * np.sin(disc_angles),
-                                   np.zeros_like(disc_angles)], -1) @ rot.T)  # fmt: skip
+        disc = origin + (
+            np.stack(
+                [
+                    source.centre[0] + source.radius * np.cos(disc_angles),
+                    source.centre[1] + source.radius * np.sin(disc_angles),
+                    np.zeros_like(disc_angles),
+                ],
+                -1,
+            )
+            @ rot.T
+        )
         m = self.rim_points
         starts = np.concatenate([q[None, :], np.broadcast_to(q, rim.shape), disc])
         ends = np.concatenate([pinhole[None, :], rim, np.broadcast_to(pinhole, disc.shape)])
@@ -414,8 +446,19 @@ class TemplateBuilder:
         theta = float(math.acos(np.clip(local[2], -1.0, 1.0)))
         phi = float(math.atan2(local[1], local[0]))
         blur = float(np.sqrt(_polygon_area(outline) / math.pi))
-        return Template(source.name, top, left, pixels, theta, phi, float(math.acos(min(1.0, cos_alpha))),
-                        fresnel, solid_angle, (float(centre_px[0]), float(centre_px[1])), blur)  # fmt: skip
+        return Template(
+            source.name,
+            top,
+            left,
+            pixels,
+            theta,
+            phi,
+            float(math.acos(min(1.0, cos_alpha))),
+            fresnel,
+            solid_angle,
+            (float(centre_px[0]), float(centre_px[1])),
+            blur,
+        )
 
     def _sensor_points(self, paths: np.ndarray, rim_cam: np.ndarray) -> np.ndarray:
         """Where the rays from reflection points through rim points land, in pixels.
@@ -455,8 +498,16 @@ class TemplateBuilder:
         size = n + 2 * margin
         if self.diffraction:
             padded = sfft.next_fast_len(4 * size, real=True)
-            channels = _diffract(geometric, size, margin, padded, float(g.pitch), float(2 * g.aperture_radius),
-                                 float(g.sensor_distance), [float(g.wavelengths[c]) for c in range(3)])  # fmt: skip
+            channels = _diffract(
+                geometric,
+                size,
+                margin,
+                padded,
+                float(g.pitch),
+                float(2 * g.aperture_radius),
+                float(g.sensor_distance),
+                [float(g.wavelengths[c]) for c in range(3)],
+            )
         else:
             channels = np.zeros((3, size, size))
             channels[:, margin : margin + n, margin : margin + n] = geometric
@@ -479,13 +530,24 @@ class PositionEstimate:
 
 
 def cfa_channels(pattern: str, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
-    tile = np.array([[CHANNEL_OF[pattern[0]], CHANNEL_OF[pattern[1]]], [CHANNEL_OF[pattern[2]], CHANNEL_OF[pattern[3]]]])
+    tile = np.array(
+        [[CHANNEL_OF[pattern[0]], CHANNEL_OF[pattern[1]]], [CHANNEL_OF[pattern[2]], CHANNEL_OF[pattern[3]]]]
+    )
     return tile[rows % 2, cols % 2]
 
 
-def unmix_position(index: int, rate_e: np.ndarray, variance_e: np.ndarray, usable: np.ndarray, cfa_pattern: str,
-                   builder: TemplateBuilder, sources: list[Source], light_pose: Pose, *,
-                   region: str = "intersection") -> PositionEstimate:  # fmt: skip
+def unmix_position(
+    index: int,
+    rate_e: np.ndarray,
+    variance_e: np.ndarray,
+    usable: np.ndarray,
+    cfa_pattern: str,
+    builder: TemplateBuilder,
+    sources: list[Source],
+    light_pose: Pose,
+    *,
+    region: str = "intersection",
+) -> PositionEstimate:
     """Variance-weighted NNLS for every source's intensity at one position.
 
     ``rate_e`` and ``variance_e`` are the merged mosaic in e⁻/s and (e⁻/s)², as arrays or
@@ -577,8 +639,16 @@ def _nnls(a: np.ndarray, b: np.ndarray, gram: np.ndarray, maxiter: int) -> np.nd
 
 
 # --- the fast path: flux-conserving chief-ray cell sums ------------------------------------------
-def cell_sums(rate_e: np.ndarray, usable: np.ndarray, geometry: RigGeometry, sensitivity: float,
-              sources: list[Source], light_pose: Pose, cell_radius: float, cfa_pattern: str = "RGGB") -> np.ndarray:  # fmt: skip
+def cell_sums(
+    rate_e: np.ndarray,
+    usable: np.ndarray,
+    geometry: RigGeometry,
+    sensitivity: float,
+    sources: list[Source],
+    light_pose: Pose,
+    cell_radius: float,
+    cfa_pattern: str = "RGGB",
+) -> np.ndarray:
     """``I_c ≈ Σ L_i A_i cos θ_i`` over the pixels whose chief ray lands within ``cell_radius``
     of each source (``measurement.md`` step 4), per channel: (n_sources, 3).
 
@@ -610,8 +680,12 @@ def cell_sums(rate_e: np.ndarray, usable: np.ndarray, geometry: RigGeometry, sen
     if not np.any(keep):
         return out
     # The kept pixels' rays: the trace is per pixel, so a subset of it is their trace.
-    sub_rays = ChiefRays(**{name: value[keep] if isinstance(value, np.ndarray) and value.shape[:1] == keep.shape else value
-                            for name, value in vars(rays).items()})  # fmt: skip
+    sub_rays = ChiefRays(
+        **{
+            name: value[keep] if isinstance(value, np.ndarray) and value.shape[:1] == keep.shape else value
+            for name, value in vars(rays).items()
+        }
+    )
     area = footprint_areas(geometry, light_pose, sub_rays)
     channel = cfa_channels(cfa_pattern, rows[keep], cols[keep])
     for i, s in enumerate(sources):
@@ -619,15 +693,23 @@ def cell_sums(rate_e: np.ndarray, usable: np.ndarray, geometry: RigGeometry, sen
         inside &= np.isfinite(area)
         for c in range(3):
             sel = inside & (channel == c)
-            radiance = rate_e[rows[keep][sel], cols[keep][sel]] / (sensitivity * sub_rays.fresnel[sel, c] * sub_rays.cos4[sel])
+            radiance = rate_e[rows[keep][sel], cols[keep][sel]] / (
+                sensitivity * sub_rays.fresnel[sel, c] * sub_rays.cos4[sel]
+            )
             # Each channel samples only its own photosites: scale by the share of the CFA.
             share = {0: 4.0, 1: 2.0, 2: 4.0}[c]
             out[i, c] = share * np.sum(radiance * area[sel] * np.cos(sub_rays.theta[sel]))
     return out
 
 
-def cell_pixel_boxes(geometry: RigGeometry, light_pose: Pose, sources: list[Source], cell_radius: float,
-                     shape: tuple[int, int], margin_px: float = 1.0) -> list[tuple[int, int, int, int]] | None:  # fmt: skip
+def cell_pixel_boxes(
+    geometry: RigGeometry,
+    light_pose: Pose,
+    sources: list[Source],
+    cell_radius: float,
+    shape: tuple[int, int],
+    margin_px: float = 1.0,
+) -> list[tuple[int, int, int, int]] | None:
     """Per source, a box of pixels ``(row0, row1, col0, col1)`` (ends excluded, within
     ``shape``) holding every pixel whose chief ray lands within ``cell_radius`` of it;
     None when such boxes cannot be vouched for (then every pixel is a candidate).
@@ -691,8 +773,9 @@ def cell_pixel_boxes(geometry: RigGeometry, light_pose: Pose, sources: list[Sour
 
 
 # --- the layout from the data -----------------------------------------------------------------
-def lit_box(rate: np.ndarray, ok: np.ndarray, pose: Pose, geometry: RigGeometry,
-            core_fraction: float = 0.2) -> tuple[float, float, float, float] | None:  # fmt: skip
+def lit_box(
+    rate: np.ndarray, ok: np.ndarray, pose: Pose, geometry: RigGeometry, core_fraction: float = 0.2
+) -> tuple[float, float, float, float] | None:
     """(u0, u1, v0, v1) on the light plane of the chief rays of one position's brightest
     pixels (above ``core_fraction`` of its peak); None if nothing is lit."""
     lit = ok & np.isfinite(rate) & (rate > core_fraction * np.nanmax(np.where(ok, rate, 0.0)))
@@ -716,12 +799,21 @@ def candidate_grid(boxes, *, spacing: float = 1.5e-3, margin: float = 3e-3):
     v0, v1 = min(b[2] for b in boxes) - margin, max(b[3] for b in boxes) + margin
     us = np.arange(math.floor(u0 / spacing), math.ceil(u1 / spacing) + 1) * spacing
     vs = np.arange(math.floor(v0 / spacing), math.ceil(v1 / spacing) + 1) * spacing
-    candidates = [Source(f"c{i}-{j}", (float(u), float(v)), 0.25 * spacing) for j, v in enumerate(vs) for i, u in enumerate(us)]
+    candidates = [
+        Source(f"c{i}-{j}", (float(u), float(v)), 0.25 * spacing) for j, v in enumerate(vs) for i, u in enumerate(us)
+    ]
     return candidates, us, vs
 
 
-def candidate_strength(rate: np.ndarray, variance: np.ndarray, ok: np.ndarray, pose: Pose, builder: TemplateBuilder,
-                       candidates: list[Source], cfa_pattern: str) -> np.ndarray:  # fmt: skip
+def candidate_strength(
+    rate: np.ndarray,
+    variance: np.ndarray,
+    ok: np.ndarray,
+    pose: Pose,
+    builder: TemplateBuilder,
+    candidates: list[Source],
+    cfa_pattern: str,
+) -> np.ndarray:
     """Every candidate's unmixed intensity at one position, over the largest (so 1 at the
     strongest; zeros if none lights up). On one BLAS thread, as in a Dask worker: this is
     where :func:`refine_layout` starts, and it must start from the same bits wherever it runs."""
@@ -733,8 +825,15 @@ def candidate_strength(rate: np.ndarray, variance: np.ndarray, ok: np.ndarray, p
     return values / values.max() if values.max() > 0 else np.zeros(len(candidates))
 
 
-def sources_from_strength(strength: np.ndarray, us: np.ndarray, vs: np.ndarray, *, spacing: float = 1.5e-3,
-                          threshold: float = 0.05, min_separation: float = 2e-3) -> list[Source]:  # fmt: skip
+def sources_from_strength(
+    strength: np.ndarray,
+    us: np.ndarray,
+    vs: np.ndarray,
+    *,
+    spacing: float = 1.5e-3,
+    threshold: float = 0.05,
+    min_separation: float = 2e-3,
+) -> list[Source]:
     """The local maxima of the candidates' summed strength, refined and merged into sources."""
     grid = np.asarray(strength, float).reshape(len(vs), len(us))
     found = []
@@ -795,8 +894,9 @@ class LayoutFit:
     steps: list[tuple[int, float]] = field(default_factory=list)
 
 
-def seeds_from_strength(strength: np.ndarray, us: np.ndarray, vs: np.ndarray, *,
-                        threshold: float = 0.05) -> list[tuple[float, float]]:  # fmt: skip
+def seeds_from_strength(
+    strength: np.ndarray, us: np.ndarray, vs: np.ndarray, *, threshold: float = 0.05
+) -> list[tuple[float, float]]:
     """The candidates of the grid that took at least ``threshold`` of the strongest one's
     strength: where the unmixing put light, so where a source the local maxima missed can be."""
     grid = np.asarray(strength, float).reshape(len(vs), len(us))
@@ -822,8 +922,15 @@ class _LayoutProblem:
     5-9 σ over the union of 32 px patches, 1.03 σ where every template is whole).
     """
 
-    def __init__(self, data: list[LayoutData], builder: TemplateBuilder, cfa_pattern: str, first: list[Source],
-                 margin_px: int, inset_px: int):  # fmt: skip
+    def __init__(
+        self,
+        data: list[LayoutData],
+        builder: TemplateBuilder,
+        cfa_pattern: str,
+        first: list[Source],
+        margin_px: int,
+        inset_px: int,
+    ):
         from dataclasses import replace
 
         # Every template must cover the whole window, so each is given ``margin_px`` beyond the
@@ -831,13 +938,15 @@ class _LayoutProblem:
         # A wider diffraction margin only pads a template's patch (``TemplateBuilder._render``), so
         # the windows follow from the first guess's templates built once, at the builder's margin.
         first_built = [[t for t in (builder.build(s, item.pose) for s in first) if t is not None] for item in data]
-        spread = max([max(np.ptp([t.row0 for t in built]), np.ptp([t.col0 for t in built]))
-                      for built in first_built if built], default=0)  # fmt: skip
+        spread = max(
+            [max(np.ptp([t.row0 for t in built]), np.ptp([t.col0 for t in built])) for built in first_built if built],
+            default=0,
+        )
         self.builder = replace(builder, airy_margin_px=max(builder.airy_margin_px, margin_px + int(spread)))
         pad = self.builder.airy_margin_px - builder.airy_margin_px if builder.diffraction else 0
         self.windows = []
         self._columns: dict[tuple, np.ndarray] = {}
-        for item, built in zip(data, first_built):
+        for item, built in zip(data, first_built, strict=True):
             if not built:
                 continue
             h, w = item.rate.shape
@@ -851,11 +960,21 @@ class _LayoutProblem:
             channel = cfa_channels(cfa_pattern, rows, cols)
             rate = np.asarray(item.rate[top:bottom, left:right], float)
             var = np.asarray(item.variance[top:bottom, left:right], float)
-            ok = np.asarray(item.usable[top:bottom, left:right], bool) & np.isfinite(rate) & np.isfinite(var) & (var > 0)
+            ok = (
+                np.asarray(item.usable[top:bottom, left:right], bool) & np.isfinite(rate) & np.isfinite(var) & (var > 0)
+            )
             picks = [ok & (channel == c) for c in range(3)]
             weights = [1.0 / np.sqrt(var[pick]) for pick in picks]
-            self.windows.append((item.pose, (top, bottom, left, right), channel, picks, weights,
-                                 [rate[pick] * weight for pick, weight in zip(picks, weights)]))  # fmt: skip
+            self.windows.append(
+                (
+                    item.pose,
+                    (top, bottom, left, right),
+                    channel,
+                    picks,
+                    weights,
+                    [rate[pick] * weight for pick, weight in zip(picks, weights, strict=True)],
+                )
+            )
         self.pixels = sum(int(np.count_nonzero(pick)) for window in self.windows for pick in window[3])
 
     def _column(self, p: int, u: float, v: float, radius: float) -> list[np.ndarray]:
@@ -895,9 +1014,9 @@ class _LayoutProblem:
         """(weighted residuals, intensities (positions, 3, sources)) for discs of ``radius`` (one
         for all, or one per source) at ``centres`` (S, 2), in metres."""
         residuals, intensities = [], np.zeros((len(self.windows), 3, len(centres)))
-        for p, (_, _, _, picks, weights, targets) in enumerate(self.windows):
+        for p, (_, _, _, _, weights, targets) in enumerate(self.windows):
             radii = np.broadcast_to(np.asarray(radius, float), (len(centres),))  # one radius, or each source's
-            columns = [self._column(p, float(u), float(v), float(r)) for (u, v), r in zip(centres, radii)]
+            columns = [self._column(p, float(u), float(v), float(r)) for (u, v), r in zip(centres, radii, strict=True)]
             for c in range(3):
                 a = np.stack([column[c] for column in columns], axis=1) * weights[c][:, None]
                 gram = a.T @ a
@@ -916,7 +1035,9 @@ class _LayoutProblem:
         """Each source's intensity summed over the positions and channels (0: it explains nothing)."""
         return self.solve(centres, radius)[1].sum(axis=(0, 1))
 
-    def fit(self, centres: np.ndarray, radius: float, max_radius: float, max_nfev: int) -> tuple[np.ndarray, float, float]:
+    def fit(
+        self, centres: np.ndarray, radius: float, max_radius: float, max_nfev: int
+    ) -> tuple[np.ndarray, float, float]:
         """Centres (S, 2) and the discs' common radius moved to the least χ²; (centres, radius, χ²).
 
         The radius is fitted because it moves the centres: the ball maps a disc onto the
@@ -933,17 +1054,31 @@ class _LayoutProblem:
         lower = np.full(start.size, -np.inf)
         upper = np.full(start.size, np.inf)
         lower[-1], upper[-1] = 0.02, max_radius * 1e3
-        result = least_squares(residuals, start, bounds=(lower, upper), diff_step=0.01, xtol=2e-4, ftol=1e-5,
-                               max_nfev=max_nfev)  # fmt: skip
+        result = least_squares(
+            residuals, start, bounds=(lower, upper), diff_step=0.01, xtol=2e-4, ftol=1e-5, max_nfev=max_nfev
+        )
         # result.fun is the residual at result.x: χ² without solving there again.
         return result.x[:-1].reshape(-1, 2) * 1e-3, float(result.x[-1]) * 1e-3, float(result.fun @ result.fun)
 
 
-def refine_layout(data: list[LayoutData], builder: TemplateBuilder, cfa_pattern: str, first: list[Source],
-                  seeds: list[tuple[float, float]] = (), *, min_gain: float = 0.02, min_share: float = 0.02,
-                  min_distance: float = 0.5e-3, max_radius: float = 1.5e-3, max_sources: int = 24,
-                  margin_px: int = 48, inset_px: int = 8, max_nfev: int = 40, screen_nfev: int = 4,
-                  screen_seeds: int = 2) -> LayoutFit:  # fmt: skip
+def refine_layout(
+    data: list[LayoutData],
+    builder: TemplateBuilder,
+    cfa_pattern: str,
+    first: list[Source],
+    seeds: list[tuple[float, float]] = (),
+    *,
+    min_gain: float = 0.02,
+    min_share: float = 0.02,
+    min_distance: float = 0.5e-3,
+    max_radius: float = 1.5e-3,
+    max_sources: int = 24,
+    margin_px: int = 48,
+    inset_px: int = 8,
+    max_nfev: int = 40,
+    screen_nfev: int = 4,
+    screen_seeds: int = 2,
+) -> LayoutFit:
     """Point sources moved to where their templates explain the data best, and added one
     at a time while each addition explains a share of what is left.
 
@@ -1017,8 +1152,9 @@ def refine_layout(data: list[LayoutData], builder: TemplateBuilder, cfa_pattern:
             trials = np.array([problem.chi2(np.vstack([centres, seed]), radius) for seed in untried])
             passed = False
             for k in np.argsort(trials)[:screen_seeds]:
-                grown, grown_radius, grown_chi2 = problem.fit(np.vstack([centres, untried[k]]), radius, max_radius,
-                                                              screen_nfev)  # fmt: skip
+                grown, grown_radius, grown_chi2 = problem.fit(
+                    np.vstack([centres, untried[k]]), radius, max_radius, screen_nfev
+                )
                 if grown_chi2 <= (1.0 - min_gain) * chi2:
                     untried.pop(k)
                     passed = True
@@ -1039,8 +1175,14 @@ def refine_layout(data: list[LayoutData], builder: TemplateBuilder, cfa_pattern:
             steps.append((len(centres), chi2))
         sources = [Source(f"source-{k}", (float(u), float(v)), radius) for k, (u, v) in enumerate(centres)]
         count = f"{len(sources)} source{'s' * (len(sources) != 1)}"
-        return LayoutFit(sources, True, f"{count} of radius {radius * 1e3:.2f} mm, χ² {chi2:.4g} over {problem.pixels} pixels",
-                         chi2, problem.pixels, steps)  # fmt: skip
+        return LayoutFit(
+            sources,
+            True,
+            f"{count} of radius {radius * 1e3:.2f} mm, χ² {chi2:.4g} over {problem.pixels} pixels",
+            chi2,
+            problem.pixels,
+            steps,
+        )
 
 
 @dataclass(frozen=True)
@@ -1058,9 +1200,17 @@ class ApertureFit:
     evaluations: int
 
 
-def fit_aperture(data: list[LayoutData], builder: TemplateBuilder, cfa_pattern: str, layout: list[Source], *,
-                 bounds: tuple[float, float] = (0.75, 1.25), xatol: float = 1e-4, margin_px: int = 48,
-                 inset_px: int = 8) -> ApertureFit:  # fmt: skip
+def fit_aperture(
+    data: list[LayoutData],
+    builder: TemplateBuilder,
+    cfa_pattern: str,
+    layout: list[Source],
+    *,
+    bounds: tuple[float, float] = (0.75, 1.25),
+    xatol: float = 1e-4,
+    margin_px: int = 48,
+    inset_px: int = 8,
+) -> ApertureFit:
     """The aperture diameter whose templates, at the sources' known places, explain the data best.
 
     The aperture sets the point spread's size, and the unmixing is a deconvolution: a
@@ -1105,8 +1255,18 @@ def fit_aperture(data: list[LayoutData], builder: TemplateBuilder, cfa_pattern: 
         return problem.chi2(centres, radii)
 
     scale, chi2, chi2_described, pixels, evaluations = _fit_scale(
-        data, narrowest, cfa_pattern, layout, margin_px, inset_px, bounds, xatol, chi2_at,
-        "aperture", lambda x: f"{2e3 * described * x:.4g} mm")  # fmt: skip
+        data,
+        narrowest,
+        cfa_pattern,
+        layout,
+        margin_px,
+        inset_px,
+        bounds,
+        xatol,
+        chi2_at,
+        "aperture",
+        lambda x: f"{2e3 * described * x:.4g} mm",
+    )
     return ApertureFit(2.0 * described * scale, 2.0 * described, chi2, chi2_described, pixels, evaluations)
 
 
@@ -1134,8 +1294,10 @@ def _fit_scale(data, builder, cfa_pattern, layout, margin_px, inset_px, bounds, 
         at_described = chi2(1.0)
     factor = float(best.x)
     if min(factor - bounds[0], bounds[1] - factor) <= 2 * xatol:
-        raise SourcesError(f"the best {what} lies at the search's bound ({shown(factor)}, {100 * (factor - 1):+.1f} % "
-                           f"of the described {shown(1.0)})")  # fmt: skip
+        raise SourcesError(
+            f"the best {what} lies at the search's bound ({shown(factor)}, {100 * (factor - 1):+.1f} % "
+            f"of the described {shown(1.0)})"
+        )
     return factor, float(best.fun), at_described, problem.pixels, evaluations
 
 
@@ -1152,10 +1314,20 @@ class SensorDistanceFit:
     sources_refitted: bool
 
 
-def fit_sensor_distance(data: list[LayoutData], builder: TemplateBuilder, cfa_pattern: str, layout: list[Source], *,
-                        refit: bool = True, bounds: tuple[float, float] = (0.98, 1.02), xatol: float = 2e-4,
-                        max_radius: float = 1.5e-3, max_nfev: int = 40, margin_px: int = 48,
-                        inset_px: int = 8) -> SensorDistanceFit:  # fmt: skip
+def fit_sensor_distance(
+    data: list[LayoutData],
+    builder: TemplateBuilder,
+    cfa_pattern: str,
+    layout: list[Source],
+    *,
+    refit: bool = True,
+    bounds: tuple[float, float] = (0.98, 1.02),
+    xatol: float = 2e-4,
+    max_radius: float = 1.5e-3,
+    max_nfev: int = 40,
+    margin_px: int = 48,
+    inset_px: int = 8,
+) -> SensorDistanceFit:
     """The sensor distance (pinhole to sensor) whose templates explain the data best.
 
     It sets the image's scale: 0.5 % too long made the search for the sources on the demo rig
@@ -1189,8 +1361,18 @@ def fit_sensor_distance(data: list[LayoutData], builder: TemplateBuilder, cfa_pa
         return problem.chi2(centres, radii)
 
     scale, chi2, chi2_described, pixels, evaluations = _fit_scale(
-        data, builder, cfa_pattern, layout, margin_px, inset_px, bounds, xatol, chi2_at,
-        "sensor distance", lambda x: f"{1e3 * described * x:.3f} mm")  # fmt: skip
+        data,
+        builder,
+        cfa_pattern,
+        layout,
+        margin_px,
+        inset_px,
+        bounds,
+        xatol,
+        chi2_at,
+        "sensor distance",
+        lambda x: f"{1e3 * described * x:.3f} mm",
+    )
     return SensorDistanceFit(described * scale, described, chi2, chi2_described, pixels, evaluations, refit)
 
 

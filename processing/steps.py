@@ -57,8 +57,9 @@ def resolve_steps(steps: str | Iterable[str]) -> tuple[str, ...]:
         if not name:
             continue
         if name not in STEPS and name not in STEP_ALIASES:
-            raise StepsError(f"unknown step {name!r} (known: {', '.join(STEPS)}; "
-                             f"{' and '.join(STEP_ALIASES)} are part of sources)")  # fmt: skip
+            raise StepsError(
+                f"unknown step {name!r} (known: {', '.join(STEPS)}; {' and '.join(STEP_ALIASES)} are part of sources)"
+            )
         wanted.add(STEP_ALIASES.get(name, name))
     if not wanted:
         raise StepsError(f"no step named (known: {', '.join(STEPS)})")

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from acquisition.rig import Rig
+from drivers.contracts.rig import Rig
 from drivers.pose import Pose
 
 
@@ -53,7 +53,9 @@ class RigGeometry:
         inverse_focal = self.inverse_focal
         if inverse_focal:  # 1/F = 1/f + 1/focus: the focus distance held
             inverse_focal += 1.0 / sensor_distance - 1.0 / self.sensor_distance
-        return replace(self, K=K, K_inv=np.linalg.inv(K), sensor_distance=float(sensor_distance), inverse_focal=inverse_focal)
+        return replace(
+            self, K=K, K_inv=np.linalg.inv(K), sensor_distance=float(sensor_distance), inverse_focal=inverse_focal
+        )
 
     @classmethod
     def from_rig(cls, rig: Rig, ball_centre=None) -> RigGeometry:
@@ -61,16 +63,28 @@ class RigGeometry:
         R, t = cam.pose.extrinsics()
         K = cam.camera_matrix()
         return cls(
-            K=K, K_inv=np.linalg.inv(K), R=R, t=np.asarray(t, float), camera_centre=-R.T @ t,
-            sensor_distance=cam.sensor_distance_m, pitch=cam.pixel_pitch_m,
+            K=K,
+            K_inv=np.linalg.inv(K),
+            R=R,
+            t=np.asarray(t, float),
+            camera_centre=-R.T @ t,
+            sensor_distance=cam.sensor_distance_m,
+            pitch=cam.pixel_pitch_m,
             aperture_radius=cam.aperture_diameter_m / 2.0,
             ball_centre=np.asarray(ball_centre if ball_centre is not None else rig.ball.centre_m, float),
-            ball_radius=rig.ball.radius_m, n=np.asarray(rig.ball.n, float), k=np.asarray(rig.ball.k, float),
-            light_to_tool=rig.light.light_to_tool.to_pose(), housing_radius=rig.light.housing_radius_m,
-            housing_depth=rig.light.housing_depth_m, wavelengths=np.asarray(cam.channel_wavelengths_m, float),
-            width=cam.width, height=cam.height,
-            inverse_focal=(1.0 / cam.sensor_distance_m + 1.0 / cam.thin_lens.focus_distance_m) if cam.thin_lens else 0.0,
-        )  # fmt: skip
+            ball_radius=rig.ball.radius_m,
+            n=np.asarray(rig.ball.n, float),
+            k=np.asarray(rig.ball.k, float),
+            light_to_tool=rig.light.light_to_tool.to_pose(),
+            housing_radius=rig.light.housing_radius_m,
+            housing_depth=rig.light.housing_depth_m,
+            wavelengths=np.asarray(cam.channel_wavelengths_m, float),
+            width=cam.width,
+            height=cam.height,
+            inverse_focal=(1.0 / cam.sensor_distance_m + 1.0 / cam.thin_lens.focus_distance_m)
+            if cam.thin_lens
+            else 0.0,
+        )
 
     def pixel_directions(self, cols, rows) -> np.ndarray:
         """Unit directions (N, 3) in the rig frame of the chief rays of pixels (col, row)."""
@@ -184,14 +198,34 @@ def trace_pixels(geometry: RigGeometry, light_pose: Pose, cols, rows) -> ChiefRa
     phi = np.arctan2(emitted[:, 1], emitted[:, 0])
     blocked = np.zeros_like(hits)
     if np.any(hits):
-        blocked[hits] = _housing_blocks(np.broadcast_to(o, (hits.sum(), 3)), points[hits], light_pose,
-                                        geometry.housing_radius, geometry.housing_depth)  # fmt: skip
+        blocked[hits] = _housing_blocks(
+            np.broadcast_to(o, (hits.sum(), 3)),
+            points[hits],
+            light_pose,
+            geometry.housing_radius,
+            geometry.housing_depth,
+        )
     valid = reaches & ~blocked
     alpha = np.arccos(np.clip(cos_i, -1.0, 1.0))
     fresnel = conductor_reflectance(cos_i, geometry.n, geometry.k)
     deflection = np.pi - 2.0 * alpha  # between -d and the reflected direction's reverse
-    return ChiefRays(cols, rows, hits, reaches, blocked, valid, u, v, theta, phi, alpha, fresnel,
-                     geometry.cos4(cols, rows), points, deflection)  # fmt: skip
+    return ChiefRays(
+        cols,
+        rows,
+        hits,
+        reaches,
+        blocked,
+        valid,
+        u,
+        v,
+        theta,
+        phi,
+        alpha,
+        fresnel,
+        geometry.cos4(cols, rows),
+        points,
+        deflection,
+    )
 
 
 def ball_pixel_box(geometry: RigGeometry) -> tuple[int, int, int, int] | None:

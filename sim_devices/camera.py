@@ -15,8 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
-from acquisition.rig import Rig
 from drivers.camera import Camera, RawFrame
+from drivers.contracts.rig import Rig
 from drivers.errors import DeviceError
 from drivers.raw_decode import decode_raw
 from sim_devices.dng import write_dng

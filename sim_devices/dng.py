@@ -184,9 +184,7 @@ def _checked_mosaic(mosaic: np.ndarray, bits_per_sample: int) -> tuple[int, int]
     if min(height, width) < MIN_SIDE:
         raise ValueError(f"mosaic {height}x{width} is smaller than LibRaw reads ({MIN_SIDE}px)")
     if mosaic.size and (mosaic.min() < 0 or mosaic.max() > (1 << bits_per_sample) - 1):
-        raise ValueError(
-            f"mosaic values [{mosaic.min()}, {mosaic.max()}] do not fit {bits_per_sample} bits"
-        )
+        raise ValueError(f"mosaic values [{mosaic.min()}, {mosaic.max()}] do not fit {bits_per_sample} bits")
     return height, width
 
 
@@ -201,9 +199,7 @@ def _black_sites(black_level: int | np.ndarray, white_level: int) -> list[int]:
     """The BlackLevel tag's four values, row-major over the 2x2 tile."""
     levels = np.broadcast_to(np.asarray(black_level), (2, 2)).astype(float)
     if not np.all(levels == np.round(levels)):
-        raise ValueError(
-            f"black_level must be integers (pidng writes SHORT), not {levels.tolist()}"
-        )
+        raise ValueError(f"black_level must be integers (pidng writes SHORT), not {levels.tolist()}")
     if levels.min() < 0 or levels.max() >= white_level:
         raise ValueError(f"black_level {levels.tolist()} outside [0, white_level={white_level})")
     return [int(level) for level in levels.flat]
@@ -258,9 +254,7 @@ def _assemble(tags: DNGTags, strip: bytes, exif_pointer: dngTag) -> bytearray:
 def _write_atomically(path: Path, data: bytes) -> Path:
     # A hidden ".tmp" name in the same folder: no raw suffix, so watchers ignore it,
     # and the same file system, so os.replace is an atomic rename.
-    descriptor, temporary = tempfile.mkstemp(
-        prefix=f".{path.name}.", suffix=".tmp", dir=path.parent
-    )
+    descriptor, temporary = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(descriptor, "wb") as file:
             file.write(data)

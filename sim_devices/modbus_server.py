@@ -191,9 +191,7 @@ class SimulatedModbusArm:
                     trace_pdu=self._on_pdu,
                 )
             else:
-                self._server = ModbusTcpServer(
-                    device, address=(self.host, self.port), trace_pdu=self._on_pdu
-                )
+                self._server = ModbusTcpServer(device, address=(self.host, self.port), trace_pdu=self._on_pdu)
             await self._server.serve_forever(background=True)
             if not self.serial_port:
                 self.port = self._server.transport.sockets[0].getsockname()[1]
@@ -377,8 +375,7 @@ class SimulatedModbusArm:
                 SimData(simulation.stop_answering_ms, values=0, datatype=DataType.REGISTERS),
             ]
         inputs = [
-            SimData(spec.actual, count=2, values=0, datatype=DataType.REGISTERS)
-            for spec in profile.axes.values()
+            SimData(spec.actual, count=2, values=0, datatype=DataType.REGISTERS) for spec in profile.axes.values()
         ]
         inputs.append(SimData(profile.status.address, values=0, datatype=DataType.REGISTERS))
         inputs.append(SimData(profile.alarm.address, values=0, datatype=DataType.REGISTERS))

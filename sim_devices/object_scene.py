@@ -53,15 +53,15 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from acquisition.rig import Rig
+from drivers.contracts.rig import Rig
 from drivers.pose import Pose
 from sim_devices.lights import TruthLight
 from sim_devices.objects import ObjectError, ObjectGeometry, SurfaceTruth, load_surface
 from sim_devices.optics import (
     CameraOptics,
     LightPlane,
-    RenderStats,
     Rendering,
+    RenderStats,
     apply_diffraction,
     environment_rgb,
     unit_disc_samples,
@@ -252,8 +252,14 @@ class ObjectSceneRenderer:
             cols = cam.cx + fpx * rel[:, 0] / rel[:, 2]
             rows = cam.cy + fpx * rel[:, 1] / rel[:, 2]
             margin = self.blur_radius_px() + 2.0
-            c0, c1 = max(0, int(math.floor(cols.min() - margin))), min(cam.width, int(math.ceil(cols.max() + margin)) + 1)
-            r0, r1 = max(0, int(math.floor(rows.min() - margin))), min(cam.height, int(math.ceil(rows.max() + margin)) + 1)
+            c0, c1 = (
+                max(0, int(math.floor(cols.min() - margin))),
+                min(cam.width, int(math.ceil(cols.max() + margin)) + 1),
+            )
+            r0, r1 = (
+                max(0, int(math.floor(rows.min() - margin))),
+                min(cam.height, int(math.ceil(rows.max() + margin)) + 1),
+            )
         if c0 >= c1 or r0 >= r1:
             self._region = np.zeros(0, dtype=np.int64)
             return self._region
@@ -282,7 +288,9 @@ class ObjectSceneRenderer:
             (ox, oy, oz), (dx, dy, dz), cos4 = cam.rays(cols.astype(float), rows.astype(float), zero, zero)
             if plane.housing_radius > 0 and self._housing_in_view(plane):
                 far = 10.0  # metres: beyond the rig
-                cos4 = np.where(plane.blocks_segment((ox, oy, oz), (ox + far * dx, oy + far * dy, oz + far * dz)), 0.0, cos4)
+                cos4 = np.where(
+                    plane.blocks_segment((ox, oy, oz), (ox + far * dx, oy + far * dy, oz + far * dz)), 0.0, cos4
+                )
             rate += self.environment[:, None] * cos4[None, :]
         spp = self.samples_per_pixel
         step = max(1, self.chunk_rays // spp)
@@ -351,7 +359,11 @@ class ObjectSceneRenderer:
             radiance[idx] = value + albedo * self.environment[None, :]
         if plane.housing_radius > 0 and self._housing_in_view(plane):
             far = np.where(hit[:, None], 0.0, 10.0)  # misses: 10 m on
-            ends = np.where(hit[:, None], np.einsum("nk,nkj->nj", bary, self.geometry.triangles[np.maximum(face, 0)]), origins + far * dirs)
+            ends = np.where(
+                hit[:, None],
+                np.einsum("nk,nkj->nj", bary, self.geometry.triangles[np.maximum(face, 0)]),
+                origins + far * dirs,
+            )
             blocked = plane.blocks_segment((ox, oy, oz), (ends[:, 0], ends[:, 1], ends[:, 2]))
             radiance[blocked] = 0.0
         value = (radiance * cos4[:, None]).reshape(pix.size, spp, 3).mean(axis=1)

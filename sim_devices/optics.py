@@ -44,7 +44,7 @@ import cv2
 import numpy as np
 from scipy import fft as sfft
 
-from acquisition.rig import Rig
+from drivers.contracts.rig import Rig
 from drivers.pose import Pose
 from sim_devices.lights import Emitter, TruthLight
 
@@ -148,12 +148,16 @@ class LightPlane:
         """Point and direction from the rig frame into the light frame."""
         r, o = self.rotation, self.origin
         qx, qy, qz = px - o[0], py - o[1], pz - o[2]
-        lp = (r[0, 0] * qx + r[1, 0] * qy + r[2, 0] * qz,
-              r[0, 1] * qx + r[1, 1] * qy + r[2, 1] * qz,
-              r[0, 2] * qx + r[1, 2] * qy + r[2, 2] * qz)  # fmt: skip
-        lv = (r[0, 0] * vx + r[1, 0] * vy + r[2, 0] * vz,
-              r[0, 1] * vx + r[1, 1] * vy + r[2, 1] * vz,
-              r[0, 2] * vx + r[1, 2] * vy + r[2, 2] * vz)  # fmt: skip
+        lp = (
+            r[0, 0] * qx + r[1, 0] * qy + r[2, 0] * qz,
+            r[0, 1] * qx + r[1, 1] * qy + r[2, 1] * qz,
+            r[0, 2] * qx + r[1, 2] * qy + r[2, 2] * qz,
+        )
+        lv = (
+            r[0, 0] * vx + r[1, 0] * vy + r[2, 0] * vz,
+            r[0, 1] * vx + r[1, 1] * vy + r[2, 1] * vz,
+            r[0, 2] * vx + r[1, 2] * vy + r[2, 2] * vz,
+        )
         return lp, lv
 
     def blocks_segment(self, start, end) -> np.ndarray:
@@ -167,8 +171,12 @@ class LightPlane:
         with np.errstate(divide="ignore", invalid="ignore"):
             s1 = (-self.housing_depth - az) / dz
             s2 = (0.0 - az) / dz
-        lo = np.where(np.abs(dz) > 1e-15, np.minimum(s1, s2), np.where((az >= -self.housing_depth) & (az <= 0), -np.inf, np.inf))
-        hi = np.where(np.abs(dz) > 1e-15, np.maximum(s1, s2), np.where((az >= -self.housing_depth) & (az <= 0), np.inf, -np.inf))
+        lo = np.where(
+            np.abs(dz) > 1e-15, np.minimum(s1, s2), np.where((az >= -self.housing_depth) & (az <= 0), -np.inf, np.inf)
+        )
+        hi = np.where(
+            np.abs(dz) > 1e-15, np.maximum(s1, s2), np.where((az >= -self.housing_depth) & (az <= 0), np.inf, -np.inf)
+        )
         lo, hi = np.maximum(lo, 0.0), np.minimum(hi, 1.0)
         # ... then to the infinite cylinder x² + y² <= r².
         a = dx * dx + dy * dy
@@ -287,7 +295,9 @@ def circular_otf(fx: np.ndarray, fy: np.ndarray, cutoff: float) -> np.ndarray:
     return (2.0 / math.pi) * (np.arccos(rho) - rho * np.sqrt(1.0 - rho * rho))
 
 
-def apply_diffraction(image: np.ndarray, pitch: float, aperture_diameter: float, sensor_distance: float, wavelength: float) -> np.ndarray:
+def apply_diffraction(
+    image: np.ndarray, pitch: float, aperture_diameter: float, sensor_distance: float, wavelength: float
+) -> np.ndarray:
     """Convolve a sampled irradiance image with the Airy pattern of the aperture."""
     h, w = image.shape
     cutoff = aperture_diameter / (wavelength * sensor_distance)
@@ -647,7 +657,11 @@ class MirrorBallRenderer:
             jn, okj = self._jacobian_aperture(plane, col, row, a[:, 0], a[:, 1], uv, h)
             ok = t.valid & okj
             j = np.where(ok[:, None, None], jn, j)
-            step = np.einsum("nij,nj->ni", np.linalg.inv(j), q[None, :] - np.where(ok[:, None], uv, uv0 + np.einsum("nij,nj->ni", ja, a)))
+            step = np.einsum(
+                "nij,nj->ni",
+                np.linalg.inv(j),
+                q[None, :] - np.where(ok[:, None], uv, uv0 + np.einsum("nij,nj->ni", ja, a)),
+            )
             a = a + step
             good = ok
         jd, okd = self._jacobian_sensor(plane, col, row, a[:, 0], a[:, 1], q[None, :] + np.zeros_like(a))
@@ -662,14 +676,16 @@ class MirrorBallRenderer:
         # Keep pixels whose ellipse can reach the aperture from some point of the pixel.
         reach = radius * np.linalg.svd(j_inv, compute_uv=False)[:, 0] + 0.75 * np.linalg.norm(shift_per_px, axis=(1, 2))
         keep = np.linalg.norm(a, axis=1) <= ra + reach
-        col, row, a, j_inv, shift_per_px, ellipse_area = (x[keep] for x in (col, row, a, j_inv, shift_per_px, ellipse_area))
+        col, row, a, j_inv, shift_per_px, ellipse_area = (
+            x[keep] for x in (col, row, a, j_inv, shift_per_px, ellipse_area)
+        )
         npx = col.size
         if npx == 0:  # the emitter's image falls outside the sensor
             return np.zeros((0, 3)), np.zeros(0, dtype=np.int64), 0, 0, 0
         nsub, ndisc = len(self.subpixel), self.aperture_samples
         per_pixel = nsub * ndisc
         weight = ellipse_area / (math.pi * ra * ra) / per_pixel
-        pixel_index = (row.astype(np.int64) * cam.width + col.astype(np.int64))
+        pixel_index = row.astype(np.int64) * cam.width + col.astype(np.int64)
         contrib_all, pix_all = [], []
         rim = hits = 0
         step = max(1, self.chunk_rays // per_pixel)
@@ -689,7 +705,13 @@ class MirrorBallRenderer:
             du, dv = t.u - emitter.centre_m[0], t.v - emitter.centre_m[1]
             on = t.valid & (du * du + dv * dv <= rho * rho)
             value = np.zeros((ax.size, 3))
-            value[in_aperture] = np.where(on[:, None], (emitter.radiance(t.theta, t.phi) * t.cos4)[:, None] * t.fresnel * np.asarray(emitter.spectrum)[None, :], 0.0)
+            value[in_aperture] = np.where(
+                on[:, None],
+                (emitter.radiance(t.theta, t.phi) * t.cos4)[:, None]
+                * t.fresnel
+                * np.asarray(emitter.spectrum)[None, :],
+                0.0,
+            )
             if np.any(self.environment > 0):
                 value[in_aperture] -= self._hidden_environment(plane, t, on)
             # Rim check: hits in the outer third of the sampled ellipse's radius would mean
@@ -768,7 +790,13 @@ class MirrorBallRenderer:
             t = trace(cam, self.mirror, plane, sc, sr, ax, ay)
             du, dv = t.u - emitter.centre_m[0], t.v - emitter.centre_m[1]
             on = t.valid & (du * du + dv * dv <= emitter.radius_m**2)
-            value = np.where(on[:, None], (emitter.radiance(t.theta, t.phi) * t.cos4)[:, None] * t.fresnel * np.asarray(emitter.spectrum)[None, :], 0.0)
+            value = np.where(
+                on[:, None],
+                (emitter.radiance(t.theta, t.phi) * t.cos4)[:, None]
+                * t.fresnel
+                * np.asarray(emitter.spectrum)[None, :],
+                0.0,
+            )
             if np.any(self.environment > 0):
                 value -= self._hidden_environment(plane, t, on)
             out.append(value.reshape(m, per_pixel, 3).mean(axis=1))

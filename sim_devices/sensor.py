@@ -14,8 +14,9 @@ CHANNEL_INDEX = {"R": 0, "G": 1, "B": 2}
 
 def cfa_channels(pattern: str, height: int, width: int) -> np.ndarray:
     """Channel index (0 = R, 1 = G, 2 = B) of every photosite for a 2x2 CFA pattern."""
-    tile = np.array([[CHANNEL_INDEX[pattern[0]], CHANNEL_INDEX[pattern[1]]],
-                     [CHANNEL_INDEX[pattern[2]], CHANNEL_INDEX[pattern[3]]]])  # fmt: skip
+    tile = np.array(
+        [[CHANNEL_INDEX[pattern[0]], CHANNEL_INDEX[pattern[1]]], [CHANNEL_INDEX[pattern[2]], CHANNEL_INDEX[pattern[3]]]]
+    )
     return np.tile(tile, ((height + 1) // 2, (width + 1) // 2))[:height, :width]
 
 
@@ -41,8 +42,15 @@ class SensorModel:
         False gives the expected value, rounded: for analytic checks.
     """
 
-    def __init__(self, full_well_e: float, read_noise_e: float, black_level_dn: int,
-                 white_level_dn: int, cfa_pattern: str, noise: bool = True):  # fmt: skip
+    def __init__(
+        self,
+        full_well_e: float,
+        read_noise_e: float,
+        black_level_dn: int,
+        white_level_dn: int,
+        cfa_pattern: str,
+        noise: bool = True,
+    ):
         self.full_well_e = full_well_e
         self.read_noise_e = read_noise_e
         self.black_level_dn = black_level_dn
@@ -52,8 +60,14 @@ class SensorModel:
 
     @classmethod
     def from_rig(cls, camera, noise: bool = True) -> SensorModel:
-        return cls(camera.full_well_e, camera.read_noise_e, camera.black_level_dn,
-                   camera.white_level, camera.cfa_pattern, noise)  # fmt: skip
+        return cls(
+            camera.full_well_e,
+            camera.read_noise_e,
+            camera.black_level_dn,
+            camera.white_level,
+            camera.cfa_pattern,
+            noise,
+        )
 
     @property
     def gain_e_per_dn(self) -> float:

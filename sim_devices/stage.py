@@ -16,8 +16,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp  # imported up front: a lazy import mid-move
-                                                       # can stall the server past the watchdog
 
+# can stall the server past the watchdog
 from drivers.pose import AXES, Pose, rotation_from_angles
 
 # Alarm codes of the simulated controller (documented in drivers/profiles/sim_stage.toml).

@@ -21,7 +21,7 @@ def rig_with(**edits):
     """The default rig with fields replaced: ``camera__width=500`` sets ``[camera] width``."""
     import tomllib
 
-    from acquisition.rig import DEFAULT_RIG_PATH, rig_from_dict
+    from drivers.contracts.rig import DEFAULT_RIG_PATH, rig_from_dict
 
     data = tomllib.loads(DEFAULT_RIG_PATH.read_text())
     for path, value in edits.items():
@@ -53,8 +53,12 @@ class DaemonProcess:
         if self.token:
             env["MG_TOKEN"] = self.token
         self._log = open(self.log_path, "ab")
-        self.proc = subprocess.Popen([str(exe), "serve", "--config", str(self.config), "--port", str(self.port)],
-                                     stdout=self._log, stderr=subprocess.STDOUT, env=env)  # fmt: skip
+        self.proc = subprocess.Popen(
+            [str(exe), "serve", "--config", str(self.config), "--port", str(self.port)],
+            stdout=self._log,
+            stderr=subprocess.STDOUT,
+            env=env,
+        )
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
             if self.proc.poll() is not None:
@@ -89,7 +93,7 @@ class DaemonProcess:
 def write_config(path: Path, data_dir: Path, arm_port: int = 0, extra: str = "") -> Path:
     path.write_text(
         f'data_dir = "{data_dir}"\nrig = "{REDUCED_RIG}"\n'
-        f"[arm]\nkind = \"simulated\"\nport = {arm_port}\n[arm.simulated]\nspeed_m_s = 0.5\naccel_m_s2 = 5.0\n"
+        f'[arm]\nkind = "simulated"\nport = {arm_port}\n[arm.simulated]\nspeed_m_s = 0.5\naccel_m_s2 = 5.0\n'
         f"{extra}"
     )
     return path
@@ -110,7 +114,9 @@ def daemon_factory(tmp_path):
         daemon.stop()
 
 
-def wait_for(client: httpx.Client, run_id: str, states, timeout: float = 300.0, done_at_least: int | None = None) -> dict:
+def wait_for(
+    client: httpx.Client, run_id: str, states, timeout: float = 300.0, done_at_least: int | None = None
+) -> dict:
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         status = client.get(f"/runs/{run_id}").json()

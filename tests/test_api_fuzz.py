@@ -3,8 +3,9 @@
 Every operation gets generated requests, valid and invalid (the document's examples, the
 coverage cases, then fuzzing), with the daemon's token, a wrong one or none; every answer
 must be no server error, carry a documented status code and content type, and match the
-documented schema, and an invalid request must be refused. The daemon runs in process over ASGI with its lifespan (the simulated
-rig: the Modbus TCP server on loopback and the simulated camera).
+documented schema, and an invalid request must be refused. The daemon runs in process over
+ASGI with its lifespan (the simulated rig: the Modbus TCP server on loopback and the
+simulated camera).
 
 Nothing is excluded. ``GET /runs/{run_id}/events`` streams until its run ends, but when the
 fuzzer calls it every run has ended (each case ends the run it may have started), so the
@@ -20,6 +21,7 @@ import zlib
 
 import pytest
 import schemathesis
+from conftest import REDUCED_RIG
 from fastapi.testclient import TestClient
 from hypothesis import HealthCheck, settings
 from schemathesis.checks import not_a_server_error
@@ -35,7 +37,6 @@ from acquisition.app import create_app
 from acquisition.catalog import CatalogError
 from acquisition.runner import RunConflictError
 from acquisition.settings import load_settings
-from conftest import REDUCED_RIG
 
 TOKEN = "fuzz-token"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
@@ -43,8 +44,13 @@ FINAL = {"complete", "aborted", "failed", "interrupted"}
 # Not `positive_data_acceptance`: a schema-valid request may rightly be refused, by a rule
 # across fields (poses only with preset "poses"), by the rig (soft limits, collisions: 422)
 # or by the rig's state (409 while a run is active).
-CHECKS = [not_a_server_error, status_code_conformance, response_schema_conformance, content_type_conformance,
-          negative_data_rejection]  # fmt: skip
+CHECKS = [
+    not_a_server_error,
+    status_code_conformance,
+    response_schema_conformance,
+    content_type_conformance,
+    negative_data_rejection,
+]
 
 
 def make_app(data_dir):

@@ -25,7 +25,12 @@ def report():
 
 def test_report_structure(report):
     assert report["benchmark"] == "hdr"
-    assert (report["width"], report["height"], report["positions"], report["exposures_per_position"]) == (200, 160, 3, 3)
+    assert (report["width"], report["height"], report["positions"], report["exposures_per_position"]) == (
+        200,
+        160,
+        3,
+        3,
+    )
     assert report["exposures_s"] == sorted(report["exposures_s"])
     assert set(report["methods"]) == set(OURS) | set(PEERS)
     for name, entry in report["methods"].items():
@@ -51,7 +56,10 @@ def test_our_merge_is_accurate(report):
         # is ~10 %: the error is judged by its bias and against the ideal merge's noise floor.
         assert abs(ours["bias_pct"]) < 1.0, name
         assert ours["rms_rel_error_pct"] < 1.15 * floor, name
-    assert report["methods"]["mirrorgonio_optimal"]["rms_rel_error_pct"] <= report["methods"]["mirrorgonio_poisson"]["rms_rel_error_pct"]
+    assert (
+        report["methods"]["mirrorgonio_optimal"]["rms_rel_error_pct"]
+        <= report["methods"]["mirrorgonio_poisson"]["rms_rel_error_pct"]
+    )
 
 
 def test_measured_peers_are_compared(report):
@@ -88,12 +96,29 @@ def test_bad_size_is_one_line():
         bench_hdr(width=201, height=160)
     result = CliRunner().invoke(app, ["bench", "hdr", "--width", "201", "--height", "160", "--json"])
     assert result.exit_code == 2
-    assert result.output.strip().splitlines() == ["error: width: must be an even number of pixels, at least 4 (a Bayer mosaic), got 201"]
+    assert result.output.strip().splitlines() == [
+        "error: width: must be an even number of pixels, at least 4 (a Bayer mosaic), got 201"
+    ]
 
 
 def test_cli_prints_json():
-    result = CliRunner().invoke(app, ["bench", "hdr", "--positions", "1", "--exposures", "3", "--width", "200",
-                                      "--height", "160", "--no-peers", "--json"])  # fmt: skip
+    result = CliRunner().invoke(
+        app,
+        [
+            "bench",
+            "hdr",
+            "--positions",
+            "1",
+            "--exposures",
+            "3",
+            "--width",
+            "200",
+            "--height",
+            "160",
+            "--no-peers",
+            "--json",
+        ],
+    )
     assert result.exit_code == 0, result.output
     data = json.loads(result.output)
     assert data["benchmark"] == "hdr"

@@ -13,7 +13,7 @@ from typer.testing import CliRunner
 
 from acquisition.benchmarks.speed import SpeedBenchError, cache_key, parse_size, rig_at_size
 from acquisition.cli import app
-from acquisition.rig import load_rig
+from drivers.contracts.rig import load_rig
 
 W, H, POSITIONS, EXPOSURES = 200, 132, 6, 5
 
@@ -21,8 +21,27 @@ W, H, POSITIONS, EXPOSURES = 200, 132, 6, 5
 @pytest.fixture(scope="module")
 def speed(tmp_path_factory):
     cache = tmp_path_factory.mktemp("speed-cache")
-    args = ["bench", "speed", "--json", "--sizes", f"{W}x{H}", "--positions", str(POSITIONS), "--repeat", "2",
-            "--process-repeat", "2", "--hdr-positions", "2", "--scheduler", "local", "--workers", "1", "--cache", str(cache)]  # fmt: skip
+    args = [
+        "bench",
+        "speed",
+        "--json",
+        "--sizes",
+        f"{W}x{H}",
+        "--positions",
+        str(POSITIONS),
+        "--repeat",
+        "2",
+        "--process-repeat",
+        "2",
+        "--hdr-positions",
+        "2",
+        "--scheduler",
+        "local",
+        "--workers",
+        "1",
+        "--cache",
+        str(cache),
+    ]
     first = CliRunner().invoke(app, args)
     assert first.exit_code == 0, first.output
     again = CliRunner().invoke(app, [*args[:-6], "--scheduler", "none", "--no-peers", "--cache", str(cache)])
@@ -50,9 +69,17 @@ def test_the_json_has_every_measurement(speed):
     assert process["positions"] == POSITIONS and process["process_s"] > 0 and len(process["process_s_all"]) == 2
     assert process["process_s_without_images"] > 0
     # timed warm on one cluster; the first processing and one on a cluster of its own apart
-    assert process["first_process_s"] > 0 and process["process_s_fresh_cluster"] > 0 and process["fresh_cluster_start_s"] > 0
-    assert process["fresh_cluster_over_read_floor"] == pytest.approx(process["process_s_fresh_cluster"] / read["read_s"], rel=0.02)
-    assert process["without_images_over_read_floor"] == pytest.approx(process["process_s_without_images"] / read["read_s"], rel=0.02)
+    assert (
+        process["first_process_s"] > 0
+        and process["process_s_fresh_cluster"] > 0
+        and process["fresh_cluster_start_s"] > 0
+    )
+    assert process["fresh_cluster_over_read_floor"] == pytest.approx(
+        process["process_s_fresh_cluster"] / read["read_s"], rel=0.02
+    )
+    assert process["without_images_over_read_floor"] == pytest.approx(
+        process["process_s_without_images"] / read["read_s"], rel=0.02
+    )
     # where a position task's time goes, per position: every stage of the fused hdr + sources task
     stages = process["task_ms_per_position"]
     assert set(stages) == {"read", "merge", "encode", "write", "images", "masks", "sources", "tasks"}
@@ -68,7 +95,10 @@ def test_the_json_has_every_measurement(speed):
     cpu = process["cpu_per_processing"]
     assert cpu["workers_user_s"] > 0 and cpu["client_user_s"] > 0 and cpu["workers_system_s"] >= 0
     assert cpu["client_minor_faults"] >= 0 and cpu["workers_minor_faults"] >= 0
-    assert cpu["workers_user_s"] + cpu["workers_system_s"] < 2 * max(process["process_s_all"]) * result["machine"]["cpu_count"]
+    assert (
+        cpu["workers_user_s"] + cpu["workers_system_s"]
+        < 2 * max(process["process_s_all"]) * result["machine"]["cpu_count"]
+    )
     memory = process["memory"]
     assert memory["child_processes"] >= 1 and memory["peak_children_gb"] > 0
     assert memory["peak_total_gb"] >= max(memory["peak_this_process_gb"], memory["peak_children_gb"])
@@ -97,16 +127,21 @@ def test_the_json_has_every_measurement(speed):
     assert acquire["frames"] == frames and acquire["engine_s"] > 0
     assert 0 <= acquire["camera_capture_ms_per_frame"] < acquire["engine_ms_per_frame"]
     assert acquire["overhead_ms_per_frame"] == pytest.approx(
-        acquire["engine_ms_per_frame"] - acquire["camera_capture_ms_per_frame"], abs=0.02)
+        acquire["engine_ms_per_frame"] - acquire["camera_capture_ms_per_frame"], abs=0.02
+    )
     assert acquire["engine_over_plain_throughput"] == pytest.approx(
-        acquire["plain_h5py_ms_per_frame"] / acquire["engine_ms_per_frame"], rel=0.05)
+        acquire["plain_h5py_ms_per_frame"] / acquire["engine_ms_per_frame"], rel=0.05
+    )
 
     assert result["target"]["measured"] is False and result["target"]["meets_target"] is None
     table = result["markdown"]
     assert table.startswith("| `bench speed` |") and f"{W}×{H}" in table and "not measured" in table
     # the paired ratios' spread beside their median: how far the host moved within the run
     low, high = min(process["over_read_floor_all"]), max(process["over_read_floor_all"])
-    assert f"{process['over_read_floor']:.2f}× the read floor read just before each, {low:.2f}–{high:.2f}× over 2 runs" in table
+    assert (
+        f"{process['over_read_floor']:.2f}× the read floor read just before each, {low:.2f}–{high:.2f}× over 2 runs"
+        in table
+    )
 
 
 def test_the_run_is_made_once_and_then_cached(speed):
@@ -126,8 +161,17 @@ def test_the_cache_key_follows_the_rig_and_the_bracket():
     small, large = rig_at_size(rig, 2000, 1312), rig_at_size(rig, 4000, 2624)
     assert large.camera.pixel_pitch_m == pytest.approx(2.95e-6)
     assert cache_key(small, (1e-3, 1e-2), 66) == cache_key(rig_at_size(rig, 2000, 1312), (1e-3, 1e-2), 66)
-    assert len({cache_key(small, (1e-3, 1e-2), 66), cache_key(large, (1e-3, 1e-2), 66),
-                cache_key(small, (1e-3, 2e-2), 66), cache_key(small, (1e-3, 1e-2), 65)}) == 4  # fmt: skip
+    assert (
+        len(
+            {
+                cache_key(small, (1e-3, 1e-2), 66),
+                cache_key(large, (1e-3, 1e-2), 66),
+                cache_key(small, (1e-3, 2e-2), 66),
+                cache_key(small, (1e-3, 1e-2), 65),
+            }
+        )
+        == 4
+    )
 
 
 def test_bad_sizes_are_one_line_errors():

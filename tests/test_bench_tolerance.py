@@ -7,20 +7,25 @@ import json
 import re
 
 import pytest
+from conftest import REDUCED_RIG
 from typer.testing import CliRunner
 
 from acquisition.benchmarks.tolerance import DEFAULT_ERRORS, described_wrong, markdown_table, parse_error
 from acquisition.cli import app
-from conftest import REDUCED_RIG
 
-RIG = {"camera": {"pinhole_diameter_m": 2e-4}, "ball": {"centre_m": [0.0, 0.0, 0.0], "radius_m": 0.0254},
-       "light": {"light_to_tool": {"position_m": [0.0, 0.0, 0.0]}}}  # fmt: skip
+RIG = {
+    "camera": {"pinhole_diameter_m": 2e-4},
+    "ball": {"centre_m": [0.0, 0.0, 0.0], "radius_m": 0.0254},
+    "light": {"light_to_tool": {"position_m": [0.0, 0.0, 0.0]}},
+}
 
 
 def _tolerance(*args: str) -> tuple[dict, dict]:
     """`bench tolerance --json` on the reduced rig's first 12 positions: its JSON, and its runs by
     (error, way)."""
-    result = CliRunner().invoke(app, ["bench", "tolerance", "--rig", str(REDUCED_RIG), "--positions", "12", *args, "--json"])
+    result = CliRunner().invoke(
+        app, ["bench", "tolerance", "--rig", str(REDUCED_RIG), "--positions", "12", *args, "--json"]
+    )
     assert result.exit_code == 0, result.output
     out = json.loads(result.stdout.strip().splitlines()[-1])
     return out, {(row["error"], row["layout"]): row for row in out["runs"]}
@@ -35,7 +40,9 @@ def test_each_error_changes_one_number_of_the_description_and_nothing_else():
     assert described_wrong(RIG, "ball-y-20um")["ball"]["centre_m"] == pytest.approx([0.0, -2e-5, 0.0], abs=1e-15)
     assert described_wrong(RIG, "ball-radius+0.1mm")["ball"]["radius_m"] == pytest.approx(0.0255, rel=1e-12)
     assert described_wrong(RIG, "ball-radius-1%")["ball"]["radius_m"] == pytest.approx(0.0254 * 0.99, rel=1e-12)
-    assert described_wrong(RIG, "light-z+0.5mm")["light"]["light_to_tool"]["position_m"] == pytest.approx([0.0, 0.0, 5e-4])
+    assert described_wrong(RIG, "light-z+0.5mm")["light"]["light_to_tool"]["position_m"] == pytest.approx(
+        [0.0, 0.0, 5e-4]
+    )
     assert described_wrong(RIG, "pinhole-0.5%")["camera"]["pinhole_diameter_m"] == pytest.approx(1.99e-4, rel=1e-12)
     assert described_wrong(RIG, "pinhole+10µm")["camera"]["pinhole_diameter_m"] == pytest.approx(2.1e-4, rel=1e-12)
 
@@ -47,10 +54,13 @@ def test_the_errors_read_from_their_names():
     assert parse_error("light-y-20um").amount == pytest.approx((0.0, -2e-5, 0.0), abs=1e-18)
     assert parse_error("ball-z+0mm").amount == (0.0, 0.0, 0.0)
     assert all(parse_error(name).name == name for name in DEFAULT_ERRORS)
-    for name, says in [("ball-w+1mm", "is not an error of the rig description: PART±SIZE"),
-                       ("pinhole*2", "is not an error of the rig description"), ("pinhole+10", "PART one of pinhole"),
-                       ("ball-x+1%", "ball-x is a position: give its error in mm or um"),
-                       ("pinhole-100%", "cannot shrink by 100 %")]:  # fmt: skip
+    for name, says in [
+        ("ball-w+1mm", "is not an error of the rig description: PART±SIZE"),
+        ("pinhole*2", "is not an error of the rig description"),
+        ("pinhole+10", "PART one of pinhole"),
+        ("ball-x+1%", "ball-x is a position: give its error in mm or um"),
+        ("pinhole-100%", "cannot shrink by 100 %"),
+    ]:
         with pytest.raises(ValueError, match=f"^--errors: {re.escape(repr(name))}") as caught:
             parse_error(name)
         assert says in str(caught.value) and "\n" not in str(caught.value)
@@ -60,23 +70,43 @@ def test_an_unknown_error_is_refused_in_one_line_before_anything_is_acquired(tmp
     result = CliRunner().invoke(app, ["bench", "tolerance", "--errors", "pinhole+10%,ball-w+1mm", "--json"])
     assert result.exit_code != 0
     lines = result.output.strip().splitlines()
-    assert len(lines) == 1 and "--errors: 'ball-w+1mm' is not an error of the rig description" in lines[0], result.output
+    assert len(lines) == 1 and "--errors: 'ball-w+1mm' is not an error of the rig description" in lines[0], (
+        result.output
+    )
 
 
 def test_the_table_says_which_processings_failed_and_why():
     """A description can be so far off that the processing stops (an aperture fit at its bound):
     the benchmark records why and goes on; the table shows it in that cell."""
-    runs = [{"error": "none", "layout": "given", "sources_found": 5, "max_rms_rel_error": 0.0041},
-            {"error": "none", "layout": "given, aperture fitted", "sources_found": 5, "max_rms_rel_error": 0.0061,
-             "aperture_fit": {"fitted_m": 2.004e-4}},
-            {"error": "pinhole+40%", "layout": "given", "what": "camera.pinhole_diameter_m × 1.4", "sources_found": 5,
-             "max_rms_rel_error": 1.2},
-            {"error": "pinhole+40%", "layout": "given, aperture fitted", "what": "camera.pinhole_diameter_m × 1.4",
-             "failed": "run.h5: --fit-aperture: the best aperture lies at the search's bound (0.21 mm, -25 %)"}]  # fmt: skip
+    runs = [
+        {"error": "none", "layout": "given", "sources_found": 5, "max_rms_rel_error": 0.0041},
+        {
+            "error": "none",
+            "layout": "given, aperture fitted",
+            "sources_found": 5,
+            "max_rms_rel_error": 0.0061,
+            "aperture_fit": {"fitted_m": 2.004e-4},
+        },
+        {
+            "error": "pinhole+40%",
+            "layout": "given",
+            "what": "camera.pinhole_diameter_m × 1.4",
+            "sources_found": 5,
+            "max_rms_rel_error": 1.2,
+        },
+        {
+            "error": "pinhole+40%",
+            "layout": "given, aperture fitted",
+            "what": "camera.pinhole_diameter_m × 1.4",
+            "failed": "run.h5: --fit-aperture: the best aperture lies at the search's bound (0.21 mm, -25 %)",
+        },
+    ]
     table = markdown_table({"runs": runs}).splitlines()
     assert table[2] == "| as taken | 0.41 % | 0.2004 mm, 0.61 % |"
-    assert table[3] == ("| pinhole+40% (`camera.pinhole_diameter_m × 1.4`) | 120.00 % | failed: run.h5: --fit-aperture: "
-                        "the best aperture lies at the search's bound (0.21 mm, -25 %) |")  # fmt: skip
+    assert table[3] == (
+        "| pinhole+40% (`camera.pinhole_diameter_m × 1.4`) | 120.00 % | failed: run.h5: --fit-aperture: "
+        "the best aperture lies at the search's bound (0.21 mm, -25 %) |"
+    )
 
 
 def test_a_wrong_pinhole_costs_the_fits_and_fitting_the_aperture_wins_them_back():
@@ -131,7 +161,11 @@ def test_the_search_and_the_aperture_fit_alternate_where_the_sources_are_not_kno
     simulated arm's read-back noise differs from run to run) and the fits to those of the
     search with the description right."""
     out, runs = _tolerance("--errors", "pinhole+10%", "--layout-from-data", "--fit-aperture", "--scheduler", "local")
-    right, wrong, mended = runs["none", "found"], runs["pinhole+10%", "found"], runs["pinhole+10%", "found, aperture fitted"]
+    right, wrong, mended = (
+        runs["none", "found"],
+        runs["pinhole+10%", "found"],
+        runs["pinhole+10%", "found, aperture fitted"],
+    )
     assert wrong["max_centre_error_um"] > 500 and wrong["max_rms_rel_error"] > 0.3, wrong
     assert mended["aperture_fit"]["fitted_m"] == pytest.approx(2e-4, rel=0.01), mended["aperture_fit"]
     assert 2 <= mended["aperture_fit"]["searches"] <= 3  # the first search's sources gave a wrong aperture
@@ -152,15 +186,20 @@ def test_a_long_sensor_distance_costs_the_fits_and_fitting_it_wins_them_back():
     fitted = "given, sensor distance fitted"
     assert set(runs) == {(error, way) for error in ("none", "sensor-distance+0.5%") for way in ("given", fitted)}
     as_taken, wrong = runs["none", "given"], runs["sensor-distance+0.5%", "given"]
-    assert wrong["max_rms_rel_error"] > 2 * as_taken["max_rms_rel_error"], (wrong["max_rms_rel_error"], as_taken["max_rms_rel_error"])
+    assert wrong["max_rms_rel_error"] > 2 * as_taken["max_rms_rel_error"], (
+        wrong["max_rms_rel_error"],
+        as_taken["max_rms_rel_error"],
+    )
     for error in ("none", "sensor-distance+0.5%"):
         distance = runs[error, fitted]["sensor_distance_fit"]
         assert distance["fitted_m"] == pytest.approx(0.025, rel=2e-3), (error, distance)
         assert distance["sources_refitted"] is False and "aperture_fit" not in runs[error, fitted]
         assert runs[error, fitted]["max_rms_rel_error"] < 2 * as_taken["max_rms_rel_error"] + 0.005, runs[error, fitted]
     table = out["markdown"].splitlines()
-    assert table[0] == ("| rig description | fits, layout given (max RMS / peak) | the sensor distance fitted: distance, "
-                        "fits |")  # fmt: skip
+    assert table[0] == (
+        "| rig description | fits, layout given (max RMS / peak) | the sensor distance fitted: distance, fits |"
+    )
     distance = runs["sensor-distance+0.5%", fitted]
-    assert table[3].endswith(f"| {1e3 * distance['sensor_distance_fit']['fitted_m']:.3f} mm, "
-                             f"{100 * distance['max_rms_rel_error']:.2f} % |")  # fmt: skip
+    assert table[3].endswith(
+        f"| {1e3 * distance['sensor_distance_fit']['fitted_m']:.3f} mm, {100 * distance['max_rms_rel_error']:.2f} % |"
+    )

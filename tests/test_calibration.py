@@ -15,8 +15,9 @@ import math
 
 import numpy as np
 import pytest
+from conftest import rig_with
 
-from acquisition.rig import load_rig
+from drivers.contracts.rig import load_rig
 from drivers.pose import Pose
 from processing.calibration import (
     CalibrationError,
@@ -31,7 +32,6 @@ from sim_devices.camera import SimulatedCamera
 from sim_devices.lights import Emitter, LambertianRadiance, TruthLight
 from sim_devices.optics import MirrorBallRenderer
 from sim_devices.world import SimWorld
-from conftest import rig_with
 
 GREEN = 1
 REDUCED = dict(camera__width=500, camera__height=400, camera__pixel_pitch_m=23.6e-6)
@@ -67,8 +67,13 @@ def test_tangent_solve_finds_the_ball_centre_within_0_2_mm(on_axis):
     # The ball's image: radius f/p * R / sqrt(D² - R²) = 136.2 px (plus the rim's half pixel).
     assert np.mean(silhouette.ellipse.semi_axes) == pytest.approx(136.2, abs=1.0)
     truth = true_centre_camera(rig)
-    fit = solve_ball_centre(silhouette, rig.camera.camera_matrix(), rig.ball.radius_m,
-                            extrinsics=rig.camera.pose.extrinsics(), ball_index=(rig.ball.n, rig.ball.k))  # fmt: skip
+    fit = solve_ball_centre(
+        silhouette,
+        rig.camera.camera_matrix(),
+        rig.ball.radius_m,
+        extrinsics=rig.camera.pose.extrinsics(),
+        ball_index=(rig.ball.n, rig.ball.k),
+    )
     error_mm = (fit.centre_camera - truth) * 1e3
     assert np.linalg.norm(error_mm) < 0.2  # measured: 0.011 mm
     assert np.all(np.abs(error_mm[:2]) < 0.02)  # laterally the edge bias cancels
@@ -95,8 +100,9 @@ def test_the_contour_method_is_the_coarse_one(on_axis):
 
 def test_compare_with_rig_reports_a_wrong_ball_position(on_axis):
     rig, image, silhouette = on_axis
-    fit = solve_ball_centre(silhouette, rig.camera.camera_matrix(), rig.ball.radius_m,
-                            ball_index=(rig.ball.n, rig.ball.k))  # fmt: skip
+    fit = solve_ball_centre(
+        silhouette, rig.camera.camera_matrix(), rig.ball.radius_m, ball_index=(rig.ball.n, rig.ball.k)
+    )
     right = compare_with_rig(fit, rig)
     assert right["distance_mm"] < 0.2
     # The description puts the ball 1 mm to the side (+x), or 1 mm towards the camera (+z):
@@ -223,13 +229,17 @@ def test_environment_light_is_fresnel_times_radiance_and_hidden_by_emitters():
     assert np.all(env_only[:, :, :5] == 0.0)
     # An emitter of the room's own radiance hides exactly the room behind it: the image is
     # the same with a Lambertian disc of that radiance switched on (bare, no housing).
-    patch = TruthLight(emitters=[Emitter(name="patch", radius_m=0.02, intensity=LambertianRadiance(radiance_w_sr_m2=room))])
+    patch = TruthLight(
+        emitters=[Emitter(name="patch", radius_m=0.02, intensity=LambertianRadiance(radiance_w_sr_m2=room))]
+    )
     renderer = MirrorBallRenderer(rig, patch, environment_radiance=room, diffraction=False, seed=9)
     with_patch = renderer.render(pose)
     assert with_patch.stats.per_emitter_pixels["patch"] > 1000
     np.testing.assert_allclose(with_patch.rate, env_only, rtol=1e-9, atol=1e-6)
     # ... while a brighter one shows at its own radiance (Monte-Carlo sampled: a 5 x 5 mean).
-    patch2 = TruthLight(emitters=[Emitter(name="patch", radius_m=0.02, intensity=LambertianRadiance(radiance_w_sr_m2=2 * room))])
+    patch2 = TruthLight(
+        emitters=[Emitter(name="patch", radius_m=0.02, intensity=LambertianRadiance(radiance_w_sr_m2=2 * room))]
+    )
     brighter = MirrorBallRenderer(rig, patch2, environment_radiance=room, diffraction=False, seed=9).render(pose).rate
     block = (slice(None), slice(int(cy) - 2, int(cy) + 3), slice(int(cx) - 2, int(cx) + 3))
     np.testing.assert_allclose(brighter[block].mean(axis=(1, 2)), 2 * env_only[block].mean(axis=(1, 2)), rtol=0.01)

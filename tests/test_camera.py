@@ -218,9 +218,7 @@ def test_folder_camera_returns_the_new_raw_file_once_it_settles(tmp_path, monkey
         return decode_raw(path, camera_id)
 
     monkeypatch.setattr(folder_camera_module, "decode_raw", counting_decode)
-    camera = FolderCamera(
-        folder, trigger=tethering_software, timeout_s=5, settle_s=settle_s, poll_s=0.02
-    )
+    camera = FolderCamera(folder, trigger=tethering_software, timeout_s=5, settle_s=settle_s, poll_s=0.02)
     camera.connect()
     frame = camera.capture(0.0041)
     returned_at = time.monotonic()
@@ -443,8 +441,11 @@ def test_gphoto2_capture_sets_shutter_retries_busy_keeps_raw_of_raw_jpeg(tmp_pat
     assert [Path(p).name for p in frame.extra["companion_files"]] == ["DSC_0001.JPG"]
     assert Path(again.source).name == "DSC_0002.NEF"
     assert sorted(p.name for p in downloads.iterdir()) == [
-        "DSC_0001.JPG", "DSC_0001.NEF", "DSC_0002.JPG", "DSC_0002.NEF",
-    ]  # fmt: skip
+        "DSC_0001.JPG",
+        "DSC_0001.NEF",
+        "DSC_0002.JPG",
+        "DSC_0002.NEF",
+    ]
     np.testing.assert_array_equal(frame.mosaic, random_mosaic((26, 30), 12, seed=1))
 
 

@@ -193,7 +193,7 @@ def test_racing_transitions_exactly_one_wins(db, clock):
             barrier = threading.Barrier(2)
             outcomes = [None, None]
 
-            def end(k):
+            def end(k, barrier=barrier, outcomes=outcomes, run=run):
                 barrier.wait()
                 try:
                     outcomes[k] = cats[k].transition_run(run.id, targets[k]).state
@@ -259,7 +259,9 @@ def test_progress_and_eta(cat, clock):
     run = _new_run(cat, n=10)
     cat.transition_run(run.id, "running")
     clock.advance(30)
-    cat.update_progress(run.id, positions_done=4, current_position=4, seconds_per_position=2.5, exposures_per_position=5)
+    cat.update_progress(
+        run.id, positions_done=4, current_position=4, seconds_per_position=2.5, exposures_per_position=5
+    )
     run = cat.get_run(run.id)
     assert (run.positions_done, run.current_position, run.exposures_per_position) == (4, 4, 5)
     assert run.updated_utc == clock.now
@@ -296,7 +298,9 @@ def test_schema_version_is_recorded_and_a_newer_one_refused(db, clock):
     Catalog(db, clock=clock).close()
     Catalog(db, clock=clock).close()  # reopening does not migrate twice
     with sqlite3.connect(db) as conn:
-        assert conn.execute("SELECT version FROM schema_version").fetchall() == [(v,) for v in range(1, SCHEMA_VERSION + 1)]
+        assert conn.execute("SELECT version FROM schema_version").fetchall() == [
+            (v,) for v in range(1, SCHEMA_VERSION + 1)
+        ]
         assert conn.execute("PRAGMA journal_mode").fetchone()[0] == "wal"
         conn.execute("INSERT INTO schema_version VALUES (?, 'later')", (SCHEMA_VERSION + 1,))
     conn.close()
@@ -356,7 +360,7 @@ def _claim_until_empty(path, worker_id, start, results):
             cat.finish_job(job.id, worker_id=worker_id, result_dir=f"/results/{job.id}")
         cat.close()
         results.put((worker_id, claimed))
-    except BaseException as exc:  # report it: the parent would otherwise wait for nothing
+    except BaseException as exc:  # noqa: BLE001 - report it: the parent would otherwise wait for nothing
         results.put((worker_id, f"{type(exc).__name__}: {exc}"))
 
 
@@ -466,11 +470,15 @@ def test_a_version_1_catalog_is_migrated_and_keeps_its_jobs(db, clock):
         for statement in _MIGRATIONS[0]:
             conn.execute(statement)
         conn.execute("INSERT INTO schema_version VALUES (1, '2026-11-20T00:00:00.000000Z')")
-        conn.execute("INSERT INTO runs (id, seq, created_utc, updated_utc, state, n_positions, positions_done, request_json) "
-                     "VALUES ('run-old', 1, 't', 't', 'complete', 3, 3, '{}')")
-        conn.execute("INSERT INTO jobs (id, seq, run_id, created_utc, updated_utc, state, steps, options_json, progress) "
-                     "VALUES ('job-old', 1, 'run-old', '2026-11-20T00:00:00.000000Z', '2026-11-20T00:00:00.000000Z', "
-                     "'queued', 'hdr,trace,fit', '{}', 0)")
+        conn.execute(
+            "INSERT INTO runs (id, seq, created_utc, updated_utc, state, n_positions, positions_done, request_json) "
+            "VALUES ('run-old', 1, 't', 't', 'complete', 3, 3, '{}')"
+        )
+        conn.execute(
+            "INSERT INTO jobs (id, seq, run_id, created_utc, updated_utc, state, steps, options_json, progress) "
+            "VALUES ('job-old', 1, 'run-old', '2026-11-20T00:00:00.000000Z', '2026-11-20T00:00:00.000000Z', "
+            "'queued', 'hdr,trace,fit', '{}', 0)"
+        )
     conn.close()
     cat = Catalog(db, clock=clock)
     try:
@@ -512,9 +520,13 @@ def test_finish_job_records_artifacts_and_heartbeat_a_note(cat):
     assert cat.get_job(job.id).message == "positions 33 of 66"
     with pytest.raises(CatalogError, match="artifacts must map kinds"):
         cat.finish_job(job.id, artifacts={"Report!": "/x"})
-    done = cat.finish_job(job.id, worker_id="w1", result_dir="/data/runs",
-                          artifacts={"report": "/data/runs/r.report.html", "ies": "/data/runs/r.ies"},
-                          message="3 of 66 positions (partial run)")
+    done = cat.finish_job(
+        job.id,
+        worker_id="w1",
+        result_dir="/data/runs",
+        artifacts={"report": "/data/runs/r.report.html", "ies": "/data/runs/r.ies"},
+        message="3 of 66 positions (partial run)",
+    )
     assert done.artifacts == {"report": "/data/runs/r.report.html", "ies": "/data/runs/r.ies"}
     assert done.message == "3 of 66 positions (partial run)" and done.options == {"partial": True}
 

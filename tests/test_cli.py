@@ -38,8 +38,9 @@ def small_rig(tmp_path):
 
 def test_simulate_capture_writes_a_dng_that_decodes(tmp_path, small_rig):
     out = tmp_path / "frame.dng"
-    result = runner.invoke(app, ["simulate", "capture", "--rig", str(small_rig), "--position", "33",
-                                 "--exposure", "0.003", "-o", str(out)])  # fmt: skip
+    result = runner.invoke(
+        app, ["simulate", "capture", "--rig", str(small_rig), "--position", "33", "--exposure", "0.003", "-o", str(out)]
+    )
     assert result.exit_code == 0, result.output
     assert f"wrote {out}" in result.output
     frame = decode_raw(out)
@@ -83,10 +84,20 @@ def test_bench_render_prints_json(small_rig):
 
 
 def test_every_subcommand_has_help():
-    for args in (["--help"], ["simulate", "--help"], ["simulate", "arm", "--help"],
-                 ["simulate", "capture", "--help"], ["bench", "render", "--help"], ["demo", "--help"],
-                 ["import", "--help"], ["process", "--help"], ["reflectance", "--help"], ["worker", "--help"],
-                 ["bench", "reflectance", "--help"], ["bench", "speed", "--help"]):  # fmt: skip
+    for args in (
+        ["--help"],
+        ["simulate", "--help"],
+        ["simulate", "arm", "--help"],
+        ["simulate", "capture", "--help"],
+        ["bench", "render", "--help"],
+        ["demo", "--help"],
+        ["import", "--help"],
+        ["process", "--help"],
+        ["reflectance", "--help"],
+        ["worker", "--help"],
+        ["bench", "reflectance", "--help"],
+        ["bench", "speed", "--help"],
+    ):
         result = runner.invoke(app, args)
         assert result.exit_code == 0, args
         assert "Usage" in result.output
@@ -105,8 +116,13 @@ def test_simulate_arm_serves_modbus_to_the_real_driver():
 
     port = _free_port()
     exe = Path(sys.executable).with_name("mirrorgonio")
-    proc = subprocess.Popen([str(exe), "simulate", "arm", "--port", str(port)], stdout=subprocess.PIPE,
-                            stderr=subprocess.STDOUT, text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})  # fmt: skip
+    proc = subprocess.Popen(
+        [str(exe), "simulate", "arm", "--port", str(port)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        env={**os.environ, "PYTHONUNBUFFERED": "1"},
+    )
     try:
         deadline = time.monotonic() + 20
         while time.monotonic() < deadline:
@@ -129,23 +145,42 @@ def _small_run(path: Path, run_id: str, positions=(3, 4), seed: int = 0) -> Path
     """A run file of a tiny synthetic sensor: a linear scene bracketed at three exposures."""
     import numpy as np
 
-    from acquisition.rig import rig_from_dict
-    from acquisition.runfile import PositionTimes, RunFileWriter, RunHeader
     from drivers.camera import RawFrame
+    from drivers.contracts.rig import rig_from_dict
+    from drivers.contracts.runfile import PositionTimes, RunFileWriter, RunHeader
 
     rig = rig_from_dict({"camera": {"width": 64, "height": 48}})
     exposures = [0.001, 0.004, 0.016]
-    header = RunHeader(run_id=run_id, rig=rig, tool_poses=rig.tool_poses(), light_poses=rig.light_poses(),
-                       max_exposures=len(exposures), frame_shape=(48, 64), bracket={"mode": "fixed", "exposures_s": exposures},
-                       metadata={}, devices={}, software_version="test", created_utc="2026-01-01T00:00:00+00:00")  # fmt: skip
+    header = RunHeader(
+        run_id=run_id,
+        rig=rig,
+        tool_poses=rig.tool_poses(),
+        light_poses=rig.light_poses(),
+        max_exposures=len(exposures),
+        frame_shape=(48, 64),
+        bracket={"mode": "fixed", "exposures_s": exposures},
+        metadata={},
+        devices={},
+        software_version="test",
+        created_utc="2026-01-01T00:00:00+00:00",
+    )
     rng = np.random.default_rng(seed)
     rate = np.outer(np.linspace(1e4, 2e5, 48), np.linspace(0.5, 1.5, 64))  # DN/s
     path.parent.mkdir(parents=True, exist_ok=True)
     with RunFileWriter.create(path, header) as writer:
         for index in positions:
-            frames = [RawFrame(mosaic=np.clip(64 + rng.poisson(rate * t), 0, 4095).astype(np.uint16),
-                               black_level=np.full((2, 2), 64.0), white_level=4095, cfa_pattern="RGGB",
-                               exposure_s=t, timestamp=1.0e9, camera_id="test") for t in exposures]  # fmt: skip
+            frames = [
+                RawFrame(
+                    mosaic=np.clip(64 + rng.poisson(rate * t), 0, 4095).astype(np.uint16),
+                    black_level=np.full((2, 2), 64.0),
+                    white_level=4095,
+                    cfa_pattern="RGGB",
+                    exposure_s=t,
+                    timestamp=1.0e9,
+                    camera_id="test",
+                )
+                for t in exposures
+            ]
             writer.write_position(index, rig.tool_poses()[index], PositionTimes(1.0e9, 1.0e9, 1.0e9), frames)
         writer.set_status("complete")
     return path
@@ -158,15 +193,33 @@ def test_process_several_runs_with_the_same_name_and_one_broken(tmp_path):
     broken = tmp_path / "day2" / "broken.h5"
     broken.write_text("not a run file")
     out = tmp_path / "results"
-    result = runner.invoke(app, ["process", str(first), str(broken), str(second), str(third), "--steps", "hdr",
-                                 "--noise", "rig", "--method", "poisson", "--out", str(out)])  # fmt: skip
+    result = runner.invoke(
+        app,
+        [
+            "process",
+            str(first),
+            str(broken),
+            str(second),
+            str(third),
+            "--steps",
+            "hdr",
+            "--noise",
+            "rig",
+            "--method",
+            "poisson",
+            "--out",
+            str(out),
+        ],
+    )
     assert result.exit_code == 2, result.output
     # the others still complete, each in its own place: same-named runs in a subfolder each
     from processing.results import Results
 
-    for results_file, done in ((out / "day1" / "run-0001.results.h5", [3, 4]),
-                               (out / "day2" / "run-0001.results.h5", [7]),
-                               (out / "other.results.h5", [3, 4])):  # fmt: skip
+    for results_file, done in (
+        (out / "day1" / "run-0001.results.h5", [3, 4]),
+        (out / "day2" / "run-0001.results.h5", [7]),
+        (out / "other.results.h5", [3, 4]),
+    ):
         with Results.open(results_file) as results:
             assert results.hdr_done.nonzero()[0].tolist() == done
             assert results.noise.source == "rig"
@@ -184,7 +237,9 @@ def test_process_several_runs_with_the_same_name_and_one_broken(tmp_path):
 def test_process_several_runs_all_good_exits_zero(tmp_path):
     runs = [_small_run(tmp_path / f"run-{k}.h5", f"run-{k}", positions=(k,), seed=k) for k in (1, 2)]
     again = tmp_path / "." / "run-1.h5"  # the same file twice: processed once
-    result = runner.invoke(app, ["process", *map(str, runs), str(again), "--steps", "hdr", "--out", str(tmp_path / "out")])
+    result = runner.invoke(
+        app, ["process", *map(str, runs), str(again), "--steps", "hdr", "--out", str(tmp_path / "out")]
+    )
     assert result.exit_code == 0, result.output
     assert "processed once" in result.output
     assert "2 of 2 runs processed" in result.output and "failed" not in result.output
@@ -193,7 +248,9 @@ def test_process_several_runs_all_good_exits_zero(tmp_path):
 
 def test_process_bad_option_fails_before_any_run(tmp_path):
     run = _small_run(tmp_path / "run.h5", "run")
-    result = runner.invoke(app, ["process", str(run), str(run.with_name("x.h5")), "--steps", "hdr,dance", "--out", str(tmp_path / "out")])
+    result = runner.invoke(
+        app, ["process", str(run), str(run.with_name("x.h5")), "--steps", "hdr,dance", "--out", str(tmp_path / "out")]
+    )
     assert result.exit_code == 2
     assert result.output.strip().splitlines() == ["error: --steps: unknown step 'dance' (known: hdr, sources)"]
     assert not (tmp_path / "out").exists()

@@ -10,12 +10,12 @@ import time
 
 import numpy as np
 import pytest
+from conftest import REDUCED_RIG
 from fastapi.testclient import TestClient
 
 from acquisition.app import create_app
-from acquisition.runfile import RunFile
 from acquisition.settings import load_settings
-from conftest import REDUCED_RIG
+from drivers.contracts.runfile import RunFile
 
 EXPOSURES = [0.0002, 0.001, 0.005]
 
@@ -253,8 +253,8 @@ def test_stop_arm_during_a_capture_also_pauses_the_run(daemon):
 
 def test_object_arc_run_records_its_object_and_light(daemon, tmp_path):
     """An object rig's daemon photographs the object on the arc and names its mesh and light."""
-    from acquisition.rig import DEFAULT_RIG_PATH, load_rig
-    from acquisition.runfile import file_sha256
+    from drivers.contracts.rig import DEFAULT_RIG_PATH, load_rig
+    from drivers.contracts.runfile import file_sha256
 
     shipped = DEFAULT_RIG_PATH.parent / "object-vase.toml"
     text = shipped.read_text().replace("width = 2000", "width = 250").replace("height = 1312", "height = 164")
@@ -271,8 +271,14 @@ def test_object_arc_run_records_its_object_and_light(daemon, tmp_path):
 
     bad = http.post("/runs", json={"preset": "object-arc", "light_results": str(tmp_path / "missing.json")})
     assert bad.status_code == 400 and "light_results" in bad.json()["detail"]
-    run = http.post("/runs", json={"preset": "object-arc", "light_results": str(light),
-                                   "bracket": {"mode": "fixed", "exposures_s": [1.0, 4.0]}}).json()  # fmt: skip
+    run = http.post(
+        "/runs",
+        json={
+            "preset": "object-arc",
+            "light_results": str(light),
+            "bracket": {"mode": "fixed", "exposures_s": [1.0, 4.0]},
+        },
+    ).json()
     status = wait_state(http, run["id"], {"complete", "failed"})
     assert status["state"] == "complete", status
     with RunFile.open(engine.catalog.get_run(run["id"]).path) as f:

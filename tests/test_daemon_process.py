@@ -8,11 +8,10 @@ import random
 import time
 
 import numpy as np
-import pytest
+from conftest import free_port, wait_for, write_config
 from pymodbus.client import ModbusTcpClient
 
-from acquisition.runfile import RunFile
-from conftest import free_port, wait_for, write_config
+from drivers.contracts.runfile import RunFile
 
 EXPOSURES = [0.0002, 0.001, 0.005]
 
@@ -21,8 +20,10 @@ def test_full_default_sweep_over_http(tmp_path, daemon_factory):
     daemon = daemon_factory(write_config(tmp_path / "daemon.toml", tmp_path / "data"))
     with daemon.client() as http:
         assert http.get("/health").json()["status"] == "ok"
-        started = http.post("/runs", json={"preset": "light-sweep", "operator": "test",
-                                           "bracket": {"mode": "fixed", "exposures_s": EXPOSURES}})  # fmt: skip
+        started = http.post(
+            "/runs",
+            json={"preset": "light-sweep", "operator": "test", "bracket": {"mode": "fixed", "exposures_s": EXPOSURES}},
+        )
         assert started.status_code == 201, started.text
         run = started.json()
         assert run["n_positions"] == 66
@@ -127,11 +128,17 @@ def test_serve_refuses_a_public_address_without_a_token(tmp_path):
     config = write_config(tmp_path / "daemon.toml", tmp_path / "data")
     exe = Path(sys.executable).with_name("mirrorgonio")
     env = {k: v for k, v in __import__("os").environ.items() if k != "MG_TOKEN"}
-    result = subprocess.run([str(exe), "serve", "--config", str(config), "--host", "0.0.0.0"],
-                            capture_output=True, text=True, timeout=60, env=env)  # fmt: skip
+    result = subprocess.run(
+        [str(exe), "serve", "--config", str(config), "--host", "0.0.0.0"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        env=env,
+    )
     assert result.returncode == 2
-    assert result.stderr.strip() == ("error: host: refusing to listen on 0.0.0.0 without a token "
-                                     "(set token in the configuration or MG_TOKEN)")  # fmt: skip
+    assert result.stderr.strip() == (
+        "error: host: refusing to listen on 0.0.0.0 without a token (set token in the configuration or MG_TOKEN)"
+    )
 
 
 # --- the simulated arm in its own process (as in docker-compose.yml) --------------------------
@@ -144,8 +151,11 @@ def _start_sim_arm(tmp_path, port: int):
 
     exe = Path(sys.executable).with_name("mirrorgonio")
     log = open(tmp_path / "sim-arm.log", "ab")
-    proc = subprocess.Popen([str(exe), "simulate", "arm", "--host", "127.0.0.1", "--port", str(port),
-                             "--speed", "0.5", "--accel", "5"], stdout=log, stderr=subprocess.STDOUT)  # fmt: skip
+    proc = subprocess.Popen(
+        [str(exe), "simulate", "arm", "--host", "127.0.0.1", "--port", str(port), "--speed", "0.5", "--accel", "5"],
+        stdout=log,
+        stderr=subprocess.STDOUT,
+    )
     deadline = time.monotonic() + 60
     while time.monotonic() < deadline:
         assert proc.poll() is None, (tmp_path / "sim-arm.log").read_text()
@@ -160,12 +170,18 @@ def _start_sim_arm(tmp_path, port: int):
 
 def _sweep_positions(indices):
     """Light poses of the reduced rig's sweep at ``indices``, as a ``poses`` run request."""
-    from acquisition.rig import load_rig
     from conftest import REDUCED_RIG
 
+    from drivers.contracts.rig import load_rig
+
     light = load_rig(REDUCED_RIG).light_poses()
-    return [{"position_m": list(map(float, light[i].position)),
-             "rotation_deg": [math.degrees(a) for a in (light[i].rx, light[i].ry, light[i].rz)]} for i in indices]  # fmt: skip
+    return [
+        {
+            "position_m": list(map(float, light[i].position)),
+            "rotation_deg": [math.degrees(a) for a in (light[i].rx, light[i].ry, light[i].rz)],
+        }
+        for i in indices
+    ]
 
 
 def _run_frames(daemon, request) -> tuple[list[np.ndarray], dict]:
@@ -195,13 +211,18 @@ def test_simulated_camera_follows_a_simulated_arm_in_another_process(tmp_path, d
         remote_dir = tmp_path / "remote"
         remote_dir.mkdir()
         config = remote_dir / "daemon.toml"
-        config.write_text(f'data_dir = "{remote_dir / "data"}"\nrig = "{REDUCED_RIG}"\n'
-                          f'[arm]\nkind = "modbus-tcp"\nprofile = "sim_stage"\nhost = "127.0.0.1"\nport = {arm_port}\n'
-                          '[camera]\nkind = "simulated"\n')  # fmt: skip
+        config.write_text(
+            f'data_dir = "{remote_dir / "data"}"\nrig = "{REDUCED_RIG}"\n'
+            f'[arm]\nkind = "modbus-tcp"\nprofile = "sim_stage"\nhost = "127.0.0.1"\nport = {arm_port}\n'
+            '[camera]\nkind = "simulated"\n'
+        )
         local_dir = tmp_path / "local"
         local_dir.mkdir()
-        request = {"preset": "poses", "poses": _sweep_positions([20, 33, 45]),
-                   "bracket": {"mode": "fixed", "exposures_s": [0.001, 0.005]}}  # fmt: skip
+        request = {
+            "preset": "poses",
+            "poses": _sweep_positions([20, 33, 45]),
+            "bracket": {"mode": "fixed", "exposures_s": [0.001, 0.005]},
+        }
 
         remote = daemon_factory(config)
         remote_frames, devices = _run_frames(remote, request)

@@ -17,12 +17,12 @@ import h5py
 import hdf5plugin  # noqa: F401 - the results' filters
 import numpy as np
 import pytest
+from conftest import free_port
+from test_worker import LAYOUT, Data, captured  # noqa: F401 - the module fixture of three positions
 from typer.testing import CliRunner
 
 from acquisition.cli import app
-from conftest import free_port
 from processing.parallel import ComputeError, default_workers, open_compute
-from test_worker import LAYOUT, Data, captured  # noqa: F401 - the module fixture of three positions
 
 runner = CliRunner()
 
@@ -31,8 +31,20 @@ DASK = str(Path(sys.executable).with_name("dask"))
 
 
 def _worker_argv(address: str, nworkers: int) -> list[str]:
-    return [DASK, "worker", address, "--host", "127.0.0.1", "--nworkers", str(nworkers), "--nthreads", "1",
-            "--no-dashboard", "--memory-limit", "2GB"]  # fmt: skip
+    return [
+        DASK,
+        "worker",
+        address,
+        "--host",
+        "127.0.0.1",
+        "--nworkers",
+        str(nworkers),
+        "--nthreads",
+        "1",
+        "--no-dashboard",
+        "--memory-limit",
+        "2GB",
+    ]
 
 
 class _Programs:
@@ -110,7 +122,8 @@ def test_workers_that_join_later_are_warmed_up_too(tmp_path):
             with open_compute(address, warm_up=warm_up_worker) as again:
                 plugins = again.client.run_on_scheduler(lambda dask_scheduler: list(dask_scheduler.worker_plugins))
                 assert [p for p in plugins if p.startswith("mirrorgonio-warm-up")] == [
-                    "mirrorgonio-warm-up:processing.pipeline.warm_up_worker"]
+                    "mirrorgonio-warm-up:processing.pipeline.warm_up_worker"
+                ]
     finally:
         programs.stop()
 
@@ -218,10 +231,14 @@ def test_the_default_local_cluster_is_sized_to_the_machine_and_streams(captured,
         # and without Dask's MALLOC_TRIM_THRESHOLD_, which makes every large array an mmap;
         # with one malloc arena, set before the process starts, so that the executor thread's
         # arrays reuse the heap rather than fault in fresh pages.
-        settings = compute.client.run(lambda: (dask.config.get("distributed.worker.profile.enabled"),
-                                               dask.config.get("distributed.admin.tick.interval"),
-                                               os.environ.get("MALLOC_TRIM_THRESHOLD_"),
-                                               os.environ.get("MALLOC_ARENA_MAX")))  # fmt: skip
+        settings = compute.client.run(
+            lambda: (
+                dask.config.get("distributed.worker.profile.enabled"),
+                dask.config.get("distributed.admin.tick.interval"),
+                os.environ.get("MALLOC_TRIM_THRESHOLD_"),
+                os.environ.get("MALLOC_ARENA_MAX"),
+            )
+        )
         assert set(settings.values()) == {(False, "500ms", None, "1")}
         assert compute.client.run_on_scheduler(lambda dask_scheduler: "stealing" in dask_scheduler.extensions) is False
         # Every task runs its numba kernels on its own thread alone (numba's setting is per thread).
@@ -236,7 +253,9 @@ def test_the_default_local_cluster_is_sized_to_the_machine_and_streams(captured,
         assert compute.client.submit(task_threads, pure=False).result() == 1
         # Bounded: never more than four tasks per worker thread in flight.
         held = []
-        compute.map_unordered(time.sleep, [0.05] * 12, on_result=lambda item, _: held.append(len(compute.client.futures)))
+        compute.map_unordered(
+            time.sleep, [0.05] * 12, on_result=lambda item, _: held.append(len(compute.client.futures))
+        )
         assert len(held) == 12 and max(held) <= compute.max_in_flight() == 4 * default_workers()
         with caplog.at_level(logging.INFO, logger="mirrorgonio.processing"):
             report = process_run(run, tmp_path / "dask", steps="hdr,sources", layout=LAYOUT, compute=compute)
@@ -253,8 +272,14 @@ def test_the_default_local_cluster_is_sized_to_the_machine_and_streams(captured,
         pages = []
         for where in (compute, None):
             with caplog.at_level(logging.INFO, logger="mirrorgonio.processing"):
-                path = write_report(tmp_path / f"truth-{where is None}.html", report.model, samples=report.samples,
-                                    report=report, truth=truth, compute=where)  # fmt: skip
+                path = write_report(
+                    tmp_path / f"truth-{where is None}.html",
+                    report.model,
+                    samples=report.samples,
+                    report=report,
+                    truth=truth,
+                    compute=where,
+                )
             pages.append(_sections(path.read_text()))
         assert pages[0] == pages[1]
         assert [r.message for r in caplog.records if "drawn" in r.message]
@@ -268,7 +293,8 @@ def test_the_default_local_cluster_is_sized_to_the_machine_and_streams(captured,
     assert _sections(remote) == _sections(local) and len(_sections(local)) == 7
     # The EXR and PNG previews were written by the workers, one per position.
     assert sorted(p.name for p in (tmp_path / "dask" / f"{run.stem}.hdr").iterdir()) == sorted(
-        p.name for p in (tmp_path / "here" / f"{run.stem}.hdr").iterdir())  # fmt: skip
+        p.name for p in (tmp_path / "here" / f"{run.stem}.hdr").iterdir()
+    )
 
 
 def test_bad_run_files_through_the_scheduler_are_one_line_errors(captured, scheduler, tmp_path):
@@ -282,10 +308,12 @@ def test_bad_run_files_through_the_scheduler_are_one_line_errors(captured, sched
     # Garbage in the frames: the header reads, a task's read fails, its error comes back.
     garbage = tmp_path / "garbage.h5"
     third = len(content) // 3
-    garbage.write_bytes(content[:third] + bytes(np.random.default_rng(1).integers(0, 256, third, dtype=np.uint8))
-                        + content[2 * third :])  # fmt: skip
-    result = runner.invoke(app, ["process", str(garbage), "--out", str(tmp_path / "out"), "--scheduler", scheduler,
-                                 "--layout", LAYOUT])  # fmt: skip
+    garbage.write_bytes(
+        content[:third] + bytes(np.random.default_rng(1).integers(0, 256, third, dtype=np.uint8)) + content[2 * third :]
+    )
+    result = runner.invoke(
+        app, ["process", str(garbage), "--out", str(tmp_path / "out"), "--scheduler", scheduler, "--layout", LAYOUT]
+    )
     assert result.exit_code == 2 and result.output.startswith(f"error: {garbage}: "), result.output
     assert len(result.output.strip().splitlines()) == 1
 

@@ -17,7 +17,6 @@ import time
 from pathlib import Path
 
 import pytest
-
 from conftest import REDUCED_RIG, ROOT
 
 POSITIONS = 12
@@ -56,9 +55,24 @@ def test_demo_runs_the_whole_chain_and_leaves_nothing_running(tmp_path, layout_o
     env.update(COLUMNS="400", PYTHONUNBUFFERED="1")
     root = tmp_path / "demo-data"
     started = time.monotonic()
-    done = subprocess.run([str(exe), "demo", "--rig", str(REDUCED_RIG), "--positions", str(POSITIONS),
-                           "--data-root", str(root), *layout_option],
-                          cwd=tmp_path, env=env, capture_output=True, text=True, timeout=400)  # fmt: skip
+    done = subprocess.run(
+        [
+            str(exe),
+            "demo",
+            "--rig",
+            str(REDUCED_RIG),
+            "--positions",
+            str(POSITIONS),
+            "--data-root",
+            str(root),
+            *layout_option,
+        ],
+        cwd=tmp_path,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=400,
+    )
     elapsed = time.monotonic() - started
     output = done.stdout + done.stderr
     assert done.returncode == 0, output[-4000:]
@@ -72,12 +86,21 @@ def test_demo_runs_the_whole_chain_and_leaves_nothing_running(tmp_path, layout_o
     # Every file the summary prints exists: the run's folder, then each file's name in it.
     (folder_shown,) = re.findall(r"^files in (\S+)/$", done.stdout, flags=re.MULTILINE)
     runs_dir = Path(folder_shown) if Path(folder_shown).is_absolute() else tmp_path / folder_shown
-    rows = dict(re.findall(r"│ (run file|report \(HTML\)|IES|EULUMDAT \(LDT\)|TM-25 ray file|light model \(JSON\)|"
-                           r"HDR results)\s*│ (\S+)\s*│", done.stdout))  # fmt: skip
+    rows = dict(
+        re.findall(
+            r"│ (run file|report \(HTML\)|IES|EULUMDAT \(LDT\)|TM-25 ray file|light model \(JSON\)|"
+            r"HDR results)\s*│ (\S+)\s*│",
+            done.stdout,
+        )
+    )
     assert set(rows) >= {"run file", "report (HTML)", "IES", "TM-25 ray file", "light model (JSON)"}, done.stdout
     for label, name in rows.items():
         assert (runs_dir / name).is_file(), f"{label}: {runs_dir / name}"
-    assert rows["run file"].endswith(".h5") and rows["IES"].endswith(".ies") and rows["TM-25 ray file"].endswith(".tm25ray")
+    assert (
+        rows["run file"].endswith(".h5")
+        and rows["IES"].endswith(".ies")
+        and rows["TM-25 ray file"].endswith(".tm25ray")
+    )
     assert (runs_dir / rows["report (HTML)"]).read_text(errors="replace").lstrip().lower().startswith("<!doctype html")
 
     # The accuracy: a number per source of the truth, and the maximum; times for both steps.
@@ -108,7 +131,9 @@ def test_demo_runs_the_whole_chain_and_leaves_nothing_running(tmp_path, layout_o
     if layout_option:
         assert summary["aperture"] == "as described by the rig", summary["aperture"]
     else:
-        assert re.fullmatch(r"0\.\d+ mm, fitted to the data \(the rig says 0\.2 mm\)", summary["aperture"]), summary["aperture"]
+        assert re.fullmatch(r"0\.\d+ mm, fitted to the data \(the rig says 0\.2 mm\)", summary["aperture"]), summary[
+            "aperture"
+        ]
     assert re.search(r"│ camera aperture\s*│ " + re.escape(summary["aperture"][:20]), done.stdout), done.stdout
     assert len(summary["accuracy"]) == 5
     for source in summary["accuracy"]:

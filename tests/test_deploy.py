@@ -48,7 +48,9 @@ class ComposeError(Exception):
     pass
 
 
-_VARIABLE = re.compile(r"\$\{(?P<name>[A-Za-z_][A-Za-z0-9_]*)(?:(?P<op>:?[-?])(?P<arg>[^}]*))?\}|\$(?P<bare>[A-Za-z_][A-Za-z0-9_]*)")
+_VARIABLE = re.compile(
+    r"\$\{(?P<name>[A-Za-z_][A-Za-z0-9_]*)(?:(?P<op>:?[-?])(?P<arg>[^}]*))?\}|\$(?P<bare>[A-Za-z_][A-Za-z0-9_]*)"
+)
 
 
 def _interpolate(value, env: dict[str, str], where: str):
@@ -87,8 +89,14 @@ def resolve_compose(path: Path, env: dict[str, str], tool: str | None = DOCKER_C
     if tool is None:
         return _parse_compose(path, env)
     base = {k: v for k, v in os.environ.items() if not k.startswith(("MG_", "COMPOSE_"))}
-    result = subprocess.run([tool, "-f", str(path), "config"], capture_output=True, text=True,
-                            env={**base, **env}, cwd=path.parent, timeout=60)  # fmt: skip
+    result = subprocess.run(
+        [tool, "-f", str(path), "config"],
+        capture_output=True,
+        text=True,
+        env={**base, **env},
+        cwd=path.parent,
+        timeout=60,
+    )
     if result.returncode != 0:
         raise ComposeError(result.stderr.strip() or result.stdout.strip())
     return yaml.safe_load(result.stdout)
@@ -133,7 +141,9 @@ def service_argv(service: dict) -> list[str]:
     """What the container runs: entrypoint + command, each from the service or the image."""
     entrypoint, cmd = image_defaults()
     if "entrypoint" in service:
-        entrypoint = service["entrypoint"] if isinstance(service["entrypoint"], list) else shlex.split(service["entrypoint"])
+        entrypoint = (
+            service["entrypoint"] if isinstance(service["entrypoint"], list) else shlex.split(service["entrypoint"])
+        )
         cmd = []  # a service's entrypoint resets the image's CMD
     if "command" in service:
         cmd = service["command"] if isinstance(service["command"], list) else shlex.split(service["command"])
@@ -218,7 +228,9 @@ def _profiles(service: dict) -> set[str]:
 
 
 # --- all the checks, as a list of problems ---------------------------------------------------------
-def compose_problems(path: Path = COMPOSE, env: dict[str, str] | None = None, tool: str | None = DOCKER_COMPOSE) -> list[str]:
+def compose_problems(
+    path: Path = COMPOSE, env: dict[str, str] | None = None, tool: str | None = DOCKER_COMPOSE
+) -> list[str]:
     env = {"MG_TOKEN": "test-token"} if env is None else env
     try:
         config = resolve_compose(path, env, tool)
@@ -258,9 +270,15 @@ def compose_problems(path: Path = COMPOSE, env: dict[str, str] | None = None, to
         except SyntaxError as exc:
             problems.append(f"{name}: healthcheck is not valid Python: {exc}")
         ports = set(re.findall(r"(?:127\.0\.0\.1|localhost)['\"]?\s*[,:]\s*(\d+)", code))
-        listening = {_option(argv[name], "--port"), (_option(argv[name], "--dashboard-address") or "").rpartition(":")[2]}
+        listening = {
+            _option(argv[name], "--port"),
+            (_option(argv[name], "--dashboard-address") or "").rpartition(":")[2],
+        }
         if not ports or not ports <= listening:
-            problems.append(f"{name}: healthcheck checks port(s) {sorted(ports)}, the service listens on {sorted(p for p in listening if p)}")
+            problems.append(
+                f"{name}: healthcheck checks port(s) {sorted(ports)}, the service listens on "
+                f"{sorted(p for p in listening if p)}"
+            )
 
     # depends_on: the long form, waiting for health where there is one; no service that is
     # always on may depend on one that only a profile starts.
@@ -273,14 +291,19 @@ def compose_problems(path: Path = COMPOSE, env: dict[str, str] | None = None, to
             if not isinstance(spec, dict) or spec.get("condition") != wanted:
                 problems.append(f"{name}: depends_on {dep} should have condition {wanted}")
             if not _profiles(svc) and _profiles(services[dep]):
-                problems.append(f"{name}: always on, but depends on {dep} of profile(s) {sorted(_profiles(services[dep]))}")
+                problems.append(
+                    f"{name}: always on, but depends on {dep} of profile(s) {sorted(_profiles(services[dep]))}"
+                )
 
     # Data on the named volume, at the same path everywhere (the catalog records run paths).
     declared = set((config.get("volumes") or {}).keys())
     for name in ("daemon", "worker", "worker-scale", "dask-worker"):
         if name not in services:
             continue
-        mounts = [str(v) if isinstance(v, str) else f"{v.get('source')}:{v.get('target')}" for v in services[name].get("volumes") or []]
+        mounts = [
+            str(v) if isinstance(v, str) else f"{v.get('source')}:{v.get('target')}"
+            for v in services[name].get("volumes") or []
+        ]
         named = [m.split(":")[0] for m in mounts if m.split(":")[1:2] == ["/data"]]
         if not named or named[0] not in declared:
             problems.append(f"{name}: /data is not on a named volume declared under volumes: ({mounts})")
@@ -306,8 +329,12 @@ def _daemon_problems(services: dict, argv: dict) -> tuple[list[str], str | None]
             del os.environ[key]
         os.environ.update(env)
         port = _option(args, "--port")
-        settings = load_settings(_option(args, "--config"), host=_option(args, "--host"),
-                                 port=int(port) if port else None, data_dir=_option(args, "--data-dir"))  # fmt: skip
+        settings = load_settings(
+            _option(args, "--config"),
+            host=_option(args, "--host"),
+            port=int(port) if port else None,
+            data_dir=_option(args, "--data-dir"),
+        )
         settings.require_token_off_loopback()
     except (SettingsError, ValueError) as exc:
         return [f"daemon: its configuration is refused: {exc}"], None
@@ -320,7 +347,10 @@ def _daemon_problems(services: dict, argv: dict) -> tuple[list[str], str | None]
         problems.append(f"daemon: data in {settings.data_dir}, not on the /data volume")
     if settings.host != "0.0.0.0":
         problems.append(f"daemon: listens on {settings.host}; other containers cannot reach it")
-    published = [str(p.get("target") if isinstance(p, dict) else p).rpartition(":")[2] for p in services["daemon"].get("ports") or []]
+    published = [
+        str(p.get("target") if isinstance(p, dict) else p).rpartition(":")[2]
+        for p in services["daemon"].get("ports") or []
+    ]
     if str(settings.port) not in published:
         problems.append(f"daemon: port {settings.port} is not published ({published})")
     if settings.arm.kind != "simulated":
@@ -383,7 +413,11 @@ def dockerignored(relative: str, patterns: list[str]) -> bool:
         while pattern.startswith("**/"):
             pattern = pattern[3:]
             variants.add(pattern)
-        if any(fnmatch.fnmatchcase(c, v) and (v.count("/") == c.count("/") or "**" in v) for c in candidates for v in variants):
+        if any(
+            fnmatch.fnmatchcase(c, v) and (v.count("/") == c.count("/") or "**" in v)
+            for c in candidates
+            for v in variants
+        ):
             ignored = not negate
     return ignored
 
@@ -403,8 +437,13 @@ def test_docker_compose_config_needs_the_token_and_says_so():
     resolved = resolve_compose(COMPOSE, {"MG_TOKEN": "x"})
     assert resolved["services"]["daemon"]["environment"]["MG_TOKEN"] == "x"
     for env in ({}, {"MG_TOKEN": ""}):
-        result = subprocess.run([DOCKER_COMPOSE, "-f", str(COMPOSE), "config"], capture_output=True, text=True,
-                                env={k: v for k, v in os.environ.items() if k != "MG_TOKEN"} | env, timeout=60)  # fmt: skip
+        result = subprocess.run(
+            [DOCKER_COMPOSE, "-f", str(COMPOSE), "config"],
+            capture_output=True,
+            text=True,
+            env={k: v for k, v in os.environ.items() if k != "MG_TOKEN"} | env,
+            timeout=60,
+        )
         assert result.returncode != 0
         assert TOKEN_MESSAGE in result.stderr
 
@@ -412,8 +451,10 @@ def test_docker_compose_config_needs_the_token_and_says_so():
 def test_the_fallback_parser_needs_the_token_too():
     with pytest.raises(ComposeError, match=TOKEN_MESSAGE):
         _parse_compose(COMPOSE, {})
-    assert compose_problems(env={}, tool=None) == [f'compose file does not resolve: Missing mandatory value for '
-                                                   f'"compose.services.daemon.environment.MG_TOKEN": {TOKEN_MESSAGE}']  # fmt: skip
+    assert compose_problems(env={}, tool=None) == [
+        f"compose file does not resolve: Missing mandatory value for "
+        f'"compose.services.daemon.environment.MG_TOKEN": {TOKEN_MESSAGE}'
+    ]
 
 
 def _without_docker_compose(why: str) -> None:
@@ -462,7 +503,7 @@ def test_the_dask_workers_get_the_environment_a_local_cluster_gives_its_workers(
     from processing.parallel import LOCAL_CLUSTER_CONFIG
 
     prefix = "distributed.nanny.pre-spawn-environ."
-    wanted = {k[len(prefix):]: v for k, v in LOCAL_CLUSTER_CONFIG.items() if k.startswith(prefix) and v is not None}
+    wanted = {k[len(prefix) :]: v for k, v in LOCAL_CLUSTER_CONFIG.items() if k.startswith(prefix) and v is not None}
     assert wanted == {"MALLOC_ARENA_MAX": "1"}
     env = _parse_compose(COMPOSE, {"MG_TOKEN": "x"})["services"]["dask-worker"].get("environment") or {}
     assert {k: str(env.get(k)) for k in wanted} == wanted
@@ -472,8 +513,14 @@ def test_the_dask_workers_get_the_environment_a_local_cluster_gives_its_workers(
 def test_the_dask_program_lists_the_options_the_services_use(sub):
     """``dask scheduler --help`` / ``dask worker --help`` of this environment's dask program."""
     services = _parse_compose(COMPOSE, {"MG_TOKEN": "x"})["services"]
-    used = {t.split("=")[0] for svc in services.values() for argv in [service_argv(svc)]
-            if argv[:2] == ["dask", sub] for t in argv[2:] if t.startswith("--")}  # fmt: skip
+    used = {
+        t.split("=")[0]
+        for svc in services.values()
+        for argv in [service_argv(svc)]
+        if argv[:2] == ["dask", sub]
+        for t in argv[2:]
+        if t.startswith("--")
+    }
     assert used
     exe = Path(sys.executable).with_name("dask")
     result = subprocess.run([str(exe), sub, "--help"], capture_output=True, text=True, timeout=120)
@@ -490,8 +537,10 @@ def test_the_image_default_command_is_valid_too():
 
 PLANTED = [
     # (what is replaced, by what): each one a mistake a person could make.
-    ('command: ["simulate", "arm", "--host", "0.0.0.0", "--port", "5020"]',
-     'command: ["simulate", "arm", "--host", "0.0.0.0", "--prot", "5020"]'),
+    (
+        'command: ["simulate", "arm", "--host", "0.0.0.0", "--port", "5020"]',
+        'command: ["simulate", "arm", "--host", "0.0.0.0", "--prot", "5020"]',
+    ),
     ('"--port", "8000", "--data-dir", "/data"]', '"--port", "eighty", "--data-dir", "/data"]'),
     ('command: ["worker", "--data-dir", "/data"]', 'command: ["wroker", "--data-dir", "/data"]'),
     ('command: ["worker", "--data-dir", "/data"]', 'command: ["worker", "--data-dir"]'),
@@ -500,7 +549,7 @@ PLANTED = [
     ('"--data-dir", "/data", "--scheduler"', '"--data-dir", "/data", "--sched"'),
     ('"--nthreads", "2"', '"--nthread", "2"'),
     ('["scheduler", "--host"', '["schedular", "--host"'),
-    ("MG_ARM__PORT: \"5020\"", "MG_ARM__PORT: \"502\""),
+    ('MG_ARM__PORT: "5020"', 'MG_ARM__PORT: "502"'),
     ("MG_ARM__KIND: modbus-tcp", "MG_ARM__KIND: modbus"),
     ("MG_TOKEN: ${MG_TOKEN:?set MG_TOKEN to the API token}", "MG_TOKEN: ${MG_TOKEN:-}"),
     ("condition: service_healthy  # the daemon", "condition: service_started  # the daemon"),
@@ -553,13 +602,19 @@ def test_the_dockerfile_installs_this_project_as_a_user_with_data_on_a_volume():
             for words in _shell_commands(args):
                 if words[:2] == ["pip", "install"] and {".", workdir, "-e."} & set(words[2:]):
                     installs_project = True
-                    assert {"pyproject.toml", "acquisition", "processing", "drivers", "sim_devices"} <= copied_before, copied_before
+                    assert {"pyproject.toml", "acquisition", "processing", "drivers", "sim_devices"} <= copied_before, (
+                        copied_before
+                    )
     assert installs_project, "no `pip install .` (or -e .) of the project after copying it"
     user = [args for k, args in instructions if k == "USER"]
     assert user and user[-1] not in ("root", "0"), user
-    assert keywords.index("USER") > max(i for i, k in enumerate(keywords) if k == "RUN" and "pip install" in instructions[i][1])
+    assert keywords.index("USER") > max(
+        i for i, k in enumerate(keywords) if k == "RUN" and "pip install" in instructions[i][1]
+    )
     assert any(k == "VOLUME" and "/data" in args for k, args in instructions)
-    assert any(k == "RUN" and "chown" in args and "/data" in args for k, args in instructions), "/data is not writable by the user"
+    assert any(k == "RUN" and "chown" in args and "/data" in args for k, args in instructions), (
+        "/data is not writable by the user"
+    )
 
 
 def test_the_dockerfile_copies_what_exists_and_is_not_ignored():
@@ -577,11 +632,18 @@ def test_the_dockerfile_copies_what_exists_and_is_not_ignored():
             relative = match.relative_to(ROOT).as_posix()
             assert not dockerignored(relative, patterns), f"COPY {source}: excluded by .dockerignore"
     # What the installed project reads at run time is in the context and copied.
-    needed = ["acquisition/rigs/default.toml", "drivers/profiles/sim_stage.toml", "acquisition/web/index.html", "README.md"]
+    needed = [
+        "drivers/contracts/rigs/default.toml",
+        "drivers/profiles/sim_stage.toml",
+        "acquisition/web/index.html",
+        "README.md",
+    ]
     for relative in needed:
         assert (ROOT / relative).exists(), relative
         assert not dockerignored(relative, patterns), relative
-        assert any(relative == s or relative.startswith(s.rstrip("/") + "/") for s in sources), f"{relative} is not copied"
+        assert any(relative == s or relative.startswith(s.rstrip("/") + "/") for s in sources), (
+            f"{relative} is not copied"
+        )
     # The packages setuptools finds are all copied.
     import tomllib
 
@@ -592,7 +654,13 @@ def test_the_dockerfile_copies_what_exists_and_is_not_ignored():
 
 def test_dockerignore_keeps_the_build_context_small():
     patterns = dockerignore_patterns()
-    for heavy in (".venv/bin/python", ".git/HEAD", "data/runs/x.h5", "acquisition/__pycache__/cli.cpython-311.pyc", "demo-output/a.dng"):
+    for heavy in (
+        ".venv/bin/python",
+        ".git/HEAD",
+        "data/runs/x.h5",
+        "acquisition/__pycache__/cli.cpython-311.pyc",
+        "demo-output/a.dng",
+    ):
         assert dockerignored(heavy, patterns), heavy
     assert not dockerignored("sim_devices/lights/five-gaussians.toml", patterns)
 
@@ -602,8 +670,11 @@ def test_the_wheel_carries_the_rigs_and_a_plain_install_finds_the_default_rig(tm
     the package loads its default rig from inside site-packages."""
     import zipfile
 
-    built = subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "-q", "-w", str(tmp_path / "dist"),
-                            str(ROOT)], capture_output=True, text=True)  # fmt: skip
+    built = subprocess.run(
+        [sys.executable, "-m", "pip", "wheel", "--no-deps", "-q", "-w", str(tmp_path / "dist"), str(ROOT)],
+        capture_output=True,
+        text=True,
+    )
     assert built.returncode == 0, built.stderr
     (wheel,) = (tmp_path / "dist").glob("mirrorgonio-*.whl")
     names = set(zipfile.ZipFile(wheel).namelist())
@@ -612,12 +683,19 @@ def test_the_wheel_carries_the_rigs_and_a_plain_install_finds_the_default_rig(tm
     assert "acquisition/web/index.html" in names and "drivers/profiles/sim_stage.toml" in names
     site = tmp_path / "site"
     zipfile.ZipFile(wheel).extractall(site)  # what a plain install puts in site-packages
-    probe = ("import acquisition.rig as r, acquisition.demo as d; "
-             "print(r.DEFAULT_RIG_PATH.is_relative_to(r'{site}'), r.load_rig().camera.width, d.DEMO_RIG_PATH.is_file())")
+    probe = (
+        "import drivers.contracts.rig as r, acquisition.demo as d; "
+        "print(r.DEFAULT_RIG_PATH.is_relative_to(r'{site}'), r.load_rig().camera.width, d.DEMO_RIG_PATH.is_file())"
+    )
     # -S: no .pth files, so not this checkout's in-place install; the dependencies from this
     # environment's site-packages, after the unpacked wheel.
     libraries = next(p for p in sys.path if p.endswith("site-packages"))
-    ran = subprocess.run([sys.executable, "-S", "-c", probe.format(site=site)], capture_output=True, text=True,
-                         cwd=tmp_path, env={**os.environ, "PYTHONPATH": f"{site}{os.pathsep}{libraries}"})  # fmt: skip
+    ran = subprocess.run(
+        [sys.executable, "-S", "-c", probe.format(site=site)],
+        capture_output=True,
+        text=True,
+        cwd=tmp_path,
+        env={**os.environ, "PYTHONPATH": f"{site}{os.pathsep}{libraries}"},
+    )
     assert ran.returncode == 0, ran.stderr
     assert ran.stdout.split() == ["True", "2000", "True"]

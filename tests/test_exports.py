@@ -53,14 +53,23 @@ def elliptic_source(name, centre, seed=0):
     return SourceModel(name, centre, 0.001, fit_intensity(samples, "gaussian-2d"), samples_table(samples))
 
 
-PROVENANCE = {"run_id": "run-20261121-134501-3f2a", "run_file": "run-20261121-134501-3f2a.h5", "rig": "default",
-              "software_version": "0.1.0", "method": "template-unmixing", "spatial_resolution_m": 0.015}  # fmt: skip
+PROVENANCE = {
+    "run_id": "run-20261121-134501-3f2a",
+    "run_file": "run-20261121-134501-3f2a.h5",
+    "rig": "default",
+    "software_version": "0.1.0",
+    "method": "template-unmixing",
+    "spatial_resolution_m": 0.015,
+}
 
 
 @pytest.fixture(scope="module")
 def symmetric_model() -> LightModel:
-    sources = [gaussian_source("c", (0.0, 0.0), 2.0, 0.30, 0), gaussian_source("+u", (0.004, 0.0), 1.5, 0.45, 1),
-               gaussian_source("-v", (0.0, -0.004), 1.0, 0.15, 2)]  # fmt: skip
+    sources = [
+        gaussian_source("c", (0.0, 0.0), 2.0, 0.30, 0),
+        gaussian_source("+u", (0.004, 0.0), 1.5, 0.45, 1),
+        gaussian_source("-v", (0.0, -0.004), 1.0, 0.15, 2),
+    ]
     return LightModel(sources, "W/sr", PROVENANCE)
 
 
@@ -118,8 +127,9 @@ def test_ies_relative_table_matches_the_far_field(tmp_path, asymmetric_model):
 
 @needs_photompy
 def test_ies_layout_and_file_generation_type(tmp_path, symmetric_model):
-    path = write_ies(symmetric_model, tmp_path / "light.ies", vertical_step_deg=2.5, vertical_max_deg=180,
-                     horizontal_step_deg=15)  # fmt: skip
+    path = write_ies(
+        symmetric_model, tmp_path / "light.ies", vertical_step_deg=2.5, vertical_max_deg=180, horizontal_step_deg=15
+    )
     raw = path.read_bytes()
     assert raw.startswith(b"IES:LM-63-2019\r\n") and b"\nTILT=NONE\r\n" in raw
     lines = raw.decode("ascii").split("\r\n")
@@ -236,7 +246,7 @@ def test_read_real_tm25_files():
 
 def theta_bin_flux(model, edges):
     out = []
-    for lo, hi in zip(edges[:-1], edges[1:]):
+    for lo, hi in zip(edges[:-1], edges[1:], strict=True):
         t = np.linspace(lo, hi, 201)
         out.append(2 * np.pi * trapezoid(model.far_field(t) * np.sin(t), t))
     return np.array(out)
@@ -280,12 +290,12 @@ def test_tm25_samples_azimuth_of_an_elliptical_lobe(tmp_path, asymmetric_model):
     h, rays = read_tm25(write_tm25(only, tmp_path / "e.tm25ray", 100_000, seed=1))
     assert "relative units" in h["texts"]["additional_info"]
     k = rays[:, 3:6].astype(np.float64)
-    theta, phi = np.arccos(k[:, 2]), np.mod(np.arctan2(k[:, 1], k[:, 0]), 2 * np.pi)
+    phi = np.mod(np.arctan2(k[:, 1], k[:, 0]), 2 * np.pi)
     edges = np.linspace(0, 2 * np.pi, 13)
     observed = np.histogram(phi, edges, weights=rays[:, 6])[0]
     t = np.linspace(0, np.pi / 2, 400)
     expected = []
-    for lo, hi in zip(edges[:-1], edges[1:]):
+    for lo, hi in zip(edges[:-1], edges[1:], strict=True):
         p = np.linspace(lo, hi, 41)
         grid = only.far_field(t[:, None], p[None, :]) * np.sin(t)[:, None]
         expected.append(trapezoid(trapezoid(grid, t, axis=0), p))

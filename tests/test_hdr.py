@@ -283,8 +283,9 @@ def test_merge_matches_a_per_pixel_reference(exposures, black, near_black_sigma,
     result = merge_raw(frames, exposures, black, 4095, NOISE, method=method, near_black_sigma=near_black_sigma)
     black_sites = np.broadcast_to(np.asarray(black, float), (2, 2))
     threshold = result.saturation_level - 0.01 * (result.saturation_level - black_sites)
-    radiance, variance, count, saturated = reference_merge(frames, exposures, black_sites, threshold, NOISE,
-                                                           near_black_sigma, method)  # fmt: skip
+    radiance, variance, count, saturated = reference_merge(
+        frames, exposures, black_sites, threshold, NOISE, near_black_sigma, method
+    )
     np.testing.assert_array_equal(result.count, count)
     np.testing.assert_array_equal(result.saturated, saturated)
     assert result.saturated.any() and (result.count >= (2 if len(exposures) > 2 else 1)).any()
@@ -373,7 +374,11 @@ def test_noise_bins_match_binning_every_pixel(exposures, black):
         r = exposures[a] / exposures[b]
         binned = _pair_bins(frames, int(a), int(b), r, black, levels - 0.05 * (levels - black), 24)
         if binned is not None:
-            got += [[(1 + r) * mu, 1 + r * r, var - (1 + r * r) / 12, n] for n, mu, var in zip(*binned) if n >= 100]
+            got += [
+                [(1 + r) * mu, 1 + r * r, var - (1 + r * r) / 12, n]
+                for n, mu, var in zip(*binned, strict=True)
+                if n >= 100
+            ]
     got = np.array(got)
     assert got.shape == expected.shape and len(got) > 20
     np.testing.assert_array_equal(got[:, 3], expected[:, 3])

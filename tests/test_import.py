@@ -13,13 +13,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import REDUCED_RIG
 from typer.testing import CliRunner
 
 from acquisition.cli import app
 from acquisition.importer import RunImportError, format_ranges, import_run
-from acquisition.rig import load_rig
-from acquisition.runfile import RunFile
-from conftest import REDUCED_RIG
+from drivers.contracts.rig import load_rig
+from drivers.contracts.runfile import RunFile
 from sim_devices.dng import write_dng
 
 runner = CliRunner()
@@ -63,19 +63,45 @@ def leftovers(folder: Path) -> list[str]:
 # --- a good import ---------------------------------------------------------------------------
 def test_import_builds_a_run_file_holding_the_files_mosaics(tmp_path, tiny_rig):
     raw = tmp_path / "raw"
-    mosaics = write_frames(raw, [("a1.dng", 0.001), ("a2.dng", 0.004), ("b1.dng", 0.001), ("b2.dng", 1 / 250),
-                                 ("c1.dng", 0.5), ("stray.dng", 0.01)])  # fmt: skip
-    csv = write_csv(tmp_path / "positions.csv",
-                    "file,position,exposure_s,x_m,y_m,z_m,rx_deg,ry_deg,rz_deg",
-                    "a2.dng,5,,,,,,,",
-                    "a1.dng,5,,,,,,,",
-                    "b1.dng,6,,0.01,0.02,0.3,180,0,90",
-                    "",
-                    "b2.dng, 6 ,,,,,,,",
-                    f"{raw / 'c1.dng'},7,0.002,,,,,,")  # fmt: skip
+    mosaics = write_frames(
+        raw,
+        [
+            ("a1.dng", 0.001),
+            ("a2.dng", 0.004),
+            ("b1.dng", 0.001),
+            ("b2.dng", 1 / 250),
+            ("c1.dng", 0.5),
+            ("stray.dng", 0.01),
+        ],
+    )
+    csv = write_csv(
+        tmp_path / "positions.csv",
+        "file,position,exposure_s,x_m,y_m,z_m,rx_deg,ry_deg,rz_deg",
+        "a2.dng,5,,,,,,,",
+        "a1.dng,5,,,,,,,",
+        "b1.dng,6,,0.01,0.02,0.3,180,0,90",
+        "",
+        "b2.dng, 6 ,,,,,,,",
+        f"{raw / 'c1.dng'},7,0.002,,,,,,",
+    )
     out = tmp_path / "runs" / "imported.h5"
-    result = runner.invoke(app, ["import", str(raw), "--csv", str(csv), "--rig", str(tiny_rig), "--out", str(out),
-                                 "--operator", "Ada", "--notes", "bench test"])  # fmt: skip
+    result = runner.invoke(
+        app,
+        [
+            "import",
+            str(raw),
+            "--csv",
+            str(csv),
+            "--rig",
+            str(tiny_rig),
+            "--out",
+            str(out),
+            "--operator",
+            "Ada",
+            "--notes",
+            "bench test",
+        ],
+    )
     assert result.exit_code == 0, result.output
     assert f"imported 5 frames into {out} (run imported): 3 of 66 positions, 64x48 RGGB" in result.output
     assert "positions without frames (left incomplete): 0-4, 8-65" in result.output
@@ -139,13 +165,26 @@ GOOD = [("a.dng", 0.001), ("b.dng", 0.004), ("c.dng", 0.004)]
     [
         (["file,position", "a.dng,1", "nope.dng,1"], GOOD, "line 3: file: 'nope.dng' not found in"),
         (["file,position", "a.dng,1", "b.dng,2", "a.dng,3"], GOOD, "line 4: file: 'a.dng' repeats the frame of line 2"),
-        (["file,position", "a.dng,1", "./b.dng,1", "b.dng,2"], GOOD, "line 4: file: 'b.dng' repeats the frame of line 3"),
-        (["file,position", "b.dng,1", "c.dng,1"], GOOD,
-         "line 3: position 1 already has a frame of exposure 0.004 s (line 2): the frame is repeated"),
-        (["file,position,exposure_s", "a.dng,1,0.01", "b.dng,1,0.01"], GOOD,
-         "line 3: position 1 already has a frame of exposure 0.01 s (line 2)"),
-        (["file,position", "a.dng,1", "b.dng,2"], [("a.dng", 0.001), ("b.dng", 0.004, (48, 80))],
-         "line 3: b.dng is 80x48 but line 2 (a.dng) is 64x48: the frames mix sizes"),
+        (
+            ["file,position", "a.dng,1", "./b.dng,1", "b.dng,2"],
+            GOOD,
+            "line 4: file: 'b.dng' repeats the frame of line 3",
+        ),
+        (
+            ["file,position", "b.dng,1", "c.dng,1"],
+            GOOD,
+            "line 3: position 1 already has a frame of exposure 0.004 s (line 2): the frame is repeated",
+        ),
+        (
+            ["file,position,exposure_s", "a.dng,1,0.01", "b.dng,1,0.01"],
+            GOOD,
+            "line 3: position 1 already has a frame of exposure 0.01 s (line 2)",
+        ),
+        (
+            ["file,position", "a.dng,1", "b.dng,2"],
+            [("a.dng", 0.001), ("b.dng", 0.004, (48, 80))],
+            "line 3: b.dng is 80x48 but line 2 (a.dng) is 64x48: the frames mix sizes",
+        ),
         (["file,position", "a.dng,66"], GOOD, "line 2: position: 66 is outside the rig's schedule (0 to 65)"),
         (["file,position", "a.dng,-1"], GOOD, "line 2: position: -1 is outside the rig's schedule (0 to 65)"),
         (["file,position", "a.dng,one"], GOOD, "line 2: position: 'one' is not a whole number"),
@@ -153,15 +192,24 @@ GOOD = [("a.dng", 0.001), ("b.dng", 0.004), ("c.dng", 0.004)]
         (["file,exposure_s", "a.dng,0.1"], GOOD, "line 1: missing required column 'position'"),
         (["position", "1"], GOOD, "line 1: missing required column 'file'"),
         (["file,position,exposure", "a.dng,1,0.1"], GOOD, "line 1: unknown column 'exposure'"),
-        (["file,position,exposure_s", "a.dng,1,0"], GOOD,
-         "line 2: exposure_s: must be a positive number of seconds (got '0')"),
-        (["file,position,exposure_s", "a.dng,1,0.01", "b.dng,1,-0.5"], GOOD,
-         "line 3: exposure_s: must be a positive number of seconds (got '-0.5')"),
+        (
+            ["file,position,exposure_s", "a.dng,1,0"],
+            GOOD,
+            "line 2: exposure_s: must be a positive number of seconds (got '0')",
+        ),
+        (
+            ["file,position,exposure_s", "a.dng,1,0.01", "b.dng,1,-0.5"],
+            GOOD,
+            "line 3: exposure_s: must be a positive number of seconds (got '-0.5')",
+        ),
         (["file,position,exposure_s", "a.dng,1,fast"], GOOD, "line 2: exposure_s: 'fast' is not a number"),
         (["file,position,x_m,y_m,z_m", "a.dng,1,0,0,0"], GOOD, "line 1: missing column 'rx_deg'"),
         (["file,position,x_m,y_m,z_m,rx_deg,ry_deg,rz_deg", "a.dng,1,0,0,0.3,0,,0"], GOOD, "line 2: ry_deg: empty"),
-        (["file,position,x_m,y_m,z_m,rx_deg,ry_deg,rz_deg", "a.dng,1,0,0,0.3,0,0,0", "b.dng,1,0,0,0.3,0,0,1"], GOOD,
-         "line 3: x_m..rz_deg: position 1 was given another pose on line 2"),
+        (
+            ["file,position,x_m,y_m,z_m,rx_deg,ry_deg,rz_deg", "a.dng,1,0,0,0.3,0,0,0", "b.dng,1,0,0,0.3,0,0,1"],
+            GOOD,
+            "line 3: x_m..rz_deg: position 1 was given another pose on line 2",
+        ),
         (["file,position", "a.dng,1,extra"], GOOD, "line 2: 3 fields but the header names 2 columns"),
         (["file,position"], GOOD, "no frames: the CSV has a header but no rows"),
         ([], GOOD, "empty CSV"),
@@ -173,8 +221,9 @@ def test_bad_input_is_one_line_and_writes_nothing(tmp_path, tiny_rig, lines, fra
     csv = write_csv(tmp_path / "positions.csv", *lines)
     out_dir = tmp_path / "out"
     out_dir.mkdir()
-    result = runner.invoke(app, ["import", str(raw), "--csv", str(csv), "--rig", str(tiny_rig),
-                                 "--out", str(out_dir / "run.h5")])  # fmt: skip
+    result = runner.invoke(
+        app, ["import", str(raw), "--csv", str(csv), "--rig", str(tiny_rig), "--out", str(out_dir / "run.h5")]
+    )
     assert result.exit_code == 2, result.output
     assert len(result.output.strip().splitlines()) == 1, result.output
     assert result.output.startswith("error: ")
@@ -188,10 +237,13 @@ def test_a_rig_whose_sensor_size_does_not_match_is_named(tmp_path, tiny_rig):
     raw = tmp_path / "raw"
     write_frames(raw, [("a.dng", 0.001, (40, 64))])
     csv = write_csv(tmp_path / "p.csv", "file,position", "a.dng,3")
-    result = runner.invoke(app, ["import", str(raw), "--csv", str(csv), "--rig", str(tiny_rig), "--out", str(tmp_path / "r.h5")])
+    result = runner.invoke(
+        app, ["import", str(raw), "--csv", str(csv), "--rig", str(tiny_rig), "--out", str(tmp_path / "r.h5")]
+    )
     assert result.exit_code == 2
-    assert result.output.strip() == (f"error: {tiny_rig}: camera.width x camera.height is 64x48 but the raw files are "
-                                     f"64x40 (line 2: a.dng)")  # fmt: skip
+    assert result.output.strip() == (
+        f"error: {tiny_rig}: camera.width x camera.height is 64x48 but the raw files are 64x40 (line 2: a.dng)"
+    )
     assert not (tmp_path / "r.h5").exists()
 
 
@@ -208,16 +260,23 @@ def test_files_without_an_exposure_time_take_the_csvs_and_are_refused_without_it
     mosaics = write_frames(raw, [("a.dng", 0.001), ("b.dng", 0.004)])
     _strip_exposure_time(raw / "b.dng")
     csv = write_csv(tmp_path / "p.csv", "file,position,exposure_s", "a.dng,3,", "b.dng,3,0.008")
-    result = runner.invoke(app, ["import", str(raw), "--csv", str(csv), "--rig", str(tiny_rig), "--out", str(tmp_path / "r.h5")])
+    result = runner.invoke(
+        app, ["import", str(raw), "--csv", str(csv), "--rig", str(tiny_rig), "--out", str(tmp_path / "r.h5")]
+    )
     assert result.exit_code == 0, result.output
     with RunFile.open(tmp_path / "r.h5") as run:
         assert run.exposures(3).tolist() == [0.001, 0.008]  # a's from its file, b's from the CSV
         assert np.array_equal(run.frames(3)[1], mosaics["b.dng"])
     # Without the CSV's exposure, the file's missing one is named in one line, and nothing is written.
     csv = write_csv(tmp_path / "q.csv", "file,position", "a.dng,3", "b.dng,3")
-    result = runner.invoke(app, ["import", str(raw), "--csv", str(csv), "--rig", str(tiny_rig), "--out", str(tmp_path / "s.h5")])
+    result = runner.invoke(
+        app, ["import", str(raw), "--csv", str(csv), "--rig", str(tiny_rig), "--out", str(tmp_path / "s.h5")]
+    )
     assert result.exit_code == 2
-    assert result.output.strip().startswith(f"error: {csv}: line 3: ") and "no exposure time in the file's metadata" in result.output
+    assert (
+        result.output.strip().startswith(f"error: {csv}: line 3: ")
+        and "no exposure time in the file's metadata" in result.output
+    )
     assert not (tmp_path / "s.h5").exists()
 
 
@@ -311,7 +370,9 @@ def test_an_imported_simulated_capture_processes(tmp_path):
             lines.append(f"{name},{index}")
     csv = write_csv(tmp_path / "positions.csv", *lines)
     run_path = tmp_path / "imported.h5"
-    result = runner.invoke(app, ["import", str(raw), "--csv", str(csv), "--rig", str(REDUCED_RIG), "--out", str(run_path)])
+    result = runner.invoke(
+        app, ["import", str(raw), "--csv", str(csv), "--rig", str(REDUCED_RIG), "--out", str(run_path)]
+    )
     assert result.exit_code == 0, result.output
     with RunFile.open(run_path) as run:
         for k, name in enumerate(n for n in written if n.startswith("pos33")):

@@ -6,34 +6,67 @@ import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
+PACKAGES = ("acquisition", "processing", "drivers", "sim_devices")
+
+
+def _contract_names() -> list[str]:
+    import tomllib
+
+    config = tomllib.loads((ROOT / "pyproject.toml").read_text(encoding="utf-8"))["tool"]["importlinter"]
+    return [contract["name"] for contract in config["contracts"]]
+
+
+def _lint_imports(root: Path, env: dict | None = None) -> subprocess.CompletedProcess:
+    lint = Path(sys.executable).with_name("lint-imports")
+    return subprocess.run([str(lint), "--no-cache"], cwd=root, capture_output=True, text=True, env=env, timeout=120)
 
 
 def test_import_contracts_hold():
-    lint = Path(sys.executable).with_name("lint-imports")
-    result = subprocess.run([str(lint), "--no-cache"], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    result = _lint_imports(ROOT)
     assert result.returncode == 0, result.stdout + result.stderr
-    # All three contracts were checked, and kept.
-    assert "3 kept, 0 broken" in result.stdout, result.stdout
+    # Every contract of pyproject.toml was checked, and kept.
+    assert f"{len(_contract_names())} kept, 0 broken" in result.stdout, result.stdout
+
+
+def test_the_layers_name_every_root_package():
+    """The layers contract is exhaustive at the top: every root package stands in one layer."""
+    import tomllib
+
+    config = tomllib.loads((ROOT / "pyproject.toml").read_text(encoding="utf-8"))["tool"]["importlinter"]
+    (layers,) = [c["layers"] for c in config["contracts"] if c["type"] == "layers" and "containers" not in c]
+    named = {name.strip() for layer in layers for name in layer.split("|")}
+    assert named == set(config["root_packages"]) == set(PACKAGES)
+
+
+def _planted(tmp_path: Path, module: str, source: str) -> subprocess.CompletedProcess:
+    """lint-imports on a copy of the tree with ``module`` added, holding ``source``."""
+    import shutil
+
+    for package in PACKAGES:
+        shutil.copytree(ROOT / package, tmp_path / package, ignore=shutil.ignore_patterns("__pycache__"))
+    shutil.copy(ROOT / "pyproject.toml", tmp_path / "pyproject.toml")
+    (tmp_path / module).write_text(source)
+    return _lint_imports(tmp_path, {"PYTHONPATH": str(tmp_path), "PATH": "/usr/bin:/bin"})
 
 
 def test_import_contracts_would_catch_a_violation(tmp_path):
     """A copy of the tree with processing importing sim_devices must fail the check."""
-    import shutil
-
-    for package in ("acquisition", "processing", "drivers", "sim_devices"):
-        shutil.copytree(ROOT / package, tmp_path / package, ignore=shutil.ignore_patterns("__pycache__"))
-    shutil.copy(ROOT / "pyproject.toml", tmp_path / "pyproject.toml")
-    (tmp_path / "processing" / "leak.py").write_text("import sim_devices.optics\n")
-    lint = Path(sys.executable).with_name("lint-imports")
-    env = {"PYTHONPATH": str(tmp_path), "PATH": "/usr/bin:/bin"}
-    result = subprocess.run([str(lint), "--no-cache"], cwd=tmp_path, capture_output=True, text=True, env=env, timeout=120)
+    result = _planted(tmp_path, "processing/leak.py", "import sim_devices.optics\n")
     assert result.returncode != 0
     assert "processing never imports the simulated devices" in result.stdout
     assert "BROKEN" in result.stdout
 
 
+def test_an_upward_import_breaks_the_layers(tmp_path):
+    """The ground floor importing the processing (an upward import) fails the layers contract."""
+    result = _planted(tmp_path, "drivers/contracts/leak.py", "import processing.trace\n")
+    assert result.returncode != 0
+    broken = result.stdout[result.stdout.index("Broken contracts") :]
+    assert "layers: acquisition above processing" in broken, result.stdout
+    assert "drivers.contracts.leak -> processing.trace" in broken, result.stdout
+
+
 # --- declared dependencies ---------------------------------------------------------------------
-PACKAGES = ("acquisition", "processing", "drivers", "sim_devices")
 
 
 def _imported_top_level_modules(folder: Path, root: Path) -> dict[str, str]:
@@ -102,9 +135,11 @@ def undeclared_imports(root: Path = ROOT) -> list[str]:
             # not in Python 3.11's map: its own name is then taken as the distribution's.
             names = {canonicalize_name(d) for d in distributions.get(module, [module])}
             if not names & declared:
-                problems.append(f"{where}: imports {module} ({', '.join(sorted(names))}), "
-                                "which pyproject.toml does not declare "
-                                "(the test extra does not count)")  # fmt: skip
+                problems.append(
+                    f"{where}: imports {module} ({', '.join(sorted(names))}), "
+                    "which pyproject.toml does not declare "
+                    "(the test extra does not count)"
+                )
     return problems
 
 
@@ -118,8 +153,10 @@ def test_an_undeclared_import_is_named_with_its_file(tmp_path):
         (tmp_path / package / "__init__.py").write_text("")
     (tmp_path / "acquisition" / "client.py").write_text("def get():\n    import httpx\n    import numpy.linalg\n")
     # httpx is declared, but only for the tests: a package that imports it needs it at run time.
-    (tmp_path / "pyproject.toml").write_text('[project]\nname = "x"\ndependencies = ["numpy>=1.26"]\n'
-                                             '[project.optional-dependencies]\ntest = ["httpx"]\n')  # fmt: skip
+    (tmp_path / "pyproject.toml").write_text(
+        '[project]\nname = "x"\ndependencies = ["numpy>=1.26"]\n[project.optional-dependencies]\ntest = ["httpx"]\n'
+    )
     assert undeclared_imports(tmp_path) == [
         "acquisition/client.py: imports httpx (httpx), which pyproject.toml does not declare (the test extra does "
-        "not count)"]
+        "not count)"
+    ]

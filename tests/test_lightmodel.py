@@ -47,11 +47,22 @@ def source(name, centre, method="gaussian", seed=0, **truth):
 
 def five_gaussians() -> LightModel:
     """The reference truth: five Gaussian sources, 4 mm apart (measurement.md)."""
-    layout = [("c", (0.0, 0.0), 2.0, 0.30), ("+u", (0.004, 0.0), 1.5, 0.35), ("-u", (-0.004, 0.0), 1.2, 0.25),
-              ("+v", (0.0, 0.004), 1.0, 0.40), ("-v", (0.0, -0.004), 0.8, 0.28)]  # fmt: skip
+    layout = [
+        ("c", (0.0, 0.0), 2.0, 0.30),
+        ("+u", (0.004, 0.0), 1.5, 0.35),
+        ("-u", (-0.004, 0.0), 1.2, 0.25),
+        ("+v", (0.0, 0.004), 1.0, 0.40),
+        ("-v", (0.0, -0.004), 0.8, 0.28),
+    ]
     sources = [source(n, c, a=a, s=s, seed=i) for i, (n, c, a, s) in enumerate(layout)]
-    prov = {"run_id": "run-20261121-134501-3f2a", "run_file": "runs/run-20261121-134501-3f2a.h5", "rig": "default",
-            "software_version": "0.1.0", "method": "template-unmixing", "spatial_resolution_m": 0.015}  # fmt: skip
+    prov = {
+        "run_id": "run-20261121-134501-3f2a",
+        "run_file": "runs/run-20261121-134501-3f2a.h5",
+        "rig": "default",
+        "software_version": "0.1.0",
+        "method": "template-unmixing",
+        "spatial_resolution_m": 0.015,
+    }
     return LightModel(sources, "W/sr", prov)
 
 
@@ -84,7 +95,7 @@ def test_irradiance_uses_each_sources_own_direction():
     normals = rng.normal(size=(50, 3))
     expected = np.zeros(50)
     for s in model.sources:
-        for k, (r, n) in enumerate(zip(points, normals)):
+        for k, (r, n) in enumerate(zip(points, normals, strict=True)):
             d = r - np.array([*s.centre_m, 0.0])
             dist = np.linalg.norm(d)
             theta, phi = math.acos(d[2] / dist), math.atan2(d[1], d[0])
@@ -153,7 +164,7 @@ def test_save_load_round_trip_is_exact(tmp_path):
     assert back.save(tmp_path / "again.json").read_text() == text
     t = np.linspace(0, 1.6, 33)
     np.testing.assert_array_equal(back.far_field(t), model.far_field(t))
-    for a, b in zip(back.sources, model.sources):
+    for a, b in zip(back.sources, model.sources, strict=True):
         np.testing.assert_array_equal(a.fit.covariance, b.fit.covariance)
         assert a.fit.theta_range == b.fit.theta_range and a.centre_m == b.centre_m
     assert back.provenance["method"] == "template-unmixing" and back.units == "W/sr"
@@ -235,8 +246,14 @@ def test_a_sources_colour_is_relative_saved_and_mixes_into_the_irradiance(tmp_pa
     mean is the grey irradiance."""
     model = five_gaussians()
     colours = [(2.6, 2.0, 1.4), (1.0, 1.0, 1.0), (0.8, 1.0, 1.2), (1.0, 1.0, 1.0), (1.0, 1.0, 1.0)]
-    model = LightModel([SourceModel(s.name, s.centre_m, s.radius_m, s.fit, s.samples, c)
-                        for s, c in zip(model.sources, colours, strict=True)], model.units, model.provenance)  # fmt: skip
+    model = LightModel(
+        [
+            SourceModel(s.name, s.centre_m, s.radius_m, s.fit, s.samples, c)
+            for s, c in zip(model.sources, colours, strict=True)
+        ],
+        model.units,
+        model.provenance,
+    )
     assert model.sources[0].colour == pytest.approx((1.3, 1.0, 0.7), rel=1e-12)
     back = LightModel.load(model.save(tmp_path / "tinted.json"))
     assert [s.colour for s in back.sources] == [s.colour for s in model.sources]

@@ -18,7 +18,14 @@ import pytest
 from pymodbus.client import ModbusTcpClient
 
 from drivers.arm import SoftLimits
-from drivers.errors import AlarmError, CommunicationError, DeviceError, DeviceTimeoutError, LimitsError, MoveInterruptedError
+from drivers.errors import (
+    AlarmError,
+    CommunicationError,
+    DeviceError,
+    DeviceTimeoutError,
+    LimitsError,
+    MoveInterruptedError,
+)
 from drivers.modbus_arm import ModbusArm, contiguous_runs
 from drivers.modbus_profile import SIM_STAGE_PROFILE, ProfileError, WatchdogSection, load_profile
 from drivers.pose import Pose
@@ -193,9 +200,7 @@ def test_a_target_outside_the_stage_travel_raises_the_travel_alarm(arm):
 
 def test_a_modbus_exception_reply_is_a_device_error_with_its_code(open_arm, server):
     # A driver profile that reads the alarm code where this device has no register.
-    wrong_map = server.profile.model_copy(
-        update={"alarm": server.profile.alarm.model_copy(update={"address": 40})}
-    )
+    wrong_map = server.profile.model_copy(update={"alarm": server.profile.alarm.model_copy(update={"address": 40})})
     arm = open_arm(wrong_map)
     with pytest.raises(DeviceError) as caught:
         arm.status()

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from acquisition.rig import DEFAULT_RIG_PATH, look_rotation, load_rig, rig_from_dict
+from drivers.contracts.rig import DEFAULT_RIG_PATH, load_rig, look_rotation, rig_from_dict
 from drivers.pose import Pose
 from drivers.raw_decode import decode_raw
 from sim_devices.camera import SimulatedCamera
@@ -42,8 +42,9 @@ W, H = 240, 160
 def object_rig(mesh_path, *, width=W, height=H, pitch=PITCH, focus=0.2, surface="uniform", **extra):
     """The default rig with an object, a thin lens (f/8) and a small sensor."""
     data = tomllib.loads(DEFAULT_RIG_PATH.read_text())
-    data["camera"].update(width=width, height=height, pixel_pitch_m=pitch,
-                          thin_lens={"focus_distance_m": focus, "f_number": 8.0})  # fmt: skip
+    data["camera"].update(
+        width=width, height=height, pixel_pitch_m=pitch, thin_lens={"focus_distance_m": focus, "f_number": 8.0}
+    )
     data["camera"].pop("pinhole_diameter_m")
     data["schedule"] = {"kind": "object-arc"}
     data["simulation"].update(diffraction=False, noise=False, surface=surface)
@@ -55,7 +56,11 @@ def object_rig(mesh_path, *, width=W, height=H, pitch=PITCH, focus=0.2, surface=
 
 def single_emitter(intensity, centre=(0.0, 0.0), spectrum=(1.0, 1.0, 1.0)) -> TruthLight:
     return TruthLight.model_validate(
-        {"emitters": [{"name": "e", "centre_m": centre, "radius_m": 0.5e-3, "spectrum": spectrum, "intensity": intensity}]}
+        {
+            "emitters": [
+                {"name": "e", "centre_m": centre, "radius_m": 0.5e-3, "spectrum": spectrum, "intensity": intensity}
+            ]
+        }
     )
 
 
@@ -71,8 +76,10 @@ def chief_rays(rig, cols, rows):
     cam = rig.camera
     r, _ = cam.pose.extrinsics()
     cx, cy = cam.principal_point
-    d = np.stack([(cols - cx) * cam.pixel_pitch_m, (rows - cy) * cam.pixel_pitch_m,
-                  np.full(cols.shape, cam.sensor_distance_m)], axis=-1)  # fmt: skip
+    d = np.stack(
+        [(cols - cx) * cam.pixel_pitch_m, (rows - cy) * cam.pixel_pitch_m, np.full(cols.shape, cam.sensor_distance_m)],
+        axis=-1,
+    )
     d = d @ r
     return cam.centre(), d / np.linalg.norm(d, axis=-1, keepdims=True)
 
@@ -122,8 +129,13 @@ def pixel_grid():
 def test_flat_plate_matches_the_irradiance_formula(flat_plate):
     rig = object_rig(flat_plate)
     # An anisotropic lobe off the light's centre, with the light rolled: θ and φ both matter.
-    intensity = {"model": "anisotropic-gaussian", "peak_w_sr": 2.0, "sigma_major_deg": 25.0,
-                 "sigma_minor_deg": 12.0, "azimuth_deg": 30.0}  # fmt: skip
+    intensity = {
+        "model": "anisotropic-gaussian",
+        "peak_w_sr": 2.0,
+        "sigma_major_deg": 25.0,
+        "sigma_minor_deg": 12.0,
+        "azimuth_deg": 30.0,
+    }
     truth = single_emitter(intensity, centre=(0.003, -0.002), spectrum=(1.0, 0.8, 0.6))
     pose = arc_pose(30.0, x_hint=(1.0, 0.4, 0.0))
     renderer = ObjectSceneRenderer(rig, truth, samples_per_pixel=16, diffraction=False, seed=3)
@@ -189,7 +201,9 @@ def test_patch_to_base_ratio_is_the_albedo_ratio(flat_plate):
     rig = object_rig(flat_plate)
     base = (0.60, 0.55, 0.50)
     patch = (0.20, 0.40, 0.90)
-    painted = SurfaceTruth(base_albedo=base, patches=[{"centre_uv": (0.5, 0.5), "radius_uv": (0.08, 0.12), "albedo": patch}])
+    painted = SurfaceTruth(
+        base_albedo=base, patches=[{"centre_uv": (0.5, 0.5), "radius_uv": (0.08, 0.12), "albedo": patch}]
+    )
     plain = SurfaceTruth(base_albedo=base)
     truth = single_emitter({"model": "gaussian", "peak_w_sr": 1.0, "sigma_deg": 20.0})
     pose = arc_pose(20.0)
@@ -327,8 +341,11 @@ def test_surface_truth_at_the_shipped_vase():
     "body, field",
     [
         ("base_albedo = [0.6, 0.5, 0.5]\nalbedo_base = 1\n", "albedo_base: unknown field"),
-        ('base_albedo = [0.6, 0.5, 0.5]\n[[patches]]\ncentre_uv = [0.5, 0.5]\nradius_uv = 0.1\nalbedo = [0.2, -0.1, 0.3]\n',
-         "patches[0].albedo[1]: must be >= 0"),
+        (
+            "base_albedo = [0.6, 0.5, 0.5]\n[[patches]]\ncentre_uv = [0.5, 0.5]\nradius_uv = 0.1\nalbedo = "
+            "[0.2, -0.1, 0.3]\n",
+            "patches[0].albedo[1]: must be >= 0",
+        ),
         ("base_albedo = [0.6, 0.5]\n", "base_albedo"),
     ],
 )

@@ -19,8 +19,15 @@ from PIL import Image
 
 from processing.hdr import MergeResult, NoiseModel, merge_raw
 from processing.images import encode_png, read_exr, tonemap, write_exr, write_png
-from processing.results import (HDRInfo, Results, ResultsError, ResultsWriter, encode_hdr, position_file_for,
-                                stored_variance)
+from processing.results import (
+    HDRInfo,
+    Results,
+    ResultsError,
+    ResultsWriter,
+    encode_hdr,
+    position_file_for,
+    stored_variance,
+)
 
 NAMES = ("radiance", "variance", "count", "saturated")
 
@@ -45,8 +52,15 @@ def _merge(seed: int = 0, shape=(64, 96)) -> MergeResult:
 
 def _writer(path, shape, n=3) -> ResultsWriter:
     noise = NoiseModel(1.5, 2.5, "rig")
-    return ResultsWriter.create(path, run_id="r", run_file="r.h5", n_positions=n, frame_shape=shape, software_version="t",
-                                hdr=HDRInfo("optimal", noise, noise, "RGGB"))  # fmt: skip
+    return ResultsWriter.create(
+        path,
+        run_id="r",
+        run_file="r.h5",
+        n_positions=n,
+        frame_shape=shape,
+        software_version="t",
+        hdr=HDRInfo("optimal", noise, noise, "RGGB"),
+    )
 
 
 def _bit_rounded(a: np.ndarray, mantissa_bits: int = 12) -> np.ndarray:
@@ -65,7 +79,9 @@ def _stored(m: MergeResult) -> dict[str, np.ndarray]:
 def _assert_bits_equal(a: np.ndarray, b: np.ndarray) -> None:
     a, b = np.asarray(a), np.asarray(b)
     assert a.shape == b.shape and a.dtype == b.dtype
-    assert np.array_equal(a.view(f"u{a.itemsize}") if a.dtype.kind == "f" else a, b.view(f"u{b.itemsize}") if b.dtype.kind == "f" else b)
+    assert np.array_equal(
+        a.view(f"u{a.itemsize}") if a.dtype.kind == "f" else a, b.view(f"u{b.itemsize}") if b.dtype.kind == "f" else b
+    )
 
 
 def test_c_blosc_runs_on_the_calling_thread_only():
@@ -105,7 +121,10 @@ def test_both_ways_of_writing_store_the_same_bytes(tmp_path):
     with _writer(tmp_path / "a.h5", m.radiance.shape) as a, _writer(tmp_path / "b.h5", m.radiance.shape) as b:
         a.write_encoded(2, encode_hdr(m))
         b.write_hdr(2, m)
-    with h5py.File(position_file_for(tmp_path / "a.h5", 2)) as a, h5py.File(position_file_for(tmp_path / "b.h5", 2)) as b:
+    with (
+        h5py.File(position_file_for(tmp_path / "a.h5", 2)) as a,
+        h5py.File(position_file_for(tmp_path / "b.h5", 2)) as b,
+    ):
         assert a.attrs["format"] == "mirrorgonio-results-position"
         for name in NAMES:
             assert a[name].id.read_direct_chunk((0, 0)) == b[name].id.read_direct_chunk((0, 0))
@@ -161,9 +180,12 @@ def test_results_written_before_read_the_same(tmp_path):
         f.attrs["format_version"] = 1  # the data inside the results file, chunked one position per chunk
         g = f["hdr"]
         blosc_lz4 = dict(hdf5plugin.Blosc(cname="lz4", clevel=5, shuffle=hdf5plugin.Blosc.SHUFFLE))
-        for name, dtype, options in (("radiance", "f4", dict(fillvalue=np.nan, **blosc_lz4)),
-                                     ("variance", "f4", dict(fillvalue=np.nan, **blosc_lz4)),
-                                     ("count", "u1", dict(hdf5plugin.LZ4())), ("saturated", "u1", dict(hdf5plugin.LZ4()))):  # fmt: skip
+        for name, dtype, options in (
+            ("radiance", "f4", dict(fillvalue=np.nan, **blosc_lz4)),
+            ("variance", "f4", dict(fillvalue=np.nan, **blosc_lz4)),
+            ("count", "u1", dict(hdf5plugin.LZ4())),
+            ("saturated", "u1", dict(hdf5plugin.LZ4())),
+        ):
             del g[name]
             g.create_dataset(name, (3, h, w), dtype, chunks=(1, h, w), **options)
         for name, array in _stored(m).items():
@@ -210,14 +232,26 @@ def test_the_rounded_variance_compresses_to_less_than_half():
     h, w, black, white = 512, 768, 64, 4095  # the default rig's 12-bit camera
     exposures = np.array([2e-5, 1e-4, 5e-4, 2.5e-3, 1.25e-2])
     y, x = np.mgrid[:h, :w]
-    rate_e = 2e8 * np.exp(-((y - 200.0) ** 2 + (x - 300.0) ** 2) / 50.0) + 4e6 * np.exp(-((y - 350.0) ** 2 + (x - 500.0) ** 2) / 400.0)
-    gain, read = 20000 / (white - black), 3.0 / (20000 / (white - black))  # e⁻/DN, DN: 20 ke⁻ full well, 3 e⁻ read noise
+    rate_e = 2e8 * np.exp(-((y - 200.0) ** 2 + (x - 300.0) ** 2) / 50.0) + 4e6 * np.exp(
+        -((y - 350.0) ** 2 + (x - 500.0) ** 2) / 400.0
+    )
+    gain, read = (
+        20000 / (white - black),
+        3.0 / (20000 / (white - black)),
+    )  # e⁻/DN, DN: 20 ke⁻ full well, 3 e⁻ read noise
     frames = np.stack([rng.poisson(rate_e * t) / gain + rng.normal(black, read, (h, w)) for t in exposures])
     frames = np.clip(np.round(frames), 0, white).astype(np.uint16)
     m = merge_raw(frames, exposures, black, white, NoiseModel(gain, read))
     rounded = len(encode_hdr(m).chunks["variance"][1])
-    unrounded = len(blosc.compress(np.where(np.isfinite(m.variance), m.variance, np.inf).astype(np.float32), typesize=4,
-                                   clevel=1, shuffle=blosc.SHUFFLE, cname="blosclz"))  # fmt: skip
+    unrounded = len(
+        blosc.compress(
+            np.where(np.isfinite(m.variance), m.variance, np.inf).astype(np.float32),
+            typesize=4,
+            clevel=1,
+            shuffle=blosc.SHUFFLE,
+            cname="blosclz",
+        )
+    )
     assert rounded < 0.5 * unrounded, (rounded, unrounded)  # 0.42 here
 
 
@@ -316,8 +350,15 @@ def test_encoded_png_decodes_to_the_same_pixels_in_pillow_and_opencv(shape):
     assert np.array_equal(decoded[..., ::-1], image)
 
 
-@pytest.mark.parametrize("bad", [np.zeros((4, 4, 3), np.uint16), np.zeros((4, 4), np.uint8),
-                                 np.zeros((4, 4, 4), np.uint8), np.zeros((0, 4, 3), np.uint8)])  # fmt: skip
+@pytest.mark.parametrize(
+    "bad",
+    [
+        np.zeros((4, 4, 3), np.uint16),
+        np.zeros((4, 4), np.uint8),
+        np.zeros((4, 4, 4), np.uint8),
+        np.zeros((0, 4, 3), np.uint8),
+    ],
+)
 def test_encode_png_refuses_what_is_not_8_bit_rgb(bad):
     with pytest.raises(ValueError, match=r"\(H, W, 3\) uint8"):
         encode_png(bad)

@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from conftest import REDUCED_RIG
 from typer.testing import CliRunner
 
 from acquisition.cli import app
-from acquisition.rig import load_rig
-from acquisition.runfile import PositionTimes, RunFileWriter, RunHeader
-from conftest import REDUCED_RIG
+from drivers.contracts.rig import load_rig
+from drivers.contracts.runfile import PositionTimes, RunFileWriter, RunHeader
 from processing.hdr import superpixels
 from processing.images import read_exr
 from processing.results import Results
@@ -23,6 +23,8 @@ runner = CliRunner()
 def _no_dask(monkeypatch):
     """These tests are about the numbers: positions in this process (tests/test_dask.py runs them on Dask)."""
     monkeypatch.setenv("MG_SCHEDULER", "none")
+
+
 EXPOSURES = [0.0002, 0.001, 0.005, 0.025]
 POSITIONS = (20, 33, 45)
 
@@ -35,10 +37,20 @@ def simulated_run(tmp_path_factory):
     tools, lights = rig.tool_poses(), rig.light_poses()
     here = {"pose": tools[0]}
     camera = SimulatedCamera(rig, SimWorld(lambda: here["pose"]), folder / "spool", seed=3)
-    header = RunHeader(run_id="run-test", rig=rig, tool_poses=tools, light_poses=lights, max_exposures=len(EXPOSURES),
-                       frame_shape=(rig.camera.height, rig.camera.width), bracket={"mode": "fixed", "exposures_s": EXPOSURES},
-                       metadata={}, devices={"arm": "test", "camera": camera.identity}, software_version="test",
-                       created_utc="2026-11-21T00:00:00+00:00", preset="light-sweep")  # fmt: skip
+    header = RunHeader(
+        run_id="run-test",
+        rig=rig,
+        tool_poses=tools,
+        light_poses=lights,
+        max_exposures=len(EXPOSURES),
+        frame_shape=(rig.camera.height, rig.camera.width),
+        bracket={"mode": "fixed", "exposures_s": EXPOSURES},
+        metadata={},
+        devices={"arm": "test", "camera": camera.identity},
+        software_version="test",
+        created_utc="2026-11-21T00:00:00+00:00",
+        preset="light-sweep",
+    )
     rates = {}
     path = folder / "run-test.h5"
     with RunFileWriter.create(path, header) as writer:
@@ -95,9 +107,19 @@ def test_process_bad_input_is_one_line(simulated_run, tmp_path):
 
 def test_a_run_without_any_complete_position_is_refused(simulated_run, tmp_path):
     _, _, rig = simulated_run
-    header = RunHeader(run_id="empty", rig=rig, tool_poses=rig.tool_poses()[:2], light_poses=rig.light_poses()[:2],
-                       max_exposures=1, frame_shape=(rig.camera.height, rig.camera.width), bracket={"mode": "fixed", "exposures_s": [0.01]},
-                       metadata={}, devices={}, software_version="test", created_utc="2026-11-21T00:00:00+00:00")  # fmt: skip
+    header = RunHeader(
+        run_id="empty",
+        rig=rig,
+        tool_poses=rig.tool_poses()[:2],
+        light_poses=rig.light_poses()[:2],
+        max_exposures=1,
+        frame_shape=(rig.camera.height, rig.camera.width),
+        bracket={"mode": "fixed", "exposures_s": [0.01]},
+        metadata={},
+        devices={},
+        software_version="test",
+        created_utc="2026-11-21T00:00:00+00:00",
+    )
     empty = tmp_path / "empty.h5"
     RunFileWriter.create(empty, header).close()
     result = runner.invoke(app, ["process", str(empty), "--out", str(tmp_path)])
@@ -111,7 +133,9 @@ def test_process_with_a_layout_writes_the_light_model_and_the_light_files(simula
     from sim_devices.lights import LIGHTS_DIR
 
     path, _, _ = simulated_run
-    result = runner.invoke(app, ["process", str(path), "--out", str(tmp_path), "--layout", str(LIGHTS_DIR / "five-gaussians.toml")])
+    result = runner.invoke(
+        app, ["process", str(path), "--out", str(tmp_path), "--layout", str(LIGHTS_DIR / "five-gaussians.toml")]
+    )
     assert result.exit_code == 0, result.output
     assert "unmixing with templates" in result.output
     model = LightModel.load(tmp_path / "run-test.light.json")
@@ -131,14 +155,26 @@ def test_without_a_layout_the_sources_are_found_in_the_data(tmp_path):
     tools = rig.tool_poses()
     here = {"pose": tools[0]}
     camera = SimulatedCamera(rig, SimWorld(lambda: here["pose"]), tmp_path / "spool", seed=9)
-    header = RunHeader(run_id="found", rig=rig, tool_poses=tools, light_poses=rig.light_poses(), max_exposures=3,
-                       frame_shape=(rig.camera.height, rig.camera.width), bracket={"mode": "fixed", "exposures_s": [2e-5, 2e-4, 2e-3]},
-                       metadata={}, devices={}, software_version="test", created_utc="2026-11-21T00:00:00+00:00")  # fmt: skip
+    header = RunHeader(
+        run_id="found",
+        rig=rig,
+        tool_poses=tools,
+        light_poses=rig.light_poses(),
+        max_exposures=3,
+        frame_shape=(rig.camera.height, rig.camera.width),
+        bracket={"mode": "fixed", "exposures_s": [2e-5, 2e-4, 2e-3]},
+        metadata={},
+        devices={},
+        software_version="test",
+        created_utc="2026-11-21T00:00:00+00:00",
+    )
     path = tmp_path / "found.h5"
     with RunFileWriter.create(path, header) as writer:
         for index in (31, 33, 35):
             here["pose"] = tools[index]
-            writer.write_position(index, tools[index], PositionTimes(0.0, 0.0, 0.0), [camera.capture(t) for t in (2e-5, 2e-4, 2e-3)])
+            writer.write_position(
+                index, tools[index], PositionTimes(0.0, 0.0, 0.0), [camera.capture(t) for t in (2e-5, 2e-4, 2e-3)]
+            )
     result = runner.invoke(app, ["process", str(path), "--out", str(tmp_path / "out"), "--noise", "rig"])
     assert result.exit_code == 0, result.output
     model = LightModel.load(tmp_path / "out" / "found.light.json")
@@ -160,16 +196,21 @@ def test_bench_accuracy_scores_the_sources_found_in_the_data(tmp_path):
     import json
     import math
 
-    from acquisition.rig import DEFAULT_RIG_PATH
+    from drivers.contracts.rig import DEFAULT_RIG_PATH
 
     text = DEFAULT_RIG_PATH.read_text(encoding="utf-8")
-    for old, new in (("width = 2000\nheight = 1312\n", "width = 400\nheight = 400\nprincipal_point_px = [159.5, 255.5]\n"),
-                     ("start_m = [-0.08125, 0.04, 0.10]", "start_m = [-0.00375, 0.04, 0.10]"), ("count = 66", "count = 3")):  # fmt: skip
+    for old, new in (
+        ("width = 2000\nheight = 1312\n", "width = 400\nheight = 400\nprincipal_point_px = [159.5, 255.5]\n"),
+        ("start_m = [-0.08125, 0.04, 0.10]", "start_m = [-0.00375, 0.04, 0.10]"),
+        ("count = 66", "count = 3"),
+    ):
         assert old in text, old
         text = text.replace(old, new)
     rig = tmp_path / "crop.toml"
     rig.write_text(text, encoding="utf-8")
-    result = runner.invoke(app, ["bench", "accuracy", "--rig", str(rig), "--positions", "3", "--layout-from-data", "--json"])
+    result = runner.invoke(
+        app, ["bench", "accuracy", "--rig", str(rig), "--positions", "3", "--layout-from-data", "--json"]
+    )
     assert result.exit_code == 0, result.output
     out = json.loads(result.output)
     assert out["layout"].startswith("found in the data: candidate grid (NNLS), then positions and radius fitted")
@@ -192,9 +233,19 @@ def _crop_run_rig():
 
 
 def _one_position_run(tmp_path, rig, frames, name):
-    header = RunHeader(run_id=name, rig=rig, tool_poses=rig.tool_poses(), light_poses=rig.light_poses(), max_exposures=len(frames),
-                       frame_shape=(rig.camera.height, rig.camera.width), bracket={"mode": "fixed", "exposures_s": [f.exposure_s for f in frames]},
-                       metadata={}, devices={}, software_version="test", created_utc="2026-11-21T00:00:00+00:00")  # fmt: skip
+    header = RunHeader(
+        run_id=name,
+        rig=rig,
+        tool_poses=rig.tool_poses(),
+        light_poses=rig.light_poses(),
+        max_exposures=len(frames),
+        frame_shape=(rig.camera.height, rig.camera.width),
+        bracket={"mode": "fixed", "exposures_s": [f.exposure_s for f in frames]},
+        metadata={},
+        devices={},
+        software_version="test",
+        created_utc="2026-11-21T00:00:00+00:00",
+    )
     path = tmp_path / f"{name}.h5"
     with RunFileWriter.create(path, header) as writer:
         writer.write_position(33, rig.tool_poses()[33], PositionTimes(0.0, 0.0, 0.0), frames)
@@ -216,9 +267,10 @@ def _frames_at(rig, tmp_path, exposures, pose_index=33):
     ],
 )
 def test_runs_the_estimate_cannot_use_get_one_line_errors(tmp_path, case, message):
-    from acquisition.rig import rig_from_dict
-    from sim_devices.lights import LIGHTS_DIR
     import tomllib
+
+    from drivers.contracts.rig import rig_from_dict
+    from sim_devices.lights import LIGHTS_DIR
 
     data = tomllib.loads(REDUCED_RIG.read_text())
     data.setdefault("simulation", {})["truth"] = "lambertian-disc"
@@ -235,8 +287,19 @@ def test_runs_the_estimate_cannot_use_get_one_line_errors(tmp_path, case, messag
         data["schedule"]["orientation"] = {"rotation_deg": [0.0, 0.0, 0.0]}  # emits away from the ball
         rig = rig_from_dict(data)
     path = _one_position_run(tmp_path, rig, frames, case)
-    result = runner.invoke(app, ["process", str(path), "--out", str(tmp_path / "out"), "--layout",
-                                 str(LIGHTS_DIR / "five-gaussians.toml"), "--noise", "rig"])  # fmt: skip
+    result = runner.invoke(
+        app,
+        [
+            "process",
+            str(path),
+            "--out",
+            str(tmp_path / "out"),
+            "--layout",
+            str(LIGHTS_DIR / "five-gaussians.toml"),
+            "--noise",
+            "rig",
+        ],
+    )
     assert result.exit_code == 2, result.output
     assert result.output.strip().startswith(f"error: {path}: {message}"), result.output
     assert len(result.output.strip().splitlines()) == 1
@@ -250,7 +313,9 @@ def test_calibrate_measures_the_ball_and_process_uses_the_measured_centre(simula
 
     path, _, rig = simulated_run
     # A calibration frame: the room lit, the light off (the reduced rig, truth ball at the origin).
-    camera = SimulatedCamera(rig, SimWorld(lambda: rig.tool_poses()[33]), tmp_path / "cal", seed=5, environment_radiance=50.0)
+    camera = SimulatedCamera(
+        rig, SimWorld(lambda: rig.tool_poses()[33]), tmp_path / "cal", seed=5, environment_radiance=50.0
+    )
     camera.light_on = False
     frame = camera.capture(0.05)
     result = runner.invoke(app, ["calibrate", frame.source, "--rig", str(REDUCED_RIG), "--json"])
@@ -258,8 +323,21 @@ def test_calibrate_measures_the_ball_and_process_uses_the_measured_centre(simula
     measured = json.loads(result.output)
     assert measured["distance_mm"] < 0.2  # the rig describes the simulated ball exactly
     centre = ",".join(f"{v / 1000:.6f}" for v in measured["measured_mm"])
-    done = runner.invoke(app, ["process", str(path), "--out", str(tmp_path / "out"), "--noise", "rig",
-                               "--layout", str(LIGHTS_DIR / "five-gaussians.toml"), "--ball-centre", centre])  # fmt: skip
+    done = runner.invoke(
+        app,
+        [
+            "process",
+            str(path),
+            "--out",
+            str(tmp_path / "out"),
+            "--noise",
+            "rig",
+            "--layout",
+            str(LIGHTS_DIR / "five-gaussians.toml"),
+            "--ball-centre",
+            centre,
+        ],
+    )
     assert done.exit_code == 0, done.output
     model = LightModel.load(tmp_path / "out" / "run-test.light.json")
     assert model.provenance["ball_centre_m"] == pytest.approx([float(v) for v in centre.split(",")])
@@ -267,7 +345,9 @@ def test_calibrate_measures_the_ball_and_process_uses_the_measured_centre(simula
     assert bad.exit_code == 2 and "--ball-centre: expected X,Y,Z in metres" in bad.output
 
 
-def test_intensities_use_the_rigs_calibrated_gain_whatever_weights_the_merge(simulated_run, tmp_path, monkeypatch, caplog):
+def test_intensities_use_the_rigs_calibrated_gain_whatever_weights_the_merge(
+    simulated_run, tmp_path, monkeypatch, caplog
+):
     """The camera's sensitivity was calibrated with the rig's gain, and the reflectance step
     converts DN to e⁻ with it: so does the light step. A noise model whose gain is 10 %
     off (an estimate from the brackets can be a few % off) changes the merge's weights
@@ -302,7 +382,7 @@ def test_intensities_use_the_rigs_calibrated_gain_whatever_weights_the_merge(sim
     for factor, level in ((1.03, logging.INFO), (1.0, None)):
         caplog.clear()
         near = NoiseModel(rig_model.gain_e_per_dn * factor, rig_model.read_noise_dn, source="estimated")
-        monkeypatch.setattr(pipeline, "choose_noise", lambda *args, **kwargs: near)
+        monkeypatch.setattr(pipeline, "choose_noise", lambda *args, near=near, **kwargs: near)
         with caplog.at_level(logging.INFO, logger="mirrorgonio.processing"):
             pipeline.process_run(path, tmp_path / f"near-{factor}", steps="hdr,sources", layout=layout)
         said = [r for r in caplog.records if "calibrated gain" in r.getMessage()]
@@ -315,7 +395,7 @@ def test_a_tinted_lights_colours_are_measured_through_the_camera(tmp_path):
     emitter's spectrum."""
     import tomllib
 
-    from acquisition.rig import rig_from_dict
+    from drivers.contracts.rig import rig_from_dict
     from processing.lightmodel import LightModel
     from processing.pipeline import process_run
     from sim_devices.lights import LIGHTS_DIR, load_truth
@@ -329,16 +409,27 @@ def test_a_tinted_lights_colours_are_measured_through_the_camera(tmp_path):
     tools = rig.tool_poses()
     here = {"pose": tools[0]}
     camera = SimulatedCamera(rig, SimWorld(lambda: here["pose"]), tmp_path / "spool", seed=5)
-    header = RunHeader(run_id="run-tinted", rig=rig, tool_poses=tools, light_poses=rig.light_poses(),
-                       max_exposures=len(EXPOSURES), frame_shape=(rig.camera.height, rig.camera.width),
-                       bracket={"mode": "fixed", "exposures_s": EXPOSURES}, metadata={},
-                       devices={"arm": "test", "camera": camera.identity}, software_version="test",
-                       created_utc="2026-11-21T00:00:00+00:00", preset="light-sweep")  # fmt: skip
+    header = RunHeader(
+        run_id="run-tinted",
+        rig=rig,
+        tool_poses=tools,
+        light_poses=rig.light_poses(),
+        max_exposures=len(EXPOSURES),
+        frame_shape=(rig.camera.height, rig.camera.width),
+        bracket={"mode": "fixed", "exposures_s": EXPOSURES},
+        metadata={},
+        devices={"arm": "test", "camera": camera.identity},
+        software_version="test",
+        created_utc="2026-11-21T00:00:00+00:00",
+        preset="light-sweep",
+    )
     path = tmp_path / "run-tinted.h5"
     with RunFileWriter.create(path, header) as writer:
         for index in POSITIONS:
             here["pose"] = tools[index]
-            writer.write_position(index, tools[index], PositionTimes(0.0, 0.0, 0.0), [camera.capture(t) for t in EXPOSURES])
+            writer.write_position(
+                index, tools[index], PositionTimes(0.0, 0.0, 0.0), [camera.capture(t) for t in EXPOSURES]
+            )
         writer.set_status("aborted", "three positions only")
     report = process_run(path, tmp_path / "out", steps="hdr,sources", layout=LIGHTS_DIR / "five-gaussians.toml")
     got = {s.name: np.array(s.colour) for s in report.model.sources}
@@ -362,8 +453,19 @@ def test_process_fits_the_aperture_where_the_layout_is_known(simulated_run, tmp_
     from sim_devices.lights import LIGHTS_DIR
 
     path, _, rig = simulated_run
-    result = runner.invoke(app, ["process", str(path), "--layout", str(LIGHTS_DIR / "five-gaussians.toml"),
-                                 "--fit-aperture", "--no-images", "--out", str(tmp_path)])  # fmt: skip
+    result = runner.invoke(
+        app,
+        [
+            "process",
+            str(path),
+            "--layout",
+            str(LIGHTS_DIR / "five-gaussians.toml"),
+            "--fit-aperture",
+            "--no-images",
+            "--out",
+            str(tmp_path),
+        ],
+    )
     assert result.exit_code == 0, result.output
     aperture = json.loads((tmp_path / "run-test.light.json").read_text())["provenance"]["aperture_m"]
     assert aperture["described_m"] == pytest.approx(rig.camera.pinhole_diameter_m)
@@ -372,8 +474,18 @@ def test_process_fits_the_aperture_where_the_layout_is_known(simulated_run, tmp_
     assert aperture["positions"] == [20, 33] and aperture["how"] == "fitted to the data (--fit-aperture)"
     assert f"aperture: {1e3 * aperture['fitted_m']:.4g} mm fitted to the data (the rig says 0.2 mm" in result.output
     # Without --fit-aperture the provenance says the rig's figure was used.
-    again = runner.invoke(app, ["process", str(path), "--layout", str(LIGHTS_DIR / "five-gaussians.toml"), "--no-images",
-                                "--out", str(tmp_path / "plain")])  # fmt: skip
+    again = runner.invoke(
+        app,
+        [
+            "process",
+            str(path),
+            "--layout",
+            str(LIGHTS_DIR / "five-gaussians.toml"),
+            "--no-images",
+            "--out",
+            str(tmp_path / "plain"),
+        ],
+    )
     assert again.exit_code == 0, again.output
     plain = json.loads((tmp_path / "plain" / "run-test.light.json").read_text())["provenance"]
     assert plain["aperture_m"] == "as described by the rig" and "aperture:" not in again.output
@@ -438,15 +550,23 @@ def test_process_fits_the_sensor_distance_when_asked(simulated_run, tmp_path):
     truth = rig.camera.sensor_distance_m
     for way, options in (("given", ["--layout", str(LIGHTS_DIR / "five-gaussians.toml")]), ("found", [])):
         out = tmp_path / way
-        result = runner.invoke(app, ["process", str(long), "--fit-sensor-distance", "--no-images", "--out", str(out), *options])
+        result = runner.invoke(
+            app, ["process", str(long), "--fit-sensor-distance", "--no-images", "--out", str(out), *options]
+        )
         assert result.exit_code == 0, result.output
         provenance = json.loads((out / "run-long.light.json").read_text())["provenance"]
         distance = provenance["sensor_distance_m"]
         assert distance["described_m"] == pytest.approx(1.005 * truth)
         assert distance["fitted_m"] == pytest.approx(truth, rel=2e-3), (way, distance["fitted_m"] / truth)
-        assert distance["sources_refitted"] == (way == "found") and distance["how"] == "fitted to the data (--fit-sensor-distance)"
+        assert (
+            distance["sources_refitted"] == (way == "found")
+            and distance["how"] == "fitted to the data (--fit-sensor-distance)"
+        )
         assert distance["chi2_per_pixel"] <= distance["chi2_per_pixel_described"]
-        assert f"sensor distance: {1e3 * distance['fitted_m']:.3f} mm fitted to the data (the rig says 25.125 mm" in result.output
+        assert (
+            f"sensor distance: {1e3 * distance['fitted_m']:.3f} mm fitted to the data (the rig says 25.125 mm"
+            in result.output
+        )
         report = (out / "run-long.report.html").read_text()
         assert f"{1e3 * distance['fitted_m']:.3f} mm fitted to the data (the rig says 25.125 mm" in report
         # given: the rig's aperture (the default there); found: the aperture fitted after the distance

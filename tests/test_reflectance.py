@@ -21,9 +21,9 @@ from scipy.stats import spearmanr
 from typer.testing import CliRunner
 
 from acquisition.cli import app
-from acquisition.rig import rig_from_dict
-from acquisition.runfile import PositionTimes, RunFileWriter, RunHeader
 from drivers.camera import RawFrame
+from drivers.contracts.rig import rig_from_dict
+from drivers.contracts.runfile import PositionTimes, RunFileWriter, RunHeader
 from processing.fit import IntensityFit
 from processing.images import read_exr
 from processing.lightmodel import LightModel, SourceModel
@@ -61,11 +61,17 @@ def rig_dict(**object_section) -> dict:
     ±12 x ±9.6 cm, thin lens focused on the object; the default object arc (10°–50° at 30 cm)."""
     data = {
         "name": "object-test",
-        "camera": {"width": WIDTH, "height": HEIGHT, "pixel_pitch_m": 5.0e-5, "sensor_distance_m": 0.025,
-                   "sensitivity_e_per_s": K, "thin_lens": {"focus_distance_m": 0.6, "f_number": 8.0},
-                   "pose": {"position_m": [0.0, 0.0, 0.6], "look_at_m": [0.0, 0.0, 0.0], "up": [0.0, 1.0, 0.0]}},
+        "camera": {
+            "width": WIDTH,
+            "height": HEIGHT,
+            "pixel_pitch_m": 5.0e-5,
+            "sensor_distance_m": 0.025,
+            "sensitivity_e_per_s": K,
+            "thin_lens": {"focus_distance_m": 0.6, "f_number": 8.0},
+            "pose": {"position_m": [0.0, 0.0, 0.6], "look_at_m": [0.0, 0.0, 0.0], "up": [0.0, 1.0, 0.0]},
+        },
         "schedule": {"kind": "object-arc"},
-    }  # fmt: skip
+    }
     if object_section:
         data["object"] = object_section
     return data
@@ -76,19 +82,39 @@ POSES = RIG.light_poses()
 
 
 def gaussian_fit(a: float, sigma_deg: float) -> IntensityFit:
-    return IntensityFit("gaussian", {"a": a, "sigma": math.radians(sigma_deg)}, {"a": 0.0, "sigma": 0.0},
-                        np.zeros((2, 2)), np.zeros(0), 1.0, 0, (0.0, math.radians(60.0)), (0.0, 2 * math.pi))  # fmt: skip
+    return IntensityFit(
+        "gaussian",
+        {"a": a, "sigma": math.radians(sigma_deg)},
+        {"a": 0.0, "sigma": 0.0},
+        np.zeros((2, 2)),
+        np.zeros(0),
+        1.0,
+        0,
+        (0.0, math.radians(60.0)),
+        (0.0, 2 * math.pi),
+    )
 
 
 def flat_fit(i0: float) -> IntensityFit:
-    return IntensityFit("polynomial", {"c0": i0}, {"c0": 0.0}, np.zeros((1, 1)), np.zeros(0), 1.0, 0,
-                        (0.0, math.radians(60.0)), (0.0, 2 * math.pi))  # fmt: skip
+    return IntensityFit(
+        "polynomial",
+        {"c0": i0},
+        {"c0": 0.0},
+        np.zeros((1, 1)),
+        np.zeros(0),
+        1.0,
+        0,
+        (0.0, math.radians(60.0)),
+        (0.0, 2 * math.pi),
+    )
 
 
 def directional_light(rig_section=None) -> LightModel:
     """Two sources 6 mm apart with narrow Gaussian lobes (12° and 18°): clearly not isotropic."""
-    sources = [SourceModel("a", (0.003, 0.0), 0.0005, gaussian_fit(2.0, 12.0)),
-               SourceModel("b", (-0.003, 0.001), 0.0005, gaussian_fit(1.2, 18.0))]  # fmt: skip
+    sources = [
+        SourceModel("a", (0.003, 0.0), 0.0005, gaussian_fit(2.0, 12.0)),
+        SourceModel("b", (-0.003, 0.001), 0.0005, gaussian_fit(1.2, 18.0)),
+    ]
     provenance = {"run_id": "light-run", "rig": rig_section if rig_section is not None else rig_dict()}
     return LightModel(sources, "W/sr", provenance)
 
@@ -195,7 +221,9 @@ def render(mesh, model, poses, *, camera=RIG.camera):
             local = light_frame(pose, points) - np.array([*source.centre_m, 0.0])
             theta = np.arccos(local[:, 2] / np.linalg.norm(local, axis=1))
             p = source.fit.params
-            intensity = p["a"] * np.exp(-(theta**2) / (2 * p["sigma"] ** 2)) if "a" in p else np.full(len(theta), p["c0"])
+            intensity = (
+                p["a"] * np.exp(-(theta**2) / (2 * p["sigma"] ** 2)) if "a" in p else np.full(len(theta), p["c0"])
+            )
             term = np.where(lit & ~blocked, intensity * np.maximum(cos_in, 0.0) / dist**2, 0.0)
             E[j] += term
             E_rgb[j] += term[:, None] * np.asarray(source.colour)[None, :]
@@ -203,8 +231,18 @@ def render(mesh, model, poses, *, camera=RIG.camera):
     rows, cols = np.divmod(np.flatnonzero(hit), shape[1])
     for j in range(len(poses)):
         rates[j, rows, cols] = K * cos4[rows, cols, None] * rho / math.pi * E_rgb[j]
-    truth = {"rows": rows, "cols": cols, "points": points, "normals": normals, "face": face[hit], "rho": rho,
-             "shadowed": shadowed, "E": E, "view": -flat[hit], "shape": shape}  # fmt: skip
+    truth = {
+        "rows": rows,
+        "cols": cols,
+        "points": points,
+        "normals": normals,
+        "face": face[hit],
+        "rho": rho,
+        "shadowed": shadowed,
+        "E": E,
+        "view": -flat[hit],
+        "shape": shape,
+    }
     return rates, truth
 
 
@@ -263,8 +301,14 @@ def test_measured_model_with_noise_is_unbiased(mesh, directional):
 
 
 def _tinted(model: LightModel, colours) -> LightModel:
-    return LightModel([SourceModel(s.name, s.centre_m, s.radius_m, s.fit, s.samples, c)
-                       for s, c in zip(model.sources, colours, strict=True)], model.units, model.provenance)  # fmt: skip
+    return LightModel(
+        [
+            SourceModel(s.name, s.centre_m, s.radius_m, s.fit, s.samples, c)
+            for s, c in zip(model.sources, colours, strict=True)
+        ],
+        model.units,
+        model.provenance,
+    )
 
 
 def test_a_tinted_light_leaves_no_tint_in_the_albedo(mesh, tmp_path):
@@ -340,9 +384,21 @@ def test_isotropic_model_is_wrong_where_the_intensity_falls_off(directional):
     hi = np.nanmax(np.where(used, f, np.nan), axis=0)
     assert np.all(ratio >= lo * (1 - 1e-9)) and np.all(ratio <= hi * (1 + 1e-9))
     # the bias follows the angle from the lights' axes: none near them, large far off them
-    theta = np.stack([np.degrees(np.arccos(np.clip(light_frame(p, truth["points"][valid])[:, 2]
-                                                   / np.linalg.norm(light_frame(p, truth["points"][valid]), axis=1), -1, 1)))
-                      for p in POSES])  # fmt: skip
+    theta = np.stack(
+        [
+            np.degrees(
+                np.arccos(
+                    np.clip(
+                        light_frame(p, truth["points"][valid])[:, 2]
+                        / np.linalg.norm(light_frame(p, truth["points"][valid]), axis=1),
+                        -1,
+                        1,
+                    )
+                )
+            )
+            for p in POSES
+        ]
+    )
     near, far = theta.max(axis=0) < 4.0, theta.min(axis=0) > 8.0
     assert near.sum() > 20 and far.sum() > 300
     assert np.median(ratio[near]) == pytest.approx(1.0, abs=0.03)  # I(4°)/I(0) > 0.97 for both lobes
@@ -537,7 +593,9 @@ def test_bad_arrays_and_meshes_are_one_line_errors(mesh, directional):
         estimate_reflectance(rates[:, :-1], None, RIG.camera, mesh, POSES, model)
     with pytest.raises(ReflectanceError, match="at least 2"):
         estimate_reflectance(rates[:1], None, RIG.camera, mesh, POSES[:1], model)
-    with pytest.raises(ReflectanceError, match=r"^no valid points: \d+ superpixels on the mesh, all excluded \(.*few-lights-saturated"):
+    with pytest.raises(
+        ReflectanceError, match=r"^no valid points: \d+ superpixels on the mesh, all excluded \(.*few-lights-saturated"
+    ):
         estimate_reflectance(rates, np.ones(rates.shape[:3], bool), RIG.camera, mesh, POSES, model)
     with pytest.raises(ReflectanceError, match="outlier"):
         ReflectanceSettings(outlier=0.0)
@@ -566,10 +624,20 @@ def write_run(path, rig, rates):
     gain = cam.gain_e_per_dn
     exposure = 0.8 * (cam.white_level - cam.black_level_dn) * gain / float(np.nanmax(rates))
     tools, lights = rig.tool_poses(), rig.light_poses()
-    header = RunHeader(run_id=path.stem, rig=rig, tool_poses=tools, light_poses=lights, max_exposures=1,
-                       frame_shape=(cam.height, cam.width), bracket={"mode": "fixed", "exposures_s": [exposure]},
-                       metadata={}, devices={}, software_version="test", created_utc="2026-11-21T00:00:00+00:00",
-                       preset="object-arc")  # fmt: skip
+    header = RunHeader(
+        run_id=path.stem,
+        rig=rig,
+        tool_poses=tools,
+        light_poses=lights,
+        max_exposures=1,
+        frame_shape=(cam.height, cam.width),
+        bracket={"mode": "fixed", "exposures_s": [exposure]},
+        metadata={},
+        devices={},
+        software_version="test",
+        created_utc="2026-11-21T00:00:00+00:00",
+        preset="object-arc",
+    )
     with RunFileWriter.create(path, header) as writer:
         for j, tool in enumerate(tools):
             mosaic = np.zeros((cam.height, cam.width))
@@ -577,7 +645,9 @@ def write_run(path, rig, rates):
             mosaic[0::2, 0::2], mosaic[0::2, 1::2] = rgb[..., 0], rgb[..., 1]
             mosaic[1::2, 0::2], mosaic[1::2, 1::2] = rgb[..., 1], rgb[..., 2]
             dn = np.clip(np.round(cam.black_level_dn + mosaic * exposure / gain), 0, cam.white_level).astype(np.uint16)
-            frame = RawFrame(dn, np.full((2, 2), float(cam.black_level_dn)), cam.white_level, "RGGB", exposure, 0.0, "test")
+            frame = RawFrame(
+                dn, np.full((2, 2), float(cam.black_level_dn)), cam.white_level, "RGGB", exposure, 0.0, "test"
+            )
             writer.write_position(j, tool, PositionTimes(0.0, 0.0, 0.0), [frame])
         writer.set_status("complete")
     return path
@@ -617,7 +687,9 @@ def test_reflectance_from_run_writes_every_output(object_run, tmp_path):
     summary = json.loads((out / "reflectance.json").read_text())
     assert summary["valid"] == int((result.reason == PIXEL_VALID).sum())
     assert sum(summary["pixel_reasons"].values()) == 80 * 100
-    assert summary["methods"]["measured"]["median"] == pytest.approx(np.median(result.rho_points["measured"][result.valid], axis=0).tolist())
+    assert summary["methods"]["measured"]["median"] == pytest.approx(
+        np.median(result.rho_points["measured"][result.valid], axis=0).tolist()
+    )
     assert summary["light_model"].endswith("light-run.light.json") and summary["run_id"] == "object-run"
     assert set(summary["profiles"]) >= {"height_m", "collimated", "isotropic", "measured"}
     with h5py.File(out / "reflectance.h5") as f:
@@ -633,8 +705,9 @@ def test_uv_texture_of_a_plane(tmp_path):
     """A plane with UVs: the texture holds ρ where the camera saw it."""
     plane = trimesh.creation.box((0.2, 0.16, 0.001))
     plane.apply_translation([0.0, 0.0, -0.0005])
-    plane.visual = trimesh.visual.TextureVisuals(uv=np.column_stack([(plane.vertices[:, 0] + 0.1) / 0.2,
-                                                                     (plane.vertices[:, 1] + 0.08) / 0.16]))  # fmt: skip
+    plane.visual = trimesh.visual.TextureVisuals(
+        uv=np.column_stack([(plane.vertices[:, 0] + 0.1) / 0.2, (plane.vertices[:, 1] + 0.08) / 0.16])
+    )
     model = isotropic_light()
     rates, truth = render(plane, model, POSES)
     result = estimate_reflectance(rates, None, RIG.camera, plane, POSES, model)
@@ -681,7 +754,10 @@ def test_run_without_object_and_other_bad_input(object_run, directional, tmp_pat
     run, light_dir, mesh_path, _ = object_run
     _, rates, _, _ = directional
     bare = write_run(tmp_path / "bare.h5", rig_from_dict(rig_dict()), rates)
-    with pytest.raises(ReflectanceError, match=r"bare\.h5: the run's rig 'object-test' has no \[object\] and no mesh was given \(--mesh\)"):
+    with pytest.raises(
+        ReflectanceError,
+        match=r"bare\.h5: the run's rig 'object-test' has no \[object\] and no mesh was given \(--mesh\)",
+    ):
         reflectance_from_run(bare, light_dir, None, tmp_path / "o1")
     broken = tmp_path / "broken.stl"
     broken.write_text("solid nothing\nendsolid\n")
@@ -697,8 +773,9 @@ def test_run_without_object_and_other_bad_input(object_run, directional, tmp_pat
 def test_cli_reflectance(object_run, tmp_path):
     run, light_dir, mesh_path, _ = object_run
     out = tmp_path / "cli"
-    result = runner.invoke(app, ["reflectance", str(run), "--light", str(light_dir), "--mesh", str(mesh_path),
-                                 "--out", str(out)])  # fmt: skip
+    result = runner.invoke(
+        app, ["reflectance", str(run), "--light", str(light_dir), "--mesh", str(mesh_path), "--out", str(out)]
+    )
     assert result.exit_code == 0, result.output
     assert "measured" in result.output and f"outputs in {out}" in result.output
     assert (out / "report.html").is_file()

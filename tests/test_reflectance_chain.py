@@ -16,8 +16,8 @@ import pytest
 
 from acquisition.benchmarks.accuracy import acquire_simulated
 from acquisition.benchmarks.reflectance import OBJECT_RIGS, score
-from acquisition.rig import load_rig, rig_from_dict, rig_to_toml_dict
-from acquisition.runfile import RunFile, file_sha256
+from drivers.contracts.rig import load_rig, rig_from_dict, rig_to_toml_dict
+from drivers.contracts.runfile import RunFile, file_sha256
 from processing.fit import Samples, fit_intensity
 from processing.lightmodel import LightModel, SourceModel, samples_table
 from processing.reflectance import ReflectanceError, reflectance_from_run
@@ -31,12 +31,19 @@ def truth_light_model(rig) -> LightModel:
     """Each emitter fitted (gaussian) to noise-free samples of its own intensity."""
     theta = np.radians(np.linspace(0.5, 45.0, 60))
     sources = []
-    for k, emitter in enumerate(load_truth(TRUTH).emitters):
+    for emitter in load_truth(TRUTH).emitters:
         values = emitter.intensity_w_sr(theta)
         samples = Samples(theta, np.zeros_like(theta), values, 1e-4 * values.max() + 0 * values, emitter.name)
         fit = fit_intensity(samples, "gaussian")
-        sources.append(SourceModel(emitter.name, tuple(emitter.centre_m), emitter.radius_m, fit,
-                                   samples_table(samples, np.arange(theta.size), values)))  # fmt: skip
+        sources.append(
+            SourceModel(
+                emitter.name,
+                tuple(emitter.centre_m),
+                emitter.radius_m,
+                fit,
+                samples_table(samples, np.arange(theta.size), values),
+            )
+        )
     return LightModel(sources, "W/sr", {"run_id": "truth", "rig": rig_to_toml_dict(rig)})
 
 
@@ -53,8 +60,9 @@ def vase_run(tmp_path_factory):
     base = tmp_path_factory.mktemp("vase")
     rig = reduced("object-vase")
     light = truth_light_model(load_rig(None)).save(base / "truth.light.json")
-    run = acquire_simulated(rig, TRUTH, True, (1.0, 4.0, 16.0), None, base, preset="object-arc",
-                            light_results=str(light))  # fmt: skip
+    run = acquire_simulated(
+        rig, TRUTH, True, (1.0, 4.0, 16.0), None, base, preset="object-arc", light_results=str(light)
+    )
     return rig, run, light, base
 
 
@@ -114,5 +122,7 @@ def test_truth_light_model_is_the_truth():
     model = truth_light_model(rig)
     for k, emitter in enumerate(load_truth(TRUTH).emitters):
         for theta in (0.0, 0.1, 0.5):
-            assert model.sources[k].fit(theta) == pytest.approx(float(emitter.intensity_w_sr(np.array([theta]))[0]), rel=1e-3)
+            assert model.sources[k].fit(theta) == pytest.approx(
+                float(emitter.intensity_w_sr(np.array([theta]))[0]), rel=1e-3
+            )
     assert math.isclose(model.sources[0].centre_m[0], 0.0)

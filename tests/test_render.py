@@ -12,6 +12,7 @@ import math
 
 import numpy as np
 import pytest
+from conftest import rig_with
 from scipy.special import j1
 
 from drivers.pose import Pose
@@ -20,7 +21,6 @@ from sim_devices.camera import SimulatedCamera
 from sim_devices.lights import Emitter, GaussianIntensity, TruthLight, load_truth
 from sim_devices.optics import MirrorBallRenderer
 from sim_devices.world import SimWorld
-from conftest import rig_with
 
 GREEN = 1
 
@@ -34,7 +34,11 @@ def fresnel_born_wolf(theta_i, n, k):
     a2 = 0.5 * (root + (n * n - k * k - s2))
     a = np.sqrt(a2)
     rs = (root - 2 * a * c + c * c) / (root + 2 * a * c + c * c)
-    rp = rs * (root - 2 * a * np.sin(theta_i) * tan + s2 * tan * tan) / (root + 2 * a * np.sin(theta_i) * tan + s2 * tan * tan)
+    rp = (
+        rs
+        * (root - 2 * a * np.sin(theta_i) * tan + s2 * tan * tan)
+        / (root + 2 * a * np.sin(theta_i) * tan + s2 * tan * tan)
+    )
     return 0.5 * (rs + rp)
 
 
@@ -43,8 +47,10 @@ def chief_rays(rig, cols, rows):
     cam = rig.camera
     r, _ = cam.pose.extrinsics()
     cx, cy = cam.principal_point
-    d = np.stack([(cols - cx) * cam.pixel_pitch_m, (rows - cy) * cam.pixel_pitch_m,
-                  np.full(cols.shape, cam.sensor_distance_m)], axis=-1)  # fmt: skip
+    d = np.stack(
+        [(cols - cx) * cam.pixel_pitch_m, (rows - cy) * cam.pixel_pitch_m, np.full(cols.shape, cam.sensor_distance_m)],
+        axis=-1,
+    )
     cos_beta = d[..., 2] / np.linalg.norm(d, axis=-1)
     d = d @ r  # camera -> rig (rows of r are the camera axes)
     d /= np.linalg.norm(d, axis=-1, keepdims=True)
@@ -79,9 +85,14 @@ LAMBERTIAN_POSE = Pose(0.0, 0.0, 0.10, math.pi, 0.0, 0.0)  # the plane z = 0.1 f
 
 @pytest.fixture(scope="module")
 def lambertian_camera(tmp_path_factory):
-    rig = rig_with(camera__width=500, camera__height=328, camera__pixel_pitch_m=23.6e-6,
-                   light__housing_radius_m=0.0, simulation__truth="lambertian-disc",
-                   simulation__diffraction=False)  # fmt: skip  (Airy tails: tested on their own below)
+    rig = rig_with(
+        camera__width=500,
+        camera__height=328,
+        camera__pixel_pitch_m=23.6e-6,
+        light__housing_radius_m=0.0,
+        simulation__truth="lambertian-disc",
+        simulation__diffraction=False,
+    )  # Airy tails: tested on their own below
     world = SimWorld(lambda: LAMBERTIAN_POSE)
     return SimulatedCamera(rig, world, tmp_path_factory.mktemp("lambertian"), seed=7)
 
@@ -138,12 +149,19 @@ def test_uniform_plane_capture_is_within_the_noise(lambertian_camera):
 # --- (2) linear in intensity, inverse square in distance -------------------------------------
 def _crop_rig(size=320, diffraction=False):
     # A crop of the full-pitch sensor around the middle position's sources.
-    return rig_with(camera__width=size, camera__height=size, camera__principal_point_px=[999.5 - 840, 655.5 - 400],
-                    light__housing_radius_m=0.012, simulation__diffraction=diffraction)  # fmt: skip
+    return rig_with(
+        camera__width=size,
+        camera__height=size,
+        camera__principal_point_px=[999.5 - 840, 655.5 - 400],
+        light__housing_radius_m=0.012,
+        simulation__diffraction=diffraction,
+    )
 
 
 def _single_source(peak=1.0, radius=0.2e-3, sigma_deg=60.0):
-    return TruthLight(emitters=[Emitter(name="s", radius_m=radius, intensity=GaussianIntensity(peak_w_sr=peak, sigma_deg=sigma_deg))])
+    return TruthLight(
+        emitters=[Emitter(name="s", radius_m=radius, intensity=GaussianIntensity(peak_w_sr=peak, sigma_deg=sigma_deg))]
+    )
 
 
 def _predicted_total_rate(rig, light_pose, emitter):
@@ -164,7 +182,14 @@ def _predicted_total_rate(rig, light_pose, emitter):
     spread = (d + c + d * c * power_t) * (d + c + d * c * power_s)
     cam = rig.camera
     intensity = float(emitter.intensity_w_sr(theta))
-    total = cam.sensitivity_e_per_s * cam.sensor_distance_m**2 * f_green * intensity * abs(cos_beta) / (cam.pixel_pitch_m**2 * spread)
+    total = (
+        cam.sensitivity_e_per_s
+        * cam.sensor_distance_m**2
+        * f_green
+        * intensity
+        * abs(cos_beta)
+        / (cam.pixel_pitch_m**2 * spread)
+    )
     return total, (source - p) / d
 
 
@@ -277,7 +302,9 @@ def test_diffraction_spreads_the_spot_as_the_airy_pattern_predicts():
     geometric = MirrorBallRenderer(rig, tiny, diffraction=False, seed=4).render(pose).rate[GREEN]
     diffracted = MirrorBallRenderer(rig, tiny, diffraction=True, seed=4).render(pose).rate[GREEN]
     cam = rig.camera
-    kernel = airy_kernel(cam.channel_wavelengths_m[GREEN], cam.pinhole_diameter_m, cam.sensor_distance_m, cam.pixel_pitch_m, 120)
+    kernel = airy_kernel(
+        cam.channel_wavelengths_m[GREEN], cam.pinhole_diameter_m, cam.sensor_distance_m, cam.pixel_pitch_m, 120
+    )
     expected = fftconvolve(geometric, kernel, mode="same")
     peak = expected.max()
     assert np.max(np.abs(diffracted - expected)) < 0.01 * peak
@@ -307,8 +334,12 @@ def test_thin_lens_focused_on_the_virtual_image_is_sharp_and_defocus_blurs_as_pr
     tiny = _single_source(radius=0.02e-3)
 
     def lens_rig(focus):
-        return rig_with(camera__width=320, camera__height=320, camera__principal_point_px=[999.5 - 840, 655.5 - 400],
-                        camera__thin_lens={"focus_distance_m": focus, "f_number": 8.0})  # fmt: skip
+        return rig_with(
+            camera__width=320,
+            camera__height=320,
+            camera__principal_point_px=[999.5 - 840, 655.5 - 400],
+            camera__thin_lens={"focus_distance_m": focus, "f_number": 8.0},
+        )
 
     focused = lens_rig(z)
     spot = MirrorBallRenderer(focused, tiny, diffraction=False, seed=11).render(pose).rate[GREEN]
@@ -351,10 +382,10 @@ def test_truth_errors_are_one_line(tmp_path):
     with pytest.raises(TruthError, match=r"^nonesuch: no such truth light \(shipped: .*five-gaussians"):
         load_truth("nonesuch")
     bad = tmp_path / "bad.toml"
-    bad.write_text('[[emitters]]\nradius_m = -1\n')
+    bad.write_text("[[emitters]]\nradius_m = -1\n")
     with pytest.raises(TruthError, match=r"bad\.toml: emitters\[0\]\.radius_m: must be > 0 \(got -1\)"):
         load_truth(bad)
-    bad.write_text('[[emitters]]\nradius_m = nan\n')  # a TOML literal
+    bad.write_text("[[emitters]]\nradius_m = nan\n")  # a TOML literal
     with pytest.raises(TruthError, match=r"bad\.toml: emitters\[0\]\.radius_m: Input should be a finite number"):
         load_truth(bad)
 
@@ -363,10 +394,20 @@ def test_light_housing_blocks_the_cameras_view_with_the_predicted_silhouette():
     # A 2 mm housing, 5 cm deep, on the camera axis between camera and ball: its back end,
     # 5 cm from the pinhole, hides a disc of radius f/p * 2 mm / 50 mm around the centre.
     pitch = 23.6e-6
-    rig = rig_with(camera__width=500, camera__height=328, camera__pixel_pitch_m=pitch,
-                   light__housing_radius_m=0.002, light__housing_depth_m=0.05,
-                   simulation__truth="lambertian-disc", simulation__diffraction=False)  # fmt: skip
-    rate = MirrorBallRenderer(rig, load_truth("lambertian-disc"), diffraction=False, seed=3).render(LAMBERTIAN_POSE).rate[GREEN]
+    rig = rig_with(
+        camera__width=500,
+        camera__height=328,
+        camera__pixel_pitch_m=pitch,
+        light__housing_radius_m=0.002,
+        light__housing_depth_m=0.05,
+        simulation__truth="lambertian-disc",
+        simulation__diffraction=False,
+    )
+    rate = (
+        MirrorBallRenderer(rig, load_truth("lambertian-disc"), diffraction=False, seed=3)
+        .render(LAMBERTIAN_POSE)
+        .rate[GREEN]
+    )
     cx, cy = rig.camera.principal_point
     rows, cols = np.mgrid[0 : rig.camera.height, 0 : rig.camera.width]
     r = np.hypot(cols - cx, rows - cy)
@@ -376,7 +417,11 @@ def test_light_housing_blocks_the_cameras_view_with_the_predicted_silhouette():
     assert np.all(rate[(r > shadow + blur + 1) & (r < shadow + 20)] > 0)
     # Without the housing the same pixels see the plane.
     clear = rig_with(camera__width=500, camera__height=328, camera__pixel_pitch_m=pitch, light__housing_radius_m=0.0)
-    open_view = MirrorBallRenderer(clear, load_truth("lambertian-disc"), diffraction=False, seed=3).render(LAMBERTIAN_POSE).rate[GREEN]
+    open_view = (
+        MirrorBallRenderer(clear, load_truth("lambertian-disc"), diffraction=False, seed=3)
+        .render(LAMBERTIAN_POSE)
+        .rate[GREEN]
+    )
     assert np.all(open_view[r < shadow - blur - 1] > 0)
 
 

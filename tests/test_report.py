@@ -27,7 +27,7 @@ def truth(source, theta):
     """The sources' true intensity, looked up by index or by name (as a simulation's caller would)."""
     index = source if isinstance(source, int) else [s[0] for s in SOURCES].index(source)
     _, _, peak, width = SOURCES[index]
-    return peak * np.exp(-np.asarray(theta) ** 2 / (2.0 * math.radians(width) ** 2))
+    return peak * np.exp(-(np.asarray(theta) ** 2) / (2.0 * math.radians(width) ** 2))
 
 
 def make_model(with_cell_sums=True, units="W/sr") -> LightModel:
@@ -42,8 +42,14 @@ def make_model(with_cell_sums=True, units="W/sr") -> LightModel:
         cell = 0.12 * true if with_cell_sums else None
         table = samples_table(data, np.arange(len(theta)) * 3, cell)
         sources.append(SourceModel(name, centre, 0.5e-3, fit_intensity(data, "gaussian"), table))
-    provenance = {"run_id": "run-hand-made", "rig": "default", "method": "templates", "fit": "gaussian",
-                  "spatial_resolution_m": RESOLUTION_M, "software_version": "test"}  # fmt: skip
+    provenance = {
+        "run_id": "run-hand-made",
+        "rig": "default",
+        "method": "templates",
+        "fit": "gaussian",
+        "spatial_resolution_m": RESOLUTION_M,
+        "software_version": "test",
+    }
     return LightModel(sources, units=units, provenance=provenance)
 
 
@@ -111,7 +117,7 @@ def test_the_polar_figure_draws_samples_fit_cell_sums_and_truth(tmp_path):
     # one half disc per source, drawn on a Cartesian axes: a point (θ, I) at (I sin θ, I cos θ) / top of the scale
     axes = fig.axes
     assert len(axes) == len(SOURCES)
-    for ax, source in zip(axes, model.sources):
+    for ax, source in zip(axes, model.sources, strict=False):
         labels = [line.get_label() for line in ax.get_lines()]
         assert {"fit (θ covered)", "fit, extrapolated", "truth", "chief-ray cell sums", "samples ± 1σ"} <= set(labels)
         (truth_line,) = [line for line in ax.get_lines() if line.get_label() == "truth"]
@@ -126,8 +132,14 @@ def test_the_polar_figure_draws_samples_fit_cell_sums_and_truth(tmp_path):
         intensity = np.asarray(source.samples["intensity"])
         np.testing.assert_allclose(radius / intensity, radius[0] / intensity[0], rtol=1e-9)
     # the samples sit on both sides: a sweep past the ball, signed by azimuth
-    theta = np.concatenate([np.arctan2(line.get_xdata(), line.get_ydata()) for ax in axes for line in ax.get_lines()
-                            if line.get_marker() == "o"])  # fmt: skip
+    theta = np.concatenate(
+        [
+            np.arctan2(line.get_xdata(), line.get_ydata())
+            for ax in axes
+            for line in ax.get_lines()
+            if line.get_marker() == "o"
+        ]
+    )
     assert theta.min() < math.radians(-30) and theta.max() > math.radians(30)
     out = tmp_path / "polar.png"
     fig.savefig(out, dpi=100)
@@ -147,9 +159,14 @@ def test_a_truth_that_only_knows_names_is_asked_by_name(tmp_path):
 
 
 def test_a_calibration_result_is_shown(tmp_path):
-    comparison = {"measured_mm": [0.1, -0.2, 0.05], "described_mm": [0.0, 0.0, 0.0],
-                  "discrepancy_mm": [0.1, -0.2, 0.05], "sigma_mm": [0.01, 0.01, 0.03], "distance_mm": 0.229,
-                  "significance": 12.0}  # fmt: skip
+    comparison = {
+        "measured_mm": [0.1, -0.2, 0.05],
+        "described_mm": [0.0, 0.0, 0.0],
+        "discrepancy_mm": [0.1, -0.2, 0.05],
+        "sigma_mm": [0.01, 0.01, 0.03],
+        "distance_mm": 0.229,
+        "significance": 12.0,
+    }
     text = write_report(tmp_path / "r.html", make_model(), calibration=comparison).read_text()
     assert NO_CALIBRATION not in text
     assert "0.229 mm from where the rig description puts it" in text and "12.0 σ" in text
@@ -159,9 +176,10 @@ def test_a_calibration_result_is_shown(tmp_path):
 @pytest.fixture(scope="module")
 def processed(tmp_path_factory):
     """A short simulated sweep of the reduced rig through hdr and sources, with the truth."""
-    from acquisition.rig import load_rig
-    from acquisition.runfile import PositionTimes, RunFileWriter, RunHeader
     from conftest import REDUCED_RIG
+
+    from drivers.contracts.rig import load_rig
+    from drivers.contracts.runfile import PositionTimes, RunFileWriter, RunHeader
     from processing.pipeline import process_run
     from sim_devices.camera import SimulatedCamera
     from sim_devices.lights import LIGHTS_DIR, load_truth
@@ -174,19 +192,36 @@ def processed(tmp_path_factory):
     light = load_truth("five-gaussians")
     camera = SimulatedCamera(rig, SimWorld(lambda: here["pose"]), folder / "spool", truth=light, seed=5)
     exposures = [1e-4, 1e-3, 1e-2]
-    header = RunHeader(run_id="run-report", rig=rig, tool_poses=tools, light_poses=rig.light_poses(),
-                       max_exposures=len(exposures), frame_shape=(rig.camera.height, rig.camera.width),
-                       bracket={"mode": "fixed", "exposures_s": exposures}, metadata={}, devices={},
-                       software_version="test", created_utc="2026-11-21T00:00:00+00:00")  # fmt: skip
+    header = RunHeader(
+        run_id="run-report",
+        rig=rig,
+        tool_poses=tools,
+        light_poses=rig.light_poses(),
+        max_exposures=len(exposures),
+        frame_shape=(rig.camera.height, rig.camera.width),
+        bracket={"mode": "fixed", "exposures_s": exposures},
+        metadata={},
+        devices={},
+        software_version="test",
+        created_utc="2026-11-21T00:00:00+00:00",
+    )
     path = folder / "run-report.h5"
     with RunFileWriter.create(path, header) as writer:
         for index in range(1, len(tools), 8):
             here["pose"] = tools[index]
-            writer.write_position(index, tools[index], PositionTimes(0.0, 0.0, 0.0),
-                                  [camera.capture(t) for t in exposures])  # fmt: skip
+            writer.write_position(
+                index, tools[index], PositionTimes(0.0, 0.0, 0.0), [camera.capture(t) for t in exposures]
+            )
         writer.set_status("complete")
-    report = process_run(path, folder / "out", steps=("hdr", "sources"), layout=LIGHTS_DIR / "five-gaussians.toml",
-                         noise="rig", units="W/sr", truth=lambda k, theta: light.emitters[k].intensity_w_sr(theta))  # fmt: skip
+    report = process_run(
+        path,
+        folder / "out",
+        steps=("hdr", "sources"),
+        layout=LIGHTS_DIR / "five-gaussians.toml",
+        noise="rig",
+        units="W/sr",
+        truth=lambda k, theta: light.emitters[k].intensity_w_sr(theta),
+    )
     return path, report
 
 

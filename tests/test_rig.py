@@ -6,7 +6,7 @@ import re
 import numpy as np
 import pytest
 
-from acquisition.rig import DEFAULT_RIG_PATH, RigError, load_rig, rig_from_dict
+from drivers.contracts.rig import DEFAULT_RIG_PATH, RigError, load_rig, rig_from_dict
 
 
 def _default_data():
@@ -94,26 +94,72 @@ def _error(data) -> str:
     ("edit", "pattern"),
     [
         (lambda d: d["ball"].__setitem__("radius_m", -0.01), r"ball\.radius_m: must be > 0 \(got -0\.01\)"),
-        (lambda d: d["camera"]["pose"].__setitem__("position_m", [0.0, 0.0, 0.01]), r"camera\.pose: the camera is inside the ball"),
-        (lambda d: d["schedule"].__setitem__("start_m", [0.0, 0.0, 0.01]), r"schedule: position 0: the light is inside the ball"),
-        (lambda d: d["schedule"].update(start_m=[0.0, 0.0, 0.1], step_m=[0.0, 0.0, -0.05], count=5, orientation={"rotation_deg": [180, 0, 0]}), r"schedule: .*(inside the ball|crosses the ball)"),
-        (lambda d: d["schedule"].update(start_m=[-0.2, 0.0, 0.03], step_m=[0.1, 0.0, 0.0], count=5, orientation={"rotation_deg": [180, 0, 0]}), r"schedule: the light's path from position 1 to 2 crosses the ball"),
-        (lambda d: d["arm"]["soft_limits"].__setitem__("x_m", [-0.05, 0.05]), r"schedule: position 0: tool pose x=-0\.081250 m outside the soft limits .*arm\.soft_limits"),
+        (
+            lambda d: d["camera"]["pose"].__setitem__("position_m", [0.0, 0.0, 0.01]),
+            r"camera\.pose: the camera is inside the ball",
+        ),
+        (
+            lambda d: d["schedule"].__setitem__("start_m", [0.0, 0.0, 0.01]),
+            r"schedule: position 0: the light is inside the ball",
+        ),
+        (
+            lambda d: d["schedule"].update(
+                start_m=[0.0, 0.0, 0.1], step_m=[0.0, 0.0, -0.05], count=5, orientation={"rotation_deg": [180, 0, 0]}
+            ),
+            r"schedule: .*(inside the ball|crosses the ball)",
+        ),
+        (
+            lambda d: d["schedule"].update(
+                start_m=[-0.2, 0.0, 0.03], step_m=[0.1, 0.0, 0.0], count=5, orientation={"rotation_deg": [180, 0, 0]}
+            ),
+            r"schedule: the light's path from position 1 to 2 crosses the ball",
+        ),
+        (
+            lambda d: d["arm"]["soft_limits"].__setitem__("x_m", [-0.05, 0.05]),
+            r"schedule: position 0: tool pose x=-0\.081250 m outside the soft limits .*arm\.soft_limits",
+        ),
         (lambda d: d["camera"].__setitem__("width", 0), r"camera\.width: must be > 0 \(got 0\)"),
         (lambda d: d["camera"].__setitem__("colour", "red"), r"camera\.colour: unknown field"),
         (lambda d: d["schedule"].__setitem__("kind", "spiral"), r"schedule: .*(discriminator|tag|does not match)"),
-        (lambda d: d["camera"].__setitem__("black_level_dn", 5000), r"camera: black_level_dn must be below the white level"),
+        (
+            lambda d: d["camera"].__setitem__("black_level_dn", 5000),
+            r"camera: black_level_dn must be below the white level",
+        ),
         # inf and nan are TOML literals; before, a camera at nan was accepted and every ray came out nan.
-        (lambda d: d["camera"]["pose"].__setitem__("position_m", [0.0, 0.0, math.nan]), r"camera\.pose\.position_m\[2\]: Input should be a finite number \(got nan\)"),
-        (lambda d: d["ball"].__setitem__("radius_m", math.inf), r"ball\.radius_m: Input should be a finite number \(got inf\)"),
-        (lambda d: d["schedule"].__setitem__("step_m", [-math.inf, 0.0, 0.0]), r"schedule\.light-sweep\.step_m\[0\]: Input should be a finite number \(got -inf\)"),
+        (
+            lambda d: d["camera"]["pose"].__setitem__("position_m", [0.0, 0.0, math.nan]),
+            r"camera\.pose\.position_m\[2\]: Input should be a finite number \(got nan\)",
+        ),
+        (
+            lambda d: d["ball"].__setitem__("radius_m", math.inf),
+            r"ball\.radius_m: Input should be a finite number \(got inf\)",
+        ),
+        (
+            lambda d: d["schedule"].__setitem__("step_m", [-math.inf, 0.0, 0.0]),
+            r"schedule\.light-sweep\.step_m\[0\]: Input should be a finite number \(got -inf\)",
+        ),
         # Finite but absurd: 1e300 squared to inf in the geometry, which then said "the camera
         # is inside the ball" (or warned of overflow); a count of 1e12 tried to build the schedule.
-        (lambda d: d["camera"]["pose"].__setitem__("position_m", [0.0, 0.0, 1e300]), r"camera\.pose\.position_m: 1e\+300 m is beyond the ±1000 m allowed$"),
-        (lambda d: d["camera"]["pose"].__setitem__("up", [0.0, 1e300, 0.0]), r"camera\.pose\.up: 1e\+300 is beyond the ±1e\+12 allowed$"),
-        (lambda d: d["light"]["light_to_tool"].__setitem__("rotation_deg", [0.0, 400.0, 0.0]), r"light\.light_to_tool\.rotation_deg: 400° is beyond the ±360° allowed$"),
-        (lambda d: d["schedule"].__setitem__("count", 10**12), r"schedule\.light-sweep\.count: must be <= 100000 \(got 1000000000000\)"),
-        (lambda d: d.__setitem__("schedule", {"kind": "raster", "count_u": 1000, "count_v": 1000}), r"schedule\.raster: count_u × count_v = 1000000: more than 100000 positions"),
+        (
+            lambda d: d["camera"]["pose"].__setitem__("position_m", [0.0, 0.0, 1e300]),
+            r"camera\.pose\.position_m: 1e\+300 m is beyond the ±1000 m allowed$",
+        ),
+        (
+            lambda d: d["camera"]["pose"].__setitem__("up", [0.0, 1e300, 0.0]),
+            r"camera\.pose\.up: 1e\+300 is beyond the ±1e\+12 allowed$",
+        ),
+        (
+            lambda d: d["light"]["light_to_tool"].__setitem__("rotation_deg", [0.0, 400.0, 0.0]),
+            r"light\.light_to_tool\.rotation_deg: 400° is beyond the ±360° allowed$",
+        ),
+        (
+            lambda d: d["schedule"].__setitem__("count", 10**12),
+            r"schedule\.light-sweep\.count: must be <= 100000 \(got 1000000000000\)",
+        ),
+        (
+            lambda d: d.__setitem__("schedule", {"kind": "raster", "count_u": 1000, "count_v": 1000}),
+            r"schedule\.raster: count_u × count_v = 1000000: more than 100000 positions",
+        ),
         (lambda d: d["camera"].__setitem__("height", 10**9), r"camera\.height: must be <= 100000"),
     ],
 )

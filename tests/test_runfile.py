@@ -15,8 +15,9 @@ import hdf5plugin
 import numpy as np
 import pytest
 
-from acquisition.rig import DEFAULT_RIG_PATH, rig_from_dict
-from acquisition.runfile import (
+from drivers.camera import RawFrame
+from drivers.contracts.rig import DEFAULT_RIG_PATH, rig_from_dict
+from drivers.contracts.runfile import (
     RUN_FILE_FORMAT,
     RUN_FILE_VERSION,
     PositionTimes,
@@ -25,7 +26,6 @@ from acquisition.runfile import (
     RunFileWriter,
     RunHeader,
 )
-from drivers.camera import RawFrame
 from drivers.pose import Pose
 
 H, W = 64, 96
@@ -73,7 +73,9 @@ def position_data(seed: int, i: int, count: int | None = None) -> tuple[Pose, Po
         left = 20 + (2 * i) % 32
         mosaic[8:40, left : left + 40] = rng.integers(0, 4096, (32, 40))
         black = np.array([[64.0, 64.5], [63.75, 64.25]]) + k
-        frames.append(RawFrame(mosaic, black, 4095 - k, "RGGB", 0.001 * 4**k, 1.7e9 + i + 0.1 * k, "sim", f"/tmp/{i}-{k}.dng"))
+        frames.append(
+            RawFrame(mosaic, black, 4095 - k, "RGGB", 0.001 * 4**k, 1.7e9 + i + 0.1 * k, "sim", f"/tmp/{i}-{k}.dng")
+        )
     measured = Pose(0.01 * i, 0.04 + 1e-6 * seed, 0.1, 0.1, -0.2, 0.3 + 1e-3 * i)
     times = PositionTimes(1.7e9 + i, 1.7e9 + i + 0.25, 1.7e9 + i + 0.75)
     return measured, times, frames
@@ -103,7 +105,7 @@ WRITER_SCRIPT = """
 import os, signal, sys, time
 sys.path.insert(0, {tests!r})
 from test_runfile import SEED, make_header, position_data
-from acquisition.runfile import RunFileWriter
+from drivers.contracts.runfile import RunFileWriter
 
 path, n, stop_after, pause = sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), float(sys.argv[4])
 print("ready", flush=True)
@@ -306,7 +308,7 @@ def test_kill_during_create_leaves_no_file_or_a_whole_one(tmp_path):
     script.write_text(
         f"import sys\nsys.path.insert(0, {str(TESTS_DIR)!r})\n"
         "from test_runfile import make_header\n"
-        "from acquisition.runfile import RunFileWriter\n"
+        "from drivers.contracts.runfile import RunFileWriter\n"
         "header = make_header(66)\n"
         "print('ready', flush=True)\n"
         "for j in range(100000):\n"
@@ -393,7 +395,7 @@ def test_live_reader_sees_new_positions_after_refresh(tmp_path):
     code = (
         f"import sys\nsys.path.insert(0, {str(TESTS_DIR)!r})\n"
         "from test_runfile import SEED, make_header, position_data\n"
-        "from acquisition.runfile import RunFileWriter\n"
+        "from drivers.contracts.runfile import RunFileWriter\n"
         "w = RunFileWriter.create(sys.argv[1], make_header(4))\n"
         "w.write_position(0, *position_data(SEED, 0))\n"
         "print('one', flush=True); sys.stdin.readline()\n"
@@ -401,8 +403,9 @@ def test_live_reader_sees_new_positions_after_refresh(tmp_path):
         "print('two', flush=True); sys.stdin.readline()\n"
         "w.close()\n"
     )
-    proc = subprocess.Popen([sys.executable, "-c", code, str(path)], stdin=subprocess.PIPE,
-                            stdout=subprocess.PIPE, text=True)  # fmt: skip
+    proc = subprocess.Popen(
+        [sys.executable, "-c", code, str(path)], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True
+    )
     try:
         assert proc.stdout.readline() == "one\n"
         with RunFile.open(path) as run:

@@ -15,12 +15,12 @@ import pytest
 
 from drivers.arm import SoftLimits
 from drivers.errors import (
-    MoveInterruptedError,
     AlarmError,
     CommunicationError,
     DeviceError,
     DeviceTimeoutError,
     LimitsError,
+    MoveInterruptedError,
 )
 from drivers.pose import Pose
 from drivers.serial_arm import MelfaSerialArm, key_value_fields, parse_error, parse_pposf
@@ -127,9 +127,7 @@ def test_move_to_reaches_target_and_reads_back_within_noise(arm, stage):
 
 def test_move_sends_target_in_mm_and_degrees(arm, peer):
     arm.move_to(Pose(0.01, -0.02, 0.03, 0.0, math.radians(30.0), math.radians(-45.0)))
-    assert "1;1;EXECP1=(10.0000,-20.0000,30.0000,0.0000,30.0000,-45.0000)(7,0)" in (
-        peer.frames_received
-    )
+    assert "1;1;EXECP1=(10.0000,-20.0000,30.0000,0.0000,30.0000,-45.0000)(7,0)" in (peer.frames_received)
     assert "1;1;EXECMOV P1" in peer.frames_received
 
 
@@ -264,9 +262,7 @@ def test_persistently_garbled_replies_give_communication_error(arm, peer):
 # -- reply parsing (no line needed) --------------------------------------------------
 def test_pposf_parser_tolerates_extra_fields_and_rejects_missing_axes():
     pose = parse_pposf("X;100.0;Y;-50.5;Z;300.0;A;180.0;B;-90.0;C;45.0;L1;12.0;;6,0;100;0.00;0")
-    assert pose.as_tuple() == pytest.approx(
-        (0.1, -0.0505, 0.3, math.pi, -math.pi / 2, math.pi / 4)
-    )
+    assert pose.as_tuple() == pytest.approx((0.1, -0.0505, 0.3, math.pi, -math.pi / 2, math.pi / 4))
     with pytest.raises(ValueError, match="no C field"):
         parse_pposf("X;1;Y;2;Z;3;A;4;B;5")
 

@@ -11,17 +11,25 @@ import math
 
 import numpy as np
 import pytest
-
-from acquisition.rig import load_rig
 from conftest import REDUCED_RIG
+from test_render import _crop_rig, rig_with
+
+from drivers.contracts.rig import load_rig
 from processing.pipeline import choose_estimator
-from processing.sources import LayoutData, Source, SourcesError, TemplateBuilder, load_layout, refine_layout, unmix_position
+from processing.sources import (
+    LayoutData,
+    Source,
+    SourcesError,
+    TemplateBuilder,
+    load_layout,
+    refine_layout,
+    unmix_position,
+)
 from processing.trace import RigGeometry, ball_pixel_grid, trace_pixels
 from sim_devices.lights import LIGHTS_DIR, TruthLight, load_truth
 from sim_devices.optics import CameraOptics, LightPlane, Mirror, MirrorBallRenderer
 from sim_devices.optics import trace as sim_trace
 from sim_devices.sensor import mosaic_of
-from test_render import _crop_rig, rig_with
 
 
 def test_chief_rays_agree_with_the_simulators_independent_tracer():
@@ -30,8 +38,15 @@ def test_chief_rays_agree_with_the_simulators_independent_tracer():
     for pose in (rig.light_poses()[0], rig.light_poses()[33], rig.light_poses()[65]):
         cols, rows = ball_pixel_grid(geometry)
         ours = trace_pixels(geometry, pose, cols, rows)
-        theirs = sim_trace(CameraOptics.from_rig(rig), Mirror.from_rig(rig), LightPlane.at(rig, pose), cols, rows,
-                           np.zeros_like(cols), np.zeros_like(cols))  # fmt: skip
+        theirs = sim_trace(
+            CameraOptics.from_rig(rig),
+            Mirror.from_rig(rig),
+            LightPlane.at(rig, pose),
+            cols,
+            rows,
+            np.zeros_like(cols),
+            np.zeros_like(cols),
+        )
         assert np.array_equal(ours.valid, theirs.valid)
         both = ours.valid & (np.hypot(ours.u, ours.v) < 0.2)
         np.testing.assert_allclose(ours.theta[both], theirs.theta[both], atol=1e-9)
@@ -99,8 +114,10 @@ def test_the_layout_search_moves_a_poor_guess_onto_the_sources_and_adds_the_one_
         mosaic = mosaic_of(renderer.render(pose).rate, "RGGB")
         data.append(LayoutData(mosaic, mosaic / 1e-3 + (3.0 / 1e-3) ** 2, np.ones(mosaic.shape, bool), pose))
     builder = TemplateBuilder(RigGeometry.from_rig(rig), rig.camera.sensitivity_e_per_s)
-    guess = [Source(f"g{k}", centre, 0.75e-3) for k, centre in
-             enumerate([(-3.25e-3, -0.1e-3), (0.0, -3.78e-3), (3.78e-3, 0.0), (0.0, 3.66e-3)])]  # fmt: skip
+    guess = [
+        Source(f"g{k}", centre, 0.75e-3)
+        for k, centre in enumerate([(-3.25e-3, -0.1e-3), (0.0, -3.78e-3), (3.78e-3, 0.0), (0.0, 3.66e-3)])
+    ]
     seeds = [(u * 1.5e-3, v * 1.5e-3) for u in range(-3, 4) for v in range(-3, 4)]
     fit = refine_layout(data, builder, "RGGB", guess, seeds)
     assert fit.refined, fit.message
@@ -173,8 +190,19 @@ def test_the_search_screens_more_seeds_than_the_best_where_it_stands():
     data, builder, truth = _reduced_rig_positions()
     first = [(0.01, -3.848), (3.555, -0.015), (-3.279, -0.003), (-0.048, 3.791)]  # mm, as the demo's grid gave them
     guess = [Source(f"guess-{k}", (u * 1e-3, v * 1e-3), 0.75e-3) for k, (u, v) in enumerate(first)]
-    lit = [(0.0, -4.5), (3.0, 0.0), (-3.0, 0.0), (0.0, -3.0), (4.5, 0.0), (-4.5, 0.0), (-1.5, 0.0), (0.0, 1.5),
-           (0.0, 4.5), (0.0, 3.0), (-4.5, -1.5)]  # fmt: skip
+    lit = [
+        (0.0, -4.5),
+        (3.0, 0.0),
+        (-3.0, 0.0),
+        (0.0, -3.0),
+        (4.5, 0.0),
+        (-4.5, 0.0),
+        (-1.5, 0.0),
+        (0.0, 1.5),
+        (0.0, 4.5),
+        (0.0, 3.0),
+        (-4.5, -1.5),
+    ]
     seeds = [(u * 1e-3, v * 1e-3) for u, v in lit]
     only_best = refine_layout(data, builder, "RGGB", guess, seeds, screen_seeds=1)
     assert len(only_best.sources) == 4 and _distances_to_truth(only_best, truth)[0] > 3e-3, only_best.message
@@ -191,7 +219,9 @@ def test_the_layout_search_says_when_it_cannot_refine():
     assert not nothing.refined and nothing.message == "no first guess to refine" and nothing.sources == []
     guess = [Source("far", (0.5, 0.5), 0.5e-3)]  # half a metre off the axis: the ball never shows it
     dark = np.zeros((rig.camera.height, rig.camera.width))
-    fit = refine_layout([LayoutData(dark, dark + 1.0, np.ones(dark.shape, bool), rig.light_poses()[33])], builder, "RGGB", guess)
+    fit = refine_layout(
+        [LayoutData(dark, dark + 1.0, np.ones(dark.shape, bool), rig.light_poses()[33])], builder, "RGGB", guess
+    )
     assert not fit.refined and fit.sources == guess
     assert fit.message == "no position has a window where every template is whole"
 
@@ -200,12 +230,19 @@ def test_the_estimator_follows_the_footprint():
     layout = load_layout(LIGHTS_DIR / "five-gaussians.toml")
     pinhole = load_rig()
     builder = TemplateBuilder(RigGeometry.from_rig(pinhole), 1.0)
-    chosen, reason, footprint = choose_estimator(RigGeometry.from_rig(pinhole), builder, layout, pinhole.light_poses()[33], "auto")
+    chosen, reason, footprint = choose_estimator(
+        RigGeometry.from_rig(pinhole), builder, layout, pinhole.light_poses()[33], "auto"
+    )
     assert chosen == "templates" and "unmixing" in reason
     assert 12 <= 2e3 * footprint <= 23  # measurement.md: a pixel gathers rays from 12-23 mm
     lens = rig_with(camera__thin_lens={"focus_distance_m": 0.186, "f_number": 8.0})
-    chosen, reason, footprint = choose_estimator(RigGeometry.from_rig(lens), TemplateBuilder(RigGeometry.from_rig(lens), 1.0),
-                                                 layout, lens.light_poses()[33], "auto")  # fmt: skip
+    chosen, reason, footprint = choose_estimator(
+        RigGeometry.from_rig(lens),
+        TemplateBuilder(RigGeometry.from_rig(lens), 1.0),
+        layout,
+        lens.light_poses()[33],
+        "auto",
+    )
     assert chosen == "cell-sums" and "flux sums" in reason
 
 
@@ -223,7 +260,9 @@ def test_layout_errors_are_one_line(tmp_path):
     with pytest.raises(SourcesError, match=r"bad\.toml: sources\[0\]\.radius_m: must be finite and > 0 \(got inf\)"):
         load_layout(bad)
     bad.write_text('[[sources]]\nname = "a"\ncentre_m = [1e300, 0.0]\n')  # finite, but squares to inf
-    with pytest.raises(SourcesError, match=r"bad\.toml: sources\[0\]\.centre_m: 1e\+300 m is beyond the ±1000 m allowed$"):
+    with pytest.raises(
+        SourcesError, match=r"bad\.toml: sources\[0\]\.centre_m: 1e\+300 m is beyond the ±1000 m allowed$"
+    ):
         load_layout(bad)
     assert [s.name for s in load_layout(LIGHTS_DIR / "five-gaussians.toml")] == ["centre", "+u", "-u", "+v", "-v"]
 
@@ -270,7 +309,10 @@ def test_the_sensor_distance_fit_finds_the_distance_the_data_were_taken_at():
     for sources, refit in ((layout, False), (shifted, True)):
         fit = fit_sensor_distance(data, long, "RGGB", sources, refit=refit)
         assert fit.described_m == pytest.approx(1.005 * true_distance) and fit.sources_refitted == refit
-        assert fit.sensor_distance_m == pytest.approx(true_distance, rel=1e-3), (refit, fit.sensor_distance_m / true_distance)
+        assert fit.sensor_distance_m == pytest.approx(true_distance, rel=1e-3), (
+            refit,
+            fit.sensor_distance_m / true_distance,
+        )
         assert fit.chi2 <= fit.chi2_described and fit.pixels > 1000 and 5 <= fit.evaluations <= 30
     with pytest.raises(SourcesError, match="the best sensor distance lies at the search's bound"):
         fit_sensor_distance(data, long, "RGGB", layout, refit=False, bounds=(1.0, 1.02))

@@ -11,12 +11,12 @@ import math
 
 import numpy as np
 import pytest
+from conftest import REDUCED_RIG
 from scipy import fft as sfft
 from scipy.signal import fftconvolve
 
 import processing.sources as sources
-from acquisition.rig import load_rig
-from conftest import REDUCED_RIG
+from drivers.contracts.rig import load_rig
 from drivers.pose import Pose
 from processing.sources import Source, cell_pixel_boxes, cell_sums, load_layout, specular_points
 from processing.trace import RigGeometry, ball_pixel_grid, trace_pixels
@@ -75,9 +75,11 @@ def test_convex_coverage_is_the_clipped_distance_ramp():
         expected = np.clip(0.5 - distance / sample, 0.0, 1.0)
         np.testing.assert_allclose(got, expected, rtol=0, atol=1e-12)
         assert 0 < np.count_nonzero((got > 0) & (got < 1)) < got.size // 4  # a ramp along the edge
-    assert sources._polygon_area(outline) == pytest.approx(0.5 * abs(np.dot(outline[:, 0], np.roll(outline[:, 1], -1))
-                                                                      - np.dot(outline[:, 1], np.roll(outline[:, 0], -1))),
-                                                           rel=1e-14)  # fmt: skip
+    assert sources._polygon_area(outline) == pytest.approx(
+        0.5
+        * abs(np.dot(outline[:, 0], np.roll(outline[:, 1], -1)) - np.dot(outline[:, 1], np.roll(outline[:, 0], -1))),
+        rel=1e-14,
+    )
 
 
 @pytest.mark.parametrize("n", [9, 47, 61])
@@ -166,4 +168,7 @@ def test_a_strided_ball_grid_is_the_whole_box_thinned(max_pixels):
     np.testing.assert_array_equal(thin_rows, rows[keep])
     if max_pixels is not None:  # about max_pixels: the box's whole rows and columns, one more of each at most
         width, height = np.ptp(cols) + 1, np.ptp(rows) + 1
-        assert thin_cols.size <= (width / stride + 1) * (height / stride + 1) and thin_cols.size >= min(cols.size, max_pixels) / 4
+        assert (
+            thin_cols.size <= (width / stride + 1) * (height / stride + 1)
+            and thin_cols.size >= min(cols.size, max_pixels) / 4
+        )

@@ -11,9 +11,8 @@ from pathlib import Path
 
 import httpx
 import pytest
-from playwright.sync_api import expect, sync_playwright
-
 from conftest import write_config
+from playwright.sync_api import expect, sync_playwright
 from test_worker import captured  # noqa: F401 - a finished run of three positions
 
 TOKEN = "t0k"
@@ -107,7 +106,9 @@ def test_a_run_started_from_the_page_completes_with_preview_and_download(tmp_pat
     preview = page.locator("#preview")
     expect(preview).to_be_visible()
     assert page.eval_on_selector("#preview", "e => e.getAttribute('src')").startswith(f"/runs/{run_id}/preview.png?t=")
-    page.wait_for_function("() => { const i = document.getElementById('preview'); return i.complete && i.naturalWidth > 0; }")
+    page.wait_for_function(
+        "() => { const i = document.getElementById('preview'); return i.complete && i.naturalWidth > 0; }"
+    )
 
     # The run is listed, with its download link and a process button that queues a job.
     row = page.locator(f'#runs tr[data-run-id="{run_id}"]')
@@ -188,13 +189,16 @@ def test_the_page_shows_what_the_daemon_refuses_and_polls_without_events(tmp_pat
     expect(page.locator("#percent")).to_have_text("100 %", timeout=60_000)
     expect(page.locator("#state")).to_have_text("complete")
     assert page.evaluate("typeof window.EventSource") == "undefined"
-    page.wait_for_function("() => { const i = document.getElementById('preview'); return i.complete && i.naturalWidth > 0; }")
+    page.wait_for_function(
+        "() => { const i = document.getElementById('preview'); return i.complete && i.naturalWidth > 0; }"
+    )
     assert page.script_errors == []
 
 
 def test_the_page_shows_each_job_and_links_its_report_ies_and_ray_file(tmp_path, daemon_factory, page, captured):
-    from acquisition.worker import JobWorker
     from test_worker import Data
+
+    from acquisition.worker import JobWorker
 
     data = Data(tmp_path / "data")  # a finished run in the daemon's catalog, as a run the daemon took
     _, _, source = captured
@@ -218,7 +222,10 @@ def test_the_page_shows_each_job_and_links_its_report_ies_and_ray_file(tmp_path,
     expect(job_row.locator(".job-badge")).to_have_text("complete", timeout=20_000)
     expect(job_row).to_contain_text("3 of 66 positions")
     expect(job_row.locator("progress")).to_have_attribute("value", "100")
-    links = {kind: job_row.locator(f"a.artifact-{kind}") for kind in ("report", "ies", "tm25", "ldt", "light_model", "results")}
+    links = {
+        kind: job_row.locator(f"a.artifact-{kind}")
+        for kind in ("report", "ies", "tm25", "ldt", "light_model", "results")
+    }
     for kind, link in links.items():
         expect(link).to_have_attribute("href", f"/jobs/{job['id']}/artifacts/{kind}")
     expect(links["report"]).to_have_text("report")
@@ -261,9 +268,11 @@ def test_the_next_job_takes_the_options_set_on_the_page(tmp_path, daemon_factory
     expect(page.locator("#fit-aperture")).to_have_value("")  # the worker's default
     expect(page.locator("#fit-model")).to_have_value("gaussian")
     message = page.locator("#message")
-    choices = [("true", True, "polynomial", "steps hdr,sources, aperture fitted, sensor distance fitted, polynomial fits"),
-               ("false", False, "gaussian", "steps hdr,sources, aperture as described"),
-               ("", False, "gaussian", "steps hdr,sources")]  # fmt: skip
+    choices = [
+        ("true", True, "polynomial", "steps hdr,sources, aperture fitted, sensor distance fitted, polynomial fits"),
+        ("false", False, "gaussian", "steps hdr,sources, aperture as described"),
+        ("", False, "gaussian", "steps hdr,sources"),
+    ]
     for aperture, distance, model, said in choices:
         page.select_option("#fit-aperture", aperture)
         page.set_checked("#fit-sensor-distance", distance)
@@ -276,7 +285,7 @@ def test_the_next_job_takes_the_options_set_on_the_page(tmp_path, daemon_factory
     options = [{"fit_aperture": True, "fit_sensor_distance": True, "fit": "polynomial"}, {"fit_aperture": False}, {}]
     assert sorted((job["options"] for job in jobs), key=len) == sorted(options, key=len)
     for job in jobs:
-        said = next(said for (*_, said), opts in zip(choices, options) if opts == job["options"])
+        said = next(said for (*_, said), opts in zip(choices, options, strict=False) if opts == job["options"])
         expect(page.locator(f'#jobs tr[data-job-id="{job["id"]}"] td').first).to_have_attribute("title", said)
     data.catalog.close()
     assert page.script_errors == []

@@ -13,7 +13,6 @@ import shutil
 import signal
 import subprocess
 import sys
-import threading
 import time
 import zipfile
 from datetime import UTC, datetime, timedelta
@@ -21,12 +20,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import REDUCED_RIG
 
 from acquisition.catalog import Catalog
-from acquisition.rig import load_rig
-from acquisition.runfile import PositionTimes, RunFile, RunFileWriter, RunHeader
 from acquisition.worker import ARTIFACT_KINDS, JobLostError, JobWorker, one_line, writer_alive
-from conftest import REDUCED_RIG
+from drivers.contracts.rig import load_rig
+from drivers.contracts.runfile import PositionTimes, RunFile, RunFileWriter, RunHeader
 from processing.results import Results, position_file_for
 from sim_devices.camera import SimulatedCamera
 from sim_devices.lights import LIGHTS_DIR
@@ -58,10 +57,20 @@ def captured(tmp_path_factory):
 
 def write_run(path, rig, frames, positions, status="running") -> RunFileWriter:
     """A run file with ``positions`` complete, its writer still open (status ``status``)."""
-    header = RunHeader(run_id=Path(path).stem, rig=rig, tool_poses=rig.tool_poses(), light_poses=rig.light_poses(),
-                       max_exposures=len(EXPOSURES), frame_shape=(rig.camera.height, rig.camera.width),
-                       bracket={"mode": "fixed", "exposures_s": EXPOSURES}, metadata={}, devices={},
-                       software_version="test", created_utc="2026-11-21T00:00:00+00:00", preset="light-sweep")  # fmt: skip
+    header = RunHeader(
+        run_id=Path(path).stem,
+        rig=rig,
+        tool_poses=rig.tool_poses(),
+        light_poses=rig.light_poses(),
+        max_exposures=len(EXPOSURES),
+        frame_shape=(rig.camera.height, rig.camera.width),
+        bracket={"mode": "fixed", "exposures_s": EXPOSURES},
+        metadata={},
+        devices={},
+        software_version="test",
+        created_utc="2026-11-21T00:00:00+00:00",
+        preset="light-sweep",
+    )
     writer = RunFileWriter.create(path, header)
     for index in positions:
         writer.write_position(index, rig.tool_poses()[index], PositionTimes(0.0, 0.0, 0.0), frames[index])
@@ -81,12 +90,17 @@ class Data:
 
     def run(self, source: Path | None = None, state: str = "complete"):
         """A catalog run whose file is a copy of ``source`` (none: no file yet), brought to ``state``."""
-        record = self.catalog.create_run(preset="light-sweep", path_for=lambda rid: self.root / "runs" / f"{rid}.h5",
-                                         n_positions=66, request={})  # fmt: skip
+        record = self.catalog.create_run(
+            preset="light-sweep", path_for=lambda rid: self.root / "runs" / f"{rid}.h5", n_positions=66, request={}
+        )
         if source is not None:
             shutil.copy(source, record.path)
-        for step in {"complete": ["running", "complete"], "running": ["running"], "interrupted": ["running", "interrupted"],
-                     "aborted": ["aborted"]}[state]:  # fmt: skip
+        for step in {
+            "complete": ["running", "complete"],
+            "running": ["running"],
+            "interrupted": ["running", "interrupted"],
+            "aborted": ["aborted"],
+        }[state]:
             record = self.catalog.transition_run(record.id, step)
         return record
 
@@ -137,7 +151,9 @@ def test_bad_run_files_fail_their_job_in_one_line_and_the_queue_goes_on(captured
     Path(text.path).write_text("not a run file\n")
     missing = data.run()  # no file at all
     good = data.run(source)
-    jobs = [data.catalog.create_job(r.id, options={"layout": LAYOUT}) for r in (truncated, corrupt, text, missing, good)]
+    jobs = [
+        data.catalog.create_job(r.id, options={"layout": LAYOUT}) for r in (truncated, corrupt, text, missing, good)
+    ]
     seen = []
     assert data.worker().run(once=True, on_job=seen.append) == 5
     assert [j.id for j in seen] == [j.id for j in jobs]
@@ -229,7 +245,7 @@ def test_an_orphaned_job_is_requeued_and_taken_by_another_worker(captured, data)
 
 def test_heartbeats_carry_the_progress_and_a_lost_job_is_abandoned(data, tmp_path):
     run = data.run(state="complete")
-    job = data.catalog.create_job(run.id)
+    data.catalog.create_job(run.id)
     seen = []
 
     def slow(job, path, steps, progress):
@@ -267,8 +283,24 @@ def test_a_killed_worker_process_leaves_its_job_to_the_next_worker(captured, dat
     job = data.catalog.create_job(run.id, options={"layout": LAYOUT})
     exe = Path(sys.executable).with_name("mirrorgonio")
     log = open(tmp_path / "worker-1.log", "wb")
-    proc = subprocess.Popen([str(exe), "worker", "--data-dir", str(data.root), "--scheduler", "none", "--id", "doomed",
-                             "--heartbeat", "0.2", "--poll", "0.1"], stdout=log, stderr=subprocess.STDOUT)  # fmt: skip
+    proc = subprocess.Popen(
+        [
+            str(exe),
+            "worker",
+            "--data-dir",
+            str(data.root),
+            "--scheduler",
+            "none",
+            "--id",
+            "doomed",
+            "--heartbeat",
+            "0.2",
+            "--poll",
+            "0.1",
+        ],
+        stdout=log,
+        stderr=subprocess.STDOUT,
+    )
     try:
         deadline = time.monotonic() + 60
         while data.catalog.get_job(job.id).state != "running":
@@ -352,7 +384,11 @@ def test_the_daemon_serves_a_jobs_state_and_exactly_its_result_files(captured, d
         assert report.status_code == 200 and report.headers["content-type"].startswith("text/html")
         assert report.headers["content-disposition"].startswith("inline") and b"<html" in report.content[:500].lower()
         ies = http.get(status["artifacts"]["ies"])
-        assert ies.status_code == 200 and ies.text.startswith("IES:LM-63") and "attachment" in ies.headers["content-disposition"]
+        assert (
+            ies.status_code == 200
+            and ies.text.startswith("IES:LM-63")
+            and "attachment" in ies.headers["content-disposition"]
+        )
         assert ies.content == Path(done.artifacts["ies"]).read_bytes()
         rays = http.get(status["artifacts"]["tm25"])
         assert rays.status_code == 200 and rays.content == Path(done.artifacts["tm25"]).read_bytes()
@@ -367,7 +403,8 @@ def test_the_daemon_serves_a_jobs_state_and_exactly_its_result_files(captured, d
             with Results.open(results_path) as here:
                 done_positions = np.flatnonzero(here.hdr_done)
                 assert unpacked.namelist() == [results_path.name] + [
-                    f"{results_path.name.removesuffix('.results.h5')}.hdr/position-{i:03d}.h5" for i in done_positions]
+                    f"{results_path.name.removesuffix('.results.h5')}.hdr/position-{i:03d}.h5" for i in done_positions
+                ]
                 assert all(i.compress_type == zipfile.ZIP_STORED for i in unpacked.infolist())
                 unpacked.extractall(tmp_path / "downloaded")
                 with Results.open(tmp_path / "downloaded" / results_path.name) as there:

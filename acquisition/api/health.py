@@ -6,9 +6,9 @@ import math
 
 from fastapi import APIRouter, Response, status
 
-from acquisition import __version__
 from acquisition.api.deps import CatalogDep, EngineDep
 from acquisition.models import ArmState, CameraState, DevicesStatus, Health
+from drivers.contracts.version import __version__
 from drivers.errors import DeviceError
 
 router = APIRouter(tags=["health"])
@@ -21,10 +21,23 @@ def arm_state(engine) -> ArmState:
         pose = arm.position()
     except DeviceError as exc:
         return ArmState(connected=False, identity=arm.identity, error=str(exc))
-    position = {"x": pose.x, "y": pose.y, "z": pose.z,
-                "rx": math.degrees(pose.rx), "ry": math.degrees(pose.ry), "rz": math.degrees(pose.rz)}  # fmt: skip
-    return ArmState(connected=True, identity=arm.identity, position=position, moving=st.moving,
-                    in_position=st.in_position, alarm_code=st.alarm_code, alarm_text=st.alarm_text or None)  # fmt: skip
+    position = {
+        "x": pose.x,
+        "y": pose.y,
+        "z": pose.z,
+        "rx": math.degrees(pose.rx),
+        "ry": math.degrees(pose.ry),
+        "rz": math.degrees(pose.rz),
+    }
+    return ArmState(
+        connected=True,
+        identity=arm.identity,
+        position=position,
+        moving=st.moving,
+        in_position=st.in_position,
+        alarm_code=st.alarm_code,
+        alarm_text=st.alarm_text or None,
+    )
 
 
 def camera_state(engine) -> CameraState:
@@ -48,8 +61,12 @@ def health(engine: EngineDep, catalog: CatalogDep, response: Response) -> Health
     active = catalog.active_run()
     if reasons:
         response.status_code = status.HTTP_503_SERVICE_UNAVAILABLE
-    return Health(status="degraded" if reasons else "ok", reasons=reasons, version=__version__,
-                  active_run=active.id if active else None)  # fmt: skip
+    return Health(
+        status="degraded" if reasons else "ok",
+        reasons=reasons,
+        version=__version__,
+        active_run=active.id if active else None,
+    )
 
 
 @router.get("/devices", response_model=DevicesStatus, tags=["devices"])

@@ -38,11 +38,22 @@ def artifact_url(job_id: str, kind: str) -> str:
 
 
 def job_status(job: JobRecord) -> JobStatus:
-    return JobStatus(id=job.id, run_id=job.run_id, state=job.state, steps=job.steps, options=job.options,
-                     progress=job.progress, error=job.error, message=job.message, result_dir=job.result_dir,
-                     claimed_by=job.claimed_by, heartbeat_utc=job.heartbeat_utc, created_utc=job.created_utc,
-                     updated_utc=job.updated_utc,
-                     artifacts={kind: artifact_url(job.id, kind) for kind in job.artifacts})  # fmt: skip
+    return JobStatus(
+        id=job.id,
+        run_id=job.run_id,
+        state=job.state,
+        steps=job.steps,
+        options=job.options,
+        progress=job.progress,
+        error=job.error,
+        message=job.message,
+        result_dir=job.result_dir,
+        claimed_by=job.claimed_by,
+        heartbeat_utc=job.heartbeat_utc,
+        created_utc=job.created_utc,
+        updated_utc=job.updated_utc,
+        artifacts={kind: artifact_url(job.id, kind) for kind in job.artifacts},
+    )
 
 
 @router.get("", response_model=list[JobStatus], responses={404: {"model": Problem, "description": "unknown run_id"}})
@@ -57,10 +68,16 @@ def get_job(job_id: str, catalog: CatalogDep) -> JobStatus:
     return job_status(catalog.get_job(job_id))
 
 
-@router.get("/{job_id}/artifacts/{kind}", responses={
-    200: {"content": {media: {} for media, _ in ARTIFACT_TYPES.values()},
-          "description": "the file (the report opens in the browser, the others download)"},
-    404: {"model": Problem, "description": "unknown job, or no such file recorded for it"}})  # fmt: skip
+@router.get(
+    "/{job_id}/artifacts/{kind}",
+    responses={
+        200: {
+            "content": {media: {} for media, _ in ARTIFACT_TYPES.values()},
+            "description": "the file (the report opens in the browser, the others download)",
+        },
+        404: {"model": Problem, "description": "unknown job, or no such file recorded for it"},
+    },
+)
 def download_artifact(job_id: str, kind: str, catalog: CatalogDep) -> Response:
     """One of a job's result files: ``report`` (HTML), ``ies``, ``ldt``, ``tm25`` (ray file),
     ``light_model`` (JSON), or ``results``: a ZIP archive of the results file and its
@@ -76,10 +93,12 @@ def download_artifact(job_id: str, kind: str, catalog: CatalogDep) -> Response:
     if kind == "results":
         members = [(file, file.relative_to(path.parent).as_posix()) for file in _results_files(job, path)]
         name = path.name.removesuffix(".h5") + ".zip"
-        return StreamingResponse(zip_stream(members), media_type=media,
-                                 headers={"Content-Disposition": f'attachment; filename="{name}"'})  # fmt: skip
-    return FileResponse(path, media_type=media, filename=path.name,
-                        content_disposition_type="inline" if inline else "attachment")  # fmt: skip
+        return StreamingResponse(
+            zip_stream(members), media_type=media, headers={"Content-Disposition": f'attachment; filename="{name}"'}
+        )
+    return FileResponse(
+        path, media_type=media, filename=path.name, content_disposition_type="inline" if inline else "attachment"
+    )
 
 
 def _served_file(job: JobRecord, recorded: Path, folder: Path | None, what: str) -> Path:

@@ -18,7 +18,12 @@ def presets(engine: EngineDep, settings: SettingsDep) -> dict:
 
         try:
             rig = engine.plan_schedule(RunRequest(preset=name))
-            out[name] = {"schedule": rig.schedule.model_dump(mode="json"), "positions": len(rig.light_poses()), "valid": True, "error": None}
+            out[name] = {
+                "schedule": rig.schedule.model_dump(mode="json"),
+                "positions": len(rig.light_poses()),
+                "valid": True,
+                "error": None,
+            }
         except ValueError as exc:
             out[name] = {"schedule": engine.presets()[name], "positions": None, "valid": False, "error": str(exc)}
     return {"presets": out, "default_bracket": {"mode": "fixed", "exposures_s": settings.default_exposures_s}}

@@ -24,17 +24,35 @@ BODY_ERRORS = {400: {"model": Problem, "description": "the body cannot be read"}
 def run_status(record: RunRecord) -> RunStatus:
     percent = 100.0 * record.positions_done / record.n_positions if record.n_positions else 0.0
     return RunStatus(
-        id=record.id, state=record.state, preset=record.preset, n_positions=record.n_positions,
-        positions_done=record.positions_done, percent_done=round(percent, 2),
-        current_position=record.current_position, eta_s=record.eta_s, last_error=record.last_error,
-        created_utc=record.created_utc, started_utc=record.started_utc, finished_utc=record.finished_utc,
-        exposures_per_position=record.exposures_per_position, file_url=f"/runs/{record.id}/file",
-    )  # fmt: skip
+        id=record.id,
+        state=record.state,
+        preset=record.preset,
+        n_positions=record.n_positions,
+        positions_done=record.positions_done,
+        percent_done=round(percent, 2),
+        current_position=record.current_position,
+        eta_s=record.eta_s,
+        last_error=record.last_error,
+        created_utc=record.created_utc,
+        started_utc=record.started_utc,
+        finished_utc=record.finished_utc,
+        exposures_per_position=record.exposures_per_position,
+        file_url=f"/runs/{record.id}/file",
+    )
 
 
-@router.post("", status_code=status.HTTP_201_CREATED, response_model=RunStatus, dependencies=[TokenDep],
-             responses={409: {"model": Problem, "description": "another run is active"}, 422: {"model": Problem},
-                        **BODY_ERRORS, **TOKEN_ERRORS})  # fmt: skip
+@router.post(
+    "",
+    status_code=status.HTTP_201_CREATED,
+    response_model=RunStatus,
+    dependencies=[TokenDep],
+    responses={
+        409: {"model": Problem, "description": "another run is active"},
+        422: {"model": Problem},
+        **BODY_ERRORS,
+        **TOKEN_ERRORS,
+    },
+)
 def start_run(body: RunRequest, engine: EngineDep, settings: SettingsDep) -> RunStatus:
     """Start a run. Only one run at a time per rig: a second one gets 409."""
     if "bracket" not in body.model_fields_set:
@@ -111,15 +129,22 @@ def download(run_id: str, catalog: CatalogDep) -> FileResponse:
     """The run file (HDF5, ``docs/run-file.md``); refused while the run is being written."""
     record = catalog.get_run(run_id)
     if record.state in ("running", "paused", "queued"):
-        raise HTTPException(status.HTTP_409_CONFLICT, f"run {run_id} is {record.state}: the file is still being written")
+        raise HTTPException(
+            status.HTTP_409_CONFLICT, f"run {run_id} is {record.state}: the file is still being written"
+        )
     path = Path(record.path)
     if not path.exists():
         raise HTTPException(status.HTTP_404_NOT_FOUND, f"run {run_id} has no run file")
     return FileResponse(path, media_type="application/x-hdf5", filename=path.name)
 
 
-@router.post("/{run_id}/process", status_code=status.HTTP_201_CREATED, response_model=JobStatus,
-             dependencies=[TokenDep], responses={**GUARDED_ERRORS, **BODY_ERRORS})  # fmt: skip
+@router.post(
+    "/{run_id}/process",
+    status_code=status.HTTP_201_CREATED,
+    response_model=JobStatus,
+    dependencies=[TokenDep],
+    responses={**GUARDED_ERRORS, **BODY_ERRORS},
+)
 def process(run_id: str, catalog: CatalogDep, body: JobRequest | None = None) -> JobStatus:
     """Queue a processing job for the run (a worker takes it: ``mirrorgonio worker``). While the
     run is being acquired the job waits, unless it asks for ``partial``."""

@@ -18,8 +18,17 @@ from pathlib import Path
 import numpy as np
 
 
-def acquire_simulated(rig, truth_name: str, noise: bool, exposures, positions: int | None, workdir: Path, *,
-                      preset: str = "light-sweep", light_results: str | None = None) -> Path:  # fmt: skip
+def acquire_simulated(
+    rig,
+    truth_name: str,
+    noise: bool,
+    exposures,
+    positions: int | None,
+    workdir: Path,
+    *,
+    preset: str = "light-sweep",
+    light_results: str | None = None,
+) -> Path:
     """Take one run on the simulated rig through the daemon's run engine; the run file's path."""
     from acquisition.models import FixedBracket, RunRequest
     from acquisition.settings import load_settings
@@ -30,8 +39,9 @@ def acquire_simulated(rig, truth_name: str, noise: bool, exposures, positions: i
     settings.camera.simulated.truth = truth_name
     settings.camera.simulated.noise = noise
     settings.camera.simulated.diffraction = True
-    request = RunRequest(preset=preset, count=positions, bracket=FixedBracket(exposures_s=list(exposures)),
-                         light_results=light_results)  # fmt: skip
+    request = RunRequest(
+        preset=preset, count=positions, bracket=FixedBracket(exposures_s=list(exposures)), light_results=light_results
+    )
     return take_run(settings, rig, request)
 
 
@@ -68,8 +78,9 @@ def _score(fit, truth_emitter, theta_samples) -> tuple[float, float, float]:
     return error, math.degrees(lo), math.degrees(hi)
 
 
-def score_sources(model, samples, truth_light, *, matched: bool, fit_method: str = "gaussian",
-                  cell_sums: bool = True) -> dict:  # fmt: skip
+def score_sources(
+    model, samples, truth_light, *, matched: bool, fit_method: str = "gaussian", cell_sums: bool = True
+) -> dict:
     """Each truth emitter's fitted source scored against it (:func:`_score`).
 
     ``matched``: the sources were found in the data, so each emitter is scored against the
@@ -88,8 +99,13 @@ def score_sources(model, samples, truth_light, *, matched: bool, fit_method: str
         source = model.sources[k]
         theta = np.asarray(source.samples["theta"])
         error, lo, hi = _score(source.fit, emitter, theta)
-        entry = {"name": emitter.name, "rms_rel_error": round(error, 6), "theta_min_deg": round(lo, 2),
-                 "theta_max_deg": round(hi, 2), "fit": {k2: round(v, 6) for k2, v in source.fit.params.items()}}  # fmt: skip
+        entry = {
+            "name": emitter.name,
+            "rms_rel_error": round(error, 6),
+            "theta_min_deg": round(lo, 2),
+            "theta_max_deg": round(hi, 2),
+            "fit": {k2: round(v, 6) for k2, v in source.fit.params.items()},
+        }
         if matched:
             entry["found_as"] = source.name
             entry["centre_error_um"] = round(1e6 * float(distances[k]), 1)
@@ -98,8 +114,12 @@ def score_sources(model, samples, truth_light, *, matched: bool, fit_method: str
         if cell_sums:
             ok = np.isfinite(samples.cell_sum[:, k]) & np.isfinite(samples.theta[:, k])
             try:
-                cell = Samples(samples.theta[ok, k], samples.phi[ok, k], samples.cell_sum[ok, k],
-                               np.full(ok.sum(), 0.01 * np.nanmax(samples.cell_sum[:, k])))  # fmt: skip
+                cell = Samples(
+                    samples.theta[ok, k],
+                    samples.phi[ok, k],
+                    samples.cell_sum[ok, k],
+                    np.full(ok.sum(), 0.01 * np.nanmax(samples.cell_sum[:, k])),
+                )
                 cell_fit = fit_intensity(cell, method=fit_method)
                 entry["cell_sum_rms_rel_error"] = round(_score(cell_fit, emitter, theta)[0], 6)
             except FitError as exc:
@@ -112,16 +132,24 @@ def score_sources(model, samples, truth_light, *, matched: bool, fit_method: str
     return {"sources": out_sources, "matched": taken}
 
 
-def bench_accuracy(*, noise: bool = True, truth: str = "five-gaussians", positions: int = 66, rig_path=None,
-                   exposures=(2e-5, 1e-4, 5e-4, 2.5e-3, 1.25e-2), fit_method: str = "gaussian",
-                   workdir: str | Path | None = None, layout_from_data: bool = False) -> dict:  # fmt: skip
+def bench_accuracy(
+    *,
+    noise: bool = True,
+    truth: str = "five-gaussians",
+    positions: int = 66,
+    rig_path=None,
+    exposures=(2e-5, 1e-4, 5e-4, 2.5e-3, 1.25e-2),
+    fit_method: str = "gaussian",
+    workdir: str | Path | None = None,
+    layout_from_data: bool = False,
+) -> dict:
     """Run the reference simulation and score the fitted sources against the truth.
 
     ``layout_from_data``: the processing is not given the truth's layout but finds the
     sources in the data; each truth emitter is then scored against the nearest source found,
     and the distance between them is reported too. The target then also asks for as many
     sources as the truth has, each the nearest of a different emitter."""
-    from acquisition.rig import load_rig
+    from drivers.contracts.rig import load_rig
     from processing.pipeline import process_run
     from sim_devices.lights import LIGHTS_DIR, load_truth
 
@@ -133,8 +161,15 @@ def bench_accuracy(*, noise: bool = True, truth: str = "five-gaussians", positio
         base = Path(workdir) if workdir is not None else Path(tmp)
         run_path = acquire_simulated(rig, truth, noise, exposures, positions, base)
         acquired = time.perf_counter()
-        report = process_run(run_path, base / "out", steps=("hdr", "sources"), layout=layout, noise="rig",
-                             fit_method=fit_method, units="W/sr")  # fmt: skip
+        report = process_run(
+            run_path,
+            base / "out",
+            steps=("hdr", "sources"),
+            layout=layout,
+            noise="rig",
+            fit_method=fit_method,
+            units="W/sr",
+        )
         processed = time.perf_counter()
     samples, model = report.samples, report.model
     scored = score_sources(model, samples, truth_light, matched=layout_from_data, fit_method=fit_method)

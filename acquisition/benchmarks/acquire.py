@@ -52,8 +52,16 @@ def zero_latency_arm(rig):
     from sim_devices.modbus_server import SimulatedModbusArm
     from sim_devices.stage import SimulatedStage, StageConfig
 
-    stage = SimulatedStage(StageConfig(speed_m_s=math.inf, accel_m_s2=math.inf, angular_speed_rad_s=math.inf,
-                                       angular_accel_rad_s2=math.inf, readback_noise_m=0.0, readback_noise_rad=0.0))  # fmt: skip
+    stage = SimulatedStage(
+        StageConfig(
+            speed_m_s=math.inf,
+            accel_m_s2=math.inf,
+            angular_speed_rad_s=math.inf,
+            angular_accel_rad_s2=math.inf,
+            readback_noise_m=0.0,
+            readback_noise_rad=0.0,
+        )
+    )
     with SimulatedModbusArm(stage) as server:
         arm = ModbusArm(SIM_STAGE_PROFILE, port=server.port, limits=rig.soft_limits(), poll_interval_s=0.0)
         arm.connect()
@@ -86,12 +94,14 @@ def timed_engine_run(settings, rig, devices, request):
     return seconds, state
 
 
-def bench_acquire(rig_path=None, positions: int = 20, exposures: int = 3, repeat: int = 3, distinct_frames: int = 6) -> dict:
+def bench_acquire(
+    rig_path=None, positions: int = 20, exposures: int = 3, repeat: int = 3, distinct_frames: int = 6
+) -> dict:
     """Run the real engine on zero-latency devices and compare with a plain h5py write."""
     from acquisition.devices import Devices
     from acquisition.models import FixedBracket, RunRequest
-    from acquisition.rig import load_rig
     from acquisition.settings import load_settings
+    from drivers.contracts.rig import load_rig
     from sim_devices.replay_camera import ReplayCamera
 
     rig = load_rig(rig_path)

@@ -108,7 +108,7 @@ def exposure_times(count: int) -> np.ndarray:
 
 def _rig_at_size(rig, width: int, height: int):
     """The rig with its sensor resampled to ``width`` x ``height``, the same field of view across."""
-    from acquisition.rig import rig_from_dict, rig_to_toml_dict
+    from drivers.contracts.rig import rig_from_dict, rig_to_toml_dict
 
     cam = rig.camera
     if (cam.width, cam.height) == (width, height):
@@ -151,7 +151,9 @@ def _scenes(rig, sensor: _Sensor, exposures: np.ndarray, distinct: int, seed: in
     from sim_devices.optics import MirrorBallRenderer
     from sim_devices.sensor import mosaic_of
 
-    renderer = MirrorBallRenderer(rig, load_truth(rig.simulation.truth), diffraction=rig.simulation.diffraction, seed=seed)
+    renderer = MirrorBallRenderer(
+        rig, load_truth(rig.simulation.truth), diffraction=rig.simulation.diffraction, seed=seed
+    )
     poses = rig.light_poses()
     picks = sorted({int(i) for i in np.linspace(0, len(poses) - 1, distinct).round()})
     background = _background(rig.camera.height, rig.camera.width)
@@ -206,18 +208,24 @@ def _ours(ctx: _Ctx, method: str) -> _Method:
     def run(frames):
         return merge_raw(frames, exposures, s.black, s.white, noise, method=method).radiance
 
-    from acquisition import __version__
+    from drivers.contracts.version import __version__
 
-    what = ("minimum-variance weights t²/σ² from a Poisson first pass" if method == "optimal"
-            else "Σ(y − black) / Σt over unsaturated samples")  # fmt: skip
+    what = (
+        "minimum-variance weights t²/σ² from a Poisson first pass"
+        if method == "optimal"
+        else "Σ(y − black) / Σt over unsaturated samples"
+    )
     return _Method(
-        f"mirrorgonio_{method}", lambda frames: frames, run, lambda out: out,
+        f"mirrorgonio_{method}",
+        lambda frames: frames,
+        run,
+        lambda out: out,
         input="the raw uint16 mosaic (k, H, W) with its black level; saturation measured from the frames",
         scale="exact (DN/s above black)",
         notes=f"processing.hdr.merge_raw(method={method!r}): {what}; the rig's noise model "
-              f"(gain {s.gain:.4g} e-/DN, read noise {s.read_dn:.4g} DN); numba kernel, parallel over rows",
+        f"(gain {s.gain:.4g} e-/DN, read noise {s.read_dn:.4g} DN); numba kernel, parallel over rows",
         version=__version__,
-    )  # fmt: skip
+    )
 
 
 def _hdrutils(ctx: _Ctx) -> _Method | str:
@@ -236,11 +244,20 @@ def _hdrutils(ctx: _Ctx) -> _Method | str:
     names = [f"frame-{i}" for i in range(k)]
 
     def prepare(frames):
-        metadata = {"N": k, "exp": exposures.astype(np.float64).copy(), "gain": np.ones(k), "aperture": np.ones(k),
-                    "h": ctx.height, "w": ctx.width, "black_level": np.full(4, float(s.black)),
-                    # What HDRutils' get_metadata sets for a raw file: 0.98 of the reported white level.
-                    "saturation_point": 0.98 * s.white, "color_space": "raw", "raw_format": False,
-                    "libraw_scale": lambda img: img}  # fmt: skip
+        metadata = {
+            "N": k,
+            "exp": exposures.astype(np.float64).copy(),
+            "gain": np.ones(k),
+            "aperture": np.ones(k),
+            "h": ctx.height,
+            "w": ctx.width,
+            "black_level": np.full(4, float(s.black)),
+            # What HDRutils' get_metadata sets for a raw file: 0.98 of the reported white level.
+            "saturation_point": 0.98 * s.white,
+            "color_space": "raw",
+            "raw_format": False,
+            "libraw_scale": lambda img: img,
+        }
         return metadata, dict(zip(names, frames, strict=True))
 
     def run(prepared):
@@ -260,21 +277,24 @@ def _hdrutils(ctx: _Ctx) -> _Method | str:
         return colour_demosaicing.demosaicing_CFA_Bayer_bilinear(bayer, pattern=s.cfa_pattern) @ np.eye(3)
 
     return _Method(
-        "hdrutils", prepare, run, ctx.own_channel,
+        "hdrutils",
+        prepare,
+        run,
+        ctx.own_channel,
         input="the raw uint16 mosaics with their black level (HDRutils subtracts it), exposure times, "
-              "gain and aperture 1, saturation point 0.98 x white level (HDRutils' default)",
+        "gain and aperture 1, saturation point 0.98 x white level (HDRutils' default)",
         scale="exact: its raw-colour-space output is DN/s above black; each photosite's own channel "
-              "taken from its bilinear demosaic (which keeps the sampled channel's value)",
+        "taken from its bilinear demosaic (which keeps the sampled channel's value)",
         notes="HDRutils.merge.imread_merge_demosaic (what HDRutils.merge(..., demosaic_first=False, "
-              "color_space='raw') runs): Σ(y − black)/Σt over samples whose 2x2 Bayer tile is below the "
-              "saturation point, the shortest exposure always used. HDRutils has no in-memory API (file "
-              "names only): its module's `io` reader and `tqdm` were swapped for the call to serve the "
-              "frames from memory. Its time includes the bilinear demosaic it always runs; "
-              "time_s_merge_only_est subtracts that demosaic (timed apart) and is what the speed-up uses",
+        "color_space='raw') runs): Σ(y − black)/Σt over samples whose 2x2 Bayer tile is below the "
+        "saturation point, the shortest exposure always used. HDRutils has no in-memory API (file "
+        "names only): its module's `io` reader and `tqdm` were swapped for the call to serve the "
+        "frames from memory. Its time includes the bilinear demosaic it always runs; "
+        "time_s_merge_only_est subtracts that demosaic (timed apart) and is what the speed-up uses",
         version=version("HDRutils"),
         excluded=demosaic,
         excluded_what="colour_demosaicing.demosaicing_CFA_Bayer_bilinear + the colour matrix, as inside the call",
-    )  # fmt: skip
+    )
 
 
 def _colour_hdri(ctx: _Ctx) -> _Method | str:
@@ -303,15 +323,18 @@ def _colour_hdri(ctx: _Ctx) -> _Method | str:
             return image_stack_to_HDRI(stack)
 
     return _Method(
-        "colour_hdri", prepare, run, lambda out: out * s.range_dn,
+        "colour_hdri",
+        prepare,
+        run,
+        lambda out: out * s.range_dn,
         input="single-channel float64 images of the mosaic, (y − black) / (white − black), sorted from the "
-              "shortest exposure to the longest, metadata f/1, ISO 12.5, exposure time",
+        "shortest exposure to the longest, metadata f/1, ISO 12.5, exposure time",
         scale="exact: output x (white − black) is DN/s above black (L = 1/t with that metadata)",
         notes="colour_hdri.image_stack_to_HDRI with its default weighting_function_Debevec1997 and no "
-              "camera response (linear data): weights depend on the pixel value only; values clipped to "
-              "[eps, 1]; the shortest frame keeps weight 1 above 0.5, the longest below 0.5",
+        "camera response (linear data): weights depend on the pixel value only; values clipped to "
+        "[eps, 1]; the shortest frame keeps weight 1 above 0.5, the longest below 0.5",
         version=version("colour-hdri"),
-    )  # fmt: skip
+    )
 
 
 def _opencv(ctx: _Ctx, full_range: bool) -> _Method | str:
@@ -337,23 +360,35 @@ def _opencv(ctx: _Ctx, full_range: bool) -> _Method | str:
         return cv2.createMergeDebevec().process(images, times)
 
     if full_range:
-        given = f"uint16 single-channel images, black removed (negatives clipped to 0) and scaled by 65535/(white − black) = {scale:.4g} to span the 16-bit range"  # fmt: skip
-        how = ("16-bit input goes through a 65536-entry linear response and hat weights peaking at 32767 "
-               "(zero at 0 and 65535), averaged in the log domain (a weighted geometric mean, biased low "
-               "where the samples are noisy)")  # fmt: skip
+        given = (
+            "uint16 single-channel images, black removed (negatives clipped to 0) and scaled by "
+            f"65535/(white − black) = {scale:.4g} to span the 16-bit range"
+        )
+        how = (
+            "16-bit input goes through a 65536-entry linear response and hat weights peaking at 32767 "
+            "(zero at 0 and 65535), averaged in the log domain (a weighted geometric mean, biased low "
+            "where the samples are noisy)"
+        )
     else:
         given = "uint16 single-channel images, black removed (negatives clipped to 0), 12-bit values unscaled"
-        how = ("the hat weights span 0..65535, so a 12-bit sample's weight grows up to the clipping level "
-               "(4095 is weighted ~1/8 of the peak, far from zero): clipped samples are averaged in")  # fmt: skip
+        how = (
+            "the hat weights span 0..65535, so a 12-bit sample's weight grows up to the clipping level "
+            "(4095 is weighted ~1/8 of the peak, far from zero): clipped samples are averaged in"
+        )
     return _Method(
-        "opencv_debevec" if full_range else "opencv_debevec_12bit", prepare, run,
+        "opencv_debevec" if full_range else "opencv_debevec_12bit",
+        prepare,
+        run,
         lambda out: out.astype(np.float64) / scale,
         input=given,
-        scale=f"exact: the linear response makes the output (value / t){' / ' + format(scale, '.4g') if full_range else ''} DN/s above black",
+        scale=(
+            "exact: the linear response makes the output (value / "
+            f"t){' / ' + format(scale, '.4g') if full_range else ''} DN/s above black"
+        ),
         notes=f"cv2.createMergeDebevec().process(images, times) without a response (linear): {how}; "
-              f"float32 output; OpenCV threads: {cv2.getNumThreads()}",
+        f"float32 output; OpenCV threads: {cv2.getNumThreads()}",
         version=cv2.__version__,
-    )  # fmt: skip
+    )
 
 
 # --- errors against the truth ---------------------------------------------------------------------
@@ -396,8 +431,18 @@ class _State:
 
 
 # --- the benchmark --------------------------------------------------------------------------------
-def bench_hdr(positions: int = 66, exposures: int = 5, width: int = 2000, height: int = 1312, repeat: int = 1,
-              seed: int = 0, *, rig_path=None, peers: bool = True, distinct_scenes: int = DISTINCT_SCENES) -> dict:  # fmt: skip
+def bench_hdr(
+    positions: int = 66,
+    exposures: int = 5,
+    width: int = 2000,
+    height: int = 1312,
+    repeat: int = 1,
+    seed: int = 0,
+    *,
+    rig_path=None,
+    peers: bool = True,
+    distinct_scenes: int = DISTINCT_SCENES,
+) -> dict:
     """Merge ``positions`` brackets of ``exposures`` frames with every method; time and error of each.
 
     ``repeat`` > 1 times every merge that many times per position (the median of the
@@ -414,13 +459,19 @@ def bench_hdr(positions: int = 66, exposures: int = 5, width: int = 2000, height
     if repeat < 1:
         raise BenchmarkError(f"repeat: must be at least 1, got {repeat}")
 
-    from acquisition.rig import load_rig
+    from drivers.contracts.rig import load_rig
     from sim_devices.sensor import SensorModel
 
     rig = _rig_at_size(load_rig(rig_path), width, height)
     model = SensorModel.from_rig(rig.camera, noise=True)
-    sensor = _Sensor(model.cfa_pattern, int(model.black_level_dn), int(model.white_level_dn), model.gain_e_per_dn,
-                     model.read_noise_e / model.gain_e_per_dn, model)  # fmt: skip
+    sensor = _Sensor(
+        model.cfa_pattern,
+        int(model.black_level_dn),
+        int(model.white_level_dn),
+        model.gain_e_per_dn,
+        model.read_noise_e / model.gain_e_per_dn,
+        model,
+    )
     times_s = exposure_times(exposures)
     ctx = _Ctx(sensor, times_s, height, width)
 
@@ -478,17 +529,47 @@ def bench_hdr(positions: int = 66, exposures: int = 5, width: int = 2000, height
             except Exception as exc:  # noqa: BLE001 - a peer failing is a result; ours is not
                 if name in OURS:
                     raise
-                state.failed = f"failed at position {p}: {type(exc).__name__}: {str(exc).strip().splitlines()[0] if str(exc).strip() else ''}"
+                state.failed = (
+                    f"failed at position {p}: {type(exc).__name__}: "
+                    f"{str(exc).strip().splitlines()[0] if str(exc).strip() else ''}"
+                )
         del frames
 
-    return _report(rig=rig, sensor=sensor, scenes=scenes, times_s=times_s, methods=methods, states=states,
-                   positions=positions, repeat=repeat, seed=seed, width=width, height=height, render_s=render_s,
-                   generate_s=generate_s, wall_s=time.perf_counter() - t_start)  # fmt: skip
+    return _report(
+        rig=rig,
+        sensor=sensor,
+        scenes=scenes,
+        times_s=times_s,
+        methods=methods,
+        states=states,
+        positions=positions,
+        repeat=repeat,
+        seed=seed,
+        width=width,
+        height=height,
+        render_s=render_s,
+        generate_s=generate_s,
+        wall_s=time.perf_counter() - t_start,
+    )
 
 
-def _report(*, rig, sensor: _Sensor, scenes: list[_Scene], times_s: np.ndarray, methods: dict, states: dict,
-            positions: int, repeat: int, seed: int, width: int, height: int, render_s: float, generate_s: float,
-            wall_s: float) -> dict:  # fmt: skip
+def _report(
+    *,
+    rig,
+    sensor: _Sensor,
+    scenes: list[_Scene],
+    times_s: np.ndarray,
+    methods: dict,
+    states: dict,
+    positions: int,
+    repeat: int,
+    seed: int,
+    width: int,
+    height: int,
+    render_s: float,
+    generate_s: float,
+    wall_s: float,
+) -> dict:
     used = [scenes[p % len(scenes)] for p in range(positions)]
     n_set = sum(int(s.mask.sum()) for s in used)
     floor = math.sqrt(sum(s.floor_rel_var_sum for s in used) / n_set) if n_set else None
@@ -496,14 +577,28 @@ def _report(*, rig, sensor: _Sensor, scenes: list[_Scene], times_s: np.ndarray, 
     out_methods: dict[str, dict] = {}
     for name, m in methods.items():
         if not isinstance(m, _Method):
-            out_methods[name] = {"status": m, "time_s": None, "ms_per_position": None, "mean_abs_rel_error_pct": None,
-                                 "rms_rel_error_pct": None, "bias_pct": None, "notes": m}  # fmt: skip
+            out_methods[name] = {
+                "status": m,
+                "time_s": None,
+                "ms_per_position": None,
+                "mean_abs_rel_error_pct": None,
+                "rms_rel_error_pct": None,
+                "bias_pct": None,
+                "notes": m,
+            }
             continue
         state = states[name]
         if state.failed:
-            out_methods[name] = {"status": state.failed, "time_s": None, "ms_per_position": None,
-                                 "mean_abs_rel_error_pct": None, "rms_rel_error_pct": None, "bias_pct": None,
-                                 "notes": m.notes, "version": m.version}  # fmt: skip
+            out_methods[name] = {
+                "status": state.failed,
+                "time_s": None,
+                "ms_per_position": None,
+                "mean_abs_rel_error_pct": None,
+                "rms_rel_error_pct": None,
+                "bias_pct": None,
+                "notes": m.notes,
+                "version": m.version,
+            }
             continue
         total = statistics.median(state.times)
         entry = {
@@ -549,14 +644,20 @@ def _report(*, rig, sensor: _Sensor, scenes: list[_Scene], times_s: np.ndarray, 
             "diffraction": rig.simulation.diffraction,
         },
         "sensor": {
-            "cfa_pattern": sensor.cfa_pattern, "black_level_dn": sensor.black, "white_level_dn": sensor.white,
-            "full_well_e": sensor.model.full_well_e, "read_noise_e": sensor.model.read_noise_e,
+            "cfa_pattern": sensor.cfa_pattern,
+            "black_level_dn": sensor.black,
+            "white_level_dn": sensor.white,
+            "full_well_e": sensor.model.full_well_e,
+            "read_noise_e": sensor.model.read_noise_e,
             "gain_e_per_dn": round(sensor.gain, 5),
-        },  # fmt: skip
+        },
         "pixel_set": {
-            "rule": (f"true signal in the shortest exposure + {CLIP_MARGIN_SIGMA:g} sigma below the clipping level, "
-                     f"and >= {MIN_DN_LONGEST:g} DN above black in the longest; not on the frame's outermost rows and columns "
-                     "(HDRutils' bilinear demosaic alters the sampled value there); the same photosites for every method"),  # fmt: skip
+            "rule": (
+                f"true signal in the shortest exposure + {CLIP_MARGIN_SIGMA:g} sigma below the clipping level, "
+                f"and >= {MIN_DN_LONGEST:g} DN above black in the longest; not on the frame's outermost rows "
+                "and columns "
+                "(HDRutils' bilinear demosaic alters the sampled value there); the same photosites for every method"
+            ),
             "pixels_compared": n_set,
             "fraction_of_photosites": round(n_set / (positions * width * height), 4),
             "true_signal_dn_per_s_range": [
@@ -565,15 +666,17 @@ def _report(*, rig, sensor: _Sensor, scenes: list[_Scene], times_s: np.ndarray, 
             ],
             "noise_floor_rms_rel_error_pct": round(100.0 * floor, 4) if floor is not None else None,
             "noise_floor": "RMS relative error of the ideal unbiased merge: weights t^2/sigma^2 from the true "
-                           "signal, over the frames 3 sigma below clipping (photon, read and quantisation noise)",
-        },  # fmt: skip
-        "timing": ("time.perf_counter around each method's call, per position, summed over the positions; "
-                   "time_s is the steady state (the method called on the bracket just after an untimed call of "
-                   "its own on it; the median over repeats), time_s_first_call the call right after the previous "
-                   "method's work (reported, not used for the speed-ups); preparing a peer's input is not timed; "
-                   "one untimed call on the first bracket warms numba's JIT and the peers' imports"),
+            "signal, over the frames 3 sigma below clipping (photon, read and quantisation noise)",
+        },
+        "timing": (
+            "time.perf_counter around each method's call, per position, summed over the positions; "
+            "time_s is the steady state (the method called on the bracket just after an untimed call of "
+            "its own on it; the median over repeats), time_s_first_call the call right after the previous "
+            "method's work (reported, not used for the speed-ups); preparing a peer's input is not timed; "
+            "one untimed call on the first bracket warms numba's JIT and the peers' imports"
+        ),
         "error_definition": "relative error (estimate / truth - 1) per photosite, both in DN/s above black; "
-                            "mean |.|, RMS and mean (bias), in percent",
+        "mean |.|, RMS and mean (bias), in percent",
         "methods": out_methods,
     }
     target_rows = {}
@@ -593,16 +696,20 @@ def _report(*, rig, sensor: _Sensor, scenes: list[_Scene], times_s: np.ndarray, 
 
         target_rows[peer] = {
             "speedup": round(speedup, 2),
-            "speedup_first_call": round((entry["time_s_first_call"] - entry.get("excluded_part_s", 0.0))
-                                        / ours["time_s_first_call"], 2),  # fmt: skip
+            "speedup_first_call": round(
+                (entry["time_s_first_call"] - entry.get("excluded_part_s", 0.0)) / ours["time_s_first_call"], 2
+            ),
             "at_least_3x_faster": speedup >= TARGET_SPEEDUP,
             "error_not_higher": not_worse("mean_abs_rel_error_pct") and not_worse("rms_rel_error_pct"),
         }
-    result["target"] = (f"mirrorgonio_optimal at least {TARGET_SPEEDUP:g}x faster than every peer, with a mean |relative "
-                        "error| and an RMS relative error no higher than the peer's")  # fmt: skip
+    result["target"] = (
+        f"mirrorgonio_optimal at least {TARGET_SPEEDUP:g}x faster than every peer, with a mean |relative "
+        "error| and an RMS relative error no higher than the peer's"
+    )
     result["target_per_peer"] = target_rows
-    result["meets_target"] = (all(r["at_least_3x_faster"] and r["error_not_higher"] for r in target_rows.values())
-                              if target_rows else None)  # fmt: skip
+    result["meets_target"] = (
+        all(r["at_least_3x_faster"] and r["error_not_higher"] for r in target_rows.values()) if target_rows else None
+    )
     result["peers_measured"] = sorted(target_rows)
     result["machine"] = _machine()
     result["render_s"] = round(render_s, 2)
@@ -614,7 +721,12 @@ def _report(*, rig, sensor: _Sensor, scenes: list[_Scene], times_s: np.ndarray, 
 def _machine() -> dict:
     import numba
 
-    info = {"cpu_count": os.cpu_count(), "numba_threads": numba.get_num_threads(), "numpy": np.__version__, "numba": numba.__version__}
+    info = {
+        "cpu_count": os.cpu_count(),
+        "numba_threads": numba.get_num_threads(),
+        "numpy": np.__version__,
+        "numba": numba.__version__,
+    }
     try:
         import cv2
 

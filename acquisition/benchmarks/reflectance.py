@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from acquisition.benchmarks.accuracy import acquire_simulated
-from acquisition.rig import RIGS_DIR
+from drivers.contracts.rig import RIGS_DIR
 
 OBJECT_RIGS = RIGS_DIR
 TARGET = {"median_abs_rel_error": 0.02, "uniform_cv": 0.02}
@@ -38,7 +38,11 @@ OBJECT_EXPOSURES_S = (1.0, 4.0, 16.0)
 def score(rho: np.ndarray, truth: np.ndarray, uniform: np.ndarray) -> dict:
     """Median |ρ − ρ_true|/ρ_true over every channel, and the CV over the uniform region."""
     rel = np.abs(rho - truth) / truth
-    cv = [float(np.std(rho[uniform, c]) / np.mean(rho[uniform, c])) for c in range(rho.shape[1])] if uniform.any() else []
+    cv = (
+        [float(np.std(rho[uniform, c]) / np.mean(rho[uniform, c])) for c in range(rho.shape[1])]
+        if uniform.any()
+        else []
+    )
     return {
         "median_abs_rel_error": round(float(np.median(rel)), 5),
         "p90_abs_rel_error": round(float(np.percentile(rel, 90)), 5),
@@ -48,11 +52,17 @@ def score(rho: np.ndarray, truth: np.ndarray, uniform: np.ndarray) -> dict:
     }
 
 
-def bench_reflectance(*, object_rig: str = "object-vase", truth: str = "five-gaussians", noise: bool = True,
-                      light_positions: int = 66, workdir: str | Path | None = None,
-                      object_exposures=OBJECT_EXPOSURES_S) -> dict:  # fmt: skip
+def bench_reflectance(
+    *,
+    object_rig: str = "object-vase",
+    truth: str = "five-gaussians",
+    noise: bool = True,
+    light_positions: int = 66,
+    workdir: str | Path | None = None,
+    object_exposures=OBJECT_EXPOSURES_S,
+) -> dict:
     """Measure the light, photograph the object, estimate ρ three ways, score each."""
-    from acquisition.rig import load_rig
+    from drivers.contracts.rig import load_rig
     from processing.pipeline import process_run
     from processing.reflectance import reflectance_from_run
     from sim_devices.lights import LIGHTS_DIR
@@ -70,12 +80,26 @@ def bench_reflectance(*, object_rig: str = "object-vase", truth: str = "five-gau
         light_run = acquire_simulated(light_rig, truth, noise, LIGHT_EXPOSURES_S, light_positions, base / "light")
         times["light_acquire_s"] = time.perf_counter() - t0
         t0 = time.perf_counter()
-        light = process_run(light_run, base / "light" / "out", steps=("hdr", "sources"),
-                            layout=LIGHTS_DIR / f"{truth}.toml", noise="rig", units="W/sr")  # fmt: skip
+        light = process_run(
+            light_run,
+            base / "light" / "out",
+            steps=("hdr", "sources"),
+            layout=LIGHTS_DIR / f"{truth}.toml",
+            noise="rig",
+            units="W/sr",
+        )
         times["light_process_s"] = time.perf_counter() - t0
         t0 = time.perf_counter()
-        object_run = acquire_simulated(object_rig_model, truth, noise, object_exposures, None, base / "object",
-                                       preset="object-arc", light_results=str(light.light_model))  # fmt: skip
+        object_run = acquire_simulated(
+            object_rig_model,
+            truth,
+            noise,
+            object_exposures,
+            None,
+            base / "object",
+            preset="object-arc",
+            light_results=str(light.light_model),
+        )
         times["object_acquire_s"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         result = reflectance_from_run(object_run, light.light_model, None, base / "object" / "reflectance")
@@ -93,7 +117,8 @@ def bench_reflectance(*, object_rig: str = "object-vase", truth: str = "five-gau
         methods[method]["uniform_profile_range"] = profile
     measured = methods["measured"]
     meets = measured["median_abs_rel_error"] <= TARGET["median_abs_rel_error"] and (
-        measured["uniform_cv"] is not None and measured["uniform_cv"] <= TARGET["uniform_cv"])  # fmt: skip
+        measured["uniform_cv"] is not None and measured["uniform_cv"] <= TARGET["uniform_cv"]
+    )
     summary = result.summary()
     return {
         "benchmark": "reflectance",

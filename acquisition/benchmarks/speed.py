@@ -40,7 +40,7 @@ The measurements (each at both sizes)
         worker processes) every 50 ms; the peak of the sum is reported, with the peaks of
         this process alone and of the children alone.
     ``read``
-        The input-bound floor: ``acquisition.runfile.RunFile`` opened and every position's
+        The input-bound floor: ``drivers.contracts.runfile.RunFile`` opened and every position's
         frames read (``run.frames(i)``, as each position task does), in one process. The
         run file (LZ4-compressed chunks) is read once untimed so that the page cache holds
         it, then timed: the figure is a warm read (decompression and copies, no disk).
@@ -93,10 +93,14 @@ def rig_at_size(rig, width: int, height: int):
 
 def cache_key(rig, exposures, positions: int) -> str:
     """A short hash of everything that makes a cached run what it is."""
-    from acquisition.rig import rig_to_toml_dict
+    from drivers.contracts.rig import rig_to_toml_dict
 
-    data = {"rig": rig_to_toml_dict(rig), "exposures_s": [float(t) for t in exposures], "positions": int(positions),
-            "format": CACHE_FORMAT}  # fmt: skip
+    data = {
+        "rig": rig_to_toml_dict(rig),
+        "exposures_s": [float(t) for t in exposures],
+        "positions": int(positions),
+        "format": CACHE_FORMAT,
+    }
     return hashlib.sha256(json.dumps(data, sort_keys=True).encode()).hexdigest()[:16]
 
 
@@ -119,12 +123,20 @@ def _acquire_run(rig, exposures, positions: int, workdir: Path) -> Path:
 
     settings = load_settings(None, data_dir=workdir / "data")
     settings.arm.simulated.speed_m_s = math.inf  # the motion is not what is measured here
-    return take_run(settings, rig, RunRequest(count=positions, bracket=FixedBracket(exposures_s=list(exposures)),
-                                              notes="bench speed: cached simulated run"))  # fmt: skip
+    return take_run(
+        settings,
+        rig,
+        RunRequest(
+            count=positions,
+            bracket=FixedBracket(exposures_s=list(exposures)),
+            notes="bench speed: cached simulated run",
+        ),
+    )
 
 
-def simulated_run(rig, exposures=EXPOSURES_S, positions: int = POSITIONS, cache: Path | None = DEFAULT_CACHE,
-                  log=None) -> CachedRun:  # fmt: skip
+def simulated_run(
+    rig, exposures=EXPOSURES_S, positions: int = POSITIONS, cache: Path | None = DEFAULT_CACHE, log=None
+) -> CachedRun:
     """The run file of ``rig``'s sweep: from ``cache`` when it holds one, else made (and kept
     there). ``cache=None``: made in a temporary folder (``CachedRun.temporary``, the caller's
     to delete)."""
@@ -145,8 +157,10 @@ def simulated_run(rig, exposures=EXPOSURES_S, positions: int = POSITIONS, cache:
         run_path, record_path = work / f"speed-{key}.h5", None
     cam = rig.camera
     if log:
-        log(f"making the simulated run {cam.width}x{cam.height}, {positions} positions x {len(exposures)} exposures "
-            f"(rendering each position once; cached as {run_path})")  # fmt: skip
+        log(
+            f"making the simulated run {cam.width}x{cam.height}, {positions} positions x {len(exposures)} exposures "
+            f"(rendering each position once; cached as {run_path})"
+        )
     started = time.perf_counter()
     try:
         made = _acquire_run(rig, exposures, positions, work)
@@ -158,13 +172,20 @@ def simulated_run(rig, exposures=EXPOSURES_S, positions: int = POSITIONS, cache:
     if cache is not None:
         shutil.rmtree(work, ignore_errors=True)
     record = {
-        "key": key, "created_s": round(created_s, 1), "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-        "width": cam.width, "height": cam.height, "pixel_pitch_m": cam.pixel_pitch_m, "positions": positions,
-        "exposures_s": [float(t) for t in exposures], "truth": rig.simulation.truth,
-        "run_file_bytes": run_path.stat().st_size, "load_avg_at_end": [round(v, 2) for v in os.getloadavg()],
+        "key": key,
+        "created_s": round(created_s, 1),
+        "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        "width": cam.width,
+        "height": cam.height,
+        "pixel_pitch_m": cam.pixel_pitch_m,
+        "positions": positions,
+        "exposures_s": [float(t) for t in exposures],
+        "truth": rig.simulation.truth,
+        "run_file_bytes": run_path.stat().st_size,
+        "load_avg_at_end": [round(v, 2) for v in os.getloadavg()],
         "how": "the daemon's run engine with the simulated arm (infinite speed) and camera (one rendering per "
-               "position, every exposure drawn from it, DNG written and decoded)",
-    }  # fmt: skip
+        "position, every exposure drawn from it, DNG written and decoded)",
+    }
     if record_path is not None:
         tmp = record_path.with_suffix(".json.tmp")
         tmp.write_text(json.dumps(record, indent=2))
@@ -246,12 +267,16 @@ class MemorySampler:
 
     def report(self) -> dict:
         gb = 1e9
-        return {"peak_total_gb": round(self.peak_total / gb, 3), "peak_this_process_gb": round(self.peak_self / gb, 3),
-                "peak_children_gb": round(self.peak_children / gb, 3),
-                "this_process_before_gb": round(self.baseline_self / gb, 3),
-                "child_processes": self.max_children, "samples": self.samples,
-                "sampling": f"psutil RSS of this process + all descendants every {1000 * self.interval_s:g} ms; "
-                            "the peak of the sum (shared pages counted per process)"}  # fmt: skip
+        return {
+            "peak_total_gb": round(self.peak_total / gb, 3),
+            "peak_this_process_gb": round(self.peak_self / gb, 3),
+            "peak_children_gb": round(self.peak_children / gb, 3),
+            "this_process_before_gb": round(self.baseline_self / gb, 3),
+            "child_processes": self.max_children,
+            "samples": self.samples,
+            "sampling": f"psutil RSS of this process + all descendants every {1000 * self.interval_s:g} ms; "
+            "the peak of the sum (shared pages counted per process)",
+        }
 
 
 @contextmanager
@@ -272,7 +297,7 @@ def _quiet_dask():
 # --- 5. the read floor ----------------------------------------------------------------------------
 def _read_all(run_path) -> tuple[int, int]:
     """Every complete position's frames, as the processing reads them; (frames, bytes)."""
-    from acquisition.runfile import RunFile
+    from drivers.contracts.runfile import RunFile
 
     frames = nbytes = 0
     with RunFile.open(run_path) as run:
@@ -286,7 +311,7 @@ def _read_all(run_path) -> tuple[int, int]:
 
 def read_position(index: int, run_path: str) -> int:
     """One position's frames read by a Dask task, as a position task opens and reads them."""
-    from acquisition.runfile import RunFile
+    from drivers.contracts.runfile import RunFile
 
     with RunFile.open(run_path) as run:
         return int(run.frames(index).nbytes)
@@ -314,17 +339,17 @@ def measure_read(run_path: Path, repeat: int) -> dict:
         "run_file_bytes": Path(run_path).stat().st_size,
         "mb_per_s": round(nbytes / 1e6 / read_s, 1),
         "ms_per_frame": round(1000 * read_s / frames, 3),
-        "how": "acquisition.runfile.RunFile: every complete position's frames (run.frames(i)) and exposures, "
-               "one process, in order; read once untimed to fill the page cache (first_read_s: that read, "
-               "possibly from disk), then timed warm: read_s is the median of the warm reads (LZ4 decompression "
-               "and copies, no disk)",
-    }  # fmt: skip
+        "how": "drivers.contracts.runfile.RunFile: every complete position's frames (run.frames(i)) and exposures, "
+        "one process, in order; read once untimed to fill the page cache (first_read_s: that read, "
+        "possibly from disk), then timed warm: read_s is the median of the warm reads (LZ4 decompression "
+        "and copies, no disk)",
+    }
     return out
 
 
 def measure_parallel_read(run_path: Path, repeat: int, compute) -> dict:
     """The same reads as position tasks on the processing's cluster (warm)."""
-    from acquisition.runfile import RunFile
+    from drivers.contracts.runfile import RunFile
 
     with RunFile.open(run_path) as run:
         positions = [int(i) for i in run.completed_positions()]
@@ -333,9 +358,12 @@ def measure_parallel_read(run_path: Path, repeat: int, compute) -> dict:
         t0 = time.perf_counter()
         compute.map_unordered(read_position, positions, str(run_path), on_result=lambda *_: None)
         times.append(time.perf_counter() - t0)
-    return {"parallel_read_s": round(_median(times), 3), "parallel_read_s_all": [round(t, 3) for t in times],
-            "parallel_read_how": f"the same reads as position tasks on the processing's cluster ({compute.description}): "
-                                 "each task opens the run file and reads one position's frames; warm"}  # fmt: skip
+    return {
+        "parallel_read_s": round(_median(times), 3),
+        "parallel_read_s_all": [round(t, 3) for t in times],
+        "parallel_read_how": f"the same reads as position tasks on the processing's cluster ({compute.description}): "
+        "each task opens the run file and reads one position's frames; warm",
+    }
 
 
 # --- 4. whole-run processing ----------------------------------------------------------------------
@@ -349,14 +377,25 @@ def _process_once(run_path: Path, layout, compute, *, images: bool = True) -> di
         t0 = time.perf_counter()
         report = process_run(run_path, out_dir, steps=("hdr", "sources"), layout=layout, compute=compute, images=images)
         seconds = time.perf_counter() - t0
-        used = {key: [a - b for a, b in zip(after, before[key])] for key, after in _cpu_usage(compute).items() if key in before}
+        used = {
+            key: [a - b for a, b in zip(after, before[key], strict=True)]
+            for key, after in _cpu_usage(compute).items()
+            if key in before
+        }
         outputs = {kind: len(paths) for kind, paths in report.outputs.items()}
         output_bytes = sum(f.stat().st_size for f in out_dir.rglob("*") if f.is_file())
     finally:
         shutil.rmtree(out_dir, ignore_errors=True)
-    return {"process_s": seconds, "timings": report.timings, "task_stages": report.task_stages, "outputs": outputs,
-            "output_bytes": output_bytes, "positions": report.positions, "estimator": report.estimator,
-            "cpu": used}  # fmt: skip
+    return {
+        "process_s": seconds,
+        "timings": report.timings,
+        "task_stages": report.task_stages,
+        "outputs": outputs,
+        "output_bytes": output_bytes,
+        "positions": report.positions,
+        "estimator": report.estimator,
+        "cpu": used,
+    }
 
 
 def _rusage() -> tuple[float, float, int]:
@@ -378,24 +417,35 @@ def _cpu_report(runs: list[dict]) -> dict:
     the client's and the workers' summed. Faults are worth watching on a VM that hands freed
     memory back to its host: 8 MB written into such pages took 12-20 ms, into reused ones
     2.5 ms (this machine, Firecracker with free page reporting)."""
+
     def median_of(pick) -> float:
         return _median([pick(run["cpu"]) for run in runs])
 
     def workers(cpu: dict, i: int) -> float:
         return sum(v[i] for k, v in cpu.items() if k != "client")
 
-    return {"client_user_s": round(median_of(lambda c: c["client"][0]), 2),
-            "client_system_s": round(median_of(lambda c: c["client"][1]), 2),
-            "client_minor_faults": int(median_of(lambda c: c["client"][2])),
-            "workers_user_s": round(median_of(lambda c: workers(c, 0)), 2),
-            "workers_system_s": round(median_of(lambda c: workers(c, 1)), 2),
-            "workers_minor_faults": int(median_of(lambda c: workers(c, 2))),
-            "how": "getrusage(RUSAGE_SELF) of this process and of each worker (Client.run) before and after each "
-                   "timed processing; medians of the sums"}  # fmt: skip
+    return {
+        "client_user_s": round(median_of(lambda c: c["client"][0]), 2),
+        "client_system_s": round(median_of(lambda c: c["client"][1]), 2),
+        "client_minor_faults": int(median_of(lambda c: c["client"][2])),
+        "workers_user_s": round(median_of(lambda c: workers(c, 0)), 2),
+        "workers_system_s": round(median_of(lambda c: workers(c, 1)), 2),
+        "workers_minor_faults": int(median_of(lambda c: workers(c, 2))),
+        "how": "getrusage(RUSAGE_SELF) of this process and of each worker (Client.run) before and after each "
+        "timed processing; medians of the sums",
+    }
 
 
-def measure_process(run_path: Path, rig, repeat: int, scheduler: str, workers: int | None, read_floor_s: float,
-                    log=None, parallel_read_repeat: int = 3) -> dict:  # fmt: skip
+def measure_process(
+    run_path: Path,
+    rig,
+    repeat: int,
+    scheduler: str,
+    workers: int | None,
+    read_floor_s: float,
+    log=None,
+    parallel_read_repeat: int = 3,
+) -> dict:
     """Whole-run processing as a lab's processing runs it: on a cluster that is up (the
     ``worker`` daemon keeps one; ``process A.h5 B.h5 ...`` keeps one for its runs), warm
     (one untimed processing first, as the read floor is read once untimed), ``repeat`` times
@@ -424,8 +474,11 @@ def measure_process(run_path: Path, rig, repeat: int, scheduler: str, workers: i
                 # by ~10 % within minutes, and each processing is set against the floor of its moment.
                 paired_reads.append(_timed_read(run_path))
                 runs.append(_process_once(run_path, layout, compute))
-                say(f"  processed in {runs[-1]['process_s']:.1f} s ({runs[-1]['process_s'] / paired_reads[-1]:.2f}x the "
-                    f"read just before it, {paired_reads[-1]:.2f} s); stages {runs[-1]['timings']}")  # fmt: skip
+                say(
+                    f"  processed in {runs[-1]['process_s']:.1f} s "
+                    f"({runs[-1]['process_s'] / paired_reads[-1]:.2f}x the "
+                    f"read just before it, {paired_reads[-1]:.2f} s); stages {runs[-1]['timings']}"
+                )
             without_images = _process_once(run_path, layout, compute, images=False)
             if compute.dask:  # the reads alone on the same cluster, its workers warm
                 parallel_read = measure_parallel_read(run_path, parallel_read_repeat, compute)
@@ -454,8 +507,8 @@ def measure_process(run_path: Path, rig, repeat: int, scheduler: str, workers: i
     memory_report = memory.report()
     median_run = sorted(runs, key=lambda run: run["process_s"])[len(runs) // 2]
     positions = median_run["positions"]
-    ratio = (lambda seconds: round(seconds / read_floor_s, 2) if read_floor_s > 0 else None)  # noqa: E731
-    paired = [run / read for run, read in zip(times, paired_reads) if read > 0]
+    ratio = lambda seconds: round(seconds / read_floor_s, 2) if read_floor_s > 0 else None  # noqa: E731
+    paired = [run / read for run, read in zip(times, paired_reads, strict=True) if read > 0]
     out = {
         "process_s": round(process_s, 2),
         "process_s_all": [round(t, 2) for t in times],
@@ -484,20 +537,20 @@ def measure_process(run_path: Path, rig, repeat: int, scheduler: str, workers: i
         "process_s_without_images": round(without_images["process_s"], 2),
         "without_images_over_read_floor": ratio(without_images["process_s"]),
         "how": "processing.pipeline.process_run(run, out, steps=('hdr', 'sources'), layout=<the truth's layout>, "
-               "compute=<open_compute(scheduler)>): noise model estimated (the default), per position the merge, "
-               "an OpenEXR and a PNG, the chief rays, templates and unmixing; then the fits, the light model, IES, "
-               "LDT, TM-25 and the HTML report. One cluster, started and warmed as `process` and `worker` start it "
-               "(cluster_start_s, not in the times); one untimed processing first (first_process_s: this process's "
-               "imports, the workers' first tasks), as the read floor is read once untimed; process_s is the median "
-               "of the next process_s_all, on the same cluster, each into a fresh folder under /tmp deleted "
-               "afterwards. process_s_without_images: one more on it without the per-position OpenEXR and PNG "
-               "(`process --no-images`). process_s_fresh_cluster: one processing on a cluster started for it alone "
-               "(as one `mirrorgonio process RUN.h5` call; its start, fresh_cluster_start_s, apart). Peak memory over "
-               "all of these. over_read_floor: the median over the timed processings of each one's time over a warm "
-               "read of the floor made just before it (paired_read_s_all, the cluster idle), as the host drifts by "
-               "~10 % within minutes; over_separate_read_floor: process_s over the read floor measured apart, "
-               "before (read.read_s), against which the other ratios are taken.",
-    }  # fmt: skip
+        "compute=<open_compute(scheduler)>): noise model estimated (the default), per position the merge, "
+        "an OpenEXR and a PNG, the chief rays, templates and unmixing; then the fits, the light model, IES, "
+        "LDT, TM-25 and the HTML report. One cluster, started and warmed as `process` and `worker` start it "
+        "(cluster_start_s, not in the times); one untimed processing first (first_process_s: this process's "
+        "imports, the workers' first tasks), as the read floor is read once untimed; process_s is the median "
+        "of the next process_s_all, on the same cluster, each into a fresh folder under /tmp deleted "
+        "afterwards. process_s_without_images: one more on it without the per-position OpenEXR and PNG "
+        "(`process --no-images`). process_s_fresh_cluster: one processing on a cluster started for it alone "
+        "(as one `mirrorgonio process RUN.h5` call; its start, fresh_cluster_start_s, apart). Peak memory over "
+        "all of these. over_read_floor: the median over the timed processings of each one's time over a warm "
+        "read of the floor made just before it (paired_read_s_all, the cluster idle), as the host drifts by "
+        "~10 % within minutes; over_separate_read_floor: process_s over the read floor measured apart, "
+        "before (read.read_s), against which the other ratios are taken.",
+    }
     if parallel_read is not None:
         out.update(parallel_read)
         out["over_parallel_read"] = round(process_s / parallel_read["parallel_read_s"], 2)
@@ -506,7 +559,7 @@ def measure_process(run_path: Path, rig, repeat: int, scheduler: str, workers: i
 
 # --- 3. chief rays ----------------------------------------------------------------------------------
 def measure_trace(run_path: Path, repeat: int, block_pixels: int = 1 << 20) -> dict:
-    from acquisition.runfile import RunFile
+    from drivers.contracts.runfile import RunFile
     from processing.trace import RigGeometry, light_pose_at, trace_pixels
 
     with RunFile.open(run_path) as run:
@@ -520,10 +573,14 @@ def measure_trace(run_path: Path, repeat: int, block_pixels: int = 1 << 20) -> d
     rows_per_block = max(1, block_pixels // width)
     col_row = np.arange(width, dtype=float)
     first = min(height, rows_per_block)  # untimed: imports, the first touch of a block's memory
-    trace_pixels(geometry, light, np.broadcast_to(col_row, (first, width)),
-                 np.broadcast_to(np.arange(first, dtype=float)[:, None], (first, width)))  # fmt: skip
+    trace_pixels(
+        geometry,
+        light,
+        np.broadcast_to(col_row, (first, width)),
+        np.broadcast_to(np.arange(first, dtype=float)[:, None], (first, width)),
+    )
     times, hits, valid = [], 0, 0
-    for r in range(repeat):
+    for _ in range(repeat):
         hits = valid = 0
         t0 = time.perf_counter()
         for r0 in range(0, height, rows_per_block):
@@ -544,15 +601,15 @@ def measure_trace(run_path: Path, repeat: int, block_pixels: int = 1 << 20) -> d
         "rays_reaching_light_plane": valid,
         "position": middle,
         "how": f"processing.trace.trace_pixels: the chief ray of every photosite of the frame (ball or not) to the "
-               f"light plane at the middle position, in blocks of {rows_per_block} rows (~{rows_per_block * width} "
-               "rays, memory bounded), one process (numpy); one untimed block first; median over repeats",
-    }  # fmt: skip
+        f"light plane at the middle position, in blocks of {rows_per_block} rows (~{rows_per_block * width} "
+        "rays, memory bounded), one process (numpy); one untimed block first; median over repeats",
+    }
 
 
 # --- 2. HDR merge next to its peers, on the run's own brackets -----------------------------------
 def measure_hdr(run_path: Path, positions: int, repeat: int, peers: bool = True) -> dict:
     from acquisition.benchmarks.hdr import _colour_hdri, _Ctx, _hdrutils, _ours, _Sensor
-    from acquisition.runfile import RunFile
+    from drivers.contracts.runfile import RunFile
 
     with RunFile.open(run_path) as run:
         cam = run.header.rig.camera
@@ -616,17 +673,24 @@ def measure_hdr(run_path: Path, positions: int, repeat: int, peers: bool = True)
             continue
         # Per repeat: the method's own time (HDRutils: its call minus the demosaic timed apart).
         own = [max(t - x, 0.0) for t, x in zip(times[name], excluded[name], strict=True)]
-        entry = {"status": "ok", "ms_per_position": round(1000 * _median(own) / n, 2),
-                 "ms_per_position_all": [round(1000 * t / n, 2) for t in own], "version": m.version,
-                 "notes": m.notes}  # fmt: skip
+        entry = {
+            "status": "ok",
+            "ms_per_position": round(1000 * _median(own) / n, 2),
+            "ms_per_position_all": [round(1000 * t / n, 2) for t in own],
+            "version": m.version,
+            "notes": m.notes,
+        }
         if m.excluded:
             entry["ms_per_position_full_call"] = round(1000 * _median(times[name]) / n, 2)
             entry["excluded_part"] = m.excluded_what
             entry["excluded_ms_per_position"] = round(1000 * _median(excluded[name]) / n, 2)
         out_methods[name] = entry
     ours = out_methods["mirrorgonio"]["ms_per_position"]
-    speedups = {name: (round(e["ms_per_position"] / ours, 2) if e.get("ms_per_position") and ours else None)
-                for name, e in out_methods.items() if name != "mirrorgonio"}  # fmt: skip
+    speedups = {
+        name: (round(e["ms_per_position"] / ours, 2) if e.get("ms_per_position") and ours else None)
+        for name, e in out_methods.items()
+        if name != "mirrorgonio"
+    }
     import numba
 
     return {
@@ -636,13 +700,13 @@ def measure_hdr(run_path: Path, positions: int, repeat: int, peers: bool = True)
         "speedup_vs": speedups,
         "numba_threads": numba.get_num_threads(),
         "how": "the run's own brackets read from the run file (untimed); per method one untimed call on the first "
-               "bracket, then every bracket merged `repeat` times; ms_per_position is the median over repeats of "
-               "the total over the positions, divided by their number. mirrorgonio: processing.hdr.merge_raw "
-               "(method optimal, the rig's noise model; numba, this process's threads). HDRutils: its merge only "
-               "(the bilinear demosaic its call always runs is timed apart and subtracted, in its favour); "
-               "colour-hdri: image_stack_to_HDRI. The peers' inputs are prepared untimed as in `bench hdr` "
-               "(acquisition/benchmarks/hdr.py); errors against the truth are `bench hdr`'s subject, not this one's",
-    }  # fmt: skip
+        "bracket, then every bracket merged `repeat` times; ms_per_position is the median over repeats of "
+        "the total over the positions, divided by their number. mirrorgonio: processing.hdr.merge_raw "
+        "(method optimal, the rig's noise model; numba, this process's threads). HDRutils: its merge only "
+        "(the bilinear demosaic its call always runs is timed apart and subtracted, in its favour); "
+        "colour-hdri: image_stack_to_HDRI. The peers' inputs are prepared untimed as in `bench hdr` "
+        "(acquisition/benchmarks/hdr.py); errors against the truth are `bench hdr`'s subject, not this one's",
+    }
 
 
 # --- 1. acquisition overhead ---------------------------------------------------------------------
@@ -670,15 +734,17 @@ def measure_acquire(run_path: Path, repeat: int, distinct_positions: int = 4) ->
     from acquisition.benchmarks.acquire import _plain_h5py_write, timed_engine_run, zero_latency_arm
     from acquisition.devices import Devices
     from acquisition.models import FixedBracket, RunRequest
-    from acquisition.runfile import RunFile
     from acquisition.settings import load_settings
+    from drivers.contracts.runfile import RunFile
     from sim_devices.replay_camera import ReplayCamera
 
     with RunFile.open(run_path) as run:
         rig = run.header.rig
         done = run.completed_positions()
         exposures = [float(t) for t in run.exposures(int(done[0]))]
-        picks = sorted({int(done[int(k)]) for k in np.linspace(0, done.size - 1, min(distinct_positions, done.size)).round()})
+        picks = sorted(
+            {int(done[int(k)]) for k in np.linspace(0, done.size - 1, min(distinct_positions, done.size)).round()}
+        )
         frames = [run.frame(i, k) for i in picks for k in range(len(exposures))]
         positions = int(done.size)
     total = positions * len(exposures)
@@ -715,13 +781,13 @@ def measure_acquire(run_path: Path, repeat: int, distinct_positions: int = 4) ->
         "engine_over_plain_throughput": round(plain_s / engine_s, 3),
         "run_file_bytes": file_bytes,
         "how": "the daemon's run engine (acquisition.runner.RunEngine: catalog, run file, writer thread) takes a full "
-               "run with the simulated arm at infinite speed over Modbus on loopback and a zero-latency camera that "
-               f"hands back {len(frames)} frames of the cached run in turn (acquisition/benchmarks/acquire.py's "
-               "set-up); camera_capture_ms_per_frame is the camera's capture calls alone, timed inside the run; "
-               "overhead_ms_per_frame = (run time - capture time) / frames: what the daemon adds per frame (moves, "
-               "checks, LZ4 compression and the HDF5 write, catalog updates). plain_h5py: the same frames written "
-               "into one dataset with the same chunks and filter, as a floor",
-    }  # fmt: skip
+        "run with the simulated arm at infinite speed over Modbus on loopback and a zero-latency camera that "
+        f"hands back {len(frames)} frames of the cached run in turn (acquisition/benchmarks/acquire.py's "
+        "set-up); camera_capture_ms_per_frame is the camera's capture calls alone, timed inside the run; "
+        "overhead_ms_per_frame = (run time - capture time) / frames: what the daemon adds per frame (moves, "
+        "checks, LZ4 compression and the HDF5 write, catalog updates). plain_h5py: the same frames written "
+        "into one dataset with the same chunks and filter, as a floor",
+    }
 
 
 # --- the benchmark ---------------------------------------------------------------------------------
@@ -736,10 +802,21 @@ def parse_size(text: str) -> tuple[int, int]:
     return w, h
 
 
-def bench_speed(*, rig_path=None, sizes=SIZES, positions: int = POSITIONS, exposures: int = len(EXPOSURES_S),
-                repeat: int = 3, process_repeat: int = 3, hdr_positions: int = 8, peers: bool = True,
-                scheduler: str = "local", workers: int | None = None, cache: Path | None = DEFAULT_CACHE,
-                log=None) -> dict:  # fmt: skip
+def bench_speed(
+    *,
+    rig_path=None,
+    sizes=SIZES,
+    positions: int = POSITIONS,
+    exposures: int = len(EXPOSURES_S),
+    repeat: int = 3,
+    process_repeat: int = 3,
+    hdr_positions: int = 8,
+    peers: bool = True,
+    scheduler: str = "local",
+    workers: int | None = None,
+    cache: Path | None = DEFAULT_CACHE,
+    log=None,
+) -> dict:
     """Measure the chain at every size in ``sizes``; see the module's description."""
     if not 1 <= exposures <= len(EXPOSURES_S):
         raise SpeedBenchError(f"--exposures: must be between 1 and {len(EXPOSURES_S)}, got {exposures}")
@@ -748,12 +825,14 @@ def bench_speed(*, rig_path=None, sizes=SIZES, positions: int = POSITIONS, expos
     for name, value in (("repeat", repeat), ("process-repeat", process_repeat), ("hdr-positions", hdr_positions)):
         if value < 1:
             raise SpeedBenchError(f"--{name}: must be at least 1, got {value}")
-    from acquisition import __version__
-    from acquisition.rig import load_rig
+    from drivers.contracts.rig import load_rig
+    from drivers.contracts.version import __version__
 
     base = load_rig(rig_path)
     if positions > len(base.tool_poses()):
-        raise SpeedBenchError(f"--positions: the rig's schedule has {len(base.tool_poses())} positions, not {positions}")
+        raise SpeedBenchError(
+            f"--positions: the rig's schedule has {len(base.tool_poses())} positions, not {positions}"
+        )
     bracket = EXPOSURES_S[:exposures]
     started = time.perf_counter()
     say = log or (lambda _message: None)
@@ -777,8 +856,17 @@ def bench_speed(*, rig_path=None, sizes=SIZES, positions: int = POSITIONS, expos
         for width, height in sizes:
             rig = rig_at_size(base, width, height)
             runs[(width, height)] = (rig, simulated_run(rig, bracket, positions, cache, log=say))
-        _measure(runs, result, repeat=repeat, process_repeat=process_repeat, hdr_positions=hdr_positions, peers=peers,
-                 scheduler=scheduler, workers=workers, say=say)  # fmt: skip
+        _measure(
+            runs,
+            result,
+            repeat=repeat,
+            process_repeat=process_repeat,
+            hdr_positions=hdr_positions,
+            peers=peers,
+            scheduler=scheduler,
+            workers=workers,
+            say=say,
+        )
     finally:
         for _rig, made in runs.values():
             if made.temporary is not None:
@@ -790,20 +878,40 @@ def bench_speed(*, rig_path=None, sizes=SIZES, positions: int = POSITIONS, expos
     return result
 
 
-def _measure(runs: dict, result: dict, *, repeat, process_repeat, hdr_positions, peers, scheduler, workers, say) -> None:
+def _measure(
+    runs: dict, result: dict, *, repeat, process_repeat, hdr_positions, peers, scheduler, workers, say
+) -> None:
     for (width, height), (rig, made) in runs.items():
         label = f"{width}x{height}"
-        entry: dict = {"width": width, "height": height, "pixel_pitch_um": round(rig.camera.pixel_pitch_m * 1e6, 4),
-                       "load_avg_before": _load(),
-                       "run": {"file": str(made.path), "bytes": made.path.stat().st_size, "from_cache": made.from_cache,
-                               "created_s": round(made.created_s, 1), "cache_key": made.key,
-                               "created_utc": made.record.get("created_utc"),
-                               "load_avg_when_made": made.record.get("load_avg_at_end"), "how": made.record.get("how")}}  # fmt: skip
+        entry: dict = {
+            "width": width,
+            "height": height,
+            "pixel_pitch_um": round(rig.camera.pixel_pitch_m * 1e6, 4),
+            "load_avg_before": _load(),
+            "run": {
+                "file": str(made.path),
+                "bytes": made.path.stat().st_size,
+                "from_cache": made.from_cache,
+                "created_s": round(made.created_s, 1),
+                "cache_key": made.key,
+                "created_utc": made.record.get("created_utc"),
+                "load_avg_when_made": made.record.get("load_avg_at_end"),
+                "how": made.record.get("how"),
+            },
+        }
         say(f"{label}: read floor")
         entry["read"] = measure_read(made.path, repeat)
         say(f"{label}: whole-run processing ({scheduler})")
-        entry["process"] = measure_process(made.path, rig, process_repeat, scheduler, workers, entry["read"]["read_s"],
-                                           log=say, parallel_read_repeat=repeat)  # fmt: skip
+        entry["process"] = measure_process(
+            made.path,
+            rig,
+            process_repeat,
+            scheduler,
+            workers,
+            entry["read"]["read_s"],
+            log=say,
+            parallel_read_repeat=repeat,
+        )
         say(f"{label}: chief rays")
         entry["trace"] = measure_trace(made.path, repeat)
         say(f"{label}: HDR merge" + (" next to HDRutils and colour-hdri" if peers else ""))
@@ -816,19 +924,33 @@ def _measure(runs: dict, result: dict, *, repeat, process_repeat, hdr_positions,
 
 def _target(result: dict) -> dict:
     w, h = TARGET["size"]
-    out = {"what": f"a full {POSITIONS}-position x 5-exposure run at {w}x{h} processed in <= {TARGET['process_s']:g} s "
-                   f"on this machine, within {TARGET['over_read_floor']:g}x of the read floor, under "
-                   f"{TARGET['peak_memory_gb']:g} GB"}  # fmt: skip
+    out = {
+        "what": f"a full {POSITIONS}-position x 5-exposure run at {w}x{h} processed in <= {TARGET['process_s']:g} s "
+        f"on this machine, within {TARGET['over_read_floor']:g}x of the read floor, under "
+        f"{TARGET['peak_memory_gb']:g} GB"
+    }
     entry = result["sizes"].get(f"{w}x{h}")
     if entry is None or result["positions"] != POSITIONS or len(result["exposures_s"]) != 5:
-        out.update(measured=False, meets_target=None, note=f"not measured: needs the {w}x{h} size, {POSITIONS} positions and 5 exposures")
+        out.update(
+            measured=False,
+            meets_target=None,
+            note=f"not measured: needs the {w}x{h} size, {POSITIONS} positions and 5 exposures",
+        )
         return out
     p = entry["process"]
-    checks = {"process_s": p["process_s"] <= TARGET["process_s"],
-              "over_read_floor": p["over_read_floor"] is not None and p["over_read_floor"] <= TARGET["over_read_floor"],
-              "peak_memory_gb": p["peak_memory_gb"] < TARGET["peak_memory_gb"]}  # fmt: skip
-    out.update(measured=True, process_s=p["process_s"], over_read_floor=p["over_read_floor"],
-               peak_memory_gb=p["peak_memory_gb"], checks=checks, meets_target=all(checks.values()))  # fmt: skip
+    checks = {
+        "process_s": p["process_s"] <= TARGET["process_s"],
+        "over_read_floor": p["over_read_floor"] is not None and p["over_read_floor"] <= TARGET["over_read_floor"],
+        "peak_memory_gb": p["peak_memory_gb"] < TARGET["peak_memory_gb"],
+    }
+    out.update(
+        measured=True,
+        process_s=p["process_s"],
+        over_read_floor=p["over_read_floor"],
+        peak_memory_gb=p["peak_memory_gb"],
+        checks=checks,
+        meets_target=all(checks.values()),
+    )
     return out
 
 
@@ -858,48 +980,127 @@ def markdown_table(result: dict) -> str:
     def peer(e, name):
         m = e["hdr"]["methods"].get(name, {})
         x = e["hdr"]["speedup_vs"].get(name)
-        return f"{name} {m['ms_per_position']:.0f} ms ({x:.1f}×)" if m.get("ms_per_position") and x else f"{name}: {m.get('status', 'n/a')}"  # fmt: skip
+        return (
+            f"{name} {m['ms_per_position']:.0f} ms ({x:.1f}×)"
+            if m.get("ms_per_position") and x
+            else f"{name}: {m.get('status', 'n/a')}"
+        )
 
     rows = [
-        ("acquisition: daemon's run engine, zero-latency devices, per frame",
-         [f"{e['acquire']['overhead_ms_per_frame']:.1f} ms over the camera's {e['acquire']['camera_capture_ms_per_frame']:.2f} ms; "
-          f"{e['acquire']['engine_over_plain_throughput']:.2f}× a plain h5py write's throughput" for e in entries], ""),
-        ("HDR merge per position (same brackets; × = our speed-up)",
-         [f"{e['hdr']['methods']['mirrorgonio']['ms_per_position']:.0f} ms; " + ", ".join(peer(e, p) for p in ("hdrutils", "colour_hdri"))
-          for e in entries], ""),
-        ("chief rays traced (full frame, one process)",
-         [f"{_fmt_rate(e['trace']['rays_per_s'])} ({_fmt_s(e['trace']['trace_s'])} per frame)" for e in entries], ""),
-        (f"read floor: every frame of the {n_pos} × {n_exp} run, warm page cache",
-         [f"{_fmt_s(e['read']['read_s'])} one process ({e['read']['mb_per_s']:.0f} MB/s)"
-          + (f"; {_fmt_s(e['process']['parallel_read_s'])} as tasks on the cluster" if "parallel_read_s" in e["process"] else "")
-          for e in entries], ""),
-        (f"whole-run processing, {n_pos} × {n_exp} (hdr + sources + outputs), on a cluster that is up, warm",
-         [f"{_fmt_s(e['process']['process_s'])} ({e['process']['over_read_floor']:.2f}× the read floor read just before "
-          f"each, {_spread(e['process']['over_read_floor_all'])}; {e['process']['over_separate_read_floor']:.2f}× the one "
-          f"above)" for e in entries],
-         f"≤ {TARGET['process_s']:g} s and ≤ {TARGET['over_read_floor']:g}× the read floor at 2000×1312"),
-        ("the same on a cluster started for it alone (one `mirrorgonio process RUN.h5`)",
-         [f"{_fmt_s(e['process']['process_s_fresh_cluster'])} ({e['process']['fresh_cluster_over_read_floor']:.1f}×) "
-          f"+ {_fmt_s(e['process']['fresh_cluster_start_s'])} to start it" for e in entries], ""),
-        ("the first processing on the cluster (untimed above: this process's imports)",
-         [_fmt_s(e["process"]["first_process_s"]) for e in entries], ""),
-        ("the same without the per-position EXR and PNG (`--no-images`, one run)",
-         [f"{_fmt_s(e['process']['process_s_without_images'])} ({e['process']['without_images_over_read_floor']:.1f}× the read floor)"
-          for e in entries], ""),
-        ("a position task's time, per position (read, merge, encode, write, images, masks, sources)",
-         [" + ".join(f"{e['process']['task_ms_per_position'].get(k, 0):.0f}" for k in ("read", "merge", "encode", "write", "images", "masks", "sources"))
-          + f" = {e['process']['task_ms_per_position'].get('tasks', 0):.0f} ms" for e in entries], ""),
-        ("CPU per processing: user + system seconds, minor page faults (this process; workers)",
-         [f"{c['client_user_s']:.1f} + {c['client_system_s']:.1f} s, {c['client_minor_faults'] / 1e3:.1f} k; "
-          f"{c['workers_user_s']:.1f} + {c['workers_system_s']:.1f} s, {c['workers_minor_faults'] / 1e3:.1f} k"
-          for c in (e["process"]["cpu_per_processing"] for e in entries)], ""),
-        ("peak memory of the processing (this process + workers)",
-         [f"{e['process']['peak_memory_gb']:.2f} GB" for e in entries], f"< {TARGET['peak_memory_gb']:g} GB at 2000×1312"),
-        ("making the simulated run (once, cached)",
-         [f"{_fmt_s(e['run']['created_s'])} ({e['run']['bytes'] / 1e6:.0f} MB file"
-          + (f"; load {e['run']['load_avg_when_made'][0]:.1f} when made" if e["run"].get("load_avg_when_made") else "") + ")"
-          for e in entries], ""),
-    ]  # fmt: skip
+        (
+            "acquisition: daemon's run engine, zero-latency devices, per frame",
+            [
+                f"{e['acquire']['overhead_ms_per_frame']:.1f} ms over the camera's "
+                f"{e['acquire']['camera_capture_ms_per_frame']:.2f} ms; "
+                f"{e['acquire']['engine_over_plain_throughput']:.2f}× a plain h5py write's throughput"
+                for e in entries
+            ],
+            "",
+        ),
+        (
+            "HDR merge per position (same brackets; × = our speed-up)",
+            [
+                f"{e['hdr']['methods']['mirrorgonio']['ms_per_position']:.0f} ms; "
+                + ", ".join(peer(e, p) for p in ("hdrutils", "colour_hdri"))
+                for e in entries
+            ],
+            "",
+        ),
+        (
+            "chief rays traced (full frame, one process)",
+            [f"{_fmt_rate(e['trace']['rays_per_s'])} ({_fmt_s(e['trace']['trace_s'])} per frame)" for e in entries],
+            "",
+        ),
+        (
+            f"read floor: every frame of the {n_pos} × {n_exp} run, warm page cache",
+            [
+                f"{_fmt_s(e['read']['read_s'])} one process ({e['read']['mb_per_s']:.0f} MB/s)"
+                + (
+                    f"; {_fmt_s(e['process']['parallel_read_s'])} as tasks on the cluster"
+                    if "parallel_read_s" in e["process"]
+                    else ""
+                )
+                for e in entries
+            ],
+            "",
+        ),
+        (
+            f"whole-run processing, {n_pos} × {n_exp} (hdr + sources + outputs), on a cluster that is up, warm",
+            [
+                f"{_fmt_s(e['process']['process_s'])} ({e['process']['over_read_floor']:.2f}× the read floor "
+                "read just before "
+                f"each, {_spread(e['process']['over_read_floor_all'])}; "
+                f"{e['process']['over_separate_read_floor']:.2f}× the one "
+                f"above)"
+                for e in entries
+            ],
+            f"≤ {TARGET['process_s']:g} s and ≤ {TARGET['over_read_floor']:g}× the read floor at 2000×1312",
+        ),
+        (
+            "the same on a cluster started for it alone (one `mirrorgonio process RUN.h5`)",
+            [
+                f"{_fmt_s(e['process']['process_s_fresh_cluster'])} "
+                f"({e['process']['fresh_cluster_over_read_floor']:.1f}×) "
+                f"+ {_fmt_s(e['process']['fresh_cluster_start_s'])} to start it"
+                for e in entries
+            ],
+            "",
+        ),
+        (
+            "the first processing on the cluster (untimed above: this process's imports)",
+            [_fmt_s(e["process"]["first_process_s"]) for e in entries],
+            "",
+        ),
+        (
+            "the same without the per-position EXR and PNG (`--no-images`, one run)",
+            [
+                f"{_fmt_s(e['process']['process_s_without_images'])} "
+                f"({e['process']['without_images_over_read_floor']:.1f}× the read floor)"
+                for e in entries
+            ],
+            "",
+        ),
+        (
+            "a position task's time, per position (read, merge, encode, write, images, masks, sources)",
+            [
+                " + ".join(
+                    f"{e['process']['task_ms_per_position'].get(k, 0):.0f}"
+                    for k in ("read", "merge", "encode", "write", "images", "masks", "sources")
+                )
+                + f" = {e['process']['task_ms_per_position'].get('tasks', 0):.0f} ms"
+                for e in entries
+            ],
+            "",
+        ),
+        (
+            "CPU per processing: user + system seconds, minor page faults (this process; workers)",
+            [
+                f"{c['client_user_s']:.1f} + {c['client_system_s']:.1f} s, {c['client_minor_faults'] / 1e3:.1f} k; "
+                f"{c['workers_user_s']:.1f} + {c['workers_system_s']:.1f} s, {c['workers_minor_faults'] / 1e3:.1f} k"
+                for c in (e["process"]["cpu_per_processing"] for e in entries)
+            ],
+            "",
+        ),
+        (
+            "peak memory of the processing (this process + workers)",
+            [f"{e['process']['peak_memory_gb']:.2f} GB" for e in entries],
+            f"< {TARGET['peak_memory_gb']:g} GB at 2000×1312",
+        ),
+        (
+            "making the simulated run (once, cached)",
+            [
+                f"{_fmt_s(e['run']['created_s'])} ({e['run']['bytes'] / 1e6:.0f} MB file"
+                + (
+                    f"; load {e['run']['load_avg_when_made'][0]:.1f} when made"
+                    if e["run"].get("load_avg_when_made")
+                    else ""
+                )
+                + ")"
+                for e in entries
+            ],
+            "",
+        ),
+    ]
     target = result.get("target", {})
     verdict = {True: "met", False: "not met", None: "not measured"}[target.get("meets_target")]
     head = "| `bench speed` | " + " | ".join(k.replace("x", "×") for k in labels) + " | target |"
@@ -908,10 +1109,18 @@ def markdown_table(result: dict) -> str:
         lines.append(f"| {name} | " + " | ".join(cells) + f" | {goal} |")
     loads = ", ".join(f"{e['load_avg_before'][0]:.1f}–{e['load_avg_after'][0]:.1f}" for e in entries)
     lines.append("")
-    lines.append(f"Target ({target.get('what', '')}): **{verdict}**"
-                 + (f" — {', '.join(k for k, v in target['checks'].items() if not v)} missed" if target.get("checks") and not target.get("meets_target") else "")
-                 + f". {result['process_repeat']} timed processing run(s) per size after an untimed one, other medians over {result['repeat']}; "
-                 f"1-minute load average {loads} on {result['machine']['cpu_count']} cores; {result['sizes'][labels[0]]['process']['compute'] if labels else ''}.")  # fmt: skip
+    lines.append(
+        f"Target ({target.get('what', '')}): **{verdict}**"
+        + (
+            f" — {', '.join(k for k, v in target['checks'].items() if not v)} missed"
+            if target.get("checks") and not target.get("meets_target")
+            else ""
+        )
+        + f". {result['process_repeat']} timed processing run(s) per size after an untimed one, other medians "
+        f"over {result['repeat']}; "
+        f"1-minute load average {loads} on {result['machine']['cpu_count']} cores; "
+        f"{result['sizes'][labels[0]]['process']['compute'] if labels else ''}."
+    )
     return "\n".join(lines)
 
 
@@ -920,5 +1129,9 @@ def _machine() -> dict:
 
     import psutil
 
-    return {"cpu_count": os.cpu_count(), "memory_gb": round(psutil.virtual_memory().total / 1e9, 1),
-            "python": platform.python_version(), "numpy": np.__version__}  # fmt: skip
+    return {
+        "cpu_count": os.cpu_count(),
+        "memory_gb": round(psutil.virtual_memory().total / 1e9, 1),
+        "python": platform.python_version(),
+        "numpy": np.__version__,
+    }

@@ -35,8 +35,16 @@ ERROR_PARTS: dict[str, tuple[str, int | None, bool]] = {
 #: The errors tried by default. Sizes a lab can plausibly get wrong: a 0.2 mm pinhole drilled or
 #: measured 10 % off, the sensor distance of a camera without a datasheet, the ball placed by eye,
 #: the light's mount measured with a rule.
-DEFAULT_ERRORS = ("pinhole+10%", "pinhole-10%", "sensor-distance+1%", "ball-x+0.2mm", "ball-z+0.2mm",
-                  "ball-radius+0.1mm", "light-x+0.2mm", "light-z+0.5mm")  # fmt: skip
+DEFAULT_ERRORS = (
+    "pinhole+10%",
+    "pinhole-10%",
+    "sensor-distance+1%",
+    "ball-x+0.2mm",
+    "ball-z+0.2mm",
+    "ball-radius+0.1mm",
+    "light-x+0.2mm",
+    "light-z+0.5mm",
+)
 _ERROR_SYNTAX = re.compile(r"(?P<part>[a-z-]+?)(?P<sign>[+-])(?P<size>\d+(?:\.\d+)?)(?P<unit>%|mm|um|µm)")
 _METRES = {"mm": 1e-3, "um": 1e-6, "µm": 1e-6}
 
@@ -66,8 +74,10 @@ def parse_error(name: str) -> RigError:
     ValueError
         One line naming the error and what an error looks like.
     """
-    syntax = (f"PART±SIZE, PART one of {', '.join(ERROR_PARTS)}, SIZE in mm or um (or % of pinhole, "
-              f"sensor-distance, ball-radius), e.g. pinhole+10%, ball-x-20um")  # fmt: skip
+    syntax = (
+        f"PART±SIZE, PART one of {', '.join(ERROR_PARTS)}, SIZE in mm or um (or % of pinhole, "
+        f"sensor-distance, ball-radius), e.g. pinhole+10%, ball-x-20um"
+    )
     match = _ERROR_SYNTAX.fullmatch(name.strip())
     if match is None or match["part"] not in ERROR_PARTS:
         raise ValueError(f"--errors: {name!r} is not an error of the rig description: {syntax}")
@@ -129,16 +139,30 @@ WAYS = {
     "given, sensor distance fitted": (True, False, True, "the sensor distance fitted: distance, fits"),
     "found": (False, False, False, "layout found in the data: sources, farthest from the truth's, fits"),
     "found, aperture fitted": (False, True, False, "found, the aperture fitted: sources, farthest, diameter, fits"),
-    "found, sensor distance fitted": (False, True, True, "found, the sensor distance and the aperture fitted: sources, "
-                                                         "farthest, distance, diameter, fits"),
+    "found, sensor distance fitted": (
+        False,
+        True,
+        True,
+        "found, the sensor distance and the aperture fitted: sources, farthest, distance, diameter, fits",
+    ),
 }
 
 
-def bench_tolerance(*, rig_path=None, truth: str = "five-gaussians", positions: int = 66, errors=None,
-                    layout_from_data: bool = False, fit_aperture: bool = False, fit_sensor_distance: bool = False,
-                    noise: bool = True,
-                    exposures=(2e-5, 1e-4, 5e-4, 2.5e-3, 1.25e-2), scheduler: str = "local",
-                    workdir: str | Path | None = None, log=None) -> dict:  # fmt: skip
+def bench_tolerance(
+    *,
+    rig_path=None,
+    truth: str = "five-gaussians",
+    positions: int = 66,
+    errors=None,
+    layout_from_data: bool = False,
+    fit_aperture: bool = False,
+    fit_sensor_distance: bool = False,
+    noise: bool = True,
+    exposures=(2e-5, 1e-4, 5e-4, 2.5e-3, 1.25e-2),
+    scheduler: str = "local",
+    workdir: str | Path | None = None,
+    log=None,
+) -> dict:
     """Take one simulated run, then process it with the rig described as taken and with each
     of ``errors`` (names :func:`parse_error` reads, default :data:`DEFAULT_ERRORS`), given the truth's layout and,
     with ``layout_from_data``, also finding the sources in the data; with ``fit_aperture``,
@@ -150,7 +174,7 @@ def bench_tolerance(*, rig_path=None, truth: str = "five-gaussians", positions: 
     processing as it ends."""
     from acquisition.benchmarks.accuracy import acquire_simulated, score_sources
     from acquisition.demo import DEMO_RIG_PATH
-    from acquisition.rig import load_rig
+    from drivers.contracts.rig import load_rig
     from processing.parallel import open_compute
     from processing.pipeline import ProcessingError, process_run, warm_up_worker
     from sim_devices.lights import LIGHTS_DIR, load_truth
@@ -162,9 +186,11 @@ def bench_tolerance(*, rig_path=None, truth: str = "five-gaussians", positions: 
     truth_light = load_truth(truth)
     given = LIGHTS_DIR / f"{truth}.toml"
     asked = {"aperture fitted": fit_aperture, "sensor distance fitted": fit_sensor_distance}
-    ways = {name: (given if given_layout else None, aperture, distance)
-            for name, (given_layout, aperture, distance, _) in WAYS.items()
-            if (given_layout or layout_from_data) and asked.get(name.partition(", ")[2], True)}  # fmt: skip
+    ways = {
+        name: (given if given_layout else None, aperture, distance)
+        for name, (given_layout, aperture, distance, _) in WAYS.items()
+        if (given_layout or layout_from_data) and asked.get(name.partition(", ")[2], True)
+    }
     rows = []
     started = time.perf_counter()
     with tempfile.TemporaryDirectory() as tmp:
@@ -182,20 +208,33 @@ def bench_tolerance(*, rig_path=None, truth: str = "five-gaussians", positions: 
                     if error is not None:
                         row["what"] = parse_error(error).what
                     try:
-                        report = process_run(copy, base / f"out-{k}-{w}", steps=("hdr", "sources"), layout=layout,
-                                             noise="rig", units="W/sr", compute=compute, images=False,
-                                             fit_aperture=fitted, fit_sensor_distance=distance)  # fmt: skip
+                        report = process_run(
+                            copy,
+                            base / f"out-{k}-{w}",
+                            steps=("hdr", "sources"),
+                            layout=layout,
+                            noise="rig",
+                            units="W/sr",
+                            compute=compute,
+                            images=False,
+                            fit_aperture=fitted,
+                            fit_sensor_distance=distance,
+                        )
                     except ProcessingError as exc:  # e.g. an aperture fit at its bound: said, and on to the next
                         row.update(failed=str(exc), process_s=round(time.perf_counter() - t0, 1))
                         rows.append(row)
                         if log:
                             log(f"{row['error']}, layout {layout_name}: failed: {exc}")
                         continue
-                    scored = score_sources(report.model, report.samples, truth_light, matched=layout is None,
-                                           cell_sums=False)  # fmt: skip
-                    row.update(sources_found=len(report.model.sources),
-                               max_rms_rel_error=max(s["rms_rel_error"] for s in scored["sources"]),
-                               sources=scored["sources"], process_s=round(time.perf_counter() - t0, 1))  # fmt: skip
+                    scored = score_sources(
+                        report.model, report.samples, truth_light, matched=layout is None, cell_sums=False
+                    )
+                    row.update(
+                        sources_found=len(report.model.sources),
+                        max_rms_rel_error=max(s["rms_rel_error"] for s in scored["sources"]),
+                        sources=scored["sources"],
+                        process_s=round(time.perf_counter() - t0, 1),
+                    )
                     if layout is None:
                         row["max_centre_error_um"] = max(s["centre_error_um"] for s in scored["sources"])
                     if fitted:
@@ -204,8 +243,10 @@ def bench_tolerance(*, rig_path=None, truth: str = "five-gaussians", positions: 
                         row["sensor_distance_fit"] = report.sensor_distance_fit
                     rows.append(row)
                     if log:
-                        log(f"{row['error']}, layout {layout_name}: {row['sources_found']} sources, fits up to "
-                            f"{100 * row['max_rms_rel_error']:.2f} % ({row['process_s']:.1f} s)")  # fmt: skip
+                        log(
+                            f"{row['error']}, layout {layout_name}: {row['sources_found']} sources, fits up to "
+                            f"{100 * row['max_rms_rel_error']:.2f} % ({row['process_s']:.1f} s)"
+                        )
     result = {
         "benchmark": "tolerance",
         "rig": str(Path(rig_path or DEMO_RIG_PATH)),
@@ -216,10 +257,10 @@ def bench_tolerance(*, rig_path=None, truth: str = "five-gaussians", positions: 
         "runs": rows,
         "acquire_s": round(acquired - started, 1),
         "how": "one simulated run; copies of it processed with one number of the rig description wrong (header "
-               "/rig_json rewritten, frames and measured poses untouched), hdr + sources with the truth's layout given "
-               "(and found in the data with --layout-from-data); each truth emitter scored as bench accuracy does "
-               "(against the nearest source found when found)",
-    }  # fmt: skip
+        "/rig_json rewritten, frames and measured poses untouched), hdr + sources with the truth's layout given "
+        "(and found in the data with --layout-from-data); each truth emitter scored as bench accuracy does "
+        "(against the nearest source found when found)",
+    }
     result["markdown"] = markdown_table(result)
     return result
 

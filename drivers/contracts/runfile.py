@@ -30,8 +30,8 @@ from __future__ import annotations
 import contextlib
 import copy
 import errno
-import functools
 import fcntl
+import functools
 import hashlib
 import json
 import math
@@ -45,8 +45,8 @@ import h5py
 import hdf5plugin
 import numpy as np
 
-from acquisition.rig import Rig, rig_from_dict
 from drivers.camera import RawFrame
+from drivers.contracts.rig import Rig, rig_from_dict
 from drivers.pose import Pose
 
 RUN_FILE_FORMAT = "mirrorgonio-run"
@@ -393,9 +393,15 @@ def _read_header_once(f: h5py.File, path: Path) -> RunHeader:
             _HEADERS.pop(next(iter(_HEADERS)))
         _HEADERS[key] = header
     # Each RunFile its own containers (the rig is shared, as _rig_from_json shares it).
-    return replace(header, tool_poses=list(header.tool_poses), light_poses=list(header.light_poses),
-                   bracket=copy.deepcopy(header.bracket), metadata=copy.deepcopy(header.metadata),
-                   devices=copy.deepcopy(header.devices), references=copy.deepcopy(header.references))  # fmt: skip
+    return replace(
+        header,
+        tool_poses=list(header.tool_poses),
+        light_poses=list(header.light_poses),
+        bracket=copy.deepcopy(header.bracket),
+        metadata=copy.deepcopy(header.metadata),
+        devices=copy.deepcopy(header.devices),
+        references=copy.deepcopy(header.references),
+    )
 
 
 def _read_header(f: h5py.File, path) -> RunHeader:
@@ -554,8 +560,15 @@ class RunFileWriter:
             tmp = Path(str(path) + ".tmp")
             try:
                 with h5py.File(tmp, "w", libver="latest") as f:
-                    _build_layout(f, rig_json, run_json, commanded, light, int(header.max_exposures),
-                                  (int(header.frame_shape[0]), int(header.frame_shape[1])))  # fmt: skip
+                    _build_layout(
+                        f,
+                        rig_json,
+                        run_json,
+                        commanded,
+                        light,
+                        int(header.max_exposures),
+                        (int(header.frame_shape[0]), int(header.frame_shape[1])),
+                    )
                 _fsync_path(tmp)
                 os.replace(tmp, path)
             except OSError as exc:
@@ -748,8 +761,13 @@ class RunFileWriter:
         f["positions/measured_pose"][index] = records["measured_pose"]
         f["positions/times"][index] = records["times"]
         f["positions/frame_count"][index] = len(frames)
-        self._flush(raw, *(f[f"frames/{name}"] for name in _FRAME_RECORDS),
-                    f["positions/measured_pose"], f["positions/times"], f["positions/frame_count"])  # fmt: skip
+        self._flush(
+            raw,
+            *(f[f"frames/{name}"] for name in _FRAME_RECORDS),
+            f["positions/measured_pose"],
+            f["positions/times"],
+            f["positions/frame_count"],
+        )
         complete[index] = 1  # the commit marker, written and flushed last
         self._flush(complete)
 
@@ -837,16 +855,23 @@ def _salvage(path: Path) -> None:
         try:
             complete = src["positions/complete"][()] == 1
             counts = src["positions/frame_count"][()].astype(np.int64)
-            rows = {name: src[name][()] for name in
-                    ("positions/measured_pose", "positions/times", "positions/frame_count")}  # fmt: skip
+            rows = {
+                name: src[name][()] for name in ("positions/measured_pose", "positions/times", "positions/frame_count")
+            }
             rows.update({f"frames/{name}": src[f"frames/{name}"][()] for name in _FRAME_RECORDS})
         except (OSError, RuntimeError) as exc:
             raise RunFileError(f"{path}: cannot salvage the run file: {_h5_cause(exc)}") from None
         complete &= (counts >= 1) & (counts <= max_exposures)
         with h5py.File(tmp, "w", libver="latest") as dst:
-            _build_layout(dst, _text(src["header/rig_json"][()]), _text(src["header/run_json"][()]),
-                          src["schedule/commanded_pose"][()], src["schedule/light_pose"][()],
-                          max_exposures, header.frame_shape)  # fmt: skip
+            _build_layout(
+                dst,
+                _text(src["header/rig_json"][()]),
+                _text(src["header/run_json"][()]),
+                src["schedule/commanded_pose"][()],
+                src["schedule/light_pose"][()],
+                max_exposures,
+                header.frame_shape,
+            )
             src_raw, dst_raw = src["frames/raw"], dst["frames/raw"]
             kept, lost = [], []
             for i in np.flatnonzero(complete):

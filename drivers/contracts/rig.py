@@ -329,8 +329,9 @@ class ObjectArc(ConfigModel):
     kind: Literal["object-arc"] = "object-arc"
     centre_m: Vec3 = (0.0, 0.0, 0.0)
     radius_m: PositiveFloat = 0.30
-    angles_deg: list[float] = Field(default_factory=lambda: [10.0, 20.0, 30.0, 40.0, 50.0], min_length=1,
-                                    max_length=MAX_POSITIONS)
+    angles_deg: list[float] = Field(
+        default_factory=lambda: [10.0, 20.0, 30.0, 40.0, 50.0], min_length=1, max_length=MAX_POSITIONS
+    )
     reference_direction: Vec3 = (0.0, 0.0, 1.0)
     axis: Vec3 = (-1.0, 0.0, 0.0)
     x_axis: Vec3 = (1.0, 0.0, 0.0)
@@ -457,9 +458,7 @@ class Rig(ConfigModel):
         for i in range(len(lights) - 1):
             a, b = lights[i].position, lights[i + 1].position
             if _segment_distance(centre, a, b) <= clearance:
-                raise ValueError(
-                    f"schedule: the light's path from position {i} to {i + 1} crosses the ball"
-                )
+                raise ValueError(f"schedule: the light's path from position {i} to {i + 1} crosses the ball")
         limits = self.soft_limits()
         for i, tool in enumerate(self.tool_poses()):
             problem = limits.violation(tool)
