@@ -257,7 +257,7 @@ def test_process_bad_option_fails_before_any_run(tmp_path):
 
 
 def test_output_folders_for_same_named_runs(tmp_path):
-    from acquisition.cli import _output_folders
+    from acquisition.cli.process import _output_folders
 
     a, b, c = tmp_path / "a" / "x" / "run.h5", tmp_path / "b" / "x" / "run.h5", tmp_path / "c" / "other.h5"
     folders = _output_folders([a, b, c], tmp_path / "out")

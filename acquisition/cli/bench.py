@@ -1,0 +1,323 @@
+"""``mirrorgonio bench``: benchmarks that print what they measured."""
+
+from __future__ import annotations
+
+import statistics
+import time
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from acquisition.cli.app import (
+    RigOption,
+    SchedulerOption,
+    WorkersOption,
+    bench_app,
+    default_rig,
+    domain_errors,
+    fail,
+    print_result,
+)
+
+
+# --- bench ----------------------------------------------------------------------------------
+@bench_app.command("render")
+def bench_render(
+    rig: RigOption = None,
+    repeat: Annotated[int, typer.Option(min=1, help="Timed repetitions (the median is reported).")] = 3,
+    position: Annotated[int, typer.Option(help="Schedule position to render.")] = 33,
+    as_json: Annotated[bool, typer.Option("--json", help="Print JSON only.")] = False,
+) -> None:
+    """Time the rendering of one full frame, next to a one-ray-per-pixel trace of it."""
+    import numpy as np
+
+    from drivers.contracts.rig import load_rig
+    from sim_devices.lights import load_truth
+    from sim_devices.optics import LightPlane, MirrorBallRenderer, trace
+
+    try:
+        rig_model = load_rig(rig or default_rig())
+        truth = load_truth(rig_model.simulation.truth)
+    except domain_errors() as exc:
+        raise fail(str(exc)) from None
+    poses = rig_model.light_poses()
+    pose = poses[min(max(position, 0), len(poses) - 1)]
+    renderer = MirrorBallRenderer(rig_model, truth, diffraction=rig_model.simulation.diffraction)
+    cam = renderer.camera
+    rows, cols = np.mgrid[0 : cam.height, 0 : cam.width]
+    cols, rows = cols.ravel().astype(float), rows.ravel().astype(float)
+    zero = np.zeros_like(cols)
+    plane = LightPlane.at(rig_model, pose)
+
+    render_times, chief_times, stats = [], [], None
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        trace(cam, renderer.mirror, plane, cols, rows, zero, zero)
+        chief_times.append(time.perf_counter() - t0)
+        t0 = time.perf_counter()
+        stats = renderer.render(pose).stats
+        render_times.append(time.perf_counter() - t0)
+    render_s, chief_s = statistics.median(render_times), statistics.median(chief_times)
+    result = {
+        "benchmark": "render",
+        "width": cam.width,
+        "height": cam.height,
+        "truth": truth.name,
+        "diffraction": rig_model.simulation.diffraction,
+        "repeat": repeat,
+        "render_s_median": round(render_s, 4),
+        "render_s_all": [round(t, 4) for t in render_times],
+        "chief_ray_trace_s_median": round(chief_s, 4),
+        "render_over_chief_trace": round(render_s / chief_s, 2),
+        "rays_traced_per_frame": stats.rays_traced,
+        "rays_per_s": round(stats.rays_traced / render_s),
+        "target_s": 10.0,
+        "meets_target": render_s <= 10.0,
+    }
+    print_result(result, as_json)
+
+
+@bench_app.command("acquire")
+def bench_acquire_command(
+    rig: RigOption = None,
+    positions: Annotated[int, typer.Option(min=1, help="Schedule positions per run.")] = 20,
+    exposures: Annotated[int, typer.Option(min=1, max=16, help="Frames per position.")] = 3,
+    repeat: Annotated[int, typer.Option(min=1, help="Timed repetitions (medians reported).")] = 3,
+    as_json: Annotated[bool, typer.Option("--json", help="Print JSON only.")] = False,
+) -> None:
+    """The daemon's overhead with zero-latency devices, next to a plain h5py write of the same frames."""
+    from acquisition.benchmarks.acquire import bench_acquire
+
+    try:
+        result = bench_acquire(rig, positions=positions, exposures=exposures, repeat=repeat)
+    except domain_errors() as exc:
+        raise fail(str(exc)) from None
+    print_result(result, as_json)
+
+
+@bench_app.command("hdr")
+def bench_hdr_command(
+    rig: RigOption = None,
+    positions: Annotated[
+        int, typer.Option(min=1, help="Brackets merged (a few rendered scenes cycled, fresh noise each).")
+    ] = 66,
+    exposures: Annotated[int, typer.Option(min=2, max=16, help="Frames per bracket.")] = 5,
+    width: Annotated[int, typer.Option(min=4, help="Frame width in pixels (even).")] = 2000,
+    height: Annotated[int, typer.Option(min=4, help="Frame height in pixels (even).")] = 1312,
+    repeat: Annotated[int, typer.Option(min=1, help="Timed repetitions (medians reported).")] = 1,
+    seed: Annotated[int, typer.Option(help="Seed of the sensor noise.")] = 0,
+    peers: Annotated[bool, typer.Option(help="Also run HDRutils, colour-hdri and OpenCV (the bench extra).")] = True,
+    as_json: Annotated[bool, typer.Option("--json", help="Print JSON only.")] = False,
+) -> None:
+    """This project's raw HDR merge next to HDRutils, colour-hdri and OpenCV on the same brackets: time and error."""
+    from acquisition.benchmarks.hdr import BenchmarkError, bench_hdr
+    from processing.hdr import HDRError
+
+    try:
+        result = bench_hdr(positions, exposures, width, height, repeat, seed, rig_path=rig, peers=peers)
+    except (BenchmarkError, HDRError, *domain_errors()) as exc:
+        raise fail(str(exc)) from None
+    print_result(result, as_json)
+
+
+@bench_app.command("accuracy")
+def bench_accuracy_command(
+    noise: Annotated[bool, typer.Option(help="Photon, read and quantisation noise.")] = True,
+    truth: Annotated[str, typer.Option(help="Shipped truth light.")] = "five-gaussians",
+    positions: Annotated[int, typer.Option(min=3, help="Schedule positions (the first N of the sweep).")] = 66,
+    fit: Annotated[str, typer.Option(help="Fit method: gaussian, polynomial, cos-power.")] = "gaussian",
+    rig: RigOption = None,
+    layout_from_data: Annotated[
+        bool,
+        typer.Option(
+            "--layout-from-data",
+            help="Find the sources in the data instead of "
+            "giving the truth's layout; score each emitter against the nearest found.",
+        ),
+    ] = False,
+    as_json: Annotated[bool, typer.Option("--json", help="Print JSON only.")] = False,
+) -> None:
+    """The reference simulation through the whole chain, scored against the truth."""
+    from acquisition.benchmarks.accuracy import bench_accuracy
+    from processing.pipeline import ProcessingError
+
+    try:
+        result = bench_accuracy(
+            noise=noise,
+            truth=truth,
+            positions=positions,
+            rig_path=rig,
+            fit_method=fit,
+            layout_from_data=layout_from_data,
+        )
+    except (*domain_errors(), ProcessingError) as exc:
+        raise fail(str(exc)) from None
+    print_result(result, as_json)
+
+
+@bench_app.command("reflectance")
+def bench_reflectance_command(
+    object_rig: Annotated[
+        str, typer.Option("--object", help="Object rig: object-vase, object-relief or a TOML path.")
+    ] = "object-vase",
+    truth: Annotated[str, typer.Option(help="Shipped truth light (the same lights both runs).")] = "five-gaussians",
+    noise: Annotated[bool, typer.Option(help="Photon, read and quantisation noise.")] = True,
+    light_positions: Annotated[int, typer.Option(min=3, help="Positions of the light sweep (the first N).")] = 66,
+    workdir: Annotated[
+        Path | None, typer.Option(help="Keep the runs and outputs here (default: a temporary folder).")
+    ] = None,
+    as_json: Annotated[bool, typer.Option("--json", help="Print JSON only.")] = False,
+) -> None:
+    """Measure the light, photograph an object, score ρ under three light models."""
+    from acquisition.benchmarks.reflectance import bench_reflectance
+    from processing.pipeline import ProcessingError
+    from processing.reflectance import ReflectanceError
+
+    try:
+        result = bench_reflectance(
+            object_rig=object_rig, truth=truth, noise=noise, light_positions=light_positions, workdir=workdir
+        )
+    except (*domain_errors(), ProcessingError, ReflectanceError) as exc:
+        raise fail(str(exc)) from None
+    print_result(result, as_json)
+
+
+def _rig_errors_help() -> str:
+    from acquisition.benchmarks.tolerance import DEFAULT_ERRORS, ERROR_PARTS
+
+    return (
+        "Comma-separated errors of the rig description to try, each PART±SIZE: PART one of "
+        f"{', '.join(ERROR_PARTS)}; SIZE in mm or um, or in % of the pinhole, the sensor distance or the "
+        f"ball's radius (e.g. pinhole+1%, ball-x-20um). Default: {', '.join(DEFAULT_ERRORS)}."
+    )
+
+
+@bench_app.command("tolerance")
+def bench_tolerance_command(
+    rig: RigOption = None,
+    truth: Annotated[str, typer.Option(help="Shipped truth light.")] = "five-gaussians",
+    positions: Annotated[int, typer.Option(min=3, help="Schedule positions (the first N of the sweep).")] = 66,
+    errors: Annotated[str | None, typer.Option(help=_rig_errors_help())] = None,
+    layout_from_data: Annotated[
+        bool, typer.Option("--layout-from-data", help="Also find the sources in the data with each description.")
+    ] = False,
+    fit_aperture: Annotated[
+        bool,
+        typer.Option(
+            "--fit-aperture",
+            help="Also process each way with the aperture fitted to the data (process --fit-aperture).",
+        ),
+    ] = False,
+    fit_sensor_distance: Annotated[
+        bool,
+        typer.Option(
+            "--fit-sensor-distance",
+            help="Also process each way with the sensor distance fitted (process --fit-sensor-distance).",
+        ),
+    ] = False,
+    noise: Annotated[bool, typer.Option(help="Photon, read and quantisation noise.")] = True,
+    scheduler: SchedulerOption = "local",
+    as_json: Annotated[bool, typer.Option("--json", help="Print JSON only.")] = False,
+) -> None:
+    """How exact the rig description must be: one simulated run (the demo rig by default)
+    processed with one number of its description wrong at a time, scored against the truth.
+    Progress goes to standard error; the JSON, then (without --json) the markdown table, to
+    standard output."""
+    from acquisition.benchmarks.tolerance import bench_tolerance
+    from processing.parallel import ComputeError
+    from processing.pipeline import ProcessingError
+
+    chosen = None if errors is None else [e.strip() for e in errors.split(",") if e.strip()]
+    try:
+        result = bench_tolerance(
+            rig_path=rig,
+            truth=truth,
+            positions=positions,
+            errors=chosen,
+            layout_from_data=layout_from_data,
+            fit_aperture=fit_aperture,
+            fit_sensor_distance=fit_sensor_distance,
+            noise=noise,
+            scheduler=scheduler,
+            log=lambda message: typer.echo(message, err=True),
+        )
+    except (ValueError, ComputeError, ProcessingError, *domain_errors()) as exc:
+        raise fail(str(exc)) from None
+    print_result(result, as_json)
+    if not as_json:
+        typer.echo("")
+        typer.echo(result["markdown"])
+
+
+@bench_app.command("speed")
+def bench_speed_command(
+    rig: RigOption = None,
+    sizes: Annotated[
+        str, typer.Option(help="Sensor sizes, WIDTHxHEIGHT,... (the same field of view).")
+    ] = "2000x1312,4000x2624",
+    positions: Annotated[int, typer.Option(min=3, help="Positions of the sweep (the first N).")] = 66,
+    exposures: Annotated[
+        int, typer.Option(min=1, max=5, help="Frames per position (the first N of the reference bracket).")
+    ] = 5,
+    repeat: Annotated[int, typer.Option(min=1, help="Repetitions of the cheap measurements (medians reported).")] = 3,
+    process_repeat: Annotated[
+        int,
+        typer.Option(
+            "--process-repeat",
+            min=1,
+            help=(
+                "Timed whole-run processings per size, after an untimed first one on the same cluster (median "
+                "reported)."
+            ),
+        ),
+    ] = 3,
+    hdr_positions: Annotated[
+        int, typer.Option("--hdr-positions", min=1, help="Brackets merged by every HDR method (spread over the sweep).")
+    ] = 8,
+    peers: Annotated[bool, typer.Option(help="Also time HDRutils and colour-hdri (the bench extra).")] = True,
+    scheduler: SchedulerOption = "local",
+    workers: WorkersOption = None,
+    cache: Annotated[
+        Path | None,
+        typer.Option("--cache", help="Folder of the cached simulated runs (default ~/.cache/mirrorgonio/bench)."),
+    ] = None,
+    no_cache: Annotated[
+        bool, typer.Option("--no-cache", help="Make the runs afresh in a temporary folder, keep nothing.")
+    ] = False,
+    as_json: Annotated[
+        bool, typer.Option("--json", help="Print JSON only (one line; the table is its 'markdown' field).")
+    ] = False,
+) -> None:
+    """Speed of the chain at two sensor sizes: acquisition overhead, HDR merge next to its peers,
+    chief rays per second, whole-run processing time and peak memory, and the read floor.
+    Progress goes to standard error; the JSON, then (without --json) the markdown table, to standard output."""
+    from acquisition.benchmarks.speed import DEFAULT_CACHE, SpeedBenchError, bench_speed, parse_size
+    from processing.hdr import HDRError
+    from processing.parallel import ComputeError
+    from processing.pipeline import ProcessingError
+
+    try:
+        size_list = [parse_size(s) for s in sizes.split(",") if s.strip()]
+        if not size_list:
+            raise SpeedBenchError("--sizes: give at least one WIDTHxHEIGHT")
+        result = bench_speed(
+            rig_path=rig,
+            sizes=size_list,
+            positions=positions,
+            exposures=exposures,
+            repeat=repeat,
+            process_repeat=process_repeat,
+            hdr_positions=hdr_positions,
+            peers=peers,
+            scheduler=scheduler,
+            workers=workers,
+            cache=None if no_cache else (cache or DEFAULT_CACHE),
+            log=lambda message: typer.echo(message, err=True),
+        )
+    except (SpeedBenchError, ComputeError, ProcessingError, HDRError, *domain_errors()) as exc:
+        raise fail(str(exc)) from None
+    print_result(result, as_json)
+    if not as_json:
+        typer.echo("")
+        typer.echo(result["markdown"])

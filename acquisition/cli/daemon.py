@@ -1,0 +1,142 @@
+"""The daemon's commands: ``serve`` (the acquisition daemon) and ``worker`` (the processing jobs)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from acquisition.cli.app import (
+    SchedulerOption,
+    WorkersOption,
+    app,
+    domain_errors,
+    fail,
+)
+
+
+# --- serve ----------------------------------------------------------------------------------
+@app.command("serve")
+def serve(
+    config: Annotated[
+        Path | None, typer.Option("--config", help="daemon.toml (docs/daemon.md); simulated rig without one.")
+    ] = None,
+    host: Annotated[
+        str | None, typer.Option(help="Address to listen on (default from the configuration: 127.0.0.1).")
+    ] = None,
+    port: Annotated[int | None, typer.Option(help="TCP port (default from the configuration: 8000).")] = None,
+    data_dir: Annotated[Path | None, typer.Option("--data-dir", help="Where run files and the catalog live.")] = None,
+) -> None:
+    """Run the acquisition daemon (REST API and web page) under uvicorn."""
+    from acquisition.settings import SettingsError, load_settings
+
+    try:
+        settings = load_settings(config, host=host, port=port, data_dir=data_dir)
+        settings.require_token_off_loopback()
+    except (SettingsError, OSError) as exc:
+        raise fail(str(exc)) from None
+    import uvicorn
+
+    from acquisition.app import create_app
+
+    try:
+        uvicorn.run(create_app(settings), host=settings.host, port=settings.port, log_level="info")
+    except domain_errors() as exc:
+        raise fail(str(exc)) from None
+
+
+# --- worker -------------------------------------------------------------------------------
+@app.command("worker")
+def worker_command(
+    config: Annotated[
+        Path | None,
+        typer.Option("--config", help="daemon.toml: the worker uses its data_dir (the catalog and the runs)."),
+    ] = None,
+    data_dir: Annotated[
+        Path | None,
+        typer.Option("--data-dir", help="Where the catalog and the run files are (overrides the configuration)."),
+    ] = None,
+    scheduler: SchedulerOption = "local",
+    workers: WorkersOption = None,
+    once: Annotated[bool, typer.Option("--once", help="Process the jobs that can run now, then exit.")] = False,
+    poll: Annotated[float, typer.Option(min=0.05, help="Seconds between looks at the queue when it is empty.")] = 2.0,
+    heartbeat: Annotated[float, typer.Option(min=0.05, help="Seconds between heartbeats while a job runs.")] = 5.0,
+    stale_after: Annotated[
+        float,
+        typer.Option(
+            "--stale-after",
+            min=0.1,
+            help="A running job without a heartbeat for this long is requeued (its worker died).",
+        ),
+    ] = 60.0,
+    wait: Annotated[
+        float,
+        typer.Option(min=0.0, help="Seconds a job whose run is still being acquired waits before it is tried again."),
+    ] = 10.0,
+    worker_id: Annotated[
+        str | None, typer.Option("--id", help="This worker's name in the catalog (default HOST-PID).")
+    ] = None,
+) -> None:
+    """Take queued processing jobs from the catalog and process their runs (results beside each run).
+
+    Positions are processed on Dask: a local cluster sized to the machine, or the cluster
+    of --scheduler tcp://HOST:8786. A job whose run is still being acquired waits (or, when
+    it asked for partial, gets the positions complete so far); a failed job records its
+    reason and the worker goes on; a job whose worker died is requeued by the next worker
+    that looks at the queue. Stops on Ctrl-C or SIGTERM, after the job at hand.
+    """
+    import logging
+    import signal
+    import threading
+
+    from acquisition.settings import SettingsError, load_settings
+    from acquisition.worker import serve_jobs
+    from processing.parallel import ComputeError, open_compute
+
+    try:
+        settings = load_settings(config, data_dir=data_dir) if data_dir is not None else load_settings(config)
+    except (SettingsError, OSError) as exc:
+        raise fail(str(exc)) from None
+    if not Path(settings.data_dir).is_dir():
+        raise fail(f"--data-dir: {settings.data_dir} is not a folder (the daemon's data folder, with catalog.sqlite)")
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    from processing.pipeline import warm_up_worker
+
+    try:
+        compute = open_compute(scheduler, workers=workers, warm_up=warm_up_worker)
+    except ComputeError as exc:
+        raise fail(str(exc)) from None
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+
+    def report(job) -> None:
+        if job.state == "complete":
+            typer.echo(f"{job.id} complete ({job.run_id}): {job.message}")
+            for kind, path in job.artifacts.items():
+                typer.echo(f"  {kind}: {path}")
+        elif job.state == "failed":
+            typer.echo(f"{job.id} failed ({job.run_id}): {job.error}")
+        else:
+            typer.echo(f"{job.id} {job.state} ({job.run_id}): {job.message}")
+
+    typer.echo(f"worker: jobs from {settings.catalog_path}, positions on {compute.description}")
+    from acquisition.catalog import CatalogError
+
+    try:
+        with compute:
+            serve_jobs(
+                settings.catalog_path,
+                compute,
+                stop=stop,
+                once=once,
+                poll_s=poll,
+                on_job=report,
+                worker_id=worker_id,
+                heartbeat_s=heartbeat,
+                stale_after_s=stale_after,
+                wait_s=wait,
+            )
+    except CatalogError as exc:
+        raise fail(str(exc)) from None

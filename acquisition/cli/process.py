@@ -1,0 +1,258 @@
+"""``mirrorgonio process``: run files to results, one run after the other."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from acquisition.cli.app import (
+    SchedulerOption,
+    WorkersOption,
+    app,
+    fail,
+)
+
+
+# --- process ------------------------------------------------------------------------------
+def _distinct_runs(runs: list[Path]) -> list[Path]:
+    """The runs in the order given, a file named twice kept once (with a note)."""
+    seen: dict[Path, Path] = {}
+    for run in runs:
+        key = run.resolve()
+        if key in seen:
+            typer.echo(f"note: {run} is the same file as {seen[key]}: processed once", err=True)
+            continue
+        seen[key] = run
+    return list(seen.values())
+
+
+def _output_folders(runs: list[Path], out: Path | None) -> dict[Path, Path | None]:
+    """Where each run's results go: ``out`` (files named after the run), or beside the run.
+
+    Runs that share a name (``day1/run-0001.h5``, ``day2/run-0001.h5``) would write the
+    same files in ``out``: each of them goes to a subfolder named after its own folder
+    (``out/day1/``, ``out/day2/``), with a short hash of its path when those names are
+    the same too.
+    """
+    import hashlib
+
+    if out is None:
+        return {run: None for run in runs}
+    by_stem: dict[str, list[Path]] = {}
+    for run in runs:
+        by_stem.setdefault(run.stem, []).append(run)
+    folders: dict[Path, Path | None] = {}
+    for group in by_stem.values():
+        if len(group) == 1:
+            folders[group[0]] = out
+            continue
+        parents = [run.resolve().parent.name for run in group]
+        distinct = len(set(parents)) == len(parents) and all(parents)
+        for run, parent in zip(group, parents, strict=True):
+            digest = hashlib.sha1(str(run.resolve()).encode()).hexdigest()[:8]
+            folders[run] = out / (parent if distinct else f"{parent or 'root'}-{digest}")
+    return folders
+
+
+def _naming(run: Path, message: str) -> str:
+    """An error message on one line, starting with the run when it does not name it."""
+    message = " ".join(message.split())
+    return message if str(run) in message or run.name in message else f"{run}: {message}"
+
+
+def _print_batch_summary(outcomes: list) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    table = Table(title="processed runs", title_justify="left")
+    table.add_column("#", justify="right", no_wrap=True)
+    table.add_column("run", overflow="fold")
+    table.add_column("result", no_wrap=True)
+    table.add_column("positions", justify="right", no_wrap=True)
+    table.add_column("time", justify="right", no_wrap=True)
+    table.add_column("results", overflow="fold")
+    for number, (run, report, seconds, error) in enumerate(outcomes, 1):
+        if error:
+            table.add_row(str(number), str(run), "[red]failed[/red]", "", f"{seconds:.1f} s", "(see the error below)")
+        else:
+            table.add_row(
+                str(number),
+                str(run),
+                "[green]ok[/green]",
+                str(report.positions),
+                f"{seconds:.1f} s",
+                str(report.results_file),
+            )
+    failed = sum(1 for *_, error in outcomes if error)
+    console = Console()
+    console.print(table)
+    console.print(
+        f"{len(outcomes) - failed} of {len(outcomes)} runs processed" + (f", {failed} failed" if failed else ""),
+        highlight=False,
+    )
+
+
+@app.command("process")
+def process(
+    runs: Annotated[list[Path], typer.Argument(help="Run files (HDF5) to process.")],
+    out: Annotated[
+        Path | None, typer.Option("--out", help="Folder for the results (default: beside each run).")
+    ] = None,
+    steps: Annotated[str, typer.Option(help="Comma-separated steps: hdr, sources.")] = "hdr,sources",
+    method: Annotated[str, typer.Option(help="HDR estimator: optimal or poisson.")] = "optimal",
+    noise: Annotated[
+        str, typer.Option(help="Noise model: auto (estimate, else the rig's), estimated, or rig.")
+    ] = "auto",
+    layout: Annotated[
+        Path | None, typer.Option(help="The sources on the light plane (TOML); found in the data without one.")
+    ] = None,
+    estimator: Annotated[str, typer.Option(help="auto (from the footprint), templates, or cell-sums.")] = "auto",
+    fit: Annotated[str, typer.Option(help="Fit: gaussian, polynomial, cos-power, gaussian-2d.")] = "gaussian",
+    ball_centre: Annotated[
+        str | None,
+        typer.Option("--ball-centre", help="Measured ball centre X,Y,Z in metres (rig frame; from `calibrate`)."),
+    ] = None,
+    images: Annotated[
+        bool, typer.Option(help="Write an OpenEXR and a PNG preview of every position (hdr step).")
+    ] = True,
+    fit_aperture: Annotated[
+        bool | None,
+        typer.Option(
+            "--fit-aperture/--no-fit-aperture",
+            help="Fit the camera's aperture "
+            "(pinhole) diameter to the data before the sources are estimated "
+            "(docs/light-model.md). Default: fitted when the sources are searched "
+            "for in the data (no --layout), the rig's diameter kept if that "
+            "fit fails.",
+            show_default=False,
+        ),
+    ] = None,
+    fit_sensor_distance: Annotated[
+        bool,
+        typer.Option(
+            "--fit-sensor-distance",
+            help="Fit the sensor distance (pinhole "
+            "to sensor) to the data too, before the aperture: about a minute "
+            "more on the demo rig (docs/light-model.md).",
+        ),
+    ] = False,
+    scheduler: SchedulerOption = "local",
+    workers: WorkersOption = None,
+) -> None:
+    """Turn run files into results: HDR radiance per position (OpenEXR, PNG), the light model,
+    and the IES, LDT and TM-25 files.
+
+    Several runs in one call: each is processed in turn, a failed run does not stop the
+    others, a summary table ends the output and the exit status is 2 if any run failed.
+    With --out, each run's results are named after the run (RUN.results.h5, RUN.hdr/, ...);
+    runs of the same name from different folders go to a subfolder each (docs/import.md)."""
+    from rich.progress import Progress, TextColumn
+
+    from processing.hdr import HDRError
+    from processing.lightmodel import describe_fitted
+    from processing.pipeline import ProcessingError, process_run
+
+    if noise not in ("auto", "estimated", "rig"):
+        raise fail(f"--noise: {noise!r} is not one of auto, estimated, rig")
+    step_list = tuple(s for s in steps.split(",") if s)
+    centre = None
+    if ball_centre is not None:
+        try:
+            centre = tuple(float(v) for v in ball_centre.split(","))
+            assert len(centre) == 3
+        except (ValueError, AssertionError):
+            raise fail(f"--ball-centre: expected X,Y,Z in metres, got {ball_centre!r}") from None
+    from processing.pipeline import STEPS
+
+    unknown = [s for s in step_list if s not in STEPS]
+    if unknown:
+        raise fail(f"--steps: unknown step {unknown[0]!r} (known: {', '.join(STEPS)})")
+    distinct = _distinct_runs(runs)
+    folders = _output_folders(distinct, out)
+    batch = len(distinct) > 1
+    outcomes: list[tuple[Path, object, float, str]] = []  # run, report or None, seconds, error
+    from processing.parallel import ComputeError, open_compute
+    from processing.pipeline import warm_up_worker
+
+    try:
+        compute = open_compute(scheduler, workers=workers, warm_up=warm_up_worker)
+    except ComputeError as exc:
+        raise fail(str(exc)) from None
+    with compute, Progress(*Progress.get_default_columns(), TextColumn("{task.fields[note]}"), transient=True) as bar:
+        overall = bar.add_task("runs", total=len(distinct), note="") if batch else None
+        for number, run in enumerate(distinct, 1):
+            label = f"[{number}/{len(distinct)}] {run.name}" if batch else run.name
+            task = bar.add_task(label, total=None, note="positions")
+            started = time.perf_counter()
+            try:
+                report = process_run(
+                    run,
+                    folders[run],
+                    steps=step_list,
+                    method=method,
+                    noise=noise,
+                    layout=layout,
+                    estimator=estimator,
+                    fit_method=fit,
+                    ball_centre=centre,
+                    compute=compute,
+                    images=images,
+                    fit_aperture=fit_aperture,
+                    fit_sensor_distance=fit_sensor_distance,
+                    progress=lambda done, total, task=task: bar.update(task, completed=done, total=total),
+                )
+            except (ProcessingError, HDRError, ValueError, OSError) as exc:
+                if not batch:
+                    raise fail(str(exc)) from None
+                outcomes.append((run, None, time.perf_counter() - started, _naming(run, str(exc))))
+                continue
+            except Exception as exc:  # noqa: BLE001 - one run's failure must not stop the batch
+                if not batch:
+                    raise
+                outcomes.append(
+                    (run, None, time.perf_counter() - started, _naming(run, f"unexpected {type(exc).__name__}: {exc}"))
+                )
+                continue
+            finally:
+                bar.remove_task(task)
+                if overall is not None:
+                    bar.advance(overall)
+            outcomes.append((run, report, time.perf_counter() - started, ""))
+            noise_model = report.noise
+            typer.echo(
+                f"{run}: {report.positions} positions -> {report.results_file} "
+                f"(noise {noise_model.source}: gain {noise_model.gain_e_per_dn:.3f} e-/DN, "
+                f"read noise {noise_model.read_noise_dn:.3f} DN; EXR and PNG in "
+                f"{report.results_file.parent / (run.stem + '.hdr')})"
+            )
+            if report.light_model:
+                typer.echo(f"  sources: {report.estimator_reason}")
+                for label, fitted, digits in (
+                    ("aperture", report.aperture_fit, ".4g"),
+                    ("sensor distance", report.sensor_distance_fit, ".3f"),
+                ):
+                    if fitted.get("fitted_m") is not None:
+                        later = f" (a later fit failed: {fitted['failed']})" if fitted.get("failed") else ""
+                        typer.echo(f"  {label}: {describe_fitted(fitted, digits)}{later}")
+                    elif fitted.get("failed"):
+                        typer.echo(
+                            f"  {label}: as the rig describes it (the fit to the data failed: {fitted['failed']})"
+                        )
+                typer.echo(
+                    f"  light model {report.light_model}; "
+                    + ", ".join(
+                        f"{kind.upper()} {paths[0]}"
+                        for kind, paths in report.outputs.items()
+                        if kind in ("ies", "ldt", "tm25", "report")
+                    )
+                )
+    if batch:
+        _print_batch_summary(outcomes)
+    failed = [error for *_, error in outcomes if error]
+    for error in failed:
+        typer.echo(f"error: {error}", err=True)
+    if failed:
+        raise typer.Exit(code=2)

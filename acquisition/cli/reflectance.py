@@ -1,0 +1,98 @@
+"""``mirrorgonio reflectance``: an object's albedo under three light models."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from acquisition.cli.app import (
+    app,
+    fail,
+)
+
+
+# --- reflectance ----------------------------------------------------------------------------
+@app.command("reflectance")
+def reflectance(
+    object_run: Annotated[Path, typer.Argument(help="The object run (HDF5), object-arc on a rig with \\[object].")],
+    light: Annotated[
+        Path | None,
+        typer.Option(
+            "--light",
+            help=(
+                "Light model: RUN.light.json, or the light run's results folder or file (default: the one the "
+                "run recorded)."
+            ),
+        ),
+    ] = None,
+    mesh: Annotated[
+        Path | None, typer.Option("--mesh", help="The object's mesh, PLY/OBJ/STL (default: the rig's \\[object].mesh).")
+    ] = None,
+    out: Annotated[
+        Path | None, typer.Option("--out", help="Folder for the outputs (default: RUN.reflectance beside the run).")
+    ] = None,
+    grazing_deg: Annotated[
+        float, typer.Option(help="Exclude lights less than this elevation above the surface.")
+    ] = 15.0,
+    view_grazing_deg: Annotated[float, typer.Option(help="Exclude pixels seen at less than this elevation.")] = 15.0,
+    specular_deg: Annotated[
+        float, typer.Option(help="Exclude samples whose half vector is within this angle of the normal (0: off).")
+    ] = 15.0,
+    outlier: Annotated[
+        float, typer.Option(help="Drop a light whose radiance exceeds the others' fit by this fraction (3+ lights).")
+    ] = 0.05,
+    edge_margin: Annotated[int, typer.Option(help="Superpixels excluded around silhouettes and depth steps.")] = 2,
+    texture_size: Annotated[int, typer.Option(min=16, help="UV texture size in texels (meshes with UVs).")] = 1024,
+) -> None:
+    """The object's diffuse albedo under three light models (collimated, isotropic point, measured),
+    with maps, a UV texture, profiles along its vertical axis and an HTML report (docs/reflectance.md)."""
+    from rich.console import Console
+    from rich.progress import Progress
+    from rich.table import Table
+
+    from processing.reflectance import ReflectanceError, ReflectanceSettings, reflectance_from_run
+
+    try:
+        settings = ReflectanceSettings(
+            grazing_light_deg=grazing_deg,
+            grazing_view_deg=view_grazing_deg,
+            specular_deg=specular_deg,
+            outlier=outlier,
+            edge_margin=edge_margin,
+        )
+        with Progress(transient=True) as bar:
+            tasks: dict[str, object] = {}
+
+            def progress(stage: str, done: int, total: int) -> None:
+                if stage not in tasks:
+                    tasks[stage] = bar.add_task(stage, total=total)
+                bar.update(tasks[stage], completed=done, total=total)
+
+            result = reflectance_from_run(
+                object_run, light, mesh, out, progress=progress, settings=settings, texture_size=texture_size
+            )
+    except (ReflectanceError, ValueError, OSError) as exc:  # every input error is a one-line ValueError
+        raise fail(" ".join(str(exc).split())) from None
+    summary = result.summary()
+    table = Table(
+        title=f"albedo of {summary['valid']} of {summary['on_object']} superpixels on the object", title_justify="left"
+    )
+    for column in ("light model", "median ρ (R, G, B)", "CV", "robust CV"):
+        table.add_column(column)
+    for method, stats in summary["methods"].items():
+        table.add_row(
+            method,
+            ", ".join(f"{v:.4f}" for v in stats.get("median", [])),
+            f"{100 * stats.get('cv', float('nan')):.2f} %",
+            f"{100 * stats.get('robust_cv', float('nan')):.2f} %",
+        )
+    console = Console()
+    console.print(table)
+    left_out = {k: v for k, v in summary["pixel_reasons"].items() if v and k not in ("valid", "background")}
+    console.print("left out: " + (", ".join(f"{k} {v}" for k, v in left_out.items()) or "none"), highlight=False)
+    for warning in result.warnings:
+        typer.echo(f"warning: {warning}", err=True)
+    folder = result.outputs["report.html"].parent
+    typer.echo(f"outputs in {folder}: report.html, reflectance.json, reflectance.h5, albedo-*.exr/png, profiles.png")

@@ -1,0 +1,120 @@
+"""``mirrorgonio simulate``: the simulated arm's Modbus server, one rendered capture."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from acquisition.cli.app import (
+    RigOption,
+    default_rig,
+    domain_errors,
+    fail,
+    simulate_app,
+)
+
+
+# --- simulate -----------------------------------------------------------------------------
+@simulate_app.command("arm")
+def simulate_arm(
+    port: Annotated[int, typer.Option(help="TCP port of the Modbus server.")] = 5020,
+    host: Annotated[str, typer.Option(help="Address to listen on (loopback by default).")] = "127.0.0.1",
+    speed: Annotated[
+        float | None, typer.Option(help="Linear speed in m/s (inf: instantaneous moves); default 0.05.")
+    ] = None,
+    accel: Annotated[float | None, typer.Option(help="Linear acceleration in m/s^2; default 0.5.")] = None,
+    angular_speed: Annotated[
+        float | None, typer.Option("--angular-speed", help="Angular speed in rad/s; default 1.")
+    ] = None,
+) -> None:
+    """Serve the simulated stage as a Modbus TCP server until interrupted (Ctrl-C or SIGTERM)."""
+    import signal
+
+    from sim_devices.modbus_server import serve
+    from sim_devices.stage import StageConfig
+
+    mechanics: dict = {}
+    for name, value in (("speed", speed), ("accel", accel), ("angular-speed", angular_speed)):
+        if value is not None and not value > 0:
+            raise fail(f"--{name}: must be positive, got {value}")
+    if speed is not None:
+        mechanics.update(speed_m_s=speed, accel_m_s2=math.inf if math.isinf(speed) else (accel or 10 * speed))
+    elif accel is not None:
+        mechanics.update(accel_m_s2=accel)
+    if angular_speed is not None:
+        mechanics.update(angular_speed_rad_s=angular_speed, angular_accel_rad_s2=10 * angular_speed)
+
+    def _terminated(signum, frame):  # a container's stop: leave as on Ctrl-C, closing the server
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGTERM, _terminated)
+    typer.echo(f"simulated arm: Modbus TCP on {host}:{port} (Ctrl-C to stop)")
+    try:
+        serve(port=port, host=host, stage_config=StageConfig(**mechanics))
+    except KeyboardInterrupt:
+        pass
+    except OSError as exc:
+        raise fail(f"simulated arm: cannot listen on {host}:{port}: {exc.strerror or exc}") from None
+
+
+def _capture_one(
+    rig_path: Path,
+    position: int,
+    exposure: float,
+    output: Path,
+    truth: str | None,
+    noise: bool,
+    diffraction: bool,
+    seed: int | None,
+):
+    from drivers.contracts.rig import load_rig
+    from drivers.pose import Pose
+    from sim_devices.camera import SimulatedCamera
+    from sim_devices.lights import load_truth
+    from sim_devices.world import SimWorld
+
+    rig = load_rig(rig_path)
+    tool_poses = rig.tool_poses()
+    if not 0 <= position < len(tool_poses):
+        raise fail(f"--position: {position} is outside the schedule (0..{len(tool_poses) - 1})")
+    if not exposure > 0 or not math.isfinite(exposure):
+        raise fail(f"--exposure: must be a positive number of seconds, got {exposure}")
+    tool: Pose = tool_poses[position]
+    world = SimWorld(lambda: tool, rig.light.light_to_tool.to_pose())
+    camera = SimulatedCamera(
+        rig,
+        world,
+        output.parent,
+        truth=load_truth(truth) if truth else None,
+        noise=noise,
+        diffraction=diffraction,
+        seed=seed,
+    )
+    return camera.capture_to(output, exposure)
+
+
+@simulate_app.command("capture")
+def simulate_capture(
+    output: Annotated[Path, typer.Option("-o", "--output", help="DNG file to write.")],
+    rig: RigOption = None,
+    position: Annotated[int, typer.Option(help="Schedule position index.")] = 0,
+    exposure: Annotated[float, typer.Option(help="Exposure time in seconds.")] = 0.01,
+    truth: Annotated[
+        str | None, typer.Option(help="Truth light (shipped name or TOML path); default from the rig.")
+    ] = None,
+    noise: Annotated[bool, typer.Option(help="Photon and read noise.")] = True,
+    diffraction: Annotated[bool, typer.Option(help="Airy diffraction of the aperture.")] = True,
+    seed: Annotated[int | None, typer.Option(help="Random seed; default from the rig.")] = None,
+) -> None:
+    """Render one frame of the mirrored ball and write it as a DNG file."""
+    try:
+        frame = _capture_one(rig or default_rig(), position, exposure, output, truth, noise, diffraction, seed)
+    except domain_errors() as exc:
+        raise fail(str(exc)) from None
+    typer.echo(
+        f"wrote {output} ({frame.mosaic.shape[1]}x{frame.mosaic.shape[0]}, {frame.cfa_pattern}, "
+        f"exposure {frame.exposure_s:g} s, max {int(frame.mosaic.max())} DN)"
+    )
