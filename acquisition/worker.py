@@ -7,7 +7,7 @@
 2. claim the oldest queued job (atomic: two workers never get the same job);
 3. if its run is still being acquired, put it back to wait (it is not failed), unless the
    job asked for ``partial``: then only the positions complete now are processed;
-4. process the run (``processing.pipeline.process_run``, positions in parallel on the
+4. process the run (``processing.light_run.run.process_run``, positions in parallel on the
    worker's Dask cluster) while a thread sends a heartbeat with the progress every few
    seconds; the results go beside the run file;
 5. record the job ``complete`` with its result files (report, IES, LDT, TM-25 ray file,
@@ -60,9 +60,9 @@ class JobLostError(RuntimeError):
 def one_line(exc: BaseException, limit: int = 1000) -> str:
     """An exception as the one-line reason a failed job records."""
     from drivers.contracts.runfile import RunFileError
-    from processing.hdr import HDRError
+    from processing.hdr.model import HDRError
+    from processing.light_run.errors import ProcessingError
     from processing.parallel import ComputeError
-    from processing.pipeline import ProcessingError
     from processing.results import ResultsError
     from processing.steps import StepsError
 
@@ -119,7 +119,7 @@ class JobWorker:
         How long a job whose run is still being acquired waits before it is tried again.
     process : callable, optional
         ``process(job, run_path, steps, progress) -> (result_dir, artifacts, message)``;
-        the default runs ``processing.pipeline.process_run`` (tests substitute their own).
+        the default runs ``processing.light_run.run.process_run`` (tests substitute their own).
     """
 
     def __init__(
@@ -315,7 +315,7 @@ class JobWorker:
     # --- the processing --------------------------------------------------------------------
     def _process_run(self, job: JobRecord, run_path: Path, steps, progress):
         """Process the job's run beside its run file: (result folder, artifacts, message)."""
-        from processing.pipeline import process_run
+        from processing.light_run.run import process_run
 
         options = job.options
         report = process_run(
@@ -328,8 +328,8 @@ class JobWorker:
             estimator=options.get("estimator", "auto"),
             fit_method=options.get("fit", "gaussian"),
             noise=options.get("noise", "auto"),
-            fit_aperture=options.get("fit_aperture"),
-            fit_sensor_distance=bool(options.get("fit_sensor_distance", False)),
+            fit_aperture={True: "always", False: "never"}.get(options.get("fit_aperture"), "auto"),
+            fit_sensor_distance="always" if options.get("fit_sensor_distance") else "never",
         )
         artifacts = {"results": report.results_file}
         if report.light_model is not None:

@@ -179,7 +179,7 @@ class SourceModel:
             "radius_m": self.radius_m,
             "colour": list(self.colour),
             "fit": self.fit.to_dict(),
-            "samples": _plain(self.samples),
+            "samples": json_ready(self.samples),
         }
 
 
@@ -191,14 +191,14 @@ def _hemisphere_nodes(n: int) -> tuple[np.ndarray, np.ndarray]:
     return theta, 0.25 * math.pi * w * np.sin(theta)
 
 
-def _plain(obj):
+def json_ready(obj):
     """numpy scalars and arrays to plain Python for JSON; non-finite floats become None (null)."""
     if isinstance(obj, dict):
-        return {str(k): _plain(v) for k, v in obj.items()}
+        return {str(k): json_ready(v) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
-        return [_plain(v) for v in obj]
+        return [json_ready(v) for v in obj]
     if isinstance(obj, np.ndarray):
-        return _plain(obj.tolist())
+        return json_ready(obj.tolist())
     if isinstance(obj, np.integer):
         return int(obj)
     if isinstance(obj, (float, np.floating)):
@@ -367,7 +367,7 @@ class LightModel:
             "format": LIGHT_MODEL_FORMAT,
             "format_version": LIGHT_MODEL_VERSION,
             "units": self.units,
-            "provenance": _plain(self.provenance),
+            "provenance": json_ready(self.provenance),
             "sources": [s.to_dict() for s in self.sources],
         }
 

@@ -1,6 +1,6 @@
 """Where the processing's position tasks run: a Dask cluster, or this process.
 
-A run is processed position by position (``processing.pipeline``): every task opens the
+A run is processed position by position (``processing.light_run``): every task opens the
 run file itself, by path, reads one position, and returns only that position's result,
 so a run is never loaded whole and the tasks can run anywhere that sees the files.
 :class:`Compute` hands them out:
@@ -274,6 +274,25 @@ class Compute:
         return f"Compute({self.description})"
 
 
+def check_scheduler(scheduler: str | None, workers: int | None = None) -> str:
+    """The scheduler's name as :func:`open_compute` takes it, checked without starting anything.
+
+    Raises
+    ------
+    ComputeError
+        A name that is not ``local``, ``none``, ``synchronous`` nor a Dask address; fewer than one worker.
+    """
+    name = (scheduler or LOCAL).strip()
+    if workers is not None and workers < 1:
+        raise ComputeError(f"--workers: must be at least 1, not {workers}")
+    if name.lower() not in (LOCAL, *NO_DASK) and not name.startswith(_ADDRESS_SCHEMES):
+        raise ComputeError(
+            f"--scheduler: {name!r} is not 'local', 'none', 'synchronous' or a Dask scheduler "
+            "address such as tcp://HOST:8786"
+        )
+    return name
+
+
 def open_compute(
     scheduler: str | None = LOCAL,
     *,
@@ -295,7 +314,7 @@ def open_compute(
         How long to wait for a scheduler to answer and for its first worker.
     warm_up : callable, optional
         Run on every worker once it is up (:meth:`Compute.warm_up`), e.g.
-        :func:`processing.pipeline.warm_up_worker`.
+        :func:`processing.light_run.position.warm_up_worker`.
 
     Raises
     ------
@@ -303,11 +322,9 @@ def open_compute(
         A name that is none of these, a cluster that does not start, a scheduler that
         cannot be reached or has no worker.
     """
-    name = (scheduler or LOCAL).strip()
+    name = check_scheduler(scheduler, workers)
     if name.lower() in NO_DASK:
         return Compute()
-    if workers is not None and workers < 1:
-        raise ComputeError(f"--workers: must be at least 1, not {workers}")
     from distributed import Client
 
     if name.lower() == LOCAL:
@@ -336,11 +353,6 @@ def open_compute(
             cluster.close()
             raise ComputeError(f"cannot connect to the local Dask cluster: {exc}") from None
         return _warmed(Compute(client, cluster, f"local Dask cluster: {n} worker processes x 1 thread"), warm_up)
-    if not name.startswith(_ADDRESS_SCHEMES):
-        raise ComputeError(
-            f"--scheduler: {name!r} is not 'local', 'none', 'synchronous' or a Dask scheduler "
-            "address such as tcp://HOST:8786"
-        )
     try:
         client = Client(name, timeout=timeout_s)
     except Exception as exc:  # noqa: BLE001 - OSError, TimeoutError, CommClosedError ...

@@ -28,7 +28,7 @@ import hdf5plugin
 import numba
 import numpy as np
 
-from processing.hdr import MergeResult, NoiseModel
+from processing.hdr.model import MergeResult, NoiseModel
 
 RESULTS_FORMAT = "mirrorgonio-results"
 RESULTS_VERSION = 2

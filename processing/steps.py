@@ -1,6 +1,6 @@
 """The processing steps, by name: what ``--steps`` and a job's ``steps`` may say.
 
-Two steps do the work (``processing.pipeline``):
+Two steps do the work (``processing.light_run``):
 
 ``hdr``
     merge each position's bracket into radiance with its variance (the results file, an
@@ -10,18 +10,27 @@ Two steps do the work (``processing.pipeline``):
     sources with templates (or sum cells), fit every source's I(θ), write the light model,
     the IES, LDT and TM-25 files and the report.
 
-The catalog's jobs have long said ``hdr,trace,fit`` (``measurement.md``'s names for the
-stages after the merge): ``trace`` and ``fit`` are accepted as names for parts of
-``sources``, and either one, or both, selects it. This module imports nothing heavy, so
-that the daemon can check a job request without loading the processing.
+``trace`` and ``fit`` (``measurement.md``'s names for the stages after the merge, which
+catalog jobs may say: ``hdr,trace,fit``) are accepted as names for parts of ``sources``, and
+either one, or both, selects it. This module imports nothing heavy, so that the daemon can
+check a job request without loading the processing.
 """
 
 from __future__ import annotations
 
 from collections.abc import Iterable
+from enum import StrEnum
+
+
+class Step(StrEnum):
+    """A processing step (its value is its name on the command line and in a job)."""
+
+    HDR = "hdr"
+    SOURCES = "sources"
+
 
 #: The steps, in the order they run.
-STEPS: tuple[str, ...] = ("hdr", "sources")
+STEPS: tuple[Step, ...] = tuple(Step)
 #: Older or finer-grained names, and the step that does that work.
 STEP_ALIASES: dict[str, str] = {"trace": "sources", "fit": "sources"}
 #: What a job does when it does not say: everything.
@@ -32,7 +41,7 @@ class StepsError(ValueError):
     """A step list naming an unknown step (one line)."""
 
 
-def resolve_steps(steps: str | Iterable[str]) -> tuple[str, ...]:
+def resolve_steps(steps: str | Iterable[str]) -> tuple[Step, ...]:
     """The steps a list names, aliases resolved, each once, in the order they run.
 
     Parameters
@@ -42,13 +51,20 @@ def resolve_steps(steps: str | Iterable[str]) -> tuple[str, ...]:
 
     Returns
     -------
-    tuple of str
+    tuple of Step
         A non-empty subsequence of :data:`STEPS`.
 
     Raises
     ------
     StepsError
         An unknown name, or no name at all.
+
+    Examples
+    --------
+    >>> resolve_steps("fit,hdr")
+    (<Step.HDR: 'hdr'>, <Step.SOURCES: 'sources'>)
+    >>> resolve_steps("hdr,trace,fit") == resolve_steps("hdr,sources")
+    True
     """
     names = steps.split(",") if isinstance(steps, str) else list(steps)
     wanted = set()

@@ -11,11 +11,13 @@ the ``cos⁴β`` fall-off of the sensor, and the pixel's footprint area on the l
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
+import numba
 import numpy as np
 
 from drivers.contracts.rig import Rig
+from drivers.contracts.runfile import RunFile
 from drivers.pose import Pose
 
 
@@ -46,7 +48,6 @@ class RigGeometry:
     def with_sensor_distance(self, sensor_distance: float) -> RigGeometry:
         """The same rig with the sensor ``sensor_distance`` behind the pinhole (or lens): the
         focal length in pixels scales with it; a thin lens keeps its focus distance."""
-        from dataclasses import replace
 
         K = self.K.copy()
         K[0, 0] = K[1, 1] = sensor_distance / self.pitch
@@ -137,7 +138,7 @@ class ChiefRays:
     deflection: np.ndarray  # angle between the camera's ray and the reflected ray
 
 
-def _housing_blocks(start, end, light: Pose, radius: float, depth: float) -> np.ndarray:
+def housing_blocks(start, end, light: Pose, radius: float, depth: float) -> np.ndarray:
     """Segments (rig frame) that pass through the housing cylinder behind the light plane.
 
     In the light frame the segment is ``a + s d`` for s in [0, 1]; it meets the solid
@@ -198,7 +199,7 @@ def trace_pixels(geometry: RigGeometry, light_pose: Pose, cols, rows) -> ChiefRa
     phi = np.arctan2(emitted[:, 1], emitted[:, 0])
     blocked = np.zeros_like(hits)
     if np.any(hits):
-        blocked[hits] = _housing_blocks(
+        blocked[hits] = housing_blocks(
             np.broadcast_to(o, (hits.sum(), 3)),
             points[hits],
             light_pose,
@@ -290,3 +291,80 @@ def footprint_areas(geometry: RigGeometry, light_pose: Pose, rays: ChiefRays, st
 def light_pose_at(geometry: RigGeometry, tool_pose: Pose) -> Pose:
     """The light's pose for a tool pose."""
     return tool_pose.compose(geometry.light_to_tool)
+
+
+def specular_points(
+    sources: np.ndarray, targets: np.ndarray, centre: np.ndarray, radius: float, iterations: int = 60
+) -> np.ndarray:
+    """Points on a convex sphere where light from ``sources`` reflects to ``targets``.
+
+    The normal at the reflection point bisects the directions to the source and to the
+    target (the law of reflection); iterating that condition converges for a convex
+    mirror seen from outside. Shapes broadcast: (..., 3).
+
+    Compiled (:func:`_specular_kernel`): in NumPy a template's 121 paths took 60 rounds of
+    a dozen small array operations, a millisecond of call overhead per template.
+    """
+    s, t = np.broadcast_arrays(np.asarray(sources, float) - centre, np.asarray(targets, float) - centre)
+    shape = s.shape
+    found = _specular_kernel(
+        np.ascontiguousarray(s.reshape(-1, 3).T),
+        np.ascontiguousarray(t.reshape(-1, 3).T),
+        float(radius),
+        int(iterations),
+    )
+    return found.T.reshape(shape) + centre
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _specular_kernel(s: np.ndarray, t: np.ndarray, radius: float, iterations: int) -> np.ndarray:
+    """:func:`specular_points` about the sphere's centre; ``s``, ``t`` and the result (3, N).
+
+    Every point's update is ``p ← r · unit(unit(s - p) + unit(t - p))``, started from
+    ``r · unit(unit(s) + unit(t))``. The loop runs over the points inside each round, so
+    that it vectorises (independent square roots and divisions side by side).
+
+    The update of a point depends on nothing but that point, so once every point's new
+    value equals its last (a fixed point) or the one before (a two-cycle, which rounding
+    can leave), the rest of the rounds would only repeat: the result of all
+    ``iterations`` rounds is then read off by their parity, the same to the bit, after
+    about 25 rounds instead of 60.
+    """
+    n = s.shape[1]
+    p = np.empty((3, 3, n))  # the last three rounds, in rotation
+    for i in range(n):
+        ns = math.sqrt(s[0, i] * s[0, i] + s[1, i] * s[1, i] + s[2, i] * s[2, i])
+        nt = math.sqrt(t[0, i] * t[0, i] + t[1, i] * t[1, i] + t[2, i] * t[2, i])
+        mx, my, mz = s[0, i] / ns + t[0, i] / nt, s[1, i] / ns + t[1, i] / nt, s[2, i] / ns + t[2, i] / nt
+        nm = math.sqrt(mx * mx + my * my + mz * mz)
+        p[0, 0, i], p[0, 1, i], p[0, 2, i] = radius * (mx / nm), radius * (my / nm), radius * (mz / nm)
+    for k in range(1, iterations + 1):
+        cur, prev, prev2 = p[k % 3], p[(k - 1) % 3], p[(k - 2) % 3]
+        for i in range(n):
+            ax, ay, az = s[0, i] - prev[0, i], s[1, i] - prev[1, i], s[2, i] - prev[2, i]
+            bx, by, bz = t[0, i] - prev[0, i], t[1, i] - prev[1, i], t[2, i] - prev[2, i]
+            na = math.sqrt(ax * ax + ay * ay + az * az)
+            nb = math.sqrt(bx * bx + by * by + bz * bz)
+            mx, my, mz = ax / na + bx / nb, ay / na + by / nb, az / na + bz / nb
+            nm = math.sqrt(mx * mx + my * my + mz * mz)
+            cur[0, i], cur[1, i], cur[2, i] = radius * (mx / nm), radius * (my / nm), radius * (mz / nm)
+        if k < 2:
+            continue
+        settled = True
+        for i in range(n):
+            same = cur[0, i] == prev[0, i] and cur[1, i] == prev[1, i] and cur[2, i] == prev[2, i]
+            cycle = cur[0, i] == prev2[0, i] and cur[1, i] == prev2[1, i] and cur[2, i] == prev2[2, i]
+            if not (same or cycle):
+                settled = False
+                break
+        if settled:
+            # Round ``iterations`` holds round k's value if their difference is even,
+            # round k - 1's otherwise (the same value for a fixed point).
+            return cur.copy() if (iterations - k) % 2 == 0 else prev.copy()
+    return p[iterations % 3].copy()
+
+
+def light_pose_at_position(run: RunFile, geometry, index: int):
+
+    measured = run.measured_pose(index)
+    return light_pose_at(geometry, measured if measured is not None else run.header.tool_poses[index])

@@ -135,11 +135,11 @@ def test_a_wrong_pinhole_costs_the_fits_and_fitting_the_aperture_wins_them_back(
         assert runs[error, fitted]["max_rms_rel_error"] < 2 * as_taken["max_rms_rel_error"] + 0.005, runs[error, fitted]
     # An error the aperture cannot take up leaves the templates far from the data: the fit's χ² says
     # so (the processing warns above 1.2 a pixel), where the pinhole's error left none.
-    from processing.pipeline import _CHI2_PER_PIXEL_WARNING
+    from processing.light_run.from_data import CHI2_PER_PIXEL_WARNING
 
-    assert runs["none", fitted]["aperture_fit"]["chi2_per_pixel"] < _CHI2_PER_PIXEL_WARNING
-    assert runs["pinhole+10%", fitted]["aperture_fit"]["chi2_per_pixel"] < _CHI2_PER_PIXEL_WARNING
-    assert runs["ball-x+0.2mm", fitted]["aperture_fit"]["chi2_per_pixel"] > 2 * _CHI2_PER_PIXEL_WARNING
+    assert runs["none", fitted]["aperture_fit"]["chi2_per_pixel"] < CHI2_PER_PIXEL_WARNING
+    assert runs["pinhole+10%", fitted]["aperture_fit"]["chi2_per_pixel"] < CHI2_PER_PIXEL_WARNING
+    assert runs["ball-x+0.2mm", fitted]["aperture_fit"]["chi2_per_pixel"] > 2 * CHI2_PER_PIXEL_WARNING
     assert runs["ball-x+0.2mm", fitted]["max_rms_rel_error"] > 0.2
     # 40 % wide puts the truth outside the fit's 0.75-1.25 x: that processing fails, said in its row
     # and its cell, and the benchmark goes on.

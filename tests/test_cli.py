@@ -252,7 +252,9 @@ def test_process_bad_option_fails_before_any_run(tmp_path):
         app, ["process", str(run), str(run.with_name("x.h5")), "--steps", "hdr,dance", "--out", str(tmp_path / "out")]
     )
     assert result.exit_code == 2
-    assert result.output.strip().splitlines() == ["error: --steps: unknown step 'dance' (known: hdr, sources)"]
+    assert result.output.strip().splitlines() == [
+        "error: --steps: unknown step 'dance' (known: hdr, sources; trace and fit are part of sources)"
+    ]
     assert not (tmp_path / "out").exists()
 
 
@@ -266,3 +268,49 @@ def test_output_folders_for_same_named_runs(tmp_path):
     assert folders[a].parent == folders[b].parent == tmp_path / "out"
     assert folders[a].name.startswith("x-") and folders[b].name.startswith("x-")
     assert _output_folders([a, c], None) == {a: None, c: None}
+
+
+def _command_line(*args: str, cwd: Path) -> subprocess.CompletedProcess:
+    """The program as a user starts it (its console entry), in a fresh process."""
+    wide = {**os.environ, "COLUMNS": "200"}  # the help's tables unwrapped
+    return subprocess.run(
+        [sys.executable, "-m", "acquisition.cli", *args], cwd=cwd, capture_output=True, text=True, timeout=60, env=wide
+    )
+
+
+@pytest.mark.parametrize(
+    ("option", "value", "said"),
+    [
+        ("--method", "bogus", "Invalid value for '--method': 'bogus' is not one of 'optimal', 'poisson'."),
+        ("--fit", "gauss", "Invalid value for '--fit': 'gauss' is not one of 'gaussian', 'polynomial',"),
+        ("--noise", "guess", "Invalid value for '--noise': 'guess' is not one of 'auto', 'estimated', 'rig'."),
+        ("--estimator", "sums", "Invalid value for '--estimator': 'sums' is not one of 'auto', 'templates',"),
+        ("--steps", "hdr,dance", "--steps: unknown step 'dance'"),
+        ("--ball-centre", "1,2", "--ball-centre: expected X,Y,Z in metres, got '1,2'"),
+    ],
+)
+def test_process_refuses_a_bad_option_in_one_line_before_any_work(tmp_path, option, value, said):
+    """``mirrorgonio process RUN.h5 --method bogus``: exit status 2, one line on standard error
+    naming the option, within seconds (no cluster started) and nothing written."""
+    run = _small_run(tmp_path / "run.h5", "run")
+    before = sorted(tmp_path.iterdir())
+    started = time.perf_counter()
+    result = _command_line("process", str(run), option, value, cwd=tmp_path)
+    seconds = time.perf_counter() - started
+    assert result.returncode == 2, result.stderr
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: ") and said in lines[0], result.stderr
+    assert result.stdout == ""
+    assert seconds < 5.0
+    assert sorted(tmp_path.iterdir()) == before  # no results file, no .hdr folder
+
+
+def test_the_program_says_its_version_and_takes_h_for_help(tmp_path):
+    from drivers.contracts.version import __version__
+
+    version = _command_line("--version", cwd=tmp_path)
+    assert version.returncode == 0 and version.stdout.strip() == f"mirrorgonio {__version__}"
+    for args in (["-h"], ["process", "-h"], ["bench", "speed", "-h"]):
+        shown = _command_line(*args, cwd=tmp_path)
+        assert shown.returncode == 0 and "Usage: mirrorgonio" in shown.stdout, args
+    assert "<optimal|poisson>" in _command_line("process", "-h", cwd=tmp_path).stdout

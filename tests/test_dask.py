@@ -94,16 +94,16 @@ def test_workers_that_join_later_are_warmed_up_too(tmp_path):
     """The warm-up is a worker plugin: a worker started after the processing connected to
     the cluster loads the processing's modules as it joins, before any task of ours, and
     freezes its long-lived objects."""
-    from processing.pipeline import warm_up_worker
+    from processing.light_run.position import warm_up_worker
 
     def warmed() -> bool:
         """Imported, and the warmed-up objects set aside from the cyclic collector (the
         processing's own modules among them): a full collection walks only newer ones."""
         import gc
 
-        module = sys.modules.get("processing.sources")
+        module = sys.modules.get("processing.unmixing")
         frozen = gc.get_freeze_count() > 100_000 and not any(o is module for o in gc.get_objects())
-        return "processing.sources" in sys.modules and "processing.images" in sys.modules and frozen
+        return "processing.unmixing" in sys.modules and "processing.images" in sys.modules and frozen
 
     programs = _Programs(tmp_path)
     try:
@@ -122,7 +122,7 @@ def test_workers_that_join_later_are_warmed_up_too(tmp_path):
             with open_compute(address, warm_up=warm_up_worker) as again:
                 plugins = again.client.run_on_scheduler(lambda dask_scheduler: list(dask_scheduler.worker_plugins))
                 assert [p for p in plugins if p.startswith("mirrorgonio-warm-up")] == [
-                    "mirrorgonio-warm-up:processing.pipeline.warm_up_worker"
+                    "mirrorgonio-warm-up:processing.light_run.position.warm_up_worker"
                 ]
     finally:
         programs.stop()
@@ -216,15 +216,15 @@ def _sections(page: str) -> list[str]:
 
 
 def test_the_default_local_cluster_is_sized_to_the_machine_and_streams(captured, tmp_path, caplog):
-    from processing.pipeline import process_run
+    from processing.light_run.run import process_run
 
     _, _, run = captured
-    from processing.pipeline import warm_up_worker
+    from processing.light_run.position import warm_up_worker
 
     with open_compute(warm_up=warm_up_worker) as compute:  # the default: "local"
         assert compute.dask and compute.threads() == default_workers()
         # Warmed: every worker has the processing imported and its first kernels loaded.
-        warmed = compute.client.run(lambda: "processing.sources" in sys.modules and "processing.images" in sys.modules)
+        warmed = compute.client.run(lambda: "processing.unmixing" in sys.modules and "processing.images" in sys.modules)
         assert len(warmed) == default_workers() and all(warmed.values())
         assert compute.description == f"local Dask cluster: {default_workers()} worker processes x 1 thread"
         # The workers run with the local cluster's lean settings (no profiler, slow monitors)
@@ -242,12 +242,12 @@ def test_the_default_local_cluster_is_sized_to_the_machine_and_streams(captured,
         assert set(settings.values()) == {(False, "500ms", None, "1")}
         assert compute.client.run_on_scheduler(lambda dask_scheduler: "stealing" in dask_scheduler.extensions) is False
         # Every task runs its numba kernels on its own thread alone (numba's setting is per thread).
-        from processing.pipeline import _prepare_task
+        from processing.light_run.position import prepare_task
 
         def task_threads():
             import numba
 
-            _prepare_task()
+            prepare_task()
             return numba.get_num_threads()
 
         assert compute.client.submit(task_threads, pure=False).result() == 1
@@ -261,7 +261,7 @@ def test_the_default_local_cluster_is_sized_to_the_machine_and_streams(captured,
             report = process_run(run, tmp_path / "dask", steps="hdr,sources", layout=LAYOUT, compute=compute)
         assert not [r.message for r in caplog.records if "drawn" in r.message]  # the workers drew their sections
         # A truth that cannot travel to the workers: its sections are drawn here, the page the same.
-        from processing.report import write_report
+        from processing.report.page import write_report
 
         lock = threading.Lock()
 

@@ -11,7 +11,10 @@ import math
 import numpy as np
 import pytest
 
-from processing.hdr import HDRError, NoiseModel, estimate_noise, measure_saturation, merge_ldr, merge_raw, superpixels
+from processing.hdr.brackets import measure_saturation, merge_ldr, merge_raw
+from processing.hdr.model import HDRError, NoiseModel
+from processing.hdr.mosaic import superpixels
+from processing.hdr.noise import estimate_noise
 from sim_devices.sensor import SensorModel
 
 SENSOR = SensorModel(full_well_e=20000, read_noise_e=3.0, black_level_dn=64, white_level_dn=4095, cfa_pattern="RGGB")
@@ -192,7 +195,7 @@ def test_debevec_recovers_radiance_from_8_bit_non_linear_brackets():
 
 
 def test_merge_dispatches_on_the_method_name():
-    from processing.hdr import merge
+    from processing.hdr.brackets import merge
 
     rng = np.random.default_rng(8)
     frames = bracket(np.full((6, 8), 1e6), rng)
@@ -295,7 +298,7 @@ def test_merge_matches_a_per_pixel_reference(exposures, black, near_black_sigma,
 
 @pytest.mark.parametrize("seed", [12, 13])
 def test_dark_shortcut_agrees_with_the_general_path(seed):
-    from processing.hdr import _run_merge
+    from processing.hdr.brackets import _run_merge
 
     rng = np.random.default_rng(seed)
     exposures = AWKWARD if seed % 2 else EXPOSURES
@@ -315,7 +318,7 @@ def test_dark_shortcut_agrees_with_the_general_path(seed):
 
 @pytest.mark.parametrize("shape", [(40, 60), (41, 63)])
 def test_saturation_counts_match_a_direct_count(shape):
-    from processing.hdr import _site_counts, _site_maxima
+    from processing.hdr.brackets import _site_counts, _site_maxima
 
     rng = np.random.default_rng(14)
     clipped = SensorModel(20000, 3.0, 64, 3900, "RGGB")
@@ -360,7 +363,7 @@ def reference_noise(frames, exposures, black, levels, bins=24):
 
 @pytest.mark.parametrize(("exposures", "black"), [(EXPOSURES, np.full((2, 2), 64.0)), (AWKWARD, AWKWARD_BLACK)])
 def test_noise_bins_match_binning_every_pixel(exposures, black):
-    from processing.hdr import _pair_bins
+    from processing.hdr.noise import _pair_bins
 
     rng = np.random.default_rng(15)
     rate = np.exp(rng.uniform(math.log(1e2), math.log(1e8), (301, 403)))

@@ -350,7 +350,7 @@ def test_a_failure_while_writing_leaves_nothing(tmp_path, tiny_rig, monkeypatch)
 # --- an imported run processes -----------------------------------------------------------------
 def test_an_imported_simulated_capture_processes(tmp_path):
     """Frames captured by the simulated camera as DNGs, imported, then merged to HDR."""
-    from processing.pipeline import process_run
+    from processing.light_run.run import process_run
     from processing.results import Results
     from sim_devices.camera import SimulatedCamera
     from sim_devices.world import SimWorld

@@ -17,7 +17,8 @@ import OpenEXR
 import pytest
 from PIL import Image
 
-from processing.hdr import MergeResult, NoiseModel, merge_raw
+from processing.hdr.brackets import merge_raw
+from processing.hdr.model import MergeResult, NoiseModel
 from processing.images import encode_png, read_exr, tonemap, write_exr, write_png
 from processing.results import (
     HDRInfo,

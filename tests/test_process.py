@@ -10,7 +10,7 @@ from typer.testing import CliRunner
 from acquisition.cli import app
 from drivers.contracts.rig import load_rig
 from drivers.contracts.runfile import PositionTimes, RunFileWriter, RunHeader
-from processing.hdr import superpixels
+from processing.hdr.mosaic import superpixels
 from processing.images import read_exr
 from processing.results import Results
 from sim_devices.camera import SimulatedCamera
@@ -354,18 +354,18 @@ def test_intensities_use_the_rigs_calibrated_gain_whatever_weights_the_merge(
     only, not the intensities, and is reported in one line."""
     import logging
 
-    from processing import pipeline
-    from processing.hdr import NoiseModel
+    from processing.hdr.model import NoiseModel
+    from processing.light_run import run as light_run
     from sim_devices.lights import LIGHTS_DIR
 
     path, _, rig = simulated_run
     layout = LIGHTS_DIR / "five-gaussians.toml"
-    as_rig = pipeline.process_run(path, tmp_path / "rig", steps="hdr,sources", layout=layout, noise="rig")
+    as_rig = light_run.process_run(path, tmp_path / "rig", steps="hdr,sources", layout=layout, noise="rig")
     rig_model = as_rig.noise
     off = NoiseModel(rig_model.gain_e_per_dn * 1.1, rig_model.read_noise_dn, source="estimated")
-    monkeypatch.setattr(pipeline, "choose_noise", lambda *args, **kwargs: off)
+    monkeypatch.setattr(light_run, "choose_noise", lambda *args, **kwargs: off)
     with caplog.at_level(logging.WARNING, logger="mirrorgonio.processing"):
-        skewed = pipeline.process_run(path, tmp_path / "off", steps="hdr,sources", layout=layout)
+        skewed = light_run.process_run(path, tmp_path / "off", steps="hdr,sources", layout=layout)
     assert skewed.noise is off
     # The model and its report say which gain the intensities used.
     assert skewed.model.provenance["gain_e_per_dn"] == rig.camera.gain_e_per_dn
@@ -382,9 +382,9 @@ def test_intensities_use_the_rigs_calibrated_gain_whatever_weights_the_merge(
     for factor, level in ((1.03, logging.INFO), (1.0, None)):
         caplog.clear()
         near = NoiseModel(rig_model.gain_e_per_dn * factor, rig_model.read_noise_dn, source="estimated")
-        monkeypatch.setattr(pipeline, "choose_noise", lambda *args, near=near, **kwargs: near)
+        monkeypatch.setattr(light_run, "choose_noise", lambda *args, near=near, **kwargs: near)
         with caplog.at_level(logging.INFO, logger="mirrorgonio.processing"):
-            pipeline.process_run(path, tmp_path / f"near-{factor}", steps="hdr,sources", layout=layout)
+            light_run.process_run(path, tmp_path / f"near-{factor}", steps="hdr,sources", layout=layout)
         said = [r for r in caplog.records if "calibrated gain" in r.getMessage()]
         assert [r.levelno for r in said] == ([level] if level else []), factor
 
@@ -396,8 +396,8 @@ def test_a_tinted_lights_colours_are_measured_through_the_camera(tmp_path):
     import tomllib
 
     from drivers.contracts.rig import rig_from_dict
+    from processing.light_run.run import process_run
     from processing.lightmodel import LightModel
-    from processing.pipeline import process_run
     from sim_devices.lights import LIGHTS_DIR, load_truth
 
     # The shipped tinted truth: the five Gaussians, warm white with one cool bin.

@@ -27,8 +27,7 @@ from drivers.contracts.runfile import PositionTimes, RunFileWriter, RunHeader
 from processing.fit import IntensityFit
 from processing.images import read_exr
 from processing.lightmodel import LightModel, SourceModel
-from processing.reflectance import (
-    LIGHT_MODELS,
+from processing.reflectance.codes import (
     PIXEL_BACKGROUND,
     PIXEL_EDGE,
     PIXEL_FEW_SATURATED,
@@ -42,13 +41,11 @@ from processing.reflectance import (
     SAMPLE_USED,
     ReflectanceError,
     ReflectanceSettings,
-    estimate_reflectance,
-    find_light_model,
-    light_centre,
-    load_mesh,
-    reflectance_from_run,
-    write_outputs,
 )
+from processing.reflectance.estimate import estimate_reflectance
+from processing.reflectance.lights import LIGHT_MODELS, light_centre
+from processing.reflectance.outputs import write_outputs
+from processing.reflectance.run import find_light_model, load_mesh, reflectance_from_run
 
 runner = CliRunner()
 K = 1000.0  # the camera's sensitivity_e_per_s
@@ -712,7 +709,7 @@ def test_uv_texture_of_a_plane(tmp_path):
     rates, truth = render(plane, model, POSES)
     result = estimate_reflectance(rates, None, RIG.camera, plane, POSES, model)
     assert result.uv is not None
-    from processing.reflectance import reflectance_profiles, uv_texture
+    from processing.reflectance.maps import reflectance_profiles, uv_texture
 
     texture = uv_texture(result, "measured", 64)
     filled = np.isfinite(texture[..., 0])
@@ -787,7 +784,7 @@ def test_cli_reflectance(object_run, tmp_path):
 
 def test_aperture_mean_cos4_matches_monte_carlo_over_the_disc():
     """The simulator averages cos⁴β over the aperture; the estimator must divide by the same."""
-    from processing.reflectance import aperture_mean_cos4
+    from processing.reflectance.camera import aperture_mean_cos4
 
     f, radius = 0.025, 0.025 / 8 / 2  # f/8
     rng = np.random.default_rng(7)

@@ -20,7 +20,8 @@ from drivers.contracts.rig import load_rig, rig_from_dict, rig_to_toml_dict
 from drivers.contracts.runfile import RunFile, file_sha256
 from processing.fit import Samples, fit_intensity
 from processing.lightmodel import LightModel, SourceModel, samples_table
-from processing.reflectance import ReflectanceError, reflectance_from_run
+from processing.reflectance.codes import ReflectanceError
+from processing.reflectance.run import reflectance_from_run
 from sim_devices.lights import load_truth
 from sim_devices.objects import surface_truth_at
 

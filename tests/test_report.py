@@ -15,7 +15,9 @@ import pytest
 
 from processing.fit import Samples, fit_intensity
 from processing.lightmodel import LightModel, SourceModel, samples_table
-from processing.report import NO_CALIBRATION, polar_figure, write_report
+from processing.report.figures import polar_figure
+from processing.report.page import write_report
+from processing.report.sections import NO_CALIBRATION
 
 IMG = re.compile(r'<img src="data:image/png;base64,([A-Za-z0-9+/=]+)"')
 # Three sources as a sweep past the ball sees them: θ from 3° to 40° on both sides of the axis.
@@ -180,7 +182,7 @@ def processed(tmp_path_factory):
 
     from drivers.contracts.rig import load_rig
     from drivers.contracts.runfile import PositionTimes, RunFileWriter, RunHeader
-    from processing.pipeline import process_run
+    from processing.light_run.run import process_run
     from sim_devices.camera import SimulatedCamera
     from sim_devices.lights import LIGHTS_DIR, load_truth
     from sim_devices.world import SimWorld

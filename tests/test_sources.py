@@ -15,17 +15,13 @@ from conftest import REDUCED_RIG
 from test_render import _crop_rig, rig_with
 
 from drivers.contracts.rig import load_rig
-from processing.pipeline import choose_estimator
-from processing.sources import (
-    LayoutData,
-    Source,
-    SourcesError,
-    TemplateBuilder,
-    load_layout,
-    refine_layout,
-    unmix_position,
-)
+from processing.light_run.samples import choose_estimator
 from processing.trace import RigGeometry, ball_pixel_grid, trace_pixels
+from processing.unmixing.problem import LayoutData
+from processing.unmixing.search import refine_layout
+from processing.unmixing.sources import Source, SourcesError, load_layout
+from processing.unmixing.templates import TemplateBuilder
+from processing.unmixing.unmix import unmix_position
 from sim_devices.lights import LIGHTS_DIR, TruthLight, load_truth
 from sim_devices.optics import CameraOptics, LightPlane, Mirror, MirrorBallRenderer
 from sim_devices.optics import trace as sim_trace
@@ -274,7 +270,7 @@ def test_the_aperture_fit_finds_the_pinhole_the_data_were_taken_through():
     outside give a clear failure, not a diameter at the bound."""
     from dataclasses import replace
 
-    from processing.sources import fit_aperture
+    from processing.unmixing.camera_fit import fit_aperture
 
     data, builder, truth = _reduced_rig_positions()
     layout = [Source(e.name, tuple(e.centre_m), e.radius_m) for e in truth.emitters]
@@ -299,7 +295,7 @@ def test_the_sensor_distance_fit_finds_the_distance_the_data_were_taken_at():
     described. A search whose bounds leave the truth outside fails clearly."""
     from dataclasses import replace
 
-    from processing.sources import fit_sensor_distance
+    from processing.unmixing.camera_fit import fit_sensor_distance
 
     data, builder, truth = _reduced_rig_positions()
     true_distance = builder.geometry.sensor_distance

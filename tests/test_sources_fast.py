@@ -15,11 +15,13 @@ from conftest import REDUCED_RIG
 from scipy import fft as sfft
 from scipy.signal import fftconvolve
 
-import processing.sources as sources
+import processing.unmixing.cell_flux as cell_sums_module
+import processing.unmixing.psf as psf
 from drivers.contracts.rig import load_rig
 from drivers.pose import Pose
-from processing.sources import Source, cell_pixel_boxes, cell_sums, load_layout, specular_points
-from processing.trace import RigGeometry, ball_pixel_grid, trace_pixels
+from processing.trace import RigGeometry, ball_pixel_grid, specular_points, trace_pixels
+from processing.unmixing.cell_flux import cell_pixel_boxes, cell_sums
+from processing.unmixing.sources import Source, load_layout
 from sim_devices.lights import LIGHTS_DIR
 
 
@@ -64,8 +66,8 @@ def test_convex_coverage_is_the_clipped_distance_ramp():
     xs = np.arange(-2.0, 26.0, sample) + 0.125
     ys = np.arange(-16.0, 8.0, sample) + 0.125
     for polygon in (outline, outline[::-1]):  # either orientation
-        got = sources._convex_coverage(polygon, xs, ys, sample)
-        ccw = polygon if sources._shoelace(polygon) > 0 else polygon[::-1]
+        got = psf.convex_coverage(polygon, xs, ys, sample)
+        ccw = polygon if psf._shoelace(polygon) > 0 else polygon[::-1]
         edges = np.roll(ccw, -1, axis=0) - ccw
         normals = np.stack([edges[:, 1], -edges[:, 0]], -1)
         normals /= np.linalg.norm(normals, axis=1, keepdims=True)
@@ -75,7 +77,7 @@ def test_convex_coverage_is_the_clipped_distance_ramp():
         expected = np.clip(0.5 - distance / sample, 0.0, 1.0)
         np.testing.assert_allclose(got, expected, rtol=0, atol=1e-12)
         assert 0 < np.count_nonzero((got > 0) & (got < 1)) < got.size // 4  # a ramp along the edge
-    assert sources._polygon_area(outline) == pytest.approx(
+    assert psf.polygon_area(outline) == pytest.approx(
         0.5
         * abs(np.dot(outline[:, 0], np.roll(outline[:, 1], -1)) - np.dot(outline[:, 1], np.roll(outline[:, 0], -1))),
         rel=1e-14,
@@ -90,11 +92,11 @@ def test_diffraction_is_the_padded_otf_product(n):
     wavelengths = [610e-9, 540e-9, 465e-9]
     size = n + 2 * margin
     padded = sfft.next_fast_len(4 * size, real=True)
-    got = sources._diffract(geometric, size, margin, padded, pitch, aperture, distance, wavelengths)
+    got = psf.diffract(geometric, size, margin, padded, pitch, aperture, distance, wavelengths)
     image = np.zeros((padded, padded))
     image[margin : margin + n, margin : margin + n] = geometric
     for c, wavelength in enumerate(wavelengths):
-        otf = sources._airy_otf((padded, padded), pitch, aperture, distance, wavelength)
+        otf = psf._airy_otf((padded, padded), pitch, aperture, distance, wavelength)
         expected = sfft.irfft2(sfft.rfft2(image) * otf, s=(padded, padded))[:size, :size]
         np.testing.assert_allclose(got[c], expected, rtol=0, atol=1e-13 * expected.max())
 
@@ -104,7 +106,7 @@ def test_same_convolution_is_scipys():
     for n, k in ((188, 15), (60, 3), (101, 21)):
         image, kernel = rng.random((n, n)), rng.random((k, k))
         expected = fftconvolve(image, kernel, mode="same")
-        np.testing.assert_allclose(sources._convolve_same(image, kernel), expected, rtol=0, atol=1e-13 * expected.max())
+        np.testing.assert_allclose(psf.convolve_same(image, kernel), expected, rtol=0, atol=1e-13 * expected.max())
 
 
 @pytest.mark.parametrize("rig_path", [REDUCED_RIG, None])
@@ -141,7 +143,7 @@ def test_cell_sums_over_the_boxes_are_the_sums_over_every_pixel(monkeypatch):
         for radius in (0.5e-3, 2e-3, 8e-3):
             fast = cell_sums(rate, usable, geometry, 1000.0, layout, pose, radius)
             with monkeypatch.context() as m:
-                m.setattr(sources, "cell_pixel_boxes", lambda *args, **kwargs: None)
+                m.setattr(cell_sums_module, "cell_pixel_boxes", lambda *args, **kwargs: None)
                 every = cell_sums(rate, usable, geometry, 1000.0, layout, pose, radius)
             assert np.any(every > 0)
             np.testing.assert_array_equal(fast, every)

@@ -341,7 +341,7 @@ def test_the_worker_command_once_and_its_errors(captured, data, tmp_path):
 
 
 def test_one_line_reasons():
-    from processing.pipeline import ProcessingError
+    from processing.light_run.errors import ProcessingError
 
     assert one_line(ProcessingError("run.h5: position 3:\n  bad")) == "run.h5: position 3: bad"
     assert one_line(KeyError("x")) == "KeyError: 'x'"

@@ -150,7 +150,7 @@ def bench_accuracy(
     and the distance between them is reported too. The target then also asks for as many
     sources as the truth has, each the nearest of a different emitter."""
     from drivers.contracts.rig import load_rig
-    from processing.pipeline import process_run
+    from processing.light_run.run import process_run
     from sim_devices.lights import LIGHTS_DIR, load_truth
 
     rig = load_rig(rig_path)

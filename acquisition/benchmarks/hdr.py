@@ -11,7 +11,7 @@ The scene
     fresh seeded noise, outside the timed sections; only one bracket is held at a time.
 
 The methods, given the same frames
-    * ``mirrorgonio_optimal`` / ``mirrorgonio_poisson``: :func:`processing.hdr.merge_raw` on
+    * ``mirrorgonio_optimal`` / ``mirrorgonio_poisson``: :func:`processing.hdr.brackets.merge_raw` on
       the raw uint16 mosaic (black level and saturation handled inside, the rig's noise
       model).
     * ``hdrutils``: HDRutils' Poisson merge of raw mosaics (``merge.imread_merge_demosaic``,
@@ -200,7 +200,8 @@ class _Ctx:
 
 
 def _ours(ctx: _Ctx, method: str) -> _Method:
-    from processing.hdr import NoiseModel, merge_raw
+    from processing.hdr.brackets import merge_raw
+    from processing.hdr.model import NoiseModel
 
     s, exposures = ctx.sensor, ctx.exposures
     noise = NoiseModel(s.gain, s.read_dn, source="rig")
@@ -222,7 +223,7 @@ def _ours(ctx: _Ctx, method: str) -> _Method:
         lambda out: out,
         input="the raw uint16 mosaic (k, H, W) with its black level; saturation measured from the frames",
         scale="exact (DN/s above black)",
-        notes=f"processing.hdr.merge_raw(method={method!r}): {what}; the rig's noise model "
+        notes=f"processing.hdr.brackets.merge_raw(method={method!r}): {what}; the rig's noise model "
         f"(gain {s.gain:.4g} e-/DN, read noise {s.read_dn:.4g} DN); numba kernel, parallel over rows",
         version=__version__,
     )

@@ -63,8 +63,8 @@ def bench_reflectance(
 ) -> dict:
     """Measure the light, photograph the object, estimate ρ three ways, score each."""
     from drivers.contracts.rig import load_rig
-    from processing.pipeline import process_run
-    from processing.reflectance import reflectance_from_run
+    from processing.light_run.run import process_run
+    from processing.reflectance.run import reflectance_from_run
     from sim_devices.lights import LIGHTS_DIR
     from sim_devices.objects import surface_truth_at
 

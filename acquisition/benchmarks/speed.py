@@ -19,7 +19,7 @@ The measurements (each at both sizes)
         same frames with the same chunks and filter. The difference with the camera alone
         is the daemon's overhead per frame.
     ``hdr``
-        ``processing.hdr.merge_raw`` (the rig's noise model, as ``process`` runs it: one
+        ``processing.hdr.brackets.merge_raw`` (the rig's noise model, as ``process`` runs it: one
         process, numba's threads) on the run's own brackets, next to HDRutils' merge and
         colour-hdri's ``image_stack_to_HDRI`` on the same brackets
         (:mod:`acquisition.benchmarks.hdr` prepares their inputs: not timed); a few
@@ -28,7 +28,7 @@ The measurements (each at both sizes)
         ``processing.trace.trace_pixels``: the chief ray of every photosite of the frame
         to the light plane, at the middle position; rays per second.
     ``process``
-        ``processing.pipeline.process_run`` of the whole run, as ``mirrorgonio process``
+        ``processing.light_run.run.process_run`` of the whole run, as ``mirrorgonio process``
         does it by default (a local Dask cluster, one worker process per core; steps hdr
         and sources, an OpenEXR and a PNG per position, the light model, IES, LDT, TM-25
         and the report), the sources' layout given (the truth's, as ``bench accuracy``
@@ -369,7 +369,7 @@ def measure_parallel_read(run_path: Path, repeat: int, compute) -> dict:
 # --- 4. whole-run processing ----------------------------------------------------------------------
 def _process_once(run_path: Path, layout, compute, *, images: bool = True) -> dict:
     """One whole-run processing on ``compute`` into a fresh folder (deleted afterwards)."""
-    from processing.pipeline import process_run
+    from processing.light_run.run import process_run
 
     out_dir = Path(tempfile.mkdtemp(prefix="mirrorgonio-speed-out-"))
     try:
@@ -451,8 +451,8 @@ def measure_process(
     (one untimed processing first, as the read floor is read once untimed), ``repeat`` times
     (median). Besides: the first processing (this process's imports, the workers' first
     tasks), one without the per-position images, and one on a cluster started for it alone."""
+    from processing.light_run.position import warm_up_worker
     from processing.parallel import open_compute
-    from processing.pipeline import warm_up_worker
     from sim_devices.lights import LIGHTS_DIR
 
     layout = LIGHTS_DIR / f"{rig.simulation.truth}.toml"
@@ -536,7 +536,7 @@ def measure_process(
         "over_separate_read_floor": ratio(process_s),
         "process_s_without_images": round(without_images["process_s"], 2),
         "without_images_over_read_floor": ratio(without_images["process_s"]),
-        "how": "processing.pipeline.process_run(run, out, steps=('hdr', 'sources'), layout=<the truth's layout>, "
+        "how": "processing.light_run.run.process_run(run, out, steps=('hdr', 'sources'), layout=<the truth's layout>, "
         "compute=<open_compute(scheduler)>): noise model estimated (the default), per position the merge, "
         "an OpenEXR and a PNG, the chief rays, templates and unmixing; then the fits, the light model, IES, "
         "LDT, TM-25 and the HTML report. One cluster, started and warmed as `process` and `worker` start it "
@@ -701,7 +701,7 @@ def measure_hdr(run_path: Path, positions: int, repeat: int, peers: bool = True)
         "numba_threads": numba.get_num_threads(),
         "how": "the run's own brackets read from the run file (untimed); per method one untimed call on the first "
         "bracket, then every bracket merged `repeat` times; ms_per_position is the median over repeats of "
-        "the total over the positions, divided by their number. mirrorgonio: processing.hdr.merge_raw "
+        "the total over the positions, divided by their number. mirrorgonio: processing.hdr.brackets.merge_raw "
         "(method optimal, the rig's noise model; numba, this process's threads). HDRutils: its merge only "
         "(the bilinear demosaic its call always runs is timed apart and subtracted, in its favour); "
         "colour-hdri: image_stack_to_HDRI. The peers' inputs are prepared untimed as in `bench hdr` "

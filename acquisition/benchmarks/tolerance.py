@@ -175,8 +175,11 @@ def bench_tolerance(
     from acquisition.benchmarks.accuracy import acquire_simulated, score_sources
     from acquisition.demo import DEMO_RIG_PATH
     from drivers.contracts.rig import load_rig
+    from processing.light_run.errors import ProcessingError
+    from processing.light_run.position import warm_up_worker
+    from processing.light_run.run import process_run
+    from processing.options import FitChoice
     from processing.parallel import open_compute
-    from processing.pipeline import ProcessingError, process_run, warm_up_worker
     from sim_devices.lights import LIGHTS_DIR, load_truth
 
     errors = list(DEFAULT_ERRORS) if errors is None else list(errors)
@@ -217,8 +220,8 @@ def bench_tolerance(
                             units="W/sr",
                             compute=compute,
                             images=False,
-                            fit_aperture=fitted,
-                            fit_sensor_distance=distance,
+                            fit_aperture=FitChoice.ALWAYS if fitted else FitChoice.NEVER,
+                            fit_sensor_distance=FitChoice.ALWAYS if distance else FitChoice.NEVER,
                         )
                     except ProcessingError as exc:  # e.g. an aperture fit at its bound: said, and on to the next
                         row.update(failed=str(exc), process_s=round(time.perf_counter() - t0, 1))
@@ -238,9 +241,9 @@ def bench_tolerance(
                     if layout is None:
                         row["max_centre_error_um"] = max(s["centre_error_um"] for s in scored["sources"])
                     if fitted:
-                        row["aperture_fit"] = report.aperture_fit
+                        row["aperture_fit"] = report.aperture_fit.record()
                     if distance:
-                        row["sensor_distance_fit"] = report.sensor_distance_fit
+                        row["sensor_distance_fit"] = report.sensor_distance_fit.record()
                     rows.append(row)
                     if log:
                         log(

@@ -112,7 +112,7 @@ def bench_hdr_command(
 ) -> None:
     """This project's raw HDR merge next to HDRutils, colour-hdri and OpenCV on the same brackets: time and error."""
     from acquisition.benchmarks.hdr import BenchmarkError, bench_hdr
-    from processing.hdr import HDRError
+    from processing.hdr.model import HDRError
 
     try:
         result = bench_hdr(positions, exposures, width, height, repeat, seed, rig_path=rig, peers=peers)
@@ -140,7 +140,7 @@ def bench_accuracy_command(
 ) -> None:
     """The reference simulation through the whole chain, scored against the truth."""
     from acquisition.benchmarks.accuracy import bench_accuracy
-    from processing.pipeline import ProcessingError
+    from processing.light_run.errors import ProcessingError
 
     try:
         result = bench_accuracy(
@@ -171,8 +171,8 @@ def bench_reflectance_command(
 ) -> None:
     """Measure the light, photograph an object, score ρ under three light models."""
     from acquisition.benchmarks.reflectance import bench_reflectance
-    from processing.pipeline import ProcessingError
-    from processing.reflectance import ReflectanceError
+    from processing.light_run.errors import ProcessingError
+    from processing.reflectance.codes import ReflectanceError
 
     try:
         result = bench_reflectance(
@@ -225,8 +225,8 @@ def bench_tolerance_command(
     Progress goes to standard error; the JSON, then (without --json) the markdown table, to
     standard output."""
     from acquisition.benchmarks.tolerance import bench_tolerance
+    from processing.light_run.errors import ProcessingError
     from processing.parallel import ComputeError
-    from processing.pipeline import ProcessingError
 
     chosen = None if errors is None else [e.strip() for e in errors.split(",") if e.strip()]
     try:
@@ -293,9 +293,9 @@ def bench_speed_command(
     chief rays per second, whole-run processing time and peak memory, and the read floor.
     Progress goes to standard error; the JSON, then (without --json) the markdown table, to standard output."""
     from acquisition.benchmarks.speed import DEFAULT_CACHE, SpeedBenchError, bench_speed, parse_size
-    from processing.hdr import HDRError
+    from processing.hdr.model import HDRError
+    from processing.light_run.errors import ProcessingError
     from processing.parallel import ComputeError
-    from processing.pipeline import ProcessingError
 
     try:
         size_list = [parse_size(s) for s in sizes.split(",") if s.strip()]

@@ -101,7 +101,7 @@ def worker_command(
     if not Path(settings.data_dir).is_dir():
         raise fail(f"--data-dir: {settings.data_dir} is not a folder (the daemon's data folder, with catalog.sqlite)")
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
-    from processing.pipeline import warm_up_worker
+    from processing.light_run.position import warm_up_worker
 
     try:
         compute = open_compute(scheduler, workers=workers, warm_up=warm_up_worker)

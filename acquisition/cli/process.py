@@ -2,21 +2,26 @@
 
 from __future__ import annotations
 
+import hashlib
 import time
 from pathlib import Path
 from typing import Annotated
 
 import typer
 
-from acquisition.cli.app import (
-    SchedulerOption,
-    WorkersOption,
-    app,
-    fail,
+from acquisition.cli.app import SchedulerOption, WorkersOption, app, fail
+from processing.options import (
+    Estimator,
+    FitChoice,
+    FitMethod,
+    HDRMethod,
+    NoiseSource,
+    OptionsError,
+    ProcessingOptions,
 )
+from processing.parallel import ComputeError, check_scheduler
 
 
-# --- process ------------------------------------------------------------------------------
 def _distinct_runs(runs: list[Path]) -> list[Path]:
     """The runs in the order given, a file named twice kept once (with a note)."""
     seen: dict[Path, Path] = {}
@@ -37,8 +42,6 @@ def _output_folders(runs: list[Path], out: Path | None) -> dict[Path, Path | Non
     (``out/day1/``, ``out/day2/``), with a short hash of its path when those names are
     the same too.
     """
-    import hashlib
-
     if out is None:
         return {run: None for run in runs}
     by_stem: dict[str, list[Path]] = {}
@@ -64,8 +67,8 @@ def _naming(run: Path, message: str) -> str:
 
 
 def _print_batch_summary(outcomes: list) -> None:
-    from rich.console import Console
-    from rich.table import Table
+    from rich.console import Console  # noqa: PLC0415 - rich's tables, only for a batch
+    from rich.table import Table  # noqa: PLC0415
 
     table = Table(title="processed runs", title_justify="left")
     table.add_column("#", justify="right", no_wrap=True)
@@ -102,15 +105,17 @@ def process(
         Path | None, typer.Option("--out", help="Folder for the results (default: beside each run).")
     ] = None,
     steps: Annotated[str, typer.Option(help="Comma-separated steps: hdr, sources.")] = "hdr,sources",
-    method: Annotated[str, typer.Option(help="HDR estimator: optimal or poisson.")] = "optimal",
+    method: Annotated[HDRMethod, typer.Option(help="HDR estimator.")] = HDRMethod.OPTIMAL,
     noise: Annotated[
-        str, typer.Option(help="Noise model: auto (estimate, else the rig's), estimated, or rig.")
-    ] = "auto",
+        NoiseSource, typer.Option(help="Noise model: auto (estimated, else the rig's), estimated, or the rig's.")
+    ] = NoiseSource.AUTO,
     layout: Annotated[
         Path | None, typer.Option(help="The sources on the light plane (TOML); found in the data without one.")
     ] = None,
-    estimator: Annotated[str, typer.Option(help="auto (from the footprint), templates, or cell-sums.")] = "auto",
-    fit: Annotated[str, typer.Option(help="Fit: gaussian, polynomial, cos-power, gaussian-2d.")] = "gaussian",
+    estimator: Annotated[
+        Estimator, typer.Option(help="auto (from the footprint), templates, or cell-sums.")
+    ] = Estimator.AUTO,
+    fit: Annotated[FitMethod, typer.Option(help="The model every source's I(θ) is fitted to.")] = FitMethod.GAUSSIAN,
     ball_centre: Annotated[
         str | None,
         typer.Option("--ball-centre", help="Measured ball centre X,Y,Z in metres (rig frame; from `calibrate`)."),
@@ -122,11 +127,9 @@ def process(
         bool | None,
         typer.Option(
             "--fit-aperture/--no-fit-aperture",
-            help="Fit the camera's aperture "
-            "(pinhole) diameter to the data before the sources are estimated "
-            "(docs/light-model.md). Default: fitted when the sources are searched "
-            "for in the data (no --layout), the rig's diameter kept if that "
-            "fit fails.",
+            help="Fit the camera's aperture (pinhole) diameter to the data before the sources are estimated "
+            "(docs/light-model.md), or keep the rig's. Default: fitted when the sources are searched for in the "
+            "data (no --layout), the rig's diameter kept if that fit fails.",
             show_default=False,
         ),
     ] = None,
@@ -134,9 +137,8 @@ def process(
         bool,
         typer.Option(
             "--fit-sensor-distance",
-            help="Fit the sensor distance (pinhole "
-            "to sensor) to the data too, before the aperture: about a minute "
-            "more on the demo rig (docs/light-model.md).",
+            help="Fit the sensor distance (pinhole to sensor) to the data too, before the aperture: minutes more on "
+            "the demo rig (docs/light-model.md).",
         ),
     ] = False,
     scheduler: SchedulerOption = "local",
@@ -149,62 +151,67 @@ def process(
     others, a summary table ends the output and the exit status is 2 if any run failed.
     With --out, each run's results are named after the run (RUN.results.h5, RUN.hdr/, ...);
     runs of the same name from different folders go to a subfolder each (docs/import.md)."""
-    from rich.progress import Progress, TextColumn
-
-    from processing.hdr import HDRError
-    from processing.lightmodel import describe_fitted
-    from processing.pipeline import ProcessingError, process_run
-
-    if noise not in ("auto", "estimated", "rig"):
-        raise fail(f"--noise: {noise!r} is not one of auto, estimated, rig")
-    step_list = tuple(s for s in steps.split(",") if s)
-    centre = None
-    if ball_centre is not None:
-        try:
-            centre = tuple(float(v) for v in ball_centre.split(","))
-            assert len(centre) == 3
-        except (ValueError, AssertionError):
-            raise fail(f"--ball-centre: expected X,Y,Z in metres, got {ball_centre!r}") from None
-    from processing.pipeline import STEPS
-
-    unknown = [s for s in step_list if s not in STEPS]
-    if unknown:
-        raise fail(f"--steps: unknown step {unknown[0]!r} (known: {', '.join(STEPS)})")
+    try:
+        options = ProcessingOptions.checked(
+            steps=steps,
+            method=method,
+            noise=noise,
+            layout=layout,
+            estimator=estimator,
+            fit_method=fit,
+            ball_centre=ball_centre,
+            images=images,
+            fit_aperture={None: FitChoice.AUTO, True: FitChoice.ALWAYS, False: FitChoice.NEVER}[fit_aperture],
+            fit_sensor_distance=FitChoice.ALWAYS if fit_sensor_distance else FitChoice.NEVER,
+        )
+        check_scheduler(scheduler, workers)
+    except (OptionsError, ComputeError) as exc:
+        raise fail(str(exc)) from None
+    missing = [run for run in runs if not run.is_file()]
+    if missing:
+        raise fail(f"{missing[0]}: no such run file")
+    if options.layout is not None and not options.layout.is_file():
+        raise fail(f"--layout: {options.layout}: no such file")
     distinct = _distinct_runs(runs)
-    folders = _output_folders(distinct, out)
-    batch = len(distinct) > 1
-    outcomes: list[tuple[Path, object, float, str]] = []  # run, report or None, seconds, error
-    from processing.parallel import ComputeError, open_compute
-    from processing.pipeline import warm_up_worker
+    outcomes = _process_all(distinct, _output_folders(distinct, out), options, scheduler, workers)
+    if len(distinct) > 1:
+        _print_batch_summary(outcomes)
+    failed = [error for *_, error in outcomes if error]
+    for error in failed:
+        typer.echo(f"error: {error}", err=True)
+    if failed:
+        raise typer.Exit(code=2)
 
+
+def _process_all(runs: list[Path], folders: dict, options: ProcessingOptions, scheduler: str, workers) -> list:
+    """Every run processed in turn on one cluster: (run, report or None, seconds, error) each."""
+    from rich.progress import Progress, TextColumn  # noqa: PLC0415 - rich's progress, once options are checked
+
+    from processing.light_run import ProcessingError, process_run, warm_up_worker  # noqa: PLC0415 - heavy
+    from processing.parallel import open_compute  # noqa: PLC0415 - heavy (dask)
+
+    batch = len(runs) > 1
+    outcomes: list[tuple[Path, object, float, str]] = []
     try:
         compute = open_compute(scheduler, workers=workers, warm_up=warm_up_worker)
     except ComputeError as exc:
         raise fail(str(exc)) from None
-    with compute, Progress(*Progress.get_default_columns(), TextColumn("{task.fields[note]}"), transient=True) as bar:
-        overall = bar.add_task("runs", total=len(distinct), note="") if batch else None
-        for number, run in enumerate(distinct, 1):
-            label = f"[{number}/{len(distinct)}] {run.name}" if batch else run.name
+    columns = (*Progress.get_default_columns(), TextColumn("{task.fields[note]}"))
+    with compute, Progress(*columns, transient=True) as bar:
+        overall = bar.add_task("runs", total=len(runs), note="") if batch else None
+        for number, run in enumerate(runs, 1):
+            label = f"[{number}/{len(runs)}] {run.name}" if batch else run.name
             task = bar.add_task(label, total=None, note="positions")
             started = time.perf_counter()
             try:
                 report = process_run(
                     run,
                     folders[run],
-                    steps=step_list,
-                    method=method,
-                    noise=noise,
-                    layout=layout,
-                    estimator=estimator,
-                    fit_method=fit,
-                    ball_centre=centre,
                     compute=compute,
-                    images=images,
-                    fit_aperture=fit_aperture,
-                    fit_sensor_distance=fit_sensor_distance,
                     progress=lambda done, total, task=task: bar.update(task, completed=done, total=total),
+                    **vars(options),
                 )
-            except (ProcessingError, HDRError, ValueError, OSError) as exc:
+            except (ProcessingError, ValueError, OSError) as exc:
                 if not batch:
                     raise fail(str(exc)) from None
                 outcomes.append((run, None, time.perf_counter() - started, _naming(run, str(exc))))
@@ -212,47 +219,41 @@ def process(
             except Exception as exc:  # noqa: BLE001 - one run's failure must not stop the batch
                 if not batch:
                     raise
-                outcomes.append(
-                    (run, None, time.perf_counter() - started, _naming(run, f"unexpected {type(exc).__name__}: {exc}"))
-                )
+                unexpected = _naming(run, f"unexpected {type(exc).__name__}: {exc}")
+                outcomes.append((run, None, time.perf_counter() - started, unexpected))
                 continue
             finally:
                 bar.remove_task(task)
                 if overall is not None:
                     bar.advance(overall)
             outcomes.append((run, report, time.perf_counter() - started, ""))
-            noise_model = report.noise
-            typer.echo(
-                f"{run}: {report.positions} positions -> {report.results_file} "
-                f"(noise {noise_model.source}: gain {noise_model.gain_e_per_dn:.3f} e-/DN, "
-                f"read noise {noise_model.read_noise_dn:.3f} DN; EXR and PNG in "
-                f"{report.results_file.parent / (run.stem + '.hdr')})"
-            )
-            if report.light_model:
-                typer.echo(f"  sources: {report.estimator_reason}")
-                for label, fitted, digits in (
-                    ("aperture", report.aperture_fit, ".4g"),
-                    ("sensor distance", report.sensor_distance_fit, ".3f"),
-                ):
-                    if fitted.get("fitted_m") is not None:
-                        later = f" (a later fit failed: {fitted['failed']})" if fitted.get("failed") else ""
-                        typer.echo(f"  {label}: {describe_fitted(fitted, digits)}{later}")
-                    elif fitted.get("failed"):
-                        typer.echo(
-                            f"  {label}: as the rig describes it (the fit to the data failed: {fitted['failed']})"
-                        )
-                typer.echo(
-                    f"  light model {report.light_model}; "
-                    + ", ".join(
-                        f"{kind.upper()} {paths[0]}"
-                        for kind, paths in report.outputs.items()
-                        if kind in ("ies", "ldt", "tm25", "report")
-                    )
-                )
-    if batch:
-        _print_batch_summary(outcomes)
-    failed = [error for *_, error in outcomes if error]
-    for error in failed:
-        typer.echo(f"error: {error}", err=True)
-    if failed:
-        raise typer.Exit(code=2)
+            _say_processed(run, report)
+    return outcomes
+
+
+def _say_processed(run: Path, report) -> None:
+    """What one run's processing wrote, and the camera's numbers it fitted."""
+    noise = report.noise
+    typer.echo(
+        f"{run}: {report.positions} positions -> {report.results_file} "
+        f"(noise {noise.source}: gain {noise.gain_e_per_dn:.3f} e-/DN, read noise {noise.read_noise_dn:.3f} DN; "
+        f"EXR and PNG in {report.results_file.parent / (run.stem + '.hdr')})"
+    )
+    if not report.light_model:
+        return
+    typer.echo(f"  sources: {report.estimator_reason}")
+    for label, fitted, digits in (
+        ("aperture", report.aperture_fit, ".4g"),
+        ("sensor distance", report.sensor_distance_fit, ".3f"),
+    ):
+        if fitted is not None and fitted.fitted_m is not None:
+            later = f" (a later fit failed: {fitted.failed})" if fitted.failed else ""
+            typer.echo(f"  {label}: {fitted.describe(digits)}{later}")
+        elif fitted is not None and fitted.failed:
+            typer.echo(f"  {label}: as the rig describes it (the fit to the data failed: {fitted.failed})")
+    files = ", ".join(
+        f"{kind.upper()} {paths[0]}"
+        for kind, paths in report.outputs.items()
+        if kind in ("ies", "ldt", "tm25", "report")
+    )
+    typer.echo(f"  light model {report.light_model}; {files}")

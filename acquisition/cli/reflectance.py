@@ -52,7 +52,8 @@ def reflectance(
     from rich.progress import Progress
     from rich.table import Table
 
-    from processing.reflectance import ReflectanceError, ReflectanceSettings, reflectance_from_run
+    from processing.reflectance.codes import ReflectanceError, ReflectanceSettings
+    from processing.reflectance.run import reflectance_from_run
 
     try:
         settings = ReflectanceSettings(

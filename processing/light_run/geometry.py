@@ -1,0 +1,49 @@
+"""The rig's geometry and template builder, made once per process for a run's rig."""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, replace
+
+from drivers.contracts.runfile import RunFile
+from processing.trace import RigGeometry
+from processing.unmixing.templates import TemplateBuilder
+
+log = logging.getLogger("mirrorgonio.processing")
+
+
+_GEOMETRIES: dict[tuple, tuple] = {}
+
+
+def geometry_and_builder(run: RunFile, ball_centre, camera: CameraFit | None = None):
+    """The rig's geometry and template builder (ball at ``ball_centre``, or where the rig says;
+    the camera's aperture and sensor distance as ``camera`` has them, or as the rig says).
+
+    Kept per process for the rig object the run file's header shares (``drivers.contracts.runfile``
+    validates a rig once per text): every position task of a run asks for the same one, and
+    making them cost 1 ms a task. The rig itself is held with them, so its ``id`` stays its own.
+    """
+
+    rig = run.header.rig
+    camera = camera or CameraFit()
+    key = (id(rig), None if ball_centre is None else tuple(float(x) for x in ball_centre), camera)
+    held = _GEOMETRIES.get(key)
+    if held is None or held[0] is not rig:
+        geometry = RigGeometry.from_rig(rig, ball_centre=ball_centre)
+        if camera.aperture_m is not None:
+            geometry = replace(geometry, aperture_radius=0.5 * float(camera.aperture_m))
+        if camera.sensor_distance_m is not None:
+            geometry = geometry.with_sensor_distance(float(camera.sensor_distance_m))
+        if len(_GEOMETRIES) >= 8:
+            _GEOMETRIES.pop(next(iter(_GEOMETRIES)))
+        held = _GEOMETRIES[key] = (rig, geometry, TemplateBuilder(geometry, rig.camera.sensitivity_e_per_s))
+    return held[1], held[2]
+
+
+@dataclass(frozen=True)
+class CameraFit:
+    """The camera's numbers fitted to the data (``--fit-aperture``, ``--fit-sensor-distance``);
+    each None where the rig's description stands."""
+
+    aperture_m: float | None = None
+    sensor_distance_m: float | None = None

@@ -1,0 +1,81 @@
+"""Every source's samples fitted, and the light model assembled with its provenance."""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from drivers.contracts.runfile import RunFile
+from drivers.contracts.version import __version__
+from processing.fit import FitError, Samples, fit_intensity
+from processing.light_run.errors import ProcessingError
+from processing.light_run.samples import SourceSamples
+from processing.lightmodel import LightModel, SourceModel, samples_table
+from processing.radiometry import radiometric_gain
+
+log = logging.getLogger("mirrorgonio.processing")
+
+
+def source_colour(intensity_rgb: np.ndarray) -> tuple[float, float, float]:
+    """A source's ``(R, G, B)`` (mean 1) from its per-channel intensities at every position
+    (n, 3): each channel's sum over the positions where all three are measured, over the
+    channel means' sum, so that the strong samples count most. Grey (1, 1, 1) where the
+    channels were not measured apart (cell sums) or sum to nothing.
+
+    The colour is taken as one for all directions: an LED's spectrum shifts little with
+    angle next to the intensity's own change, and the samples are too few per direction to
+    fit a colour each.
+    """
+    rgb = np.asarray(intensity_rgb, dtype=float).reshape(-1, 3)
+    both = np.all(np.isfinite(rgb), axis=1)
+    sums = rgb[both].sum(axis=0)
+    if not both.any() or not np.all(sums > 0):
+        return (1.0, 1.0, 1.0)
+    return tuple(float(c) for c in sums / sums.mean())
+
+
+def fit_light_model(
+    run: RunFile,
+    layout,
+    samples: SourceSamples,
+    *,
+    method: str = "gaussian",
+    units: str = "relative",
+    estimator: str = "",
+    footprint: float = float("nan"),
+):
+    """Fit every source's samples and assemble the light model."""
+
+    sources = []
+    for k, source in enumerate(layout):
+        ok = np.isfinite(samples.intensity[:, k]) & np.isfinite(samples.theta[:, k])
+        sigma = samples.sigma[:, k][ok]
+        if not np.all(np.isfinite(sigma) & (sigma > 0)):
+            # Cell sums carry no uncertainty: weight by a constant fraction of the peak.
+            sigma = np.full(ok.sum(), 0.01 * max(np.nanmax(samples.intensity[:, k]), 1e-30))
+        data = Samples(samples.theta[:, k][ok], samples.phi[:, k][ok], samples.intensity[:, k][ok], sigma)
+        try:
+            fit = fit_intensity(data, method=method)
+        except FitError as exc:
+            raise ProcessingError(f"{run.path}: source {source.name}: {exc}") from None
+        table = samples_table(data, samples.positions[ok], samples.cell_sum[:, k][ok])
+        sources.append(
+            SourceModel(
+                source.name, source.centre, source.radius, fit, table, source_colour(samples.intensity_rgb[:, k])
+            )
+        )
+    provenance = {
+        "run_id": run.header.run_id,
+        "run_file": str(run.path),
+        "rig": run.header.rig.name,
+        "software_version": __version__,
+        "method": estimator,
+        "fit": method,
+        "spatial_resolution_m": 2.0 * footprint,
+        "gain_e_per_dn": radiometric_gain(run),
+        "gain_source": "rig",  # DN/s -> e-/s, as the reflectance step
+        # the whole rig, so an object run can check it is lit in the same light frame
+        "rig_description": run.header.rig.model_dump(mode="json", exclude_none=True),
+    }
+    return LightModel(sources, units=units, provenance=provenance)

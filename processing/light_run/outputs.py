@@ -1,0 +1,95 @@
+"""What a light run writes at its end: the light model, the IES, LDT and TM-25 files, the report."""
+
+from __future__ import annotations
+
+import logging
+import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+from processing.exports import write_ies, write_ldt, write_tm25
+from processing.light_run.errors import open_run
+from processing.light_run.light_fit import fit_light_model
+from processing.light_run.position import SourcesPlan
+from processing.light_run.records import ProcessReport, camera_provenance
+from processing.light_run.samples import assemble_samples
+from processing.options import ProcessingOptions
+from processing.parallel import Compute
+from processing.report.page import write_report
+
+log = logging.getLogger("mirrorgonio.processing")
+
+
+def finish_sources(
+    run_path: Path,
+    out: Path,
+    report: ProcessReport,
+    plan: SourcesPlan,
+    positions,
+    rows: dict,
+    options: ProcessingOptions,
+    *,
+    truth,
+    timings: dict,
+    compute: Compute | None = None,
+) -> None:
+    """Assemble the samples, fit, and write the light model, the light files and the report."""
+    samples = assemble_samples(positions, rows, plan)
+    clock = time.perf_counter()
+    with open_run(run_path) as run:
+        model = fit_light_model(
+            run,
+            list(plan.layout),
+            samples,
+            method=options.fit_method,
+            units=options.units,
+            estimator=plan.estimator,
+            footprint=plan.footprint,
+        )
+    timings["fit"] = time.perf_counter() - clock
+    ball_centre = plan.ball_centre
+    model.provenance["ball_centre_m"] = list(ball_centre) if ball_centre is not None else "as described by the rig"
+    model.provenance["layout"] = (
+        str(options.layout) if options.layout is not None else f"found in the data: {report.layout_search}"
+    )
+    model.provenance["aperture_m"] = camera_provenance(report.aperture_fit, "--fit-aperture")
+    model.provenance["sensor_distance_m"] = camera_provenance(report.sensor_distance_fit, "--fit-sensor-distance")
+    report.light_model = model.save(out / f"{run_path.stem}.light.json")
+    stem = out / run_path.stem
+    luminaire = f"mirrorgonio run {run_path.stem}"
+
+    def light_files() -> dict[str, list[Path]]:
+        started = time.perf_counter()
+        files = {
+            "ies": [write_ies(model, stem.with_suffix(".ies"), luminaire=luminaire)],
+            "ldt": [write_ldt(model, stem.with_suffix(".ldt"), luminaire=luminaire)],
+            "tm25": [write_tm25(model, stem.with_suffix(".tm25ray"), n_rays=100_000, seed=0)],
+        }
+        timings["exports"] = time.perf_counter() - started
+        return files
+
+    report.estimator, report.estimator_reason, report.spatial_resolution_m = (
+        plan.estimator,
+        plan.reason,
+        2.0 * plan.footprint,
+    )
+    report.samples = samples
+    report.model = model
+    # The light files are written on a thread while the report is drawn (both only read the
+    # model): with a cluster this process mostly waits for the workers' sections meanwhile.
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="mirrorgonio-exports") as pool:
+        exports = pool.submit(light_files)
+        clock = time.perf_counter()
+        with open_run(run_path) as run:  # the report draws the rig's chief rays at the middle position
+            drawn = write_report(
+                stem.with_suffix(".report.html"),
+                model,
+                run=run,
+                samples=samples,
+                report=report,
+                truth=truth,
+                compute=compute,
+            )
+        timings["report"] = time.perf_counter() - clock
+        report.outputs.update(exports.result())
+    report.outputs["report"] = [drawn]

@@ -1,0 +1,99 @@
+"""What a run's processing will do, decided once from its options, before any position is read."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from processing.light_run.errors import ProcessingError
+from processing.options import FitChoice, ProcessingOptions
+from processing.steps import Step
+from processing.unmixing.sources import Source, SourcesError, load_layout
+
+
+@dataclass(frozen=True)
+class ProcessingPlan:
+    """What is given and what is fitted.
+
+    Attributes
+    ----------
+    options : ProcessingOptions
+        What was asked.
+    layout : tuple of Source, or None
+        The sources, given (loaded from ``options.layout``); None where they are searched
+        for in the data.
+    fit_aperture, fit_sensor_distance : bool
+        The camera's aperture diameter, its sensor distance, fitted to the data.
+    aperture_fit_required, sensor_distance_fit_required : bool
+        A fit that fails fails the processing (``FitChoice.ALWAYS``); otherwise it is said
+        and the rig's number (or the last one fitted) kept.
+    """
+
+    options: ProcessingOptions
+    layout: tuple[Source, ...] | None
+    fit_aperture: bool
+    fit_sensor_distance: bool
+    aperture_fit_required: bool
+    sensor_distance_fit_required: bool
+
+    @property
+    def merge(self) -> bool:
+        """The brackets are merged (the ``hdr`` step)."""
+        return Step.HDR in self.options.steps
+
+    @property
+    def estimate(self) -> bool:
+        """The sources are estimated and fitted (the ``sources`` step)."""
+        return Step.SOURCES in self.options.steps
+
+    @property
+    def search(self) -> bool:
+        """The sources are searched for in the merged positions."""
+        return self.estimate and self.layout is None
+
+    @property
+    def fits_camera(self) -> bool:
+        return self.fit_aperture or self.fit_sensor_distance
+
+    @property
+    def fused(self) -> bool:
+        """One task per position merges and estimates: the layout is given and nothing is fitted
+        before the estimate."""
+        return self.merge and self.estimate and self.layout is not None and not self.fits_camera
+
+    @property
+    def passes(self) -> int:
+        """Passes over the positions."""
+        return int(self.merge) + int(self.estimate and not self.fused)
+
+
+def plan_processing(options: ProcessingOptions) -> ProcessingPlan:
+    """The plan for ``options``: the given layout loaded, each ``FitChoice.AUTO`` decided.
+
+    ``AUTO`` fits a camera number where the sources are searched for in the data: a search
+    explains a wrong point spread with sources that are not there, which a given layout
+    cannot do.
+
+    Raises
+    ------
+    ProcessingError
+        The layout file cannot be read (one line naming it).
+    """
+    layout = None
+    if Step.SOURCES in options.steps and options.layout is not None:
+        try:
+            layout = tuple(load_layout(options.layout))
+        except SourcesError as exc:
+            raise ProcessingError(str(exc)) from None
+    searched = Step.SOURCES in options.steps and layout is None
+
+    def wanted(choice: FitChoice) -> bool:
+        return choice is FitChoice.ALWAYS or (choice is FitChoice.AUTO and searched)
+
+    return ProcessingPlan(
+        options,
+        layout,
+        fit_aperture=wanted(options.fit_aperture),
+        fit_sensor_distance=wanted(options.fit_sensor_distance),
+        aperture_fit_required=options.fit_aperture is FitChoice.ALWAYS,
+        sensor_distance_fit_required=options.fit_sensor_distance is FitChoice.ALWAYS,
+    )

@@ -1,0 +1,112 @@
+"""What a light run did: its report, and the camera's numbers it fitted to the data."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+from processing.hdr.model import NoiseModel
+from processing.light_run.position import PositionResult
+from processing.lightmodel import describe_fitted
+
+
+@dataclass(frozen=True)
+class FittedNumber:
+    """One of the camera's numbers fitted to the data: its aperture's diameter or its sensor
+    distance, in metres.
+
+    Attributes
+    ----------
+    fitted_m : float or None
+        The number that explains the data best; None where no fit succeeded.
+    described_m : float or None
+        The rig description's.
+    chi2_per_pixel, chi2_per_pixel_described : float or None
+        The templates' χ² per pixel at the fitted and at the described number.
+    pixels : int
+        The pixels χ² is summed over.
+    positions : tuple of int
+        The merged positions the fit used.
+    evaluations : int
+        χ² computed.
+    searches : int
+        With the sources searched for in the data: the search this fit followed (0 with a
+        given layout).
+    sources_refitted : bool or None
+        For the sensor distance: the sources' places refitted at each trial distance.
+    failed : str
+        Why the last fit failed (the number from before it is kept); empty otherwise.
+    """
+
+    fitted_m: float | None = None
+    described_m: float | None = None
+    chi2_per_pixel: float | None = None
+    chi2_per_pixel_described: float | None = None
+    pixels: int = 0
+    positions: tuple[int, ...] = ()
+    evaluations: int = 0
+    searches: int = 0
+    sources_refitted: bool | None = None
+    failed: str = ""
+
+    def record(self) -> dict:
+        """The fields that say something, as plain JSON values (the light model's provenance,
+        the benchmarks' JSON)."""
+        return {
+            key: list(value) if isinstance(value, tuple) else value
+            for key, value in asdict(self).items()
+            if value not in (None, "", ()) and not (key == "searches" and value == 0)
+        }
+
+    def describe(self, digits: str) -> str:
+        """In words, as the command line says it: "0.2004 mm fitted to the data (the rig says 0.2 mm; ...)"."""
+        return describe_fitted(self.record(), digits)
+
+
+def camera_provenance(fit: FittedNumber | None, option: str) -> dict | str:
+    """The light model's ``aperture_m`` or ``sensor_distance_m``: the fit's record, or how the
+    rig's number came to be used."""
+    if fit is not None and fit.fitted_m is not None:
+        return fit.record() | {"how": f"fitted to the data ({option})"}
+    if fit is not None and fit.failed:
+        return f"as described by the rig (the fit to the data failed: {fit.failed})"
+    return "as described by the rig"
+
+
+@dataclass
+class ProcessReport:
+    """What :func:`process_run` did and wrote.
+
+    ``outputs`` maps a kind (``exr``, ``png``, ``ies``, ``ldt``, ``tm25``, ``report``) to
+    its files; ``timings`` the stages (``noise``, ``layout``, ``camera``, ``positions``,
+    ``sources``, ``fit``, ``exports``, ``report``, ``total``) to seconds of wall time;
+    ``task_stages`` the seconds the position tasks spent in each of their stages (``read``,
+    ``merge``, ``encode``, ``write`` (the position file), ``images``, ``masks``,
+    ``sources``), summed over the tasks, wherever they ran.
+    """
+
+    run_file: Path
+    results_file: Path
+    positions: int
+    noise: NoiseModel
+    outputs: dict[str, list[Path]] = field(default_factory=dict)
+    samples: object = None
+    model: object = None
+    saturated_pixels: int = 0
+    light_model: Path | None = None
+    estimator: str = ""
+    estimator_reason: str = ""
+    layout_search: str = ""  # how the sources were found in the data (empty when a layout was given)
+    aperture_fit: FittedNumber | None = None  # the aperture's diameter fitted to the data, or why that failed
+    sensor_distance_fit: FittedNumber | None = None  # the sensor distance fitted to the data
+    spatial_resolution_m: float = float("nan")
+    n_positions: int = 0
+    partial: bool = False
+    compute: str = ""
+    timings: dict[str, float] = field(default_factory=dict)
+    task_stages: dict[str, float] = field(default_factory=dict)
+
+    def add_task(self, result: PositionResult) -> None:
+        for stage, seconds in result.stages.items():
+            self.task_stages[stage] = self.task_stages.get(stage, 0.0) + seconds
+        self.task_stages["tasks"] = self.task_stages.get("tasks", 0.0) + result.seconds

@@ -1,0 +1,278 @@
+"""One run file processed: what is given and what is fitted decided once, then straight passes.
+
+:func:`process_run` checks its options (:class:`~processing.options.ProcessingOptions`),
+makes the plan (:func:`~processing.light_run.plan.plan_processing`) and hands both to a
+:class:`LightRun`, whose passes are:
+
+1. the merge (``hdr``): every position's bracket merged into the results file; with the
+   layout given and nothing to fit first, the same task also unmixes the position (one
+   pass in all);
+2. the sources settled (``sources``): searched for in the data at a few merged positions,
+   and the camera's numbers fitted there as the plan says;
+3. the estimate: every merged position unmixed with the settled sources and camera;
+4. the fits, the light model, the light files and the report.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from drivers.contracts.runfile import RunFile, RunFileError
+from drivers.contracts.version import __version__
+from processing.light_run.errors import ProcessingError, open_run
+from processing.light_run.from_data import camera_at_layout, fitted_camera, layout_and_camera
+from processing.light_run.noise import choose_noise, report_gain_mismatch
+from processing.light_run.outputs import finish_sources
+from processing.light_run.plan import ProcessingPlan, plan_processing
+from processing.light_run.position import HDRWork, PositionResult, PositionWork, SourceRow, process_position
+from processing.light_run.records import ProcessReport
+from processing.light_run.samples import plan_sources
+from processing.options import OptionsError, ProcessingOptions
+from processing.parallel import Compute
+from processing.radiometry import rig_noise
+from processing.results import HDRInfo, Results, ResultsError, ResultsWriter, results_path_for
+
+log = logging.getLogger("mirrorgonio.processing")
+
+
+def process_run(
+    run_path,
+    out_dir=None,
+    *,
+    compute: Compute | None = None,
+    progress: Callable[[int, int], None] | None = None,
+    truth: Callable | None = None,
+    **options,
+) -> ProcessReport:
+    """Process one run file; results go beside it, or into ``out_dir``.
+
+    Parameters
+    ----------
+    run_path : path-like
+        The run file; a run still being written is processed up to its last complete
+        position.
+    out_dir : path-like, optional
+        Folder for the results (default: the run's folder).
+    compute : Compute, optional
+        Where the position tasks run (:func:`processing.parallel.open_compute`); default:
+        in this process, one after the other.
+    progress : callable, optional
+        ``progress(done, total)`` after every position task.
+    truth : callable, optional
+        Simulated runs only, given by the caller: ``truth(source, theta) -> intensity``,
+        drawn beside the fits in the report (:mod:`processing.report`).
+    **options
+        The fields of :class:`~processing.options.ProcessingOptions`, as enum members or
+        their names: ``steps`` (default ``hdr``), ``method``, ``noise``, ``layout`` (a TOML
+        file; without one the sources are searched for in the data), ``estimator``,
+        ``fit_method``, ``units``, ``ball_centre``, ``images``, ``fit_aperture`` (default
+        ``auto``: fitted where the sources are searched for, the rig's diameter kept if that
+        fit fails; ``always``: fitted with a layout too, a failed fit fails the processing)
+        and ``fit_sensor_distance`` (default ``never``; it takes minutes).
+
+    Raises
+    ------
+    ProcessingError
+        One line naming the file or the option, before any work for a bad option: an
+        unreadable, truncated or corrupt run, nothing complete, a run the estimate cannot
+        work with.
+    """
+    try:
+        checked = ProcessingOptions.checked(**options)
+    except OptionsError as exc:
+        raise ProcessingError(str(exc)) from None
+    plan = plan_processing(checked)
+    return LightRun(Path(run_path), out_dir, plan, compute or Compute(), progress, truth).process()
+
+
+class LightRun:
+    """One run's processing under a plan: its state between the passes, and the passes."""
+
+    def __init__(self, run_path: Path, out_dir, plan: ProcessingPlan, compute: Compute, progress, truth):
+        self.run_path, self.plan, self.compute, self.truth = run_path, plan, compute, truth
+        self.options = plan.options
+        self.out = Path(out_dir) if out_dir is not None else run_path.parent
+        self.results_file = results_path_for(run_path, self.out)
+        self.progress = progress
+        self.timings: dict[str, float] = {}
+        self.rows: dict[int, SourceRow] = {}
+        self.saturated_all: dict[int, bool] = {}
+        self.done = 0
+
+    def process(self) -> ProcessReport:
+        started = time.perf_counter()
+        sources = None
+        with open_run(self.run_path) as run:
+            self._start(run)
+            if self.plan.fused:  # with the layout known, each position is merged and unmixed by one task
+                sources = plan_sources(
+                    run, self.plan.layout, self.options.estimator, self.options.ball_centre, self.positions
+                )
+            if self.plan.merge:
+                with self._timed("positions"):
+                    self._merge_pass(run, sources)
+        if self.plan.estimate:
+            if not self.plan.fused:
+                with open_run(self.run_path) as run:
+                    sources = self._settle_sources(run)
+                with self._timed("sources"):
+                    self._estimate_pass(sources)
+            if all(self.saturated_all.get(int(i), False) for i in self.positions):
+                raise ProcessingError(
+                    f"{self.run_path}: every pixel is saturated even in the shortest exposure: take shorter exposures"
+                )
+            finish_sources(
+                self.run_path,
+                self.out,
+                self.report,
+                sources,
+                self.positions,
+                self.rows,
+                self.options,
+                truth=self.truth,
+                timings=self.timings,
+                compute=self.compute,
+            )
+        self.timings["total"] = time.perf_counter() - started
+        self.report.timings = {k: round(v, 3) for k, v in self.timings.items()}
+        self.report.task_stages = {k: round(v, 3) for k, v in self.report.task_stages.items()}
+        return self.report
+
+    # --- the passes -------------------------------------------------------------------------------
+    def _start(self, run: RunFile) -> None:
+        """The positions to process and the report, with the merge's noise model."""
+        try:
+            positions = run.completed_positions()
+        except RunFileError as exc:
+            raise ProcessingError(str(exc)) from None
+        if positions.size == 0:
+            raise ProcessingError(f"{self.run_path}: the run has no complete position (no frames to process)")
+        self.out.mkdir(parents=True, exist_ok=True)
+        if self.plan.merge:
+            with self._timed("noise"):
+                noise = choose_noise(run, positions, self.options.noise, self.compute)
+            self.report = ProcessReport(
+                self.run_path, self.results_file, int(positions.size), noise, {"exr": [], "png": []}
+            )
+        else:
+            positions = self._merged_before(run)
+        if self.plan.estimate:
+            report_gain_mismatch(run, self.report.noise)
+        self.positions = positions
+        self.report.n_positions = run.n_positions
+        self.report.partial = positions.size < run.n_positions
+        self.report.compute = self.compute.description
+        self.total = self.plan.passes * int(positions.size)
+
+    def _merged_before(self, run: RunFile) -> np.ndarray:
+        """The positions an earlier ``hdr`` step merged (the report made from its results)."""
+        try:
+            with Results.open(self.results_file) as existing:
+                done = existing.hdr_done & run.complete
+                self.report = ProcessReport(self.run_path, self.results_file, int(done.sum()), existing.noise, {})
+        except ResultsError:
+            raise ProcessingError(f"{self.results_file}: no HDR results to build on (run --steps hdr first)") from None
+        positions = np.flatnonzero(done)
+        if positions.size == 0:
+            raise ProcessingError(f"{run.path}: no position has both frames and an HDR result")
+        return positions
+
+    def _merge_pass(self, run: RunFile, sources) -> None:
+        """Merge every position (and unmix it, with ``sources``) on the cluster; write the
+        results as they come."""
+        folder = self.out / f"{self.run_path.stem}.hdr"  # the position files, and the images beside them
+        folder.mkdir(exist_ok=True)
+        try:
+            cfa = run.cfa_pattern(int(self.positions[0]))[0]
+        except RunFileError as exc:
+            raise ProcessingError(str(exc)) from None
+        noise, method = self.report.noise, str(self.options.method)  # a plain str: HDF5 attributes take no enum
+        hdr = HDRWork(method, noise, cfa, str(folder) if self.options.images else None)
+        work = PositionWork(str(self.run_path), str(self.results_file), hdr, sources)
+        images: dict[int, dict[str, Path]] = {}
+        with ResultsWriter.create(
+            self.results_file,
+            run_id=run.header.run_id,
+            run_file=str(self.run_path),
+            n_positions=run.n_positions,
+            frame_shape=run.frame_shape,
+            software_version=__version__,
+            hdr=HDRInfo(method, noise, rig_noise(run), cfa),
+        ) as writer:
+
+            def write(index: int, result: PositionResult) -> None:
+                writer.commit_position(index, result.saturation_level)
+                self.report.saturated_pixels += result.saturated
+                images[index] = result.images
+                self._collect(index, result)
+
+            self.compute.map_unordered(process_position, self._indices(), work, on_result=write)
+        for index in sorted(images):
+            for kind, path in images[index].items():
+                self.report.outputs.setdefault(kind, []).append(path)
+        if self.report.saturated_pixels:
+            log.warning(
+                "%s: %d pixel samples saturated even in the shortest exposure (flagged in the results)",
+                self.run_path,
+                self.report.saturated_pixels,
+            )
+
+    def _settle_sources(self, run: RunFile):
+        """The sources to estimate with (given, or searched for) and the camera as the plan fits it."""
+        plan, options, args = self.plan, self.options, (run, self.results_file, self.positions)
+        if plan.search:
+            with self._timed("layout"):
+                found, aperture, distance = layout_and_camera(*args, options.ball_centre, self.compute, plan)
+            layout = found.sources
+            how = (
+                "candidate grid (NNLS), then positions and radius fitted: "
+                if found.refined
+                else "candidate grid (NNLS) only: "
+            )
+            self.report.layout_search = how + found.message
+        else:
+            layout = plan.layout
+            with self._timed("camera"):
+                aperture, distance = camera_at_layout(*args, layout, options.ball_centre, self.compute, plan)
+        self.report.aperture_fit, self.report.sensor_distance_fit = aperture, distance
+        camera = fitted_camera(aperture, distance)
+        return plan_sources(run, layout, options.estimator, options.ball_centre, self.positions, camera)
+
+    def _estimate_pass(self, sources) -> None:
+        """Unmix every merged position with ``sources`` (read back from the results file)."""
+        work = PositionWork(str(self.run_path), str(self.results_file), None, sources)
+        self.compute.map_unordered(process_position, self._indices(), work, on_result=self._collect)
+
+    # --- bookkeeping ------------------------------------------------------------------------------
+    def _collect(self, index: int, result: PositionResult) -> None:
+        self.report.add_task(result)
+        self.saturated_all[index] = result.all_saturated
+        if result.sources is not None:
+            self.rows[index] = result.sources
+        self.done += 1
+        if self.progress:
+            self.progress(self.done, self.total)
+
+    def _indices(self) -> list[int]:
+        return [int(i) for i in self.positions]
+
+    def _timed(self, stage: str):
+        return _Stage(self.timings, stage)
+
+
+class _Stage:
+    """Adds the wall time of a ``with`` block to ``timings[stage]``."""
+
+    def __init__(self, timings: dict[str, float], stage: str):
+        self.timings, self.stage = timings, stage
+
+    def __enter__(self):
+        self.started = time.perf_counter()
+
+    def __exit__(self, *exc):
+        self.timings[self.stage] = self.timings.get(self.stage, 0.0) + time.perf_counter() - self.started

@@ -1,0 +1,198 @@
+"""What a run's processing may be asked: every option with a fixed set of values, as an enum.
+
+The command line, the daemon's job requests and :func:`processing.light_run.process_run`
+take the same options; :meth:`ProcessingOptions.checked` turns what a caller gives (enum
+members or their names) into one frozen record, or refuses it in one line naming the option,
+before any work is done. This module imports nothing heavy, so that the command line and the
+daemon can check a request without loading the processing.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields
+from enum import StrEnum
+from pathlib import Path
+
+from processing.steps import Step, StepsError, resolve_steps
+
+
+class OptionsError(ValueError):
+    """An option the processing does not know, or a value it does not take (one line naming the option)."""
+
+
+class HDRMethod(StrEnum):
+    """How a raw bracket is merged (:data:`processing.hdr.brackets.RAW_METHODS`)."""
+
+    OPTIMAL = "optimal"  # minimum-variance weights t²/σ²
+    POISSON = "poisson"  # Σ y / Σ t
+
+
+class NoiseSource(StrEnum):
+    """Where the merge's noise model (gain, read noise) comes from."""
+
+    AUTO = "auto"  # estimated from the brackets, the rig's figures where they allow no estimate
+    ESTIMATED = "estimated"  # estimated, or the processing fails
+    RIG = "rig"  # the rig description's camera figures
+
+
+class Estimator(StrEnum):
+    """How every source's intensity is taken from a merged position."""
+
+    AUTO = "auto"  # from the point spread's footprint against the sources' spacing
+    TEMPLATES = "templates"  # unmixing with the sources' templates
+    CELL_SUMS = "cell-sums"  # flux-conserving chief-ray cell sums
+
+
+class FitMethod(StrEnum):
+    """The model every source's samples are fitted to (:data:`processing.fit.FIT_METHODS`)."""
+
+    GAUSSIAN = "gaussian"
+    POLYNOMIAL = "polynomial"
+    COS_POWER = "cos-power"
+    GAUSSIAN_2D = "gaussian-2d"
+
+
+class Units(StrEnum):
+    """The light model's intensity units."""
+
+    RELATIVE = "relative"
+    WATTS_PER_SR = "W/sr"
+
+
+class FitChoice(StrEnum):
+    """Whether one of the camera's numbers (the aperture's diameter, the sensor distance) is
+    fitted to the data."""
+
+    AUTO = "auto"  # fitted where the sources are searched for in the data; a failed fit keeps the rig's number
+    ALWAYS = "always"  # fitted; a failed fit fails the processing
+    NEVER = "never"  # the rig's number
+
+
+@dataclass(frozen=True)
+class ProcessingOptions:
+    """Everything a run's processing is asked, checked.
+
+    Attributes
+    ----------
+    steps : tuple of Step
+        The steps, in the order they run.
+    method : HDRMethod
+    noise : NoiseSource
+    layout : Path or None
+        The sources' layout (TOML); None: the sources are searched for in the data.
+    estimator : Estimator
+    fit_method : FitMethod
+    units : Units
+    ball_centre : (x, y, z) or None
+        The measured ball centre in metres (rig frame); None: the rig's.
+    images : bool
+        An OpenEXR and a PNG preview per position (the ``hdr`` step).
+    fit_aperture, fit_sensor_distance : FitChoice
+        Whether the camera's aperture diameter and its sensor distance are fitted to the data.
+
+    Examples
+    --------
+    >>> options = ProcessingOptions.checked(steps="hdr,sources", fit_aperture="always")
+    >>> options.fit_aperture, options.method
+    (<FitChoice.ALWAYS: 'always'>, <HDRMethod.OPTIMAL: 'optimal'>)
+    >>> ProcessingOptions.checked(method="bogus")
+    Traceback (most recent call last):
+    ...
+    processing.options.OptionsError: --method: 'bogus' is not one of optimal, poisson
+    """
+
+    steps: tuple[Step, ...] = (Step.HDR,)
+    method: HDRMethod = HDRMethod.OPTIMAL
+    noise: NoiseSource = NoiseSource.AUTO
+    layout: Path | None = None
+    estimator: Estimator = Estimator.AUTO
+    fit_method: FitMethod = FitMethod.GAUSSIAN
+    units: Units = Units.RELATIVE
+    ball_centre: tuple[float, float, float] | None = None
+    images: bool = True
+    fit_aperture: FitChoice = FitChoice.AUTO
+    fit_sensor_distance: FitChoice = FitChoice.NEVER
+
+    @classmethod
+    def checked(cls, **values) -> ProcessingOptions:
+        """The options from enum members or their names (``steps`` also as ``"hdr,sources"``).
+
+        Raises
+        ------
+        OptionsError
+            One line naming the option (as the command line spells it) and what it takes.
+        """
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(values) - known)
+        if unknown:
+            raise OptionsError(f"{unknown[0]}: not an option of the processing (known: {', '.join(sorted(known))})")
+        out = {}
+        for f in fields(cls):
+            if f.name not in values or values[f.name] is None and f.name not in ("layout", "ball_centre"):
+                continue
+            out[f.name] = _CHECKS.get(f.name, _as_is)(f.name, values[f.name])
+        return cls(**out)
+
+
+def _option(name: str) -> str:
+    return "--" + name.replace("_", "-").replace("fit-method", "fit")
+
+
+def _member(enum: type[StrEnum]):
+    def check(name: str, value):
+        try:
+            return enum(value)
+        except ValueError:
+            choices = ", ".join(member.value for member in enum)
+            raise OptionsError(f"{_option(name)}: {value!r} is not one of {choices}") from None
+
+    return check
+
+
+def _steps(name: str, value) -> tuple[Step, ...]:
+    try:
+        return resolve_steps(value)
+    except StepsError as exc:
+        raise OptionsError(f"--steps: {exc}") from None
+
+
+def _path(name: str, value) -> Path | None:
+    return None if value is None else Path(value)
+
+
+def _point(name: str, value) -> tuple[float, float, float] | None:
+    if value is None:
+        return None
+    try:
+        point = tuple(float(v) for v in (value.split(",") if isinstance(value, str) else value))
+    except (TypeError, ValueError):
+        point = ()
+    if len(point) != 3 or not all(math.isfinite(v) for v in point):
+        raise OptionsError(f"{_option(name)}: expected X,Y,Z in metres, got {value!r}")
+    return point  # type: ignore[return-value]
+
+
+def _flag(name: str, value) -> bool:
+    if not isinstance(value, bool):
+        raise OptionsError(f"{_option(name)}: expected true or false, got {value!r}")
+    return value
+
+
+def _as_is(name: str, value):
+    return value
+
+
+_CHECKS = {
+    "steps": _steps,
+    "method": _member(HDRMethod),
+    "noise": _member(NoiseSource),
+    "layout": _path,
+    "estimator": _member(Estimator),
+    "fit_method": _member(FitMethod),
+    "units": _member(Units),
+    "ball_centre": _point,
+    "images": _flag,
+    "fit_aperture": _member(FitChoice),
+    "fit_sensor_distance": _member(FitChoice),
+}

@@ -1,0 +1,541 @@
+"""The albedo per pixel under the three light models, from one object run's HDR radiance."""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from drivers.pose import Pose
+from processing.reflectance.camera import SuperpixelRays, camera_from, dilate, edge_core, first_hits
+from processing.reflectance.codes import (
+    FEW_FROM_SAMPLE,
+    METHODS,
+    PIXEL_BACKGROUND,
+    PIXEL_CODES,
+    PIXEL_EDGE,
+    PIXEL_GRAZING_VIEW,
+    PIXEL_SHORT,
+    PIXEL_VALID,
+    SAMPLE_CODES,
+    SAMPLE_GRAZING,
+    SAMPLE_HOUSING,
+    SAMPLE_NO_IRRADIANCE,
+    SAMPLE_PIXEL_EXCLUDED,
+    SAMPLE_SATURATED,
+    SAMPLE_SHADOW,
+    SAMPLE_SHORT,
+    SAMPLE_SPECULAR_GEOMETRY,
+    SAMPLE_SPECULAR_OUTLIER,
+    SAMPLE_USED,
+    ReflectanceError,
+    ReflectanceSettings,
+)
+from processing.reflectance.lights import LIGHT_MODELS, light_centre, to_rig
+from processing.trace import housing_blocks
+
+log = logging.getLogger("mirrorgonio.processing")
+
+
+@dataclass
+class ReflectanceResult:
+    """What :func:`estimate_reflectance` found.
+
+    Grid arrays are on the superpixel grid ``(H/2, W/2)``; point arrays have one row per
+    superpixel whose chief ray meets the mesh (``N`` of them, in row-major order), so that
+    ``rho[m][rows, cols] == rho_points[m]``.
+
+    Attributes
+    ----------
+    methods : tuple of str
+        The light models, keys of :data:`LIGHT_MODELS`.
+    shape : tuple of int
+        ``(H/2, W/2)``.
+    rho : dict of str to ndarray (H/2, W/2, 3)
+        Albedo per method and channel (R, G, B); NaN where the pixel is not valid.
+    reason : ndarray (H/2, W/2) of uint8
+        The pixel's reason code (:data:`PIXEL_CODES`; 0 = valid).
+    rows, cols : ndarray (N,)
+        Superpixel indices of the points on the object.
+    points, normals : ndarray (N, 3)
+        Hit points and flat face normals (towards the camera), rig frame, metres.
+    faces : ndarray (N,)
+        Index of the face hit.
+    heights : ndarray (N,)
+        Height along the object's vertical axis, ``x_object · up``, metres.
+    uv : ndarray (N, 2) or None
+        The mesh's texture coordinates at the hit points, when it has UVs.
+    radiance : ndarray (n_lights, N, 3)
+        ``L_o = rate / (k·cos⁴β)`` per light and channel.
+    irradiance : dict of str to ndarray (n_lights, N)
+        ``E`` per method and light: the channel mean.
+    colour : dict of str to ndarray (n_lights, N, 3) or None
+        Each channel's share of ``E`` per method, light and point (mean 1: the sources'
+        colours as they mix there); None for a grey light. Each channel's irradiance,
+        the one ``rho`` divides by, is ``E·colour`` (:meth:`irradiance_rgb`).
+    sample_code : ndarray (n_lights, N) of uint8
+        Each sample's code (:data:`SAMPLE_CODES`; 0 = used).
+    rho_points : dict of str to ndarray (N, 3)
+        ``rho`` at the points (NaN where not valid).
+    lights : list of dict
+        Per light position: its pose and what each model made of it (isotropic point, I₀,
+        collimated direction and E₀).
+    settings : ReflectanceSettings
+        The thresholds used.
+    object_centre : ndarray (3,)
+        Centre of the mesh's bounding box in the rig frame (the collimated model's origin).
+    warnings : list of str
+        Things worth knowing that did not stop the estimate.
+    outputs : dict of str to Path
+        Files written by :func:`write_outputs` (empty until then).
+    """
+
+    methods: tuple[str, ...]
+    shape: tuple[int, int]
+    rho: dict[str, np.ndarray]
+    reason: np.ndarray
+    rows: np.ndarray
+    cols: np.ndarray
+    points: np.ndarray
+    normals: np.ndarray
+    faces: np.ndarray
+    heights: np.ndarray
+    uv: np.ndarray | None
+    radiance: np.ndarray
+    irradiance: dict[str, np.ndarray]
+    colour: dict[str, np.ndarray | None]
+    sample_code: np.ndarray
+    rho_points: dict[str, np.ndarray]
+    lights: list[dict]
+    settings: ReflectanceSettings
+    object_centre: np.ndarray
+    warnings: list[str] = field(default_factory=list)
+    outputs: dict[str, Path] = field(default_factory=dict)
+    metadata: dict = field(default_factory=dict)
+
+    def irradiance_rgb(self, method: str) -> np.ndarray:
+        """Each channel's irradiance per light and point, (n_lights, N, 3) float32: what
+        ``rho[method]`` was solved with, ``ρ_c = π Σ_j L_jc E_jc / Σ_j E_jc²`` over the used
+        samples."""
+        return channel_irradiance(self.irradiance[method], self.colour[method]).astype(np.float32)
+
+    @property
+    def valid(self) -> np.ndarray:
+        """(N,) bool: the points with an albedo."""
+        return self.reason[self.rows, self.cols] == PIXEL_VALID
+
+    @property
+    def lights_used(self) -> np.ndarray:
+        """(N,) number of lights each point's albedo was solved from."""
+        return (self.sample_code == SAMPLE_USED).sum(axis=0)
+
+    def summary(self) -> dict:
+        """Counts per reason and per-method statistics of ρ (the ``reflectance.json`` core).
+
+        ``median`` is per channel; ``cv`` is the standard deviation over the mean and
+        ``robust_cv`` 1.4826·MAD over the median, both of the channel mean of ρ over the valid
+        points.
+        """
+        reasons = {PIXEL_SHORT[c]: int((self.reason == c).sum()) for c in PIXEL_CODES}
+        considered = self.sample_code != SAMPLE_PIXEL_EXCLUDED
+        samples = {
+            SAMPLE_SHORT[c]: int(((self.sample_code == c) & considered).sum())
+            for c in SAMPLE_CODES
+            if c != SAMPLE_PIXEL_EXCLUDED
+        }
+        valid = self.valid
+        methods = {}
+        for m in self.methods:
+            rho = self.rho_points[m][valid]
+            grey = rho.mean(axis=1)
+            stats = {"valid_points": int(valid.sum())}
+            if grey.size:
+                median = float(np.median(grey))
+                mean = float(grey.mean())
+                stats.update(
+                    median=[float(v) for v in np.median(rho, axis=0)],
+                    median_mean=median,
+                    mean=mean,
+                    cv=float(grey.std() / mean) if mean != 0 else float("nan"),
+                    robust_cv=float(1.4826 * np.median(np.abs(grey - median)) / median)
+                    if median != 0
+                    else float("nan"),
+                    q25=float(np.percentile(grey, 25)),
+                    q75=float(np.percentile(grey, 75)),
+                )
+            methods[m] = stats
+        return {
+            "superpixels": list(self.shape),
+            "on_object": int(len(self.rows)),
+            "valid": int(valid.sum()),
+            "lights": len(self.lights),
+            "pixel_reasons": reasons,
+            "sample_reasons": samples,
+            "methods": methods,
+            "object_centre_m": self.object_centre.tolist(),
+            "light_positions": self.lights,
+            "settings": asdict(self.settings),
+            "warnings": list(self.warnings),
+        }
+
+
+def estimate_reflectance(
+    radiance_rgb,
+    saturated,
+    camera,
+    mesh_rig,
+    light_poses,
+    light_model,
+    *,
+    object_pose: Pose | None = None,
+    up=(0.0, 1.0, 0.0),
+    housing=None,
+    settings: ReflectanceSettings | None = None,
+    methods=METHODS,
+    mesh_name: str = "the mesh",
+    progress: Callable[[str, int, int], None] | None = None,
+) -> ReflectanceResult:
+    """Albedo per pixel under three light models, from one object run's HDR radiance.
+
+    Parameters
+    ----------
+    radiance_rgb : array_like (n_lights, H/2, W/2, 3)
+        Each light position's superpixel rate in e⁻/s (R, G, B; the greens averaged:
+        :func:`processing.hdr.mosaic.superpixels` of the HDR mosaic times the conversion gain).
+        Non-finite values are samples without data.
+    saturated : array_like (n_lights, H/2, W/2) of bool, or None
+        Superpixels with a site saturated in every exposure.
+    camera : drivers.contracts.rig.Camera (or a Rig)
+        Intrinsics, pose and ``sensitivity_e_per_s`` = k; its sensor is ``(H, W)``.
+    mesh_rig : trimesh.Trimesh
+        The object in the rig frame, metres (:func:`load_mesh`).
+    light_poses : sequence of Pose
+        The light's pose (light frame in the rig frame) at each position.
+    light_model : LightModel
+        The measured light (:class:`processing.lightmodel.LightModel`), whose sources also
+        cast the shadows.
+    object_pose : Pose, optional
+        The object frame in the rig frame (metres), for the heights; the rig frame if None.
+    up : sequence of 3 float
+        The object's vertical axis in its own frame (``heights = x_object · up``).
+    housing : (radius_m, depth_m), optional
+        The light's housing (``[light]`` of the rig): samples it hides from the camera are
+        excluded.
+    settings : ReflectanceSettings, optional
+        Thresholds (the defaults of :class:`ReflectanceSettings` when None).
+    methods : sequence of str
+        Keys of :data:`LIGHT_MODELS`; ``"measured"`` is always computed (the residual test
+        uses it).
+    mesh_name : str
+        How error messages name the mesh.
+    progress : callable, optional
+        ``progress(stage, done, total)``.
+
+    Returns
+    -------
+    ReflectanceResult
+
+    Raises
+    ------
+    ReflectanceError
+        Arrays of the wrong shape, fewer than two light positions, a mesh that no camera
+        ray meets, or no valid point at all.
+
+    Notes
+    -----
+    ``L_o = rate/(k·cos⁴β)`` and, for a Lambertian surface, ``ρ = π·L_o/E(r, n)``
+    (``measurement.md``, last section); with several lights ``ρ_c = π·Σ_j L_jc E_j / Σ_j E_j²``
+    over the usable lights, the same for every method.
+    """
+    settings = settings or ReflectanceSettings()
+    camera = camera_from(camera)
+    methods = tuple(methods)
+    unknown = [m for m in methods if m not in LIGHT_MODELS]
+    if unknown or not methods:
+        raise ReflectanceError(
+            f"methods: {unknown[0] if unknown else 'none'!r} is not one of {', '.join(LIGHT_MODELS)}"
+        )
+    radiance_rgb = np.asarray(radiance_rgb, dtype=np.float64)
+    n_lights = len(light_poses)
+    expected = (n_lights, camera.height // 2, camera.width // 2, 3)
+    if radiance_rgb.shape != expected:
+        raise ReflectanceError(f"radiance: expected shape {expected} (lights, H/2, W/2, RGB), got {radiance_rgb.shape}")
+    if n_lights < settings.min_lights:
+        raise ReflectanceError(f"{n_lights} light position(s): the albedo needs at least {settings.min_lights}")
+    shape = expected[1:3]
+    sat = np.zeros((n_lights, *shape), bool) if saturated is None else np.asarray(saturated, bool)
+    if sat.shape != (n_lights, *shape):
+        raise ReflectanceError(f"saturated: expected shape {(n_lights, *shape)}, got {sat.shape}")
+    if mesh_rig is None or len(getattr(mesh_rig, "faces", ())) == 0:
+        raise ReflectanceError(f"{mesh_name}: the mesh has no faces")
+
+    def report(stage, done, total):
+        if progress:
+            progress(stage, done, total)
+
+    # Chief rays -> points, flat normals towards the camera.
+    rays = SuperpixelRays.of(camera, shape)
+    flat_dirs = rays.directions.reshape(-1, 3)
+    origins = np.broadcast_to(rays.centre, flat_dirs.shape)
+    report("rays", 0, n_lights + 1)
+    faces_all, depth_all = first_hits(mesh_rig, np.ascontiguousarray(origins), flat_dirs)
+    hit_flat = (faces_all >= 0) & np.isfinite(depth_all) & (depth_all > 0)
+    if not hit_flat.any():
+        centre = mesh_rig.bounds.mean(axis=0)
+        raise ReflectanceError(
+            f"no camera ray meets {mesh_name} (its centre is at {np.round(centre, 4).tolist()} m "
+            f"in the rig frame); check [object] pose and units_m"
+        )
+    face_normals = np.asarray(mesh_rig.face_normals, dtype=float)
+    hit = hit_flat.reshape(shape)
+    depth = np.where(hit_flat, depth_all, np.nan).reshape(shape)
+    normals_grid = np.zeros((*shape, 3))
+    normals_grid.reshape(-1, 3)[hit_flat] = face_normals[faces_all[hit_flat]]
+    facing = np.einsum("...k,...k->...", normals_grid, rays.directions)
+    normals_grid *= np.where(facing > 0, -1.0, 1.0)[..., None]  # towards the camera
+    points_grid = rays.centre + depth[..., None] * rays.directions
+    bad_normal = hit & ~(np.linalg.norm(normals_grid, axis=-1) > 0.5)  # a degenerate face
+    normals_grid[bad_normal] = -rays.directions[bad_normal]  # any unit vector: these pixels are edges
+
+    core = (
+        edge_core(
+            hit, depth, points_grid, normals_grid, rays.directions, rays.centre, rays.angle, settings.depth_tolerance
+        )
+        | bad_normal
+    )
+    band = dilate(core, settings.edge_margin)
+    cos_view = -np.einsum("...k,...k->...", normals_grid, rays.directions)
+    grazing_view = cos_view < math.sin(math.radians(settings.grazing_view_deg))
+    reason = np.full(shape, PIXEL_VALID, np.uint8)
+    reason[~hit] = PIXEL_BACKGROUND
+    reason[hit & band] = PIXEL_EDGE
+    reason[hit & ~band & grazing_view] = PIXEL_GRAZING_VIEW
+    pixel_ok = reason == PIXEL_VALID
+
+    rows, cols = np.nonzero(hit)
+    points = points_grid[rows, cols]
+    normals = normals_grid[rows, cols]
+    view = -rays.directions[rows, cols]
+    faces = faces_all.reshape(shape)[rows, cols]
+    ok = pixel_ok[rows, cols]
+    n_points = len(rows)
+    k = float(camera.sensitivity_e_per_s)
+    L = radiance_rgb[:, rows, cols, :] / (k * rays.cos4[rows, cols][None, :, None])
+    object_centre = np.asarray(mesh_rig.bounds, float).mean(axis=0)
+    all_methods = tuple(dict.fromkeys((*methods, "measured")))
+
+    codes = np.full((n_lights, n_points), SAMPLE_USED, np.uint8)
+    codes[:, ~ok] = SAMPLE_PIXEL_EXCLUDED
+    E = {m: np.zeros((n_lights, n_points)) for m in all_methods}
+    tints: dict[str, np.ndarray | None] = dict.fromkeys(all_methods)  # (n_lights, n_points, 3), None: grey
+    lights = []
+    scene = float(np.linalg.norm(np.ptp(mesh_rig.bounds, axis=0)))
+    offset = 1e-5 * max(scene, 1e-6)
+    uv_c, i0 = light_centre(light_model)
+    sin_graze = math.sin(math.radians(settings.grazing_light_deg))
+    cos_spec = math.cos(math.radians(settings.specular_deg)) if settings.specular_deg > 0 else 2.0
+    for j, pose in enumerate(light_poses):
+        report("lights", j + 1, n_lights + 1)
+        centre_point = to_rig(pose, uv_c)
+        towards = centre_point - points
+        omega = towards / np.linalg.norm(towards, axis=1, keepdims=True)
+        cos_in = np.einsum("ij,ij->i", normals, omega)
+        models = {m: LIGHT_MODELS[m](light_model, pose, object_centre) for m in all_methods}
+        for m, lm in models.items():
+            E[m][j], tint = lm.irradiance_and_tint(points, normals)
+            if tint is not None:
+                if tints[m] is None:
+                    tints[m] = np.ones((n_lights, n_points, 3), np.float32)
+                tints[m][j] = tint
+        lights.append(
+            {
+                "index": j,
+                "position_m": pose.position.tolist(),
+                "rotation_rad": [pose.rx, pose.ry, pose.rz],
+                "isotropic_point_m": centre_point.tolist(),
+                "I0": i0,
+                **{f"{m}": lm.describe() for m, lm in models.items() if m != "measured"},
+            }
+        )
+        # Cast shadows: a ray to every source of the measured model.
+        lit_side = cos_in > 0
+        shadow = np.zeros(n_points, bool)
+        if lit_side.any():
+            start = points[lit_side] + offset * normals[lit_side]
+            for source in light_model.sources:
+                to_source = to_rig(pose, source.centre_m) - start
+                dist = np.linalg.norm(to_source, axis=1)
+                first, along = first_hits(mesh_rig, start, to_source / dist[:, None])
+                shadow[np.flatnonzero(lit_side)[(first >= 0) & (along > 0) & (along < dist)]] = True
+        shadow_grid = np.zeros(shape, bool)
+        shadow_grid[rows[shadow], cols[shadow]] = True
+        shadow = dilate(shadow_grid, settings.shadow_margin)[rows, cols] & lit_side
+        hidden_by_housing = np.zeros(n_points, bool)
+        if housing is not None and housing[0] > 0:
+            hidden_by_housing = housing_blocks(
+                np.broadcast_to(rays.centre, points.shape), points, pose, float(housing[0]), float(housing[1])
+            )
+        no_data = sat[j, rows, cols] | ~np.all(np.isfinite(radiance_rgb[j, rows, cols, :]), axis=1)
+        no_irradiance = np.zeros(n_points, bool)
+        for m in all_methods:
+            no_irradiance |= ~(E[m][j] > 0)
+        half = omega + view
+        half /= np.linalg.norm(half, axis=1, keepdims=True)
+        specular = np.einsum("ij,ij->i", half, normals) > cos_spec
+        code = codes[j]
+        for mask, value in (
+            (hidden_by_housing, SAMPLE_HOUSING),
+            (cos_in < sin_graze, SAMPLE_GRAZING),
+            (shadow, SAMPLE_SHADOW),
+            (no_data, SAMPLE_SATURATED),
+            (no_irradiance, SAMPLE_NO_IRRADIANCE),
+            (specular, SAMPLE_SPECULAR_GEOMETRY),
+        ):
+            code[(code == SAMPLE_USED) & mask] = value
+
+    _drop_outliers(codes, L.mean(axis=2), E["measured"], settings.outlier)
+
+    used = codes == SAMPLE_USED
+    count = used.sum(axis=0)
+    enough = ok & (count >= settings.min_lights)
+    few = ok & ~enough
+    if few.any():
+        excluded = codes[:, few]
+        tallies = np.stack([(excluded == c).sum(axis=0) for c in range(len(SAMPLE_CODES))])
+        tallies[SAMPLE_USED] = tallies[SAMPLE_PIXEL_EXCLUDED] = -1
+        reason[rows[few], cols[few]] = np.vectorize(FEW_FROM_SAMPLE.get)(np.argmax(tallies, axis=0)).astype(np.uint8)
+
+    rho_points, rho = {}, {}
+    w = used.astype(float)
+    for m in methods:
+        if tints[m] is None:  # grey: one irradiance for every channel
+            num = np.einsum("jn,jnc,jn->nc", w, np.where(used[..., None], L, 0.0), E[m])
+            den = np.einsum("jn,jn->n", w, E[m] ** 2)[:, None]
+        else:  # each channel's own irradiance: the light's tint is not the surface's
+            channel_e = channel_irradiance(E[m], tints[m])
+            num = np.einsum("jn,jnc,jnc->nc", w, np.where(used[..., None], L, 0.0), channel_e)
+            den = np.einsum("jn,jnc->nc", w, channel_e**2)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            values = math.pi * num / den
+        values[~enough] = np.nan
+        rho_points[m] = values
+        grid = np.full((*shape, 3), np.nan)
+        grid[rows, cols] = values
+        rho[m] = grid
+    report("lights", n_lights + 1, n_lights + 1)
+
+    if not enough.any():
+        counts = ", ".join(
+            f"{PIXEL_SHORT[c]} {int((reason == c).sum())}"
+            for c in PIXEL_CODES
+            if c not in (PIXEL_VALID, PIXEL_BACKGROUND) and (reason == c).any()
+        )
+        raise ReflectanceError(
+            f"no valid points: {n_points} superpixels on {mesh_name}, all excluded ({counts or 'none'})"
+        )
+
+    object_pose = object_pose or Pose(0.0, 0.0, 0.0)
+    up = np.asarray(up, float)
+    up = up / np.linalg.norm(up)
+    heights = ((points - object_pose.position) @ object_pose.rotation) @ up
+    uv = _uv_at(mesh_rig, faces, points)
+    warnings = []
+    extrapolated = _extrapolated_fraction(light_model, light_poses, points[enough])
+    if extrapolated > 0.01:
+        warnings.append(
+            f"{100 * extrapolated:.0f} % of the valid points are lit at angles the light model "
+            "extrapolates (outside the θ its samples cover)"
+        )
+    return ReflectanceResult(
+        methods,
+        shape,
+        rho,
+        reason,
+        rows,
+        cols,
+        points,
+        normals,
+        faces,
+        heights,
+        uv,
+        L,
+        {m: E[m] for m in methods},
+        {m: tints[m] for m in methods},
+        codes,
+        rho_points,
+        lights,
+        settings,
+        object_centre,
+        warnings,
+    )
+
+
+def channel_irradiance(grey: np.ndarray, colour: np.ndarray | None) -> np.ndarray:
+    """Each channel's irradiance (..., 3) from the channel mean ``grey`` and each channel's
+    share of it (None: grey, every channel the same)."""
+    return grey[..., None] * colour if colour is not None else np.repeat(grey[..., None], 3, axis=-1)
+
+
+def _drop_outliers(codes: np.ndarray, luminance: np.ndarray, irradiance: np.ndarray, threshold: float) -> None:
+    """The residual test for highlights, in place on ``codes``.
+
+    For every point with at least 3 usable lights, each light's radiance is predicted from
+    the least-squares fit of the others (leave-one-out, measured model); the light with the
+    largest relative excess is dropped (:data:`SAMPLE_SPECULAR_OUTLIER`) if the excess is
+    above ``threshold``, and the test repeats while at least 3 lights remain.
+    """
+    if not math.isfinite(threshold):
+        return
+    L = np.where(np.isfinite(luminance), luminance, 0.0)
+    E = irradiance
+    while True:
+        used = codes == SAMPLE_USED
+        candidates = used.sum(axis=0) >= 3
+        if not candidates.any():
+            return
+        idx = np.flatnonzero(candidates)
+        u, lum, e = used[:, idx], L[:, idx], E[:, idx]
+        s_le = np.where(u, lum * e, 0.0).sum(axis=0)
+        s_ee = np.where(u, e * e, 0.0).sum(axis=0)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            rho_others = (s_le[None] - lum * e) / (s_ee[None] - e * e)
+            predicted = rho_others * e
+            excess = np.where(u & (predicted > 0), lum / predicted - 1.0, -np.inf)
+        worst = np.argmax(excess, axis=0)
+        value = excess[worst, np.arange(len(idx))]
+        drop = value > threshold
+        if not drop.any():
+            return
+        codes[worst[drop], idx[drop]] = SAMPLE_SPECULAR_OUTLIER
+
+
+def _uv_at(mesh, faces, points) -> np.ndarray | None:
+    """The mesh's UV coordinates at hit points (barycentric), or None without UVs."""
+    uv = getattr(getattr(mesh, "visual", None), "uv", None)
+    if uv is None or len(uv) != len(mesh.vertices):
+        return None
+    import trimesh
+
+    bary = trimesh.triangles.points_to_barycentric(mesh.triangles[faces], points)
+    corners = np.asarray(uv, float)[mesh.faces[faces]]  # (N, 3, 2)
+    return np.einsum("nk,nkc->nc", bary, corners)
+
+
+def _extrapolated_fraction(light_model, light_poses, points) -> float:
+    """Share of points that some light sees at a θ outside any source's sampled range."""
+    if len(points) == 0:
+        return 0.0
+    flagged = np.zeros(len(points), bool)
+    for pose in light_poses:
+        local = (points - pose.position) @ pose.rotation
+        for s in light_model.sources:
+            d = local - np.array([s.centre_m[0], s.centre_m[1], 0.0])
+            theta = np.arccos(np.clip(d[:, 2] / np.linalg.norm(d, axis=1), -1.0, 1.0))
+            lo, hi = s.fit.theta_range
+            if hi > lo:
+                flagged |= (theta < lo - 1e-9) | (theta > hi + 1e-9)
+    return float(flagged.mean())

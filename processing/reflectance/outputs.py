@@ -1,0 +1,138 @@
+"""The reflectance's files: albedo maps (OpenEXR, PNG), the reason map, textures, the per-point HDF5, the summary."""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from processing.lightmodel import json_ready
+from processing.reflectance.codes import PIXEL_CODES, PIXEL_COLOURS, PIXEL_SHORT, SAMPLE_CODES, SAMPLE_SHORT
+from processing.reflectance.estimate import ReflectanceResult
+from processing.reflectance.maps import reflectance_profiles, uv_texture
+from processing.reflectance.page import reflectance_profiles_figure, write_reflectance_report
+
+log = logging.getLogger("mirrorgonio.processing")
+
+
+def _write_exr(path: Path, rgb: np.ndarray) -> Path:
+    """An RGB float32 OpenEXR that keeps NaN (``processing.images.write_exr`` writes 0 there)."""
+    import OpenEXR
+
+    data = np.ascontiguousarray(rgb, dtype=np.float32)
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    with OpenEXR.File(header, {"RGB": data}) as exr:
+        exr.write(str(path))
+    return path
+
+
+def _write_rgba_png(path: Path, rgba: np.ndarray) -> Path:
+    import cv2
+
+    if not cv2.imwrite(str(path), cv2.cvtColor(rgba, cv2.COLOR_RGBA2BGRA)):
+        raise OSError(f"{path}: could not write the PNG")
+    return path
+
+
+def _albedo_png(path: Path, rgb: np.ndarray, scale: float) -> Path:
+    """ρ/scale, display gamma 1/2.2, transparent where there is no albedo."""
+    finite = np.all(np.isfinite(rgb), axis=-1)
+    shown = np.clip(np.where(finite[..., None], rgb, 0.0) / scale, 0.0, 1.0) ** (1.0 / 2.2)
+    rgba = np.zeros((*rgb.shape[:2], 4), np.uint8)
+    rgba[..., :3] = (255.0 * shown + 0.5).astype(np.uint8)
+    rgba[..., 3] = np.where(finite, 255, 0)
+    return _write_rgba_png(path, rgba)
+
+
+def _reason_png(path: Path, reason: np.ndarray) -> Path:
+    rgba = np.full((*reason.shape, 4), 255, np.uint8)
+    for code, colour in PIXEL_COLOURS.items():
+        rgba[reason == code, :3] = colour
+    return _write_rgba_png(path, rgba)
+
+
+def write_outputs(
+    result: ReflectanceResult, out_dir, *, texture_size: int = 1024, bins: int = 24, metadata: dict | None = None
+) -> dict[str, Path]:
+    """Write the files of ``docs/reflectance.md`` into ``out_dir``; returns them by name.
+
+    Per method ``albedo-<method>.exr`` (NaN where invalid) and ``.png``; ``reasons.png``;
+    ``texture-<method>.exr`` and ``.png`` when the mesh has UVs; ``profiles.png``;
+    ``reflectance.h5`` (the per-point data); ``reflectance.json`` (the summary); and
+    ``report.html``.
+    """
+    import h5py
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    files: dict[str, Path] = {}
+    finite = [v[np.isfinite(v)] for v in result.rho_points.values()]
+    values = np.concatenate(finite) if finite else np.zeros(0)
+    scale = float(np.percentile(values, 99.5)) if values.size else 1.0
+    scale = scale if scale > 0 else 1.0
+    for m in result.methods:
+        files[f"albedo-{m}.exr"] = _write_exr(out / f"albedo-{m}.exr", result.rho[m])
+        files[f"albedo-{m}.png"] = _albedo_png(out / f"albedo-{m}.png", result.rho[m], scale)
+    files["reasons.png"] = _reason_png(out / "reasons.png", result.reason)
+    textures = {}
+    if result.uv is not None:
+        for m in result.methods:
+            texture = uv_texture(result, m, texture_size)
+            files[f"texture-{m}.exr"] = _write_exr(out / f"texture-{m}.exr", texture)
+            files[f"texture-{m}.png"] = textures[m] = _albedo_png(out / f"texture-{m}.png", texture, scale)
+    profiles = reflectance_profiles(result, bins)
+    fig = reflectance_profiles_figure(profiles, result.methods)
+    fig.savefig(out / "profiles.png", dpi=100)
+    files["profiles.png"] = out / "profiles.png"
+
+    h5 = out / "reflectance.h5"
+    with h5py.File(h5, "w") as f:
+        f.attrs.update(
+            format="mirrorgonio-reflectance",
+            format_version=1,
+            pixel_codes=json.dumps(PIXEL_CODES),
+            sample_codes=json.dumps(SAMPLE_CODES),
+            methods=json.dumps(list(result.methods)),
+        )
+        f["reason"] = result.reason
+        f["rows"], f["cols"] = result.rows, result.cols
+        f["points"], f["normals"], f["faces"] = result.points, result.normals, result.faces
+        f["heights"] = result.heights
+        f["valid"] = result.valid
+        f["sample_code"] = result.sample_code
+        f["radiance"] = result.radiance
+        if result.uv is not None:
+            f["uv"] = result.uv
+        for m in result.methods:
+            f[f"rho/{m}"] = result.rho_points[m]
+            f[f"irradiance/{m}"] = result.irradiance[m]
+            f[f"irradiance_rgb/{m}"] = result.irradiance_rgb(m)
+    files["reflectance.h5"] = h5
+
+    summary = {
+        **(metadata or {}),
+        **result.summary(),
+        "png_scale": scale,
+        "profiles": profiles,
+        "pixel_codes": {str(c): PIXEL_SHORT[c] for c in PIXEL_CODES},
+        "sample_codes": {str(c): SAMPLE_SHORT[c] for c in SAMPLE_CODES},
+    }
+    files["report.html"] = out / "report.html"
+    files["reflectance.json"] = out / "reflectance.json"
+    summary["outputs"] = {name: str(path) for name, path in files.items()}
+
+    (out / "reflectance.json").write_text(json.dumps(json_ready(summary), indent=2) + "\n", encoding="utf-8")
+    write_reflectance_report(
+        out / "report.html",
+        summary,
+        images={
+            **{f"albedo-{m}": out / f"albedo-{m}.png" for m in result.methods},
+            "reasons": out / "reasons.png",
+            "profiles": out / "profiles.png",
+            **{f"texture-{m}": p for m, p in textures.items()},
+        },
+    )
+    result.outputs = files
+    return files

@@ -1,0 +1,325 @@
+"""An object run to its albedo: the mesh, the light model, the HDR results, the estimate, the files."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from drivers.contracts.rig import Light
+from drivers.contracts.runfile import RunFile, RunFileError, file_sha256
+from drivers.pose import Pose
+from processing.hdr.mosaic import superpixels
+from processing.light_run.errors import ProcessingError
+from processing.light_run.run import process_run
+from processing.lightmodel import LightModel, LightModelError
+from processing.radiometry import gain_mismatch, radiometric_gain
+from processing.reflectance.camera import superpixel_any
+from processing.reflectance.codes import ReflectanceError, ReflectanceSettings
+from processing.reflectance.estimate import ReflectanceResult, estimate_reflectance
+from processing.reflectance.outputs import write_outputs
+from processing.results import Results, ResultsError, results_path_for
+from processing.trace import RigGeometry, light_pose_at_position
+
+log = logging.getLogger("mirrorgonio.processing")
+
+
+def load_mesh(path, units_m: float = 1.0, pose: Pose | None = None):
+    """Read a PLY, OBJ or STL mesh with trimesh and place it in the rig frame.
+
+    ``x_rig = R·(units_m·v) + t`` for the pose's rotation ``R`` and position ``t``
+    (``[object]`` of the rig, ``docs/rig.md``).
+
+    Raises
+    ------
+    ReflectanceError
+        One line naming the file: missing, unreadable, or without faces.
+    """
+    import trimesh
+
+    path = Path(path)
+    if not path.is_file():
+        raise ReflectanceError(f"{path}: mesh file not found")
+    try:
+        mesh = trimesh.load(str(path), force="mesh")
+    except Exception as exc:  # noqa: BLE001 - trimesh's loaders raise anything
+        raise ReflectanceError(
+            f"{path}: cannot read the mesh ({type(exc).__name__}: {' '.join(str(exc).split())})"
+        ) from None
+    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
+        raise ReflectanceError(f"{path}: cannot read the mesh (no triangles in it)")
+    mesh = mesh.copy()
+    if units_m != 1.0:
+        mesh.apply_scale(float(units_m))
+    if pose is not None:
+        mesh.apply_transform(pose.matrix())
+    return mesh
+
+
+def find_light_model(light) -> Path:
+    """The ``.light.json`` a ``--light`` argument means.
+
+    ``light`` may be the light-model file itself, the light run's results folder (holding
+    one ``*.light.json``), its ``RUN.results.h5`` or its run file ``RUN.h5`` (the model is
+    ``RUN.light.json`` beside it).
+    """
+    path = Path(light)
+    if path.is_dir():
+        found = sorted(path.glob("*.light.json"))
+        if len(found) == 1:
+            return found[0]
+        if not found:
+            raise ReflectanceError(f"{path}: no *.light.json light model in this folder (process the light run first)")
+        raise ReflectanceError(
+            f"{path}: {len(found)} light models in this folder ({', '.join(p.name for p in found)}): give the file"
+        )
+    if path.name.endswith(".json"):
+        if not path.is_file():
+            raise ReflectanceError(f"{path}: light model not found")
+        return path
+    if path.suffix == ".h5":
+        stem = path.name[: -len(".results.h5")] if path.name.endswith(".results.h5") else path.stem
+        candidate = path.with_name(f"{stem}.light.json")
+        if candidate.is_file():
+            return candidate
+        raise ReflectanceError(
+            f"{path}: no light model {candidate.name} beside it (process the light run with the sources step)"
+        )
+    raise ReflectanceError(f"{path}: not a light model, a results folder or a results file")
+
+
+def _light_section(rig_like) -> dict | None:
+    """The ``[light]`` of a rig (a Rig or its dict) as comparable numbers, or None."""
+
+    if rig_like is None:
+        return None
+    section = rig_like.get("light", {}) if isinstance(rig_like, dict) else rig_like.light
+    try:
+        light = section if isinstance(section, Light) else Light.model_validate(section)
+    except ValueError:
+        return None
+    return {
+        "light_to_tool.position_m": tuple(light.light_to_tool.position_m),
+        "light_to_tool.rotation_deg": tuple(light.light_to_tool.rotation_deg),
+        "housing_radius_m": light.housing_radius_m,
+        "housing_depth_m": light.housing_depth_m,
+    }
+
+
+def _light_run_rig(light_model):
+    """The light run's rig: ``provenance["rig"]`` when it is the rig itself, else the rig
+    stored in the run file the provenance names (None when neither is at hand)."""
+    for key in ("rig_description", "rig"):
+        rig = light_model.provenance.get(key)
+        if isinstance(rig, dict):
+            return rig
+    run_file = light_model.provenance.get("run_file")
+    if run_file and Path(run_file).is_file():
+        try:
+            with RunFile.open(run_file) as run:
+                return run.header.rig
+        except RunFileError:
+            return None
+    return None
+
+
+def check_light_frame(light_model, light_path, rig, run_path) -> str | None:
+    """Refuse a light model measured on a rig whose ``[light]`` differs from the object run's.
+
+    The light frame is the arm's tool frame composed with ``light_to_tool``; a model made
+    with another mounting (or another housing) does not describe this run's light.
+
+    Returns
+    -------
+    str or None
+        A warning when the light run's rig is not known (the check could not be made).
+    """
+    theirs = _light_run_rig(light_model)
+    if theirs is None:
+        return (
+            f"{light_path}: the light model does not record its rig's [light] section and its run file is not at "
+            "hand: the light frame could not be checked"
+        )
+    a, b = _light_section(theirs), _light_section(rig)
+    if a is None or b is None:
+        return f"{light_path}: the light run's [light] section is unreadable: the light frame could not be checked"
+    differs = [k for k in a if not np.allclose(np.atleast_1d(a[k]), np.atleast_1d(b[k]), rtol=0.0, atol=1e-9)]
+    if differs:
+        name_a = theirs.get("name", "?") if isinstance(theirs, dict) else theirs.name
+        key = differs[0]
+        raise ReflectanceError(
+            f"{light_path}: light results from a different rig: the light run's rig {name_a!r} has [light] "
+            f"{key} = {list(np.atleast_1d(a[key]))}, the object run {run_path}'s rig {rig.name!r} has "
+            f"{list(np.atleast_1d(b[key]))}: the light frame would not be the same"
+        )
+    return None
+
+
+def _results_for(run_path: Path, out: Path, progress) -> Path:
+    """The run's HDR results: beside the run, in ``out``, or made now (in ``out``)."""
+
+    for folder in (run_path.parent, out):
+        candidate = results_path_for(run_path, folder)
+        if candidate.is_file():
+            return candidate
+    log.info("%s: no HDR results yet: merging the brackets into %s", run_path, out)
+    try:
+        report = process_run(
+            run_path, out, steps=("hdr",), progress=(lambda d, t: progress("hdr", d, t)) if progress else None
+        )
+    except ProcessingError as exc:
+        raise ReflectanceError(str(exc)) from None
+    return report.results_file
+
+
+def reflectance_from_run(
+    object_run,
+    light=None,
+    mesh=None,
+    out_dir=None,
+    *,
+    progress=None,
+    settings: ReflectanceSettings | None = None,
+    texture_size: int = 1024,
+    bins: int = 24,
+) -> ReflectanceResult:
+    """Estimate an object's albedo from its run file and write every output.
+
+    Parameters
+    ----------
+    object_run : path-like
+        The object run (``object-arc`` on a rig with ``[object]``).
+    light : path-like, optional
+        The light model: a ``.light.json``, or the light run's results folder or file
+        (:func:`find_light_model`). Default: the model the run recorded
+        (``references.light_model``).
+    mesh : path-like, optional
+        The object's mesh (default: the rig's ``[object].mesh``). Its ``units_m`` and
+        ``pose`` come from the rig's ``[object]`` (metres and the rig frame without one).
+    out_dir : path-like, optional
+        Folder for the outputs (default ``RUN.reflectance`` beside the run). The run's
+        HDR results are looked for beside the run and here, and made here when missing.
+    progress : callable, optional
+        ``progress(stage, done, total)``, stage ``"hdr"``, ``"rays"`` or ``"lights"``.
+    settings : ReflectanceSettings, optional
+    texture_size, bins : int
+        UV texture size (texels) and the number of height bins of the profiles.
+
+    Raises
+    ------
+    ReflectanceError
+        One line: an unreadable run, mesh or light model, an object run without
+        ``[object]`` and no mesh, light results from a different rig, a mesh out of the
+        camera's view, no valid point.
+    """
+
+    run_path = Path(object_run)
+    out = Path(out_dir) if out_dir is not None else run_path.with_name(f"{run_path.stem}.reflectance")
+    warnings: list[str] = []
+    try:
+        run = RunFile.open(run_path)
+    except RunFileError as exc:
+        raise ReflectanceError(str(exc)) from None
+    with run:
+        rig = run.header.rig
+        references = run.header.references or {}
+        obj = rig.object
+        if mesh is None:
+            if obj is None:
+                raise ReflectanceError(
+                    f"{run_path}: the run's rig {rig.name!r} has no [object] and no mesh was given (--mesh)"
+                )
+            mesh_path = obj.mesh_path()
+        else:
+            mesh_path = Path(mesh)
+        object_pose = obj.pose.to_pose() if obj is not None else None
+        mesh_rig = load_mesh(mesh_path, obj.units_m if obj is not None else 1.0, object_pose)
+        recorded_mesh = references.get("object_mesh") or {}
+        if recorded_mesh.get("sha256") and recorded_mesh["sha256"] != file_sha256(mesh_path):
+            warnings.append(
+                f"{mesh_path}: not the mesh the run recorded ({recorded_mesh.get('path')}): its contents differ"
+            )
+
+        recorded_light = references.get("light_model") or {}
+        if light is None:
+            if not recorded_light.get("path"):
+                raise ReflectanceError(f"{run_path}: the run records no light model: give one with --light")
+            light_path = find_light_model(recorded_light["path"])
+        else:
+            light_path = find_light_model(light)
+            if recorded_light.get("sha256") and recorded_light["sha256"] != file_sha256(light_path):
+                warnings.append(f"{light_path}: not the light model the run recorded ({recorded_light.get('path')})")
+        try:
+            light_model = LightModel.load(light_path)
+        except LightModelError as exc:
+            raise ReflectanceError(str(exc)) from None
+        note = check_light_frame(light_model, light_path, rig, run_path)
+        if note:
+            warnings.append(note)
+
+        out.mkdir(parents=True, exist_ok=True)
+        results_file = _results_for(run_path, out, progress)
+        geometry = RigGeometry.from_rig(rig)
+        try:
+            with Results.open(results_file) as results:
+                positions = np.flatnonzero(results.hdr_done & run.complete)
+                if positions.size < 2:
+                    raise ReflectanceError(
+                        f"{run_path}: {positions.size} position(s) with frames and an HDR result: "
+                        "the albedo needs at least 2 light positions"
+                    )
+                # DN/s → e⁻/s with the rig's calibrated gain, as the light step: k (e⁻/s per unit
+                # radiance) is calibrated with it; the HDR's own estimate only weights the merge.
+                gain, gain_source = radiometric_gain(run), "rig"
+                mismatch = gain_mismatch(results.noise, gain)
+                cfa = results.cfa_pattern
+                rates, saturated, poses = [], [], []
+                for index in positions:
+                    index = int(index)
+                    mosaic = results.radiance(index).astype(np.float64) * gain  # DN/s -> e-/s
+                    rates.append(superpixels(mosaic, cfa))
+                    saturated.append(superpixel_any(results.saturated(index)))
+                    poses.append(light_pose_at_position(run, geometry, index))
+        except ResultsError as exc:
+            raise ReflectanceError(str(exc)) from None
+        run_id = run.header.run_id
+
+    if mismatch is not None:
+        if mismatch[0] >= logging.WARNING:
+            warnings.append(f"{results_file}: {mismatch[1]}")
+        else:
+            log.info("%s: %s", results_file, mismatch[1])
+    for text in warnings:
+        log.warning("%s", text)
+    result = estimate_reflectance(
+        np.stack(rates),
+        np.stack(saturated),
+        rig.camera,
+        mesh_rig,
+        poses,
+        light_model,
+        object_pose=object_pose,
+        up=obj.up if obj is not None else (0.0, 1.0, 0.0),
+        housing=(rig.light.housing_radius_m, rig.light.housing_depth_m),
+        settings=settings,
+        mesh_name=str(mesh_path),
+        progress=progress,
+    )
+    result.warnings[:0] = warnings
+    result.metadata = {
+        "object_run": str(run_path),
+        "run_id": run_id,
+        "rig": rig.name,
+        "results_file": str(results_file),
+        "positions": [int(i) for i in positions],
+        "light_model": str(light_path),
+        "light_run_id": light_model.provenance.get("run_id", ""),
+        "light_units": light_model.units,
+        "mesh": str(mesh_path),
+        "camera_sensitivity_e_per_s": rig.camera.sensitivity_e_per_s,
+        "gain_e_per_dn": gain,
+        "gain_source": gain_source,
+    }
+    write_outputs(result, out, texture_size=texture_size, bins=bins, metadata=result.metadata)
+    return result
