@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 import threading
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -93,8 +94,6 @@ class SimulatedStage:
     """Thread-safe simulated stage; all timing comes from the injected ``clock``."""
 
     def __init__(self, config: StageConfig | None = None, clock: Callable[[], float] | None = None):
-        import time
-
         self.config = config or StageConfig()
         self._clock = clock or time.monotonic
         self._lock = threading.RLock()
