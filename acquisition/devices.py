@@ -14,6 +14,14 @@ from acquisition.settings import DaemonSettings, SettingsError
 from drivers.arm import Arm
 from drivers.camera import Camera
 from drivers.contracts.rig import Rig
+from drivers.folder_camera import FolderCamera
+from drivers.gphoto2_camera import Gphoto2Camera
+from drivers.modbus_arm import ModbusArm
+from drivers.modbus_profile import SIM_STAGE_PROFILE
+from drivers.serial_arm import MelfaSerialArm
+from sim_devices.camera import SimulatedCamera
+from sim_devices.lights import load_truth
+from sim_devices.world import SimWorld
 
 
 @dataclass
@@ -54,10 +62,8 @@ def _open_arm(settings: DaemonSettings, rig: Rig, closers: list, simulated: dict
     cfg = settings.arm
     limits = rig.soft_limits()
     if cfg.kind == "simulated":
-        from drivers.modbus_arm import ModbusArm
-        from drivers.modbus_profile import SIM_STAGE_PROFILE
-        from sim_devices.modbus_server import SimulatedModbusArm
-        from sim_devices.stage import SimulatedStage, StageConfig
+        from sim_devices.modbus_server import SimulatedModbusArm  # noqa: PLC0415 - heavy: pymodbus's server
+        from sim_devices.stage import SimulatedStage, StageConfig  # noqa: PLC0415 - heavy: scipy.spatial.transform
 
         stage = SimulatedStage(
             StageConfig(
@@ -80,8 +86,6 @@ def _open_arm(settings: DaemonSettings, rig: Rig, closers: list, simulated: dict
             retries=cfg.retries,
         )
     elif cfg.kind in ("modbus-tcp", "modbus-rtu"):
-        from drivers.modbus_arm import ModbusArm
-
         if cfg.profile is None:
             raise SettingsError("arm.profile: a Modbus arm needs its register-map profile")
         options = dict(limits=limits, timeout_s=cfg.timeout_s, retries=cfg.retries)
@@ -94,8 +98,6 @@ def _open_arm(settings: DaemonSettings, rig: Rig, closers: list, simulated: dict
                 cfg.profile, transport="rtu", serial_port=cfg.serial_port, baudrate=cfg.baudrate or 19200, **options
             )
     else:
-        from drivers.serial_arm import MelfaSerialArm
-
         if not cfg.serial_port:
             raise SettingsError("arm.serial_port: a serial arm needs a serial port")
         arm = MelfaSerialArm(
@@ -110,10 +112,6 @@ def _open_camera(settings: DaemonSettings, rig: Rig, simulated: dict, arm: Arm) 
     cfg = settings.camera
     spool = Path(settings.data_dir) / "spool"
     if cfg.kind == "simulated":
-        from sim_devices.camera import SimulatedCamera
-        from sim_devices.lights import load_truth
-        from sim_devices.world import SimWorld
-
         light_to_tool = rig.light.light_to_tool.to_pose()
         if "stage" in simulated:  # the simulated stage in this process: its true pose
             world = SimWorld(simulated["stage"].true_pose, light_to_tool)
@@ -134,11 +132,7 @@ def _open_camera(settings: DaemonSettings, rig: Rig, simulated: dict, arm: Arm) 
         simulated["world"] = world
         return camera
     if cfg.kind == "folder":
-        from drivers.folder_camera import FolderCamera
-
         if cfg.folder is None:
             raise SettingsError("camera.folder: a folder camera needs the folder to watch")
         return FolderCamera(cfg.folder, timeout_s=cfg.capture_timeout_s)
-    from drivers.gphoto2_camera import Gphoto2Camera
-
     return Gphoto2Camera(port=cfg.gphoto2_port, model=cfg.gphoto2_model, download_dir=spool)

@@ -36,6 +36,7 @@ from pathlib import Path
 from drivers.camera import RawFrame
 from drivers.contracts.rig import Rig, RigError, load_rig
 from drivers.contracts.runfile import PositionTimes, RunFileError, RunFileWriter, RunHeader, file_sha256
+from drivers.contracts.version import __version__
 from drivers.errors import RawFileError
 from drivers.pose import Pose
 from drivers.raw_decode import RAW_EXTENSIONS, decode_raw
@@ -208,6 +209,45 @@ def read_import_csv(csv_path, folder, n_positions: int) -> list[ImportRow]:
 
 
 def _read_rows(reader, csv_path: Path, folder: Path, n_positions: int) -> list[ImportRow]:
+    columns = _read_columns(reader, csv_path)
+    pose_given = any(name in columns for name in POSE_COLUMNS)
+    rows: list[ImportRow] = []
+    seen_files: dict[Path, int] = {}
+    position_pose: dict[int, tuple[Pose, int]] = {}
+    for cells in reader:
+        line = reader.line_num
+        where = f"{csv_path}: line {line}"
+        if not any(cell.strip() for cell in cells):
+            continue  # a blank line
+        if len(cells) > len(columns):
+            raise RunImportError(f"{where}: {len(cells)} fields but the header names {len(columns)} columns")
+        values = {name: (cells[i].strip() if i < len(cells) else "") for i, name in enumerate(columns)}
+        name = values["file"]
+        path = _row_file(name, where, folder)
+        if path in seen_files:
+            raise RunImportError(f"{where}: file: {name!r} repeats the frame of line {seen_files[path]}")
+        seen_files[path] = line
+        position = _row_position(values["position"], where, n_positions)
+        exposure = _row_exposure(values.get("exposure_s", ""), where)
+        pose = _row_pose(values, where) if pose_given else None
+        if pose is not None:
+            if position in position_pose:
+                other, other_line = position_pose[position]
+                if other != pose:
+                    raise RunImportError(
+                        f"{where}: x_m..rz_deg: position {position} was given another pose on "
+                        f"line {other_line} (one measured pose per position)"
+                    )
+            else:
+                position_pose[position] = (pose, line)
+        rows.append(ImportRow(line, name, path, position, exposure, pose))
+    if not rows:
+        raise RunImportError(f"{csv_path}: no frames: the CSV has a header but no rows")
+    return rows
+
+
+def _read_columns(reader, csv_path: Path) -> list[str]:
+    """The header line's column names (lower case), checked: known, required, pose as a set of six."""
     header = next(reader, None)
     while header is not None and not any(cell.strip() for cell in header):
         header = next(reader, None)
@@ -231,75 +271,55 @@ def _read_rows(reader, csv_path: Path, folder: Path, n_positions: int) -> list[I
         raise RunImportError(
             f"{where}: missing column {missing[0]!r}: pose columns come as a set of six ({', '.join(POSE_COLUMNS)})"
         )
+    return columns
 
-    rows: list[ImportRow] = []
-    seen_files: dict[Path, int] = {}
-    position_pose: dict[int, tuple[Pose, int]] = {}
-    for cells in reader:
-        line = reader.line_num
-        where = f"{csv_path}: line {line}"
-        if not any(cell.strip() for cell in cells):
-            continue  # a blank line
-        if len(cells) > len(columns):
-            raise RunImportError(f"{where}: {len(cells)} fields but the header names {len(columns)} columns")
-        values = {name: (cells[i].strip() if i < len(cells) else "") for i, name in enumerate(columns)}
 
-        name = values["file"]
-        if not name:
-            raise RunImportError(f"{where}: file: empty")
-        path = Path(name).expanduser()
-        path = path if path.is_absolute() else folder / path
-        if not path.exists():
-            raise RunImportError(f"{where}: file: {name!r} not found in {folder}")
-        if not path.is_file():
-            raise RunImportError(f"{where}: file: {name!r} is not a file")
-        resolved = path.resolve()
-        if resolved in seen_files:
-            raise RunImportError(f"{where}: file: {name!r} repeats the frame of line {seen_files[resolved]}")
-        seen_files[resolved] = line
+def _row_file(name: str, where: str, folder: Path) -> Path:
+    """The ``file`` cell as an existing file, resolved (relative to ``folder``)."""
+    if not name:
+        raise RunImportError(f"{where}: file: empty")
+    path = Path(name).expanduser()
+    path = path if path.is_absolute() else folder / path
+    if not path.exists():
+        raise RunImportError(f"{where}: file: {name!r} not found in {folder}")
+    if not path.is_file():
+        raise RunImportError(f"{where}: file: {name!r} is not a file")
+    return path.resolve()
 
-        text = values["position"]
-        if not text:
-            raise RunImportError(f"{where}: position: empty")
-        try:
-            position = int(text)
-        except ValueError:
-            raise RunImportError(f"{where}: position: {text!r} is not a whole number") from None
-        if not 0 <= position < n_positions:
-            raise RunImportError(
-                f"{where}: position: {position} is outside the rig's schedule (0 to {n_positions - 1})"
-            )
 
-        exposure = None
-        if values.get("exposure_s"):
-            exposure = _number(values["exposure_s"], where, "exposure_s")
-            if not exposure > 0:
-                raise RunImportError(
-                    f"{where}: exposure_s: must be a positive number of seconds (got {values['exposure_s']!r})"
-                )
+def _row_position(text: str, where: str, n_positions: int) -> int:
+    """The ``position`` cell: a whole number within the schedule."""
+    if not text:
+        raise RunImportError(f"{where}: position: empty")
+    try:
+        position = int(text)
+    except ValueError:
+        raise RunImportError(f"{where}: position: {text!r} is not a whole number") from None
+    if not 0 <= position < n_positions:
+        raise RunImportError(f"{where}: position: {position} is outside the rig's schedule (0 to {n_positions - 1})")
+    return position
 
-        pose = None
-        if pose_given:
-            cells_given = [name for name in POSE_COLUMNS if values[name]]
-            if cells_given and len(cells_given) < len(POSE_COLUMNS):
-                empty = next(name for name in POSE_COLUMNS if not values[name])
-                raise RunImportError(f"{where}: {empty}: empty; give all six pose values or none")
-            if cells_given:
-                x, y, z, rx, ry, rz = (_number(values[name], where, name) for name in POSE_COLUMNS)
-                pose = Pose(x, y, z, math.radians(rx), math.radians(ry), math.radians(rz))
-                if position in position_pose:
-                    other, other_line = position_pose[position]
-                    if other != pose:
-                        raise RunImportError(
-                            f"{where}: x_m..rz_deg: position {position} was given another pose on "
-                            f"line {other_line} (one measured pose per position)"
-                        )
-                else:
-                    position_pose[position] = (pose, line)
-        rows.append(ImportRow(line, name, resolved, position, exposure, pose))
-    if not rows:
-        raise RunImportError(f"{csv_path}: no frames: the CSV has a header but no rows")
-    return rows
+
+def _row_exposure(text: str, where: str) -> float | None:
+    """The ``exposure_s`` cell: a positive number of seconds, or None when empty."""
+    if not text:
+        return None
+    exposure = _number(text, where, "exposure_s")
+    if not exposure > 0:
+        raise RunImportError(f"{where}: exposure_s: must be a positive number of seconds (got {text!r})")
+    return exposure
+
+
+def _row_pose(values: dict[str, str], where: str) -> Pose | None:
+    """The pose cells (metres, degrees) as a Pose (radians): all six given, or None when all are empty."""
+    cells_given = [name for name in POSE_COLUMNS if values[name]]
+    if cells_given and len(cells_given) < len(POSE_COLUMNS):
+        empty = next(name for name in POSE_COLUMNS if not values[name])
+        raise RunImportError(f"{where}: {empty}: empty; give all six pose values or none")
+    if not cells_given:
+        return None
+    x, y, z, rx, ry, rz = (_number(values[name], where, name) for name in POSE_COLUMNS)
+    return Pose(x, y, z, math.radians(rx), math.radians(ry), math.radians(rz))
 
 
 # --- stage 2: the raw files ---------------------------------------------------------------
@@ -439,95 +459,25 @@ def import_run(
         been written then.
     """
     folder, csv_path, rig_path, out = Path(folder), Path(csv_path), Path(rig_path), Path(out)
-    if not folder.is_dir():
-        raise RunImportError(f"{folder}: {'not a folder' if folder.exists() else 'no such folder'}")
-    try:
-        rig = load_rig(rig_path)
-    except RigError as exc:
-        raise RunImportError(str(exc)) from None
-    if out.exists():
-        raise RunImportError(f"{out}: already exists (choose another --out, or remove it)")
-    if out.parent.exists() and not out.parent.is_dir():
-        raise RunImportError(f"{out.parent}: not a folder")
+    rig = _check_destination(folder, rig_path, out)
     tool_poses, light_poses = rig.tool_poses(), rig.light_poses()
     n = len(tool_poses)
 
     rows = read_import_csv(csv_path, folder, n)
     checked = _check_frames(rows, csv_path, rig_path, rig, progress)
 
-    by_position: dict[int, list[int]] = {}
+    by_position: dict[int, list[int]] = {}  # the rows of each position with frames
     for k, row in enumerate(rows):
         by_position.setdefault(row.position, []).append(k)
     cameras = sorted({c.camera_id for c in checked})
-    meta = {"operator": "", "light_source": "", "notes": "", **(metadata or {})}
-    meta["imported_from"] = {
-        "folder": str(folder.resolve()),
-        "csv": str(csv_path.resolve()),
-        "csv_sha256": file_sha256(csv_path),
-        "rig": str(rig_path.resolve()),
-    }
-    from drivers.contracts.version import __version__
-
-    header = RunHeader(
-        run_id=run_id or out.stem,
-        rig=rig,
-        tool_poses=tool_poses,
-        light_poses=light_poses,
-        max_exposures=max(len(ks) for ks in by_position.values()),
-        frame_shape=checked[0].shape,
-        bracket=_bracket(by_position, checked),
-        metadata=meta,
-        devices={"arm": "none (imported run: poses as planned unless the CSV gave them)", "camera": "; ".join(cameras)},
-        software_version=__version__,
-        created_utc=datetime.now(UTC).isoformat(timespec="seconds"),
-        preset="import",
-    )
+    metadata = {**(metadata or {}), "imported_from": _sources(folder, csv_path, rig_path)}
+    header = _run_header(rig, (tool_poses, light_poses), run_id or out.stem, metadata, checked, by_position, cameras)
     empty = [i for i in range(n) if i not in by_position]
+    note = f"imported from {folder}: {len(by_position)} of {n} positions have frames"
+    if empty:
+        note += f"; positions {format_ranges(empty)} have none and are left incomplete"
+    _write_run(out, header, rows, checked, by_position, csv_path, note, progress)
 
-    try:
-        out.parent.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise RunImportError(f"{out.parent}: cannot create the folder: {exc.strerror}") from None
-    tmp = _unused_temp(out)
-    try:
-        with RunFileWriter.create(tmp, header) as writer:
-            done = 0
-            for position in sorted(by_position):
-                ks = by_position[position]
-                frames = []
-                for k in ks:
-                    row, info = rows[k], checked[k]
-                    frame = _decode(row, csv_path)
-                    if frame.mosaic.shape != info.shape:  # the file changed since it was checked
-                        raise RunImportError(f"{csv_path}: line {row.line}: {row.name} changed while it was imported")
-                    frame.exposure_s = info.exposure_s
-                    frames.append(frame)
-                    done += 1
-                pose = next((rows[k].pose for k in ks if rows[k].pose is not None), tool_poses[position])
-                stamps = [checked[k].timestamp for k in ks]
-                times = PositionTimes(min(stamps), min(stamps), max(stamps))
-                writer.write_position(position, pose, times, frames)
-                del frames
-                if progress:
-                    progress("writing", done, len(rows))
-            note = f"imported from {folder}: {len(by_position)} of {n} positions have frames"
-            if empty:
-                note += f"; positions {format_ranges(empty)} have none and are left incomplete"
-            writer.set_status("complete", note)
-        _publish(tmp, out)
-    except RunFileError as exc:
-        raise RunImportError(str(exc).replace(str(tmp), str(out))) from None
-    except OSError as exc:
-        raise RunImportError(f"{out}: cannot write the run file: {exc.strerror or exc}") from None
-    finally:
-        _remove_temp(tmp)
-
-    named = {row.path for row in rows}
-    ignored = sorted(
-        p.name
-        for p in folder.iterdir()
-        if p.suffix.lower() in RAW_EXTENSIONS and p.is_file() and p.resolve() not in named
-    )
     return ImportReport(
         run_file=out,
         run_id=header.run_id,
@@ -539,6 +489,118 @@ def import_run(
         cfa_pattern=checked[0].cfa_pattern,
         exposures_s=sorted({c.exposure_s for c in checked}),
         cameras=cameras,
-        ignored_files=ignored,
+        ignored_files=_ignored_files(folder, rows),
         exposure_overrides=sum(row.exposure_s is not None for row in rows),
     )
+
+
+def _sources(folder: Path, csv_path: Path, rig_path: Path) -> dict:
+    """Where an imported run came from, for its metadata (the CSV with its SHA-256)."""
+    return {
+        "folder": str(folder.resolve()),
+        "csv": str(csv_path.resolve()),
+        "csv_sha256": file_sha256(csv_path),
+        "rig": str(rig_path.resolve()),
+    }
+
+
+def _run_header(
+    rig: Rig,
+    poses: tuple[list[Pose], list[Pose]],
+    run_id: str,
+    metadata: dict,
+    checked: list[_Checked],
+    by_position: dict[int, list[int]],
+    cameras: list[str],
+) -> RunHeader:
+    """The imported run's header: the rig's schedule (``poses``: tool and light), the frames checked."""
+    tool_poses, light_poses = poses
+    return RunHeader(
+        run_id=run_id,
+        rig=rig,
+        tool_poses=tool_poses,
+        light_poses=light_poses,
+        max_exposures=max(len(ks) for ks in by_position.values()),
+        frame_shape=checked[0].shape,
+        bracket=_bracket(by_position, checked),
+        metadata={"operator": "", "light_source": "", "notes": "", **metadata},
+        devices={"arm": "none (imported run: poses as planned unless the CSV gave them)", "camera": "; ".join(cameras)},
+        software_version=__version__,
+        created_utc=datetime.now(UTC).isoformat(timespec="seconds"),
+        preset="import",
+    )
+
+
+def _ignored_files(folder: Path, rows: list[ImportRow]) -> list[str]:
+    """The raw files in ``folder`` that the CSV does not name, by name."""
+    named = {row.path for row in rows}
+    return sorted(
+        p.name
+        for p in folder.iterdir()
+        if p.suffix.lower() in RAW_EXTENSIONS and p.is_file() and p.resolve() not in named
+    )
+
+
+def _check_destination(folder: Path, rig_path: Path, out: Path) -> Rig:
+    """The rig, once the folder, the rig and the output path are known to be usable."""
+    if not folder.is_dir():
+        raise RunImportError(f"{folder}: {'not a folder' if folder.exists() else 'no such folder'}")
+    try:
+        rig = load_rig(rig_path)
+    except RigError as exc:
+        raise RunImportError(str(exc)) from None
+    if out.exists():
+        raise RunImportError(f"{out}: already exists (choose another --out, or remove it)")
+    if out.parent.exists() and not out.parent.is_dir():
+        raise RunImportError(f"{out.parent}: not a folder")
+    return rig
+
+
+def _write_run(
+    out: Path,
+    header: RunHeader,
+    rows: list[ImportRow],
+    checked: list[_Checked],
+    by_position: dict[int, list[int]],
+    csv_path: Path,
+    note: str,
+    progress: Progress | None,
+) -> None:
+    """Stage 3: write the run in a hidden temporary file, decoding each raw file again, then
+    publish it at ``out``; the temporary file is removed whatever happens."""
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise RunImportError(f"{out.parent}: cannot create the folder: {exc.strerror}") from None
+    tmp = _unused_temp(out)
+    try:
+        with RunFileWriter.create(tmp, header) as writer:
+            done = 0
+            for position in sorted(by_position):
+                ks = by_position[position]
+                frames = [_decode_again(rows[k], checked[k], csv_path) for k in ks]
+                done += len(ks)
+                pose = next((rows[k].pose for k in ks if rows[k].pose is not None), header.tool_poses[position])
+                stamps = [checked[k].timestamp for k in ks]
+                times = PositionTimes(min(stamps), min(stamps), max(stamps))
+                writer.write_position(position, pose, times, frames)
+                del frames
+                if progress:
+                    progress("writing", done, len(rows))
+            writer.set_status("complete", note)
+        _publish(tmp, out)
+    except RunFileError as exc:
+        raise RunImportError(str(exc).replace(str(tmp), str(out))) from None
+    except OSError as exc:
+        raise RunImportError(f"{out}: cannot write the run file: {exc.strerror or exc}") from None
+    finally:
+        _remove_temp(tmp)
+
+
+def _decode_again(row: ImportRow, info: _Checked, csv_path: Path) -> RawFrame:
+    """The frame of ``row`` decoded for writing, with the exposure stage 2 settled on."""
+    frame = _decode(row, csv_path)
+    if frame.mosaic.shape != info.shape:  # the file changed since it was checked
+        raise RunImportError(f"{csv_path}: line {row.line}: {row.name} changed while it was imported")
+    frame.exposure_s = info.exposure_s
+    return frame

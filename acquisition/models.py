@@ -8,6 +8,7 @@ from typing import Annotated, Literal
 from pydantic import BaseModel, ConfigDict, Field, PositiveFloat, StrictBool, field_validator, model_validator
 
 from drivers.contracts.rig import MAX_POSITIONS, PoseSpec
+from processing.steps import StepsError, resolve_steps
 
 
 # --- requests ------------------------------------------------------------------------------
@@ -127,8 +128,6 @@ class JobRequest(BaseModel):
     @field_validator("steps")
     @classmethod
     def _each_step_once(cls, steps: str) -> str:
-        from processing.steps import StepsError, resolve_steps
-
         names = steps.split(",")
         if len(set(names)) != len(names):
             raise ValueError("names a step twice")

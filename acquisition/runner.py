@@ -30,7 +30,7 @@ from acquisition.models import AutoBracket, FixedBracket, RunRequest
 from acquisition.preview import preview_png
 from acquisition.settings import DaemonSettings
 from drivers.camera import RawFrame
-from drivers.contracts.rig import Rig, RigError, rig_from_dict
+from drivers.contracts.rig import LightSweep, ObjectArc, Raster, Rig, RigError, rig_from_dict
 from drivers.contracts.runfile import PositionTimes, RunFileWriter, RunHeader, file_sha256
 from drivers.contracts.version import __version__
 from drivers.errors import CommunicationError, DeviceError, DeviceTimeoutError, MoveInterruptedError
@@ -65,6 +65,18 @@ class RunPlan:
     light_poses: list[Pose]
     request: RunRequest
     path: Path
+
+
+@dataclass
+class _WriteBehind:
+    """What the run thread shares with the thread that writes each position while the arm
+    moves to the next: the hand-over queue (one position deep), the writer's errors, and the
+    time each position took (for the ETA)."""
+
+    queue: queue.Queue = field(default_factory=lambda: queue.Queue(maxsize=1))
+    errors: list[BaseException] = field(default_factory=list)
+    durations: list[float] = field(default_factory=list)
+    thread: threading.Thread | None = None
 
 
 @dataclass
@@ -134,8 +146,6 @@ class RunEngine:
     # --- presets ---------------------------------------------------------------------------
     def presets(self) -> dict[str, dict]:
         """Schedules a run can use: the rig's own, and the other kinds' defaults."""
-        from drivers.contracts.rig import LightSweep, ObjectArc, Raster
-
         base = {"light-sweep": LightSweep(), "object-arc": ObjectArc(), "raster": Raster()}
         base[self.rig.schedule.kind] = self.rig.schedule
         return {name: schedule.model_dump(mode="json") for name, schedule in base.items()}
@@ -393,97 +403,118 @@ class RunEngine:
                 pass
 
     def _execute(self, plan: RunPlan, resume: bool) -> None:
-        run_id = plan.run_id
+        """The run thread: open the run file, take every incomplete position, record how it ended."""
         writer: RunFileWriter | None = None
-        write_queue: queue.Queue = queue.Queue(maxsize=1)
-        writer_error: list[BaseException] = []
-        durations: list[float] = []
-
-        def write_loop() -> None:
-            while True:
-                item = write_queue.get()
-                try:
-                    if item is None:
-                        return
-                    index, measured, times, frames = item
-                    if writer_error:
-                        continue
-                    try:
-                        writer.write_position(index, measured, times, frames)
-                    except BaseException as exc:  # noqa: BLE001 - reported to the run thread
-                        writer_error.append(exc)
-                        continue
-                    for frame in frames:
-                        self._discard_raw(frame)
-                    done = int(writer.complete.sum())
-                    per_position = sum(durations[-10:]) / len(durations[-10:]) if durations else None
-                    self.catalog.update_progress(
-                        run_id,
-                        positions_done=done,
-                        current_position=index,
-                        seconds_per_position=per_position,
-                        exposures_per_position=len(frames),
-                    )
-                    self.events.publish()
-                finally:
-                    write_queue.task_done()
-
-        write_thread = threading.Thread(target=write_loop, name=f"write-{run_id}", daemon=True)
+        behind = _WriteBehind()
         outcome, message = "complete", ""
         try:
-            if resume:
-                writer = RunFileWriter.reopen(plan.path)
-            else:
-                writer = RunFileWriter.create(plan.path, self._header(plan))
-            if self.catalog.get_run(run_id).state != "running":
-                self.catalog.transition_run(run_id, "running")
-            writer.set_status("running")
-            self.events.publish()
-            write_thread.start()
-            index = writer.first_incomplete()
-            while index is not None and index < len(plan.tool_poses):
-                if writer.complete[index]:
-                    index += 1
-                    continue
-                try:
-                    self._take_position(plan, index, write_queue, durations)
-                except _OperatorStop:
-                    self._pause_after_stop(run_id, index)
-                    continue  # re-take this position once resumed
-                if writer_error:
-                    raise writer_error[0]
-                index += 1
-            write_queue.join()
-            if writer_error:
-                raise writer_error[0]
+            writer = self._open_run_file(plan, resume)
+            behind.thread = threading.Thread(
+                target=self._write_loop, args=(plan.run_id, writer, behind), name=f"write-{plan.run_id}", daemon=True
+            )
+            behind.thread.start()
+            self._take_positions(plan, writer, behind)
         except _Aborted:
             outcome, message = "aborted", "aborted by the operator"
         except DeviceError as exc:
             outcome, message = "failed", str(exc)
         except Exception as exc:  # noqa: BLE001 - any other failure still keeps the data
-            log.exception("run %s failed", run_id)
+            log.exception("run %s failed", plan.run_id)
             outcome, message = "failed", f"{type(exc).__name__}: {exc}"
         finally:
-            if outcome != "complete":
+            self._end_run(plan.run_id, outcome, message, writer, behind)
+
+    def _open_run_file(self, plan: RunPlan, resume: bool) -> RunFileWriter:
+        """The run file, created or reopened, with the run marked running in it and in the catalog."""
+        if resume:
+            writer = RunFileWriter.reopen(plan.path)
+        else:
+            writer = RunFileWriter.create(plan.path, self._header(plan))
+        if self.catalog.get_run(plan.run_id).state != "running":
+            self.catalog.transition_run(plan.run_id, "running")
+        writer.set_status("running")
+        self.events.publish()
+        return writer
+
+    def _take_positions(self, plan: RunPlan, writer: RunFileWriter, behind: _WriteBehind) -> None:
+        """Every position the run file does not hold complete, in order, until the last is written."""
+        index = writer.first_incomplete()
+        while index is not None and index < len(plan.tool_poses):
+            if writer.complete[index]:
+                index += 1
+                continue
+            try:
+                self._take_position(plan, index, behind.queue, behind.durations)
+            except _OperatorStop:
+                self._pause_after_stop(plan.run_id, index)
+                continue  # re-take this position once resumed
+            if behind.errors:
+                raise behind.errors[0]
+            index += 1
+        behind.queue.join()
+        if behind.errors:
+            raise behind.errors[0]
+
+    def _write_loop(self, run_id: str, writer: RunFileWriter, behind: _WriteBehind) -> None:
+        """The writer thread: write each position handed over, and record the run's progress.
+
+        A failed write is kept for the run thread to raise; the positions queued after it are
+        dropped. ``None`` ends the loop.
+        """
+        while True:
+            item = behind.queue.get()
+            try:
+                if item is None:
+                    return
+                index, measured, times, frames = item
+                if behind.errors:
+                    continue
                 try:
-                    self.devices.arm.stop()
-                except DeviceError as exc:
-                    message += f"; stopping the arm also failed: {exc}"
-            if write_thread.is_alive():
-                write_queue.put(None)  # frames already taken are still written
-                write_thread.join()
-            if writer_error and outcome == "complete":
-                outcome, message = "failed", str(writer_error[0])
-            if writer is not None:
-                try:
-                    writer.set_status(outcome, message)
-                finally:
-                    writer.close()
-            state = self.catalog.get_run(run_id).state
-            if state != outcome:
-                self.catalog.transition_run(run_id, outcome, error=message or None)
-            self._current = None if outcome != "paused" else run_id
-            self.events.publish()
+                    writer.write_position(index, measured, times, frames)
+                except BaseException as exc:  # noqa: BLE001 - reported to the run thread
+                    behind.errors.append(exc)
+                    continue
+                for frame in frames:
+                    self._discard_raw(frame)
+                done = int(writer.complete.sum())
+                recent = behind.durations[-10:]
+                per_position = sum(recent) / len(recent) if behind.durations else None
+                self.catalog.update_progress(
+                    run_id,
+                    positions_done=done,
+                    current_position=index,
+                    seconds_per_position=per_position,
+                    exposures_per_position=len(frames),
+                )
+                self.events.publish()
+            finally:
+                behind.queue.task_done()
+
+    def _end_run(
+        self, run_id: str, outcome: str, message: str, writer: RunFileWriter | None, behind: _WriteBehind
+    ) -> None:
+        """However the run ended: stop the arm unless it completed, write the frames already
+        taken, and record the outcome in the run file and the catalog."""
+        if outcome != "complete":
+            try:
+                self.devices.arm.stop()
+            except DeviceError as exc:
+                message += f"; stopping the arm also failed: {exc}"
+        if behind.thread is not None and behind.thread.is_alive():
+            behind.queue.put(None)  # frames already taken are still written
+            behind.thread.join()
+        if behind.errors and outcome == "complete":
+            outcome, message = "failed", str(behind.errors[0])
+        if writer is not None:
+            try:
+                writer.set_status(outcome, message)
+            finally:
+                writer.close()
+        state = self.catalog.get_run(run_id).state
+        if state != outcome:
+            self.catalog.transition_run(run_id, outcome, error=message or None)
+        self._current = None if outcome != "paused" else run_id
+        self.events.publish()
 
     def _take_position(self, plan: RunPlan, index: int, write_queue: queue.Queue, durations: list[float]) -> None:
         started = self._mono()

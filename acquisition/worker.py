@@ -33,6 +33,12 @@ from collections.abc import Callable
 from pathlib import Path
 
 from acquisition.catalog import ACTIVE_RUN_STATES, Catalog, CatalogError, JobClaimError, JobRecord, RunRecord
+from drivers.contracts.runfile import RunFile, RunFileError
+from processing.hdr.model import HDRError
+from processing.light_run import ProcessingError, process_run
+from processing.parallel import Compute, ComputeError
+from processing.results import ResultsError
+from processing.steps import StepsError, resolve_steps
 
 log = logging.getLogger("mirrorgonio.worker")
 
@@ -59,13 +65,6 @@ class JobLostError(RuntimeError):
 
 def one_line(exc: BaseException, limit: int = 1000) -> str:
     """An exception as the one-line reason a failed job records."""
-    from drivers.contracts.runfile import RunFileError
-    from processing.hdr.model import HDRError
-    from processing.light_run.errors import ProcessingError
-    from processing.parallel import ComputeError
-    from processing.results import ResultsError
-    from processing.steps import StepsError
-
     domain = (ProcessingError, RunFileError, ResultsError, HDRError, StepsError, ComputeError, CatalogError, OSError)
     text = " ".join(str(exc).split())
     if not isinstance(exc, domain) or not text:
@@ -133,8 +132,6 @@ class JobWorker:
         wait_s: float = 10.0,
         process: Callable | None = None,
     ):
-        from processing.parallel import Compute
-
         if heartbeat_s <= 0 or stale_after_s <= 0 or wait_s < 0:
             raise ValueError("heartbeat_s and stale_after_s must be > 0, wait_s >= 0")
         self.catalog = catalog
@@ -210,8 +207,6 @@ class JobWorker:
     # --- one job ---------------------------------------------------------------------------
     def handle(self, job: JobRecord) -> JobRecord:
         """Process one claimed job and record how it ended."""
-        from processing.steps import StepsError, resolve_steps
-
         try:
             steps = resolve_steps(job.steps)
             run = self.catalog.get_run(job.run_id)
@@ -271,8 +266,6 @@ class JobWorker:
             return f"its state is {run.state}"
         if not run.path:
             return ""
-        from drivers.contracts.runfile import RunFile, RunFileError
-
         try:
             with RunFile.open(run.path) as f:
                 status = f.status
@@ -315,8 +308,6 @@ class JobWorker:
     # --- the processing --------------------------------------------------------------------
     def _process_run(self, job: JobRecord, run_path: Path, steps, progress):
         """Process the job's run beside its run file: (result folder, artifacts, message)."""
-        from processing.light_run.run import process_run
-
         options = job.options
         report = process_run(
             run_path,
@@ -347,8 +338,6 @@ class JobWorker:
 
 
 def _has_complete_position(path: Path) -> bool:
-    from drivers.contracts.runfile import RunFile, RunFileError
-
     try:
         with RunFile.open(path) as f:
             return bool(f.complete.any())

@@ -163,7 +163,7 @@ class Gphoto2Camera(Camera):
         if self._camera is not None:
             return
         try:
-            import gphoto2 as gp  # optional dependency: imported only when used
+            import gphoto2 as gp  # noqa: PLC0415 - optional: the gphoto2 extra
         except ImportError:
             raise DeviceError(
                 self.name,

@@ -130,42 +130,12 @@ def decode_raw(path: str | os.PathLike, camera_id: str | None = None, exposure_s
     else:
         exposure_source = "given"
     timestamp, timestamp_source = _capture_time(tiff, libraw_other.timestamp, path)
+    make, model, serial, unique_model = _camera_tags(tiff)
 
-    make = _text(tiff.ifd0.get(_MAKE))
-    model = _text(tiff.ifd0.get(_MODEL))
-    serial = next(
-        (
-            text
-            for text in (
-                _text(tiff.exif.get(_BODY_SERIAL)),
-                _text(tiff.ifd0.get(_BODY_SERIAL)),
-                _text(tiff.ifd0.get(_CAMERA_SERIAL)),
-            )
-            if text
-        ),
-        "",
-    )
-    unique_model = _text(tiff.ifd0.get(_UNIQUE_CAMERA_MODEL))
-    identity = _camera_identity(make, model, unique_model, serial)
-
-    extra: dict[str, Any] = {
-        "exposure_source": exposure_source,
-        "timestamp_source": timestamp_source,
-    }
+    sources = {"exposure_source": exposure_source, "timestamp_source": timestamp_source}
     if exposure_source == "given" and file_exposure_s is not None:
-        extra["file_exposure_s"] = file_exposure_s
-    for key, value in (
-        ("make", make),
-        ("model", model),
-        ("serial", serial),
-        ("unique_camera_model", unique_model),
-    ):
-        if value:
-            extra[key] = value
-    if libraw_other.iso_speed > 0:
-        extra["iso"] = float(libraw_other.iso_speed)
-    if libraw_other.aperture > 0:
-        extra["f_number"] = _float32_to_decimal(libraw_other.aperture)
+        sources["file_exposure_s"] = file_exposure_s
+    extra = _frame_extra(sources, (make, model, serial, unique_model), libraw_other)
 
     return RawFrame(
         mosaic=mosaic,
@@ -174,7 +144,7 @@ def decode_raw(path: str | os.PathLike, camera_id: str | None = None, exposure_s
         cfa_pattern=cfa_pattern,
         exposure_s=exposure_s,
         timestamp=timestamp,
-        camera_id=identity or camera_id or "unknown camera",
+        camera_id=_camera_identity(make, model, unique_model, serial) or camera_id or "unknown camera",
         source=source,
         extra=extra,
     )
@@ -393,6 +363,33 @@ def _text(value: Any) -> str:
     if isinstance(value, bytes):
         value = value.decode("utf-8", "replace")
     return " ".join(str(value).replace("\x00", " ").split())
+
+
+def _frame_extra(sources: dict[str, Any], camera: tuple[str, str, str, str], libraw_other) -> dict[str, Any]:
+    """A frame's ``extra``: where its exposure and time were read (``sources``), then the
+    camera's make, model, serial and unique model name, ISO and f-number where known."""
+    extra = dict(sources)
+    for key, value in zip(("make", "model", "serial", "unique_camera_model"), camera, strict=True):
+        if value:
+            extra[key] = value
+    if libraw_other.iso_speed > 0:
+        extra["iso"] = float(libraw_other.iso_speed)
+    if libraw_other.aperture > 0:
+        extra["f_number"] = _float32_to_decimal(libraw_other.aperture)
+    return extra
+
+
+def _camera_tags(tiff: _TiffMetadata) -> tuple[str, str, str, str]:
+    """The camera's make, model, serial number and unique model name ("" where the file has none)."""
+    make = _text(tiff.ifd0.get(_MAKE))
+    model = _text(tiff.ifd0.get(_MODEL))
+    serials = (
+        _text(tiff.exif.get(_BODY_SERIAL)),
+        _text(tiff.ifd0.get(_BODY_SERIAL)),
+        _text(tiff.ifd0.get(_CAMERA_SERIAL)),
+    )
+    serial = next((text for text in serials if text), "")
+    return make, model, serial, _text(tiff.ifd0.get(_UNIQUE_CAMERA_MODEL))
 
 
 def _camera_identity(make: str, model: str, unique_model: str, serial: str) -> str:

@@ -83,7 +83,7 @@ class SimulatedCamera(Camera):
         if rig.object is None:
             renderer_class = MirrorBallRenderer
         else:
-            from sim_devices.object_scene import ObjectSceneRenderer  # trimesh: only when needed
+            from sim_devices.object_scene import ObjectSceneRenderer  # noqa: PLC0415 - heavy: trimesh, for an object
 
             renderer_class = ObjectSceneRenderer
         self.renderer = renderer_class(

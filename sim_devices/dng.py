@@ -107,27 +107,35 @@ def write_dng(
     """
     path = Path(path)
     mosaic = np.asarray(mosaic)
-    height, width = _checked_mosaic(mosaic, bits_per_sample)
+    shape = _checked_mosaic(mosaic, bits_per_sample)
     cfa_code = _cfa_code(cfa_pattern)
-    max_value = (1 << bits_per_sample) - 1
-    if not 0 < white_level <= max_value:
-        raise ValueError(f"white_level {white_level} outside (0, {max_value}]")
-    black_sites = _black_sites(black_level, white_level)
+    levels = (_black_sites(black_level, white_level, bits_per_sample), white_level)
     exposure = _exposure_rational(exposure_s)
-    if timestamp is None:
-        timestamp = time.time()
-
+    local = datetime.fromtimestamp(round(time.time() if timestamp is None else timestamp, 3)).astimezone()
     if bits_per_sample == 12:
         strip = _pack12(mosaic.astype(np.uint16)).tobytes()
     else:
         strip = mosaic.astype("<u2").tobytes()
+    camera = (camera_make, camera_model, serial)
+    tags = _image_tags(shape, bits_per_sample, len(strip), cfa_code, levels, camera, local)
+    exif = _exif_tags(exposure, local, serial)
+    return _write_atomically(path, _assemble(tags, strip, _SubIFDTag(Tag.EXIF_IFD, [exif])))
 
-    local = datetime.fromtimestamp(round(timestamp, 3)).astimezone()
-    date_text = local.strftime("%Y:%m:%d %H:%M:%S")
-    offset_minutes = int(local.utcoffset().total_seconds() // 60)
-    sign = "+" if offset_minutes >= 0 else "-"
-    offset_text = f"{sign}{abs(offset_minutes) // 60:02d}:{abs(offset_minutes) % 60:02d}"
 
+def _image_tags(
+    shape: tuple[int, int],
+    bits_per_sample: int,
+    strip_bytes: int,
+    cfa_code: list[int],
+    levels: tuple[list[int], int],
+    camera: tuple[str, str, str],
+    local: datetime,
+) -> DNGTags:
+    """IFD0's tags: the raw image (one strip of ``strip_bytes``), its CFA, black and white
+    ``levels``, the ``camera`` (make, model, serial) and the time it was taken, ``local``."""
+    height, width = shape
+    black_sites, white_level = levels
+    camera_make, camera_model, serial = camera
     tags = DNGTags()
     tags.set(Tag.NewSubfileType, 0)  # the full-resolution raw image
     tags.set(Tag.ImageWidth, width)
@@ -141,10 +149,10 @@ def write_dng(
     tags.set(Tag.Orientation, Orientation.Horizontal)
     tags.set(Tag.SamplesPerPixel, 1)
     tags.set(Tag.RowsPerStrip, height)
-    tags.set(Tag.StripByteCounts, len(strip))
+    tags.set(Tag.StripByteCounts, strip_bytes)
     tags.set(Tag.PlanarConfiguration, _PLANAR_CHUNKY)
     tags.set(Tag.Software, "mirrorgonio sim_devices.dng")
-    tags.set(Tag.DateTime, date_text)
+    tags.set(Tag.DateTime, _exif_date(local))
     tags.set(Tag.CFARepeatPatternDim, [2, 2])
     tags.set(Tag.CFAPattern, cfa_code)
     tags.set(Tag.DNGVersion, DNGVersion.V1_4)
@@ -160,17 +168,28 @@ def write_dng(
     tags.set(Tag.AsShotNeutral, [[1, 1], [1, 1], [1, 1]])
     if serial:
         tags.set(Tag.CameraSerialNumber, serial)
+    return tags
 
+
+def _exif_tags(exposure: list[int], local: datetime, serial: str) -> dngIFD:
+    """The EXIF sub-IFD: the exposure time as a rational, the time taken to the millisecond
+    with its UTC offset, and the body's serial number."""
+    offset_minutes = int(local.utcoffset().total_seconds() // 60)
+    sign = "+" if offset_minutes >= 0 else "-"
+    offset_text = f"{sign}{abs(offset_minutes) // 60:02d}:{abs(offset_minutes) % 60:02d}"
     exif = dngIFD()
     exif.tags.append(dngTag(Tag.ExposureTime, [exposure]))
-    exif.tags.append(dngTag(Tag.DateTimeOriginal, date_text))
+    exif.tags.append(dngTag(Tag.DateTimeOriginal, _exif_date(local)))
     exif.tags.append(dngTag(Tag.SubsecTimeOriginal, f"{local.microsecond // 1000:03d}"))
     exif.tags.append(dngTag(_OFFSET_TIME_ORIGINAL, offset_text))
     if serial:
         exif.tags.append(dngTag(Tag.EXIFPhotoBodySerialNumber, serial))
+    return exif
 
-    data = _assemble(tags, strip, _SubIFDTag(Tag.EXIF_IFD, [exif]))
-    return _write_atomically(path, data)
+
+def _exif_date(local: datetime) -> str:
+    """A time as EXIF writes it (local time, to the second)."""
+    return local.strftime("%Y:%m:%d %H:%M:%S")
 
 
 def _checked_mosaic(mosaic: np.ndarray, bits_per_sample: int) -> tuple[int, int]:
@@ -195,8 +214,12 @@ def _cfa_code(cfa_pattern: str) -> list[int]:
     return list(code)
 
 
-def _black_sites(black_level: int | np.ndarray, white_level: int) -> list[int]:
-    """The BlackLevel tag's four values, row-major over the 2x2 tile."""
+def _black_sites(black_level: int | np.ndarray, white_level: int, bits_per_sample: int) -> list[int]:
+    """The BlackLevel tag's four values, row-major over the 2x2 tile, once the white level is
+    known to fit ``bits_per_sample``."""
+    max_value = (1 << bits_per_sample) - 1
+    if not 0 < white_level <= max_value:
+        raise ValueError(f"white_level {white_level} outside (0, {max_value}]")
     levels = np.broadcast_to(np.asarray(black_level), (2, 2)).astype(float)
     if not np.all(levels == np.round(levels)):
         raise ValueError(f"black_level must be integers (pidng writes SHORT), not {levels.tolist()}")

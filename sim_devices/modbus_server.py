@@ -30,10 +30,6 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-# The stage imports this lazily at its first rotating move; importing it on the server's
-# event loop can stall request handling for longer than the watchdog timeout on a busy
-# machine, and the stage then takes the stall for a silent host.
-import scipy.spatial.transform  # noqa: F401
 from pymodbus.constants import ExcCodes
 from pymodbus.framer import FramerType
 from pymodbus.pdu import ModbusPDU

@@ -52,6 +52,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+import trimesh
 
 from drivers.contracts.rig import Rig
 from drivers.pose import Pose
@@ -67,6 +68,12 @@ from sim_devices.optics import (
     unit_disc_samples,
 )
 
+try:  # Embree through embreex (a dependency, which trimesh loads too); else trimesh's ray casting
+    from embreex import rtcore_scene
+    from embreex.mesh_construction import TriangleMesh
+except ImportError:  # pragma: no cover - embreex is a dependency
+    rtcore_scene = TriangleMesh = None
+
 PLASTIC = 1.32471795724474602596  # the R2 sequence's constant (Roberts 2018)
 
 
@@ -78,12 +85,7 @@ class RayCaster:
         self.vertices = np.asarray(vertices, dtype=float)
         self.faces = np.asarray(faces, dtype=np.int64)
         self.offset = 0.5 * (self.vertices.min(axis=0) + self.vertices.max(axis=0))
-        try:
-            from embreex import rtcore_scene
-            from embreex.mesh_construction import TriangleMesh
-        except ImportError:  # pragma: no cover - embreex is a dependency
-            import trimesh
-
+        if rtcore_scene is None:  # pragma: no cover - embreex is a dependency
             self._scene = None
             self._mesh = trimesh.Trimesh(self.vertices - self.offset, self.faces, process=False)
             self.backend = type(self._mesh.ray).__name__
@@ -112,8 +114,6 @@ class RayCaster:
             u, v = np.asarray(out["u"], float), np.asarray(out["v"], float)
             bary = np.stack([1.0 - u - v, u, v], axis=-1)
             return face, bary
-        import trimesh
-
         face = np.full(n, -1, dtype=np.int64)
         bary = np.zeros((n, 3))
         tri, ray, loc = self._mesh.ray.intersects_id(

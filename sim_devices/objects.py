@@ -35,6 +35,8 @@ from typing import Annotated
 import numpy as np
 import trimesh
 from pydantic import Field, PositiveFloat, model_validator
+from scipy.interpolate import CubicSpline
+from scipy.spatial import cKDTree
 
 from drivers.config_files import ConfigModel, load_model
 from drivers.contracts.rig import RIGS_DIR, Rig
@@ -194,8 +196,6 @@ def vase_mesh(
     UVs: ``u = azimuth / 2π`` (0.5 facing +z), ``v`` = height fraction; the seam (u = 0
     and u = 1) has its vertices doubled, one per side.
     """
-    from scipy.interpolate import CubicSpline
-
     t_pts, r_pts = np.asarray(profile_mm, dtype=float).T
     spline = CubicSpline(t_pts, r_pts * 1e-3, bc_type="natural")
     t = np.linspace(0.0, 1.0, 20001)
@@ -370,8 +370,6 @@ class ObjectGeometry:
         Candidates are the faces with the nearest centroids; the exact point–triangle
         distance picks among them (exact for points on or near the surface).
         """
-        from scipy.spatial import cKDTree
-
         points = np.asarray(points, dtype=float).reshape(-1, 3)
         tree = getattr(self, "_centroid_tree", None)
         if tree is None:

@@ -11,13 +11,16 @@ from __future__ import annotations
 
 import math
 import threading
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.spatial.transform import Rotation, Slerp  # imported up front: a lazy import mid-move
 
-# can stall the server past the watchdog
+# Imported here, not at the first rotating move: importing it then, on the simulated Modbus
+# server's event loop, can stall request handling past the watchdog on a busy machine.
+from scipy.spatial.transform import Rotation, Slerp
+
 from drivers.pose import AXES, Pose, rotation_from_angles
 
 # Alarm codes of the simulated controller (documented in drivers/profiles/sim_stage.toml).
@@ -93,8 +96,6 @@ class SimulatedStage:
     """Thread-safe simulated stage; all timing comes from the injected ``clock``."""
 
     def __init__(self, config: StageConfig | None = None, clock: Callable[[], float] | None = None):
-        import time
-
         self.config = config or StageConfig()
         self._clock = clock or time.monotonic
         self._lock = threading.RLock()

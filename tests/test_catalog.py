@@ -463,11 +463,11 @@ def test_finish_job(cat):
 
 def test_a_version_1_catalog_is_migrated_and_keeps_its_jobs(db, clock):
     # The version-1 schema, as the first release wrote it, with one job in it.
-    from acquisition.catalog import _MIGRATIONS
+    from acquisition.catalog.schema import MIGRATIONS
 
     with sqlite3.connect(db) as conn:
         conn.execute("CREATE TABLE schema_version (version INTEGER PRIMARY KEY, applied_utc TEXT NOT NULL)")
-        for statement in _MIGRATIONS[0]:
+        for statement in MIGRATIONS[0]:
             conn.execute(statement)
         conn.execute("INSERT INTO schema_version VALUES (1, '2026-11-20T00:00:00.000000Z')")
         conn.execute(

@@ -19,6 +19,7 @@ from fastapi.responses import FileResponse, Response, StreamingResponse
 from acquisition.api.deps import CatalogDep
 from acquisition.catalog import JobRecord
 from acquisition.models import JobStatus, Problem
+from processing.results import Results, ResultsError
 
 router = APIRouter(prefix="/jobs", tags=["jobs"])
 
@@ -114,8 +115,6 @@ def _results_files(job: JobRecord, results_path: Path) -> list[Path]:
     """The results file and every file its data live in, each checked as :func:`_served_file`
     checks one, inside the results file's folder, before any byte is sent (a stream cannot
     turn into a 404 halfway)."""
-    from processing.results import Results, ResultsError
-
     try:
         with Results.open(results_path) as results:
             files = results.files()

@@ -5,6 +5,7 @@ from __future__ import annotations
 from fastapi import APIRouter
 
 from acquisition.api.deps import EngineDep, SettingsDep
+from acquisition.models import RunRequest
 
 router = APIRouter(tags=["presets"])
 
@@ -14,8 +15,6 @@ def presets(engine: EngineDep, settings: SettingsDep) -> dict:
     """The presets with their schedules, position counts and the default bracket."""
     out = {}
     for name in engine.presets():
-        from acquisition.models import RunRequest
-
         try:
             rig = engine.plan_schedule(RunRequest(preset=name))
             out[name] = {

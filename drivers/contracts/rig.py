@@ -21,6 +21,10 @@ from drivers.arm import SoftLimits
 from drivers.config_files import ConfigModel, load_model, validate_model
 from drivers.pose import Pose, rotation_from_angles
 
+# scipy.spatial.transform is imported where a rotation is computed (CameraPose.extrinsics,
+# ObjectArc.light_poses): at the top it would more than double the import time of this module,
+# which every process imports (the daemon, each worker, every command).
+
 RIG_SCHEMA_VERSION = 1
 #: The rigs shipped with the package (package data: also there in a wheel); ``rigs/`` at the top
 #: of a checkout links here.
@@ -113,7 +117,7 @@ class CameraPose(ConfigModel):
     def extrinsics(self) -> tuple[np.ndarray, np.ndarray]:
         """OpenCV's (R, t): rig point X to camera coordinates ``R @ X + t``."""
         if self.rvec is not None:
-            from scipy.spatial.transform import Rotation
+            from scipy.spatial.transform import Rotation  # noqa: PLC0415 - heavy (see the imports)
 
             rot = Rotation.from_rotvec(self.rvec).as_matrix()
             return rot, np.asarray(self.tvec_m, dtype=float)
@@ -337,7 +341,7 @@ class ObjectArc(ConfigModel):
     x_axis: Vec3 = (1.0, 0.0, 0.0)
 
     def light_poses(self) -> list[Pose]:
-        from scipy.spatial.transform import Rotation
+        from scipy.spatial.transform import Rotation  # noqa: PLC0415 - heavy (see the imports)
 
         axis = np.asarray(self.axis, dtype=float)
         axis /= np.linalg.norm(axis)

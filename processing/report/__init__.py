@@ -2,7 +2,7 @@
 
 :func:`write_report` turns a :class:`~processing.lightmodel.LightModel` (and, when they are
 at hand, the run file, the per-position samples and the pipeline's
-:class:`~processing.pipeline.ProcessReport`) into a single HTML file whose figures are
+:class:`~processing.light_run.records.ProcessReport`) into a single HTML file whose figures are
 embedded as base64 PNG: no external asset, so the file can be mailed or archived alone.
 A person should understand the light from the figures without reading the numbers:
 

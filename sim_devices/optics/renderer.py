@@ -1,39 +1,5 @@
-"""What the simulated camera sees of the mirrored ball: backward ray tracing.
-
-Written from the physics of ``measurement.md`` and deliberately independent of
-:mod:`processing` (which has its own tracer), so that the two cannot share a mistake.
-
-A pixel's value is the average, over the pixel's area and the whole aperture, of the
-radiance each ray brings back, times the ball's Fresnel reflectance and the ``cos⁴``
-fall-off of a flat sensor behind a pinhole (or thin lens)::
-
-    rate = k · ⟨ L(u, v, θ, φ) · F(α) · cos⁴β ⟩_pixel × aperture
-
-with ``k`` the camera's ``sensitivity_e_per_s``. Diffraction is applied afterwards as
-the exact optical transfer function of a circular aperture at each channel's
-wavelength (the Airy pattern), which is band-limited well below the pixel Nyquist
-frequency at the default f/125, so the FFT product is exact.
-
-The blur is large (the aperture's projection is ~38 px across at the defaults) while a
-0.5 mm source's pre-image in the aperture is tiny, so sampling the aperture blindly would
-need thousands of rays per pixel. Instead, for each pixel and emitter the renderer finds,
-by Newton's method on the exact trace, the aperture point whose ray lands on the
-emitter's centre, linearises the map around it, and samples only an ellipse 1.5 times
-the emitter's pre-image; every sample is then traced exactly, so the estimate stays
-unbiased as long as the ellipse covers the true pre-image (the renderer reports the
-fraction of hits in the ellipse's outer rim to check it). Emitters larger than the
-aperture's footprint are sampled over the whole aperture instead.
-
-An optional uniform *environment* (``environment_radiance``, for calibration images) is
-the ball reflecting a radiance ``L_env`` from every direction that meets neither the light's
-housing (its face included) nor an emitter; the housing also hides the ball where it
-stands between camera and ball. It adds ``k · L_env · F(α) · cos⁴β`` per ray. Pixels whose
-whole ray bundle (pixel area × aperture) can straddle an edge of that (the silhouette, the
-housing's reflection or shadow) are those within the largest blur radius of a pixel whose
-chief ray is classified differently; they are sampled over the whole aperture, the others
-with one aperture point per sub-pixel sample (their integrand is smooth). Emitters outside
-the housing's face hide the environment behind them: their rays subtract ``L_env``.
-"""
+"""The mirrored ball as the camera sees it: the renderer (see :mod:`sim_devices.optics` for the
+physics and the sampling of each emitter's pre-image)."""
 
 from __future__ import annotations
 
@@ -42,278 +8,15 @@ from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
-from scipy import fft as sfft
 
 from drivers.contracts.rig import Rig
 from drivers.pose import Pose
 from sim_devices.lights import Emitter, TruthLight
-
-GOLDEN_ANGLE = math.pi * (3.0 - math.sqrt(5.0))
-
-
-# --- geometry of the parts -----------------------------------------------------------------
-@dataclass(frozen=True)
-class CameraOptics:
-    """Pinhole or thin-lens camera in OpenCV conventions (``x_cam = R X + t``)."""
-
-    rotation: np.ndarray  # rig -> camera
-    centre: np.ndarray  # pinhole / lens centre in the rig frame
-    sensor_distance: float
-    pitch: float
-    cx: float
-    cy: float
-    width: int
-    height: int
-    aperture_radius: float
-    focus_distance: float | None
-    wavelengths: np.ndarray
-
-    @classmethod
-    def from_rig(cls, rig: Rig) -> CameraOptics:
-        cam = rig.camera
-        rotation, _ = cam.pose.extrinsics()
-        cx, cy = cam.principal_point
-        return cls(
-            rotation=rotation,
-            centre=cam.centre(),
-            sensor_distance=cam.sensor_distance_m,
-            pitch=cam.pixel_pitch_m,
-            cx=cx,
-            cy=cy,
-            width=cam.width,
-            height=cam.height,
-            aperture_radius=cam.aperture_diameter_m / 2.0,
-            focus_distance=cam.thin_lens.focus_distance_m if cam.thin_lens else None,
-            wavelengths=np.asarray(cam.channel_wavelengths_m, dtype=float),
-        )
-
-    def rays(self, col, row, ax, ay):
-        """Rays from sensor points (pixel coordinates) through aperture points (metres).
-
-        Returns origins and unit directions in the rig frame, and the ``cos⁴β`` factor of
-        the sensor-side segment (β its angle to the optical axis).
-        """
-        f = self.sensor_distance
-        sx = (col - self.cx) * self.pitch  # the real sensor sits at (-sx, -sy, -f)
-        sy = (row - self.cy) * self.pitch
-        cos_beta = f / np.sqrt((ax + sx) ** 2 + (ay + sy) ** 2 + f * f)
-        if self.focus_distance is None:  # pinhole: straight on from sensor through aperture
-            dx, dy, dz = ax + sx, ay + sy, np.full_like(sx, f)
-        else:  # thin lens: towards the sensor point's conjugate on the focus plane
-            scale = self.focus_distance / f
-            dx, dy, dz = sx * scale - ax, sy * scale - ay, np.full_like(sx, self.focus_distance)
-        r = self.rotation  # camera -> rig is r.T
-        ox = self.centre[0] + r[0, 0] * ax + r[1, 0] * ay
-        oy = self.centre[1] + r[0, 1] * ax + r[1, 1] * ay
-        oz = self.centre[2] + r[0, 2] * ax + r[1, 2] * ay
-        wx = r[0, 0] * dx + r[1, 0] * dy + r[2, 0] * dz
-        wy = r[0, 1] * dx + r[1, 1] * dy + r[2, 1] * dz
-        wz = r[0, 2] * dx + r[1, 2] * dy + r[2, 2] * dz
-        norm = np.sqrt(wx * wx + wy * wy + wz * wz)
-        return (ox, oy, oz), (wx / norm, wy / norm, wz / norm), cos_beta**4
+from sim_devices.optics.diffraction import apply_diffraction
+from sim_devices.optics.geometry import CameraOptics, LightPlane, Mirror, fresnel_conductor, trace
+from sim_devices.optics.sampling import subpixel_pattern, unit_disc_samples
 
 
-@dataclass(frozen=True)
-class Mirror:
-    centre: np.ndarray
-    radius: float
-    n: np.ndarray
-    k: np.ndarray
-
-    @classmethod
-    def from_rig(cls, rig: Rig) -> Mirror:
-        b = rig.ball
-        return cls(np.asarray(b.centre_m, float), b.radius_m, np.asarray(b.n, float), np.asarray(b.k, float))
-
-
-@dataclass(frozen=True)
-class LightPlane:
-    """The light's frame at one position, and its opaque housing behind the plane."""
-
-    rotation: np.ndarray  # columns: light axes in the rig frame
-    origin: np.ndarray
-    housing_radius: float
-    housing_depth: float
-
-    @classmethod
-    def at(cls, rig: Rig, light_pose: Pose) -> LightPlane:
-        return cls(
-            light_pose.rotation,
-            light_pose.position,
-            rig.light.housing_radius_m,
-            rig.light.housing_depth_m,
-        )
-
-    def to_local(self, px, py, pz, vx, vy, vz):
-        """Point and direction from the rig frame into the light frame."""
-        r, o = self.rotation, self.origin
-        qx, qy, qz = px - o[0], py - o[1], pz - o[2]
-        lp = (
-            r[0, 0] * qx + r[1, 0] * qy + r[2, 0] * qz,
-            r[0, 1] * qx + r[1, 1] * qy + r[2, 1] * qz,
-            r[0, 2] * qx + r[1, 2] * qy + r[2, 2] * qz,
-        )
-        lv = (
-            r[0, 0] * vx + r[1, 0] * vy + r[2, 0] * vz,
-            r[0, 1] * vx + r[1, 1] * vy + r[2, 1] * vz,
-            r[0, 2] * vx + r[1, 2] * vy + r[2, 2] * vz,
-        )
-        return lp, lv
-
-    def blocks_segment(self, start, end) -> np.ndarray:
-        """True where the segment ``start → end`` (rig frame) passes through the housing."""
-        if self.housing_radius <= 0.0:
-            return np.zeros(np.shape(start[0]), dtype=bool)
-        (ax, ay, az), (dx, dy, dz) = self.to_local(
-            start[0], start[1], start[2], end[0] - start[0], end[1] - start[1], end[2] - start[2]
-        )
-        # Clip the segment (parameter s in [0, 1]) to the slab -depth <= z <= 0 ...
-        with np.errstate(divide="ignore", invalid="ignore"):
-            s1 = (-self.housing_depth - az) / dz
-            s2 = (0.0 - az) / dz
-        lo = np.where(
-            np.abs(dz) > 1e-15, np.minimum(s1, s2), np.where((az >= -self.housing_depth) & (az <= 0), -np.inf, np.inf)
-        )
-        hi = np.where(
-            np.abs(dz) > 1e-15, np.maximum(s1, s2), np.where((az >= -self.housing_depth) & (az <= 0), np.inf, -np.inf)
-        )
-        lo, hi = np.maximum(lo, 0.0), np.minimum(hi, 1.0)
-        # ... then to the infinite cylinder x² + y² <= r².
-        a = dx * dx + dy * dy
-        b = 2.0 * (ax * dx + ay * dy)
-        c = ax * ax + ay * ay - self.housing_radius**2
-        disc = b * b - 4.0 * a * c
-        root = np.sqrt(np.maximum(disc, 0.0))
-        with np.errstate(divide="ignore", invalid="ignore"):
-            c1 = np.where(a > 1e-30, (-b - root) / (2.0 * a), np.where(c <= 0, -np.inf, np.inf))
-            c2 = np.where(a > 1e-30, (-b + root) / (2.0 * a), np.where(c <= 0, np.inf, -np.inf))
-        inside_cyl = (disc >= 0.0) | (a <= 1e-30)
-        return inside_cyl & (np.maximum(lo, c1) <= np.minimum(hi, c2))
-
-
-def fresnel_conductor(cos_i: np.ndarray, n: np.ndarray, k: np.ndarray) -> np.ndarray:
-    """Unpolarised Fresnel reflectance of a conductor of index ``n + ik``.
-
-    Parameters
-    ----------
-    cos_i : ndarray, shape (N,)
-        Cosine of the angle of incidence.
-    n, k : ndarray, shape (C,)
-        Refractive index and extinction coefficient per channel.
-
-    Returns
-    -------
-    ndarray, shape (N, C)
-        ``(|r_s|² + |r_p|²) / 2`` from the complex Fresnel equations (Born & Wolf, §14.4).
-    """
-    eta = (np.asarray(n) + 1j * np.asarray(k))[None, :]
-    ci = np.clip(cos_i, 0.0, 1.0)[:, None]
-    si2 = 1.0 - ci * ci
-    ct = np.sqrt(1.0 - si2 / (eta * eta))
-    rs = (ci - eta * ct) / (ci + eta * ct)
-    rp = (eta * ci - ct) / (eta * ci + ct)
-    return 0.5 * (np.abs(rs) ** 2 + np.abs(rp) ** 2)
-
-
-@dataclass
-class Trace:
-    """Exact trace of a batch of rays: camera → ball → light plane."""
-
-    valid: np.ndarray
-    u: np.ndarray
-    v: np.ndarray
-    theta: np.ndarray
-    phi: np.ndarray
-    fresnel: np.ndarray  # (N, 3)
-    cos4: np.ndarray
-
-
-def trace(camera: CameraOptics, mirror: Mirror, plane: LightPlane, col, row, ax, ay, *, fresnel=True) -> Trace:
-    """Trace rays given by sensor point (pixels) and aperture point (metres)."""
-    (ox, oy, oz), (dx, dy, dz), cos4 = camera.rays(col, row, ax, ay)
-    c = mirror.centre
-    qx, qy, qz = ox - c[0], oy - c[1], oz - c[2]
-    b = qx * dx + qy * dy + qz * dz
-    disc = b * b - (qx * qx + qy * qy + qz * qz - mirror.radius**2)
-    t = -b - np.sqrt(np.maximum(disc, 0.0))
-    valid = (disc > 0.0) & (t > 0.0)
-    sx, sy, sz = ox + t * dx, oy + t * dy, oz + t * dz
-    nx, ny, nz = (sx - c[0]) / mirror.radius, (sy - c[1]) / mirror.radius, (sz - c[2]) / mirror.radius
-    cos_i = -(dx * nx + dy * ny + dz * nz)
-    rx, ry, rz = dx + 2.0 * cos_i * nx, dy + 2.0 * cos_i * ny, dz + 2.0 * cos_i * nz
-    valid &= ~plane.blocks_segment((ox, oy, oz), (sx, sy, sz))
-    (px, py, pz), (vx, vy, vz) = plane.to_local(sx, sy, sz, rx, ry, rz)
-    # The emitting face looks along +z: only rays arriving from the front reach it.
-    valid &= (pz > 0.0) & (vz < 0.0)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        s = -pz / vz
-    u, v = px + s * vx, py + s * vy
-    theta = np.arccos(np.clip(-vz, -1.0, 1.0))
-    phi = np.arctan2(-vy, -vx)
-    f = fresnel_conductor(cos_i, mirror.n, mirror.k) if fresnel else np.ones((np.size(cos_i), 1))
-    return Trace(valid, u, v, theta, phi, f, cos4)
-
-
-# --- sample patterns ---------------------------------------------------------------------
-def unit_disc_samples(count: int, shape: tuple[int, ...], rng: np.random.Generator) -> np.ndarray:
-    """Stratified points over the unit disc, a fresh random shift for every set.
-
-    Vogel's sunflower spiral (equal-area radial strata, golden-angle azimuths), with the
-    position inside each radial stratum and the spiral's rotation drawn at random per
-    set. Without the radial shift the fraction of points inside a centred circle is
-    fixed by the pattern and biases small pre-images (e.g. 21 of 48 points for an area
-    fraction of 0.444).
-
-    Returns
-    -------
-    ndarray, shape (*shape, count, 2)
-    """
-    j = np.arange(count)
-    shift = rng.random((*shape, 1))
-    spin = rng.random((*shape, 1)) * 2.0 * math.pi
-    r = np.sqrt((j + shift) / count)
-    a = j * GOLDEN_ANGLE + spin
-    return np.stack([r * np.cos(a), r * np.sin(a)], axis=-1)
-
-
-def subpixel_pattern(per_side: int) -> np.ndarray:
-    """Stratum corners of a ``per_side``² grid over the pixel (jitter is added per pixel)."""
-    g = (np.arange(per_side) / per_side) - 0.5
-    xs, ys = np.meshgrid(g, g)
-    return np.column_stack([xs.ravel(), ys.ravel()])
-
-
-# --- diffraction -----------------------------------------------------------------------------
-def circular_otf(fx: np.ndarray, fy: np.ndarray, cutoff: float) -> np.ndarray:
-    """Incoherent OTF of a circular aperture (the Fourier transform of the Airy pattern).
-
-    ``cutoff = D / (λ · f)`` cycles per metre on the sensor (Goodman, *Introduction to
-    Fourier Optics*, §6.3).
-    """
-    rho = np.sqrt(fx * fx + fy * fy) / cutoff
-    rho = np.clip(rho, 0.0, 1.0)
-    return (2.0 / math.pi) * (np.arccos(rho) - rho * np.sqrt(1.0 - rho * rho))
-
-
-def apply_diffraction(
-    image: np.ndarray, pitch: float, aperture_diameter: float, sensor_distance: float, wavelength: float
-) -> np.ndarray:
-    """Convolve a sampled irradiance image with the Airy pattern of the aperture."""
-    h, w = image.shape
-    cutoff = aperture_diameter / (wavelength * sensor_distance)
-    pad = int(math.ceil(8.0 / (cutoff * pitch)))  # ~8 Airy rings of margin against wrap-around
-    ph, pw = sfft.next_fast_len(h + 2 * pad, real=True), sfft.next_fast_len(w + 2 * pad, real=True)
-    spectrum = sfft.rfft2(image, s=(ph, pw), workers=-1)
-    fy = sfft.fftfreq(ph, d=pitch)[:, None]
-    fx = sfft.rfftfreq(pw, d=pitch)[None, :]
-    spectrum *= circular_otf(fx, fy, cutoff)
-    out = sfft.irfft2(spectrum, s=(ph, pw), workers=-1)
-    # The image was placed at the array's origin: wrap-around from the far edge lands in
-    # the padding, which is cut away here.
-    return np.ascontiguousarray(out[:h, :w])
-
-
-# --- the renderer --------------------------------------------------------------------------
 @dataclass
 class RenderStats:
     pixels_on_ball: int = 0
@@ -641,9 +344,33 @@ class MirrorBallRenderer:
 
     def _narrow(self, plane, emitter, col, row, a0, uv0, ja):
         """Emitter smaller than the aperture's footprint: sample its pre-image ellipse."""
-        cam, ra, rho = self.camera, self.camera.aperture_radius, emitter.radius_m
+        ra, rho = self.camera.aperture_radius, emitter.radius_m
+        col, row, a, j, jd = self._aim_at_emitter(plane, emitter, col, row, a0, uv0, ja)
+        if col.size == 0:
+            return np.zeros((0, 3)), np.zeros(0, dtype=np.int64), 0, 0, 0
+        j_inv = np.linalg.inv(j)
+        shift_per_px = -np.einsum("nij,njk->nik", j_inv, jd)  # aperture shift per pixel offset
+        radius = self.ellipse_scale * rho
+        ellipse_area = math.pi * radius**2 * np.abs(np.linalg.det(j_inv))
+        # Keep pixels whose ellipse can reach the aperture from some point of the pixel.
+        reach = radius * np.linalg.svd(j_inv, compute_uv=False)[:, 0] + 0.75 * np.linalg.norm(shift_per_px, axis=(1, 2))
+        keep = np.linalg.norm(a, axis=1) <= ra + reach
+        col, row, a, j_inv, shift_per_px, ellipse_area = (
+            x[keep] for x in (col, row, a, j_inv, shift_per_px, ellipse_area)
+        )
+        if col.size == 0:  # the emitter's image falls outside the sensor
+            return np.zeros((0, 3)), np.zeros(0, dtype=np.int64), 0, 0, 0
+        return self._sample_ellipses(plane, emitter, col, row, a, j_inv, shift_per_px, ellipse_area)
+
+    def _aim_at_emitter(self, plane, emitter, col, row, a0, uv0, ja):
+        """Newton's method on the exact trace: per pixel, the aperture point whose chief ray lands
+        on the emitter's centre, with the aperture and sensor Jacobians there.
+
+        Returns the pixels where every trace of the last step was valid, as
+        ``(col, row, aperture point, aperture Jacobian, sensor Jacobian)``.
+        """
+        cam, ra = self.camera, self.camera.aperture_radius
         q = np.asarray(emitter.centre_m, dtype=float)
-        # Newton's method on the exact trace: the aperture point whose ray lands on q.
         a = a0.copy()
         j = ja.copy()
         good = np.ones(col.size, dtype=bool)
@@ -666,22 +393,16 @@ class MirrorBallRenderer:
             good = ok
         jd, okd = self._jacobian_sensor(plane, col, row, a[:, 0], a[:, 1], q[None, :] + np.zeros_like(a))
         good &= okd
-        col, row, a, j, jd = col[good], row[good], a[good], j[good], jd[good]
-        if col.size == 0:
-            return np.zeros((0, 3)), np.zeros(0, dtype=np.int64), 0, 0, 0
-        j_inv = np.linalg.inv(j)
-        shift_per_px = -np.einsum("nij,njk->nik", j_inv, jd)  # aperture shift per pixel offset
+        return col[good], row[good], a[good], j[good], jd[good]
+
+    def _sample_ellipses(self, plane, emitter, col, row, a, j_inv, shift_per_px, ellipse_area):
+        """Trace stratified samples of each pixel's pre-image ellipse (in chunks of rays).
+
+        Returns ``(contribution per pixel (N, 3), pixel index, rim hits, hits, rays)``.
+        """
+        cam, ra, rho = self.camera, self.camera.aperture_radius, emitter.radius_m
         radius = self.ellipse_scale * rho
-        ellipse_area = math.pi * radius**2 * np.abs(np.linalg.det(j_inv))
-        # Keep pixels whose ellipse can reach the aperture from some point of the pixel.
-        reach = radius * np.linalg.svd(j_inv, compute_uv=False)[:, 0] + 0.75 * np.linalg.norm(shift_per_px, axis=(1, 2))
-        keep = np.linalg.norm(a, axis=1) <= ra + reach
-        col, row, a, j_inv, shift_per_px, ellipse_area = (
-            x[keep] for x in (col, row, a, j_inv, shift_per_px, ellipse_area)
-        )
         npx = col.size
-        if npx == 0:  # the emitter's image falls outside the sensor
-            return np.zeros((0, 3)), np.zeros(0, dtype=np.int64), 0, 0, 0
         nsub, ndisc = len(self.subpixel), self.aperture_samples
         per_pixel = nsub * ndisc
         weight = ellipse_area / (math.pi * ra * ra) / per_pixel

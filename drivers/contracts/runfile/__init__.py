@@ -1,0 +1,64 @@
+"""The run file: one HDF5 file per run, written position by position, safe to kill.
+
+This package is the only place that knows the layout (see ``docs/run-file.md``). The
+acquisition writes with :class:`RunFileWriter`; the processing and anyone else read with
+:class:`RunFile`. Its modules, in the order of the data:
+
+* :mod:`~drivers.contracts.runfile.layout`: the format, the records (:class:`RunHeader`,
+  :class:`PositionTimes`) and the empty layout of a new file;
+* :mod:`~drivers.contracts.runfile.header`: the header encoded for a new file, read back
+  and checked from an existing one;
+* :mod:`~drivers.contracts.runfile.writer`: :class:`RunFileWriter`, with its lock
+  (:mod:`~drivers.contracts.runfile.lock`) and the salvage of a killed run
+  (:mod:`~drivers.contracts.runfile.salvage`);
+* :mod:`~drivers.contracts.runfile.reader`: :class:`RunFile`;
+* :mod:`~drivers.contracts.runfile.disk`: syncing files to the disk, a file's SHA-256.
+
+Crash safety
+------------
+The writer may be killed at any moment (SIGKILL, a crash of the daemon) and every
+position that was complete before the kill stays readable, bit-exact:
+
+* the file is built in ``PATH.tmp`` with every small dataset already holding its initial
+  values (so its storage is allocated), then atomically renamed onto ``PATH``; a kill
+  during creation leaves no file, or a whole one;
+* the writer then works in HDF5's single-writer/multiple-reader (SWMR) mode, and never
+  creates a dataset, group or attribute afterwards;
+* a position is committed by its ``/positions/complete`` flag, written and flushed after
+  everything else of the position; a reader trusts only positions whose flag is 1;
+* readers always open with ``swmr=True``, which works on a file whose writer was killed
+  (a normal open refuses it: HDF5 marks it "already open for write");
+* :meth:`RunFileWriter.reopen` of a killed run copies its complete positions, frames as
+  their compressed chunks, into a fresh file that replaces the old one (salvage).
+
+A lock file ``PATH.lock`` (``flock``, released by the kernel when the writer dies) keeps
+a second writer off a run that is still being written; it is removed on a clean close.
+"""
+
+from drivers.contracts.runfile.disk import file_sha256
+from drivers.contracts.runfile.layout import (
+    MESSAGE_BYTES,
+    RUN_FILE_FORMAT,
+    RUN_FILE_VERSION,
+    STATE_BYTES,
+    STATES,
+    PositionTimes,
+    RunFileError,
+    RunHeader,
+)
+from drivers.contracts.runfile.reader import RunFile
+from drivers.contracts.runfile.writer import RunFileWriter
+
+__all__ = [
+    "MESSAGE_BYTES",
+    "RUN_FILE_FORMAT",
+    "RUN_FILE_VERSION",
+    "STATES",
+    "STATE_BYTES",
+    "PositionTimes",
+    "RunFile",
+    "RunFileError",
+    "RunFileWriter",
+    "RunHeader",
+    "file_sha256",
+]

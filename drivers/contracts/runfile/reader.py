@@ -1,0 +1,245 @@
+"""Reading a run file: the header, and every complete position."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from drivers.camera import RawFrame
+from drivers.contracts.runfile.header import read_header_once
+from drivers.contracts.runfile.layout import (
+    DATASETS,
+    PositionTimes,
+    RunFileError,
+    RunHeader,
+    as_text,
+    h5_cause,
+    is_whole,
+)
+from drivers.pose import Pose
+
+_HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
+
+
+def _truncated_size(path: Path, f: h5py.File) -> tuple[int, int] | None:
+    """(actual, expected) size of a cleanly closed file shorter than HDF5 says, else None.
+
+    A SWMR reader skips HDF5's own end-of-file check (a live file grows). A file closed
+    cleanly (superblock version >= 2 with no "open for write" flags) must still reach
+    the end of its allocated space.
+    """
+    with open(path, "rb") as stream:
+        head = stream.read(12)
+    if len(head) < 12 or head[:8] != _HDF5_SIGNATURE or head[8] < 2 or head[11] != 0:
+        return None
+    actual, expected = os.path.getsize(path), int(f.id.get_filesize())
+    return (actual, expected) if actual < expected else None
+
+
+class RunFile:
+    """Reads a run file: the header, and every complete position.
+
+    Open it with :meth:`open`. Works on a finished run, on one still being written (call
+    :meth:`refresh` to see new positions) and on one whose writer was killed. Only
+    positions whose ``complete`` flag is set are read; asking for another one raises a
+    :class:`RunFileError`.
+
+    Attributes
+    ----------
+    path : Path
+        The run file.
+    header : RunHeader
+        The run's header.
+    """
+
+    def __init__(self, path: Path, f: h5py.File, header: RunHeader):
+        self.path = path
+        self.header = header
+        self._f = f
+
+    @classmethod
+    def open(cls, path) -> RunFile:
+        """Open a run file for reading.
+
+        Raises
+        ------
+        RunFileError
+            Missing file, not HDF5, not a mirrorgonio run file, a newer format version,
+            or a truncated or corrupt file.
+        """
+        path = Path(path)
+        if not path.exists():
+            raise RunFileError(f"{path}: run file not found")
+        if not path.is_file():
+            raise RunFileError(f"{path}: not a file")
+        try:
+            is_hdf5 = h5py.is_hdf5(path)
+        except OSError as exc:
+            raise RunFileError(f"{path}: cannot read the run file: {h5_cause(exc)}") from None
+        if not is_hdf5:
+            raise RunFileError(f"{path}: not an HDF5 file")
+        try:
+            f = h5py.File(path, "r", swmr=True)
+        except OSError as exc:
+            cause = h5_cause(exc)
+            if "unable to lock file" in cause:
+                raise RunFileError(f"{path}: the run file is being opened for writing by another process") from None
+            if "not already open for SWMR writing" in cause:
+                raise RunFileError(
+                    f"{path}: the file was left open for writing outside SWMR mode and cannot be read "
+                    "(`h5clear -s` may recover it)"
+                ) from None
+            raise RunFileError(f"{path}: truncated or corrupt HDF5 file ({cause})") from None
+        try:
+            truncated = _truncated_size(path, f)
+            if truncated is not None:
+                raise RunFileError(
+                    f"{path}: truncated or corrupt HDF5 file (truncated: {truncated[0]} of {truncated[1]} bytes)"
+                )
+            header = read_header_once(f, path)
+        except BaseException:
+            f.close()
+            raise
+        return cls(path, f, header)
+
+    def close(self) -> None:
+        """Close the file (idempotent)."""
+        if self._f is not None:
+            self._f.close()
+            self._f = None
+
+    def __enter__(self) -> RunFile:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def refresh(self) -> None:
+        """See what a live writer has written since the file was opened."""
+        for name, _ in DATASETS.items():
+            if name.startswith(("positions/", "frames/", "status/")):
+                self._dset(name).refresh()
+
+    # --- the run ---------------------------------------------------------------------------
+    @property
+    def n_positions(self) -> int:
+        return self.header.n_positions
+
+    @property
+    def max_exposures(self) -> int:
+        return self.header.max_exposures
+
+    @property
+    def frame_shape(self) -> tuple[int, int]:
+        return self.header.frame_shape
+
+    @property
+    def status(self) -> str:
+        """The run's state: created, running, paused, complete, aborted, failed, interrupted."""
+        return as_text(self._read("status/state", ())).strip()
+
+    @property
+    def status_message(self) -> str:
+        """The last error or note the writer recorded."""
+        return as_text(self._read("status/message", ()))
+
+    @property
+    def complete(self) -> np.ndarray:
+        """Which positions are complete (bool, shape (n,))."""
+        return self._read("positions/complete", ()) == 1
+
+    def completed_positions(self) -> np.ndarray:
+        """Indices of the complete positions."""
+        return np.flatnonzero(self.complete)
+
+    # --- one position ----------------------------------------------------------------------
+    def measured_pose(self, i: int) -> Pose | None:
+        """The tool pose read back at position ``i``; None if not complete."""
+        if not self._is_complete(i):
+            return None
+        return Pose(*(float(v) for v in self._read("positions/measured_pose", i)))
+
+    def times(self, i: int) -> PositionTimes | None:
+        """When position ``i`` was taken; None if not complete."""
+        if not self._is_complete(i):
+            return None
+        return PositionTimes(*(float(v) for v in self._read("positions/times", i)))
+
+    def exposures(self, i: int) -> np.ndarray:
+        """Exposure times (s) of position ``i``'s frames, shape (k,)."""
+        k = self._count(i)
+        return self._read("frames/exposure_s", (i, slice(0, k)))
+
+    def frames(self, i: int) -> np.ndarray:
+        """Raw mosaics of position ``i``, uint16, shape (k, height, width)."""
+        k = self._count(i)
+        return self._read("frames/raw", (i, slice(0, k)), what=f"position {i} frames")
+
+    def black_level(self, i: int) -> np.ndarray:
+        """Black levels of position ``i``'s frames, shape (k, 2, 2)."""
+        k = self._count(i)
+        return self._read("frames/black_level", (i, slice(0, k))).astype(np.float64)
+
+    def white_level(self, i: int) -> np.ndarray:
+        """White levels of position ``i``'s frames, shape (k,)."""
+        k = self._count(i)
+        return self._read("frames/white_level", (i, slice(0, k))).astype(np.int64)
+
+    def cfa_pattern(self, i: int) -> list[str]:
+        """CFA patterns of position ``i``'s frames."""
+        k = self._count(i)
+        return [as_text(v) for v in self._read("frames/cfa_pattern", (i, slice(0, k)))]
+
+    def timestamps(self, i: int) -> np.ndarray:
+        """Capture times (unix s) of position ``i``'s frames, shape (k,)."""
+        k = self._count(i)
+        return self._read("frames/timestamp", (i, slice(0, k)))
+
+    def frame(self, i: int, k: int) -> RawFrame:
+        """Frame ``k`` of position ``i`` as a :class:`RawFrame`, with its metadata."""
+        count = self._count(i)
+        if not is_whole(k) or not 0 <= k < count:
+            raise RunFileError(f"{self.path}: position {i} has no frame {k!r} ({count} frames)")
+        camera = self.header.devices.get("camera", "") if isinstance(self.header.devices, dict) else ""
+        return RawFrame(
+            mosaic=self._read("frames/raw", (i, k), what=f"position {i} frame {k}"),
+            black_level=self._read("frames/black_level", (i, k)).astype(np.float64),
+            white_level=int(self._read("frames/white_level", (i, k))),
+            cfa_pattern=as_text(self._read("frames/cfa_pattern", (i, k))),
+            exposure_s=float(self._read("frames/exposure_s", (i, k))),
+            timestamp=float(self._read("frames/timestamp", (i, k))),
+            camera_id=str(camera),
+            source=f"{self.path}:/frames/raw[{i},{k}]",
+        )
+
+    # --- internals -------------------------------------------------------------------------
+    def _dset(self, name: str) -> h5py.Dataset:
+        if self._f is None:
+            raise RunFileError(f"{self.path}: the run file is closed")
+        return self._f[name]
+
+    def _read(self, name: str, selection, what: str | None = None):
+        dset = self._dset(name)
+        try:
+            return dset[selection]
+        except (OSError, RuntimeError) as exc:
+            raise RunFileError(f"{self.path}: cannot read {what or '/' + name}: {h5_cause(exc)}") from None
+
+    def _check_index(self, i) -> None:
+        if not is_whole(i) or not 0 <= i < self.n_positions:
+            raise RunFileError(f"{self.path}: position {i!r} out of range (0 to {self.n_positions - 1})")
+
+    def _is_complete(self, i) -> bool:
+        self._check_index(i)
+        return bool(self._read("positions/complete", i) == 1)
+
+    def _count(self, i) -> int:
+        if not self._is_complete(i):
+            raise RunFileError(f"{self.path}: position {i} is not complete")
+        k = int(self._read("positions/frame_count", i))
+        if not 1 <= k <= self.max_exposures:
+            raise RunFileError(f"{self.path}: corrupt run file: position {i} has frame_count {k}")
+        return k

@@ -1,0 +1,94 @@
+"""Salvage: the complete positions of a run whose writer was killed, copied into a fresh file.
+
+HDF5 leaves the file of a killed writer marked "open for write", and it cannot be opened for
+writing again; its complete positions (frames copied as their compressed chunks) go into a
+fresh file that replaces it.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from drivers.contracts.runfile.disk import fsync_dir, fsync_path
+from drivers.contracts.runfile.header import read_header
+from drivers.contracts.runfile.layout import (
+    FRAME_RECORDS,
+    RunFileError,
+    as_text,
+    build_layout,
+    encode_message,
+    h5_cause,
+)
+
+
+def salvage_run(path: Path) -> None:
+    """Copy the complete positions of a killed run into a fresh file replacing ``path``."""
+    try:
+        src = h5py.File(path, "r", swmr=True)
+    except OSError as exc:
+        raise RunFileError(f"{path}: cannot salvage the run file: {h5_cause(exc)}") from None
+    tmp = Path(str(path) + ".salvage.tmp")
+    try:
+        header = read_header(src, path)
+        n, max_exposures = header.n_positions, header.max_exposures
+        try:
+            complete = src["positions/complete"][()] == 1
+            counts = src["positions/frame_count"][()].astype(np.int64)
+            rows = {
+                name: src[name][()] for name in ("positions/measured_pose", "positions/times", "positions/frame_count")
+            }
+            rows.update({f"frames/{name}": src[f"frames/{name}"][()] for name in FRAME_RECORDS})
+        except (OSError, RuntimeError) as exc:
+            raise RunFileError(f"{path}: cannot salvage the run file: {h5_cause(exc)}") from None
+        complete &= (counts >= 1) & (counts <= max_exposures)
+        with h5py.File(tmp, "w", libver="latest") as dst:
+            build_layout(
+                dst,
+                as_text(src["header/rig_json"][()]),
+                as_text(src["header/run_json"][()]),
+                src["schedule/commanded_pose"][()],
+                src["schedule/light_pose"][()],
+                max_exposures,
+                header.frame_shape,
+            )
+            src_raw, dst_raw = src["frames/raw"], dst["frames/raw"]
+            kept, lost = [], []
+            for i in np.flatnonzero(complete):
+                try:
+                    chunks = [src_raw.id.read_direct_chunk((i, k, 0, 0)) for k in range(counts[i])]
+                except (OSError, RuntimeError, ValueError):
+                    lost.append(int(i))
+                    continue
+                for k, (mask, data) in enumerate(chunks):
+                    dst_raw.id.write_direct_chunk((i, k, 0, 0), data, filter_mask=mask)
+                kept.append(int(i))
+            for name, values in rows.items():
+                fresh = dst[name][()]
+                fresh[kept] = values[kept]
+                dst[name][...] = fresh
+            flags = np.zeros(n, np.uint8)
+            flags[kept] = 1
+            dst["positions/complete"][...] = flags  # after the data, as always
+            message = f"salvaged after the writer stopped unexpectedly: {len(kept)} of {n} positions complete"
+            if lost:
+                message += f"; positions {', '.join(map(str, lost))} were unreadable and will be taken again"
+            dst["status/state"][()] = np.bytes_(b"interrupted")
+            dst["status/message"][()] = np.bytes_(encode_message(message))
+    except OSError as exc:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        raise RunFileError(f"{path}: cannot salvage the run file: {h5_cause(exc)}") from None
+    except BaseException:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        raise
+    finally:
+        src.close()
+    fsync_path(tmp)
+    os.replace(tmp, path)
+    fsync_dir(path)
