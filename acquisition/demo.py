@@ -291,7 +291,7 @@ def score_light_model(light_model: Path, truth) -> list[SourceAccuracy]:
 
     import numpy as np
 
-    from acquisition.benchmarks.accuracy import _score
+    from acquisition.benchmarks.scoring import score_fit
     from processing.lightmodel import LightModel
 
     model = LightModel.load(light_model)
@@ -307,7 +307,7 @@ def score_light_model(light_model: Path, truth) -> list[SourceAccuracy]:
         if theta.size == 0:
             scores.append(SourceAccuracy(emitter.name, float("nan"), float("nan"), float("nan"), 0, offset))
             continue
-        error, lo, hi = _score(source.fit, emitter, theta)
+        error, lo, hi = score_fit(source.fit, emitter, theta)
         scores.append(SourceAccuracy(emitter.name, error, lo, hi, int(theta.size), offset))
     return scores
 

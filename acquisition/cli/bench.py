@@ -184,7 +184,7 @@ def bench_reflectance_command(
 
 
 def _rig_errors_help() -> str:
-    from acquisition.benchmarks.tolerance import DEFAULT_ERRORS, ERROR_PARTS
+    from acquisition.benchmarks.description_errors import DEFAULT_ERRORS, ERROR_PARTS
 
     return (
         "Comma-separated errors of the rig description to try, each PART±SIZE: PART one of "
