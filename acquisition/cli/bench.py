@@ -292,7 +292,8 @@ def bench_speed_command(
     """Speed of the chain at two sensor sizes: acquisition overhead, HDR merge next to its peers,
     chief rays per second, whole-run processing time and peak memory, and the read floor.
     Progress goes to standard error; the JSON, then (without --json) the markdown table, to standard output."""
-    from acquisition.benchmarks.speed import DEFAULT_CACHE, SpeedBenchError, bench_speed, parse_size
+    from acquisition.benchmarks.speed import bench_speed, parse_size
+    from acquisition.benchmarks.speed_runs import DEFAULT_CACHE, SpeedBenchError
     from processing.hdr import HDRError
     from processing.parallel import ComputeError
     from processing.pipeline import ProcessingError
