@@ -102,8 +102,8 @@ def cpu_usage(compute) -> dict[str, tuple[float, float, int]]:
 def cpu_report(runs: list[dict]) -> dict:
     """CPU seconds (user, system) and minor page faults per processing, medians over ``runs``:
     the client's and the workers' summed. Faults are worth watching on a VM that hands freed
-    memory back to its host: 8 MB written into such pages took 12-20 ms, into reused ones
-    2.5 ms (this machine, Firecracker with free page reporting)."""
+    memory back to its host (free page reporting): writing into pages handed back costs
+    several times writing into pages a process reuses."""
 
     def median_of(pick) -> float:
         return float(statistics.median([pick(run["cpu"]) for run in runs]))
