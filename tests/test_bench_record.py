@@ -49,7 +49,7 @@ def test_a_missing_file_is_made_with_its_header_and_the_section(tmp_path):
     section = _section(text, "acquire")
     assert section.startswith("<!-- bench:acquire -->\n") and section.endswith("<!-- /bench:acquire -->\n")
     assert "| command | `mirrorgonio bench acquire --positions 5 --record docs/benchmarks.md` |" in section
-    assert re.search(r"\| date \| \d{4}-\d\d-\d\d \d\d:\d\d UTC, \d+ s \|", section), section
+    assert re.search(r"\| date \| \d{4}-\d\d-\d\d \d\d:\d\d UTC \|\n\| duration \| \d+ s \|", section), section
     assert re.search(r"\| machine \| \d+ cores, .*, [0-9.]+ GB memory \|", section), section
     assert re.search(r"\| load average \(1 min\) \| [0-9.]+ before, [0-9.]+ after \|", section), section
     assert f"| software | mirrorgonio {__version__} |" in section

@@ -200,7 +200,8 @@ def format_section(
     memory = f", {machine['memory_gb']:g} GB memory" if machine.get("memory_gb") else ""
     rows = [
         ("command", f"`{command}`"),
-        ("date", f"{started_utc:%Y-%m-%d %H:%M} UTC, {seconds:.0f} s"),
+        ("date", f"{started_utc:%Y-%m-%d %H:%M} UTC"),
+        ("duration", f"{seconds:.0f} s"),
         ("machine", f"{machine.get('cores')} cores{cpu}{memory}"),
         ("load average (1 min)", f"{_number(load_before)} before, {_number(load_after)} after"),
         ("software", f"mirrorgonio {version}"),
