@@ -54,6 +54,7 @@ class WrongNumber:
 
     @property
     def what(self) -> str:
+        """The change in words: the field, and × or + the amount."""
         return f"{self.field} {'×' if self.how == 'scale' else '+'} {self.amount}"
 
 

@@ -71,12 +71,15 @@ class Child:
 
     @property
     def pid(self) -> int:
+        """The child's process id (also its process group's)."""
         return self.proc.pid
 
     def alive(self) -> bool:
+        """Whether the child itself still runs."""
         return self.proc.poll() is None
 
     def log_tail(self, lines: int = 15) -> str:
+        """The last ``lines`` lines of its log ("" when it cannot be read)."""
         try:
             text = self.log_path.read_text(errors="replace").splitlines()
         except OSError:
@@ -84,6 +87,7 @@ class Child:
         return "\n".join(text[-lines:])
 
     def check(self) -> None:
+        """Raise :class:`DemoError` (with the end of its log) if the child has exited."""
         if not self.alive():
             raise DemoError(
                 f"the {self.name} exited (status {self.proc.returncode}): see its log, {self.log_path}", self.log_tail()

@@ -37,6 +37,7 @@ class DemoResult:
     pids: dict[str, int] = field(default_factory=dict)
 
     def to_json(self) -> dict:
+        """The result as JSON-ready data (paths as strings): ``summary.json``."""
         data = asdict(self)
         data["data_dir"], data["rig"], data["run_file"] = str(self.data_dir), str(self.rig), str(self.run_file)
         data["artifacts"] = {kind: str(path) for kind, path in self.artifacts.items()}

@@ -21,6 +21,8 @@ from sim_devices.lights import LIGHTS_DIR, load_truth
 
 @dataclass
 class SourceAccuracy:
+    """One truth emitter's score: ``RMS(I_fit − I_true) / max(I_true)`` over the θ covered."""
+
     name: str
     rms_rel_error: float
     theta_min_deg: float
