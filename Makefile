@@ -49,8 +49,12 @@ test: $(STAMP) browser
 	$(VENV)/bin/ruff format --check .
 	$(PY) -m pytest
 
+# The two cheap benchmarks, their sections of docs/benchmarks.md (a generated file) rewritten.
+# The heavy ones (hdr, accuracy, reflectance, tolerance, speed) are run by hand the same way:
+# mirrorgonio bench NAME --record docs/benchmarks.md
 bench: $(STAMP)
-	$(VENV)/bin/mirrorgonio bench render
+	$(VENV)/bin/mirrorgonio bench render --record docs/benchmarks.md
+	$(VENV)/bin/mirrorgonio bench acquire --record docs/benchmarks.md
 
 clean:
 	rm -rf $(VENV) build *.egg-info demo-output demo-data

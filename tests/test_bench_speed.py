@@ -11,7 +11,9 @@ import json
 import pytest
 from typer.testing import CliRunner
 
-from acquisition.benchmarks.speed import SpeedBenchError, cache_key, parse_size, rig_at_size
+from acquisition.benchmarks.hdr import rig_at_size
+from acquisition.benchmarks.speed import parse_size
+from acquisition.benchmarks.speed_runs import SpeedBenchError, cache_key
 from acquisition.cli import app
 from drivers.contracts.rig import load_rig
 
@@ -183,7 +185,7 @@ def test_bad_sizes_are_one_line_errors():
 
 
 def test_without_a_cache_the_run_is_made_in_a_temporary_folder():
-    from acquisition.benchmarks.speed import simulated_run
+    from acquisition.benchmarks.speed_runs import simulated_run
 
     made = simulated_run(rig_at_size(load_rig(None), 64, 42), (1e-4, 1e-3), 3, cache=None)
     try:

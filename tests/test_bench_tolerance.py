@@ -10,7 +10,8 @@ import pytest
 from conftest import REDUCED_RIG
 from typer.testing import CliRunner
 
-from acquisition.benchmarks.tolerance import DEFAULT_ERRORS, described_wrong, markdown_table, parse_error
+from acquisition.benchmarks.description_errors import DEFAULT_ERRORS, described_wrong, parse_error
+from acquisition.benchmarks.tolerance import markdown_table
 from acquisition.cli import app
 
 RIG = {

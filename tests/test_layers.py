@@ -57,6 +57,15 @@ def test_import_contracts_would_catch_a_violation(tmp_path):
     assert "BROKEN" in result.stdout
 
 
+def test_an_import_cycle_breaks_the_acyclic_contract(tmp_path):
+    """The report importing the light run, which imports the report: a cycle between siblings."""
+    result = _planted(tmp_path, "processing/report/leak.py", "import processing.light_run.run\n")
+    assert result.returncode != 0
+    broken = result.stdout[result.stdout.index("Broken contracts") :]
+    assert "no import cycles between sibling modules or packages" in broken, result.stdout
+    assert "No cycles are allowed in processing." in broken, result.stdout
+
+
 def test_an_upward_import_breaks_the_layers(tmp_path):
     """The ground floor importing the processing (an upward import) fails the layers contract."""
     result = _planted(tmp_path, "drivers/contracts/leak.py", "import processing.trace\n")

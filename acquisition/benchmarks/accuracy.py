@@ -10,12 +10,22 @@ fitted and scored on the same data, so the gain from unmixing is shown, not clai
 
 from __future__ import annotations
 
-import math
 import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
+from acquisition.benchmarks.scoring import score_sources
+from acquisition.catalog import Catalog
+from acquisition.devices import open_devices
+from acquisition.models import FixedBracket, RunRequest
+from acquisition.runner import RunEngine
+from acquisition.settings import load_settings
+from drivers.contracts.rig import load_rig
+from processing.light_run.run import process_run
+from sim_devices.lights import LIGHTS_DIR, load_truth
+
+#: The reference simulation's bracket: 20 µs to 12.5 ms in steps of 5.
+REFERENCE_EXPOSURES_S = (2e-5, 1e-4, 5e-4, 2.5e-3, 1.25e-2)
 
 
 def acquire_simulated(
@@ -30,9 +40,6 @@ def acquire_simulated(
     light_results: str | None = None,
 ) -> Path:
     """Take one run on the simulated rig through the daemon's run engine; the run file's path."""
-    from acquisition.models import FixedBracket, RunRequest
-    from acquisition.settings import load_settings
-
     settings = load_settings(None, data_dir=workdir / "data")
     settings.arm.simulated.speed_m_s = 1.0
     settings.arm.simulated.accel_m_s2 = 10.0
@@ -50,10 +57,6 @@ def take_run(settings, rig, request) -> Path:
     name (the simulated ones by default), in ``settings.data_dir``; the run file's path.
 
     Raises RuntimeError when the run does not complete."""
-    from acquisition.catalog import Catalog
-    from acquisition.devices import open_devices
-    from acquisition.runner import RunEngine
-
     settings.data_dir.mkdir(parents=True, exist_ok=True)
     catalog = Catalog(settings.catalog_path)
     devices = open_devices(settings, rig)
@@ -70,75 +73,13 @@ def take_run(settings, rig, request) -> Path:
         catalog.close()
 
 
-def _score(fit, truth_emitter, theta_samples) -> tuple[float, float, float]:
-    lo, hi = float(np.min(theta_samples)), float(np.max(theta_samples))
-    grid = np.linspace(lo, hi, 200)
-    true = truth_emitter.intensity_w_sr(grid)
-    error = math.sqrt(float(np.mean((fit(grid) - true) ** 2))) / float(np.max(true))
-    return error, math.degrees(lo), math.degrees(hi)
-
-
-def score_sources(
-    model, samples, truth_light, *, matched: bool, fit_method: str = "gaussian", cell_sums: bool = True
-) -> dict:
-    """Each truth emitter's fitted source scored against it (:func:`_score`).
-
-    ``matched``: the sources were found in the data, so each emitter is scored against the
-    nearest source found (``sources[i]["centre_error_um"]`` says how far; ``matched`` in the
-    result lists which source each took); otherwise source k is emitter k. ``cell_sums``:
-    also score a fit of the chief-ray cell sums at the same positions."""
-    from processing.fit import FitError, Samples, fit_intensity
-
-    found = np.array([s.centre_m for s in model.sources], float).reshape(-1, 2)
-    out_sources, taken = [], []
-    for k, emitter in enumerate(truth_light.emitters):
-        if matched:  # the source found nearest the emitter
-            distances = np.hypot(*(found - np.asarray(emitter.centre_m, float)).T)
-            k = int(np.argmin(distances))
-            taken.append(k)
-        source = model.sources[k]
-        theta = np.asarray(source.samples["theta"])
-        error, lo, hi = _score(source.fit, emitter, theta)
-        entry = {
-            "name": emitter.name,
-            "rms_rel_error": round(error, 6),
-            "theta_min_deg": round(lo, 2),
-            "theta_max_deg": round(hi, 2),
-            "fit": {k2: round(v, 6) for k2, v in source.fit.params.items()},
-        }
-        if matched:
-            entry["found_as"] = source.name
-            entry["centre_error_um"] = round(1e6 * float(distances[k]), 1)
-            entry["found_radius_mm"] = round(1e3 * source.radius_m, 3)
-            entry["true_radius_mm"] = round(1e3 * emitter.radius_m, 3)
-        if cell_sums:
-            ok = np.isfinite(samples.cell_sum[:, k]) & np.isfinite(samples.theta[:, k])
-            try:
-                cell = Samples(
-                    samples.theta[ok, k],
-                    samples.phi[ok, k],
-                    samples.cell_sum[ok, k],
-                    np.full(ok.sum(), 0.01 * np.nanmax(samples.cell_sum[:, k])),
-                )
-                cell_fit = fit_intensity(cell, method=fit_method)
-                entry["cell_sum_rms_rel_error"] = round(_score(cell_fit, emitter, theta)[0], 6)
-            except FitError as exc:
-                entry["cell_sum_rms_rel_error"] = None
-                entry["cell_sum_note"] = str(exc)
-        if fit_method == "cos-power":
-            entry["mu_fit"] = source.fit.params.get("mu")
-            entry["mu_true"] = getattr(emitter.intensity, "mu", None)
-        out_sources.append(entry)
-    return {"sources": out_sources, "matched": taken}
-
-
 def bench_accuracy(
     *,
     noise: bool = True,
     truth: str = "five-gaussians",
     positions: int = 66,
     rig_path=None,
-    exposures=(2e-5, 1e-4, 5e-4, 2.5e-3, 1.25e-2),
+    exposures=REFERENCE_EXPOSURES_S,
     fit_method: str = "gaussian",
     workdir: str | Path | None = None,
     layout_from_data: bool = False,
@@ -149,10 +90,6 @@ def bench_accuracy(
     sources in the data; each truth emitter is then scored against the nearest source found,
     and the distance between them is reported too. The target then also asks for as many
     sources as the truth has, each the nearest of a different emitter."""
-    from drivers.contracts.rig import load_rig
-    from processing.light_run.run import process_run
-    from sim_devices.lights import LIGHTS_DIR, load_truth
-
     rig = load_rig(rig_path)
     truth_light = load_truth(truth)
     layout = None if layout_from_data else LIGHTS_DIR / f"{truth}.toml"

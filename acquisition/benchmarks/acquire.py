@@ -9,12 +9,26 @@ import tempfile
 import time
 from pathlib import Path
 
+import h5py
+import hdf5plugin
+
+from acquisition.catalog import Catalog
+from acquisition.devices import Devices
+from acquisition.models import FixedBracket, RunRequest
+from acquisition.runner import RunEngine
+from acquisition.settings import load_settings
+from drivers.contracts.rig import load_rig
+from drivers.modbus_arm import ModbusArm
+from drivers.modbus_profile import SIM_STAGE_PROFILE
+from sim_devices.camera import SimulatedCamera
+from sim_devices.modbus_server import SimulatedModbusArm
+from sim_devices.replay_camera import ReplayCamera
+from sim_devices.stage import SimulatedStage, StageConfig
+from sim_devices.world import SimWorld
+
 
 def _frames(rig, count: int, seed: int = 0):
     """Realistic raw frames: rendered mirror-ball images with sensor noise."""
-    from sim_devices.camera import SimulatedCamera
-    from sim_devices.world import SimWorld
-
     poses = rig.tool_poses()
     state = {"pose": poses[len(poses) // 2]}
     with tempfile.TemporaryDirectory() as spool:
@@ -26,11 +40,23 @@ def _frames(rig, count: int, seed: int = 0):
     return frames
 
 
-def _plain_h5py_write(path: Path, frames, positions: int, exposures: int) -> float:
-    """The same frames into one dataset with the same chunks and filter: the peer."""
-    import h5py
-    import hdf5plugin
+def plain_h5py_write(path: Path, frames, positions: int, exposures: int) -> float:
+    """The same frames into one dataset with the same chunks and filter: the peer; its seconds.
 
+    Parameters
+    ----------
+    path : Path
+        The HDF5 file written (replaced).
+    frames : list
+        Frames (``.mosaic``, uint16) cycled over the ``positions`` x ``exposures`` slots.
+    positions, exposures : int
+        The dataset's first two dimensions, as a run file's.
+
+    Returns
+    -------
+    float
+        Seconds from opening the file to closing it.
+    """
     h, w = frames[0].mosaic.shape
     start = time.perf_counter()
     with h5py.File(path, "w") as f:
@@ -47,11 +73,6 @@ def _plain_h5py_write(path: Path, frames, positions: int, exposures: int) -> flo
 def zero_latency_arm(rig):
     """The simulated stage at infinite speed behind a real Modbus TCP server on loopback, and
     the Modbus driver connected to it: the arm whose own time is (nearly) nothing."""
-    from drivers.modbus_arm import ModbusArm
-    from drivers.modbus_profile import SIM_STAGE_PROFILE
-    from sim_devices.modbus_server import SimulatedModbusArm
-    from sim_devices.stage import SimulatedStage, StageConfig
-
     stage = SimulatedStage(
         StageConfig(
             speed_m_s=math.inf,
@@ -75,9 +96,6 @@ def timed_engine_run(settings, rig, devices, request):
     """One run of ``request`` through the daemon's run engine in ``settings.data_dir``:
     (seconds from start to the run's end, the run's catalog record). RuntimeError when the
     run does not complete."""
-    from acquisition.catalog import Catalog
-    from acquisition.runner import RunEngine
-
     settings.data_dir.mkdir(parents=True)
     catalog = Catalog(settings.catalog_path)
     try:
@@ -98,12 +116,6 @@ def bench_acquire(
     rig_path=None, positions: int = 20, exposures: int = 3, repeat: int = 3, distinct_frames: int = 6
 ) -> dict:
     """Run the real engine on zero-latency devices and compare with a plain h5py write."""
-    from acquisition.devices import Devices
-    from acquisition.models import FixedBracket, RunRequest
-    from acquisition.settings import load_settings
-    from drivers.contracts.rig import load_rig
-    from sim_devices.replay_camera import ReplayCamera
-
     rig = load_rig(rig_path)
     frames = _frames(rig, distinct_frames)
     frame_bytes = frames[0].mosaic.nbytes
@@ -116,7 +128,7 @@ def bench_acquire(
             settings = load_settings(None, data_dir=tmp / f"engine-{r}", rig=rig_path or None)
             seconds, _ = timed_engine_run(settings, rig, Devices(arm=arm, camera=ReplayCamera(frames)), request)
             engine_times.append(seconds)
-            plain_times.append(_plain_h5py_write(tmp / f"plain-{r}.h5", frames, positions, exposures))
+            plain_times.append(plain_h5py_write(tmp / f"plain-{r}.h5", frames, positions, exposures))
     engine_s, plain_s = statistics.median(engine_times), statistics.median(plain_times)
     megabytes = total_frames * frame_bytes / 1e6
     return {

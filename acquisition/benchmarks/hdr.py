@@ -10,30 +10,9 @@ The scene
     :class:`sim_devices.sensor.SensorModel` (photon and read noise, full-well clipping) with
     fresh seeded noise, outside the timed sections; only one bracket is held at a time.
 
-The methods, given the same frames
-    * ``mirrorgonio_optimal`` / ``mirrorgonio_poisson``: :func:`processing.hdr.brackets.merge_raw` on
-      the raw uint16 mosaic (black level and saturation handled inside, the rig's noise
-      model).
-    * ``hdrutils``: HDRutils' Poisson merge of raw mosaics (``merge.imread_merge_demosaic``,
-      which ``HDRutils.merge(..., demosaic_first=False)`` calls). HDRutils offers no
-      in-memory entry point, only file names that it reads with rawpy or imageio; its own
-      merge loop is called with the frames served from memory by replacing the module's
-      ``io`` reader (and its ``tqdm`` progress bar) for the call. It always demosaics its
-      merged mosaic (bilinear) before returning; that time is measured separately and the
-      merge-only time is what the speed-up is computed against (in its favour).
-    * ``colour_hdri``: ``colour_hdri.image_stack_to_HDRI`` with its default Debevec weights on
-      single-channel images of the black-subtracted mosaic normalised to [0, 1], stacked
-      from the shortest exposure to the longest (its clipping fix assumes that order).
-    * ``opencv_debevec``: ``cv2.createMergeDebevec().process`` on uint16 single-channel
-      images, black removed (negatives clipped to 0) and scaled to the full 16-bit range,
-      since its hat weights and linear-response look-up table span 0..65535.
-      ``opencv_debevec_12bit`` gives it the same signal unscaled (12-bit values in 16-bit
-      images), as a user would without reading its source: its weights then never reach
-      zero at the sensor's clipping level.
-
-    Preparing a peer's input (type conversion, black subtraction, normalisation, building a
-    colour-hdri ``ImageStack``) is not timed; this project's merge takes the raw frames and
-    its time includes all of that.
+The methods
+    :mod:`acquisition.benchmarks.hdr_methods`: this project's merge (both weightings), HDRutils,
+    colour-hdri and OpenCV's Debevec merge, given the same frames.
 
 The error
     Every output is converted to DN/s above black on the mosaic (each photosite's own
@@ -45,17 +24,28 @@ The error
 
 from __future__ import annotations
 
-import importlib
 import math
 import os
 import statistics
 import time
-import types
-import warnings
-from collections.abc import Callable
 from dataclasses import dataclass, field
 
+import numba
 import numpy as np
+
+from acquisition.benchmarks.hdr_methods import (
+    MergeContext,
+    MergeMethod,
+    Sensor,
+    colour_hdri_method,
+    hdrutils_method,
+    opencv_method,
+    ours_method,
+)
+from drivers.contracts.rig import load_rig, rig_from_dict, rig_to_toml_dict
+from sim_devices.lights import load_truth
+from sim_devices.optics import MirrorBallRenderer
+from sim_devices.sensor import SensorModel, mosaic_of
 
 BACKGROUND_E_PER_S = (1e2, 1e7)
 SHORTEST_S, LONGEST_S = 1e-3, 0.5
@@ -65,7 +55,6 @@ DISTINCT_SCENES = 6
 TARGET_SPEEDUP = 3.0
 OURS = ("mirrorgonio_optimal", "mirrorgonio_poisson")
 PEERS = ("hdrutils", "colour_hdri", "opencv_debevec", "opencv_debevec_12bit")
-PEER_EXTRA = "not installed (pip install 'mirrorgonio[bench]')"
 
 
 class BenchmarkError(ValueError):
@@ -73,23 +62,6 @@ class BenchmarkError(ValueError):
 
 
 # --- the scene -----------------------------------------------------------------------------------
-@dataclass
-class _Sensor:
-    cfa_pattern: str
-    black: int
-    white: int
-    gain: float  # e⁻/DN
-    read_dn: float
-    model: object  # sim_devices.sensor.SensorModel
-
-    @property
-    def range_dn(self) -> float:
-        return float(self.white - self.black)
-
-    def variance_dn(self, mean_dn):
-        return np.maximum(mean_dn, 0.0) / self.gain + self.read_dn**2 + 1.0 / 12.0
-
-
 @dataclass
 class _Scene:
     position: int
@@ -106,10 +78,22 @@ def exposure_times(count: int) -> np.ndarray:
     return SHORTEST_S * (LONGEST_S / SHORTEST_S) ** (np.arange(count) / (count - 1))
 
 
-def _rig_at_size(rig, width: int, height: int):
-    """The rig with its sensor resampled to ``width`` x ``height``, the same field of view across."""
-    from drivers.contracts.rig import rig_from_dict, rig_to_toml_dict
+def rig_at_size(rig, width: int, height: int):
+    """The rig with its sensor resampled to ``width`` x ``height``, the same field of view across.
 
+    Parameters
+    ----------
+    rig : drivers.contracts.rig.Rig
+        The rig as described.
+    width, height : int
+        The sensor's size in photosites.
+
+    Returns
+    -------
+    drivers.contracts.rig.Rig
+        ``rig`` itself at its own size; else a copy whose pixel pitch (and principal point)
+        are scaled so that the sensor spans the same field of view.
+    """
     cam = rig.camera
     if (cam.width, cam.height) == (width, height):
         return rig
@@ -127,7 +111,7 @@ def _background(height: int, width: int) -> np.ndarray:
     return np.broadcast_to(np.logspace(math.log10(lo), math.log10(hi), width), (height, width))
 
 
-def _pixel_set(truth_dn: np.ndarray, sensor: _Sensor, exposures: np.ndarray):
+def _pixel_set(truth_dn: np.ndarray, sensor: Sensor, exposures: np.ndarray):
     """The compared photosites, and the variance of the ideal merge of each."""
     clip = sensor.range_dn
     short = truth_dn * exposures.min()
@@ -146,11 +130,9 @@ def _pixel_set(truth_dn: np.ndarray, sensor: _Sensor, exposures: np.ndarray):
     return mask, x, float(np.sum(1.0 / (info * x * x)))
 
 
-def _scenes(rig, sensor: _Sensor, exposures: np.ndarray, distinct: int, seed: int) -> list[_Scene]:
-    from sim_devices.lights import load_truth
-    from sim_devices.optics import MirrorBallRenderer
-    from sim_devices.sensor import mosaic_of
-
+def _scenes(rig, sensor: Sensor, exposures: np.ndarray, distinct: int, seed: int) -> list[_Scene]:
+    """The ball rendered at ``distinct`` positions spread over the schedule, the background
+    added; each scene's pixel set and truth."""
     renderer = MirrorBallRenderer(
         rig, load_truth(rig.simulation.truth), diffraction=rig.simulation.diffraction, seed=seed
     )
@@ -165,231 +147,9 @@ def _scenes(rig, sensor: _Sensor, exposures: np.ndarray, distinct: int, seed: in
     return scenes
 
 
-def _bracket(sensor: _Sensor, scene: _Scene, exposures: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+def _bracket(sensor: Sensor, scene: _Scene, exposures: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     rgb = np.broadcast_to(scene.rate_e, (3, *scene.rate_e.shape))  # every channel: the site's own rate
     return np.stack([sensor.model.expose(rgb, float(t), rng) for t in exposures])
-
-
-# --- the methods ---------------------------------------------------------------------------------
-@dataclass
-class _Method:
-    name: str
-    prepare: Callable  # frames (k, H, W) uint16 -> the method's input (untimed)
-    run: Callable  # timed
-    to_dn_per_s: Callable  # the output -> (H, W) DN/s above black on the mosaic (untimed)
-    input: str
-    scale: str
-    notes: str
-    version: str
-    excluded: Callable | None = None  # a part of ``run`` timed apart (HDRutils' demosaic)
-    excluded_what: str = ""
-
-
-@dataclass
-class _Ctx:
-    sensor: _Sensor
-    exposures: np.ndarray
-    height: int
-    width: int
-
-    def own_channel(self, rgb: np.ndarray) -> np.ndarray:
-        from sim_devices.sensor import cfa_channels
-
-        channels = cfa_channels(self.sensor.cfa_pattern, self.height, self.width)
-        return np.take_along_axis(rgb, channels[..., None], axis=2)[..., 0]
-
-
-def _ours(ctx: _Ctx, method: str) -> _Method:
-    from processing.hdr.brackets import merge_raw
-    from processing.hdr.model import NoiseModel
-
-    s, exposures = ctx.sensor, ctx.exposures
-    noise = NoiseModel(s.gain, s.read_dn, source="rig")
-
-    def run(frames):
-        return merge_raw(frames, exposures, s.black, s.white, noise, method=method).radiance
-
-    from drivers.contracts.version import __version__
-
-    what = (
-        "minimum-variance weights t²/σ² from a Poisson first pass"
-        if method == "optimal"
-        else "Σ(y − black) / Σt over unsaturated samples"
-    )
-    return _Method(
-        f"mirrorgonio_{method}",
-        lambda frames: frames,
-        run,
-        lambda out: out,
-        input="the raw uint16 mosaic (k, H, W) with its black level; saturation measured from the frames",
-        scale="exact (DN/s above black)",
-        notes=f"processing.hdr.brackets.merge_raw(method={method!r}): {what}; the rig's noise model "
-        f"(gain {s.gain:.4g} e-/DN, read noise {s.read_dn:.4g} DN); numba kernel, parallel over rows",
-        version=__version__,
-    )
-
-
-def _hdrutils(ctx: _Ctx) -> _Method | str:
-    try:
-        with warnings.catch_warnings():  # colour-demosaicing imports scipy.ndimage.filters (deprecated)
-            warnings.simplefilter("ignore", DeprecationWarning)
-            merge_module = importlib.import_module("HDRutils.merge")
-            import colour_demosaicing
-    except ImportError:
-        return PEER_EXTRA
-    except Exception as exc:  # noqa: BLE001 - a peer that does not even import is reported, not fatal
-        return f"not usable: import failed: {type(exc).__name__}: {exc}"
-    from importlib.metadata import version
-
-    s, exposures, k = ctx.sensor, ctx.exposures, len(ctx.exposures)
-    names = [f"frame-{i}" for i in range(k)]
-
-    def prepare(frames):
-        metadata = {
-            "N": k,
-            "exp": exposures.astype(np.float64).copy(),
-            "gain": np.ones(k),
-            "aperture": np.ones(k),
-            "h": ctx.height,
-            "w": ctx.width,
-            "black_level": np.full(4, float(s.black)),
-            # What HDRutils' get_metadata sets for a raw file: 0.98 of the reported white level.
-            "saturation_point": 0.98 * s.white,
-            "color_space": "raw",
-            "raw_format": False,
-            "libraw_scale": lambda img: img,
-        }
-        return metadata, dict(zip(names, frames, strict=True))
-
-    def run(prepared):
-        metadata, store = prepared
-        saved = merge_module.io, merge_module.tqdm
-        merge_module.io = types.SimpleNamespace(imread=lambda f, libraw=True, **_: store[f])
-        merge_module.tqdm = types.SimpleNamespace(tqdm=lambda it, **_: it)
-        try:
-            hdr, _ = merge_module.imread_merge_demosaic(names, metadata, False, s.cfa_pattern, "bilinear")
-        finally:
-            merge_module.io, merge_module.tqdm = saved
-        return hdr
-
-    bayer = np.zeros((ctx.height, ctx.width))  # the demosaic's cost does not depend on the values
-
-    def demosaic(_prepared):
-        return colour_demosaicing.demosaicing_CFA_Bayer_bilinear(bayer, pattern=s.cfa_pattern) @ np.eye(3)
-
-    return _Method(
-        "hdrutils",
-        prepare,
-        run,
-        ctx.own_channel,
-        input="the raw uint16 mosaics with their black level (HDRutils subtracts it), exposure times, "
-        "gain and aperture 1, saturation point 0.98 x white level (HDRutils' default)",
-        scale="exact: its raw-colour-space output is DN/s above black; each photosite's own channel "
-        "taken from its bilinear demosaic (which keeps the sampled channel's value)",
-        notes="HDRutils.merge.imread_merge_demosaic (what HDRutils.merge(..., demosaic_first=False, "
-        "color_space='raw') runs): Σ(y − black)/Σt over samples whose 2x2 Bayer tile is below the "
-        "saturation point, the shortest exposure always used. HDRutils has no in-memory API (file "
-        "names only): its module's `io` reader and `tqdm` were swapped for the call to serve the "
-        "frames from memory. Its time includes the bilinear demosaic it always runs; "
-        "time_s_merge_only_est subtracts that demosaic (timed apart) and is what the speed-up uses",
-        version=version("HDRutils"),
-        excluded=demosaic,
-        excluded_what="colour_demosaicing.demosaicing_CFA_Bayer_bilinear + the colour matrix, as inside the call",
-    )
-
-
-def _colour_hdri(ctx: _Ctx) -> _Method | str:
-    try:
-        from colour_hdri import Image, ImageStack, Metadata, image_stack_to_HDRI
-    except ImportError:
-        return PEER_EXTRA
-    except Exception as exc:  # noqa: BLE001
-        return f"not usable: import failed: {type(exc).__name__}: {exc}"
-    from importlib.metadata import version
-
-    s, exposures = ctx.sensor, ctx.exposures
-    order = np.argsort(exposures)
-
-    def prepare(frames):
-        stack = ImageStack()
-        for i in order:
-            data = (frames[i].astype(np.float64) - s.black) / s.range_dn
-            # f/1 at ISO 12.5 with its k = 12.5: average_luminance(N, t, S) = N² k / (t S) = 1 / t.
-            stack.append(Image(data=data, metadata=Metadata(f_number=1.0, exposure_time=float(exposures[i]), iso=12.5)))
-        return stack
-
-    def run(stack):
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")  # "image channels contain negative or equal to zero values"
-            return image_stack_to_HDRI(stack)
-
-    return _Method(
-        "colour_hdri",
-        prepare,
-        run,
-        lambda out: out * s.range_dn,
-        input="single-channel float64 images of the mosaic, (y − black) / (white − black), sorted from the "
-        "shortest exposure to the longest, metadata f/1, ISO 12.5, exposure time",
-        scale="exact: output x (white − black) is DN/s above black (L = 1/t with that metadata)",
-        notes="colour_hdri.image_stack_to_HDRI with its default weighting_function_Debevec1997 and no "
-        "camera response (linear data): weights depend on the pixel value only; values clipped to "
-        "[eps, 1]; the shortest frame keeps weight 1 above 0.5, the longest below 0.5",
-        version=version("colour-hdri"),
-    )
-
-
-def _opencv(ctx: _Ctx, full_range: bool) -> _Method | str:
-    try:
-        import cv2
-    except ImportError:
-        return "not installed"
-    s, exposures = ctx.sensor, ctx.exposures
-    times = exposures.astype(np.float32)
-    try:  # OpenCV 4 asserts 8-bit input in MergeDebevec's look-up table; 5 accepts 16-bit.
-        cv2.createMergeDebevec().process([np.zeros((2, 2), np.uint16)] * 2, np.array([1.0, 2.0], np.float32))
-    except cv2.error as exc:
-        return f"rejects 16-bit input: {str(exc).strip().splitlines()[-1]}"
-    scale = 65535.0 / s.range_dn if full_range else 1.0
-
-    def prepare(frames):
-        signal = np.clip(frames.astype(np.int32) - s.black, 0, None)
-        if full_range:
-            signal = np.minimum(np.rint(signal * scale), 65535)
-        return [f.astype(np.uint16) for f in signal]
-
-    def run(images):
-        return cv2.createMergeDebevec().process(images, times)
-
-    if full_range:
-        given = (
-            "uint16 single-channel images, black removed (negatives clipped to 0) and scaled by "
-            f"65535/(white − black) = {scale:.4g} to span the 16-bit range"
-        )
-        how = (
-            "16-bit input goes through a 65536-entry linear response and hat weights peaking at 32767 "
-            "(zero at 0 and 65535), averaged in the log domain (a weighted geometric mean, biased low "
-            "where the samples are noisy)"
-        )
-    else:
-        given = "uint16 single-channel images, black removed (negatives clipped to 0), 12-bit values unscaled"
-        how = (
-            "the hat weights span 0..65535, so a 12-bit sample's weight grows up to the clipping level "
-            "(4095 is weighted ~1/8 of the peak, far from zero): clipped samples are averaged in"
-        )
-    return _Method(
-        "opencv_debevec" if full_range else "opencv_debevec_12bit",
-        prepare,
-        run,
-        lambda out: out.astype(np.float64) / scale,
-        input=given,
-        scale=(
-            "exact: the linear response makes the output (value / "
-            f"t){' / ' + format(scale, '.4g') if full_range else ''} DN/s above black"
-        ),
-        notes=f"cv2.createMergeDebevec().process(images, times) without a response (linear): {how}; "
-        f"float32 output; OpenCV threads: {cv2.getNumThreads()}",
-        version=cv2.__version__,
-    )
 
 
 # --- errors against the truth ---------------------------------------------------------------------
@@ -423,7 +183,7 @@ class _Errors:
 
 @dataclass
 class _State:
-    method: _Method
+    method: MergeMethod
     times: list[float]
     excluded_times: list[float]
     errors: _Errors = field(default_factory=_Errors)
@@ -450,46 +210,20 @@ def bench_hdr(
     per-repeat totals is reported). ``peers=False`` runs this project's merges only.
     """
     t_start = time.perf_counter()
-    if positions < 1:
-        raise BenchmarkError(f"positions: must be at least 1, got {positions}")
-    if not 2 <= exposures <= 16:
-        raise BenchmarkError(f"exposures: must be between 2 and 16, got {exposures}")
-    for name, value in (("width", width), ("height", height)):
-        if value < 4 or value % 2:
-            raise BenchmarkError(f"{name}: must be an even number of pixels, at least 4 (a Bayer mosaic), got {value}")
-    if repeat < 1:
-        raise BenchmarkError(f"repeat: must be at least 1, got {repeat}")
-
-    from drivers.contracts.rig import load_rig
-    from sim_devices.sensor import SensorModel
-
-    rig = _rig_at_size(load_rig(rig_path), width, height)
-    model = SensorModel.from_rig(rig.camera, noise=True)
-    sensor = _Sensor(
-        model.cfa_pattern,
-        int(model.black_level_dn),
-        int(model.white_level_dn),
-        model.gain_e_per_dn,
-        model.read_noise_e / model.gain_e_per_dn,
-        model,
-    )
+    _check_parameters(positions, exposures, width, height, repeat)
+    rig = rig_at_size(load_rig(rig_path), width, height)
+    sensor = _sensor_of(rig)
     times_s = exposure_times(exposures)
-    ctx = _Ctx(sensor, times_s, height, width)
+    ctx = MergeContext(sensor, times_s, height, width)
 
     t0 = time.perf_counter()
     scenes = _scenes(rig, sensor, times_s, distinct_scenes, seed)
     render_s = time.perf_counter() - t0
 
-    methods: dict[str, _Method | str] = {name: _ours(ctx, name.split("_", 1)[1]) for name in OURS}
-    if peers:
-        methods["hdrutils"] = _hdrutils(ctx)
-        methods["colour_hdri"] = _colour_hdri(ctx)
-        methods["opencv_debevec"] = _opencv(ctx, full_range=True)
-        methods["opencv_debevec_12bit"] = _opencv(ctx, full_range=False)
-    else:
-        methods.update({name: "skipped (peers=False)" for name in PEERS})
-    states = {name: _State(m, [0.0] * repeat, [0.0] * repeat) for name, m in methods.items() if isinstance(m, _Method)}
-
+    methods = _methods(ctx, peers)
+    states = {
+        name: _State(m, [0.0] * repeat, [0.0] * repeat) for name, m in methods.items() if isinstance(m, MergeMethod)
+    }
     generate_s = 0.0
     for p in range(positions):
         scene = scenes[p % len(scenes)]
@@ -497,43 +231,8 @@ def bench_hdr(
         frames = _bracket(sensor, scene, times_s, np.random.default_rng([seed, p]))
         generate_s += time.perf_counter() - t0
         for name, state in states.items():
-            if state.failed:
-                continue
-            m = state.method
-            try:
-                if p == 0:  # warm-up, untimed: numba's JIT, the peers' lazy imports
-                    m.run(m.prepare(frames))
-                    if m.excluded:
-                        m.excluded(None)
-                # The first call on a fresh bracket, right after the previous method's work: timed
-                # apart. It is often slower (caches, the allocator's state, the kernel's page
-                # handling), by an amount that depends on what ran before, not only on the method.
-                prepared = m.prepare(frames)
-                t0 = time.perf_counter()
-                m.run(prepared)
-                state.first_call_s += time.perf_counter() - t0
-                del prepared
-                # Steady state: the method after its own previous call, as in a run of many brackets.
-                out = None
-                for r in range(repeat):
-                    prepared = m.prepare(frames)
-                    t0 = time.perf_counter()
-                    out = m.run(prepared)
-                    state.times[r] += time.perf_counter() - t0
-                    if m.excluded:
-                        t0 = time.perf_counter()
-                        m.excluded(prepared)
-                        state.excluded_times[r] += time.perf_counter() - t0
-                    del prepared
-                state.errors.add(m.to_dn_per_s(out)[scene.mask], scene.truth)
-                del out
-            except Exception as exc:  # noqa: BLE001 - a peer failing is a result; ours is not
-                if name in OURS:
-                    raise
-                state.failed = (
-                    f"failed at position {p}: {type(exc).__name__}: "
-                    f"{str(exc).strip().splitlines()[0] if str(exc).strip() else ''}"
-                )
+            if not state.failed:
+                _merge_timed(name, state, frames, scene, p, repeat)
         del frames
 
     return _report(
@@ -554,10 +253,103 @@ def bench_hdr(
     )
 
 
+def _check_parameters(positions: int, exposures: int, width: int, height: int, repeat: int) -> None:
+    """Raise :class:`BenchmarkError` naming the first parameter the benchmark cannot run with."""
+    if positions < 1:
+        raise BenchmarkError(f"positions: must be at least 1, got {positions}")
+    if not 2 <= exposures <= 16:
+        raise BenchmarkError(f"exposures: must be between 2 and 16, got {exposures}")
+    for name, value in (("width", width), ("height", height)):
+        if value < 4 or value % 2:
+            raise BenchmarkError(f"{name}: must be an even number of pixels, at least 4 (a Bayer mosaic), got {value}")
+    if repeat < 1:
+        raise BenchmarkError(f"repeat: must be at least 1, got {repeat}")
+
+
+def _sensor_of(rig) -> Sensor:
+    """The rig's simulated sensor (with noise), and its constants in DN."""
+    model = SensorModel.from_rig(rig.camera, noise=True)
+    return Sensor(
+        model.cfa_pattern,
+        int(model.black_level_dn),
+        int(model.white_level_dn),
+        model.gain_e_per_dn,
+        model.read_noise_e / model.gain_e_per_dn,
+        model,
+    )
+
+
+def _methods(ctx: MergeContext, peers: bool) -> dict[str, MergeMethod | str]:
+    """Every method by name: ours, then the peers (a string saying why where one does not run)."""
+    methods: dict[str, MergeMethod | str] = {name: ours_method(ctx, name.split("_", 1)[1]) for name in OURS}
+    if peers:
+        methods["hdrutils"] = hdrutils_method(ctx)
+        methods["colour_hdri"] = colour_hdri_method(ctx)
+        methods["opencv_debevec"] = opencv_method(ctx, full_range=True)
+        methods["opencv_debevec_12bit"] = opencv_method(ctx, full_range=False)
+    else:
+        methods.update({name: "skipped (peers=False)" for name in PEERS})
+    return methods
+
+
+def _merge_timed(name: str, state: _State, frames: np.ndarray, scene: _Scene, position: int, repeat: int) -> None:
+    """One method on one bracket: its first call and its steady state timed, its error added up.
+    A peer that fails is marked failed (a result); this project's merge failing raises."""
+    m = state.method
+    try:
+        if position == 0:  # warm-up, untimed: numba's JIT, the peers' lazy imports
+            m.run(m.prepare(frames))
+            if m.excluded:
+                m.excluded(None)
+        # The first call on a fresh bracket, right after the previous method's work: timed
+        # apart. It is often slower (caches, the allocator's state, the kernel's page
+        # handling), by an amount that depends on what ran before, not only on the method.
+        prepared = m.prepare(frames)
+        t0 = time.perf_counter()
+        m.run(prepared)
+        state.first_call_s += time.perf_counter() - t0
+        del prepared
+        # Steady state: the method after its own previous call, as in a run of many brackets.
+        out = None
+        for r in range(repeat):
+            prepared = m.prepare(frames)
+            t0 = time.perf_counter()
+            out = m.run(prepared)
+            state.times[r] += time.perf_counter() - t0
+            if m.excluded:
+                t0 = time.perf_counter()
+                m.excluded(prepared)
+                state.excluded_times[r] += time.perf_counter() - t0
+            del prepared
+        state.errors.add(m.to_dn_per_s(out)[scene.mask], scene.truth)
+        del out
+    except Exception as exc:  # noqa: BLE001 - a peer failing is a result; ours is not
+        if name in OURS:
+            raise
+        state.failed = (
+            f"failed at position {position}: {type(exc).__name__}: "
+            f"{str(exc).strip().splitlines()[0] if str(exc).strip() else ''}"
+        )
+
+
+# --- the report -----------------------------------------------------------------------------------
+TIMING = (
+    "time.perf_counter around each method's call, per position, summed over the positions; "
+    "time_s is the steady state (the method called on the bracket just after an untimed call of "
+    "its own on it; the median over repeats), time_s_first_call the call right after the previous "
+    "method's work (reported, not used for the speed-ups); preparing a peer's input is not timed; "
+    "one untimed call on the first bracket warms numba's JIT and the peers' imports"
+)
+ERROR_DEFINITION = (
+    "relative error (estimate / truth - 1) per photosite, both in DN/s above black; "
+    "mean |.|, RMS and mean (bias), in percent"
+)
+
+
 def _report(
     *,
     rig,
-    sensor: _Sensor,
+    sensor: Sensor,
     scenes: list[_Scene],
     times_s: np.ndarray,
     methods: dict,
@@ -571,59 +363,9 @@ def _report(
     generate_s: float,
     wall_s: float,
 ) -> dict:
+    """The benchmark's JSON: the set-up, every method's time and error, the speed-ups and the target."""
     used = [scenes[p % len(scenes)] for p in range(positions)]
-    n_set = sum(int(s.mask.sum()) for s in used)
-    floor = math.sqrt(sum(s.floor_rel_var_sum for s in used) / n_set) if n_set else None
-
-    out_methods: dict[str, dict] = {}
-    for name, m in methods.items():
-        if not isinstance(m, _Method):
-            out_methods[name] = {
-                "status": m,
-                "time_s": None,
-                "ms_per_position": None,
-                "mean_abs_rel_error_pct": None,
-                "rms_rel_error_pct": None,
-                "bias_pct": None,
-                "notes": m,
-            }
-            continue
-        state = states[name]
-        if state.failed:
-            out_methods[name] = {
-                "status": state.failed,
-                "time_s": None,
-                "ms_per_position": None,
-                "mean_abs_rel_error_pct": None,
-                "rms_rel_error_pct": None,
-                "bias_pct": None,
-                "notes": m.notes,
-                "version": m.version,
-            }
-            continue
-        total = statistics.median(state.times)
-        entry = {
-            "status": "ok",
-            "time_s": round(total, 4),
-            "ms_per_position": round(1000.0 * total / positions, 3),
-            **state.errors.report(),
-            "pixels_compared": state.errors.n,
-            "nonfinite_pixels": state.errors.nonfinite,
-            "time_s_all": [round(t, 4) for t in state.times],
-            "time_s_first_call": round(state.first_call_s, 4),
-            "input": m.input,
-            "scale": m.scale,
-            "notes": m.notes,
-            "version": m.version,
-        }
-        if m.excluded:
-            excluded = statistics.median(state.excluded_times)
-            entry["excluded_part_s"] = round(excluded, 4)
-            entry["excluded_part"] = m.excluded_what
-            entry["time_s_merge_only_est"] = round(max(total - excluded, 0.0), 4)
-        out_methods[name] = entry
-
-    ours = out_methods["mirrorgonio_optimal"]
+    out_methods = {name: _method_entry(m, states.get(name), positions) for name, m in methods.items()}
     result: dict = {
         "benchmark": "hdr",
         "width": width,
@@ -652,34 +394,84 @@ def _report(
             "read_noise_e": sensor.model.read_noise_e,
             "gain_e_per_dn": round(sensor.gain, 5),
         },
-        "pixel_set": {
-            "rule": (
-                f"true signal in the shortest exposure + {CLIP_MARGIN_SIGMA:g} sigma below the clipping level, "
-                f"and >= {MIN_DN_LONGEST:g} DN above black in the longest; not on the frame's outermost rows "
-                "and columns "
-                "(HDRutils' bilinear demosaic alters the sampled value there); the same photosites for every method"
-            ),
-            "pixels_compared": n_set,
-            "fraction_of_photosites": round(n_set / (positions * width * height), 4),
-            "true_signal_dn_per_s_range": [
-                round(float(min(s.truth.min() for s in used if s.truth.size)), 2) if n_set else None,
-                round(float(max(s.truth.max() for s in used if s.truth.size)), 1) if n_set else None,
-            ],
-            "noise_floor_rms_rel_error_pct": round(100.0 * floor, 4) if floor is not None else None,
-            "noise_floor": "RMS relative error of the ideal unbiased merge: weights t^2/sigma^2 from the true "
-            "signal, over the frames 3 sigma below clipping (photon, read and quantisation noise)",
-        },
-        "timing": (
-            "time.perf_counter around each method's call, per position, summed over the positions; "
-            "time_s is the steady state (the method called on the bracket just after an untimed call of "
-            "its own on it; the median over repeats), time_s_first_call the call right after the previous "
-            "method's work (reported, not used for the speed-ups); preparing a peer's input is not timed; "
-            "one untimed call on the first bracket warms numba's JIT and the peers' imports"
-        ),
-        "error_definition": "relative error (estimate / truth - 1) per photosite, both in DN/s above black; "
-        "mean |.|, RMS and mean (bias), in percent",
+        "pixel_set": _pixel_set_report(used, positions * width * height),
+        "timing": TIMING,
+        "error_definition": ERROR_DEFINITION,
         "methods": out_methods,
     }
+    result.update(_speedups_and_target(out_methods))
+    result["machine"] = _machine()
+    result["render_s"] = round(render_s, 2)
+    result["frame_generation_s"] = round(generate_s, 2)
+    result["wall_s"] = round(wall_s, 1)
+    return result
+
+
+def _method_entry(m: MergeMethod | str, state: _State | None, positions: int) -> dict:
+    """One method's entry in the report: why it did not run, why it failed, or its time and error."""
+    unmeasured = {
+        "time_s": None,
+        "ms_per_position": None,
+        "mean_abs_rel_error_pct": None,
+        "rms_rel_error_pct": None,
+        "bias_pct": None,
+    }
+    if not isinstance(m, MergeMethod):
+        return {"status": m, **unmeasured, "notes": m}
+    if state.failed:
+        return {"status": state.failed, **unmeasured, "notes": m.notes, "version": m.version}
+    total = statistics.median(state.times)
+    entry = {
+        "status": "ok",
+        "time_s": round(total, 4),
+        "ms_per_position": round(1000.0 * total / positions, 3),
+        **state.errors.report(),
+        "pixels_compared": state.errors.n,
+        "nonfinite_pixels": state.errors.nonfinite,
+        "time_s_all": [round(t, 4) for t in state.times],
+        "time_s_first_call": round(state.first_call_s, 4),
+        "input": m.input,
+        "scale": m.scale,
+        "notes": m.notes,
+        "version": m.version,
+    }
+    if m.excluded:
+        excluded = statistics.median(state.excluded_times)
+        entry["excluded_part_s"] = round(excluded, 4)
+        entry["excluded_part"] = m.excluded_what
+        entry["time_s_merge_only_est"] = round(max(total - excluded, 0.0), 4)
+    return entry
+
+
+def _pixel_set_report(used: list[_Scene], photosites: int) -> dict:
+    """The compared pixel set over the scenes ``used`` (one per position): its rule, size,
+    signal range and the ideal merge's noise floor."""
+    n_set = sum(int(s.mask.sum()) for s in used)
+    floor = math.sqrt(sum(s.floor_rel_var_sum for s in used) / n_set) if n_set else None
+    return {
+        "rule": (
+            f"true signal in the shortest exposure + {CLIP_MARGIN_SIGMA:g} sigma below the clipping level, "
+            f"and >= {MIN_DN_LONGEST:g} DN above black in the longest; not on the frame's outermost rows "
+            "and columns "
+            "(HDRutils' bilinear demosaic alters the sampled value there); the same photosites for every method"
+        ),
+        "pixels_compared": n_set,
+        "fraction_of_photosites": round(n_set / photosites, 4),
+        "true_signal_dn_per_s_range": [
+            round(float(min(s.truth.min() for s in used if s.truth.size)), 2) if n_set else None,
+            round(float(max(s.truth.max() for s in used if s.truth.size)), 1) if n_set else None,
+        ],
+        "noise_floor_rms_rel_error_pct": round(100.0 * floor, 4) if floor is not None else None,
+        "noise_floor": "RMS relative error of the ideal unbiased merge: weights t^2/sigma^2 from the true "
+        "signal, over the frames 3 sigma below clipping (photon, read and quantisation noise)",
+    }
+
+
+def _speedups_and_target(out_methods: dict) -> dict:
+    """Our speed-up over each peer measured, and the target (:data:`TARGET_SPEEDUP`, the error
+    no higher) judged per peer and over all of them."""
+    ours = out_methods["mirrorgonio_optimal"]
+    result: dict = {}
     target_rows = {}
     for peer in PEERS:
         entry = out_methods.get(peer, {})
@@ -712,16 +504,10 @@ def _report(
         all(r["at_least_3x_faster"] and r["error_not_higher"] for r in target_rows.values()) if target_rows else None
     )
     result["peers_measured"] = sorted(target_rows)
-    result["machine"] = _machine()
-    result["render_s"] = round(render_s, 2)
-    result["frame_generation_s"] = round(generate_s, 2)
-    result["wall_s"] = round(wall_s, 1)
     return result
 
 
 def _machine() -> dict:
-    import numba
-
     info = {
         "cpu_count": os.cpu_count(),
         "numba_threads": numba.get_num_threads(),
@@ -729,7 +515,7 @@ def _machine() -> dict:
         "numba": numba.__version__,
     }
     try:
-        import cv2
+        import cv2  # noqa: PLC0415 - heavy
 
         info["opencv_threads"] = cv2.getNumThreads()
     except ImportError:  # pragma: no cover - OpenCV is a dependency

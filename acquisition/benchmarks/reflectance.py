@@ -25,12 +25,16 @@ from pathlib import Path
 
 import numpy as np
 
-from acquisition.benchmarks.accuracy import acquire_simulated
-from drivers.contracts.rig import RIGS_DIR
+from acquisition.benchmarks.accuracy import REFERENCE_EXPOSURES_S, acquire_simulated
+from drivers.contracts.rig import RIGS_DIR, load_rig
+from processing.light_run.run import process_run
+from processing.reflectance.run import reflectance_from_run
+from sim_devices.lights import LIGHTS_DIR
+from sim_devices.objects import surface_truth_at
 
 OBJECT_RIGS = RIGS_DIR
 TARGET = {"median_abs_rel_error": 0.02, "uniform_cv": 0.02}
-LIGHT_EXPOSURES_S = (2e-5, 1e-4, 5e-4, 2.5e-3, 1.25e-2)
+LIGHT_EXPOSURES_S = REFERENCE_EXPOSURES_S
 # The object at 30 cm is ~10⁶× dimmer than the light seen in the ball: seconds, not µs.
 OBJECT_EXPOSURES_S = (1.0, 4.0, 16.0)
 
@@ -62,48 +66,11 @@ def bench_reflectance(
     object_exposures=OBJECT_EXPOSURES_S,
 ) -> dict:
     """Measure the light, photograph the object, estimate ρ three ways, score each."""
-    from drivers.contracts.rig import load_rig
-    from processing.light_run.run import process_run
-    from processing.reflectance.run import reflectance_from_run
-    from sim_devices.lights import LIGHTS_DIR
-    from sim_devices.objects import surface_truth_at
-
     rig_path = Path(object_rig)
     if not rig_path.suffix:
         rig_path = OBJECT_RIGS / f"{object_rig}.toml"
     object_rig_model = load_rig(rig_path)
-    light_rig = load_rig(None)
-    times = {}
-    with tempfile.TemporaryDirectory() as tmp:
-        base = Path(workdir) if workdir is not None else Path(tmp)
-        t0 = time.perf_counter()
-        light_run = acquire_simulated(light_rig, truth, noise, LIGHT_EXPOSURES_S, light_positions, base / "light")
-        times["light_acquire_s"] = time.perf_counter() - t0
-        t0 = time.perf_counter()
-        light = process_run(
-            light_run,
-            base / "light" / "out",
-            steps=("hdr", "sources"),
-            layout=LIGHTS_DIR / f"{truth}.toml",
-            noise="rig",
-            units="W/sr",
-        )
-        times["light_process_s"] = time.perf_counter() - t0
-        t0 = time.perf_counter()
-        object_run = acquire_simulated(
-            object_rig_model,
-            truth,
-            noise,
-            object_exposures,
-            None,
-            base / "object",
-            preset="object-arc",
-            light_results=str(light.light_model),
-        )
-        times["object_acquire_s"] = time.perf_counter() - t0
-        t0 = time.perf_counter()
-        result = reflectance_from_run(object_run, light.light_model, None, base / "object" / "reflectance")
-        times["reflectance_s"] = time.perf_counter() - t0
+    result, times = _light_then_object(object_rig_model, truth, noise, light_positions, workdir, object_exposures)
 
     valid = np.all(np.isfinite(result.rho_points["measured"]), axis=1)
     if not valid.any():
@@ -139,6 +106,43 @@ def bench_reflectance(
         "meets_target": bool(meets),
         "times_s": {k: round(v, 1) for k, v in times.items()},
     }
+
+
+def _light_then_object(object_rig_model, truth: str, noise: bool, light_positions: int, workdir, object_exposures):
+    """The light's sweep taken and processed into a light model, then the object's run taken
+    and its reflectance estimated with it: the estimate, and the seconds of each step."""
+    times = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        base = Path(workdir) if workdir is not None else Path(tmp)
+        t0 = time.perf_counter()
+        light_run = acquire_simulated(load_rig(None), truth, noise, LIGHT_EXPOSURES_S, light_positions, base / "light")
+        times["light_acquire_s"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        light = process_run(
+            light_run,
+            base / "light" / "out",
+            steps=("hdr", "sources"),
+            layout=LIGHTS_DIR / f"{truth}.toml",
+            noise="rig",
+            units="W/sr",
+        )
+        times["light_process_s"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        object_run = acquire_simulated(
+            object_rig_model,
+            truth,
+            noise,
+            object_exposures,
+            None,
+            base / "object",
+            preset="object-arc",
+            light_results=str(light.light_model),
+        )
+        times["object_acquire_s"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        result = reflectance_from_run(object_run, light.light_model, None, base / "object" / "reflectance")
+        times["reflectance_s"] = time.perf_counter() - t0
+    return result, times
 
 
 def _profile_spread(rho: np.ndarray, heights: np.ndarray, bins: int = 10) -> float | None:

@@ -12,114 +12,31 @@ RMS(I_fit − I_true) / max(I_true) over the θ each source's samples cover.
 from __future__ import annotations
 
 import json
-import re
 import shutil
 import tempfile
 import time
-from dataclasses import dataclass
 from pathlib import Path
 
-#: The numbers of the description an error can touch, by name: (the rig field, the component
-#: of a 3-vector or None, whether a relative error in % makes sense for it).
-ERROR_PARTS: dict[str, tuple[str, int | None, bool]] = {
-    "pinhole": ("camera.pinhole_diameter_m", None, True),
-    "sensor-distance": ("camera.sensor_distance_m", None, True),
-    "ball-x": ("ball.centre_m", 0, False),
-    "ball-y": ("ball.centre_m", 1, False),
-    "ball-z": ("ball.centre_m", 2, False),
-    "ball-radius": ("ball.radius_m", None, True),
-    "light-x": ("light.light_to_tool.position_m", 0, False),
-    "light-y": ("light.light_to_tool.position_m", 1, False),
-    "light-z": ("light.light_to_tool.position_m", 2, False),
-}
-#: The errors tried by default. Sizes a lab can plausibly get wrong: a 0.2 mm pinhole drilled or
-#: measured 10 % off, the sensor distance of a camera without a datasheet, the ball placed by eye,
-#: the light's mount measured with a rule.
-DEFAULT_ERRORS = (
-    "pinhole+10%",
-    "pinhole-10%",
-    "sensor-distance+1%",
-    "ball-x+0.2mm",
-    "ball-z+0.2mm",
-    "ball-radius+0.1mm",
-    "light-x+0.2mm",
-    "light-z+0.5mm",
-)
-_ERROR_SYNTAX = re.compile(r"(?P<part>[a-z-]+?)(?P<sign>[+-])(?P<size>\d+(?:\.\d+)?)(?P<unit>%|mm|um|µm)")
-_METRES = {"mm": 1e-3, "um": 1e-6, "µm": 1e-6}
+import h5py
 
+from acquisition.benchmarks.accuracy import REFERENCE_EXPOSURES_S, acquire_simulated
+from acquisition.benchmarks.description_errors import DEFAULT_ERRORS, described_wrong, parse_error
+from acquisition.benchmarks.scoring import score_sources
+from drivers.contracts.rig import RIGS_DIR, load_rig
+from processing.light_run.errors import ProcessingError
+from processing.light_run.position import warm_up_worker
+from processing.light_run.run import process_run
+from processing.options import FitChoice
+from processing.parallel import open_compute
+from sim_devices.lights import LIGHTS_DIR, load_truth
 
-@dataclass(frozen=True)
-class RigError:
-    """One number of the rig description made wrong: ``field`` scaled by ``amount`` (``how`` is
-    "scale") or ``amount`` added to it (a 3-vector for a vector field), in metres."""
-
-    name: str
-    field: str
-    how: str
-    amount: float | tuple[float, float, float]
-
-    @property
-    def what(self) -> str:
-        return f"{self.field} {'×' if self.how == 'scale' else '+'} {self.amount}"
-
-
-def parse_error(name: str) -> RigError:
-    """The error a name such as ``pinhole+10%``, ``ball-x-20um`` or ``light-z+0.5mm`` stands for:
-    PART±SIZE with PART one of :data:`ERROR_PARTS` and SIZE in % (of the pinhole, the sensor
-    distance, the ball's radius) or in mm or µm.
-
-    Raises
-    ------
-    ValueError
-        One line naming the error and what an error looks like.
-    """
-    syntax = (
-        f"PART±SIZE, PART one of {', '.join(ERROR_PARTS)}, SIZE in mm or um (or % of pinhole, "
-        f"sensor-distance, ball-radius), e.g. pinhole+10%, ball-x-20um"
-    )
-    match = _ERROR_SYNTAX.fullmatch(name.strip())
-    if match is None or match["part"] not in ERROR_PARTS:
-        raise ValueError(f"--errors: {name!r} is not an error of the rig description: {syntax}")
-    field, component, relative = ERROR_PARTS[match["part"]]
-    size = float(match["size"]) * (-1.0 if match["sign"] == "-" else 1.0)
-    if match["unit"] == "%":
-        if not relative:
-            raise ValueError(f"--errors: {name!r}: {match['part']} is a position: give its error in mm or um, not %")
-        if size <= -100.0:
-            raise ValueError(f"--errors: {name!r}: a length cannot shrink by 100 % or more")
-        return RigError(name, field, "scale", round(1.0 + size / 100.0, 12))
-    metres = round(size * _METRES[match["unit"]], 15)
-    if component is None:
-        return RigError(name, field, "add", metres)
-    vector = [0.0, 0.0, 0.0]
-    vector[component] = metres
-    return RigError(name, field, "add", (vector[0], vector[1], vector[2]))
-
-
-def described_wrong(rig: dict, error: str) -> dict:
-    """``rig`` (the run file's JSON description) with the error named ``error`` made in it
-    (:func:`parse_error`)."""
-    wrong = parse_error(error)
-    out = json.loads(json.dumps(rig))
-    *parents, key = wrong.field.split(".")
-    holder = out
-    for name in parents:
-        holder = holder[name]
-    value = holder[key]
-    if wrong.how == "scale":
-        holder[key] = value * wrong.amount
-    elif isinstance(wrong.amount, tuple):
-        holder[key] = [v + a for v, a in zip(value, wrong.amount, strict=True)]
-    else:
-        holder[key] = value + wrong.amount
-    return out
+#: The rig taken by default: the demo's (``rigs/demo.toml``, the default geometry at half the
+#: resolution), so that the many processings stay short.
+DEFAULT_RIG_PATH = RIGS_DIR / "demo.toml"
 
 
 def _copy_described(run_path: Path, dst: Path, error: str | None) -> Path:
     """A copy of the run file whose header describes the rig with ``error`` (None: as taken)."""
-    import h5py
-
     shutil.copy(run_path, dst)
     if error is not None:
         with h5py.File(dst, "r+") as f:
@@ -158,7 +75,7 @@ def bench_tolerance(
     fit_aperture: bool = False,
     fit_sensor_distance: bool = False,
     noise: bool = True,
-    exposures=(2e-5, 1e-4, 5e-4, 2.5e-3, 1.25e-2),
+    exposures=REFERENCE_EXPOSURES_S,
     scheduler: str = "local",
     workdir: str | Path | None = None,
     log=None,
@@ -172,87 +89,31 @@ def bench_tolerance(
     Returns the JSON the command prints: per error and layout, the sources found and how far
     from the truth's, and each source's error against the truth. ``log(text)`` hears of each
     processing as it ends."""
-    from acquisition.benchmarks.accuracy import acquire_simulated, score_sources
-    from acquisition.demo import DEMO_RIG_PATH
-    from drivers.contracts.rig import load_rig
-    from processing.light_run.errors import ProcessingError
-    from processing.light_run.position import warm_up_worker
-    from processing.light_run.run import process_run
-    from processing.options import FitChoice
-    from processing.parallel import open_compute
-    from sim_devices.lights import LIGHTS_DIR, load_truth
-
+    say = log or (lambda _text: None)
     errors = list(DEFAULT_ERRORS) if errors is None else list(errors)
     for error in errors:
         parse_error(error)  # every name checked before anything is acquired
-    rig = load_rig(rig_path or DEMO_RIG_PATH)
+    rig = load_rig(rig_path or DEFAULT_RIG_PATH)
     truth_light = load_truth(truth)
-    given = LIGHTS_DIR / f"{truth}.toml"
-    asked = {"aperture fitted": fit_aperture, "sensor distance fitted": fit_sensor_distance}
-    ways = {
-        name: (given if given_layout else None, aperture, distance)
-        for name, (given_layout, aperture, distance, _) in WAYS.items()
-        if (given_layout or layout_from_data) and asked.get(name.partition(", ")[2], True)
-    }
+    ways = _ways(LIGHTS_DIR / f"{truth}.toml", layout_from_data, fit_aperture, fit_sensor_distance)
     rows = []
     started = time.perf_counter()
     with tempfile.TemporaryDirectory() as tmp:
         base = Path(workdir) if workdir is not None else Path(tmp)
         run_path = acquire_simulated(rig, truth, noise, exposures, positions, base)
         acquired = time.perf_counter()
-        if log:
-            log(f"simulated run taken in {acquired - started:.0f} s: {run_path.name}")
+        say(f"simulated run taken in {acquired - started:.0f} s: {run_path.name}")
         with open_compute(scheduler, warm_up=warm_up_worker) as compute:
             for k, error in enumerate([None, *errors]):
                 copy = _copy_described(run_path, base / f"described-{k}.h5", error)
-                for w, (layout_name, (layout, fitted, distance)) in enumerate(ways.items()):
-                    t0 = time.perf_counter()
+                for w, (layout_name, way) in enumerate(ways.items()):
                     row = {"error": error or "none", "layout": layout_name}
                     if error is not None:
                         row["what"] = parse_error(error).what
-                    try:
-                        report = process_run(
-                            copy,
-                            base / f"out-{k}-{w}",
-                            steps=("hdr", "sources"),
-                            layout=layout,
-                            noise="rig",
-                            units="W/sr",
-                            compute=compute,
-                            images=False,
-                            fit_aperture=FitChoice.ALWAYS if fitted else FitChoice.NEVER,
-                            fit_sensor_distance=FitChoice.ALWAYS if distance else FitChoice.NEVER,
-                        )
-                    except ProcessingError as exc:  # e.g. an aperture fit at its bound: said, and on to the next
-                        row.update(failed=str(exc), process_s=round(time.perf_counter() - t0, 1))
-                        rows.append(row)
-                        if log:
-                            log(f"{row['error']}, layout {layout_name}: failed: {exc}")
-                        continue
-                    scored = score_sources(
-                        report.model, report.samples, truth_light, matched=layout is None, cell_sums=False
-                    )
-                    row.update(
-                        sources_found=len(report.model.sources),
-                        max_rms_rel_error=max(s["rms_rel_error"] for s in scored["sources"]),
-                        sources=scored["sources"],
-                        process_s=round(time.perf_counter() - t0, 1),
-                    )
-                    if layout is None:
-                        row["max_centre_error_um"] = max(s["centre_error_um"] for s in scored["sources"])
-                    if fitted:
-                        row["aperture_fit"] = report.aperture_fit.record()
-                    if distance:
-                        row["sensor_distance_fit"] = report.sensor_distance_fit.record()
-                    rows.append(row)
-                    if log:
-                        log(
-                            f"{row['error']}, layout {layout_name}: {row['sources_found']} sources, fits up to "
-                            f"{100 * row['max_rms_rel_error']:.2f} % ({row['process_s']:.1f} s)"
-                        )
+                    rows.append(_process_one_way(copy, base / f"out-{k}-{w}", way, compute, truth_light, row, say))
     result = {
         "benchmark": "tolerance",
-        "rig": str(Path(rig_path or DEMO_RIG_PATH)),
+        "rig": str(Path(rig_path or DEFAULT_RIG_PATH)),
         "truth": truth,
         "noise": noise,
         "positions": positions,
@@ -266,6 +127,59 @@ def bench_tolerance(
     }
     result["markdown"] = markdown_table(result)
     return result
+
+
+def _ways(given: Path, layout_from_data: bool, fit_aperture: bool, fit_sensor_distance: bool) -> dict:
+    """The ways of :data:`WAYS` asked for, by name: (the layout file or None, ``fit_aperture``,
+    ``fit_sensor_distance``)."""
+    asked = {"aperture fitted": fit_aperture, "sensor distance fitted": fit_sensor_distance}
+    return {
+        name: (given if given_layout else None, aperture, distance)
+        for name, (given_layout, aperture, distance, _) in WAYS.items()
+        if (given_layout or layout_from_data) and asked.get(name.partition(", ")[2], True)
+    }
+
+
+def _process_one_way(copy: Path, out_dir: Path, way: tuple, compute, truth_light, row: dict, say) -> dict:
+    """``row`` completed with one processing of the run file ``copy`` the ``way`` :func:`_ways`
+    names, its sources scored against the truth; a processing that fails is said in the row."""
+    layout, fitted, distance = way
+    t0 = time.perf_counter()
+    try:
+        report = process_run(
+            copy,
+            out_dir,
+            steps=("hdr", "sources"),
+            layout=layout,
+            noise="rig",
+            units="W/sr",
+            compute=compute,
+            images=False,
+            fit_aperture=FitChoice.ALWAYS if fitted else FitChoice.NEVER,
+            fit_sensor_distance=FitChoice.ALWAYS if distance else FitChoice.NEVER,
+        )
+    except ProcessingError as exc:  # e.g. an aperture fit at its bound: said, and on to the next
+        row.update(failed=str(exc), process_s=round(time.perf_counter() - t0, 1))
+        say(f"{row['error']}, layout {row['layout']}: failed: {exc}")
+        return row
+    scored = score_sources(report.model, report.samples, truth_light, matched=layout is None, cell_sums=False)
+    row.update(
+        sources_found=len(report.model.sources),
+        max_rms_rel_error=max(s["rms_rel_error"] for s in scored["sources"]),
+        sources=scored["sources"],
+        process_s=round(time.perf_counter() - t0, 1),
+    )
+    if layout is None:
+        row["max_centre_error_um"] = max(s["centre_error_um"] for s in scored["sources"])
+    if fitted:
+        row["aperture_fit"] = report.aperture_fit.record()
+    if distance:
+        row["sensor_distance_fit"] = report.sensor_distance_fit.record()
+    say(
+        f"{row['error']}, layout {row['layout']}: {row['sources_found']} sources, fits up to "
+        f"{100 * row['max_rms_rel_error']:.2f} % ({row['process_s']:.1f} s)"
+    )
+    return row
 
 
 def markdown_table(result: dict) -> str:

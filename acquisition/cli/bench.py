@@ -2,8 +2,7 @@
 
 from __future__ import annotations
 
-import statistics
-import time
+import shlex
 from pathlib import Path
 from typing import Annotated
 
@@ -20,84 +19,110 @@ from acquisition.cli.app import (
     print_result,
 )
 
+RecordOption = Annotated[
+    Path | None,
+    typer.Option(
+        "--record",
+        metavar="PATH",
+        help="Also write the result as this benchmark's section of a markdown file (e.g. docs/benchmarks.md); "
+        "the other benchmarks' sections stay as they are.",
+    ),
+]
+
+
+def _command_line(ctx: typer.Context) -> str:
+    """The running command as a shell line: its path and the options given (on the command
+    line or in the environment), in the order the command declares them."""
+    words = ctx.command_path.split()
+    for param in ctx.command.params:
+        source = ctx.get_parameter_source(param.name)
+        if source is None or source.name == "DEFAULT":
+            continue
+        value = ctx.params[param.name]
+        if param.param_type_name != "option":
+            words.append(str(value))
+        elif param.is_flag and param.secondary_opts:
+            words.append(param.opts[0] if value else param.secondary_opts[0])
+        elif param.is_flag:
+            words += [param.opts[0]] if value else []
+        else:
+            words += [param.opts[0], str(value)]
+    return shlex.join(words)
+
+
+def _start_recording(ctx: typer.Context, path: Path | None):
+    """With ``--record``: the file checked and the start noted (a one-line error before the
+    benchmark runs if the file cannot take the section); else None."""
+    if path is None:
+        return None
+    from acquisition.benchmarks.record import RecordError, start_recording
+
+    try:
+        return start_recording(path, _command_line(ctx))
+    except RecordError as exc:
+        raise fail(f"--record: {exc}") from None
+
+
+def _record(recording, name: str, result: dict) -> None:
+    """With ``--record``: the result written as the benchmark's section (said on standard error)."""
+    if recording is None:
+        return
+    from acquisition.benchmarks.record import RecordError, record_result
+
+    try:
+        record_result(recording, name, result)
+    except (RecordError, OSError) as exc:
+        raise fail(f"--record: {exc}") from None
+    typer.echo(f"recorded in {recording.path} (section bench:{name})", err=True)
+
 
 # --- bench ----------------------------------------------------------------------------------
 @bench_app.command("render")
 def bench_render(
+    ctx: typer.Context,
     rig: RigOption = None,
     repeat: Annotated[int, typer.Option(min=1, help="Timed repetitions (the median is reported).")] = 3,
     position: Annotated[int, typer.Option(help="Schedule position to render.")] = 33,
     as_json: Annotated[bool, typer.Option("--json", help="Print JSON only.")] = False,
+    record: RecordOption = None,
 ) -> None:
     """Time the rendering of one full frame, next to a one-ray-per-pixel trace of it."""
-    import numpy as np
+    from acquisition.benchmarks.render import bench_render as run_bench_render
 
-    from drivers.contracts.rig import load_rig
-    from sim_devices.lights import load_truth
-    from sim_devices.optics import LightPlane, MirrorBallRenderer, trace
-
+    recording = _start_recording(ctx, record)
     try:
-        rig_model = load_rig(rig or default_rig())
-        truth = load_truth(rig_model.simulation.truth)
+        result = run_bench_render(rig or default_rig(), repeat=repeat, position=position)
     except domain_errors() as exc:
         raise fail(str(exc)) from None
-    poses = rig_model.light_poses()
-    pose = poses[min(max(position, 0), len(poses) - 1)]
-    renderer = MirrorBallRenderer(rig_model, truth, diffraction=rig_model.simulation.diffraction)
-    cam = renderer.camera
-    rows, cols = np.mgrid[0 : cam.height, 0 : cam.width]
-    cols, rows = cols.ravel().astype(float), rows.ravel().astype(float)
-    zero = np.zeros_like(cols)
-    plane = LightPlane.at(rig_model, pose)
-
-    render_times, chief_times, stats = [], [], None
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        trace(cam, renderer.mirror, plane, cols, rows, zero, zero)
-        chief_times.append(time.perf_counter() - t0)
-        t0 = time.perf_counter()
-        stats = renderer.render(pose).stats
-        render_times.append(time.perf_counter() - t0)
-    render_s, chief_s = statistics.median(render_times), statistics.median(chief_times)
-    result = {
-        "benchmark": "render",
-        "width": cam.width,
-        "height": cam.height,
-        "truth": truth.name,
-        "diffraction": rig_model.simulation.diffraction,
-        "repeat": repeat,
-        "render_s_median": round(render_s, 4),
-        "render_s_all": [round(t, 4) for t in render_times],
-        "chief_ray_trace_s_median": round(chief_s, 4),
-        "render_over_chief_trace": round(render_s / chief_s, 2),
-        "rays_traced_per_frame": stats.rays_traced,
-        "rays_per_s": round(stats.rays_traced / render_s),
-        "target_s": 10.0,
-        "meets_target": render_s <= 10.0,
-    }
     print_result(result, as_json)
+    _record(recording, "render", result)
 
 
 @bench_app.command("acquire")
 def bench_acquire_command(
+    ctx: typer.Context,
     rig: RigOption = None,
     positions: Annotated[int, typer.Option(min=1, help="Schedule positions per run.")] = 20,
     exposures: Annotated[int, typer.Option(min=1, max=16, help="Frames per position.")] = 3,
     repeat: Annotated[int, typer.Option(min=1, help="Timed repetitions (medians reported).")] = 3,
     as_json: Annotated[bool, typer.Option("--json", help="Print JSON only.")] = False,
+    record: RecordOption = None,
 ) -> None:
     """The daemon's overhead with zero-latency devices, next to a plain h5py write of the same frames."""
     from acquisition.benchmarks.acquire import bench_acquire
 
+    recording = _start_recording(ctx, record)
     try:
         result = bench_acquire(rig, positions=positions, exposures=exposures, repeat=repeat)
     except domain_errors() as exc:
         raise fail(str(exc)) from None
     print_result(result, as_json)
+    _record(recording, "acquire", result)
 
 
 @bench_app.command("hdr")
 def bench_hdr_command(
+    ctx: typer.Context,
     rig: RigOption = None,
     positions: Annotated[
         int, typer.Option(min=1, help="Brackets merged (a few rendered scenes cycled, fresh noise each).")
@@ -109,20 +134,24 @@ def bench_hdr_command(
     seed: Annotated[int, typer.Option(help="Seed of the sensor noise.")] = 0,
     peers: Annotated[bool, typer.Option(help="Also run HDRutils, colour-hdri and OpenCV (the bench extra).")] = True,
     as_json: Annotated[bool, typer.Option("--json", help="Print JSON only.")] = False,
+    record: RecordOption = None,
 ) -> None:
     """This project's raw HDR merge next to HDRutils, colour-hdri and OpenCV on the same brackets: time and error."""
     from acquisition.benchmarks.hdr import BenchmarkError, bench_hdr
     from processing.hdr.model import HDRError
 
+    recording = _start_recording(ctx, record)
     try:
         result = bench_hdr(positions, exposures, width, height, repeat, seed, rig_path=rig, peers=peers)
     except (BenchmarkError, HDRError, *domain_errors()) as exc:
         raise fail(str(exc)) from None
     print_result(result, as_json)
+    _record(recording, "hdr", result)
 
 
 @bench_app.command("accuracy")
 def bench_accuracy_command(
+    ctx: typer.Context,
     noise: Annotated[bool, typer.Option(help="Photon, read and quantisation noise.")] = True,
     truth: Annotated[str, typer.Option(help="Shipped truth light.")] = "five-gaussians",
     positions: Annotated[int, typer.Option(min=3, help="Schedule positions (the first N of the sweep).")] = 66,
@@ -137,11 +166,13 @@ def bench_accuracy_command(
         ),
     ] = False,
     as_json: Annotated[bool, typer.Option("--json", help="Print JSON only.")] = False,
+    record: RecordOption = None,
 ) -> None:
     """The reference simulation through the whole chain, scored against the truth."""
     from acquisition.benchmarks.accuracy import bench_accuracy
     from processing.light_run.errors import ProcessingError
 
+    recording = _start_recording(ctx, record)
     try:
         result = bench_accuracy(
             noise=noise,
@@ -154,10 +185,12 @@ def bench_accuracy_command(
     except (*domain_errors(), ProcessingError) as exc:
         raise fail(str(exc)) from None
     print_result(result, as_json)
+    _record(recording, "accuracy", result)
 
 
 @bench_app.command("reflectance")
 def bench_reflectance_command(
+    ctx: typer.Context,
     object_rig: Annotated[
         str, typer.Option("--object", help="Object rig: object-vase, object-relief or a TOML path.")
     ] = "object-vase",
@@ -168,12 +201,14 @@ def bench_reflectance_command(
         Path | None, typer.Option(help="Keep the runs and outputs here (default: a temporary folder).")
     ] = None,
     as_json: Annotated[bool, typer.Option("--json", help="Print JSON only.")] = False,
+    record: RecordOption = None,
 ) -> None:
     """Measure the light, photograph an object, score ρ under three light models."""
     from acquisition.benchmarks.reflectance import bench_reflectance
     from processing.light_run.errors import ProcessingError
     from processing.reflectance.codes import ReflectanceError
 
+    recording = _start_recording(ctx, record)
     try:
         result = bench_reflectance(
             object_rig=object_rig, truth=truth, noise=noise, light_positions=light_positions, workdir=workdir
@@ -181,10 +216,11 @@ def bench_reflectance_command(
     except (*domain_errors(), ProcessingError, ReflectanceError) as exc:
         raise fail(str(exc)) from None
     print_result(result, as_json)
+    _record(recording, "reflectance", result)
 
 
 def _rig_errors_help() -> str:
-    from acquisition.benchmarks.tolerance import DEFAULT_ERRORS, ERROR_PARTS
+    from acquisition.benchmarks.description_errors import DEFAULT_ERRORS, ERROR_PARTS
 
     return (
         "Comma-separated errors of the rig description to try, each PART±SIZE: PART one of "
@@ -195,6 +231,7 @@ def _rig_errors_help() -> str:
 
 @bench_app.command("tolerance")
 def bench_tolerance_command(
+    ctx: typer.Context,
     rig: RigOption = None,
     truth: Annotated[str, typer.Option(help="Shipped truth light.")] = "five-gaussians",
     positions: Annotated[int, typer.Option(min=3, help="Schedule positions (the first N of the sweep).")] = 66,
@@ -219,6 +256,7 @@ def bench_tolerance_command(
     noise: Annotated[bool, typer.Option(help="Photon, read and quantisation noise.")] = True,
     scheduler: SchedulerOption = "local",
     as_json: Annotated[bool, typer.Option("--json", help="Print JSON only.")] = False,
+    record: RecordOption = None,
 ) -> None:
     """How exact the rig description must be: one simulated run (the demo rig by default)
     processed with one number of its description wrong at a time, scored against the truth.
@@ -229,6 +267,7 @@ def bench_tolerance_command(
     from processing.parallel import ComputeError
 
     chosen = None if errors is None else [e.strip() for e in errors.split(",") if e.strip()]
+    recording = _start_recording(ctx, record)
     try:
         result = bench_tolerance(
             rig_path=rig,
@@ -248,10 +287,12 @@ def bench_tolerance_command(
     if not as_json:
         typer.echo("")
         typer.echo(result["markdown"])
+    _record(recording, "tolerance", result)
 
 
 @bench_app.command("speed")
 def bench_speed_command(
+    ctx: typer.Context,
     rig: RigOption = None,
     sizes: Annotated[
         str, typer.Option(help="Sensor sizes, WIDTHxHEIGHT,... (the same field of view).")
@@ -288,15 +329,18 @@ def bench_speed_command(
     as_json: Annotated[
         bool, typer.Option("--json", help="Print JSON only (one line; the table is its 'markdown' field).")
     ] = False,
+    record: RecordOption = None,
 ) -> None:
     """Speed of the chain at two sensor sizes: acquisition overhead, HDR merge next to its peers,
     chief rays per second, whole-run processing time and peak memory, and the read floor.
     Progress goes to standard error; the JSON, then (without --json) the markdown table, to standard output."""
-    from acquisition.benchmarks.speed import DEFAULT_CACHE, SpeedBenchError, bench_speed, parse_size
+    from acquisition.benchmarks.speed import bench_speed, parse_size
+    from acquisition.benchmarks.speed_runs import DEFAULT_CACHE, SpeedBenchError
     from processing.hdr.model import HDRError
     from processing.light_run.errors import ProcessingError
     from processing.parallel import ComputeError
 
+    recording = _start_recording(ctx, record)
     try:
         size_list = [parse_size(s) for s in sizes.split(",") if s.strip()]
         if not size_list:
@@ -321,3 +365,4 @@ def bench_speed_command(
     if not as_json:
         typer.echo("")
         typer.echo(result["markdown"])
+    _record(recording, "speed", result)

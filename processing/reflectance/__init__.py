@@ -27,7 +27,7 @@ chief ray's angle from the optical axis, so ``L_o = rate / (k·cos⁴β)``. The 
 in the same ``k``-radiometry (its intensities come from the same kind of rates), so ``ρ``
 comes out absolute.
 
-The estimate works on superpixels (the 2×2 CFA tiles, :func:`processing.hdr.superpixels`):
+The estimate works on superpixels (the 2×2 CFA tiles, :func:`processing.hdr.mosaic.superpixels`):
 the chief ray of superpixel ``(i, j)`` leaves the camera centre through the full-resolution
 pixel coordinate ``(2j + 0.5, 2i + 0.5)`` (pixel centres at integer coordinates, as in
 :mod:`processing.trace`), and meets the mesh (trimesh ray casting, Embree when installed)
