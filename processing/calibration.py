@@ -55,6 +55,7 @@ from scipy.optimize import least_squares
 
 from drivers.contracts.rig import Rig
 from drivers.pose import Pose
+from processing.trace import RigGeometry, ball_pixel_grid, trace_pixels
 
 
 class CalibrationError(ValueError):
@@ -739,7 +740,6 @@ def angle_sensitivity(
     ``theta_median_deg`` / ``theta_max_deg`` (the largest over the axes), ``pixels``,
     ``shift_mm``.
     """
-    from processing.trace import RigGeometry, ball_pixel_grid, trace_pixels
 
     if not shift_m > 0:
         raise CalibrationError(f"shift_m must be positive, got {shift_m!r}")

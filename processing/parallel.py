@@ -22,6 +22,7 @@ released, so memory stays bounded whatever the number of positions.
 
 from __future__ import annotations
 
+import ctypes
 import logging
 import os
 import resource
@@ -117,8 +118,6 @@ def tune_malloc() -> None:
         return
     _MALLOC_TUNED = True
     try:
-        import ctypes
-
         libc = ctypes.CDLL("libc.so.6")
         m_trim_threshold, m_mmap_threshold, m_mmap_max = -1, -3, -4
         libc.mallopt(m_mmap_threshold, 32 << 20)
@@ -194,7 +193,7 @@ class Compute:
             for item in items:
                 on_result(item, func(item, *args, **kwargs))
             return
-        from distributed import as_completed
+        from distributed import as_completed  # noqa: PLC0415 - heavy: dask, only where a cluster runs
 
         token = uuid.uuid4().hex[:8]
         pending = iter(items)
@@ -243,7 +242,7 @@ class Compute:
         on its own. No-op without Dask."""
         if self.client is None:
             return
-        from processing.dask_plugins import WarmUpPlugin
+        from processing.dask_plugins import WarmUpPlugin  # noqa: PLC0415 - it imports dask's distributed (heavy)
 
         try:
             self.client.register_plugin(WarmUpPlugin(func))
@@ -325,11 +324,11 @@ def open_compute(
     name = check_scheduler(scheduler, workers)
     if name.lower() in NO_DASK:
         return Compute()
-    from distributed import Client
+    from distributed import Client  # noqa: PLC0415 - heavy: dask, only where a cluster runs
 
     if name.lower() == LOCAL:
-        import dask
-        from distributed import LocalCluster
+        import dask  # noqa: PLC0415 - heavy
+        from distributed import LocalCluster  # noqa: PLC0415 - heavy
 
         n = workers or default_workers()
         try:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import math
 
+import cv2
 import numba
 import numpy as np
 
@@ -447,7 +448,6 @@ def merge_ldr(images, exposures, *, samples: int = 70, lambda_: float = 10.0) ->
     Returns the relative radiance (H, W, 3) float32 and the recovered response curve
     (256, 1, 3).
     """
-    import cv2
 
     images = [np.asarray(im) for im in images]
     if not images:

@@ -9,6 +9,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
+import trimesh
 
 from drivers.pose import Pose
 from processing.reflectance.camera import SuperpixelRays, camera_from, dilate, edge_core, first_hits
@@ -518,7 +519,6 @@ def _uv_at(mesh, faces, points) -> np.ndarray | None:
     uv = getattr(getattr(mesh, "visual", None), "uv", None)
     if uv is None or len(uv) != len(mesh.vertices):
         return None
-    import trimesh
 
     bary = trimesh.triangles.points_to_barycentric(mesh.triangles[faces], points)
     corners = np.asarray(uv, float)[mesh.faces[faces]]  # (N, 3, 2)

@@ -6,7 +6,10 @@ import json
 import logging
 from pathlib import Path
 
+import cv2
+import h5py
 import numpy as np
+import OpenEXR
 
 from processing.lightmodel import json_ready
 from processing.reflectance.codes import PIXEL_CODES, PIXEL_COLOURS, PIXEL_SHORT, SAMPLE_CODES, SAMPLE_SHORT
@@ -19,7 +22,6 @@ log = logging.getLogger("mirrorgonio.processing")
 
 def _write_exr(path: Path, rgb: np.ndarray) -> Path:
     """An RGB float32 OpenEXR that keeps NaN (``processing.images.write_exr`` writes 0 there)."""
-    import OpenEXR
 
     data = np.ascontiguousarray(rgb, dtype=np.float32)
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
@@ -29,7 +31,6 @@ def _write_exr(path: Path, rgb: np.ndarray) -> Path:
 
 
 def _write_rgba_png(path: Path, rgba: np.ndarray) -> Path:
-    import cv2
 
     if not cv2.imwrite(str(path), cv2.cvtColor(rgba, cv2.COLOR_RGBA2BGRA)):
         raise OSError(f"{path}: could not write the PNG")
@@ -63,7 +64,6 @@ def write_outputs(
     ``reflectance.h5`` (the per-point data); ``reflectance.json`` (the summary); and
     ``report.html``.
     """
-    import h5py
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)

@@ -6,6 +6,7 @@ import logging
 from pathlib import Path
 
 import numpy as np
+import trimesh
 
 from drivers.contracts.rig import Light
 from drivers.contracts.runfile import RunFile, RunFileError, file_sha256
@@ -36,7 +37,6 @@ def load_mesh(path, units_m: float = 1.0, pose: Pose | None = None):
     ReflectanceError
         One line naming the file: missing, unreadable, or without faces.
     """
-    import trimesh
 
     path = Path(path)
     if not path.is_file():

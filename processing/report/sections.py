@@ -9,6 +9,7 @@ import re
 from datetime import UTC, datetime
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from processing.calibration import angle_sensitivity, calibrate_ball, compare_with_rig
@@ -187,7 +188,6 @@ def _ball_box(geo: MiddlePosition | None):
 
 
 def _preview_strip(pngs: list[Path], box=None) -> str:
-    import cv2
 
     picks = sorted(set(np.linspace(0, len(pngs) - 1, min(_PREVIEWS, len(pngs))).round().astype(int).tolist()))
     cells = []
