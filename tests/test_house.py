@@ -46,13 +46,24 @@ def modules_too_long(root: Path = ROOT) -> list[str]:
     return out
 
 
+def function_lines(node: ast.FunctionDef | ast.AsyncFunctionDef) -> int:
+    """A function's lines, its signature and code, without its docstring (documentation is not
+    what a reader has to hold)."""
+    lines = node.end_lineno - node.lineno + 1
+    first = node.body[0]
+    if isinstance(first, ast.Expr) and isinstance(first.value, ast.Constant) and isinstance(first.value.value, str):
+        lines -= first.end_lineno - first.lineno + 1
+    return lines
+
+
 def functions_too_long(root: Path = ROOT) -> list[str]:
-    """Functions over :data:`MAX_FUNCTION_LINES` lines whose docstring does not say why."""
+    """Functions over :data:`MAX_FUNCTION_LINES` lines (docstring aside) whose docstring does not
+    say why."""
     out = []
     for path in _modules(root):
         for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
             if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
-                lines = node.end_lineno - node.lineno + 1
+                lines = function_lines(node)
                 if lines > MAX_FUNCTION_LINES and not KEPT_WHOLE.search(ast.get_docstring(node) or ""):
                     out.append(f"{path.relative_to(root)}:{node.lineno}: {node.name}, {lines} lines")
     return out
@@ -139,7 +150,7 @@ def test_the_rules_see_what_they_forbid(tmp_path):
     (tmp_path / "acquisition" / "cli").mkdir()
     (tmp_path / "acquisition" / "cli" / "command.py").write_text("def run():\n    import processing.long\n")
     assert modules_too_long(tmp_path) == [f"processing/long.py: {long.count(chr(10))} lines"]
-    assert functions_too_long(tmp_path) == [f"processing/long.py:1: long, {MAX_FUNCTION_LINES + 2} lines"]
+    assert functions_too_long(tmp_path) == [f"processing/long.py:1: long, {MAX_FUNCTION_LINES + 1} lines"]
     assert local_project_imports(tmp_path) == ["processing/lazy.py:5: imports processing.long in f"]
     assert private_imports(tmp_path) == ["processing/lazy.py:1: processing.long._hidden"]
     assert dates(tmp_path) == ["README.md:1: Measured on 2026-11-22."]

@@ -110,17 +110,6 @@ def worker_command(
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
-
-    def report(job) -> None:
-        if job.state == "complete":
-            typer.echo(f"{job.id} complete ({job.run_id}): {job.message}")
-            for kind, path in job.artifacts.items():
-                typer.echo(f"  {kind}: {path}")
-        elif job.state == "failed":
-            typer.echo(f"{job.id} failed ({job.run_id}): {job.error}")
-        else:
-            typer.echo(f"{job.id} {job.state} ({job.run_id}): {job.message}")
-
     typer.echo(f"worker: jobs from {settings.catalog_path}, positions on {compute.description}")
     from acquisition.catalog import CatalogError
 
@@ -132,7 +121,7 @@ def worker_command(
                 stop=stop,
                 once=once,
                 poll_s=poll,
-                on_job=report,
+                on_job=_say_job,
                 worker_id=worker_id,
                 heartbeat_s=heartbeat,
                 stale_after_s=stale_after,
@@ -140,3 +129,15 @@ def worker_command(
             )
     except CatalogError as exc:
         raise fail(str(exc)) from None
+
+
+def _say_job(job) -> None:
+    """One job the worker ended: its state, and what it wrote."""
+    if job.state == "complete":
+        typer.echo(f"{job.id} complete ({job.run_id}): {job.message}")
+        for kind, path in job.artifacts.items():
+            typer.echo(f"  {kind}: {path}")
+    elif job.state == "failed":
+        typer.echo(f"{job.id} failed ({job.run_id}): {job.error}")
+    else:
+        typer.echo(f"{job.id} {job.state} ({job.run_id}): {job.message}")

@@ -207,6 +207,10 @@ def _merge_kernel(
     (nothing clipped and every frame but the longest near black, so the longest alone
     counts: most of a mirror ball's frame), and only the others (``shortcut`` False: all)
     go through :func:`_merge_pixel`.
+
+    Kept whole: both passes over a row block share its scratch arrays inside one parallel
+    loop, which numba compiles into one loop nest; the per-pixel step is already a function
+    of its own (:func:`_merge_pixel`, inlined).
     """
     k, h, w = frames.shape
     shortest = np.argmin(exposures)

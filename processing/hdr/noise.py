@@ -20,6 +20,10 @@ def _pair_sums(frames, a, b, usable_below, dark_below, shift, centre, chunks):
     frame) only add to six per-site sums (vectorised): n, Σa, Σb, Σa², Σb², Σab with
     a, b shifted by ``shift``. The others go to a histogram over (site, a + b) of
     n, Σa', Σa'², a' = a − ``centre[site, a + b]`` (integers, exact; a' stays small).
+
+    Kept whole: one parallel loop over row chunks, each with its own sums, which numba
+    compiles into one loop nest; split into functions, the per-row sums would have to be
+    passed back and forth through arrays.
     """
     k, h, w = frames.shape
     levels = centre.shape[2]

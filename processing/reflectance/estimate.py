@@ -12,32 +12,23 @@ import numpy as np
 import trimesh
 
 from drivers.pose import Pose
-from processing.reflectance.camera import SuperpixelRays, camera_from, dilate, edge_core, first_hits
+from processing.reflectance.camera import camera_from
 from processing.reflectance.codes import (
     FEW_FROM_SAMPLE,
     METHODS,
     PIXEL_BACKGROUND,
     PIXEL_CODES,
-    PIXEL_EDGE,
-    PIXEL_GRAZING_VIEW,
     PIXEL_SHORT,
     PIXEL_VALID,
     SAMPLE_CODES,
-    SAMPLE_GRAZING,
-    SAMPLE_HOUSING,
-    SAMPLE_NO_IRRADIANCE,
     SAMPLE_PIXEL_EXCLUDED,
-    SAMPLE_SATURATED,
-    SAMPLE_SHADOW,
     SAMPLE_SHORT,
-    SAMPLE_SPECULAR_GEOMETRY,
-    SAMPLE_SPECULAR_OUTLIER,
     SAMPLE_USED,
     ReflectanceError,
     ReflectanceSettings,
 )
-from processing.reflectance.lights import LIGHT_MODELS, light_centre, to_rig
-from processing.trace import housing_blocks
+from processing.reflectance.lights import LIGHT_MODELS
+from processing.reflectance.samples import LightSamples, Surface, drop_outliers, light_samples, surface_seen
 
 log = logging.getLogger("mirrorgonio.processing")
 
@@ -255,6 +246,78 @@ def estimate_reflectance(
     settings = settings or ReflectanceSettings()
     camera = camera_from(camera)
     methods = tuple(methods)
+    radiance_rgb, sat = _checked(radiance_rgb, saturated, camera, mesh_rig, light_poses, methods, settings, mesh_name)
+    n_lights, shape = len(light_poses), radiance_rgb.shape[1:3]
+
+    def report(stage, done, total):
+        if progress:
+            progress(stage, done, total)
+
+    report("rays", 0, n_lights + 1)
+    surface = surface_seen(camera, mesh_rig, shape, settings, mesh_name)
+    rows, cols = surface.rows, surface.cols
+    k = float(camera.sensitivity_e_per_s)
+    radiance = radiance_rgb[:, rows, cols, :] / (k * surface.rays.cos4[rows, cols][None, :, None])
+    object_centre = np.asarray(mesh_rig.bounds, float).mean(axis=0)
+    samples = light_samples(
+        surface,
+        mesh_rig,
+        light_poses,
+        light_model,
+        object_centre,
+        tuple(dict.fromkeys((*methods, "measured"))),
+        housing,
+        sat[:, rows, cols] | ~np.all(np.isfinite(radiance_rgb[:, rows, cols, :]), axis=2),
+        settings,
+        lambda j: report("lights", j + 1, n_lights + 1),
+    )
+    drop_outliers(samples.codes, radiance.mean(axis=2), samples.irradiance["measured"], settings.outlier)
+    enough = _enough_lights(surface, samples.codes, settings)
+    if not enough.any():
+        raise ReflectanceError(f"no valid points: {len(rows)} superpixels on {mesh_name}, {_all_excluded(surface)}")
+    rho_points, rho = _albedo(surface, samples, radiance, methods, enough)
+    report("lights", n_lights + 1, n_lights + 1)
+    object_pose = object_pose or Pose(0.0, 0.0, 0.0)
+    up = np.asarray(up, float) / np.linalg.norm(up)
+    points = surface.points
+    heights = ((points - object_pose.position) @ object_pose.rotation) @ up
+    return ReflectanceResult(
+        methods,
+        shape,
+        rho,
+        surface.reason,
+        rows,
+        cols,
+        points,
+        surface.normals,
+        surface.faces,
+        heights,
+        _uv_at(mesh_rig, surface.faces, points),
+        radiance,
+        {m: samples.irradiance[m] for m in methods},
+        {m: samples.tints[m] for m in methods},
+        samples.codes,
+        rho_points,
+        samples.lights,
+        settings,
+        object_centre,
+        _extrapolation_warnings(light_model, light_poses, points[enough]),
+    )
+
+
+def _all_excluded(surface: Surface) -> str:
+    """Why every point on the object was excluded: each reason with its count."""
+    counts = ", ".join(
+        f"{PIXEL_SHORT[c]} {int((surface.reason == c).sum())}"
+        for c in PIXEL_CODES
+        if c not in (PIXEL_VALID, PIXEL_BACKGROUND) and (surface.reason == c).any()
+    )
+    return f"all excluded ({counts or 'none'})"
+
+
+def _checked(radiance_rgb, saturated, camera, mesh_rig, light_poses, methods, settings, mesh_name):
+    """The radiance (float64) and the saturation masks, their shapes checked against the camera
+    and the lights; the methods and the mesh checked."""
     unknown = [m for m in methods if m not in LIGHT_MODELS]
     if unknown or not methods:
         raise ReflectanceError(
@@ -273,245 +336,64 @@ def estimate_reflectance(
         raise ReflectanceError(f"saturated: expected shape {(n_lights, *shape)}, got {sat.shape}")
     if mesh_rig is None or len(getattr(mesh_rig, "faces", ())) == 0:
         raise ReflectanceError(f"{mesh_name}: the mesh has no faces")
+    return radiance_rgb, sat
 
-    def report(stage, done, total):
-        if progress:
-            progress(stage, done, total)
 
-    # Chief rays -> points, flat normals towards the camera.
-    rays = SuperpixelRays.of(camera, shape)
-    flat_dirs = rays.directions.reshape(-1, 3)
-    origins = np.broadcast_to(rays.centre, flat_dirs.shape)
-    report("rays", 0, n_lights + 1)
-    faces_all, depth_all = first_hits(mesh_rig, np.ascontiguousarray(origins), flat_dirs)
-    hit_flat = (faces_all >= 0) & np.isfinite(depth_all) & (depth_all > 0)
-    if not hit_flat.any():
-        centre = mesh_rig.bounds.mean(axis=0)
-        raise ReflectanceError(
-            f"no camera ray meets {mesh_name} (its centre is at {np.round(centre, 4).tolist()} m "
-            f"in the rig frame); check [object] pose and units_m"
-        )
-    face_normals = np.asarray(mesh_rig.face_normals, dtype=float)
-    hit = hit_flat.reshape(shape)
-    depth = np.where(hit_flat, depth_all, np.nan).reshape(shape)
-    normals_grid = np.zeros((*shape, 3))
-    normals_grid.reshape(-1, 3)[hit_flat] = face_normals[faces_all[hit_flat]]
-    facing = np.einsum("...k,...k->...", normals_grid, rays.directions)
-    normals_grid *= np.where(facing > 0, -1.0, 1.0)[..., None]  # towards the camera
-    points_grid = rays.centre + depth[..., None] * rays.directions
-    bad_normal = hit & ~(np.linalg.norm(normals_grid, axis=-1) > 0.5)  # a degenerate face
-    normals_grid[bad_normal] = -rays.directions[bad_normal]  # any unit vector: these pixels are edges
-
-    core = (
-        edge_core(
-            hit, depth, points_grid, normals_grid, rays.directions, rays.centre, rays.angle, settings.depth_tolerance
-        )
-        | bad_normal
-    )
-    band = dilate(core, settings.edge_margin)
-    cos_view = -np.einsum("...k,...k->...", normals_grid, rays.directions)
-    grazing_view = cos_view < math.sin(math.radians(settings.grazing_view_deg))
-    reason = np.full(shape, PIXEL_VALID, np.uint8)
-    reason[~hit] = PIXEL_BACKGROUND
-    reason[hit & band] = PIXEL_EDGE
-    reason[hit & ~band & grazing_view] = PIXEL_GRAZING_VIEW
-    pixel_ok = reason == PIXEL_VALID
-
-    rows, cols = np.nonzero(hit)
-    points = points_grid[rows, cols]
-    normals = normals_grid[rows, cols]
-    view = -rays.directions[rows, cols]
-    faces = faces_all.reshape(shape)[rows, cols]
-    ok = pixel_ok[rows, cols]
-    n_points = len(rows)
-    k = float(camera.sensitivity_e_per_s)
-    L = radiance_rgb[:, rows, cols, :] / (k * rays.cos4[rows, cols][None, :, None])
-    object_centre = np.asarray(mesh_rig.bounds, float).mean(axis=0)
-    all_methods = tuple(dict.fromkeys((*methods, "measured")))
-
-    codes = np.full((n_lights, n_points), SAMPLE_USED, np.uint8)
-    codes[:, ~ok] = SAMPLE_PIXEL_EXCLUDED
-    E = {m: np.zeros((n_lights, n_points)) for m in all_methods}
-    tints: dict[str, np.ndarray | None] = dict.fromkeys(all_methods)  # (n_lights, n_points, 3), None: grey
-    lights = []
-    scene = float(np.linalg.norm(np.ptp(mesh_rig.bounds, axis=0)))
-    offset = 1e-5 * max(scene, 1e-6)
-    uv_c, i0 = light_centre(light_model)
-    sin_graze = math.sin(math.radians(settings.grazing_light_deg))
-    cos_spec = math.cos(math.radians(settings.specular_deg)) if settings.specular_deg > 0 else 2.0
-    for j, pose in enumerate(light_poses):
-        report("lights", j + 1, n_lights + 1)
-        centre_point = to_rig(pose, uv_c)
-        towards = centre_point - points
-        omega = towards / np.linalg.norm(towards, axis=1, keepdims=True)
-        cos_in = np.einsum("ij,ij->i", normals, omega)
-        models = {m: LIGHT_MODELS[m](light_model, pose, object_centre) for m in all_methods}
-        for m, lm in models.items():
-            E[m][j], tint = lm.irradiance_and_tint(points, normals)
-            if tint is not None:
-                if tints[m] is None:
-                    tints[m] = np.ones((n_lights, n_points, 3), np.float32)
-                tints[m][j] = tint
-        lights.append(
-            {
-                "index": j,
-                "position_m": pose.position.tolist(),
-                "rotation_rad": [pose.rx, pose.ry, pose.rz],
-                "isotropic_point_m": centre_point.tolist(),
-                "I0": i0,
-                **{f"{m}": lm.describe() for m, lm in models.items() if m != "measured"},
-            }
-        )
-        # Cast shadows: a ray to every source of the measured model.
-        lit_side = cos_in > 0
-        shadow = np.zeros(n_points, bool)
-        if lit_side.any():
-            start = points[lit_side] + offset * normals[lit_side]
-            for source in light_model.sources:
-                to_source = to_rig(pose, source.centre_m) - start
-                dist = np.linalg.norm(to_source, axis=1)
-                first, along = first_hits(mesh_rig, start, to_source / dist[:, None])
-                shadow[np.flatnonzero(lit_side)[(first >= 0) & (along > 0) & (along < dist)]] = True
-        shadow_grid = np.zeros(shape, bool)
-        shadow_grid[rows[shadow], cols[shadow]] = True
-        shadow = dilate(shadow_grid, settings.shadow_margin)[rows, cols] & lit_side
-        hidden_by_housing = np.zeros(n_points, bool)
-        if housing is not None and housing[0] > 0:
-            hidden_by_housing = housing_blocks(
-                np.broadcast_to(rays.centre, points.shape), points, pose, float(housing[0]), float(housing[1])
-            )
-        no_data = sat[j, rows, cols] | ~np.all(np.isfinite(radiance_rgb[j, rows, cols, :]), axis=1)
-        no_irradiance = np.zeros(n_points, bool)
-        for m in all_methods:
-            no_irradiance |= ~(E[m][j] > 0)
-        half = omega + view
-        half /= np.linalg.norm(half, axis=1, keepdims=True)
-        specular = np.einsum("ij,ij->i", half, normals) > cos_spec
-        code = codes[j]
-        for mask, value in (
-            (hidden_by_housing, SAMPLE_HOUSING),
-            (cos_in < sin_graze, SAMPLE_GRAZING),
-            (shadow, SAMPLE_SHADOW),
-            (no_data, SAMPLE_SATURATED),
-            (no_irradiance, SAMPLE_NO_IRRADIANCE),
-            (specular, SAMPLE_SPECULAR_GEOMETRY),
-        ):
-            code[(code == SAMPLE_USED) & mask] = value
-
-    _drop_outliers(codes, L.mean(axis=2), E["measured"], settings.outlier)
-
-    used = codes == SAMPLE_USED
-    count = used.sum(axis=0)
-    enough = ok & (count >= settings.min_lights)
+def _enough_lights(surface: Surface, codes: np.ndarray, settings: ReflectanceSettings) -> np.ndarray:
+    """(N,) the points with at least ``min_lights`` usable samples; the others, valid pixels till
+    now, get the reason that excluded most of their samples."""
+    ok = surface.reason[surface.rows, surface.cols] == PIXEL_VALID
+    enough = ok & ((codes == SAMPLE_USED).sum(axis=0) >= settings.min_lights)
     few = ok & ~enough
     if few.any():
         excluded = codes[:, few]
         tallies = np.stack([(excluded == c).sum(axis=0) for c in range(len(SAMPLE_CODES))])
         tallies[SAMPLE_USED] = tallies[SAMPLE_PIXEL_EXCLUDED] = -1
-        reason[rows[few], cols[few]] = np.vectorize(FEW_FROM_SAMPLE.get)(np.argmax(tallies, axis=0)).astype(np.uint8)
+        surface.reason[surface.rows[few], surface.cols[few]] = np.vectorize(FEW_FROM_SAMPLE.get)(
+            np.argmax(tallies, axis=0)
+        ).astype(np.uint8)
+    return enough
 
-    rho_points, rho = {}, {}
+
+def _albedo(surface: Surface, samples: LightSamples, radiance: np.ndarray, methods, enough: np.ndarray):
+    """ρ per method at the points (N, 3) and on the grid (H/2, W/2, 3): ``ρ_c = π Σ_j L_jc E_jc /
+    Σ_j E_jc²`` over the used samples, NaN where a point has too few."""
+    used = samples.codes == SAMPLE_USED
     w = used.astype(float)
+    rho_points, rho = {}, {}
     for m in methods:
-        if tints[m] is None:  # grey: one irradiance for every channel
-            num = np.einsum("jn,jnc,jn->nc", w, np.where(used[..., None], L, 0.0), E[m])
-            den = np.einsum("jn,jn->n", w, E[m] ** 2)[:, None]
+        irradiance, tints = samples.irradiance[m], samples.tints[m]
+        if tints is None:  # grey: one irradiance for every channel
+            num = np.einsum("jn,jnc,jn->nc", w, np.where(used[..., None], radiance, 0.0), irradiance)
+            den = np.einsum("jn,jn->n", w, irradiance**2)[:, None]
         else:  # each channel's own irradiance: the light's tint is not the surface's
-            channel_e = channel_irradiance(E[m], tints[m])
-            num = np.einsum("jn,jnc,jnc->nc", w, np.where(used[..., None], L, 0.0), channel_e)
+            channel_e = channel_irradiance(irradiance, tints)
+            num = np.einsum("jn,jnc,jnc->nc", w, np.where(used[..., None], radiance, 0.0), channel_e)
             den = np.einsum("jn,jnc->nc", w, channel_e**2)
         with np.errstate(divide="ignore", invalid="ignore"):
             values = math.pi * num / den
         values[~enough] = np.nan
         rho_points[m] = values
-        grid = np.full((*shape, 3), np.nan)
-        grid[rows, cols] = values
+        grid = np.full((*surface.reason.shape, 3), np.nan)
+        grid[surface.rows, surface.cols] = values
         rho[m] = grid
-    report("lights", n_lights + 1, n_lights + 1)
+    return rho_points, rho
 
-    if not enough.any():
-        counts = ", ".join(
-            f"{PIXEL_SHORT[c]} {int((reason == c).sum())}"
-            for c in PIXEL_CODES
-            if c not in (PIXEL_VALID, PIXEL_BACKGROUND) and (reason == c).any()
-        )
-        raise ReflectanceError(
-            f"no valid points: {n_points} superpixels on {mesh_name}, all excluded ({counts or 'none'})"
-        )
 
-    object_pose = object_pose or Pose(0.0, 0.0, 0.0)
-    up = np.asarray(up, float)
-    up = up / np.linalg.norm(up)
-    heights = ((points - object_pose.position) @ object_pose.rotation) @ up
-    uv = _uv_at(mesh_rig, faces, points)
-    warnings = []
-    extrapolated = _extrapolated_fraction(light_model, light_poses, points[enough])
-    if extrapolated > 0.01:
-        warnings.append(
-            f"{100 * extrapolated:.0f} % of the valid points are lit at angles the light model "
-            "extrapolates (outside the θ its samples cover)"
-        )
-    return ReflectanceResult(
-        methods,
-        shape,
-        rho,
-        reason,
-        rows,
-        cols,
-        points,
-        normals,
-        faces,
-        heights,
-        uv,
-        L,
-        {m: E[m] for m in methods},
-        {m: tints[m] for m in methods},
-        codes,
-        rho_points,
-        lights,
-        settings,
-        object_centre,
-        warnings,
-    )
+def _extrapolation_warnings(light_model, light_poses, points) -> list[str]:
+    extrapolated = _extrapolated_fraction(light_model, light_poses, points)
+    if extrapolated <= 0.01:
+        return []
+    return [
+        f"{100 * extrapolated:.0f} % of the valid points are lit at angles the light model "
+        "extrapolates (outside the θ its samples cover)"
+    ]
 
 
 def channel_irradiance(grey: np.ndarray, colour: np.ndarray | None) -> np.ndarray:
     """Each channel's irradiance (..., 3) from the channel mean ``grey`` and each channel's
     share of it (None: grey, every channel the same)."""
     return grey[..., None] * colour if colour is not None else np.repeat(grey[..., None], 3, axis=-1)
-
-
-def _drop_outliers(codes: np.ndarray, luminance: np.ndarray, irradiance: np.ndarray, threshold: float) -> None:
-    """The residual test for highlights, in place on ``codes``.
-
-    For every point with at least 3 usable lights, each light's radiance is predicted from
-    the least-squares fit of the others (leave-one-out, measured model); the light with the
-    largest relative excess is dropped (:data:`SAMPLE_SPECULAR_OUTLIER`) if the excess is
-    above ``threshold``, and the test repeats while at least 3 lights remain.
-    """
-    if not math.isfinite(threshold):
-        return
-    L = np.where(np.isfinite(luminance), luminance, 0.0)
-    E = irradiance
-    while True:
-        used = codes == SAMPLE_USED
-        candidates = used.sum(axis=0) >= 3
-        if not candidates.any():
-            return
-        idx = np.flatnonzero(candidates)
-        u, lum, e = used[:, idx], L[:, idx], E[:, idx]
-        s_le = np.where(u, lum * e, 0.0).sum(axis=0)
-        s_ee = np.where(u, e * e, 0.0).sum(axis=0)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            rho_others = (s_le[None] - lum * e) / (s_ee[None] - e * e)
-            predicted = rho_others * e
-            excess = np.where(u & (predicted > 0), lum / predicted - 1.0, -np.inf)
-        worst = np.argmax(excess, axis=0)
-        value = excess[worst, np.arange(len(idx))]
-        drop = value > threshold
-        if not drop.any():
-            return
-        codes[worst[drop], idx[drop]] = SAMPLE_SPECULAR_OUTLIER
 
 
 def _uv_at(mesh, faces, points) -> np.ndarray | None:

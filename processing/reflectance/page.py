@@ -91,7 +91,6 @@ def reflectance_section(summary: dict, images: dict | None = None) -> str:
 
     images = {k: Path(v) for k, v in (images or {}).items() if v is not None and Path(v).is_file()}
     methods = [m for m in ("collimated", "isotropic", "measured") if m in summary.get("methods", {})]
-    parts = []
 
     def embed(key: str, alt: str, caption: str = "") -> str:
         if key not in images:
@@ -99,14 +98,26 @@ def reflectance_section(summary: dict, images: dict | None = None) -> str:
         cap = f"<figcaption>{html.escape(caption)}</figcaption>" if caption else ""
         return f"<figure>{embedded_img(images[key].read_bytes(), alt)}{cap}</figure>"
 
-    parts.append("<h2>Albedo under three light models</h2>")
-    parts.append(
+    parts = [
+        *_albedo_part(summary, methods, embed),
+        *_profiles_part(embed),
+        *_reasons_part(summary, embed),
+        *_textures_part(methods, embed),
+        *_lights_part(summary),
+    ]
+    return "\n".join(p for p in parts if p)
+
+
+def _albedo_part(summary: dict, methods: list[str], embed) -> list[str]:
+    """The albedo maps under the three light models and their statistics."""
+    parts = [
+        "<h2>Albedo under three light models</h2>",
         "<p>ρ = π·L / E per pixel (<code>measurement.md</code>, last section), solved in least squares "
         "over the lights that see each point, with the same samples for the three light models. "
         "<b>collimated</b>: one direction and one irradiance for the whole object; <b>isotropic point</b>: "
         "E = I₀·cos/d², I₀ the light's total on-axis intensity, from the sources' centroid weighted by "
-        "their on-axis intensity; <b>measured</b>: the fitted near-field model.</p>"
-    )
+        "their on-axis intensity; <b>measured</b>: the fitted near-field model.</p>",
+    ]
     strip = "".join(embed(f"albedo-{m}", f"albedo, {m}", _METHOD_NAMES[m]) for m in methods)
     if strip:
         parts.append(f'<div class="strip wide">{strip}</div>')
@@ -128,69 +139,70 @@ def reflectance_section(summary: dict, images: dict | None = None) -> str:
                 f"{100 * s['robust_cv']:.2f} %" if s.get("robust_cv") is not None else "—",
             ]
         )
-    parts.append(
-        html_table(
-            [
-                "light model",
-                "valid points",
-                "median ρ (R, G, B)",
-                "median ρ (mean of R, G, B)",
-                "interquartile range",
-                "CV",
-                "robust CV (1.4826·MAD/median)",
-            ],
-            rows,
-        )
-    )
+    header = [
+        "light model",
+        "valid points",
+        "median ρ (R, G, B)",
+        "median ρ (mean of R, G, B)",
+        "interquartile range",
+        "CV",
+        "robust CV (1.4826·MAD/median)",
+    ]
+    parts.append(html_table(header, rows))
     parts.append(
         "<p class='caption'>The CV is over every valid point: painted patches of another albedo count as "
         "variation too.</p>"
     )
+    return parts
 
-    parts.append("<h2>Profiles along the object's vertical axis</h2>")
-    parts.append(
-        embed(
-            "profiles",
-            "albedo profiles per light model",
-            "Median (line) and interquartile range (band) of ρ per height bin, the three light models side "
-            "by side (the reference paper's Fig. 11). On an object of uniform albedo the measured model "
-            "should be straight; the other two fall off towards the top and bottom, where the light "
-            "leaves at larger angles and travels farther.",
-        )
-        or html_note("no profile figure.")
+
+def _profiles_part(embed) -> list[str]:
+    """The profiles of ρ along the object's vertical axis."""
+    figure = embed(
+        "profiles",
+        "albedo profiles per light model",
+        "Median (line) and interquartile range (band) of ρ per height bin, the three light models side "
+        "by side (the reference paper's Fig. 11). On an object of uniform albedo the measured model "
+        "should be straight; the other two fall off towards the top and bottom, where the light "
+        "leaves at larger angles and travels farther.",
     )
+    return ["<h2>Profiles along the object's vertical axis</h2>", figure or html_note("no profile figure.")]
 
-    parts.append("<h2>Which points have an albedo, and why not</h2>")
-    parts.append(embed("reasons", "reason code per pixel"))
+
+def _reasons_part(summary: dict, embed) -> list[str]:
+    """The reason map, the pixels and the samples counted per reason code."""
     counts = summary.get("pixel_reasons", {})
     body = "".join(
         f"<tr><td>{_swatch(PIXEL_COLOURS[c])}</td><td>{c}</td><td>{html.escape(PIXEL_SHORT[c])}</td>"
         f"<td>{html.escape(PIXEL_CODES[c])}</td><td>{counts.get(PIXEL_SHORT[c], 0)}</td></tr>"
         for c in PIXEL_CODES
     )
-    parts.append(
-        "<table><thead><tr><th></th><th>code</th><th>name</th><th>meaning</th><th>superpixels</th></tr>"
-        f"</thead><tbody>{body}</tbody></table>"
-    )
     samples = summary.get("sample_reasons", {})
-    parts.append("<p>Samples (one per light and point on the object, not counting pixels excluded as a whole):</p>")
-    parts.append(
-        html_table(
-            ["code", "name", "meaning", "samples"],
-            [
-                [str(c), SAMPLE_SHORT[c], SAMPLE_CODES[c], str(samples.get(SAMPLE_SHORT[c], 0))]
-                for c in SAMPLE_CODES
-                if SAMPLE_SHORT[c] in samples
-            ],
-        )
-    )
+    sample_rows = [
+        [str(c), SAMPLE_SHORT[c], SAMPLE_CODES[c], str(samples.get(SAMPLE_SHORT[c], 0))]
+        for c in SAMPLE_CODES
+        if SAMPLE_SHORT[c] in samples
+    ]
+    return [
+        "<h2>Which points have an albedo, and why not</h2>",
+        embed("reasons", "reason code per pixel"),
+        "<table><thead><tr><th></th><th>code</th><th>name</th><th>meaning</th><th>superpixels</th></tr>"
+        f"</thead><tbody>{body}</tbody></table>",
+        "<p>Samples (one per light and point on the object, not counting pixels excluded as a whole):</p>",
+        html_table(["code", "name", "meaning", "samples"], sample_rows),
+    ]
 
+
+def _textures_part(methods: list[str], embed) -> list[str]:
+    """The albedo in the mesh's UV space, where the mesh has UVs."""
     textures = "".join(embed(f"texture-{m}", f"UV texture, {m}", _METHOD_NAMES[m]) for m in methods)
-    if textures:
-        parts.append("<h2>Albedo in the mesh's UV space</h2>")
-        parts.append(f'<div class="strip wide">{textures}</div>')
+    if not textures:
+        return []
+    return ["<h2>Albedo in the mesh's UV space</h2>", f'<div class="strip wide">{textures}</div>']
 
-    parts.append("<h2>Light positions</h2>")
+
+def _lights_part(summary: dict) -> list[str]:
+    """Each light position, what the isotropic and collimated models made of it, the thresholds."""
     rows = []
     for light in summary.get("light_positions", []):
         col = light.get("collimated", {})
@@ -205,25 +217,13 @@ def reflectance_section(summary: dict, images: dict | None = None) -> str:
                 _fmt(1e3 * col["distance_m"]) if "distance_m" in col else "—",
             ]
         )
-    parts.append(
-        html_table(
-            [
-                "light",
-                "position [mm]",
-                "isotropic point [mm]",
-                "I₀ (Σ on-axis)",
-                "collimated ω₀",
-                "E₀ = I₀/d₀²",
-                "d₀ [mm]",
-            ],
-            rows,
-        )
-    )
+    header = ["light", "position [mm]", "isotropic point [mm]", "I₀ (Σ on-axis)", "collimated ω₀", "E₀ = I₀/d₀²"]
+    parts = ["<h2>Light positions</h2>", html_table([*header, "d₀ [mm]"], rows)]
     settings = summary.get("settings", {})
     if settings:
         parts.append("<p>Thresholds:</p>")
         parts.append(html_table(None, [[k, _fmt(v)] for k, v in settings.items()]))
-    return "\n".join(p for p in parts if p)
+    return parts
 
 
 def write_reflectance_report(path, summary: dict, *, images: dict | None = None) -> Path:

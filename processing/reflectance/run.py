@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -217,87 +218,18 @@ def reflectance_from_run(
     run_path = Path(object_run)
     out = Path(out_dir) if out_dir is not None else run_path.with_name(f"{run_path.stem}.reflectance")
     warnings: list[str] = []
-    try:
-        run = RunFile.open(run_path)
-    except RunFileError as exc:
-        raise ReflectanceError(str(exc)) from None
-    with run:
-        rig = run.header.rig
-        references = run.header.references or {}
-        obj = rig.object
-        if mesh is None:
-            if obj is None:
-                raise ReflectanceError(
-                    f"{run_path}: the run's rig {rig.name!r} has no [object] and no mesh was given (--mesh)"
-                )
-            mesh_path = obj.mesh_path()
-        else:
-            mesh_path = Path(mesh)
-        object_pose = obj.pose.to_pose() if obj is not None else None
-        mesh_rig = load_mesh(mesh_path, obj.units_m if obj is not None else 1.0, object_pose)
-        recorded_mesh = references.get("object_mesh") or {}
-        if recorded_mesh.get("sha256") and recorded_mesh["sha256"] != file_sha256(mesh_path):
-            warnings.append(
-                f"{mesh_path}: not the mesh the run recorded ({recorded_mesh.get('path')}): its contents differ"
-            )
-
-        recorded_light = references.get("light_model") or {}
-        if light is None:
-            if not recorded_light.get("path"):
-                raise ReflectanceError(f"{run_path}: the run records no light model: give one with --light")
-            light_path = find_light_model(recorded_light["path"])
-        else:
-            light_path = find_light_model(light)
-            if recorded_light.get("sha256") and recorded_light["sha256"] != file_sha256(light_path):
-                warnings.append(f"{light_path}: not the light model the run recorded ({recorded_light.get('path')})")
-        try:
-            light_model = LightModel.load(light_path)
-        except LightModelError as exc:
-            raise ReflectanceError(str(exc)) from None
-        note = check_light_frame(light_model, light_path, rig, run_path)
-        if note:
-            warnings.append(note)
-
-        out.mkdir(parents=True, exist_ok=True)
-        results_file = _results_for(run_path, out, progress)
-        geometry = RigGeometry.from_rig(rig)
-        try:
-            with Results.open(results_file) as results:
-                positions = np.flatnonzero(results.hdr_done & run.complete)
-                if positions.size < 2:
-                    raise ReflectanceError(
-                        f"{run_path}: {positions.size} position(s) with frames and an HDR result: "
-                        "the albedo needs at least 2 light positions"
-                    )
-                # DN/s → e⁻/s with the rig's calibrated gain, as the light step: k (e⁻/s per unit
-                # radiance) is calibrated with it; the HDR's own estimate only weights the merge.
-                gain, gain_source = radiometric_gain(run), "rig"
-                mismatch = gain_mismatch(results.noise, gain)
-                cfa = results.cfa_pattern
-                rates, saturated, poses = [], [], []
-                for index in positions:
-                    index = int(index)
-                    mosaic = results.radiance(index).astype(np.float64) * gain  # DN/s -> e-/s
-                    rates.append(superpixels(mosaic, cfa))
-                    saturated.append(superpixel_any(results.saturated(index)))
-                    poses.append(light_pose_at_position(run, geometry, index))
-        except ResultsError as exc:
-            raise ReflectanceError(str(exc)) from None
-        run_id = run.header.run_id
-
-    if mismatch is not None:
-        if mismatch[0] >= logging.WARNING:
-            warnings.append(f"{results_file}: {mismatch[1]}")
-        else:
-            log.info("%s: %s", results_file, mismatch[1])
+    rig, run_id, mesh_path, object_pose, mesh_rig, light_path, light_model, results_file, measured = _gathered(
+        run_path, light, mesh, out, progress, warnings
+    )
+    obj = rig.object
     for text in warnings:
         log.warning("%s", text)
     result = estimate_reflectance(
-        np.stack(rates),
-        np.stack(saturated),
+        np.stack(measured.rates),
+        np.stack(measured.saturated),
         rig.camera,
         mesh_rig,
-        poses,
+        measured.poses,
         light_model,
         object_pose=object_pose,
         up=obj.up if obj is not None else (0.0, 1.0, 0.0),
@@ -312,14 +244,120 @@ def reflectance_from_run(
         "run_id": run_id,
         "rig": rig.name,
         "results_file": str(results_file),
-        "positions": [int(i) for i in positions],
+        "positions": [int(i) for i in measured.positions],
+        **_light_and_mesh(light_path, light_model, mesh_path),
+        "camera_sensitivity_e_per_s": rig.camera.sensitivity_e_per_s,
+        "gain_e_per_dn": measured.gain,
+        "gain_source": "rig",
+    }
+    write_outputs(result, out, texture_size=texture_size, bins=bins, metadata=result.metadata)
+    return result
+
+
+def _gathered(run_path: Path, light, mesh, out: Path, progress, warnings: list[str]):
+    """Everything the estimate needs from the object run, its mesh, its light model and its
+    HDR results (merged now where missing), with what is worth a warning added to ``warnings``."""
+    try:
+        run = RunFile.open(run_path)
+    except RunFileError as exc:
+        raise ReflectanceError(str(exc)) from None
+    with run:
+        rig, references = run.header.rig, run.header.references or {}
+        mesh_path, object_pose, mesh_rig = _object_mesh(run_path, rig, references, mesh, warnings)
+        light_path, light_model = _light_model(run_path, rig, references, light, warnings)
+        out.mkdir(parents=True, exist_ok=True)
+        results_file = _results_for(run_path, out, progress)
+        measured = _measured_rates(run, run_path, results_file, warnings)
+        return rig, run.header.run_id, mesh_path, object_pose, mesh_rig, light_path, light_model, results_file, measured
+
+
+def _light_and_mesh(light_path: Path, light_model: LightModel, mesh_path: Path) -> dict:
+    """What the reflectance was measured with, for its summary."""
+    return {
         "light_model": str(light_path),
         "light_run_id": light_model.provenance.get("run_id", ""),
         "light_units": light_model.units,
         "mesh": str(mesh_path),
-        "camera_sensitivity_e_per_s": rig.camera.sensitivity_e_per_s,
-        "gain_e_per_dn": gain,
-        "gain_source": gain_source,
     }
-    write_outputs(result, out, texture_size=texture_size, bins=bins, metadata=result.metadata)
-    return result
+
+
+def _object_mesh(run_path: Path, rig, references: dict, mesh, warnings: list[str]):
+    """(mesh file, object pose, the mesh in the rig frame): the one given, or the rig's ``[object]``."""
+    obj = rig.object
+    if mesh is None:
+        if obj is None:
+            raise ReflectanceError(
+                f"{run_path}: the run's rig {rig.name!r} has no [object] and no mesh was given (--mesh)"
+            )
+        mesh_path = obj.mesh_path()
+    else:
+        mesh_path = Path(mesh)
+    object_pose = obj.pose.to_pose() if obj is not None else None
+    mesh_rig = load_mesh(mesh_path, obj.units_m if obj is not None else 1.0, object_pose)
+    recorded = references.get("object_mesh") or {}
+    if recorded.get("sha256") and recorded["sha256"] != file_sha256(mesh_path):
+        warnings.append(f"{mesh_path}: not the mesh the run recorded ({recorded.get('path')}): its contents differ")
+    return mesh_path, object_pose, mesh_rig
+
+
+def _light_model(run_path: Path, rig, references: dict, light, warnings: list[str]) -> tuple[Path, LightModel]:
+    """The light model given, or the one the run recorded, checked against the run's light frame."""
+    recorded = references.get("light_model") or {}
+    if light is None:
+        if not recorded.get("path"):
+            raise ReflectanceError(f"{run_path}: the run records no light model: give one with --light")
+        light_path = find_light_model(recorded["path"])
+    else:
+        light_path = find_light_model(light)
+        if recorded.get("sha256") and recorded["sha256"] != file_sha256(light_path):
+            warnings.append(f"{light_path}: not the light model the run recorded ({recorded.get('path')})")
+    try:
+        light_model = LightModel.load(light_path)
+    except LightModelError as exc:
+        raise ReflectanceError(str(exc)) from None
+    note = check_light_frame(light_model, light_path, rig, run_path)
+    if note:
+        warnings.append(note)
+    return light_path, light_model
+
+
+@dataclass
+class _MeasuredRates:
+    """An object run's merged positions as the estimate takes them: superpixel rates in e⁻/s,
+    the superpixels saturated everywhere, and the light's pose at each."""
+
+    positions: np.ndarray
+    rates: list[np.ndarray]
+    saturated: list[np.ndarray]
+    poses: list[Pose]
+    gain: float
+
+
+def _measured_rates(run: RunFile, run_path: Path, results_file: Path, warnings: list[str]) -> _MeasuredRates:
+    """The merged positions with frames, converted with the rig's calibrated gain, as the light
+    step converts them: k (e⁻/s per unit radiance) is calibrated with it; the HDR's own estimate
+    only weights the merge (a gain far from the rig's is said)."""
+    geometry = RigGeometry.from_rig(run.header.rig)
+    try:
+        with Results.open(results_file) as results:
+            positions = np.flatnonzero(results.hdr_done & run.complete)
+            if positions.size < 2:
+                raise ReflectanceError(
+                    f"{run_path}: {positions.size} position(s) with frames and an HDR result: "
+                    "the albedo needs at least 2 light positions"
+                )
+            gain = radiometric_gain(run)
+            mismatch = gain_mismatch(results.noise, gain)
+            measured = _MeasuredRates(positions, [], [], [], gain)
+            for index in map(int, positions):
+                mosaic = results.radiance(index).astype(np.float64) * gain  # DN/s -> e-/s
+                measured.rates.append(superpixels(mosaic, results.cfa_pattern))
+                measured.saturated.append(superpixel_any(results.saturated(index)))
+                measured.poses.append(light_pose_at_position(run, geometry, index))
+    except ResultsError as exc:
+        raise ReflectanceError(str(exc)) from None
+    if mismatch is not None and mismatch[0] >= logging.WARNING:
+        warnings.append(f"{results_file}: {mismatch[1]}")
+    elif mismatch is not None:
+        log.info("%s: %s", results_file, mismatch[1])
+    return measured

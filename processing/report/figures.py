@@ -69,19 +69,29 @@ def _polar_panel(ax, ctx: ReportContext, k: int) -> list:
     reach += [a for a in (d.cell_sum, true) if a is not None]
     finite = np.concatenate([np.ravel(a)[np.isfinite(np.ravel(a))] for a in reach])
     rmax = 1.12 * max(float(finite.max()) if finite.size else 0.0, 1e-30)
-    sin_grid, cos_grid = np.sin(grid), np.cos(grid)
-
-    def xy(theta, r):
-        r = np.asarray(r, dtype=float) / rmax
-        return r * np.sin(theta), r * np.cos(theta)
-
     rim = np.radians(np.linspace(-90.0, 90.0, 181))
     clip = Polygon(
         np.column_stack([np.sin(rim), np.cos(rim)]), closed=True, facecolor="none", edgecolor="k", lw=0.8, zorder=2.5
     )
     _polar_frame(ax, rmax, clip)
-    handles, drawn = [], []
-    # the θ the samples cover, side by side
+    drawn = _coverage_wedges(ax, signed)
+    handles = _curves(ax, grid, fit, extrapolated, true, rmax, colour)
+    handles += _sample_markers(ax, d, signed, sigma, rmax, colour, drawn)
+    drawn += [h for h in handles if not isinstance(h, ErrorbarContainer)]
+    for artist in drawn:
+        artist.set_clip_path(clip)
+    return handles
+
+
+def _polar_xy(theta, r, rmax: float) -> tuple[np.ndarray, np.ndarray]:
+    """A point at angle ``theta`` from the vertical and radius ``r``, in the panel's unit."""
+    r = np.asarray(r, dtype=float) / rmax
+    return r * np.sin(theta), r * np.cos(theta)
+
+
+def _coverage_wedges(ax, signed: np.ndarray) -> list:
+    """The θ the samples cover, side by side, as grey wedges."""
+    drawn = []
     for side in (1.0, -1.0):
         on_side = signed[np.isfinite(signed) & (np.sign(signed) == side)] if signed.size else np.zeros(0)
         if on_side.size:
@@ -94,11 +104,17 @@ def _polar_panel(ax, ctx: ReportContext, k: int) -> list:
                 linewidth=0,
             )
             drawn.append(ax.add_artist(wedge))
+    return drawn
+
+
+def _curves(ax, grid, fit, extrapolated, true, rmax: float, colour: str) -> list:
+    """The fit, solid where the samples cover θ and dashed where it extrapolates, and the truth."""
+    sin_grid, cos_grid = np.sin(grid), np.cos(grid)
     shown = np.where(fit <= 1.05 * rmax, fit, np.nan) / rmax
     solid = np.where(~extrapolated, shown, np.nan)
     dashed = np.where(grown_runs(extrapolated), shown, np.nan)
-    handles.append(add_line(ax, solid * sin_grid, solid * cos_grid, color=colour, lw=2.0, label="fit (θ covered)"))
-    handles.append(
+    handles = [
+        add_line(ax, solid * sin_grid, solid * cos_grid, color=colour, lw=2.0, label="fit (θ covered)"),
         add_line(
             ax,
             dashed * sin_grid,
@@ -108,60 +124,63 @@ def _polar_panel(ax, ctx: ReportContext, k: int) -> list:
             ls="--",
             alpha=0.45,
             label="fit, extrapolated",
-        )
-    )
-    drawn += handles
+        ),
+    ]
     if true is not None:
         r = np.where(true <= 1.05 * rmax, true, np.nan) / rmax
-        h = add_line(ax, r * sin_grid, r * cos_grid, color="k", lw=1.2, ls=(0, (6, 3)), label="truth")
-        handles.append(h)
-        drawn.append(h)
+        handles.append(add_line(ax, r * sin_grid, r * cos_grid, color="k", lw=1.2, ls=(0, (6, 3)), label="truth"))
+    return handles
+
+
+def _sample_markers(ax, d, signed, sigma, rmax: float, colour: str, drawn: list) -> list:
+    """The chief-ray cell sums (where they are not the samples themselves) and the samples with
+    their ±1σ bars along the radius (the bars are added to ``drawn``, to be clipped)."""
+    handles = []
     if (
         d.cell_sum is not None
         and np.any(np.isfinite(d.cell_sum))
         and not np.allclose(d.cell_sum, d.intensity, equal_nan=True)
     ):
-        h = add_line(
-            ax,
-            *xy(signed, d.cell_sum),
-            ls="none",
-            marker="^",
-            ms=4,
-            mfc="none",
-            mec="0.35",
-            mew=0.8,
-            label="chief-ray cell sums",
-        )
-        handles.append(h)
-        drawn.append(h)
-    if d.intensity.size:
-        has_sigma = bool(np.any(np.isfinite(d.sigma) & (d.sigma > 0)))
-        bars = ()
-        if has_sigma:  # the ±1σ bars run along the radius
-            ends = np.stack(
-                [
-                    np.column_stack(xy(signed, np.maximum(d.intensity - sigma, 0.0))),
-                    np.column_stack(xy(signed, d.intensity + sigma)),
-                ],
-                axis=1,
+        handles.append(
+            add_line(
+                ax,
+                *_polar_xy(signed, d.cell_sum, rmax),
+                ls="none",
+                marker="^",
+                ms=4,
+                mfc="none",
+                mec="0.35",
+                mew=0.8,
+                label="chief-ray cell sums",
             )
-            bars = (ax.add_artist(LineCollection(ends, colors=colour, linewidths=0.9)),)
-            drawn += bars
-        line = add_line(
-            ax,
-            *xy(signed, d.intensity),
-            ls="none",
-            marker="o",
-            ms=3.2,
-            color=colour,
-            mec="k",
-            mew=0.4,
-            label="samples ± 1σ",
         )
-        drawn.append(line)
-        handles.append(ErrorbarContainer((line, (), bars), has_xerr=False, has_yerr=has_sigma, label="samples ± 1σ"))
-    for artist in drawn:
-        artist.set_clip_path(clip)
+    if not d.intensity.size:
+        return handles
+    has_sigma = bool(np.any(np.isfinite(d.sigma) & (d.sigma > 0)))
+    bars = ()
+    if has_sigma:
+        ends = np.stack(
+            [
+                np.column_stack(_polar_xy(signed, np.maximum(d.intensity - sigma, 0.0), rmax)),
+                np.column_stack(_polar_xy(signed, d.intensity + sigma, rmax)),
+            ],
+            axis=1,
+        )
+        bars = (ax.add_artist(LineCollection(ends, colors=colour, linewidths=0.9)),)
+        drawn += bars
+    line = add_line(
+        ax,
+        *_polar_xy(signed, d.intensity, rmax),
+        ls="none",
+        marker="o",
+        ms=3.2,
+        color=colour,
+        mec="k",
+        mew=0.4,
+        label="samples ± 1σ",
+    )
+    drawn.append(line)
+    handles.append(ErrorbarContainer((line, (), bars), has_xerr=False, has_yerr=has_sigma, label="samples ± 1σ"))
     return handles
 
 
@@ -272,43 +291,13 @@ def layout_figure(model: LightModel, *, resolution_m: float = float("nan"), pixe
             color=colours[k],
             fontweight="bold",
         )
-    centroid = centres.mean(axis=0)
     handles = []
     lo = (centres - radii[:, None]).min(axis=0)
     hi = (centres + radii[:, None]).max(axis=0)
     if has_footprint:
-        rad = 0.5 * resolution_m * 1e3
-        handles.append(
-            ax.add_patch(
-                Circle(
-                    tuple(centroid),
-                    rad,
-                    fill=False,
-                    ls="--",
-                    lw=1.4,
-                    edgecolor="0.3",
-                    label=f"what one pixel gathers light from: the point spread's footprint ({2 * rad:.1f} mm across)",
-                )
-            )
-        )
-        lo = np.minimum(lo, centroid - rad)
-        hi = np.maximum(hi, centroid + rad)
+        lo, hi = _footprint_circle(ax, centres.mean(axis=0), 0.5 * resolution_m * 1e3, lo, hi, handles)
     if pixel_polygon is not None:
-        # a scale glyph in the lower-left corner, clear of the sources (its shape and size are the pixel's)
-        poly = np.asarray(pixel_polygon, dtype=float) * 1e3
-        poly = poly - poly.min(axis=0)
-        size = poly.max(axis=0)
-        corner = lo + 0.02 * max(float(np.max(hi - lo)), 1.0)
-        clear = np.all(np.hypot(*(centres - (corner + 0.5 * size)).T) > radii + 0.75 * float(np.hypot(*size)))
-        poly = poly + (corner if clear else lo - size - 0.05 * max(float(np.max(hi - lo)), 1.0))
-        label = f"one pixel's chief-ray footprint ({size[0]:.2f} × {size[1]:.2f} mm), to scale, lower left"
-        handles.append(
-            ax.add_patch(
-                Polygon(poly, closed=True, facecolor="0.2", edgecolor="k", lw=0.8, alpha=0.8, zorder=3, label=label)
-            )
-        )
-        lo = np.minimum(lo, poly.min(axis=0))
-        hi = np.maximum(hi, poly.max(axis=0))
+        lo, hi = _pixel_glyph(ax, pixel_polygon, centres, radii, lo, hi, handles)
     span = max(float(np.max(hi - lo)), 2.0 * spacing, 1.0)
     mid = 0.5 * (lo + hi)
     ax.set_xlim(mid[0] - 0.62 * span, mid[0] + 0.62 * span)
@@ -321,6 +310,30 @@ def layout_figure(model: LightModel, *, resolution_m: float = float("nan"), pixe
     ax.set_ylabel("v [mm]  (light frame y)")
     settle_axes(ax, xlabel_pad=0.25, ylabel_pad=0.4)
     return fig
+
+
+def _footprint_circle(ax, centroid, rad: float, lo, hi, handles: list):
+    """The point spread's footprint, a dashed circle of radius ``rad`` mm about the sources'
+    centroid; the plot's (lo, hi) grown to hold it."""
+    label = f"what one pixel gathers light from: the point spread's footprint ({2 * rad:.1f} mm across)"
+    circle = Circle(tuple(centroid), rad, fill=False, ls="--", lw=1.4, edgecolor="0.3", label=label)
+    handles.append(ax.add_patch(circle))
+    return np.minimum(lo, centroid - rad), np.maximum(hi, centroid + rad)
+
+
+def _pixel_glyph(ax, pixel_polygon, centres, radii, lo, hi, handles: list):
+    """One pixel's chief-ray footprint as a scale glyph in the lower-left corner, clear of the
+    sources (its shape and size are the pixel's); the plot's (lo, hi) grown to hold it."""
+    poly = np.asarray(pixel_polygon, dtype=float) * 1e3
+    poly = poly - poly.min(axis=0)
+    size = poly.max(axis=0)
+    corner = lo + 0.02 * max(float(np.max(hi - lo)), 1.0)
+    clear = np.all(np.hypot(*(centres - (corner + 0.5 * size)).T) > radii + 0.75 * float(np.hypot(*size)))
+    poly = poly + (corner if clear else lo - size - 0.05 * max(float(np.max(hi - lo)), 1.0))
+    label = f"one pixel's chief-ray footprint ({size[0]:.2f} × {size[1]:.2f} mm), to scale, lower left"
+    glyph = Polygon(poly, closed=True, facecolor="0.2", edgecolor="k", lw=0.8, alpha=0.8, zorder=3, label=label)
+    handles.append(ax.add_patch(glyph))
+    return np.minimum(lo, poly.min(axis=0)), np.maximum(hi, poly.max(axis=0))
 
 
 def coverage_figure(model: LightModel, *, samples=None) -> Figure:

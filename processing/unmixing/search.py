@@ -169,15 +169,8 @@ def refine_layout(
     than ``min_distance`` from every source is tried as one more source; the best is kept,
     and every position refitted, if it lowers χ² by at least ``min_gain`` of its value and
     carries at least ``min_share`` of the brightest source's light; the search stops at
-    the first seed that does not, or at ``max_sources``.
-
-    A seed is judged after ``screen_nfev`` steps of the whole fit, not where it stands: the
-    sources found so far may have widened their discs over a missed source's light (four
-    guesses at 23.6 µm pixels grew to 1.3 mm for 0.5), and then one more source helps only
-    once the discs shrink back. Where they stand, with the other sources and the radius
-    held, the seeds' χ² then differ by 0.01-0.1 %: a poor ranking. So the ``screen_seeds``
-    best there are screened in turn and the first that reaches ``min_gain`` is taken (on
-    the demo's reduced rig, in its test, the best gained 1.2 %, the second 3.4 %).
+    the first seed that does not, or at ``max_sources``. A seed is judged after
+    ``screen_nfev`` steps of the whole fit, not where it stands (:meth:`_Refinement.grow`).
 
     Parameters
     ----------
@@ -201,65 +194,93 @@ def refine_layout(
     if not first:
         return LayoutFit([], False, "no first guess to refine")
 
-    # One BLAS thread, as in a Dask worker: the fit is iterative and amplifies a product summed in
-    # another order (several threads) into the centres (~1e-11 m) and the rays drawn from them
-    # (~3e-8 m). Its matrices are a few columns wide: one thread is no slower.
+    # One BLAS thread, as in a Dask worker: the fit is iterative and amplifies a product summed in another
+    # order into the centres (~1e-11 m). Its matrices are a few columns wide: one thread is no slower.
     with threadpool_limits(limits=1, user_api="blas"):
         problem = LayoutProblem(data, builder, cfa_pattern, first, margin_px, inset_px)
         if not problem.windows or problem.pixels < 16:
             return LayoutFit(list(first), False, "no position has a window where every template is whole")
-        radius = float(np.median([s.radius for s in first]))
-        centres, radius, chi2 = problem.fit(np.array([s.centre for s in first], float), radius, max_radius, max_nfev)
-        steps = [(len(centres), chi2)]
-        # Two guesses of one source (the grid shares a source's light out) meet when fitted: the
-        # fainter goes, and the rest are refitted.
-        while len(centres) > 1:
-            gap, i, j = closest_pair(centres)
-            if gap >= min_distance:
-                break
-            light = problem.light(centres, radius)
-            centres = np.delete(centres, i if light[i] < light[j] else j, axis=0)
-            centres, radius, chi2 = problem.fit(centres, radius, max_radius, max_nfev)
-            steps.append((len(centres), chi2))
+        fit = _Refinement(problem, max_radius, max_nfev)
+        fit.refit(np.array([s.centre for s in first], float), float(np.median([s.radius for s in first])))
+        fit.merge_close_guesses(min_distance)
         untried = [np.array(seed, float) for seed in seeds]
-        while len(centres) < max_sources:
-            untried = [seed for seed in untried if np.min(np.hypot(*(centres - seed).T)) >= min_distance]
-            if not untried:
+        while len(fit.centres) < max_sources:
+            untried = [seed for seed in untried if np.min(np.hypot(*(fit.centres - seed).T)) >= min_distance]
+            if not untried or not fit.grow(untried, min_gain, min_share, min_distance, screen_nfev, screen_seeds):
                 break
-            trials = np.array([problem.chi2(np.vstack([centres, seed]), radius) for seed in untried])
-            passed = False
-            for k in np.argsort(trials)[:screen_seeds]:
-                grown, grown_radius, grown_chi2 = problem.fit(
-                    np.vstack([centres, untried[k]]), radius, max_radius, screen_nfev
-                )
-                if grown_chi2 <= (1.0 - min_gain) * chi2:
-                    untried.pop(k)
-                    passed = True
-                    break
-            if not passed:
-                break
-            grown, grown_radius, grown_chi2 = problem.fit(grown, grown_radius, max_radius, max_nfev)
-            light = problem.light(grown, grown_radius)
-            too_close = closest_pair(grown)[0] < min_distance
-            if grown_chi2 > (1.0 - min_gain) * chi2 or light[-1] < min_share * light.max() or too_close:
-                break
-            centres, radius, chi2 = grown, grown_radius, grown_chi2
-            steps.append((len(centres), chi2))
-        # A source left with no light (the unmixing gave it nothing anywhere) is not one.
-        keep = problem.light(centres, radius) > 0
-        if not np.all(keep) and np.any(keep):
-            centres, radius, chi2 = problem.fit(centres[keep], radius, max_radius, max_nfev)
-            steps.append((len(centres), chi2))
-        sources = [Source(f"source-{k}", (float(u), float(v)), radius) for k, (u, v) in enumerate(centres)]
+        fit.drop_dark_sources()
+        sources = [Source(f"source-{k}", (float(u), float(v)), fit.radius) for k, (u, v) in enumerate(fit.centres)]
         count = f"{len(sources)} source{'s' * (len(sources) != 1)}"
         return LayoutFit(
             sources,
             True,
-            f"{count} of radius {radius * 1e3:.2f} mm, χ² {chi2:.4g} over {problem.pixels} pixels",
-            chi2,
+            f"{count} of radius {fit.radius * 1e3:.2f} mm, χ² {fit.chi2:.4g} over {problem.pixels} pixels",
+            fit.chi2,
             problem.pixels,
-            steps,
+            fit.steps,
         )
+
+
+class _Refinement:
+    """The sources' centres and common radius as :func:`refine_layout` refits them, and its steps."""
+
+    def __init__(self, problem: LayoutProblem, max_radius: float, max_nfev: int):
+        self.problem, self.max_radius, self.max_nfev = problem, max_radius, max_nfev
+        self.steps: list[tuple[int, float]] = []
+
+    def refit(self, centres: np.ndarray, radius: float) -> None:
+        """Every source's place and the common radius fitted from ``centres`` and ``radius``."""
+        self.accept(*self.problem.fit(centres, radius, self.max_radius, self.max_nfev))
+
+    def accept(self, centres: np.ndarray, radius: float, chi2: float) -> None:
+        self.centres, self.radius, self.chi2 = centres, radius, chi2
+        self.steps.append((len(centres), chi2))
+
+    def merge_close_guesses(self, min_distance: float) -> None:
+        """Two guesses of one source (the grid shares a source's light out) meet when fitted: the
+        fainter goes, and the rest are refitted."""
+        while len(self.centres) > 1:
+            gap, i, j = closest_pair(self.centres)
+            if gap >= min_distance:
+                return
+            light = self.problem.light(self.centres, self.radius)
+            self.refit(np.delete(self.centres, i if light[i] < light[j] else j, axis=0), self.radius)
+
+    def grow(
+        self, untried: list, min_gain: float, min_share: float, min_distance: float, screen_nfev: int, screen_seeds: int
+    ) -> bool:
+        """One more source from ``untried`` (the seed taken is removed from it), if one passes
+        the screen and, fitted, lowers χ² by ``min_gain`` with ``min_share`` of the light.
+
+        The sources found so far may have widened their discs over a missed source's light
+        (four guesses at 23.6 µm pixels grew to 1.3 mm for 0.5), and then one more source
+        helps only once the discs shrink back. Where they stand, with the other sources and
+        the radius held, the seeds' χ² then differ by 0.01-0.1 %: a poor ranking. So the
+        ``screen_seeds`` best there are screened in turn, each after ``screen_nfev`` steps of
+        the whole fit, and the first that reaches ``min_gain`` is taken.
+        """
+        problem, chi2 = self.problem, self.chi2
+        trials = np.array([problem.chi2(np.vstack([self.centres, seed]), self.radius) for seed in untried])
+        for k in np.argsort(trials)[:screen_seeds]:
+            screened = problem.fit(np.vstack([self.centres, untried[k]]), self.radius, self.max_radius, screen_nfev)
+            if screened[2] <= (1.0 - min_gain) * chi2:
+                untried.pop(k)
+                break
+        else:
+            return False
+        grown, grown_radius, grown_chi2 = problem.fit(screened[0], screened[1], self.max_radius, self.max_nfev)
+        light = problem.light(grown, grown_radius)
+        too_close = closest_pair(grown)[0] < min_distance
+        if grown_chi2 > (1.0 - min_gain) * chi2 or light[-1] < min_share * light.max() or too_close:
+            return False
+        self.accept(grown, grown_radius, grown_chi2)
+        return True
+
+    def drop_dark_sources(self) -> None:
+        """A source left with no light (the unmixing gave it nothing anywhere) is not one."""
+        keep = self.problem.light(self.centres, self.radius) > 0
+        if not np.all(keep) and np.any(keep):
+            self.refit(self.centres[keep], self.radius)
 
 
 def closest_pair(centres: np.ndarray) -> tuple[float, int, int]:
