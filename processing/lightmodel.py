@@ -422,7 +422,7 @@ class LightModel:
                         s.get("samples", {}),
                         s.get("colour", (1.0, 1.0, 1.0)),
                     )
-                )  # files before colour: grey
+                )  # files without colours: grey
             except (LightModelError, TypeError, ValueError) as e:
                 raise LightModelError(f"{where}: {e}") from None
         try:

@@ -68,8 +68,8 @@ def in_dask_worker() -> bool:
 #: share this process, and two worker processes share the cores with it: the statistical
 #: profiler (a sample of every worker thread every 10 ms), the system and memory monitors
 #: polling psutil several times a second, the 20 ms event-loop tick and work stealing (useless
-#: with a few tasks handed out per worker at a time) took 0.1 CPU-s of the client and ~4 % of every task on
-#: a 66-position run (measured on 2 cores, interleaved runs). A dashboard-less local cluster
+#: with a few tasks handed out per worker at a time) cost 0.1 CPU-s of the client and ~4 % of every
+#: task on a 66-position run (measured on 2 cores, interleaved runs). A dashboard-less local cluster
 #: loses nothing by them; an existing ``tcp://`` cluster keeps its own settings.
 LOCAL_CLUSTER_CONFIG = {
     "distributed.worker.profile.enabled": False,
@@ -106,8 +106,8 @@ def tune_malloc() -> None:
     position task allocates and frees hundreds of MB in arrays of 1–30 MB, and measured
     1.6x slower that way. Arrays of every size come from the heap here (arrays above
     32 MiB, glibc's largest mmap threshold, are not mmapped at all: at 4000x2624 a task's
-    frames are 105 MB, and each task faulted in ~350 MB afresh, 700 k faults and ~5 CPU-s of
-    system time a run on 2 workers; now ~1 k, and the run 15.4 -> 14.2 s), and the heap keeps
+    frames are 105 MB, and mmapped each task would fault in ~350 MB afresh, 700 k faults and
+    ~5 CPU-s of system time a run on 2 workers, against ~1 k here), and the heap keeps
     up to 256 MiB of freed memory (so a worker's memory stays bounded). Once per process; a
     no-op where the C library is not glibc. (Threads with arenas of their own fall back to
     the main heap for what their 64 MiB heaps cannot hold; ``LOCAL_CLUSTER_CONFIG`` gives

@@ -87,7 +87,7 @@ def position_masks(radiance, variance, count, saturated):
     largest = np.float32(3.4028234663852886e38)  # |x| <= largest: finite (nan compares false)
     r, v, c, s = radiance.ravel(), variance.ravel(), count.ravel(), saturated.ravel()
     u, li = usable.ravel(), lit.ravel()
-    # Without branches (& rather than `and`): 1.3 ms a 1312x2000 position instead of 1.8.
+    # Without branches (& rather than `and`), so that the loop vectorises.
     for i in range(r.size):
         n_saturated += np.int64(s[i])
         x = r[i]

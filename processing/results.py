@@ -97,11 +97,11 @@ _blosc_lock = threading.Lock()
 
 #: Chosen by measurement on a 1312x2000 mirror-ball position (~4 % lit, the rest dark noise
 #: quantised by the merge), one core: compress / decompress ms and MB of 10.5 MB.
-#: Radiance: bit-shuffled LZ4 in 64 KiB blocks, 5 / 3 ms, 1.8 MB (byte-shuffled LZ4 as before:
-#: 10 / 4 ms, 2.9 MB). Variance, rounded to 12 mantissa bits (:func:`stored_variance`):
-#: bit-shuffled LZ4 in 64 KiB blocks, 4.6 ms, 3.1 MB (unrounded, byte-shuffled BloscLZ as in
-#: 2026-11 before: 4.1 ms, 7.9 MB; bit-shuffled LZ4: 7 ms, 6.3 MB). Every MB written costs
-#: ~2 ms on a VM whose freed memory goes back to its host. The masks: LZ4, 0.3 / 0.1 ms, < 40 kB.
+#: Radiance: bit-shuffled LZ4 in 64 KiB blocks, 5 / 3 ms, 1.8 MB (byte-shuffled LZ4: 10 / 4 ms,
+#: 2.9 MB). Variance, rounded to 12 mantissa bits (:func:`stored_variance`): bit-shuffled LZ4 in
+#: 64 KiB blocks, 4.6 ms, 3.1 MB (unrounded, byte-shuffled BloscLZ: 4.1 ms, 7.9 MB; bit-shuffled
+#: LZ4: 7 ms, 6.3 MB). Every MB written costs ~2 ms on a VM whose freed memory goes back to its
+#: host. The masks: LZ4, 0.3 / 0.1 ms, < 40 kB.
 _CODECS = {
     "radiance": _Codec("lz4", 5, blosc.BITSHUFFLE, 64 * 1024),
     "variance": _Codec("lz4", 5, blosc.BITSHUFFLE, 64 * 1024),
@@ -132,7 +132,7 @@ def _round_bits_in_place(bits, dropped_bits):
     lowest ``dropped_bits`` mantissa bits rounded away to nearest, ties to even (as
     ``numcodecs.BitRound``). Integer operations on one array only, which the compiler
     vectorizes: 0.56 ms a 1312×2000 variance, in place, where the same rounding done on the
-    floats and their bits as two views of one array took 1.9 ms."""
+    floats and their bits as two views of one array takes 1.9 ms."""
     shift = np.uint32(dropped_bits)
     half = np.uint32((1 << (dropped_bits - 1)) - 1)
     keep = np.uint32(~((1 << dropped_bits) - 1) & 0xFFFFFFFF)

@@ -302,8 +302,8 @@ def specular_points(
     target (the law of reflection); iterating that condition converges for a convex
     mirror seen from outside. Shapes broadcast: (..., 3).
 
-    Compiled (:func:`_specular_kernel`): in NumPy a template's 121 paths took 60 rounds of
-    a dozen small array operations, a millisecond of call overhead per template.
+    Compiled (:func:`_specular_kernel`): in NumPy a template's 121 paths would take 60 rounds
+    of a dozen small array operations, a millisecond of call overhead per template.
     """
     s, t = np.broadcast_arrays(np.asarray(sources, float) - centre, np.asarray(targets, float) - centre)
     shape = s.shape
@@ -328,7 +328,7 @@ def _specular_kernel(s: np.ndarray, t: np.ndarray, radius: float, iterations: in
     value equals its last (a fixed point) or the one before (a two-cycle, which rounding
     can leave), the rest of the rounds would only repeat: the result of all
     ``iterations`` rounds is then read off by their parity, the same to the bit, after
-    about 25 rounds instead of 60.
+    about 25 of the 60 rounds.
     """
     n = s.shape[1]
     p = np.empty((3, 3, n))  # the last three rounds, in rotation

@@ -136,9 +136,9 @@ def _pair_bins(frames, a, b, r, black, limit, bins):
 
     Pixels are binned by the pair's sum ``y_a + y_b`` (as μ_a = r (y_a + y_b) / (1 + r)),
     which under shot noise is uncorrelated with ``d = y_a − r y_b`` (Cov = σ_a² − r σ_b² = 0),
-    so the binning leaves d's variance alone. Binning by ``y_b`` alone, as before 2026-11-22,
-    conditioned d on one of its own terms: the variance then depended on the scene's spread
-    of signals, and the gain came out 9 % high on a scene of three flat levels.
+    so the binning leaves d's variance alone. Binning by ``y_b`` alone would condition d on
+    one of its own terms: the variance would then depend on the scene's spread of signals
+    (the gain comes out 9 % high on a scene of three flat levels).
 
     The same statistics as binning every usable pixel, from :func:`_pair_sums`: a pixel's
     μ_a depends only on its site and sum, so each histogram cell falls in one bin; within a

@@ -34,10 +34,9 @@ from processing.unmixing.sources import SourcesError
 log = logging.getLogger("mirrorgonio.processing")
 
 
-#: Where along the sweep the layout's refinement and the aperture's fit take their positions. The
-#: refinement fits every source's centre to five: with three, noise-free data came out 1.4-5.6 µm
-#: off and the fits 0.06-0.26 % off the truth; with five, 1.1-3.8 µm and 0.02-0.10 % (the true
-#: layout: 0.02-0.17 %), for 5.4 s instead of 3.6.
+#: Where along the sweep the layout's refinement and the camera's fits take their positions. Five:
+#: fitted to three, the centres of noise-free data come out 1.4-5.6 µm off and the fits 0.06-0.26 %
+#: off the truth; to five, 1.1-3.8 µm and 0.02-0.10 % (as with the true layout), in 1.5 times the time.
 FIT_FRACTIONS = (1 / 6, 2 / 6, 3 / 6, 4 / 6, 5 / 6)
 
 
@@ -85,8 +84,8 @@ def layout_from_data(
 
 
 #: χ²/pixel of the templates above which the aperture's fit warns. With the description right it
-#: was 1.06 on the demo rig (the templates' small model error); with it fitted after the ball was
-#: described 0.2 mm off along z, 1.35, and after the other errors of ``bench tolerance``, 1.5-22.
+#: is 1.06 on the demo rig (the templates' small model error); with the ball described 0.2 mm off
+#: along z, 1.35 after the fit, and with the other errors of ``bench tolerance``, 1.5-22.
 CHI2_PER_PIXEL_WARNING = 1.2
 
 

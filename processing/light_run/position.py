@@ -42,8 +42,8 @@ def prepare_task() -> None:
     Dask worker, run the numerical kernels on the task's thread alone.
 
     The workers are the parallelism: numba's parallel kernels would start a thread per core
-    in every worker, and on 2 cores the noise estimates then took 50-200 ms each instead of
-    40-50. ``numba.set_num_threads`` holds for the calling thread only, so each task sets it
+    in every worker, oversubscribing the cores (on 2 of them the noise estimates take up to
+    four times as long). ``numba.set_num_threads`` holds for the calling thread only, so each task sets it
     on the thread it runs on. Without Dask, the kernels keep every core.
     """
     tune_malloc()

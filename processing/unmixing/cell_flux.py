@@ -25,8 +25,8 @@ def cell_sums(
     """``I_c ≈ Σ L_i A_i cos θ_i`` over the pixels whose chief ray lands within ``cell_radius``
     of each source (``measurement.md`` step 4), per channel: (n_sources, 3).
 
-    Only the lit pixels in :func:`cell_pixel_boxes` are traced (a few hundred instead of
-    every lit pixel of the frame, ~10⁵, which took 35 ms a position): a superset of those
+    Only the lit pixels in :func:`cell_pixel_boxes` are traced (a few hundred, where every
+    lit pixel of the frame is ~10⁵ and 35 ms a position): a superset of those
     whose chief ray can land in a cell, so the same pixels pass the exact test below, in
     the same (row-major) order. The trace is per pixel, so each pixel's numbers do not
     depend on which others are traced with it, and the sums are those of tracing every

@@ -117,8 +117,8 @@ def nnls_via_cholesky(a: np.ndarray, b: np.ndarray, gram: np.ndarray, maxiter: i
     """``argmin ||a x - b||, x >= 0``, solved on the small square system.
 
     With ``gram = aᵀa = L Lᵀ`` (Cholesky), ``||a x - b||² = ||Lᵀx - L⁻¹aᵀb||² + const``: the
-    same problem with as many rows as unknowns, so the active-set solver's work no longer
-    grows with the pixels (a few hundred candidate sources over 10⁴–10⁵ pixels: seconds
+    same problem with as many rows as unknowns, so the active-set solver's work does not
+    grow with the pixels (a few hundred candidate sources over 10⁴–10⁵ pixels: seconds
     become milliseconds; the solutions agree to 1e-12 of the largest). A matrix too
     ill-conditioned for Cholesky is solved as given.
     """
