@@ -14,7 +14,15 @@ import numpy as np
 
 
 def rotation_from_angles(rx: float, ry: float, rz: float) -> np.ndarray:
-    """Rotation matrix ``Rz(rz) @ Ry(ry) @ Rx(rx)`` (angles in radians)."""
+    """Rotation matrix ``Rz(rz) @ Ry(ry) @ Rx(rx)`` (angles in radians).
+
+    Examples
+    --------
+    A quarter turn about z takes x to y:
+
+    >>> (rotation_from_angles(0.0, 0.0, math.pi / 2) @ [1.0, 0.0, 0.0]).round(12).tolist()
+    [0.0, 1.0, 0.0]
+    """
     cx, sx = math.cos(rx), math.sin(rx)
     cy, sy = math.cos(ry), math.sin(ry)
     cz, sz = math.cos(rz), math.sin(rz)

@@ -50,7 +50,14 @@ class LightModelError(ValueError):
 def describe_fitted(record: dict, digits: str) -> str:
     """One of the camera's numbers fitted to the data, in words, from its record (the light
     model's provenance ``aperture_m`` or ``sensor_distance_m``; ``digits`` formats it in mm):
-    "0.2004 mm fitted to the data (the rig says 0.2 mm; χ²/pixel 1.063 against 1.07)"."""
+    "0.2004 mm fitted to the data (the rig says 0.2 mm; χ²/pixel 1.063 against 1.07)".
+
+    Examples
+    --------
+    >>> record = {"fitted_m": 2.004e-4, "described_m": 2e-4, "chi2_per_pixel": 1.063, "chi2_per_pixel_described": 1.07}
+    >>> describe_fitted(record, ".4g")
+    '0.2004 mm fitted to the data (the rig says 0.2 mm; χ²/pixel 1.063 against 1.07)'
+    """
     return (
         f"{1e3 * record['fitted_m']:{digits}} mm fitted to the data (the rig says "
         f"{1e3 * record['described_m']:{digits}} "

@@ -39,7 +39,16 @@ GAIN_MISMATCH_WARNING = 0.05
 def gain_mismatch(noise: NoiseModel, rig_gain: float) -> tuple[int, str] | None:
     """How far the noise model's gain lies from the rig's calibrated gain, as a logging level
     and one line: None within 1 %, a warning beyond :data:`GAIN_MISMATCH_WARNING`, else
-    information. The light and the reflectance steps both say it so."""
+    information. The light and the reflectance steps both say it so.
+
+    Examples
+    --------
+    >>> gain_mismatch(NoiseModel(5.02, 0.6, source="estimated"), 5.0) is None
+    True
+    >>> level, line = gain_mismatch(NoiseModel(5.5, 0.6, source="estimated"), 5.0)
+    >>> level == logging.WARNING, "+10.0 %" in line
+    (True, True)
+    """
     off = noise.gain_e_per_dn / rig_gain - 1.0
     if abs(off) <= 0.01:
         return None

@@ -108,7 +108,15 @@ class RigGeometry:
 
 
 def conductor_reflectance(cos_incidence, n, k) -> np.ndarray:
-    """Unpolarised Fresnel reflectance (N, C) of a metal of index n + ik (complex form)."""
+    """Unpolarised Fresnel reflectance (N, C) of a metal of index n + ik (complex form).
+
+    Examples
+    --------
+    At normal incidence ``((n - 1)² + k²) / ((n + 1)² + k²)``, and 1 at grazing incidence:
+
+    >>> conductor_reflectance([1.0, 0.0], n=[3.0], k=[3.0]).round(3).tolist()
+    [[0.52], [1.0]]
+    """
     m = (np.asarray(n) + 1j * np.asarray(k))[None, :]
     c = np.clip(np.asarray(cos_incidence), 0.0, 1.0)[:, None]
     root = np.sqrt(m * m - (1.0 - c * c))  # m * cos(theta_t)

@@ -77,6 +77,12 @@ def plan_processing(options: ProcessingOptions) -> ProcessingPlan:
     ------
     ProcessingError
         The layout file cannot be read (one line naming it).
+
+    Examples
+    --------
+    >>> plan = plan_processing(ProcessingOptions.checked(steps="hdr,sources"))
+    >>> plan.search, plan.fit_aperture, plan.aperture_fit_required, plan.fit_sensor_distance, plan.passes
+    (True, True, False, False, 2)
     """
     layout = None
     if Step.SOURCES in options.steps and options.layout is not None:
