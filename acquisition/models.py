@@ -8,6 +8,7 @@ from typing import Annotated, Literal
 from pydantic import BaseModel, ConfigDict, Field, PositiveFloat, StrictBool, field_validator, model_validator
 
 from drivers.contracts.rig import MAX_POSITIONS, PoseSpec
+from processing.options import Estimator, FitChoice, FitMethod, NoiseSource
 from processing.steps import StepsError, resolve_steps
 
 
@@ -103,26 +104,23 @@ class JobRequest(BaseModel):
         description="process the positions complete now even while the run is "
         "being acquired (otherwise the job waits for the run to end)",
     )
-    estimator: Literal["auto", "templates", "cell-sums"] | None = Field(default=None, description="default: auto")
-    fit: Literal["gaussian", "polynomial", "cos-power", "gaussian-2d"] | None = Field(
-        default=None, description="default: gaussian"
-    )
+    estimator: Estimator | None = Field(default=None, description="default: auto")
+    fit: FitMethod | None = Field(default=None, description="default: gaussian")
     layout: str | None = Field(
         default=None,
         max_length=4096,
         description="the sources' layout, a TOML file on the worker's machine (default: found in the data)",
     )
-    noise: Literal["auto", "estimated", "rig"] | None = Field(
-        default=None, description="HDR noise model; default: auto"
-    )
-    fit_aperture: StrictBool | None = Field(
+    noise: NoiseSource | None = Field(default=None, description="HDR noise model; default: auto")
+    fit_aperture: FitChoice | None = Field(
         default=None,
-        description="fit the camera's aperture (pinhole) diameter to "
-        "the data (docs/light-model.md); default: fitted when the sources are "
-        "searched for in the data (no layout)",
+        description="fit the camera's aperture (pinhole) diameter to the data (docs/light-model.md): auto (the "
+        "default) where the sources are searched for in the data (no layout), the rig's diameter kept if that fit "
+        "fails; always (a failed fit fails the job); never",
     )
-    fit_sensor_distance: StrictBool = Field(
-        default=False, description="fit the sensor distance (pinhole to sensor) to the data too (docs/light-model.md)"
+    fit_sensor_distance: FitChoice | None = Field(
+        default=None,
+        description="fit the sensor distance (pinhole to sensor) to the data too, as fit_aperture; default: never",
     )
 
     @field_validator("steps")
@@ -139,7 +137,7 @@ class JobRequest(BaseModel):
 
     def options(self) -> dict:
         """The job's options as the catalog stores them (only those given)."""
-        return self.model_dump(exclude={"steps"}, exclude_defaults=True)
+        return self.model_dump(mode="json", exclude={"steps"}, exclude_defaults=True)
 
 
 # --- responses -----------------------------------------------------------------------------

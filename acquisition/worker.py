@@ -51,9 +51,10 @@ JOB_OPTIONS = {
     "estimator": "auto, templates or cell-sums",
     "fit": "gaussian, polynomial, cos-power or gaussian-2d",
     "noise": "auto, estimated or rig",
-    "fit_aperture": "fit the camera's aperture (pinhole) diameter to the data (true), or not (false); default: when "
-    "the sources are searched for in the data",
-    "fit_sensor_distance": "fit the sensor distance (pinhole to sensor) to the data too",
+    "fit_aperture": "fit the camera's aperture (pinhole) diameter to the data: auto (where the sources are searched "
+    "for), always, or never",
+    "fit_sensor_distance": "fit the sensor distance (pinhole to sensor) to the data too: auto, always, or never "
+    "(the default)",
 }
 #: The result files a job records, by kind: the daemon serves exactly these.
 ARTIFACT_KINDS = ("report", "ies", "ldt", "tm25", "light_model", "results")
@@ -319,8 +320,8 @@ class JobWorker:
             estimator=options.get("estimator", "auto"),
             fit_method=options.get("fit", "gaussian"),
             noise=options.get("noise", "auto"),
-            fit_aperture={True: "always", False: "never"}.get(options.get("fit_aperture"), "auto"),
-            fit_sensor_distance="always" if options.get("fit_sensor_distance") else "never",
+            fit_aperture=options.get("fit_aperture"),
+            fit_sensor_distance=options.get("fit_sensor_distance"),
         )
         artifacts = {"results": report.results_file}
         if report.light_model is not None:

@@ -678,7 +678,9 @@ def test_the_wheel_carries_the_rigs_and_a_plain_install_finds_the_default_rig(tm
     assert built.returncode == 0, built.stderr
     (wheel,) = (tmp_path / "dist").glob("mirrorgonio-*.whl")
     names = set(zipfile.ZipFile(wheel).namelist())
-    shipped = {p.relative_to(ROOT).as_posix() for p in (ROOT / "acquisition" / "rigs").rglob("*") if p.is_file()}
+    shipped = {
+        p.relative_to(ROOT).as_posix() for p in (ROOT / "drivers" / "contracts" / "rigs").rglob("*") if p.is_file()
+    }
     assert shipped and shipped <= names
     assert "acquisition/web/index.html" in names and "drivers/profiles/sim_stage.toml" in names
     site = tmp_path / "site"

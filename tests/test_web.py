@@ -265,13 +265,13 @@ def test_the_next_job_takes_the_options_set_on_the_page(tmp_path, daemon_factory
     page.fill("#token", TOKEN)
     row = page.locator(f'#runs tr[data-run-id="{run.id}"]')
     expect(row).to_contain_text("complete")
-    expect(page.locator("#fit-aperture")).to_have_value("")  # the worker's default
+    expect(page.locator("#fit-aperture")).to_have_value("auto")  # the worker's default
     expect(page.locator("#fit-model")).to_have_value("gaussian")
     message = page.locator("#message")
     choices = [
-        ("true", True, "polynomial", "steps hdr,sources, aperture fitted, sensor distance fitted, polynomial fits"),
-        ("false", False, "gaussian", "steps hdr,sources, aperture as described"),
-        ("", False, "gaussian", "steps hdr,sources"),
+        ("always", True, "polynomial", "steps hdr,sources, aperture fitted, sensor distance fitted, polynomial fits"),
+        ("never", False, "gaussian", "steps hdr,sources, aperture as described"),
+        ("auto", False, "gaussian", "steps hdr,sources"),
     ]
     for aperture, distance, model, said in choices:
         page.select_option("#fit-aperture", aperture)
@@ -282,7 +282,11 @@ def test_the_next_job_takes_the_options_set_on_the_page(tmp_path, daemon_factory
     page.screenshot(path=str(tmp_path / "options.png"), full_page=True)
     with daemon.client() as http:
         jobs = sorted(http.get("/jobs", params={"run_id": run.id}).json(), key=lambda job: job["created_utc"])
-    options = [{"fit_aperture": True, "fit_sensor_distance": True, "fit": "polynomial"}, {"fit_aperture": False}, {}]
+    options = [
+        {"fit_aperture": "always", "fit_sensor_distance": "always", "fit": "polynomial"},
+        {"fit_aperture": "never"},
+        {},
+    ]
     assert sorted((job["options"] for job in jobs), key=len) == sorted(options, key=len)
     for job in jobs:
         said = next(said for (*_, said), opts in zip(choices, options, strict=False) if opts == job["options"])

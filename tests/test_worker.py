@@ -365,7 +365,9 @@ def test_the_daemon_serves_a_jobs_state_and_exactly_its_result_files(captured, d
         bad = http.post(f"/runs/{run.id}/process", json={"steps": "hdr,dance"})
         assert bad.status_code == 422 and "unknown step 'dance'" in str(bad.json()["detail"])
         assert http.post(f"/runs/{run.id}/process", json={"steps": "hdr", "fit": "spline"}).status_code == 422
-        assert http.post(f"/runs/{run.id}/process", json={"fit_aperture": "yes"}).status_code == 422  # a strict bool
+        assert (
+            http.post(f"/runs/{run.id}/process", json={"fit_aperture": "yes"}).status_code == 422
+        )  # auto, always or never
         assert http.post(f"/runs/{run.id}/process", json={"fit_sensor_distance": 1}).status_code == 422
         queued = http.post(f"/runs/{run.id}/process", json={"steps": "hdr,sources"})
         assert queued.status_code == 201

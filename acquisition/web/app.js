@@ -463,16 +463,17 @@ function markSelected() {
 // The options of the next job (JobRequest): only those that differ from the worker's defaults.
 function jobRequest() {
   const body = { steps: "hdr,sources" };
-  if ($("fit-aperture").value) body.fit_aperture = $("fit-aperture").value === "true";
-  if ($("fit-sensor-distance").checked) body.fit_sensor_distance = true;
+  if ($("fit-aperture").value !== "auto") body.fit_aperture = $("fit-aperture").value;
+  if ($("fit-sensor-distance").checked) body.fit_sensor_distance = "always";
   if ($("fit-model").value !== "gaussian") body.fit = $("fit-model").value;
   return body;
 }
 
 function describeOptions(options) {
   const parts = [];
-  if (options && options.fit_aperture !== undefined) parts.push(options.fit_aperture ? "aperture fitted" : "aperture as described");
-  if (options && options.fit_sensor_distance) parts.push("sensor distance fitted");
+  const said = { always: "aperture fitted", never: "aperture as described", auto: "aperture fitted where searched" };
+  if (options && options.fit_aperture) parts.push(said[options.fit_aperture] || `aperture ${options.fit_aperture}`);
+  if (options && options.fit_sensor_distance && options.fit_sensor_distance !== "never") parts.push("sensor distance fitted");
   if (options && options.fit) parts.push(`${options.fit} fits`);
   return parts.length ? `, ${parts.join(", ")}` : "";
 }
