@@ -440,37 +440,6 @@ def write_ldt(
 
 # --------------------------------------------------------------------------- TM-25-13
 
-TM25_COLUMNS = (
-    "x",
-    "y",
-    "z",
-    "kx",
-    "ky",
-    "kz",
-    "phi",
-    "lambda",
-    "Tri_Y",
-    "S1",
-    "S2",
-    "S3",
-    "PolEllipseX",
-    "PolEllipseY",
-    "PolEllipseZ",
-    "Tri_X",
-    "Tri_Z",
-    "spectrumIdx",
-)
-"""The standard ray columns in file order (``phi`` radiant flux W, ``Tri_Y`` luminous flux lm)."""
-_FLAG_NAMES = (
-    "position",
-    "direction",
-    "radiant_flux",
-    "wavelength",
-    "luminous_flux",
-    "stokes",
-    "tristimulus",
-    "spectrum_index",
-)
 _FLAG_COLUMNS = {
     "position": ("x", "y", "z"),
     "direction": ("kx", "ky", "kz"),
@@ -481,6 +450,10 @@ _FLAG_COLUMNS = {
     "tristimulus": ("Tri_X", "Tri_Z"),
     "spectrum_index": ("spectrumIdx",),
 }
+"""The eight column flags in file order (4.7.2), each with the ray columns it adds."""
+_FLAG_NAMES = tuple(_FLAG_COLUMNS)
+TM25_COLUMNS = tuple(column for columns in _FLAG_COLUMNS.values() for column in columns)
+"""The standard ray columns in file order (``phi`` radiant flux W, ``Tri_Y`` luminous flux lm)."""
 _TEXT_FIELDS = (
     "name",
     "manufacturer",
