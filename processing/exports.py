@@ -338,6 +338,49 @@ def write_ies(
     return _write_text(path, lines, "\r\n")
 
 
+def _ldt_description(model: LightModel, file_name: str, absolute: bool, grid: tuple, names: tuple) -> list[str]:
+    """EULUMDAT lines 1-12: the company and the units, the type and symmetry indicators, the angle grid
+    ``(Mc, Dc, Ng, Dg)``, the report, the luminaire's name and number, the file name and the date.
+
+    ``names`` is ``(company, luminaire, luminaire_number)`` as :func:`write_ldt` was given them.
+    """
+    company, luminaire, luminaire_number = names
+    n_c, c_step_deg, n_gamma, gamma_step_deg = grid
+    symmetric = all(s.fit.method != "gaussian-2d" for s in model.sources)
+    run, rig, methods = _describe(model)
+    units = "candela (calibrated)" if absolute else f"relative ({model.units}, uncalibrated)"
+
+    def line(text, limit):
+        return _ascii(text)[:limit]
+
+    return [
+        line(f"{company} - far field, {units}", 78),
+        "1" if symmetric else "3",  # Ityp: point source, symmetric about the vertical axis or not
+        "0",  # Isym: every C-plane is stored
+        str(n_c),  # Mc
+        _num(c_step_deg),  # Dc
+        str(n_gamma),  # Ng
+        _num(gamma_step_deg),  # Dg
+        line(f"mirrorgonio run {run}", 78),  # measurement report
+        line(luminaire or f"near-field light model, {len(model.sources)} sources ({methods})", 78),
+        line(luminaire_number or run, 78),
+        line(file_name, 8 + 4 + 66),
+        line(f"{_dt.date.today().isoformat()} / mirrorgonio {__version__} / rig {rig}", 78),
+    ]
+
+
+def _ldt_luminaire_and_lamps(model: LightModel, absolute: bool, lamp_flux: float) -> list[str]:
+    """EULUMDAT lines 13-26f: the luminaire's and luminous area's sizes, the ratios, and the lamps."""
+    length, width = (1000.0 * x for x in _opening(model))
+    lines = [_num(length), _num(width), "0"]  # the luminaire's length, width and height (mm)
+    lines += [_num(length), _num(width), "0", "0", "0", "0"]  # the luminous area's, its heights at C0, C90, C180, C270
+    lines += ["100", "100", "1", "0"]  # DFF, LORL (%), conversion factor of the intensities, tilt in the measurement
+    lamp_type = "mirrorgonio (candela)" if absolute else "mirrorgonio (relative)"  # 24 characters at most
+    # One standard set of one lamp: its type, total luminous flux (relative units unless calibrated), colour
+    # appearance, colour rendering, wattage including ballast.
+    return lines + ["1", "1", lamp_type, _num(lamp_flux), "", "", "0"]
+
+
 def write_ldt(
     model: LightModel,
     path,
@@ -388,52 +431,13 @@ def write_ldt(
     gamma = _grid(path, "gamma_step_deg", gamma_step_deg, 180.0)
     table = _far_field_table(model, gamma, c_all)
     factor, lamp_flux, absolute = _scaling(path, model, table, calibration, lamp_lumens)
-    symmetric = all(s.fit.method != "gaussian-2d" for s in model.sources)
-    cd_per_klm = table * factor * 1000.0 / lamp_flux
-    run, rig, methods = _describe(model)
-    length, width = (1000.0 * x for x in _opening(model))
-    units = "candela (calibrated)" if absolute else f"relative ({model.units}, uncalibrated)"
-
-    def line(text, limit):
-        return _ascii(text)[:limit]
-
-    lines = [
-        line(f"{company} - far field, {units}", 78),
-        "1" if symmetric else "3",  # Ityp: point source, symmetric about the vertical axis or not
-        "0",  # Isym: every C-plane is stored
-        str(len(c_all)),  # Mc
-        _num(c_step_deg),  # Dc
-        str(len(gamma)),  # Ng
-        _num(gamma_step_deg),  # Dg
-        line(f"mirrorgonio run {run}", 78),  # measurement report
-        line(luminaire or f"near-field light model, {len(model.sources)} sources ({methods})", 78),
-        line(luminaire_number or run, 78),
-        line(path.name, 8 + 4 + 66),
-        line(f"{_dt.date.today().isoformat()} / mirrorgonio {__version__} / rig {rig}", 78),
-        _num(length),
-        _num(width),
-        "0",  # luminaire length, width, height (mm)
-        _num(length),
-        _num(width),
-        "0",
-        "0",
-        "0",
-        "0",  # luminous area and its heights (mm)
-        "100",
-        "100",  # DFF, LORL (%)
-        "1",  # conversion factor for luminous intensities
-        "0",  # tilt during measurement
-        "1",  # one standard set of lamps
-        "1",  # number of lamps
-        "mirrorgonio (candela)" if absolute else "mirrorgonio (relative)",  # lamp type, 24 characters at most
-        _num(lamp_flux),  # total luminous flux of the lamps (relative units unless calibrated)
-        "",
-        "",  # colour appearance, colour rendering
-        "0",  # wattage including ballast
-    ]
+    grid = (len(c_all), c_step_deg, len(gamma), gamma_step_deg)
+    lines = _ldt_description(model, path.name, absolute, grid, (company, luminaire, luminaire_number))
+    lines += _ldt_luminaire_and_lamps(model, absolute, lamp_flux)
     lines += ["0"] * 10  # direct ratios, not computed
     lines += [_num(v) for v in c_all]
     lines += [_num(v) for v in gamma]
+    cd_per_klm = table * factor * 1000.0 / lamp_flux
     lines += [_num(v) for v in cd_per_klm.ravel()]
     return _write_text(path, lines, "\r\n")
 
