@@ -524,6 +524,72 @@ def _allocate(fluxes: np.ndarray, n_rays: int) -> np.ndarray:
     return counts
 
 
+def _emitting_fluxes(path, model: LightModel, n_rays) -> np.ndarray:
+    """The sources' fluxes ``∫ I_s dΩ``, for a light that emits and has a ray for each emitting source."""
+    fluxes = np.array([s.flux() for s in model.sources])
+    if not np.all(np.isfinite(fluxes)) or not fluxes.sum() > 0:
+        raise ExportError(f"{path}: the light model emits no flux in front of its plane")
+    if n_rays < int(np.count_nonzero(fluxes > 0)):
+        raise ExportError(
+            f"{path}: n_rays: {n_rays} is fewer than the {int(np.count_nonzero(fluxes > 0))} emitting sources"
+        )
+    return fluxes
+
+
+def _sample_rays(model: LightModel, fluxes: np.ndarray, n_rays: int, rng: np.random.Generator) -> np.ndarray:
+    """``(n_rays, 7)`` rays ``x y z kx ky kz phi``, source after source: a share of the rays ∝ the source's
+    flux, starting uniformly on its disc (mm, z = 0), directions drawn from its intensity, each carrying
+    ``Φ_s / n_s``."""
+    counts = _allocate(fluxes, n_rays)
+    rays = np.empty((n_rays, 7), dtype=np.float64)
+    row = 0
+    for s, flux, k in zip(model.sources, fluxes, counts, strict=True):
+        if k == 0:
+            continue
+        r = s.radius_m * np.sqrt(rng.random(k))
+        a = rng.random(k) * 2.0 * math.pi
+        rays[row : row + k, 0] = 1000.0 * (s.centre_m[0] + r * np.cos(a))
+        rays[row : row + k, 1] = 1000.0 * (s.centre_m[1] + r * np.sin(a))
+        rays[row : row + k, 2] = 0.0
+        rays[row : row + k, 3:6] = _sample_directions(s, int(k), rng)
+        rays[row : row + k, 6] = flux / k
+        row += k
+    return rays
+
+
+def _tm25_texts(model: LightModel, name: str | None, manufacturer: str, seed: int) -> dict[str, str]:
+    """The nine text fields (4.7.3) by name: the light, who made the model and the file, and how."""
+    prov = model.provenance
+    run = str(prov.get("run_id") or "unknown run")
+    unit_note = "W (radiant flux)" if model.units == "W/sr" else "relative units (uncalibrated measurement)"
+    return {
+        "name": name or f"light of mirrorgonio run {run}",
+        "manufacturer": manufacturer,
+        "model_creator": f"mirrorgonio {__version__} ({prov.get('method', 'unknown method')})",
+        "rayfile_creator": f"mirrorgonio {__version__}",
+        "equipment": f"mirror-ball goniophotometer, rig {prov.get('rig') or 'unknown'}",
+        "camera": str(prov.get("camera") or ""),
+        "light_source_operation": str(prov.get("operation") or ""),
+        "additional_info": (
+            f"Rays sampled (seed {seed}) from a near-field model of {len(model.sources)} point sources "
+            f"on emitting discs; ray flux column phi in {unit_note}; positions in mm in the light "
+            f"frame (emission towards +z)."
+        ),
+        "data_reference": f"run {run}, file {prov.get('run_file') or 'unknown'}",
+    }
+
+
+def _tm25_header_and_flags(creation_method: int, radiant_flux: float, n_rays: int) -> bytes:
+    """The header (4.7.1) with the date of now, no luminous flux (NaN) and no spectrum, then the column
+    flags (4.7.2): position, direction and radiant flux."""
+    now = _dt.datetime.now(_dt.UTC).replace(microsecond=0).isoformat().encode("ascii")[:28]
+    nan = float("nan")
+    # File type, version, creation method, luminous and radiant flux, rays, date and time, start position,
+    # spectrum type, wavelength and its range, spectral tables, additional columns, additional text (bytes).
+    header = _HEADER.pack(b"TM25", 2013, creation_method, nan, radiant_flux, n_rays, now, 0, 0, nan, nan, nan, 0, 0, 0)
+    return header + struct.pack("<8i", 1, 1, 1, 0, 0, 0, 0, 0)
+
+
 def write_tm25(
     model: LightModel,
     path,
@@ -576,72 +642,16 @@ def write_tm25(
         raise ExportError(
             f"{path}: creation_method: must be 0 (simulation) or 1 (measurement), got {creation_method!r}"
         )
-    fluxes = np.array([s.flux() for s in model.sources])
-    if not np.all(np.isfinite(fluxes)) or not fluxes.sum() > 0:
-        raise ExportError(f"{path}: the light model emits no flux in front of its plane")
-    if n_rays < int(np.count_nonzero(fluxes > 0)):
-        raise ExportError(
-            f"{path}: n_rays: {n_rays} is fewer than the {int(np.count_nonzero(fluxes > 0))} emitting sources"
-        )
-    rng = np.random.default_rng(seed)
-    counts = _allocate(fluxes, int(n_rays))
-    rays = np.empty((int(n_rays), 7), dtype=np.float64)
-    row = 0
-    for s, flux, k in zip(model.sources, fluxes, counts, strict=True):
-        if k == 0:
-            continue
-        r = s.radius_m * np.sqrt(rng.random(k))
-        a = rng.random(k) * 2.0 * math.pi
-        rays[row : row + k, 0] = 1000.0 * (s.centre_m[0] + r * np.cos(a))
-        rays[row : row + k, 1] = 1000.0 * (s.centre_m[1] + r * np.sin(a))
-        rays[row : row + k, 2] = 0.0
-        rays[row : row + k, 3:6] = _sample_directions(s, int(k), rng)
-        rays[row : row + k, 6] = flux / k
-        row += k
-    rays32 = rays.astype("<f4")
+    fluxes = _emitting_fluxes(path, model, n_rays)
+    rays32 = _sample_rays(model, fluxes, int(n_rays), np.random.default_rng(seed)).astype("<f4")
     total = float(np.sum(rays32[:, 6], dtype=np.float64))
-    prov = model.provenance
-    run = str(prov.get("run_id") or "unknown run")
-    unit_note = "W (radiant flux)" if model.units == "W/sr" else "relative units (uncalibrated measurement)"
-    texts = {
-        "name": name or f"light of mirrorgonio run {run}",
-        "manufacturer": manufacturer,
-        "model_creator": f"mirrorgonio {__version__} ({prov.get('method', 'unknown method')})",
-        "rayfile_creator": f"mirrorgonio {__version__}",
-        "equipment": f"mirror-ball goniophotometer, rig {prov.get('rig') or 'unknown'}",
-        "camera": str(prov.get("camera") or ""),
-        "light_source_operation": str(prov.get("operation") or ""),
-        "additional_info": (
-            f"Rays sampled (seed {seed}) from a near-field model of {len(model.sources)} point sources "
-            f"on emitting discs; ray flux column phi in {unit_note}; positions in mm in the light "
-            f"frame (emission towards +z)."
-        ),
-        "data_reference": f"run {run}, file {prov.get('run_file') or 'unknown'}",
-    }
-    now = _dt.datetime.now(_dt.UTC).replace(microsecond=0).isoformat()
-    header = _HEADER.pack(
-        b"TM25",
-        2013,
-        int(creation_method),
-        float("nan"),
-        total,
-        int(n_rays),
-        now.encode("ascii")[:28],
-        0,
-        0,
-        float("nan"),
-        float("nan"),
-        float("nan"),
-        0,
-        0,
-        0,
-    )
-    flags = struct.pack("<8i", 1, 1, 1, 0, 0, 0, 0, 0)
+    texts = _tm25_texts(model, name, manufacturer, seed)
+    head = _tm25_header_and_flags(int(creation_method), total, int(n_rays))
     text = b"".join(_utf32(texts[k], _TEXT_BYTES) for k in _TEXT_FIELDS)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + ".tmp")
     with open(tmp, "wb") as f:
-        f.write(header + flags + text)  # no spectral tables, column labels or additional text
+        f.write(head + text)  # no spectral tables, column labels or additional text
         f.write(rays32.tobytes())
     os.replace(tmp, path)
     return path
