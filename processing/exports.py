@@ -657,6 +657,81 @@ def write_tm25(
     return path
 
 
+def _read_tm25_flags(path, head: bytes) -> dict[str, bool]:
+    """The eight column flags (4.7.2) by name; position, direction and a flux must be there."""
+    flag_values = struct.unpack_from("<8i", head, 256)
+    flags = {}
+    for name, value in zip(_FLAG_NAMES, flag_values, strict=True):
+        if value not in (0, 1):
+            raise TM25Error(f"{path}: {name} flag: {value}, must be 0 or 1")
+        flags[name] = bool(value)
+    if not (flags["position"] and flags["direction"]):
+        raise TM25Error(f"{path}: position and direction flags must be 1, are {flag_values[0]} and {flag_values[1]}")
+    if not (flags["radiant_flux"] or flags["luminous_flux"]):
+        raise TM25Error(f"{path}: neither the radiant nor the luminous flux flag is set")
+    return flags
+
+
+def _read_tm25_header(path, head: bytes) -> tuple[dict, tuple[int, int, int]]:
+    """The header (4.7.1), the column flags and the text fields (4.7.3) from the file's first bytes, checked;
+    also the counts of what follows them: spectral tables, additional columns, bytes of additional text."""
+    if len(head) < _SPECTRA_START:
+        raise TM25Error(f"{path}: {len(head)} bytes, shorter than a TM-25 header ({_SPECTRA_START} bytes)")
+    magic, version, method, lum, rad, n_rays, date, start, spectrum, lam, lam_min, lam_max, *counts = (
+        _HEADER.unpack_from(head, 0)
+    )
+    if magic != b"TM25":
+        raise TM25Error(f"{path}: not a TM-25 ray file (file type {magic!r}, expected b'TM25')")
+    if version != 2013:
+        raise TM25Error(f"{path}: file version: {version}, this reader knows TM-25-13 (2013)")
+    flags = _read_tm25_flags(path, head)
+    n_spectra, n_addtl, addtl_text = counts
+    if n_spectra < 0 or n_addtl < 0 or addtl_text < 0 or addtl_text % 4:
+        raise TM25Error(
+            f"{path}: header: negative counts or a text size that is not whole characters "
+            f"(spectra {n_spectra}, items {n_addtl}, text {addtl_text} bytes)"
+        )
+    header = {
+        "format": "TM25",
+        "version": version,
+        "creation_method": method,
+        "luminous_flux": lum,
+        "radiant_flux": rad,
+        "n_rays": n_rays,
+        "date_time": date.split(b"\0", 1)[0].decode("ascii", errors="replace"),
+        "start_position": start,
+        "spectrum_type": spectrum,
+        "wavelength": lam,
+        "wavelength_min": lam_min,
+        "wavelength_max": lam_max,
+        "flags": flags,
+        "texts": {
+            k: _from_utf32(head[_TEXT_START + i * _TEXT_BYTES : _TEXT_START + (i + 1) * _TEXT_BYTES])
+            for i, k in enumerate(_TEXT_FIELDS)
+        },
+    }
+    return header, (n_spectra, n_addtl, addtl_text)
+
+
+def _read_tm25_spectra(path, f, n_spectra: int) -> list[dict[str, np.ndarray]]:
+    """The spectral tables (wavelength, weight pairs) and their zero padding to a multiple of 32 bytes."""
+    spectra, nbytes = [], 0
+    for i in range(n_spectra):
+        raw = f.read(4)
+        if len(raw) < 4:
+            raise TM25Error(f"{path}: spectral table {i + 1}: file ends in it")
+        (m,) = struct.unpack("<i", raw)
+        if m <= 0:
+            raise TM25Error(f"{path}: spectral table {i + 1}: {m} entries")
+        pairs = np.frombuffer(f.read(8 * m), dtype="<f4")
+        if pairs.size < 2 * m:
+            raise TM25Error(f"{path}: spectral table {i + 1}: file ends in it")
+        spectra.append({"wavelength": pairs[0::2].copy(), "weight": pairs[1::2].copy()})
+        nbytes += 4 + 8 * m
+    f.read((-nbytes) % 32)
+    return spectra
+
+
 def read_tm25(path) -> tuple[dict, np.ndarray]:
     """Read an IES TM-25-13 binary ray file.
 
@@ -695,95 +770,18 @@ def read_tm25(path) -> tuple[dict, np.ndarray]:
     try:
         size = path.stat().st_size
         with open(path, "rb") as f:
-            head = f.read(_SPECTRA_START)
-            if len(head) < _SPECTRA_START:
-                raise TM25Error(f"{path}: {len(head)} bytes, shorter than a TM-25 header ({_SPECTRA_START} bytes)")
-            (
-                magic,
-                version,
-                method,
-                lum,
-                rad,
-                n_rays,
-                date,
-                start,
-                spectrum,
-                lam,
-                lam_min,
-                lam_max,
-                n_spectra,
-                n_addtl,
-                addtl_text,
-            ) = _HEADER.unpack_from(head, 0)
-            if magic != b"TM25":
-                raise TM25Error(f"{path}: not a TM-25 ray file (file type {magic!r}, expected b'TM25')")
-            if version != 2013:
-                raise TM25Error(f"{path}: file version: {version}, this reader knows TM-25-13 (2013)")
-            flag_values = struct.unpack_from("<8i", head, 256)
-            flags = {}
-            for name, value in zip(_FLAG_NAMES, flag_values, strict=True):
-                if value not in (0, 1):
-                    raise TM25Error(f"{path}: {name} flag: {value}, must be 0 or 1")
-                flags[name] = bool(value)
-            if not (flags["position"] and flags["direction"]):
-                raise TM25Error(
-                    f"{path}: position and direction flags must be 1, are {flag_values[0]} and {flag_values[1]}"
-                )
-            if not (flags["radiant_flux"] or flags["luminous_flux"]):
-                raise TM25Error(f"{path}: neither the radiant nor the luminous flux flag is set")
-            if n_spectra < 0 or n_addtl < 0 or addtl_text < 0 or addtl_text % 4:
-                raise TM25Error(
-                    f"{path}: header: negative counts or a text size that is not whole characters "
-                    f"(spectra {n_spectra}, items {n_addtl}, text {addtl_text} bytes)"
-                )
-            texts = {
-                k: _from_utf32(head[_TEXT_START + i * _TEXT_BYTES : _TEXT_START + (i + 1) * _TEXT_BYTES])
-                for i, k in enumerate(_TEXT_FIELDS)
-            }
-            spectra, nbytes = [], 0
-            for i in range(n_spectra):
-                raw = f.read(4)
-                if len(raw) < 4:
-                    raise TM25Error(f"{path}: spectral table {i + 1}: file ends in it")
-                (m,) = struct.unpack("<i", raw)
-                if m <= 0:
-                    raise TM25Error(f"{path}: spectral table {i + 1}: {m} entries")
-                pairs = np.frombuffer(f.read(8 * m), dtype="<f4")
-                if pairs.size < 2 * m:
-                    raise TM25Error(f"{path}: spectral table {i + 1}: file ends in it")
-                spectra.append({"wavelength": pairs[0::2].copy(), "weight": pairs[1::2].copy()})
-                nbytes += 4 + 8 * m
-            f.read((-nbytes) % 32)  # zero padding to a multiple of 32 bytes
-            labels = [_from_utf32(f.read(512)) for _ in range(n_addtl)]
-            additional_text = _from_utf32(f.read(addtl_text)) if addtl_text else ""
+            header, (n_spectra, n_addtl, addtl_text) = _read_tm25_header(path, f.read(_SPECTRA_START))
+            header["spectra"] = _read_tm25_spectra(path, f, n_spectra)
+            header["additional_columns"] = labels = [_from_utf32(f.read(512)) for _ in range(n_addtl)]
+            header["additional_text"] = _from_utf32(f.read(addtl_text)) if addtl_text else ""
             offset = f.tell()
     except OSError as e:
         raise TM25Error(f"{path}: cannot read ({e.strerror or e})") from None
+    flags, n_rays = header["flags"], header["n_rays"]
     columns = [c for flag in _FLAG_NAMES if flags[flag] for c in _FLAG_COLUMNS[flag]] + labels
     expected = offset + n_rays * len(columns) * 4
     if size < expected:
         raise TM25Error(f"{path}: {size} bytes, {n_rays} rays of {len(columns)} columns need {expected}: truncated")
     rays = np.fromfile(path, dtype="<f4", count=n_rays * len(columns), offset=offset).reshape(n_rays, len(columns))
-    header = {
-        "format": "TM25",
-        "version": version,
-        "creation_method": method,
-        "luminous_flux": lum,
-        "radiant_flux": rad,
-        "n_rays": n_rays,
-        "date_time": date.split(b"\0", 1)[0].decode("ascii", errors="replace"),
-        "start_position": start,
-        "spectrum_type": spectrum,
-        "wavelength": lam,
-        "wavelength_min": lam_min,
-        "wavelength_max": lam_max,
-        "flags": flags,
-        "texts": texts,
-        "spectra": spectra,
-        "additional_columns": labels,
-        "additional_text": additional_text,
-        "columns": columns,
-        "ray_offset": offset,
-        "trailing_bytes": size - expected,
-    }
+    header.update(columns=columns, ray_offset=offset, trailing_bytes=size - expected)
     return header, rays
