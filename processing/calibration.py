@@ -363,6 +363,84 @@ def _flux_edges(profile_at, count: int, x1: float, x2: float, step: float, curva
     return s0, a_i, a_o, rms_i
 
 
+def _edge_windows(img: np.ndarray, ellipse: Ellipse, count: int, step: float) -> tuple[float, float, float]:
+    """The edge's blur, the 10-90 % width of the median profile across the outline over a long reach, and the
+    estimator's windows ``x1, x2`` (px, on the sampling grid) that it sets."""
+    small = min(ellipse.semi_axes)
+    reach = min(0.45 * small, 120.0)
+    pts, normals = ellipse.points(count)
+    t = np.arange(-reach, reach + step / 2, step)
+    long = _sample(img, pts[:, None, :] + t[None, :, None] * normals[:, None, :])
+    median = np.median(long, axis=0)
+    lo_lvl, hi_lvl = np.median(median[t > 0.8 * reach]), np.median(median[t < -0.8 * reach])
+    frac = (median - lo_lvl) / max(hi_lvl - lo_lvl, 1e-300)
+    inside_t = t[frac >= 0.9]
+    outside_t = t[frac <= 0.1]
+    t90 = inside_t[inside_t < 0].max() if np.any(inside_t < 0) else 0.0
+    t10 = outside_t[outside_t > t90].min() if np.any(outside_t > t90) else 0.0
+    blur = float(max(t10 - t90, 1.0))
+    x1 = step * math.floor((1.25 * blur + 2.0) / step)
+    x2 = x1 + step * math.ceil(max(4.0, blur) / step)
+    if x2 > 0.6 * small:
+        raise CalibrationError(
+            f"the ball's image is too small for its blur (radius {small:.0f} px, edge {blur:.0f} px wide)"
+        )
+    return blur, x1, x2
+
+
+def _edge_profiles(img: np.ndarray, ellipse: Ellipse, count: int, windows: tuple[float, float], step: float):
+    """Flux-balanced edges along ``count`` profiles normal to ``ellipse``, those whose windows stay in the
+    image: the profiles' points, normals and curvature, and what :func:`_flux_edges` returns for them."""
+    h, w = img.shape
+    x1, x2 = windows
+    pts, normals = ellipse.points(count)
+    far = pts[:, None, :] + (x2 + 0.5 * x1) * np.array([-1.0, 1.0])[None, :, None] * normals[:, None, :]
+    inside_image = np.all(
+        (far[..., 0] >= 1) & (far[..., 0] <= w - 2) & (far[..., 1] >= 1) & (far[..., 1] <= h - 2), axis=1
+    )
+    pts, normals = pts[inside_image], normals[inside_image]
+    curvature = ellipse.curvature(count)[inside_image]
+
+    def profile_at(offsets):
+        return _sample(img, pts[:, None, :] + offsets[..., None] * normals[:, None, :])
+
+    return pts, normals, curvature, _flux_edges(profile_at, len(pts), x1, x2, step, curvature)
+
+
+def _usable_edges(edge, offset, contrast, rms, x1: float, count: int) -> np.ndarray:
+    """The edge points to keep: the typical contrast, a clean inner level, an edge near the outline it was
+    sought from, and no outlier from the ellipse fitted to those."""
+    typical = np.median(contrast)
+    noise = np.median(rms)
+    good = (
+        (contrast > 0.7 * typical)
+        & (contrast < 1.3 * typical)
+        & (rms < 3.0 * noise + 0.01 * abs(typical))
+        & (np.abs(offset) < 0.5 * x1)
+    )
+    if good.sum() < max(20, 0.25 * count):
+        raise CalibrationError(f"the ball's outline is not clear enough: {good.sum()} of {count} edge profiles usable")
+    fitted = Ellipse.from_cv(cv2.fitEllipse(edge[good].astype(np.float32)))
+    dev = (fitted.normalised_radius(edge) - 1.0) * min(fitted.semi_axes)
+    mad = 1.4826 * np.median(np.abs(dev[good] - np.median(dev[good])))
+    return good & (np.abs(dev) < max(5.0 * mad, 0.25))
+
+
+def _line_spread(img, points, normals, levels, x2: float, step: float) -> tuple[np.ndarray, np.ndarray]:
+    """The camera's line spread across the edge, ``(offsets, weights)``: the derivative of the median edge
+    profile normalised by each point's ``levels = (outside, inside)``, symmetrised (the camera's blur is
+    symmetric; the Fresnel rim adds an odd part)."""
+    a_out, a_in = levels
+    m = int(math.ceil(x2 / step))
+    t = np.arange(-m, m + 1) * step
+    long = _sample(img, points[:, None, :] + t[None, :, None] * normals[:, None, :])
+    esf = np.median((long - a_out[:, None]) / (a_in - a_out)[:, None], axis=0)
+    lsf = -np.gradient(esf, step)
+    lsf = np.clip(0.5 * (lsf + lsf[::-1]), 0.0, None)
+    lsf = lsf / lsf.sum() if lsf.sum() > 0 else np.eye(1, t.size, m)[0]
+    return t, lsf
+
+
 def detect_silhouette(image, *, method: str = "ellipse", profiles: int | None = None) -> Silhouette:
     """Find the mirrored ball's outline in a calibration image, with sub-pixel precision.
 
@@ -401,88 +479,21 @@ def detect_silhouette(image, *, method: str = "ellipse", profiles: int | None = 
         )
 
     a, b = ellipse.semi_axes
-    small = min(a, b)
     perimeter = math.pi * (3 * (a + b) - math.sqrt((3 * a + b) * (a + 3 * b)))
     count = profiles or int(np.clip(round(perimeter), 64, 4096))
     step = 0.25
-
-    # The blur: 10-90 % width of the median profile, over a long reach.
-    reach = min(0.45 * small, 120.0)
-    pts, normals = ellipse.points(count)
-    t = np.arange(-reach, reach + step / 2, step)
-    long = _sample(img, pts[:, None, :] + t[None, :, None] * normals[:, None, :])
-    median = np.median(long, axis=0)
-    lo_lvl, hi_lvl = np.median(median[t > 0.8 * reach]), np.median(median[t < -0.8 * reach])
-    frac = (median - lo_lvl) / max(hi_lvl - lo_lvl, 1e-300)
-    inside_t = t[frac >= 0.9]
-    outside_t = t[frac <= 0.1]
-    t90 = inside_t[inside_t < 0].max() if np.any(inside_t < 0) else 0.0
-    t10 = outside_t[outside_t > t90].min() if np.any(outside_t > t90) else 0.0
-    blur = float(max(t10 - t90, 1.0))
-    x1 = step * math.floor((1.25 * blur + 2.0) / step)  # windows on the sampling grid
-    x2 = x1 + step * math.ceil(max(4.0, blur) / step)
-    if x2 > 0.6 * small:
-        raise CalibrationError(
-            f"the ball's image is too small for its blur (radius {small:.0f} px, edge {blur:.0f} px wide)"
-        )
-
-    rejected = 0
-    for _ in range(2):
-        pts, normals = ellipse.points(count)
-        far = pts[:, None, :] + (x2 + 0.5 * x1) * np.array([-1.0, 1.0])[None, :, None] * normals[:, None, :]
-        inside_image = np.all(
-            (far[..., 0] >= 1) & (far[..., 0] <= w - 2) & (far[..., 1] >= 1) & (far[..., 1] <= h - 2), axis=1
-        )
-        pts, normals = pts[inside_image], normals[inside_image]
-
-        curvature = ellipse.curvature(count)[inside_image]
-
-        def profile_at(offsets, pts=pts, normals=normals):
-            return _sample(img, pts[:, None, :] + offsets[..., None] * normals[:, None, :])
-
-        offset, a_in, a_out, rms = _flux_edges(profile_at, len(pts), x1, x2, step, curvature)
-        contrast = a_in - a_out
-        typical = np.median(contrast)
-        noise = np.median(rms)
-        good = (
-            (contrast > 0.7 * typical)
-            & (contrast < 1.3 * typical)
-            & (rms < 3.0 * noise + 0.01 * abs(typical))
-            & (np.abs(offset) < 0.5 * x1)
-        )
+    blur, x1, x2 = _edge_windows(img, ellipse, count, step)
+    for _ in range(2):  # the second pass along the normals of the ellipse fitted to the first pass's edges
+        pts, normals, curvature, (offset, a_in, a_out, rms) = _edge_profiles(img, ellipse, count, (x1, x2), step)
         edge = pts + offset[:, None] * normals
-        if good.sum() < max(20, 0.25 * count):
-            raise CalibrationError(
-                f"the ball's outline is not clear enough: {good.sum()} of {count} edge profiles usable"
-            )
-        fitted = Ellipse.from_cv(cv2.fitEllipse(edge[good].astype(np.float32)))
-        dev = (fitted.normalised_radius(edge) - 1.0) * min(fitted.semi_axes)
-        mad = 1.4826 * np.median(np.abs(dev[good] - np.median(dev[good])))
-        good &= np.abs(dev) < max(5.0 * mad, 0.25)
+        good = _usable_edges(edge, offset, a_in - a_out, rms, x1, count)
         ellipse = Ellipse.from_cv(cv2.fitEllipse(edge[good].astype(np.float32)))
-        rejected = count - int(good.sum())
-    points, normals = edge[good], normals[good]
-    # The line spread function: the derivative of the median normalised edge profile,
-    # symmetrised (the camera's blur is symmetric; the Fresnel rim adds an odd part).
-    m = int(math.ceil(x2 / step))
-    t = np.arange(-m, m + 1) * step
-    long = _sample(img, points[:, None, :] + t[None, :, None] * normals[:, None, :])
-    esf = np.median((long - a_out[good, None]) / (a_in[good] - a_out[good])[:, None], axis=0)
-    lsf = -np.gradient(esf, step)
-    lsf = np.clip(0.5 * (lsf + lsf[::-1]), 0.0, None)
-    lsf = lsf / lsf.sum() if lsf.sum() > 0 else np.eye(1, t.size, m)[0]
+    rejected = count - int(good.sum())
+    points, normals, a_in, a_out = edge[good], normals[good], a_in[good], a_out[good]
+    levels = (float(np.median(a_out)), float(np.median(a_in)))
+    line_spread = _line_spread(img, points, normals, (a_out, a_in), x2, step)
     return Silhouette(
-        points,
-        normals,
-        ellipse,
-        "ellipse",
-        (x1, x2),
-        blur,
-        (float(np.median(a_out[good])), float(np.median(a_in[good]))),
-        rejected,
-        (h, w),
-        curvature[good],
-        (t, lsf),
+        points, normals, ellipse, "ellipse", (x1, x2), blur, levels, rejected, (h, w), curvature[good], line_spread
     )
 
 
