@@ -574,6 +574,33 @@ def fresnel_rim_shift_px(
     return shift
 
 
+def _tangent_fit(d: np.ndarray, start: np.ndarray, radius: float):
+    """Least squares (Levenberg-Marquardt) of the distances from the centre to the rays ``d`` minus R."""
+
+    def residual(c):
+        q = c[None, :] - (d @ c)[:, None] * d
+        return np.linalg.norm(q, axis=1) - radius
+
+    def jacobian(c):
+        q = c[None, :] - (d @ c)[:, None] * d
+        return q / np.linalg.norm(q, axis=1, keepdims=True)
+
+    return least_squares(residual, start, jac=jacobian, method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15)
+
+
+def _rim_shift(silhouette: Silhouette, k_inv: np.ndarray, sin_beta: float, ball_index) -> np.ndarray:
+    """The Fresnel rim's outward shift (px) at each edge point of a ball of angular radius ``asin(sin_beta)``:
+    :func:`fresnel_rim_shift_px` on a grid of the points' radians per pixel along the normal, interpolated."""
+    pts = np.asarray(silhouette.points, dtype=float)
+    inward = _rays(k_inv, pts - np.asarray(silhouette.normals, dtype=float))
+    kappa = np.arccos(np.clip(np.sum(_rays(k_inv, pts) * inward, axis=1), -1.0, 1.0))
+    grid = np.linspace(kappa.min(), kappa.max(), 9) if np.ptp(kappa) > 0 else kappa[:1]
+    # A straight edge blurred in 1-D, so no curvature weighting: the detection's
+    # weighting undoes the 2-D blur of the curved outline, which the model lacks.
+    per_grid = fresnel_rim_shift_px(grid, sin_beta, ball_index, silhouette.window_px, 0.0, silhouette.line_spread)
+    return np.interp(kappa, grid, per_grid) if grid.size > 1 else np.full(len(pts), per_grid[0])
+
+
 def solve_ball_centre(
     silhouette: Silhouette,
     camera_matrix,
@@ -612,78 +639,43 @@ def solve_ball_centre(
     pts = np.asarray(silhouette.points, dtype=float)
     if len(pts) < 10:
         raise CalibrationError(f"only {len(pts)} silhouette points: at least 10 are needed")
-    k = np.asarray(camera_matrix, dtype=float)
-    k_inv = np.linalg.inv(k)
+    k_inv = np.linalg.inv(np.asarray(camera_matrix, dtype=float))
     radius = float(radius_m)
-    normals = np.asarray(silhouette.normals, dtype=float)
-
-    def fit(d, start):
-        def residual(c):
-            q = c[None, :] - (d @ c)[:, None] * d
-            return np.linalg.norm(q, axis=1) - radius
-
-        def jacobian(c):
-            q = c[None, :] - (d @ c)[:, None] * d
-            return q / np.linalg.norm(q, axis=1, keepdims=True)
-
-        result = least_squares(residual, start, jac=jacobian, method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15)
-        return result
-
     d = _rays(k_inv, pts)
-    centre = _cone_guess(d, radius)
-    result = fit(d, centre)
-    centre = result.x
-    shift = np.zeros(len(pts))
-    use = pts
+    result = _tangent_fit(d, _cone_guess(d, radius), radius)
+    shift, use = np.zeros(len(pts)), pts
     if ball_index is not None and silhouette.window_px[0] > 0:
-        for _ in range(iterations):
-            dist = float(np.linalg.norm(centre))
-            sin_beta = radius / dist
-            inward = _rays(k_inv, pts - normals)
-            kappa = np.arccos(np.clip(np.sum(_rays(k_inv, pts) * inward, axis=1), -1.0, 1.0))
-            grid = np.linspace(kappa.min(), kappa.max(), 9) if np.ptp(kappa) > 0 else kappa[:1]
-            # A straight edge blurred in 1-D, so no curvature weighting: the detection's
-            # weighting undoes the 2-D blur of the curved outline, which the model lacks.
-            per_grid = fresnel_rim_shift_px(
-                grid, sin_beta, ball_index, silhouette.window_px, 0.0, silhouette.line_spread
-            )
-            shift = np.interp(kappa, grid, per_grid) if grid.size > 1 else np.full(len(pts), per_grid[0])
+        normals = np.asarray(silhouette.normals, dtype=float)
+        for _ in range(iterations):  # the rim's shift depends on the ball's distance
+            shift = _rim_shift(silhouette, k_inv, radius / float(np.linalg.norm(result.x)), ball_index)
             use = pts - shift[:, None] * normals
-            d = _rays(k_inv, use)
-            result = fit(d, centre)
-            centre = result.x
-    residuals = result.fun
-    dof = max(len(pts) - 3, 1)
-    jac = result.jac
-    s2 = float(residuals @ residuals) / dof
+            result = _tangent_fit(_rays(k_inv, use), result.x, radius)
+    centre, residuals = result.x, result.fun
+    s2 = float(residuals @ residuals) / max(len(pts) - 3, 1)
     try:
-        covariance = s2 * np.linalg.inv(jac.T @ jac)
+        covariance = s2 * np.linalg.inv(result.jac.T @ result.jac)
     except np.linalg.LinAlgError:
         raise CalibrationError("the silhouette does not constrain the ball's centre (degenerate geometry)") from None
     if not np.all(np.isfinite(centre)) or centre[2] <= radius:
         raise CalibrationError("the silhouette rays do not graze a ball in front of the camera")
-    sigma = np.sqrt(np.diag(covariance))
-
     # The naive answer, for comparison: the ellipse's centre taken for the ball's.
     axis = _rays(k_inv, np.asarray([silhouette.ellipse.centre]))[0]
     half = float(np.median(np.arccos(np.clip(_rays(k_inv, use) @ axis, -1.0, 1.0))))
-    naive = axis * radius / math.sin(half)
-
-    fit_result = BallFit(
+    fit = BallFit(
         centre_camera=centre,
-        sigma_camera=sigma,
+        sigma_camera=np.sqrt(np.diag(covariance)),
         covariance_camera=covariance,
         residuals=residuals,
         radius_m=radius,
-        naive_centre_camera=naive,
+        naive_centre_camera=axis * radius / math.sin(half),
         rim_shift_px=float(np.median(shift)),
         points_used=len(pts),
     )
     if extrinsics is not None:
         rot, t = (np.asarray(x, dtype=float) for x in extrinsics)
-        fit_result.centre_rig = rot.T @ (centre - t)
-        fit_result.sigma_rig = np.sqrt(np.diag(rot.T @ covariance @ rot))
-    return fit_result
+        fit.centre_rig = rot.T @ (centre - t)
+        fit.sigma_rig = np.sqrt(np.diag(rot.T @ covariance @ rot))
+    return fit
 
 
 def calibrate_ball(image, rig: Rig, *, method: str = "ellipse") -> BallFit:
