@@ -1,8 +1,8 @@
 """Measured geometry: where the mirrored ball really is, from a calibration image.
 
 The reference work found that the relative position of camera, ball and light must be
-known precisely; this module measures the ball's position instead of trusting the rig
-description.
+known precisely; this module measures the ball's position, so that the processing need not
+trust the rig description's.
 
 A *calibration image* shows the ball lit by its surroundings: a bright disc-like region
 (the room reflected in the mirror) against a darker background. Its outline is the

@@ -342,7 +342,7 @@ def _ldt_description(model: LightModel, file_name: str, absolute: bool, grid: tu
     """EULUMDAT lines 1-12: the company and the units, the type and symmetry indicators, the angle grid
     ``(Mc, Dc, Ng, Dg)``, the report, the luminaire's name and number, the file name and the date.
 
-    ``names`` is ``(company, luminaire, luminaire_number)`` as :func:`write_ldt` was given them.
+    ``names`` is ``(company, luminaire, luminaire_number)``, the arguments of :func:`write_ldt`.
     """
     company, luminaire, luminaire_number = names
     n_c, c_step_deg, n_gamma, gamma_step_deg = grid
@@ -580,7 +580,7 @@ def _tm25_texts(model: LightModel, name: str | None, manufacturer: str, seed: in
 
 
 def _tm25_header_and_flags(creation_method: int, radiant_flux: float, n_rays: int) -> bytes:
-    """The header (4.7.1) with the date of now, no luminous flux (NaN) and no spectrum, then the column
+    """The header (4.7.1) with the current date and time, no luminous flux (NaN) and no spectrum, then the column
     flags (4.7.2): position, direction and radiant flux."""
     now = _dt.datetime.now(_dt.UTC).replace(microsecond=0).isoformat().encode("ascii")[:28]
     nan = float("nan")
