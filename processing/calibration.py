@@ -1,8 +1,8 @@
 """Measured geometry: where the mirrored ball really is, from a calibration image.
 
 The reference work found that the relative position of camera, ball and light must be
-known precisely; this module measures the ball's position instead of trusting the rig
-description.
+known precisely; this module measures the ball's position, so that the processing need not
+trust the rig description's.
 
 A *calibration image* shows the ball lit by its surroundings: a bright disc-like region
 (the room reflected in the mirror) against a darker background. Its outline is the
@@ -363,6 +363,84 @@ def _flux_edges(profile_at, count: int, x1: float, x2: float, step: float, curva
     return s0, a_i, a_o, rms_i
 
 
+def _edge_windows(img: np.ndarray, ellipse: Ellipse, count: int, step: float) -> tuple[float, float, float]:
+    """The edge's blur, the 10-90 % width of the median profile across the outline over a long reach, and the
+    estimator's windows ``x1, x2`` (px, on the sampling grid) that it sets."""
+    small = min(ellipse.semi_axes)
+    reach = min(0.45 * small, 120.0)
+    pts, normals = ellipse.points(count)
+    t = np.arange(-reach, reach + step / 2, step)
+    long = _sample(img, pts[:, None, :] + t[None, :, None] * normals[:, None, :])
+    median = np.median(long, axis=0)
+    lo_lvl, hi_lvl = np.median(median[t > 0.8 * reach]), np.median(median[t < -0.8 * reach])
+    frac = (median - lo_lvl) / max(hi_lvl - lo_lvl, 1e-300)
+    inside_t = t[frac >= 0.9]
+    outside_t = t[frac <= 0.1]
+    t90 = inside_t[inside_t < 0].max() if np.any(inside_t < 0) else 0.0
+    t10 = outside_t[outside_t > t90].min() if np.any(outside_t > t90) else 0.0
+    blur = float(max(t10 - t90, 1.0))
+    x1 = step * math.floor((1.25 * blur + 2.0) / step)
+    x2 = x1 + step * math.ceil(max(4.0, blur) / step)
+    if x2 > 0.6 * small:
+        raise CalibrationError(
+            f"the ball's image is too small for its blur (radius {small:.0f} px, edge {blur:.0f} px wide)"
+        )
+    return blur, x1, x2
+
+
+def _edge_profiles(img: np.ndarray, ellipse: Ellipse, count: int, windows: tuple[float, float], step: float):
+    """Flux-balanced edges along ``count`` profiles normal to ``ellipse``, those whose windows stay in the
+    image: the profiles' points, normals and curvature, and what :func:`_flux_edges` returns for them."""
+    h, w = img.shape
+    x1, x2 = windows
+    pts, normals = ellipse.points(count)
+    far = pts[:, None, :] + (x2 + 0.5 * x1) * np.array([-1.0, 1.0])[None, :, None] * normals[:, None, :]
+    inside_image = np.all(
+        (far[..., 0] >= 1) & (far[..., 0] <= w - 2) & (far[..., 1] >= 1) & (far[..., 1] <= h - 2), axis=1
+    )
+    pts, normals = pts[inside_image], normals[inside_image]
+    curvature = ellipse.curvature(count)[inside_image]
+
+    def profile_at(offsets):
+        return _sample(img, pts[:, None, :] + offsets[..., None] * normals[:, None, :])
+
+    return pts, normals, curvature, _flux_edges(profile_at, len(pts), x1, x2, step, curvature)
+
+
+def _usable_edges(edge, offset, contrast, rms, x1: float, count: int) -> np.ndarray:
+    """The edge points to keep: the typical contrast, a clean inner level, an edge near the outline it was
+    sought from, and no outlier from the ellipse fitted to those."""
+    typical = np.median(contrast)
+    noise = np.median(rms)
+    good = (
+        (contrast > 0.7 * typical)
+        & (contrast < 1.3 * typical)
+        & (rms < 3.0 * noise + 0.01 * abs(typical))
+        & (np.abs(offset) < 0.5 * x1)
+    )
+    if good.sum() < max(20, 0.25 * count):
+        raise CalibrationError(f"the ball's outline is not clear enough: {good.sum()} of {count} edge profiles usable")
+    fitted = Ellipse.from_cv(cv2.fitEllipse(edge[good].astype(np.float32)))
+    dev = (fitted.normalised_radius(edge) - 1.0) * min(fitted.semi_axes)
+    mad = 1.4826 * np.median(np.abs(dev[good] - np.median(dev[good])))
+    return good & (np.abs(dev) < max(5.0 * mad, 0.25))
+
+
+def _line_spread(img, points, normals, levels, x2: float, step: float) -> tuple[np.ndarray, np.ndarray]:
+    """The camera's line spread across the edge, ``(offsets, weights)``: the derivative of the median edge
+    profile normalised by each point's ``levels = (outside, inside)``, symmetrised (the camera's blur is
+    symmetric; the Fresnel rim adds an odd part)."""
+    a_out, a_in = levels
+    m = int(math.ceil(x2 / step))
+    t = np.arange(-m, m + 1) * step
+    long = _sample(img, points[:, None, :] + t[None, :, None] * normals[:, None, :])
+    esf = np.median((long - a_out[:, None]) / (a_in - a_out)[:, None], axis=0)
+    lsf = -np.gradient(esf, step)
+    lsf = np.clip(0.5 * (lsf + lsf[::-1]), 0.0, None)
+    lsf = lsf / lsf.sum() if lsf.sum() > 0 else np.eye(1, t.size, m)[0]
+    return t, lsf
+
+
 def detect_silhouette(image, *, method: str = "ellipse", profiles: int | None = None) -> Silhouette:
     """Find the mirrored ball's outline in a calibration image, with sub-pixel precision.
 
@@ -401,88 +479,21 @@ def detect_silhouette(image, *, method: str = "ellipse", profiles: int | None = 
         )
 
     a, b = ellipse.semi_axes
-    small = min(a, b)
     perimeter = math.pi * (3 * (a + b) - math.sqrt((3 * a + b) * (a + 3 * b)))
     count = profiles or int(np.clip(round(perimeter), 64, 4096))
     step = 0.25
-
-    # The blur: 10-90 % width of the median profile, over a long reach.
-    reach = min(0.45 * small, 120.0)
-    pts, normals = ellipse.points(count)
-    t = np.arange(-reach, reach + step / 2, step)
-    long = _sample(img, pts[:, None, :] + t[None, :, None] * normals[:, None, :])
-    median = np.median(long, axis=0)
-    lo_lvl, hi_lvl = np.median(median[t > 0.8 * reach]), np.median(median[t < -0.8 * reach])
-    frac = (median - lo_lvl) / max(hi_lvl - lo_lvl, 1e-300)
-    inside_t = t[frac >= 0.9]
-    outside_t = t[frac <= 0.1]
-    t90 = inside_t[inside_t < 0].max() if np.any(inside_t < 0) else 0.0
-    t10 = outside_t[outside_t > t90].min() if np.any(outside_t > t90) else 0.0
-    blur = float(max(t10 - t90, 1.0))
-    x1 = step * math.floor((1.25 * blur + 2.0) / step)  # windows on the sampling grid
-    x2 = x1 + step * math.ceil(max(4.0, blur) / step)
-    if x2 > 0.6 * small:
-        raise CalibrationError(
-            f"the ball's image is too small for its blur (radius {small:.0f} px, edge {blur:.0f} px wide)"
-        )
-
-    rejected = 0
-    for _ in range(2):
-        pts, normals = ellipse.points(count)
-        far = pts[:, None, :] + (x2 + 0.5 * x1) * np.array([-1.0, 1.0])[None, :, None] * normals[:, None, :]
-        inside_image = np.all(
-            (far[..., 0] >= 1) & (far[..., 0] <= w - 2) & (far[..., 1] >= 1) & (far[..., 1] <= h - 2), axis=1
-        )
-        pts, normals = pts[inside_image], normals[inside_image]
-
-        curvature = ellipse.curvature(count)[inside_image]
-
-        def profile_at(offsets, pts=pts, normals=normals):
-            return _sample(img, pts[:, None, :] + offsets[..., None] * normals[:, None, :])
-
-        offset, a_in, a_out, rms = _flux_edges(profile_at, len(pts), x1, x2, step, curvature)
-        contrast = a_in - a_out
-        typical = np.median(contrast)
-        noise = np.median(rms)
-        good = (
-            (contrast > 0.7 * typical)
-            & (contrast < 1.3 * typical)
-            & (rms < 3.0 * noise + 0.01 * abs(typical))
-            & (np.abs(offset) < 0.5 * x1)
-        )
+    blur, x1, x2 = _edge_windows(img, ellipse, count, step)
+    for _ in range(2):  # the second pass along the normals of the ellipse fitted to the first pass's edges
+        pts, normals, curvature, (offset, a_in, a_out, rms) = _edge_profiles(img, ellipse, count, (x1, x2), step)
         edge = pts + offset[:, None] * normals
-        if good.sum() < max(20, 0.25 * count):
-            raise CalibrationError(
-                f"the ball's outline is not clear enough: {good.sum()} of {count} edge profiles usable"
-            )
-        fitted = Ellipse.from_cv(cv2.fitEllipse(edge[good].astype(np.float32)))
-        dev = (fitted.normalised_radius(edge) - 1.0) * min(fitted.semi_axes)
-        mad = 1.4826 * np.median(np.abs(dev[good] - np.median(dev[good])))
-        good &= np.abs(dev) < max(5.0 * mad, 0.25)
+        good = _usable_edges(edge, offset, a_in - a_out, rms, x1, count)
         ellipse = Ellipse.from_cv(cv2.fitEllipse(edge[good].astype(np.float32)))
-        rejected = count - int(good.sum())
-    points, normals = edge[good], normals[good]
-    # The line spread function: the derivative of the median normalised edge profile,
-    # symmetrised (the camera's blur is symmetric; the Fresnel rim adds an odd part).
-    m = int(math.ceil(x2 / step))
-    t = np.arange(-m, m + 1) * step
-    long = _sample(img, points[:, None, :] + t[None, :, None] * normals[:, None, :])
-    esf = np.median((long - a_out[good, None]) / (a_in[good] - a_out[good])[:, None], axis=0)
-    lsf = -np.gradient(esf, step)
-    lsf = np.clip(0.5 * (lsf + lsf[::-1]), 0.0, None)
-    lsf = lsf / lsf.sum() if lsf.sum() > 0 else np.eye(1, t.size, m)[0]
+    rejected = count - int(good.sum())
+    points, normals, a_in, a_out = edge[good], normals[good], a_in[good], a_out[good]
+    levels = (float(np.median(a_out)), float(np.median(a_in)))
+    line_spread = _line_spread(img, points, normals, (a_out, a_in), x2, step)
     return Silhouette(
-        points,
-        normals,
-        ellipse,
-        "ellipse",
-        (x1, x2),
-        blur,
-        (float(np.median(a_out[good])), float(np.median(a_in[good]))),
-        rejected,
-        (h, w),
-        curvature[good],
-        (t, lsf),
+        points, normals, ellipse, "ellipse", (x1, x2), blur, levels, rejected, (h, w), curvature[good], line_spread
     )
 
 
@@ -563,6 +574,33 @@ def fresnel_rim_shift_px(
     return shift
 
 
+def _tangent_fit(d: np.ndarray, start: np.ndarray, radius: float):
+    """Least squares (Levenberg-Marquardt) of the distances from the centre to the rays ``d`` minus R."""
+
+    def residual(c):
+        q = c[None, :] - (d @ c)[:, None] * d
+        return np.linalg.norm(q, axis=1) - radius
+
+    def jacobian(c):
+        q = c[None, :] - (d @ c)[:, None] * d
+        return q / np.linalg.norm(q, axis=1, keepdims=True)
+
+    return least_squares(residual, start, jac=jacobian, method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15)
+
+
+def _rim_shift(silhouette: Silhouette, k_inv: np.ndarray, sin_beta: float, ball_index) -> np.ndarray:
+    """The Fresnel rim's outward shift (px) at each edge point of a ball of angular radius ``asin(sin_beta)``:
+    :func:`fresnel_rim_shift_px` on a grid of the points' radians per pixel along the normal, interpolated."""
+    pts = np.asarray(silhouette.points, dtype=float)
+    inward = _rays(k_inv, pts - np.asarray(silhouette.normals, dtype=float))
+    kappa = np.arccos(np.clip(np.sum(_rays(k_inv, pts) * inward, axis=1), -1.0, 1.0))
+    grid = np.linspace(kappa.min(), kappa.max(), 9) if np.ptp(kappa) > 0 else kappa[:1]
+    # A straight edge blurred in 1-D, so no curvature weighting: the detection's
+    # weighting undoes the 2-D blur of the curved outline, which the model lacks.
+    per_grid = fresnel_rim_shift_px(grid, sin_beta, ball_index, silhouette.window_px, 0.0, silhouette.line_spread)
+    return np.interp(kappa, grid, per_grid) if grid.size > 1 else np.full(len(pts), per_grid[0])
+
+
 def solve_ball_centre(
     silhouette: Silhouette,
     camera_matrix,
@@ -601,78 +639,43 @@ def solve_ball_centre(
     pts = np.asarray(silhouette.points, dtype=float)
     if len(pts) < 10:
         raise CalibrationError(f"only {len(pts)} silhouette points: at least 10 are needed")
-    k = np.asarray(camera_matrix, dtype=float)
-    k_inv = np.linalg.inv(k)
+    k_inv = np.linalg.inv(np.asarray(camera_matrix, dtype=float))
     radius = float(radius_m)
-    normals = np.asarray(silhouette.normals, dtype=float)
-
-    def fit(d, start):
-        def residual(c):
-            q = c[None, :] - (d @ c)[:, None] * d
-            return np.linalg.norm(q, axis=1) - radius
-
-        def jacobian(c):
-            q = c[None, :] - (d @ c)[:, None] * d
-            return q / np.linalg.norm(q, axis=1, keepdims=True)
-
-        result = least_squares(residual, start, jac=jacobian, method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15)
-        return result
-
     d = _rays(k_inv, pts)
-    centre = _cone_guess(d, radius)
-    result = fit(d, centre)
-    centre = result.x
-    shift = np.zeros(len(pts))
-    use = pts
+    result = _tangent_fit(d, _cone_guess(d, radius), radius)
+    shift, use = np.zeros(len(pts)), pts
     if ball_index is not None and silhouette.window_px[0] > 0:
-        for _ in range(iterations):
-            dist = float(np.linalg.norm(centre))
-            sin_beta = radius / dist
-            inward = _rays(k_inv, pts - normals)
-            kappa = np.arccos(np.clip(np.sum(_rays(k_inv, pts) * inward, axis=1), -1.0, 1.0))
-            grid = np.linspace(kappa.min(), kappa.max(), 9) if np.ptp(kappa) > 0 else kappa[:1]
-            # A straight edge blurred in 1-D, so no curvature weighting: the detection's
-            # weighting undoes the 2-D blur of the curved outline, which the model lacks.
-            per_grid = fresnel_rim_shift_px(
-                grid, sin_beta, ball_index, silhouette.window_px, 0.0, silhouette.line_spread
-            )
-            shift = np.interp(kappa, grid, per_grid) if grid.size > 1 else np.full(len(pts), per_grid[0])
+        normals = np.asarray(silhouette.normals, dtype=float)
+        for _ in range(iterations):  # the rim's shift depends on the ball's distance
+            shift = _rim_shift(silhouette, k_inv, radius / float(np.linalg.norm(result.x)), ball_index)
             use = pts - shift[:, None] * normals
-            d = _rays(k_inv, use)
-            result = fit(d, centre)
-            centre = result.x
-    residuals = result.fun
-    dof = max(len(pts) - 3, 1)
-    jac = result.jac
-    s2 = float(residuals @ residuals) / dof
+            result = _tangent_fit(_rays(k_inv, use), result.x, radius)
+    centre, residuals = result.x, result.fun
+    s2 = float(residuals @ residuals) / max(len(pts) - 3, 1)
     try:
-        covariance = s2 * np.linalg.inv(jac.T @ jac)
+        covariance = s2 * np.linalg.inv(result.jac.T @ result.jac)
     except np.linalg.LinAlgError:
         raise CalibrationError("the silhouette does not constrain the ball's centre (degenerate geometry)") from None
     if not np.all(np.isfinite(centre)) or centre[2] <= radius:
         raise CalibrationError("the silhouette rays do not graze a ball in front of the camera")
-    sigma = np.sqrt(np.diag(covariance))
-
     # The naive answer, for comparison: the ellipse's centre taken for the ball's.
     axis = _rays(k_inv, np.asarray([silhouette.ellipse.centre]))[0]
     half = float(np.median(np.arccos(np.clip(_rays(k_inv, use) @ axis, -1.0, 1.0))))
-    naive = axis * radius / math.sin(half)
-
-    fit_result = BallFit(
+    fit = BallFit(
         centre_camera=centre,
-        sigma_camera=sigma,
+        sigma_camera=np.sqrt(np.diag(covariance)),
         covariance_camera=covariance,
         residuals=residuals,
         radius_m=radius,
-        naive_centre_camera=naive,
+        naive_centre_camera=axis * radius / math.sin(half),
         rim_shift_px=float(np.median(shift)),
         points_used=len(pts),
     )
     if extrinsics is not None:
         rot, t = (np.asarray(x, dtype=float) for x in extrinsics)
-        fit_result.centre_rig = rot.T @ (centre - t)
-        fit_result.sigma_rig = np.sqrt(np.diag(rot.T @ covariance @ rot))
-    return fit_result
+        fit.centre_rig = rot.T @ (centre - t)
+        fit.sigma_rig = np.sqrt(np.diag(rot.T @ covariance @ rot))
+    return fit
 
 
 def calibrate_ball(image, rig: Rig, *, method: str = "ellipse") -> BallFit:
