@@ -278,39 +278,59 @@ def _command_line(*args: str, cwd: Path) -> subprocess.CompletedProcess:
     )
 
 
+def _console_entry(capsys, *args: str) -> tuple[int, str, str]:
+    """:func:`acquisition.cli.main`, the console entry, run here: (exit status, stdout, stderr)."""
+    from acquisition.cli import main
+
+    with pytest.raises(SystemExit) as ended:
+        main(list(args))
+    out = capsys.readouterr()
+    return ended.value.code, out.out, out.err
+
+
+def test_process_refuses_a_bad_method_in_one_line_at_once(tmp_path):
+    """``mirrorgonio process RUN.h5 --method bogus`` as a user runs it: exit status 2, one line
+    on standard error naming the option, within seconds (no cluster started), nothing written."""
+    run = _small_run(tmp_path / "run.h5", "run")
+    before = sorted(tmp_path.iterdir())
+    started = time.perf_counter()
+    result = _command_line("process", str(run), "--method", "bogus", cwd=tmp_path)
+    seconds = time.perf_counter() - started
+    assert result.returncode == 2, result.stderr
+    assert result.stderr.strip().splitlines() == [
+        "error: process: Invalid value for '--method': 'bogus' is not one of 'optimal', 'poisson'."
+    ]
+    assert result.stdout == "" and seconds < 5.0
+    assert sorted(tmp_path.iterdir()) == before  # no results file, no .hdr folder
+
+
 @pytest.mark.parametrize(
     ("option", "value", "said"),
     [
-        ("--method", "bogus", "Invalid value for '--method': 'bogus' is not one of 'optimal', 'poisson'."),
         ("--fit", "gauss", "Invalid value for '--fit': 'gauss' is not one of 'gaussian', 'polynomial',"),
         ("--noise", "guess", "Invalid value for '--noise': 'guess' is not one of 'auto', 'estimated', 'rig'."),
         ("--estimator", "sums", "Invalid value for '--estimator': 'sums' is not one of 'auto', 'templates',"),
         ("--steps", "hdr,dance", "--steps: unknown step 'dance'"),
         ("--ball-centre", "1,2", "--ball-centre: expected X,Y,Z in metres, got '1,2'"),
+        ("--scheduler", "my-cluster", "--scheduler: 'my-cluster' is not 'local', 'none', 'synchronous'"),
     ],
 )
-def test_process_refuses_a_bad_option_in_one_line_before_any_work(tmp_path, option, value, said):
-    """``mirrorgonio process RUN.h5 --method bogus``: exit status 2, one line on standard error
-    naming the option, within seconds (no cluster started) and nothing written."""
+def test_process_refuses_a_bad_option_in_one_line_before_any_work(tmp_path, capsys, option, value, said):
     run = _small_run(tmp_path / "run.h5", "run")
     before = sorted(tmp_path.iterdir())
-    started = time.perf_counter()
-    result = _command_line("process", str(run), option, value, cwd=tmp_path)
-    seconds = time.perf_counter() - started
-    assert result.returncode == 2, result.stderr
-    lines = result.stderr.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith("error: ") and said in lines[0], result.stderr
-    assert result.stdout == ""
-    assert seconds < 5.0
-    assert sorted(tmp_path.iterdir()) == before  # no results file, no .hdr folder
+    code, out, err = _console_entry(capsys, "process", str(run), "--out", str(tmp_path / "out"), option, value)
+    assert code == 2 and out == ""
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: ") and said in lines[0], err
+    assert sorted(tmp_path.iterdir()) == before
 
 
-def test_the_program_says_its_version_and_takes_h_for_help(tmp_path):
+def test_the_program_says_its_version_and_takes_h_for_help(tmp_path, capsys, monkeypatch):
     from drivers.contracts.version import __version__
 
-    version = _command_line("--version", cwd=tmp_path)
-    assert version.returncode == 0 and version.stdout.strip() == f"mirrorgonio {__version__}"
+    monkeypatch.setenv("COLUMNS", "200")  # the help's tables unwrapped
+    assert _console_entry(capsys, "--version") == (0, f"mirrorgonio {__version__}\n", "")
     for args in (["-h"], ["process", "-h"], ["bench", "speed", "-h"]):
-        shown = _command_line(*args, cwd=tmp_path)
-        assert shown.returncode == 0 and "Usage: mirrorgonio" in shown.stdout, args
-    assert "<optimal|poisson>" in _command_line("process", "-h", cwd=tmp_path).stdout
+        code, out, _ = _console_entry(capsys, *args)
+        assert code == 0 and "Usage: mirrorgonio" in out, args
+    assert "<optimal|poisson>" in _console_entry(capsys, "process", "-h")[1]
