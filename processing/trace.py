@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
+from typing import cast
 
 import numba
 import numpy as np
@@ -244,7 +245,7 @@ def ball_pixel_box(geometry: RigGeometry) -> tuple[int, int, int, int] | None:
     if rel[2] <= geometry.ball_radius:
         return None
     dist = np.linalg.norm(rel)
-    half = np.arcsin(min(1.0, geometry.ball_radius / dist))
+    half = np.arcsin(min(1.0, cast(float, geometry.ball_radius / dist)))  # numpy's stubs: a norm is a floating
     f_px = geometry.K[0, 0]
     centre = geometry.project(geometry.ball_centre[None, :])[0]
     reach = f_px * np.tan(np.arccos(rel[2] / dist) + half) - f_px * np.tan(max(np.arccos(rel[2] / dist) - half, 0))
