@@ -245,7 +245,7 @@ class LightModel:
     units: str = "relative"
     provenance: dict[str, Any] = field(default_factory=dict)
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         self.sources = list(self.sources)
         if self.units not in UNITS:
             raise LightModelError(f"units: {self.units!r} is not one of {', '.join(UNITS)}")
