@@ -71,7 +71,6 @@ def write_outputs(
     ``reflectance.h5`` (the per-point data); ``reflectance.json`` (the summary); and
     ``report.html``.
     """
-
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     files: dict[str, Path] = {}

@@ -47,7 +47,7 @@ class SampleColumns(Protocol):
     cell_sum: np.ndarray
 
 
-class RunSummary(Protocol):
+class RunReport(Protocol):
     """What the report reads of the pipeline's report (``processing.light_run.ProcessReport``)."""
 
     run_file: Path

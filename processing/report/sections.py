@@ -19,7 +19,7 @@ from processing.lightmodel import LightModel, SourceModel, describe_fitted
 from processing.report.context import (
     MiddlePosition,
     ReportContext,
-    RunSummary,
+    RunReport,
     SampleColumns,
     in_degrees,
     source_data,
@@ -63,7 +63,7 @@ _PREVIEW_CROP = 200
 def calibration_section(
     model: LightModel,
     run: RunFile | None,
-    report: RunSummary | None,
+    report: RunReport | None,
     calibration: BallFit | dict[str, Any] | None,
     geo: MiddlePosition | None,
 ) -> str:
@@ -172,7 +172,7 @@ def _half_width(source: SourceModel) -> float | None:
     return float(np.degrees(theta[below[0]])) if below.size else None
 
 
-def _previews(report: RunSummary | None, run: RunFile | None, model: LightModel, path: Path) -> list[Path]:
+def _previews(report: RunReport | None, run: RunFile | None, model: LightModel, path: Path) -> list[Path]:
     outputs = getattr(report, "outputs", None) or {}
     pngs = [Path(p) for p in outputs.get("png", [])]
     if not pngs:
@@ -239,11 +239,7 @@ def _preview_strip(pngs: list[Path], box: tuple[float, float, float, int] | None
 
 
 def header_table(
-    model: LightModel,
-    run: RunFile | None,
-    report: RunSummary | None,
-    samples: SampleColumns | None,
-    resolution_m: float,
+    model: LightModel, run: RunFile | None, report: RunReport | None, samples: SampleColumns | None, resolution_m: float
 ) -> str:
     prov = model.provenance
     header = run.header if run is not None else None
@@ -494,7 +490,7 @@ def residuals_section(ctx: ReportContext) -> str:
 
 
 def previews_section(
-    report: RunSummary | None, run: RunFile | None, model: LightModel, path: Path, geo: MiddlePosition | None
+    report: RunReport | None, run: RunFile | None, model: LightModel, path: Path, geo: MiddlePosition | None
 ) -> str:
     pngs = _previews(report, run, model, path)
     if not pngs:
