@@ -47,6 +47,7 @@ browser:
 test: $(STAMP) browser
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/ruff format --check .
+	$(VENV)/bin/mypy
 	$(PY) -m pytest
 
 # The two cheap benchmarks, their sections of docs/benchmarks.md (a generated file) rewritten.

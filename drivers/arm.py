@@ -116,7 +116,7 @@ class Arm(abc.ABC):
         self.connect()
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
     # -- backend-specific primitives ---------------------------------------------------

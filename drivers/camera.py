@@ -78,5 +78,5 @@ class Camera(abc.ABC):
         self.connect()
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 import tomllib
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import TypeVar
 
@@ -25,7 +26,7 @@ MAGNITUDE_LIMITS: dict[str, tuple[float, str]] = {"_m": (1e3, " m"), "_deg": (36
 UNITLESS_LIMIT = 1e12
 
 
-def magnitude_problem(name: str, value) -> str | None:
+def magnitude_problem(name: str, value: object) -> str | None:
     """Why ``value`` (a float, or a sequence of them) is too large for the field ``name``,
     or None when it is not. Non-finite numbers are left to ``allow_inf_nan``."""
     limit, unit = next(
@@ -37,7 +38,7 @@ def magnitude_problem(name: str, value) -> str | None:
     return None
 
 
-def _numbers(value):
+def _numbers(value: object) -> Iterator[float]:
     # Only floats: integers are exact, and counts carry their own bounds.
     if isinstance(value, float):
         yield value
@@ -55,14 +56,14 @@ class ConfigModel(BaseModel):
 
     @field_validator("*", mode="after")
     @classmethod
-    def _within_magnitude(cls, value, info: ValidationInfo):
+    def _within_magnitude(cls, value: object, info: ValidationInfo) -> object:
         problem = magnitude_problem(info.field_name or "", value)
         if problem is not None:
             raise ValueError(problem)
         return value
 
 
-def _number(value) -> str:
+def _number(value: object) -> str:
     return f"{value:g}" if isinstance(value, float) else str(value)
 
 
@@ -76,7 +77,7 @@ _READABLE = {
 }
 
 
-def field_path(location) -> str:
+def field_path(location: Iterable[int | str]) -> str:
     """``("emitters", 0, "radius_m")`` as ``emitters[0].radius_m``."""
     text = ""
     for part in location:

@@ -13,6 +13,7 @@ imported when the camera connects, so this module imports without it.
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
 import os
@@ -323,7 +324,7 @@ class Gphoto2Camera(Camera):
         deadline = self._clock() + (_DRAIN_S if have_raw else self.event_timeout_s)
         while (remaining := deadline - self._clock()) > 0:
             wait_ms = _QUIET_MS if have_raw else max(1, min(1000, int(remaining * 1000)))
-            event_type, data = self._retry_busy(lambda ms=wait_ms: camera.wait_for_event(ms))
+            event_type, data = self._retry_busy(functools.partial(camera.wait_for_event, wait_ms))
             if event_type == gp.GP_EVENT_FILE_ADDED:
                 added.append((data.folder, data.name))
                 if not have_raw and _is_raw(data.name):

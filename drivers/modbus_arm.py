@@ -26,7 +26,7 @@ import threading
 import time
 from collections.abc import Callable, Iterable
 from pathlib import Path
-from typing import Literal
+from typing import Literal, cast
 
 from pymodbus.client import ModbusSerialClient, ModbusTcpClient
 from pymodbus.client.base import ModbusBaseSyncClient
@@ -41,6 +41,8 @@ from drivers.pose import AXES, Pose
 _log = logging.getLogger(__name__)
 
 _INT32 = ModbusTcpClient.DATATYPE.INT32
+#: One Modbus request on a connected client, returning the controller's reply.
+_Request = Callable[[ModbusBaseSyncClient], ModbusPDU]
 
 #: Meaning of the Modbus exception codes (Modbus application protocol v1.1b3, 7).
 MODBUS_EXCEPTION_TEXT = {
@@ -157,7 +159,7 @@ class ModbusArm(Arm):
         self.retry_backoff_s = retry_backoff_s
         self._unit = self.profile.device.unit_id
         self._word_order = self.profile.device.word_order
-        self._client: ModbusBaseSyncClient | None = None
+        self._client: ModbusTcpClient | ModbusSerialClient | None = None
         # One request at a time on the link: the caller and the heartbeat thread share it.
         self._lock = threading.RLock()
         self._last_traffic = time.monotonic()
@@ -288,7 +290,8 @@ class ModbusArm(Arm):
         return first, second
 
     def _decode_int32(self, first: int, second: int) -> int:
-        return int(ModbusTcpClient.convert_from_registers([first, second], _INT32, word_order=self._word_order))
+        value = ModbusTcpClient.convert_from_registers([first, second], _INT32, word_order=self._word_order)
+        return int(cast(int, value))  # an INT32 decodes to an int
 
     def _command(self, command: str, code: int) -> None:
         self._write_registers(command, {self.profile.command.address: code})
@@ -300,13 +303,15 @@ class ModbusArm(Arm):
             if count == 1:
                 self._transact(
                     command,
-                    lambda client, a=start, v=block[0]: client.write_register(a, v, device_id=self._unit),
+                    cast(
+                        _Request, lambda client, a=start, v=block[0]: client.write_register(a, v, device_id=self._unit)
+                    ),
                     retries,
                 )
             else:
                 self._transact(
                     command,
-                    lambda client, a=start, v=block: client.write_registers(a, v, device_id=self._unit),
+                    cast(_Request, lambda client, a=start, v=block: client.write_registers(a, v, device_id=self._unit)),
                     retries,
                 )
 
@@ -318,7 +323,10 @@ class ModbusArm(Arm):
         for start, count in contiguous_runs(blocks):
             response = self._transact(
                 command,
-                lambda client, a=start, n=count: client.read_input_registers(a, count=n, device_id=self._unit),
+                cast(
+                    _Request,
+                    lambda client, a=start, n=count: client.read_input_registers(a, count=n, device_id=self._unit),
+                ),
                 retries,
             )
             if len(response.registers) != count:
@@ -331,7 +339,7 @@ class ModbusArm(Arm):
     def _transact(
         self,
         command: str,
-        request: Callable[[ModbusBaseSyncClient], ModbusPDU],
+        request: _Request,
         retries: int | None = None,
     ) -> ModbusPDU:
         """Send one request and return its reply, retrying transient failures.
@@ -388,11 +396,12 @@ class ModbusArm(Arm):
         suffix = f" (after {attempts} attempts)" if attempts > 1 else ""
         raise type(failure)(self.name, command, failure.cause + suffix)
 
-    def _make_client(self) -> ModbusBaseSyncClient:
+    def _make_client(self) -> ModbusTcpClient | ModbusSerialClient:
         # pymodbus's own retries are off: retries, back-off and reconnection happen in
         # _transact, so that `retries` means the same for every failure.
         if self.transport == "tcp":
             return ModbusTcpClient(self.host, port=self.port, timeout=self.timeout_s, retries=0, name=self.name)
+        assert self.serial_port is not None  # __init__ requires it for rtu
         return ModbusSerialClient(
             self.serial_port,
             baudrate=self.baudrate,

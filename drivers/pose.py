@@ -11,6 +11,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 
 def rotation_from_angles(rx: float, ry: float, rz: float) -> np.ndarray:
@@ -82,7 +83,7 @@ class Pose:
         return cls(float(m[0, 3]), float(m[1, 3]), float(m[2, 3]), rx, ry, rz)
 
     @classmethod
-    def from_rotation(cls, position, rotation) -> Pose:
+    def from_rotation(cls, position: ArrayLike, rotation: np.ndarray) -> Pose:
         rx, ry, rz = angles_from_rotation(rotation)
         p = np.asarray(position, dtype=float)
         return cls(float(p[0]), float(p[1]), float(p[2]), rx, ry, rz)

@@ -15,7 +15,7 @@ import os
 import re
 from datetime import datetime, timedelta, timezone
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import rawpy
@@ -132,7 +132,7 @@ def decode_raw(path: str | os.PathLike, camera_id: str | None = None, exposure_s
     timestamp, timestamp_source = _capture_time(tiff, libraw_other.timestamp, path)
     make, model, serial, unique_model = _camera_tags(tiff)
 
-    sources = {"exposure_source": exposure_source, "timestamp_source": timestamp_source}
+    sources: dict[str, str | float] = {"exposure_source": exposure_source, "timestamp_source": timestamp_source}
     if exposure_source == "given" and file_exposure_s is not None:
         sources["file_exposure_s"] = file_exposure_s
     extra = _frame_extra(sources, (make, model, serial, unique_model), libraw_other)
@@ -229,7 +229,7 @@ def _read_tiff_metadata(path: Path) -> _TiffMetadata:
         return metadata  # CR3, RAF, a PNG...: LibRaw reads what it can of these
     try:
         with tifffile.TiffFile(path) as tif:
-            page = tif.pages[0]
+            page = cast(tifffile.TiffPage, tif.pages[0])  # tifffile loads the first page as a TiffPage
             for code in (_MAKE, _MODEL, _UNIQUE_CAMERA_MODEL, _CAMERA_SERIAL, *_EXIF_NAMES):
                 tag = page.tags.get(code)
                 if tag is not None:
@@ -365,7 +365,7 @@ def _text(value: Any) -> str:
     return " ".join(str(value).replace("\x00", " ").split())
 
 
-def _frame_extra(sources: dict[str, Any], camera: tuple[str, str, str, str], libraw_other) -> dict[str, Any]:
+def _frame_extra(sources: dict[str, Any], camera: tuple[str, str, str, str], libraw_other: Any) -> dict[str, Any]:
     """A frame's ``extra``: where its exposure and time were read (``sources``), then the
     camera's make, model, serial and unique model name, ISO and f-number where known."""
     extra = dict(sources)

@@ -26,7 +26,7 @@ import re
 import threading
 import time
 from collections.abc import Callable
-from typing import TypeVar
+from typing import TypeVar, overload
 
 import serial
 
@@ -408,6 +408,22 @@ class MelfaSerialArm(Arm):
         return self._request(command, "send_command", slot=slot)
 
     # -- the exchange ------------------------------------------------------------------
+    @overload
+    def _request(
+        self, command: str, operation: str, *, slot: int = ..., retries: int | None = ..., parse: None = None
+    ) -> str: ...
+
+    @overload
+    def _request(
+        self,
+        command: str,
+        operation: str,
+        *,
+        slot: int = ...,
+        retries: int | None = ...,
+        parse: Callable[[str], _ParsedT],
+    ) -> _ParsedT: ...
+
     def _request(
         self,
         command: str,
@@ -416,7 +432,7 @@ class MelfaSerialArm(Arm):
         slot: int = COMMAND_SLOT,
         retries: int | None = None,
         parse: Callable[[str], _ParsedT] | None = None,
-    ):
+    ) -> str | _ParsedT:
         """Send one frame, read its reply and return its data (parsed if asked).
 
         A reply that times out or is garbled (including data that ``parse`` rejects) is
@@ -448,11 +464,13 @@ class MelfaSerialArm(Arm):
                         raise CommunicationError(self.name, where, f"unexpected reply {_quote(raw)}: {exc}") from exc
                 except CommunicationError as garbled:
                     failure = garbled
-            raise failure  # attempts >= 1, so the loop has set it
+            assert failure is not None  # attempts >= 1, so the loop has set it
+            raise failure
 
     def _exchange(self, frame: str, where: str) -> bytes | None:
         """Write ``frame`` and read one CR-terminated reply; None on a timeout."""
         port = self._serial
+        assert port is not None  # _request holds the lock and has checked it
         try:
             # A late reply to an earlier, timed-out request must not be taken for this one.
             port.reset_input_buffer()

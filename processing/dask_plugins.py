@@ -11,7 +11,7 @@ import gc
 import logging
 from collections.abc import Callable
 
-from distributed import WorkerPlugin
+from distributed import Worker, WorkerPlugin
 
 log = logging.getLogger("mirrorgonio.compute")
 
@@ -35,11 +35,11 @@ class WarmUpPlugin(WorkerPlugin):
 
     idempotent = True
 
-    def __init__(self, func: Callable[[], None]):
+    def __init__(self, func: Callable[[], None]) -> None:
         self.func = func
         self.name = f"mirrorgonio-warm-up:{func.__module__}.{func.__qualname__}"
 
-    def setup(self, worker) -> None:
+    def setup(self, worker: Worker) -> None:
         try:
             self.func()
         except Exception as exc:  # noqa: BLE001 - a slower first task, not a broken worker

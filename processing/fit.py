@@ -35,8 +35,10 @@ import math
 import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 from scipy.optimize import OptimizeWarning, curve_fit
 
 __all__ = ["FIT_METHODS", "FitError", "IntensityFit", "Samples", "fit_intensity"]
@@ -76,7 +78,7 @@ class Samples:
     sigma: np.ndarray
     source: str = ""
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         arrays = {}
         for name in ("theta", "phi", "intensity", "sigma"):
             value = np.atleast_1d(np.asarray(getattr(self, name), dtype=float))
@@ -108,35 +110,35 @@ def _angle_arc(angles: np.ndarray, period: float = 2 * math.pi) -> tuple[float, 
     return float(start), float(max(span, 0.0))
 
 
-def _in_arc(angles, start: float, span: float, period: float = 2 * math.pi, tol: float = 1e-9):
+def _in_arc(angles: ArrayLike, start: float, span: float, period: float = 2 * math.pi, tol: float = 1e-9) -> np.ndarray:
     return np.mod(np.asarray(angles, dtype=float) - start + tol, period) <= span + 2 * tol
 
 
 # --------------------------------------------------------------------------- the models
 
 
-def _gaussian(theta, phi, p):
+def _gaussian(theta: np.ndarray, phi: np.ndarray, p: dict[str, float]) -> np.ndarray:
     t0 = p.get("theta0", 0.0)
     return p["a"] * np.exp(-((theta - t0) ** 2) / (2.0 * p["sigma"] ** 2))
 
 
-def _polynomial(theta, phi, p):
+def _polynomial(theta: np.ndarray, phi: np.ndarray, p: dict[str, float]) -> np.ndarray:
     coefficients = [p[f"c{k}"] for k in range(len(p))]
     return np.polynomial.polynomial.polyval(theta, coefficients)
 
 
-def _cos_power(theta, phi, p):
+def _cos_power(theta: np.ndarray, phi: np.ndarray, p: dict[str, float]) -> np.ndarray:
     with np.errstate(divide="ignore", invalid="ignore"):
         return p["a"] * np.maximum(np.cos(theta), 0.0) ** p["mu"]
 
 
-def _gaussian_2d(theta, phi, p):
+def _gaussian_2d(theta: np.ndarray, phi: np.ndarray, p: dict[str, float]) -> np.ndarray:
     d = phi - p["phi0"]
     q = np.cos(d) ** 2 / (2.0 * p["sigma1"] ** 2) + np.sin(d) ** 2 / (2.0 * p["sigma2"] ** 2)
     return p["a"] * np.exp(-(theta**2) * q)
 
 
-_MODELS: dict[str, Callable] = {
+_MODELS: dict[str, Callable[[np.ndarray, np.ndarray, dict[str, float]], np.ndarray]] = {
     "gaussian": _gaussian,
     "polynomial": _polynomial,
     "cos-power": _cos_power,
@@ -148,13 +150,13 @@ _TWO_D = {"gaussian-2d"}
 # --------------------------------------------------------------------------- the result
 
 
-def _enc(x: float):
+def _enc(x: float) -> float | str:
     """A float for JSON: non-finite values as strings (``"nan"``, ``"inf"``, ``"-inf"``)."""
     x = float(x)
     return x if math.isfinite(x) else repr(x)
 
 
-def _dec(x) -> float:
+def _dec(x: float | str) -> float:
     return float(x)
 
 
@@ -210,9 +212,9 @@ class IntensityFit:
     n_samples: int
     theta_range: tuple[float, float]
     phi_range: tuple[float, float]
-    info: dict = field(default_factory=dict)
+    info: dict[str, Any] = field(default_factory=dict)
 
-    def evaluate(self, theta, phi=0.0) -> tuple[np.ndarray, np.ndarray]:
+    def evaluate(self, theta: ArrayLike, phi: ArrayLike = 0.0) -> tuple[np.ndarray, np.ndarray]:
         """The model at directions ``(θ, φ)`` and whether each one is extrapolated.
 
         Parameters
@@ -239,11 +241,11 @@ class IntensityFit:
             extrapolated = extrapolated | (outside & (theta > _AXIS_THETA))
         return values, extrapolated
 
-    def __call__(self, theta, phi=0.0) -> np.ndarray:
+    def __call__(self, theta: ArrayLike, phi: ArrayLike = 0.0) -> np.ndarray:
         """The model's intensity at ``(θ, φ)`` (see :meth:`evaluate`)."""
         return self.evaluate(theta, phi)[0]
 
-    def to_dict(self) -> dict:
+    def to_dict(self) -> dict[str, Any]:
         """A JSON-able record; :meth:`from_dict` restores it exactly."""
         return {
             "method": self.method,
@@ -259,7 +261,7 @@ class IntensityFit:
         }
 
     @classmethod
-    def from_dict(cls, d: dict) -> IntensityFit:
+    def from_dict(cls, d: dict[str, Any]) -> IntensityFit:
         """Rebuild a fit from :meth:`to_dict`'s record (:class:`FitError` naming a bad field)."""
         if not isinstance(d, dict):
             raise FitError(f"fit record: expected an object, got {type(d).__name__}")
@@ -309,13 +311,13 @@ class IntensityFit:
             raise FitError("fit record: info: expected an object")
         return cls(method, params, uncertainties, covariance, residuals, chi2, n, theta_range, phi_range, info)
 
-    def __eq__(self, other) -> bool:
+    def __eq__(self, other: object) -> bool:
         if not isinstance(other, IntensityFit):
             return NotImplemented
         return self.to_dict() == other.to_dict()
 
 
-def _expected_params(method: str, params: dict) -> set[str]:
+def _expected_params(method: str, params: dict[str, float]) -> set[str]:
     if method == "gaussian":
         return {"a", "sigma", "theta0"} if "theta0" in params else {"a", "sigma"}
     if method == "polynomial":
@@ -352,7 +354,14 @@ def _ranges(samples: Samples) -> tuple[tuple[float, float], tuple[float, float]]
     return theta_range, (start, start + span)
 
 
-def _result(method, names, popt, pcov, samples: Samples, info=None) -> IntensityFit:
+def _result(
+    method: str,
+    names: list[str],
+    popt: np.ndarray,
+    pcov: ArrayLike,
+    samples: Samples,
+    info: dict[str, Any] | None = None,
+) -> IntensityFit:
     params = {k: float(v) for k, v in zip(names, popt, strict=True)}
     pcov = np.asarray(pcov, dtype=float)
     info = dict(info or {})
@@ -383,7 +392,13 @@ def _result(method, names, popt, pcov, samples: Samples, info=None) -> Intensity
     )
 
 
-def _curve_fit(method, f, samples: Samples, p0, bounds=(-np.inf, np.inf)):
+def _curve_fit(
+    method: str,
+    f: Callable[..., np.ndarray],
+    samples: Samples,
+    p0: list[float],
+    bounds: tuple[float | list[float], float | list[float]] = (-np.inf, np.inf),
+) -> tuple[np.ndarray, np.ndarray]:
     who = _label(method, samples)
     x = np.vstack([samples.theta, samples.phi])
     with warnings.catch_warnings():
@@ -437,7 +452,7 @@ def _fit_gaussian(samples: Samples, *, free_centre: bool = False) -> IntensityFi
         if c is not None and c[1] < 0:
             s0, a0 = math.sqrt(-1.0 / (2.0 * c[1])), math.exp(min(c[0], 700.0))
     if free_centre:
-        f = lambda x, a, s, th0: a * np.exp(-((x[0] - th0) ** 2) / (2.0 * s * s))  # noqa: E731
+        f: Callable[..., np.ndarray] = lambda x, a, s, th0: a * np.exp(-((x[0] - th0) ** 2) / (2.0 * s * s))  # noqa: E731
         p0, bounds = [a0, s0, t0], ([-np.inf, 1e-9, -np.inf], [np.inf, np.inf, np.inf])
     else:
         f = lambda x, a, s: a * np.exp(-(x[0] ** 2) / (2.0 * s * s))  # noqa: E731
@@ -509,7 +524,7 @@ def _fit_gaussian_2d(samples: Samples, *, min_phi_span: float = math.radians(60.
     return _result(method, ["a", "sigma1", "sigma2", "phi0"], popt, pcov, samples, {"phi_span_mod_pi": span})
 
 
-def _wls(theta: np.ndarray, y: np.ndarray, sigma: np.ndarray, degree: int):
+def _wls(theta: np.ndarray, y: np.ndarray, sigma: np.ndarray, degree: int) -> tuple[np.ndarray, np.ndarray] | None:
     """Weighted least squares of a power series in θ; ``(coefficients, covariance)`` or None if singular."""
     X = np.vander(theta, degree + 1, increasing=True)
     A = X / sigma[:, None]
@@ -599,7 +614,7 @@ FIT_METHODS: dict[str, Callable[..., IntensityFit]] = {
 """The named estimators of :func:`fit_intensity` (``method=``)."""
 
 
-def fit_intensity(samples: Samples, method: str = "gaussian", **options) -> IntensityFit:
+def fit_intensity(samples: Samples, method: str = "gaussian", **options: Any) -> IntensityFit:
     """Fit one source's samples to a continuous radiant intensity ``I(θ, φ)``.
 
     Parameters

@@ -20,8 +20,10 @@ import os
 from dataclasses import dataclass, field
 from functools import lru_cache
 from pathlib import Path
+from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 from scipy.special import roots_legendre
 
 from processing.fit import FitError, IntensityFit, Samples
@@ -47,7 +49,7 @@ class LightModelError(ValueError):
     """An invalid light model, or an unreadable or foreign light-model file (one line naming it)."""
 
 
-def describe_fitted(record: dict, digits: str) -> str:
+def describe_fitted(record: dict[str, Any], digits: str) -> str:
     """One of the camera's numbers fitted to the data, in words, from its record (the light
     model's provenance ``aperture_m`` or ``sensor_distance_m``; ``digits`` formats it in mm):
     "0.2004 mm fitted to the data (the rig says 0.2 mm; χ²/pixel 1.063 against 1.07)".
@@ -65,7 +67,9 @@ def describe_fitted(record: dict, digits: str) -> str:
     )
 
 
-def samples_table(samples: Samples, positions=None, cell_sum_intensity=None) -> dict:
+def samples_table(
+    samples: Samples, positions: ArrayLike | None = None, cell_sum_intensity: ArrayLike | None = None
+) -> dict[str, list[float] | list[int]]:
     """The samples of one source as the light model stores them: a table of plain lists.
 
     Parameters
@@ -85,7 +89,7 @@ def samples_table(samples: Samples, positions=None, cell_sum_intensity=None) -> 
     """
     n = len(samples)
     positions = np.arange(n) if positions is None else np.asarray(positions)
-    table = {
+    table: dict[str, list[float] | list[int]] = {
         "theta": [float(v) for v in samples.theta],
         "phi": [float(v) for v in samples.phi],
         "intensity": [float(v) for v in samples.intensity],
@@ -130,7 +134,7 @@ class SourceModel:
     centre_m: tuple[float, float]
     radius_m: float
     fit: IntensityFit
-    samples: dict = field(default_factory=dict)
+    samples: dict[str, Any] = field(default_factory=dict)
     colour: tuple[float, float, float] = (1.0, 1.0, 1.0)
 
     def __post_init__(self):
@@ -163,7 +167,7 @@ class SourceModel:
         # Scaled to a mean of 1, unless it is so already (to rounding): a saved model reads back bit for bit.
         self.colour = tuple(float(c) for c in (colour if abs(mean - 1.0) < 1e-12 else colour / mean))
 
-    def intensity(self, theta, phi=0.0) -> np.ndarray:
+    def intensity(self, theta: ArrayLike, phi: ArrayLike = 0.0) -> np.ndarray:
         """``I_s(θ, φ)``: the fit, clipped at zero, and zero behind the plane (θ > 90°)."""
         theta, phi = np.broadcast_arrays(np.asarray(theta, dtype=float), np.asarray(phi, dtype=float))
         values = self.fit(theta, phi)
@@ -178,7 +182,7 @@ class SourceModel:
             return float(np.sum(values.mean(axis=1) * w_theta) * 2.0 * math.pi)
         return float(np.sum(self.intensity(theta) * w_theta) * 2.0 * math.pi)
 
-    def to_dict(self) -> dict:
+    def to_dict(self) -> dict[str, Any]:
         """A JSON-able record of the source."""
         return {
             "name": self.name,
@@ -198,7 +202,7 @@ def _hemisphere_nodes(n: int) -> tuple[np.ndarray, np.ndarray]:
     return theta, 0.25 * math.pi * w * np.sin(theta)
 
 
-def json_ready(obj):
+def json_ready(obj: Any) -> Any:
     """numpy scalars and arrays to plain Python for JSON; non-finite floats become None (null)."""
     if isinstance(obj, dict):
         return {str(k): json_ready(v) for k, v in obj.items()}
@@ -239,9 +243,9 @@ class LightModel:
 
     sources: list[SourceModel]
     units: str = "relative"
-    provenance: dict = field(default_factory=dict)
+    provenance: dict[str, Any] = field(default_factory=dict)
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         self.sources = list(self.sources)
         if self.units not in UNITS:
             raise LightModelError(f"units: {self.units!r} is not one of {', '.join(UNITS)}")
@@ -270,7 +274,7 @@ class LightModel:
                 return s
         raise LightModelError(f"source {source!r}: no such source (known: {', '.join(s.name for s in self.sources)})")
 
-    def intensity(self, source: int | str, theta, phi=0.0) -> np.ndarray:
+    def intensity(self, source: int | str, theta: ArrayLike, phi: ArrayLike = 0.0) -> np.ndarray:
         """Radiant intensity ``I_s(θ, φ)`` of one source.
 
         Parameters
@@ -288,7 +292,7 @@ class LightModel:
         """
         return self.source(source).intensity(theta, phi)
 
-    def far_field(self, theta, phi=0.0) -> np.ndarray:
+    def far_field(self, theta: ArrayLike, phi: ArrayLike = 0.0) -> np.ndarray:
         """``Σ_s I_s(θ, φ)``: the whole light seen from far away, where every source is at one point."""
         theta, phi = np.broadcast_arrays(np.asarray(theta, dtype=float), np.asarray(phi, dtype=float))
         total = np.zeros(theta.shape)
@@ -312,12 +316,12 @@ class LightModel:
         mixed = (shares[:, None] * np.array([s.colour for s in self.sources])).sum(axis=0)
         return mixed / mixed.mean()
 
-    def irradiance_rgb(self, points, normals) -> np.ndarray:
+    def irradiance_rgb(self, points: ArrayLike, normals: ArrayLike) -> np.ndarray:
         """:meth:`irradiance` per camera channel, (N, 3): each source's term times its
         :attr:`SourceModel.colour`. Its channel mean is :meth:`irradiance`."""
         return self._irradiance(points, normals, rgb=True)
 
-    def irradiance(self, points, normals) -> np.ndarray:
+    def irradiance(self, points: ArrayLike, normals: ArrayLike) -> np.ndarray:
         """Irradiance on surfaces close to the light, each source an inverse-square point.
 
         ``E(r, n) = Σ_s I_s(θ_s, φ_s)·max(0, n·ω_s)/|r − p_s|²`` (``measurement.md``), with
@@ -339,7 +343,7 @@ class LightModel:
         """
         return self._irradiance(points, normals, rgb=False)
 
-    def _irradiance(self, points, normals, *, rgb: bool) -> np.ndarray:
+    def _irradiance(self, points: ArrayLike, normals: ArrayLike, *, rgb: bool) -> np.ndarray:
         r = np.asarray(points, dtype=float)
         if r.ndim != 2 or r.shape[1] != 3:
             raise LightModelError(f"irradiance: points must be (N, 3), got shape {r.shape}")
@@ -368,7 +372,7 @@ class LightModel:
 
     # ----------------------------------------------------------------- the file
 
-    def to_dict(self) -> dict:
+    def to_dict(self) -> dict[str, Any]:
         """The JSON-able record written by :meth:`save`."""
         return {
             "format": LIGHT_MODEL_FORMAT,
@@ -379,7 +383,7 @@ class LightModel:
         }
 
     @classmethod
-    def from_dict(cls, d: dict, *, origin: str = "light model") -> LightModel:
+    def from_dict(cls, d: dict[str, Any], *, origin: str = "light model") -> LightModel:
         """Rebuild a model from :meth:`to_dict`'s record, checking format and version.
 
         Raises
@@ -437,7 +441,7 @@ class LightModel:
         except LightModelError as e:
             raise LightModelError(f"{origin}: {e}") from None
 
-    def save(self, path) -> Path:
+    def save(self, path: str | os.PathLike[str]) -> Path:
         """Write the model as JSON (``docs/light-model.md``), atomically; returns the path."""
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -451,7 +455,7 @@ class LightModel:
         return path
 
     @classmethod
-    def load(cls, path) -> LightModel:
+    def load(cls, path: str | os.PathLike[str]) -> LightModel:
         """Read a light-model file, checking its format and version.
 
         Raises
@@ -474,7 +478,7 @@ class LightModel:
         return cls.from_dict(d, origin=str(path))
 
 
-def _dumps(obj, indent: int = 0) -> str:
+def _dumps(obj: Any, indent: int = 0) -> str:
     """JSON with objects one key a line and lists of numbers on one line: small and readable."""
     pad, inner = " " * indent, " " * (indent + 2)
     if isinstance(obj, dict):

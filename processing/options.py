@@ -10,9 +10,11 @@ daemon can check a request without loading the processing.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, fields
 from enum import StrEnum
 from pathlib import Path
+from typing import Any
 
 from processing.steps import Step, StepsError, resolve_steps
 
@@ -115,7 +117,7 @@ class ProcessingOptions:
     fit_sensor_distance: FitChoice = FitChoice.NEVER
 
     @classmethod
-    def checked(cls, **values) -> ProcessingOptions:
+    def checked(cls, **values: Any) -> ProcessingOptions:
         """The options from enum members or their names (``steps`` also as ``"hdr,sources"``).
 
         Raises
@@ -139,8 +141,8 @@ def _option(name: str) -> str:
     return "--" + name.replace("_", "-").replace("fit-method", "fit")
 
 
-def _member(enum: type[StrEnum]):
-    def check(name: str, value):
+def _member(enum: type[StrEnum]) -> Callable[[str, Any], StrEnum]:
+    def check(name: str, value: Any) -> StrEnum:
         try:
             return enum(value)
         except ValueError:
@@ -150,18 +152,18 @@ def _member(enum: type[StrEnum]):
     return check
 
 
-def _steps(name: str, value) -> tuple[Step, ...]:
+def _steps(name: str, value: Any) -> tuple[Step, ...]:
     try:
         return resolve_steps(value)
     except StepsError as exc:
         raise OptionsError(f"--steps: {exc}") from None
 
 
-def _path(name: str, value) -> Path | None:
+def _path(name: str, value: Any) -> Path | None:
     return None if value is None else Path(value)
 
 
-def _point(name: str, value) -> tuple[float, float, float] | None:
+def _point(name: str, value: Any) -> tuple[float, float, float] | None:
     if value is None:
         return None
     try:
@@ -170,20 +172,20 @@ def _point(name: str, value) -> tuple[float, float, float] | None:
         point = ()
     if len(point) != 3 or not all(math.isfinite(v) for v in point):
         raise OptionsError(f"{_option(name)}: expected X,Y,Z in metres, got {value!r}")
-    return point  # type: ignore[return-value]
+    return point
 
 
-def _flag(name: str, value) -> bool:
+def _flag(name: str, value: Any) -> bool:
     if not isinstance(value, bool):
         raise OptionsError(f"{_option(name)}: expected true or false, got {value!r}")
     return value
 
 
-def _as_is(name: str, value):
+def _as_is(name: str, value: Any) -> Any:
     return value
 
 
-_CHECKS = {
+_CHECKS: dict[str, Callable[[str, Any], Any]] = {
     "steps": _steps,
     "method": _member(HDRMethod),
     "noise": _member(NoiseSource),

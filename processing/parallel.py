@@ -28,9 +28,12 @@ import os
 import resource
 import sys
 import uuid
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Hashable, Iterable
 from itertools import islice
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    import distributed
 
 log = logging.getLogger("mirrorgonio.compute")
 
@@ -153,8 +156,12 @@ class Compute:
     """
 
     def __init__(
-        self, client=None, cluster=None, description: str = "this process (no Dask)", in_flight_per_thread: int = 4
-    ):
+        self,
+        client: distributed.Client | None = None,
+        cluster: distributed.LocalCluster | None = None,
+        description: str = "this process (no Dask)",
+        in_flight_per_thread: int = 4,
+    ) -> None:
         self.client = client
         self.cluster = cluster
         self.description = description
@@ -197,7 +204,7 @@ class Compute:
 
         token = uuid.uuid4().hex[:8]
         pending = iter(items)
-        running: dict[str, tuple[Any, Any]] = {}  # key: (future, item)
+        running: dict[Hashable, tuple[Any, Any]] = {}  # key: (future, item)
         count = iter(range(len(items)))
         most = self.max_in_flight()  # asks the scheduler: once
         batch = max(1, most // 2)
@@ -206,6 +213,7 @@ class Compute:
             # One graph update for the whole chunk: the scheduler's cost is per update as much as
             # per task (1.5 ms of this process's CPU a task when they went one by one).
             keys = [_task_key(func, f"{token}-{next(count)}") for _ in chunk]
+            assert self.client is not None  # checked above
             futures = self.client.map(func, chunk, *[[a] * len(chunk) for a in args], key=keys, pure=False, **kwargs)
             running.update({f.key: (f, item) for f, item in zip(futures, chunk, strict=True)})
             return futures
@@ -226,7 +234,7 @@ class Compute:
             self.client.cancel([future for future, _ in running.values()])
             raise
 
-    def submit(self, func: Callable, *args: Any, **kwargs: Any):
+    def submit(self, func: Callable[..., Any], *args: Any, **kwargs: Any) -> distributed.Future[Any]:
         """Start ``func(*args, **kwargs)`` on a worker now; a future whose ``result()`` waits for it
         (and re-raises its exception). Dask only: without Dask there is nowhere to start it, and
         the caller runs ``func`` itself (ComputeError)."""
@@ -266,7 +274,7 @@ class Compute:
     def __enter__(self) -> Compute:
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
     def __repr__(self) -> str:

@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import logging
+from typing import Any
 
 import numba
 import numpy as np
+from numpy.typing import ArrayLike
 
 from drivers.contracts.runfile import RunFile
 from processing.hdr.model import NoiseModel
@@ -74,10 +76,10 @@ class ElectronRates:
 
     __slots__ = ("dn", "factors", "shape")
 
-    def __init__(self, dn: np.ndarray, *factors: float):
+    def __init__(self, dn: np.ndarray, *factors: float) -> None:
         self.dn, self.factors, self.shape = dn, factors, dn.shape
 
-    def __getitem__(self, key) -> np.ndarray:
+    def __getitem__(self, key: Any) -> np.ndarray:
         out = np.asarray(self.dn[key], dtype=np.float64)
         for factor in self.factors:
             out = out * factor
@@ -106,7 +108,9 @@ def position_masks(radiance, variance, count, saturated):
     return usable, lit, n_saturated
 
 
-def electron_rates(radiance, variance, count, saturated, gain: float):
+def electron_rates(
+    radiance: np.ndarray, variance: np.ndarray, count: np.ndarray, saturated: ArrayLike, gain: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Electron rates, their variance and the usable pixels of one merged position."""
     usable, _, _ = position_masks(radiance, variance, count, np.asarray(saturated, bool))
     return ElectronRates(radiance, gain)[...], ElectronRates(variance, gain, gain)[...], usable

@@ -21,12 +21,14 @@ import os
 import threading
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any, Literal
 
 import blosc
 import h5py
 import hdf5plugin
 import numba
 import numpy as np
+from numpy.typing import ArrayLike
 
 from processing.hdr.model import MergeResult, NoiseModel
 
@@ -72,12 +74,12 @@ class _Codec:
     The blocksize is Blosc's unit of work, stored in each chunk's header: any reader decodes
     it whatever it is."""
 
-    cname: str
+    cname: Literal["blosclz", "lz4", "lz4hc", "snappy", "zlib", "zstd"]
     clevel: int
     shuffle: int  # blosc.NOSHUFFLE, SHUFFLE (byte) or BITSHUFFLE
     blocksize: int
 
-    def filter(self) -> dict:
+    def filter(self) -> dict[str, Any]:
         return dict(hdf5plugin.Blosc(cname=self.cname, clevel=self.clevel, shuffle=self.shuffle))
 
     def encode(self, array: np.ndarray) -> bytes:
@@ -244,7 +246,7 @@ class ResultsWriter:
     @classmethod
     def create(
         cls,
-        path,
+        path: str | os.PathLike[str],
         *,
         run_id: str,
         run_file: str,
@@ -297,7 +299,7 @@ class ResultsWriter:
         write_position_file(position_file_for(self.path, index), encoded)
         self.commit_position(index, encoded.saturation_level)
 
-    def commit_position(self, index: int, saturation_level) -> None:
+    def commit_position(self, index: int, saturation_level: ArrayLike | None) -> None:
         """Record a position whose file was written elsewhere (:func:`write_position_file`,
         by a worker): its saturation level, then its ``done`` flag."""
         source = position_file_for(self.path, index)
@@ -306,7 +308,7 @@ class ResultsWriter:
         self._f["hdr"]["saturation_level"][index] = np.asarray(saturation_level, float)
         self._commit(index)
 
-    def _check_shape(self, index: int, shape) -> None:
+    def _check_shape(self, index: int, shape: tuple[int, ...]) -> None:
         held = tuple(self._f["hdr"]["radiance"].shape[1:])
         if tuple(shape) != held:
             raise ResultsError(f"{self.path}: position {index} is {tuple(shape)}, the file holds {held}")
@@ -322,7 +324,7 @@ class ResultsWriter:
     def __enter__(self) -> ResultsWriter:
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
 
@@ -356,7 +358,7 @@ class Results:
         self.path, self._f = path, f
 
     @classmethod
-    def open(cls, path) -> Results:
+    def open(cls, path: str | os.PathLike[str]) -> Results:
         path = Path(path)
         try:
             f = h5py.File(path, "r")
@@ -378,7 +380,7 @@ class Results:
     def __enter__(self) -> Results:
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
     def close(self) -> None:

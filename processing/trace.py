@@ -11,10 +11,13 @@ the ``cos⁴β`` fall-off of the sensor, and the pixel's footprint area on the l
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
+from typing import cast
 
 import numba
 import numpy as np
+from numpy.typing import ArrayLike
 
 from drivers.contracts.rig import Rig
 from drivers.contracts.runfile import RunFile
@@ -59,7 +62,7 @@ class RigGeometry:
         )
 
     @classmethod
-    def from_rig(cls, rig: Rig, ball_centre=None) -> RigGeometry:
+    def from_rig(cls, rig: Rig, ball_centre: Sequence[float] | np.ndarray | None = None) -> RigGeometry:
         cam = rig.camera
         R, t = cam.pose.extrinsics()
         K = cam.camera_matrix()
@@ -87,27 +90,27 @@ class RigGeometry:
             else 0.0,
         )
 
-    def pixel_directions(self, cols, rows) -> np.ndarray:
+    def pixel_directions(self, cols: np.ndarray, rows: np.ndarray) -> np.ndarray:
         """Unit directions (N, 3) in the rig frame of the chief rays of pixels (col, row)."""
         homogeneous = np.stack([cols, rows, np.ones_like(cols)], axis=-1).astype(float)
         in_camera = homogeneous @ self.K_inv.T
         in_rig = in_camera @ self.R  # R.T @ d for each row
         return in_rig / np.linalg.norm(in_rig, axis=-1, keepdims=True)
 
-    def cos4(self, cols, rows) -> np.ndarray:
+    def cos4(self, cols: np.ndarray, rows: np.ndarray) -> np.ndarray:
         """``cos⁴β`` of the flat sensor behind the pinhole, β the chief ray's off-axis angle."""
         x = (cols - self.K[0, 2]) / self.K[0, 0]
         y = (rows - self.K[1, 2]) / self.K[1, 1]
         return 1.0 / (1.0 + x * x + y * y) ** 2
 
-    def project(self, points) -> np.ndarray:
+    def project(self, points: np.ndarray) -> np.ndarray:
         """Pixel coordinates (N, 2) of rig-frame points through the pinhole's centre."""
         cam = points @ self.R.T + self.t
         uvw = cam @ self.K.T
         return uvw[..., :2] / uvw[..., 2:3]
 
 
-def conductor_reflectance(cos_incidence, n, k) -> np.ndarray:
+def conductor_reflectance(cos_incidence: np.ndarray, n: ArrayLike, k: ArrayLike) -> np.ndarray:
     """Unpolarised Fresnel reflectance (N, C) of a metal of index n + ik (complex form).
 
     Examples
@@ -146,7 +149,7 @@ class ChiefRays:
     deflection: np.ndarray  # angle between the camera's ray and the reflected ray
 
 
-def housing_blocks(start, end, light: Pose, radius: float, depth: float) -> np.ndarray:
+def housing_blocks(start: np.ndarray, end: np.ndarray, light: Pose, radius: float, depth: float) -> np.ndarray:
     """Segments (rig frame) that pass through the housing cylinder behind the light plane.
 
     In the light frame the segment is ``a + s d`` for s in [0, 1]; it meets the solid
@@ -178,7 +181,7 @@ def housing_blocks(start, end, light: Pose, radius: float, depth: float) -> np.n
     return meets_cylinder & (np.maximum(lo, r0) <= np.minimum(hi, r1))
 
 
-def trace_pixels(geometry: RigGeometry, light_pose: Pose, cols, rows) -> ChiefRays:
+def trace_pixels(geometry: RigGeometry, light_pose: Pose, cols: ArrayLike, rows: ArrayLike) -> ChiefRays:
     """Trace the chief rays of the given pixels with the light at ``light_pose``."""
     cols = np.asarray(cols, float).ravel()
     rows = np.asarray(rows, float).ravel()
@@ -244,7 +247,7 @@ def ball_pixel_box(geometry: RigGeometry) -> tuple[int, int, int, int] | None:
     if rel[2] <= geometry.ball_radius:
         return None
     dist = np.linalg.norm(rel)
-    half = np.arcsin(min(1.0, geometry.ball_radius / dist))
+    half = np.arcsin(min(1.0, cast(float, geometry.ball_radius / dist)))  # numpy's stubs: a norm is a floating
     f_px = geometry.K[0, 0]
     centre = geometry.project(geometry.ball_centre[None, :])[0]
     reach = f_px * np.tan(np.arccos(rel[2] / dist) + half) - f_px * np.tan(max(np.arccos(rel[2] / dist) - half, 0))
@@ -372,7 +375,7 @@ def _specular_kernel(s: np.ndarray, t: np.ndarray, radius: float, iterations: in
     return p[iterations % 3].copy()
 
 
-def light_pose_at_position(run: RunFile, geometry, index: int):
+def light_pose_at_position(run: RunFile, geometry: RigGeometry, index: int) -> Pose:
 
     measured = run.measured_pose(index)
     return light_pose_at(geometry, measured if measured is not None else run.header.tool_poses[index])

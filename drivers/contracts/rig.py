@@ -12,9 +12,10 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import Annotated, Any, Final, Literal, Self
 
 import numpy as np
+from numpy.typing import ArrayLike
 from pydantic import Field, PositiveFloat, PositiveInt, model_validator
 
 from drivers.arm import SoftLimits
@@ -25,7 +26,7 @@ from drivers.pose import Pose, rotation_from_angles
 # ObjectArc.light_poses): at the top it would more than double the import time of this module,
 # which every process imports (the daemon, each worker, every command).
 
-RIG_SCHEMA_VERSION = 1
+RIG_SCHEMA_VERSION: Final = 1
 #: The rigs shipped with the package (package data: also there in a wheel); ``rigs/`` at the top
 #: of a checkout links here.
 RIGS_DIR = Path(__file__).resolve().parent / "rigs"
@@ -59,7 +60,7 @@ class PoseSpec(ConfigModel):
         return Pose(*self.position_m, rx, ry, rz)
 
 
-def look_rotation(forward, x_hint) -> np.ndarray:
+def look_rotation(forward: ArrayLike, x_hint: ArrayLike) -> np.ndarray:
     """Rotation whose z axis is ``forward`` and whose x axis is as close to ``x_hint``."""
     z = np.asarray(forward, dtype=float)
     if np.linalg.norm(z) < 1e-12:
@@ -87,7 +88,7 @@ class Orientation(ConfigModel):
     aim_at_m: Vec3 | None = (0.0, 0.0, 0.0)
     x_axis: Vec3 = (1.0, 0.0, 0.0)
 
-    def rotation_from(self, position) -> np.ndarray:
+    def rotation_from(self, position: ArrayLike) -> np.ndarray:
         if self.rotation_deg is not None:
             return rotation_from_angles(*(math.radians(a) for a in self.rotation_deg))
         forward = np.asarray(self.aim_at_m) - np.asarray(position, dtype=float)
@@ -109,7 +110,7 @@ class CameraPose(ConfigModel):
     tvec_m: Vec3 | None = None
 
     @model_validator(mode="after")
-    def _one_form(self):
+    def _one_form(self) -> Self:
         if (self.rvec is None) != (self.tvec_m is None):
             raise ValueError("give both rvec and tvec_m, or neither")
         return self
@@ -167,7 +168,7 @@ class Camera(ConfigModel):
     sensitivity_e_per_s: PositiveFloat = 1000.0
 
     @model_validator(mode="after")
-    def _levels(self):
+    def _levels(self) -> Self:
         top = (1 << self.bit_depth) - 1
         if self.white_level_dn is not None and self.white_level_dn > top:
             raise ValueError(f"white_level_dn {self.white_level_dn} exceeds the {self.bit_depth}-bit range")
@@ -243,6 +244,12 @@ class Light(ConfigModel):
     housing_depth_m: Annotated[float, Field(ge=0.0)] = 0.05
 
 
+def _radians(range_deg: Vec2) -> tuple[float, float]:
+    """A (low, high) range in degrees, in radians."""
+    low, high = range_deg
+    return math.radians(low), math.radians(high)
+
+
 class AxisRange(ConfigModel):
     x_m: Vec2 = (-0.25, 0.25)
     y_m: Vec2 = (-0.25, 0.25)
@@ -252,7 +259,7 @@ class AxisRange(ConfigModel):
     rz_deg: Vec2 = (-180.0, 180.0)
 
     @model_validator(mode="after")
-    def _ordered(self):
+    def _ordered(self) -> Self:
         for name in type(self).model_fields:
             low, high = getattr(self, name)
             if low > high:
@@ -265,9 +272,9 @@ class AxisRange(ConfigModel):
                 "x": self.x_m,
                 "y": self.y_m,
                 "z": self.z_m,
-                "rx": tuple(math.radians(a) for a in self.rx_deg),
-                "ry": tuple(math.radians(a) for a in self.ry_deg),
-                "rz": tuple(math.radians(a) for a in self.rz_deg),
+                "rx": _radians(self.rx_deg),
+                "ry": _radians(self.ry_deg),
+                "rz": _radians(self.rz_deg),
             }
         )
 
@@ -305,7 +312,7 @@ class Raster(ConfigModel):
     orientation: Orientation = Orientation()
 
     @model_validator(mode="after")
-    def _not_too_many(self):
+    def _not_too_many(self) -> Self:
         if self.count_u * self.count_v > MAX_POSITIONS:
             raise ValueError(f"count_u × count_v = {self.count_u * self.count_v}: more than {MAX_POSITIONS} positions")
         return self
@@ -385,7 +392,7 @@ class SceneObject(ConfigModel):
     up: Vec3 = (0.0, 1.0, 0.0)
 
     @model_validator(mode="after")
-    def _up_is_a_direction(self):
+    def _up_is_a_direction(self) -> Self:
         if not np.linalg.norm(self.up) > 0:
             raise ValueError("up: must be a non-zero vector")
         return self
@@ -438,7 +445,7 @@ class Rig(ConfigModel):
 
     # Physical checks --------------------------------------------------------------------
     @model_validator(mode="after")
-    def _physically_possible(self):
+    def _physically_possible(self) -> Self:
         centre = np.asarray(self.ball.centre_m)
         radius = self.ball.radius_m
         try:
@@ -471,7 +478,7 @@ class Rig(ConfigModel):
         return self
 
 
-def _segment_distance(point, a, b) -> float:
+def _segment_distance(point: np.ndarray, a: np.ndarray, b: np.ndarray) -> float:
     ab = b - a
     denom = float(np.dot(ab, ab))
     s = 0.0 if denom == 0.0 else float(np.clip(np.dot(point - a, ab) / denom, 0.0, 1.0))
@@ -479,7 +486,7 @@ def _segment_distance(point, a, b) -> float:
 
 
 # --- loading -------------------------------------------------------------------------------
-def rig_from_dict(data: dict, source: str = "<rig>") -> Rig:
+def rig_from_dict(data: dict[str, Any], source: str = "<rig>") -> Rig:
     """Validate a rig description given as a dictionary (the parsed TOML)."""
     return validate_model(Rig, data, source, RigError)
 
@@ -498,6 +505,6 @@ def load_rig(path: str | Path | None = None) -> Rig:
     return rig
 
 
-def rig_to_toml_dict(rig: Rig) -> dict:
+def rig_to_toml_dict(rig: Rig) -> dict[str, Any]:
     """The rig as plain data (for storing inside run files), None values dropped."""
     return rig.model_dump(mode="json", exclude_none=True)

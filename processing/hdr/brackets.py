@@ -4,18 +4,24 @@ from __future__ import annotations
 
 import contextlib
 import math
+from collections.abc import Callable, Iterator, Sequence
+from typing import Any, TypeAlias
 
 import cv2
 import numba
 import numpy as np
+from numpy.typing import ArrayLike
 
 from processing.hdr.model import HDRError, MergeResult, NoiseModel
+
+#: A bracket's raw mosaics: one (k, H, W) array, or a list (or tuple) of (H, W) arrays.
+Frames: TypeAlias = np.ndarray | list[np.ndarray] | tuple[np.ndarray, ...]
 
 _SERIAL_BELOW = 1 << 18  # samples; a parallel launch costs more than it saves below this
 
 
 @contextlib.contextmanager
-def serial_if_small(samples: int):
+def serial_if_small(samples: int) -> Iterator[None]:
     """Run the kernels on the calling thread alone for small inputs: a parallel region waits
     for every worker, and one descheduled on a busy machine stalls it for a time slice or
     more, which dwarfs a sub-millisecond merge. (``numba.set_num_threads`` is per thread.)"""
@@ -315,7 +321,7 @@ def _merge_kernel(
                             sat[j] = nn == 0
 
 
-def as_site_array(value) -> np.ndarray:
+def as_site_array(value: ArrayLike) -> np.ndarray:
     value = np.asarray(value, dtype=np.float64)
     if value.shape == ():
         return np.full((2, 2), float(value))
@@ -324,7 +330,7 @@ def as_site_array(value) -> np.ndarray:
     return value
 
 
-def check_bracket(frames, exposures) -> tuple[np.ndarray, np.ndarray]:
+def check_bracket(frames: Frames, exposures: ArrayLike | None) -> tuple[np.ndarray, np.ndarray]:
     frames = [np.asarray(f) for f in frames] if isinstance(frames, (list, tuple)) else frames
     if isinstance(frames, list):
         if not frames:
@@ -351,14 +357,14 @@ def check_bracket(frames, exposures) -> tuple[np.ndarray, np.ndarray]:
 
 
 def merge_raw(
-    frames,
-    exposures,
-    black_level,
+    frames: Frames,
+    exposures: ArrayLike,
+    black_level: ArrayLike,
     white_level: int,
     noise: NoiseModel,
     *,
     method: str = "optimal",
-    saturation_level=None,
+    saturation_level: ArrayLike | None = None,
     near_black_sigma: float = 2.0,
 ) -> MergeResult:
     """Merge one position's raw bracket.
@@ -446,7 +452,9 @@ RAW_METHODS = {
 }
 
 
-def merge_ldr(images, exposures, *, samples: int = 70, lambda_: float = 10.0) -> tuple[np.ndarray, np.ndarray]:
+def merge_ldr(
+    images: Sequence[np.ndarray], exposures: ArrayLike, *, samples: int = 70, lambda_: float = 10.0
+) -> tuple[np.ndarray, np.ndarray]:
     """Debevec & Malik's response recovery and merge for 8-bit brackets (e.g. JPEG).
 
     Returns the relative radiance (H, W, 3) float32 and the recovered response curve
@@ -468,19 +476,19 @@ def merge_ldr(images, exposures, *, samples: int = 70, lambda_: float = 10.0) ->
     return radiance, response
 
 
-def _merge_debevec(images, exposures, **_ignored):
+def _merge_debevec(images: Sequence[np.ndarray], exposures: ArrayLike, **_ignored: object) -> np.ndarray:
     radiance, _response = merge_ldr(images, exposures)
     return radiance
 
 
-MERGE_METHODS = {
+MERGE_METHODS: dict[str, Callable[..., MergeResult | np.ndarray]] = {
     "optimal": lambda frames, exposures, **kw: merge_raw(frames, exposures, method="optimal", **kw),
     "poisson": lambda frames, exposures, **kw: merge_raw(frames, exposures, method="poisson", **kw),
     "debevec": _merge_debevec,
 }
 
 
-def merge(frames, exposures, *, method: str = "optimal", **options):
+def merge(frames: Frames, exposures: ArrayLike, *, method: str = "optimal", **options: Any) -> MergeResult | np.ndarray:
     """Merge a bracket with the named estimator.
 
     ``"optimal"`` and ``"poisson"`` take raw mosaics and need ``black_level``,

@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 
 class HDRError(ValueError):
@@ -19,7 +20,7 @@ class NoiseModel:
     read_noise_dn: float
     source: str = "rig"  # where the figures came from: "rig" or "estimated"
 
-    def variance(self, mean_dn):
+    def variance(self, mean_dn: ArrayLike) -> np.ndarray:
         """Variance in DN² of a sample of mean ``mean_dn`` (above black), quantisation included."""
         return np.maximum(mean_dn, 0.0) / self.gain_e_per_dn + self.read_noise_dn**2 + 1.0 / 12.0
 

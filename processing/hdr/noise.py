@@ -6,8 +6,9 @@ import math
 
 import numba
 import numpy as np
+from numpy.typing import ArrayLike
 
-from processing.hdr.brackets import as_site_array, check_bracket, measure_saturation, serial_if_small
+from processing.hdr.brackets import Frames, as_site_array, check_bracket, measure_saturation, serial_if_small
 from processing.hdr.model import HDRError, NoiseModel
 
 
@@ -199,7 +200,13 @@ def _pair_bins(frames, a, b, r, black, limit, bins):
 
 
 def estimate_noise(
-    frames, exposures, black_level, *, saturation_level=None, white_level: int = 65535, bins: int = 24
+    frames: Frames,
+    exposures: ArrayLike,
+    black_level: ArrayLike,
+    *,
+    saturation_level: ArrayLike | None = None,
+    white_level: int = 65535,
+    bins: int = 24,
 ) -> NoiseModel:
     """Gain and read noise from a bracket itself, without flat fields or repeated frames.
 

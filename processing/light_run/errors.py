@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import os
 
 from drivers.contracts.runfile import RunFile, RunFileError
 
@@ -13,7 +14,7 @@ class ProcessingError(ValueError):
     """A run that cannot be processed (one line naming the file and the cause)."""
 
 
-def open_run(path) -> RunFile:
+def open_run(path: str | os.PathLike[str]) -> RunFile:
     try:
         return RunFile.open(path)
     except RunFileError as exc:

@@ -3,10 +3,14 @@
 from __future__ import annotations
 
 import logging
+import os
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import replace
 from functools import partial
+from typing import TypeVar, cast
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from drivers.contracts.runfile import RunFile
 from processing.light_run.errors import ProcessingError, open_run
@@ -18,7 +22,7 @@ from processing.parallel import Compute
 from processing.radiometry import electron_rates, radiometric_gain
 from processing.results import Results
 from processing.trace import light_pose_at_position
-from processing.unmixing.camera_fit import fit_aperture, fit_sensor_distance
+from processing.unmixing.camera_fit import ApertureFit, SensorDistanceFit, fit_aperture, fit_sensor_distance
 from processing.unmixing.problem import LayoutData
 from processing.unmixing.search import (
     LayoutFit,
@@ -29,9 +33,17 @@ from processing.unmixing.search import (
     seeds_from_strength,
     sources_from_strength,
 )
-from processing.unmixing.sources import SourcesError
+from processing.unmixing.sources import Source, SourcesError
+from processing.unmixing.templates import TemplateBuilder
 
 log = logging.getLogger("mirrorgonio.processing")
+
+#: A file's path as the functions here take it.
+PathArg = str | os.PathLike[str]
+#: The ball's centre in the rig frame (metres), or None where the rig description's stands.
+BallCentre = Sequence[float] | np.ndarray | None
+
+_Fit = TypeVar("_Fit", ApertureFit, SensorDistanceFit)
 
 
 #: Where along the sweep the layout's refinement and the camera's fits take their positions. Five:
@@ -42,12 +54,12 @@ FIT_FRACTIONS = (1 / 6, 2 / 6, 3 / 6, 4 / 6, 5 / 6)
 
 def layout_from_data(
     run: RunFile,
-    results_file,
-    positions=None,
-    ball_centre=None,
+    results_file: PathArg,
+    positions: ArrayLike | None = None,
+    ball_centre: BallCentre = None,
     compute: Compute | None = None,
     camera: CameraFit | None = None,
-):
+) -> LayoutFit:
     """The sources found in the data (``docs/light-model.md``): the candidate grid at three
     positions spread over the sweep (:func:`~processing.unmixing.search.lit_box`,
     :func:`~processing.unmixing.search.candidate_grid`, :func:`~processing.unmixing.search.candidate_strength`,
@@ -64,13 +76,13 @@ def layout_from_data(
     picks = spread_over(positions, (0.25, 0.5, 0.75))
     compute = compute or Compute()
     args = (str(run.path), str(results_file), ball_centre, camera)
-    boxes: dict[int, tuple | None] = {}
+    boxes: dict[int, tuple[float, float, float, float] | None] = {}
     compute.map_unordered(_layout_box_at, picks, *args, on_result=boxes.__setitem__)
     try:
         candidates, us, vs = candidate_grid([boxes[i] for i in picks])
         strengths: dict[int, np.ndarray] = {}
         compute.map_unordered(_candidate_strength_at, picks, *args, tuple(candidates), on_result=strengths.__setitem__)
-        strength = sum(strengths[i] for i in picks)
+        strength = cast(np.ndarray, sum(strengths[i] for i in picks))  # picks is not empty
         first = sources_from_strength(strength, us, vs)
     except SourcesError as exc:
         raise ProcessingError(f"{run.path}: the sources could not be found in the data: {exc}") from None
@@ -91,10 +103,10 @@ CHI2_PER_PIXEL_WARNING = 1.2
 
 def aperture_from_data(
     run: RunFile,
-    results_file,
-    positions,
-    layout,
-    ball_centre=None,
+    results_file: PathArg,
+    positions: ArrayLike,
+    layout: Sequence[Source],
+    ball_centre: BallCentre = None,
     compute: Compute | None = None,
     sensor_distance: float | None = None,
 ) -> FittedNumber:
@@ -119,10 +131,10 @@ def aperture_from_data(
 
 def sensor_distance_from_data(
     run: RunFile,
-    results_file,
-    positions,
-    layout,
-    ball_centre=None,
+    results_file: PathArg,
+    positions: ArrayLike,
+    layout: Sequence[Source],
+    ball_centre: BallCentre = None,
     compute: Compute | None = None,
     *,
     aperture: float | None = None,
@@ -159,7 +171,18 @@ def sensor_distance_from_data(
     )
 
 
-def _fit_from_data(run: RunFile, option: str, task, results_file, ball_centre, picks, layout, camera, compute, *extra):
+def _fit_from_data(
+    run: RunFile,
+    option: str,
+    task: Callable[..., _Fit],
+    results_file: PathArg,
+    ball_centre: BallCentre,
+    picks: list[int],
+    layout: Sequence[Source],
+    camera: CameraFit,
+    compute: Compute | None,
+    *extra: object,
+) -> _Fit:
     """One of the camera's fits as a task on ``compute``; its failure as one line naming ``option``."""
     args = (str(run.path), str(results_file), ball_centre, tuple(picks), tuple(layout), camera, *extra)
     compute = compute or Compute()
@@ -169,7 +192,9 @@ def _fit_from_data(run: RunFile, option: str, task, results_file, ball_centre, p
         raise ProcessingError(f"{run.path}: {option}: {exc}") from None
 
 
-def _fitted_number(fit, fitted_m: float, described_m: float, picks) -> FittedNumber:
+def _fitted_number(
+    fit: ApertureFit | SensorDistanceFit, fitted_m: float, described_m: float, picks: Iterable[int]
+) -> FittedNumber:
     return FittedNumber(
         fitted_m,
         described_m,
@@ -193,7 +218,14 @@ def warn_if_unexplained(run: RunFile, aperture: FittedNumber | None) -> None:
         )
 
 
-def _fitted_aperture(run_path: str, results_file: str, ball_centre, picks, layout, camera: CameraFit):
+def _fitted_aperture(
+    run_path: str,
+    results_file: str,
+    ball_centre: BallCentre,
+    picks: Sequence[int],
+    layout: Sequence[Source],
+    camera: CameraFit,
+) -> ApertureFit:
     """:func:`processing.unmixing.camera_fit.fit_aperture` on the merged positions ``picks`` (a task)."""
     prepare_task()
 
@@ -203,8 +235,14 @@ def _fitted_aperture(run_path: str, results_file: str, ball_centre, picks, layou
 
 
 def _fitted_sensor_distance(
-    run_path: str, results_file: str, ball_centre, picks, layout, camera: CameraFit, refit: bool
-):
+    run_path: str,
+    results_file: str,
+    ball_centre: BallCentre,
+    picks: Sequence[int],
+    layout: Sequence[Source],
+    camera: CameraFit,
+    refit: bool,
+) -> SensorDistanceFit:
     """:func:`processing.unmixing.camera_fit.fit_sensor_distance` on the merged positions ``picks`` (a task)."""
     prepare_task()
 
@@ -213,11 +251,14 @@ def _fitted_sensor_distance(
         return fit_sensor_distance(data, builder, cfa, list(layout), refit=refit)
 
 
-def _layout_data(run: RunFile, results_file: str, ball_centre, picks, camera: CameraFit | None = None):
+def _layout_data(
+    run: RunFile, results_file: str, ball_centre: BallCentre, picks: Iterable[int], camera: CameraFit | None = None
+) -> tuple[list[LayoutData], TemplateBuilder, str]:
     """The merged positions ``picks`` as the layout fits take them: (data, builder, cfa pattern)."""
 
     geometry, builder = geometry_and_builder(run, ball_centre, camera)
-    data, cfa = [], "RGGB"
+    data: list[LayoutData] = []
+    cfa = "RGGB"
     for index in picks:
         rate, var, usable, cfa = _merged_rates(run, results_file, index)
         data.append(LayoutData(rate, var, usable, light_pose_at_position(run, geometry, index)))
@@ -225,7 +266,13 @@ def _layout_data(run: RunFile, results_file: str, ball_centre, picks, camera: Ca
 
 
 def camera_at_layout(
-    run: RunFile, results_file, positions, layout, ball_centre, compute: Compute, plan: ProcessingPlan
+    run: RunFile,
+    results_file: PathArg,
+    positions: ArrayLike,
+    layout: Sequence[Source],
+    ball_centre: BallCentre,
+    compute: Compute,
+    plan: ProcessingPlan,
 ) -> tuple[FittedNumber | None, FittedNumber | None]:
     """The camera's numbers the plan fits, at the sources of a given ``layout`` (held at each
     trial): (aperture, sensor distance), each None where not fitted. The sensor distance
@@ -243,9 +290,9 @@ def camera_at_layout(
 
 def layout_and_camera(
     run: RunFile,
-    results_file,
-    positions,
-    ball_centre,
+    results_file: PathArg,
+    positions: ArrayLike,
+    ball_centre: BallCentre,
     compute: Compute,
     plan: ProcessingPlan,
     *,
@@ -269,7 +316,9 @@ def layout_and_camera(
     and the last search's sources kept, with the camera they were found with (the number's
     record then says ``failed``); a required one raises :class:`ProcessingError`.
     """
-    camera, aperture, distance = CameraFit(), None, None
+    camera = CameraFit()
+    aperture: FittedNumber | None = None
+    distance: FittedNumber | None = None
     moved = (0.0, 0.0)
     for search in range(1, max_searches + 1):
         found = layout_from_data(run, results_file, positions, ball_centre, compute, camera=camera)
@@ -313,7 +362,9 @@ def layout_and_camera(
     return found, aperture, distance
 
 
-def _fitted_or_kept(fit, last: FittedNumber | None, required: bool, search: int) -> FittedNumber:
+def _fitted_or_kept(
+    fit: Callable[[], FittedNumber], last: FittedNumber | None, required: bool, search: int
+) -> FittedNumber:
     """``fit()`` with the search it followed; where it fails and is not ``required``, the last
     fit (or none) with the reason, logged."""
     try:
@@ -321,9 +372,8 @@ def _fitted_or_kept(fit, last: FittedNumber | None, required: bool, search: int)
     except ProcessingError as exc:
         if required:
             raise
-        kept = (
-            "the rig's number" if _fitted_m(last) is None else f"the number fitted before, {1e3 * last.fitted_m:.4g} mm"
-        )
+        before = _fitted_m(last)
+        kept = "the rig's number" if before is None else f"the number fitted before, {1e3 * before:.4g} mm"
         log.warning("%s (the sources are estimated with %s)", exc, kept)
         return replace(last or FittedNumber(), failed=str(exc))
 
@@ -336,7 +386,10 @@ def _moved(before: float | None, after: float | None, fit: FittedNumber | None) 
     """How far a fitted number moved, relative (0 when it was not fitted)."""
     if after is None:
         return 0.0
-    return abs(after / (before if before is not None else fit.described_m) - 1.0)
+    if before is None:
+        assert fit is not None and fit.described_m is not None  # a fitted number has its fit, and the rig's
+        before = fit.described_m
+    return abs(after / before - 1.0)
 
 
 def fitted_camera(aperture: FittedNumber | None, distance: FittedNumber | None) -> CameraFit:
@@ -344,12 +397,20 @@ def fitted_camera(aperture: FittedNumber | None, distance: FittedNumber | None) 
     return CameraFit(_fitted_m(aperture), _fitted_m(distance))
 
 
-def spread_over(positions: np.ndarray, fractions) -> list[int]:
+def spread_over(positions: np.ndarray, fractions: Iterable[float]) -> list[int]:
     """The positions at these fractions of the way through ``positions`` (each once, in order)."""
     return sorted({int(positions[int(q * (len(positions) - 1))]) for q in fractions})
 
 
-def _refined_layout(run_path: str, results_file: str, ball_centre, camera, picks, first, seeds):
+def _refined_layout(
+    run_path: str,
+    results_file: str,
+    ball_centre: BallCentre,
+    camera: CameraFit | None,
+    picks: Iterable[int],
+    first: list[Source],
+    seeds: Sequence[tuple[float, float]],
+) -> LayoutFit:
     """:func:`processing.unmixing.search.refine_layout` on the merged positions ``picks`` (a task)."""
     prepare_task()
 
@@ -358,7 +419,7 @@ def _refined_layout(run_path: str, results_file: str, ball_centre, camera, picks
         return refine_layout(data, builder, cfa, first, seeds)
 
 
-def _merged_rates(run: RunFile, results_file: str, index: int):
+def _merged_rates(run: RunFile, results_file: str, index: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, str]:
     with Results.open(results_file) as results:
         rate, var, usable = electron_rates(
             results.radiance(index),
@@ -370,7 +431,9 @@ def _merged_rates(run: RunFile, results_file: str, index: int):
         return rate, var, usable, results.cfa_pattern
 
 
-def _layout_box_at(index: int, run_path: str, results_file: str, ball_centre, camera):
+def _layout_box_at(
+    index: int, run_path: str, results_file: str, ball_centre: BallCentre, camera: CameraFit | None
+) -> tuple[float, float, float, float] | None:
     """The lit box of one merged position (a task)."""
     prepare_task()
 
@@ -380,7 +443,14 @@ def _layout_box_at(index: int, run_path: str, results_file: str, ball_centre, ca
         return lit_box(rate, usable, light_pose_at_position(run, geometry, index), geometry)
 
 
-def _candidate_strength_at(index: int, run_path: str, results_file: str, ball_centre, camera, candidates):
+def _candidate_strength_at(
+    index: int,
+    run_path: str,
+    results_file: str,
+    ball_centre: BallCentre,
+    camera: CameraFit | None,
+    candidates: Iterable[Source],
+) -> np.ndarray:
     """The candidates' strengths at one merged position (a task)."""
     prepare_task()
 

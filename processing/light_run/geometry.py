@@ -3,8 +3,12 @@
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 
+import numpy as np
+
+from drivers.contracts.rig import Rig
 from drivers.contracts.runfile import RunFile
 from processing.trace import RigGeometry
 from processing.unmixing.templates import TemplateBuilder
@@ -12,10 +16,12 @@ from processing.unmixing.templates import TemplateBuilder
 log = logging.getLogger("mirrorgonio.processing")
 
 
-_GEOMETRIES: dict[tuple, tuple] = {}
+_GEOMETRIES: dict[tuple[int, tuple[float, ...] | None, CameraFit], tuple[Rig, RigGeometry, TemplateBuilder]] = {}
 
 
-def geometry_and_builder(run: RunFile, ball_centre, camera: CameraFit | None = None):
+def geometry_and_builder(
+    run: RunFile, ball_centre: Sequence[float] | np.ndarray | None, camera: CameraFit | None = None
+) -> tuple[RigGeometry, TemplateBuilder]:
     """The rig's geometry and template builder (ball at ``ball_centre``, or where the rig says;
     the camera's aperture and sensor distance as ``camera`` has them, or as the rig says).
 

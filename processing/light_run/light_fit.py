@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -13,6 +14,7 @@ from processing.light_run.errors import ProcessingError
 from processing.light_run.samples import SourceSamples
 from processing.lightmodel import LightModel, SourceModel, samples_table
 from processing.radiometry import radiometric_gain
+from processing.unmixing.sources import Source
 
 log = logging.getLogger("mirrorgonio.processing")
 
@@ -32,19 +34,20 @@ def source_colour(intensity_rgb: np.ndarray) -> tuple[float, float, float]:
     sums = rgb[both].sum(axis=0)
     if not both.any() or not np.all(sums > 0):
         return (1.0, 1.0, 1.0)
-    return tuple(float(c) for c in sums / sums.mean())
+    red, green, blue = sums / sums.mean()
+    return (float(red), float(green), float(blue))
 
 
 def fit_light_model(
     run: RunFile,
-    layout,
+    layout: Sequence[Source],
     samples: SourceSamples,
     *,
     method: str = "gaussian",
     units: str = "relative",
     estimator: str = "",
     footprint: float = float("nan"),
-):
+) -> LightModel:
     """Fit every source's samples and assemble the light model."""
 
     sources = []

@@ -52,7 +52,7 @@ def choose_noise(run: RunFile, positions: np.ndarray, mode: str, compute: Comput
     (compute or Compute()).map_unordered(
         _noise_estimate_at, [int(i) for i in sample], str(run.path), on_result=found.__setitem__
     )
-    estimates = [found[int(i)] for i in sample if found.get(int(i)) is not None]
+    estimates = [estimate for i in sample if (estimate := found.get(int(i))) is not None]
     if not estimates:
         if mode == "estimated":
             raise ProcessingError(f"{run.path}: the noise model cannot be estimated from these brackets")

@@ -7,14 +7,17 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
+import numpy as np
+
 from processing.exports import write_ies, write_ldt, write_tm25
 from processing.light_run.errors import open_run
 from processing.light_run.light_fit import fit_light_model
-from processing.light_run.position import SourcesPlan
+from processing.light_run.position import SourceRow, SourcesPlan
 from processing.light_run.records import ProcessReport, camera_provenance
 from processing.light_run.samples import assemble_samples
 from processing.options import ProcessingOptions
 from processing.parallel import Compute
+from processing.report.context import Truth
 from processing.report.page import write_report
 
 log = logging.getLogger("mirrorgonio.processing")
@@ -25,12 +28,12 @@ def finish_sources(
     out: Path,
     report: ProcessReport,
     plan: SourcesPlan,
-    positions,
-    rows: dict,
+    positions: np.ndarray,
+    rows: dict[int, SourceRow],
     options: ProcessingOptions,
     *,
-    truth,
-    timings: dict,
+    truth: Truth | None,
+    timings: dict[str, float],
     compute: Compute | None = None,
 ) -> None:
     """Assemble the samples, fit, and write the light model, the light files and the report."""

@@ -32,6 +32,7 @@ from processing.results import (
 from processing.trace import light_pose_at_position, specular_points
 from processing.unmixing.cell_flux import cell_sums
 from processing.unmixing.psf import convex_coverage
+from processing.unmixing.sources import Source
 from processing.unmixing.unmix import unmix_position
 
 log = logging.getLogger("mirrorgonio.processing")
@@ -90,8 +91,8 @@ class HDRWork:
 class SourcesPlan:
     """What every position's source estimate needs, decided once per run."""
 
-    layout: tuple
-    ball_centre: tuple | None
+    layout: tuple[Source, ...]
+    ball_centre: tuple[float, ...] | None
     estimator: str  # chosen: "templates" or "cell-sums"
     reason: str
     footprint: float
@@ -213,7 +214,16 @@ def _write_images(folder: Path, index: int, radiance: np.ndarray, cfa: str) -> d
     }
 
 
-def _estimate_at(run: RunFile, plan: SourcesPlan, index: int, rate, variance, usable, lit, cfa: str) -> SourceRow:
+def _estimate_at(
+    run: RunFile,
+    plan: SourcesPlan,
+    index: int,
+    rate: ElectronRates,
+    variance: ElectronRates,
+    usable: np.ndarray,
+    lit: np.ndarray,
+    cfa: str,
+) -> SourceRow:
     """Every source's intensity at one position: templates unmixed, and the cell sums over
     the ``lit`` pixels."""
 

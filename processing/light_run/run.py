@@ -16,9 +16,11 @@ makes the plan (:func:`~processing.light_run.plan.plan_processing`) and hands bo
 from __future__ import annotations
 
 import logging
+import os
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -29,25 +31,34 @@ from processing.light_run.from_data import camera_at_layout, fitted_camera, layo
 from processing.light_run.noise import choose_noise, report_gain_mismatch
 from processing.light_run.outputs import finish_sources
 from processing.light_run.plan import ProcessingPlan, plan_processing
-from processing.light_run.position import HDRWork, PositionResult, PositionWork, SourceRow, process_position
+from processing.light_run.position import (
+    HDRWork,
+    PositionResult,
+    PositionWork,
+    SourceRow,
+    SourcesPlan,
+    process_position,
+)
 from processing.light_run.records import ProcessReport
 from processing.light_run.samples import plan_sources
 from processing.options import OptionsError, ProcessingOptions
 from processing.parallel import Compute
 from processing.radiometry import rig_noise
+from processing.report.context import Truth
 from processing.results import HDRInfo, Results, ResultsError, ResultsWriter, results_path_for
+from processing.unmixing.sources import Source
 
 log = logging.getLogger("mirrorgonio.processing")
 
 
 def process_run(
-    run_path,
-    out_dir=None,
+    run_path: str | os.PathLike[str],
+    out_dir: str | os.PathLike[str] | None = None,
     *,
     compute: Compute | None = None,
     progress: Callable[[int, int], None] | None = None,
-    truth: Callable | None = None,
-    **options,
+    truth: Truth | None = None,
+    **options: Any,
 ) -> ProcessReport:
     """Process one run file; results go beside it, or into ``out_dir``.
 
@@ -93,7 +104,15 @@ def process_run(
 class LightRun:
     """One run's processing under a plan: its state between the passes, and the passes."""
 
-    def __init__(self, run_path: Path, out_dir, plan: ProcessingPlan, compute: Compute, progress, truth):
+    def __init__(
+        self,
+        run_path: Path,
+        out_dir: str | os.PathLike[str] | None,
+        plan: ProcessingPlan,
+        compute: Compute,
+        progress: Callable[[int, int], None] | None,
+        truth: Truth | None,
+    ) -> None:
         self.run_path, self.plan, self.compute, self.truth = run_path, plan, compute, truth
         self.options = plan.options
         self.out = Path(out_dir) if out_dir is not None else run_path.parent
@@ -110,6 +129,7 @@ class LightRun:
         with open_run(self.run_path) as run:
             self._start(run)
             if self.plan.fused:  # with the layout known, each position is merged and unmixed by one task
+                assert self.plan.layout is not None  # fused: the layout is given
                 sources = plan_sources(
                     run, self.plan.layout, self.options.estimator, self.options.ball_centre, self.positions
                 )
@@ -126,6 +146,7 @@ class LightRun:
                 raise ProcessingError(
                     f"{self.run_path}: every pixel is saturated even in the shortest exposure: take shorter exposures"
                 )
+            assert sources is not None  # made for the fused merge, or settled above
             finish_sources(
                 self.run_path,
                 self.out,
@@ -182,7 +203,7 @@ class LightRun:
             raise ProcessingError(f"{run.path}: no position has both frames and an HDR result")
         return positions
 
-    def _merge_pass(self, run: RunFile, sources) -> None:
+    def _merge_pass(self, run: RunFile, sources: SourcesPlan | None) -> None:
         """Merge every position (and unmix it, with ``sources``) on the cluster; write the
         results as they come."""
         folder = self.out / f"{self.run_path.stem}.hdr"  # the position files, and the images beside them
@@ -222,13 +243,13 @@ class LightRun:
                 self.report.saturated_pixels,
             )
 
-    def _settle_sources(self, run: RunFile):
+    def _settle_sources(self, run: RunFile) -> SourcesPlan:
         """The sources to estimate with (given, or searched for) and the camera as the plan fits it."""
         plan, options, args = self.plan, self.options, (run, self.results_file, self.positions)
         if plan.search:
             with self._timed("layout"):
                 found, aperture, distance = layout_and_camera(*args, options.ball_centre, self.compute, plan)
-            layout = found.sources
+            layout: Sequence[Source] = found.sources
             how = (
                 "candidate grid (NNLS), then positions and radius fitted: "
                 if found.refined
@@ -236,6 +257,7 @@ class LightRun:
             )
             self.report.layout_search = how + found.message
         else:
+            assert plan.layout is not None  # given, where the plan does not search for it
             layout = plan.layout
             with self._timed("camera"):
                 aperture, distance = camera_at_layout(*args, layout, options.ball_centre, self.compute, plan)
@@ -243,7 +265,7 @@ class LightRun:
         camera = fitted_camera(aperture, distance)
         return plan_sources(run, layout, options.estimator, options.ball_centre, self.positions, camera)
 
-    def _estimate_pass(self, sources) -> None:
+    def _estimate_pass(self, sources: SourcesPlan) -> None:
         """Unmix every merged position with ``sources`` (read back from the results file)."""
         work = PositionWork(str(self.run_path), str(self.results_file), None, sources)
         self.compute.map_unordered(process_position, self._indices(), work, on_result=self._collect)
@@ -261,18 +283,18 @@ class LightRun:
     def _indices(self) -> list[int]:
         return [int(i) for i in self.positions]
 
-    def _timed(self, stage: str):
+    def _timed(self, stage: str) -> _Stage:
         return _Stage(self.timings, stage)
 
 
 class _Stage:
     """Adds the wall time of a ``with`` block to ``timings[stage]``."""
 
-    def __init__(self, timings: dict[str, float], stage: str):
+    def __init__(self, timings: dict[str, float], stage: str) -> None:
         self.timings, self.stage = timings, stage
 
-    def __enter__(self):
+    def __enter__(self) -> None:
         self.started = time.perf_counter()
 
-    def __exit__(self, *exc):
+    def __exit__(self, *exc: object) -> None:
         self.timings[self.stage] = self.timings.get(self.stage, 0.0) + time.perf_counter() - self.started

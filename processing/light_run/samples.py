@@ -4,16 +4,20 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
 from drivers.contracts.runfile import RunFile
+from drivers.pose import Pose
 from processing.light_run.errors import ProcessingError
 from processing.light_run.geometry import CameraFit, geometry_and_builder
 from processing.light_run.position import SourceRow, SourcesPlan
 from processing.options import Estimator
-from processing.trace import ball_pixel_box, light_pose_at_position, trace_pixels
+from processing.trace import RigGeometry, ball_pixel_box, light_pose_at_position, trace_pixels
+from processing.unmixing.sources import Source
+from processing.unmixing.templates import TemplateBuilder
 
 log = logging.getLogger("mirrorgonio.processing")
 
@@ -31,12 +35,11 @@ class SourceSamples:
     cell_sum: np.ndarray  # (n_positions, n_sources), the fast path on the same data
 
 
-def assemble_samples(positions, rows: dict[int, SourceRow], plan: SourcesPlan) -> SourceSamples:
+def assemble_samples(positions: np.ndarray, rows: dict[int, SourceRow], plan: SourcesPlan) -> SourceSamples:
     """The per-position rows, in position order, as the samples of every source."""
     n, m = len(positions), len(plan.layout)
-    out = SourceSamples(
-        positions, *(np.full((n, m), np.nan) for _ in range(4)), np.full((n, m, 3), np.nan), np.full((n, m), np.nan)
-    )
+    theta, phi, intensity, sigma = (np.full((n, m), np.nan) for _ in range(4))
+    out = SourceSamples(positions, theta, phi, intensity, sigma, np.full((n, m, 3), np.nan), np.full((n, m), np.nan))
     for row, index in enumerate(positions):
         found = rows[int(index)]
         out.theta[row], out.phi[row] = found.theta, found.phi
@@ -51,7 +54,9 @@ def assemble_samples(positions, rows: dict[int, SourceRow], plan: SourcesPlan) -
     return out
 
 
-def choose_estimator(geometry, builder, layout, light_pose, requested: Estimator) -> tuple[Estimator, str, float]:
+def choose_estimator(
+    geometry: RigGeometry, builder: TemplateBuilder, layout: Sequence[Source], light_pose: Pose, requested: Estimator
+) -> tuple[Estimator, str, float]:
     """Templates, or cell sums where the blur's footprint on the light plane is smaller
     than the sources' spacing; returns (estimator, reason, footprint radius in metres)."""
 
@@ -97,7 +102,9 @@ def choose_estimator(geometry, builder, layout, light_pose, requested: Estimator
     )
 
 
-def check_view(run: RunFile, geometry, builder, layout, positions) -> None:
+def check_view(
+    run: RunFile, geometry: RigGeometry, builder: TemplateBuilder, layout: Sequence[Source], positions: np.ndarray
+) -> None:
     """Refuse, in one line, a run the estimate cannot work with (from the geometry alone;
     a run saturated everywhere is refused once its positions are merged)."""
 
@@ -115,7 +122,12 @@ def check_view(run: RunFile, geometry, builder, layout, positions) -> None:
 
 
 def plan_sources(
-    run: RunFile, layout, estimator: Estimator, ball_centre, positions, camera: CameraFit | None = None
+    run: RunFile,
+    layout: Sequence[Source],
+    estimator: Estimator,
+    ball_centre: Sequence[float] | np.ndarray | None,
+    positions: np.ndarray,
+    camera: CameraFit | None = None,
 ) -> SourcesPlan:
     """Check the view and choose the estimator: geometry only, before any position is read."""
     geometry, builder = geometry_and_builder(run, ball_centre, camera)

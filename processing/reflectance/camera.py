@@ -4,11 +4,20 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, TypeVar, cast
 
 import numpy as np
 from scipy.ndimage import binary_dilation
 
+from drivers.contracts.rig import Camera, Rig
+
+if TYPE_CHECKING:
+    import trimesh
+
 log = logging.getLogger("mirrorgonio.processing")
+
+#: Sensor-plane coordinates: one number, or an array of them.
+_Plane = TypeVar("_Plane", float, np.ndarray)
 
 
 @dataclass(frozen=True)
@@ -20,7 +29,7 @@ class SuperpixelRays:
     optical_axis: np.ndarray
 
     @classmethod
-    def of(cls, camera, shape) -> SuperpixelRays:
+    def of(cls, camera: Camera, shape: tuple[int, int]) -> SuperpixelRays:
         K = camera.camera_matrix()
         R, t = camera.pose.extrinsics()
         h2, w2 = shape
@@ -36,7 +45,7 @@ class SuperpixelRays:
         return cls(-R.T @ np.asarray(t, float), directions, cos4, 2.0 / K[0, 0], R[2].copy())
 
 
-def aperture_mean_cos4(x, y, aperture_radius: float, sensor_distance: float) -> np.ndarray:
+def aperture_mean_cos4(x: _Plane, y: _Plane, aperture_radius: float, sensor_distance: float) -> _Plane:
     """``⟨cos⁴β⟩`` over a uniform circular aperture for sensor points at ``(x, y)·f``.
 
     A pixel gathers light through the whole aperture and each ray's fall-off is the
@@ -61,12 +70,14 @@ def aperture_mean_cos4(x, y, aperture_radius: float, sensor_distance: float) -> 
     return 1.0 / q**2 + a2 * (3.0 * rho2 / q**4 - 1.0 / q**3)
 
 
-def camera_from(camera):
+def camera_from(camera: Camera | Rig) -> Camera:
     """Accept a rig's ``Camera`` or a whole ``Rig``."""
-    return getattr(camera, "camera", camera)
+    return cast(Camera, getattr(camera, "camera", camera))
 
 
-def _plane_distance(mesh, faces, origins, directions) -> np.ndarray:
+def _plane_distance(
+    mesh: trimesh.Trimesh, faces: np.ndarray, origins: np.ndarray, directions: np.ndarray
+) -> np.ndarray:
     """Distance along each ray to the plane of the given face (float64, exact for flat faces)."""
     normals = mesh.face_normals[faces]
     v0 = mesh.vertices[mesh.faces[faces, 0]]
@@ -75,7 +86,7 @@ def _plane_distance(mesh, faces, origins, directions) -> np.ndarray:
         return np.einsum("ij,ij->i", normals, v0 - origins) / denom
 
 
-def first_hits(mesh, origins, directions) -> tuple[np.ndarray, np.ndarray]:
+def first_hits(mesh: trimesh.Trimesh, origins: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """First face met by each ray (−1 for none) and the distance to it (``inf`` for none)."""
     faces = np.asarray(mesh.ray.intersects_first(origins, directions), dtype=np.int64)
     dist = np.full(len(origins), np.inf)
@@ -92,7 +103,16 @@ def dilate(mask: np.ndarray, iterations: int) -> np.ndarray:
     return binary_dilation(mask, structure=np.ones((3, 3), bool), iterations=int(iterations))
 
 
-def edge_core(hit, depth, points, normals, directions, centre, angle, tolerance) -> np.ndarray:
+def edge_core(
+    hit: np.ndarray,
+    depth: np.ndarray,
+    points: np.ndarray,
+    normals: np.ndarray,
+    directions: np.ndarray,
+    centre: np.ndarray,
+    angle: float,
+    tolerance: float,
+) -> np.ndarray:
     """Silhouettes and depth discontinuities on the superpixel grid (before dilation).
 
     A hit pixel next to a miss is on a silhouette. Two neighbouring hits are discontinuous
@@ -109,7 +129,7 @@ def edge_core(hit, depth, points, normals, directions, centre, angle, tolerance)
         b = (slice(1, None), slice(None)) if axis == 0 else (slice(None), slice(1, None))
         both = hit[a] & hit[b]
 
-        def predicted(src, dst):
+        def predicted(src: Any, dst: Any) -> np.ndarray:
             n = normals[src]
             denom = np.einsum("...k,...k->...", n, directions[dst])
             with np.errstate(divide="ignore", invalid="ignore"):
@@ -129,4 +149,4 @@ def superpixel_any(mask: np.ndarray) -> np.ndarray:
     """(..., H/2, W/2): any of each 2x2 tile's sites set."""
     h, w = mask.shape[-2:]
     m = mask[..., : h - h % 2, : w - w % 2]
-    return m.reshape(*m.shape[:-2], h // 2, 2, w // 2, 2).any(axis=(-3, -1))
+    return cast(np.ndarray, m.reshape(*m.shape[:-2], h // 2, 2, w // 2, 2).any(axis=(-3, -1)))  # stubs: an array

@@ -192,7 +192,7 @@ class ReflectanceSettings:
     depth_tolerance: float = 3.0
     min_lights: int = 2
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         for name in ("grazing_light_deg", "grazing_view_deg", "specular_deg"):
             value = getattr(self, name)
             if not (0.0 <= value < 90.0):

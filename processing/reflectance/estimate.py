@@ -4,14 +4,18 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import trimesh
+from numpy.typing import ArrayLike
 
+from drivers.contracts.rig import Camera, Rig
 from drivers.pose import Pose
+from processing.lightmodel import LightModel
 from processing.reflectance.camera import camera_from
 from processing.reflectance.codes import (
     FEW_FROM_SAMPLE,
@@ -144,7 +148,7 @@ class ReflectanceResult:
         for m in self.methods:
             rho = self.rho_points[m][valid]
             grey = rho.mean(axis=1)
-            stats = {"valid_points": int(valid.sum())}
+            stats: dict[str, Any] = {"valid_points": int(valid.sum())}
             if grey.size:
                 median = float(np.median(grey))
                 mean = float(grey.mean())
@@ -176,18 +180,18 @@ class ReflectanceResult:
 
 
 def estimate_reflectance(
-    radiance_rgb,
-    saturated,
-    camera,
-    mesh_rig,
-    light_poses,
-    light_model,
+    radiance_rgb: np.ndarray,
+    saturated: ArrayLike,
+    camera: Camera | Rig,
+    mesh_rig: trimesh.Trimesh,
+    light_poses: Sequence[Pose],
+    light_model: LightModel,
     *,
     object_pose: Pose | None = None,
-    up=(0.0, 1.0, 0.0),
-    housing=None,
+    up: ArrayLike = (0.0, 1.0, 0.0),
+    housing: tuple[float, float] | None = None,
     settings: ReflectanceSettings | None = None,
-    methods=METHODS,
+    methods: tuple[str, ...] = METHODS,
     mesh_name: str = "the mesh",
     progress: Callable[[str, int, int], None] | None = None,
 ) -> ReflectanceResult:
@@ -355,12 +359,15 @@ def _enough_lights(surface: Surface, codes: np.ndarray, settings: ReflectanceSet
     return enough
 
 
-def _albedo(surface: Surface, samples: LightSamples, radiance: np.ndarray, methods, enough: np.ndarray):
+def _albedo(
+    surface: Surface, samples: LightSamples, radiance: np.ndarray, methods: Sequence[str], enough: np.ndarray
+) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
     """ρ per method at the points (N, 3) and on the grid (H/2, W/2, 3): ``ρ_c = π Σ_j L_jc E_jc /
     Σ_j E_jc²`` over the used samples, NaN where a point has too few."""
     used = samples.codes == SAMPLE_USED
     w = used.astype(float)
-    rho_points, rho = {}, {}
+    rho_points: dict[str, np.ndarray] = {}
+    rho: dict[str, np.ndarray] = {}
     for m in methods:
         irradiance, tints = samples.irradiance[m], samples.tints[m]
         if tints is None:  # grey: one irradiance for every channel
@@ -380,7 +387,7 @@ def _albedo(surface: Surface, samples: LightSamples, radiance: np.ndarray, metho
     return rho_points, rho
 
 
-def _extrapolation_warnings(light_model, light_poses, points) -> list[str]:
+def _extrapolation_warnings(light_model: LightModel, light_poses: Sequence[Pose], points: np.ndarray) -> list[str]:
     extrapolated = _extrapolated_fraction(light_model, light_poses, points)
     if extrapolated <= 0.01:
         return []
@@ -396,7 +403,7 @@ def channel_irradiance(grey: np.ndarray, colour: np.ndarray | None) -> np.ndarra
     return grey[..., None] * colour if colour is not None else np.repeat(grey[..., None], 3, axis=-1)
 
 
-def _uv_at(mesh, faces, points) -> np.ndarray | None:
+def _uv_at(mesh: trimesh.Trimesh, faces: np.ndarray, points: np.ndarray) -> np.ndarray | None:
     """The mesh's UV coordinates at hit points (barycentric), or None without UVs."""
     uv = getattr(getattr(mesh, "visual", None), "uv", None)
     if uv is None or len(uv) != len(mesh.vertices):
@@ -407,7 +414,7 @@ def _uv_at(mesh, faces, points) -> np.ndarray | None:
     return np.einsum("nk,nkc->nc", bary, corners)
 
 
-def _extrapolated_fraction(light_model, light_poses, points) -> float:
+def _extrapolated_fraction(light_model: LightModel, light_poses: Sequence[Pose], points: np.ndarray) -> float:
     """Share of points that some light sees at a θ outside any source's sampled range."""
     if len(points) == 0:
         return 0.0

@@ -5,22 +5,25 @@ from __future__ import annotations
 import logging
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any, Protocol
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from drivers.pose import Pose
+from processing.lightmodel import LightModel
 from processing.reflectance.codes import ReflectanceError
 
 log = logging.getLogger("mirrorgonio.processing")
 
 
-def to_rig(pose: Pose, uv) -> np.ndarray:
+def to_rig(pose: Pose, uv: tuple[float, float]) -> np.ndarray:
     """A point ``(u, v, 0)`` of the light plane in the rig frame."""
     u, v = uv
     return pose.position + pose.rotation @ np.array([u, v, 0.0])
 
 
-def light_centre(light_model) -> tuple[tuple[float, float], float]:
+def light_centre(light_model: LightModel) -> tuple[tuple[float, float], float]:
     """The light's isotropic point on its plane and its total on-axis intensity.
 
     Returns
@@ -41,20 +44,20 @@ def light_centre(light_model) -> tuple[tuple[float, float], float]:
 class MeasuredLight:
     """The measured near-field model at one light pose (``LightModel.irradiance``)."""
 
-    model: object
+    model: LightModel
     pose: Pose
 
     @classmethod
-    def from_model(cls, light_model, pose: Pose, object_centre=None) -> MeasuredLight:
+    def from_model(cls, light_model: LightModel, pose: Pose, object_centre: ArrayLike | None = None) -> MeasuredLight:
         return cls(light_model, pose)
 
-    def irradiance(self, points, normals) -> np.ndarray:
+    def irradiance(self, points: np.ndarray, normals: np.ndarray) -> np.ndarray:
         """``E(r, n) = Σ_s I_s(θ_s, φ_s)·max(0, n·ω_s)/|r − p_s|²``, rig-frame inputs."""
         rot, origin = self.pose.rotation, self.pose.position
         local = (np.asarray(points, float) - origin) @ rot
         return self.model.irradiance(local, np.asarray(normals, float) @ rot)
 
-    def irradiance_and_tint(self, points, normals) -> tuple[np.ndarray, np.ndarray | None]:
+    def irradiance_and_tint(self, points: np.ndarray, normals: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
         """:meth:`irradiance`, and each channel's share of it (N, 3): the sources' colours
         mixed as they light each point; None for a grey light (every channel the same).
         One pass over the sources either way."""
@@ -67,7 +70,7 @@ class MeasuredLight:
         with np.errstate(divide="ignore", invalid="ignore"):
             return grey, np.where(grey[:, None] > 0, rgb / grey[:, None], 1.0)
 
-    def describe(self) -> dict:
+    def describe(self) -> dict[str, Any]:
         return {"sources": len(self.model.sources)}
 
 
@@ -87,20 +90,22 @@ class IsotropicPointLight:
     colour: np.ndarray = field(default_factory=lambda: np.ones(3))  # the whole light's (LightModel.colour)
 
     @classmethod
-    def from_model(cls, light_model, pose: Pose, object_centre=None) -> IsotropicPointLight:
+    def from_model(
+        cls, light_model: LightModel, pose: Pose, object_centre: ArrayLike | None = None
+    ) -> IsotropicPointLight:
         uv, i0 = light_centre(light_model)
         return cls(to_rig(pose, uv), i0, light_model.colour())
 
-    def irradiance_and_tint(self, points, normals) -> tuple[np.ndarray, np.ndarray | None]:
+    def irradiance_and_tint(self, points: np.ndarray, normals: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
         return self.irradiance(points, normals), _uniform_tint(self.colour, len(points))
 
-    def irradiance(self, points, normals) -> np.ndarray:
+    def irradiance(self, points: np.ndarray, normals: np.ndarray) -> np.ndarray:
         d = self.position - np.asarray(points, float)
         dist2 = np.einsum("ij,ij->i", d, d)
         cos_in = np.einsum("ij,ij->i", np.asarray(normals, float), d) / np.sqrt(dist2)
         return self.intensity * np.maximum(cos_in, 0.0) / dist2
 
-    def describe(self) -> dict:
+    def describe(self) -> dict[str, Any]:
         return {"point_m": self.position.tolist(), "I0": self.intensity}
 
 
@@ -118,7 +123,7 @@ class CollimatedLight:
     colour: np.ndarray = field(default_factory=lambda: np.ones(3))  # the whole light's (LightModel.colour)
 
     @classmethod
-    def from_model(cls, light_model, pose: Pose, object_centre=None) -> CollimatedLight:
+    def from_model(cls, light_model: LightModel, pose: Pose, object_centre: ArrayLike | None = None) -> CollimatedLight:
         if object_centre is None:
             raise ReflectanceError("collimated light: needs the object's centre")
         uv, i0 = light_centre(light_model)
@@ -128,21 +133,31 @@ class CollimatedLight:
             raise ReflectanceError("collimated light: the light sits at the object's centre")
         return cls(towards / d0, i0 / d0**2, d0, light_model.colour())
 
-    def irradiance(self, points, normals) -> np.ndarray:
+    def irradiance(self, points: np.ndarray, normals: np.ndarray) -> np.ndarray:
         return self.irradiance_0 * np.maximum(np.asarray(normals, float) @ self.direction, 0.0)
 
-    def irradiance_and_tint(self, points, normals) -> tuple[np.ndarray, np.ndarray | None]:
+    def irradiance_and_tint(self, points: np.ndarray, normals: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
         return self.irradiance(points, normals), _uniform_tint(self.colour, len(points))
 
-    def describe(self) -> dict:
+    def describe(self) -> dict[str, Any]:
         return {"direction": self.direction.tolist(), "E0": self.irradiance_0, "distance_m": self.distance}
+
+
+class LightAtPose(Protocol):
+    """A light model at one light pose (:data:`LIGHT_MODELS`)."""
+
+    def irradiance(self, points: np.ndarray, normals: np.ndarray) -> np.ndarray: ...
+
+    def irradiance_and_tint(self, points: np.ndarray, normals: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]: ...
+
+    def describe(self) -> dict[str, Any]: ...
 
 
 #: The light models by name: ``factory(light_model, light_pose, object_centre)`` → an object
 #: whose ``irradiance(points, normals)`` takes rig-frame arrays (N, 3), and whose
 #: ``irradiance_and_tint(points, normals)`` gives it with each channel's share of it (N, 3),
 #: or None for a grey light.
-LIGHT_MODELS: dict[str, Callable] = {
+LIGHT_MODELS: dict[str, Callable[[LightModel, Pose, ArrayLike | None], LightAtPose]] = {
     "collimated": CollimatedLight.from_model,
     "isotropic": IsotropicPointLight.from_model,
     "measured": MeasuredLight.from_model,

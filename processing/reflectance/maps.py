@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+from typing import Any
 
 import numpy as np
 from scipy.ndimage import uniform_filter
@@ -12,7 +13,7 @@ from processing.reflectance.estimate import ReflectanceResult
 log = logging.getLogger("mirrorgonio.processing")
 
 
-def reflectance_profiles(result: ReflectanceResult, bins: int = 24, min_points: int = 5) -> dict:
+def reflectance_profiles(result: ReflectanceResult, bins: int = 24, min_points: int = 5) -> dict[str, Any]:
     """ρ along the object's vertical axis: median and interquartile band per height bin.
 
     The reference paper's Fig. 11: for each method the channel mean of ρ over the valid
@@ -36,7 +37,7 @@ def reflectance_profiles(result: ReflectanceResult, bins: int = 24, min_points: 
     out = {"height_m": (0.5 * (edges[:-1] + edges[1:])).tolist(), "edges_m": edges.tolist()}
     for m in result.methods:
         grey = result.rho_points[m][valid].mean(axis=1)
-        stats = {"median": [], "q25": [], "q75": [], "count": []}
+        stats: dict[str, list[float]] = {"median": [], "q25": [], "q75": [], "count": []}
         for b in range(bins):
             values = grey[which == b]
             stats["count"].append(int(values.size))

@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 from pathlib import Path
+from typing import Any
 
 import cv2
 import h5py
@@ -55,7 +57,12 @@ def _reason_png(path: Path, reason: np.ndarray) -> Path:
 
 
 def write_outputs(
-    result: ReflectanceResult, out_dir, *, texture_size: int = 1024, bins: int = 24, metadata: dict | None = None
+    result: ReflectanceResult,
+    out_dir: str | os.PathLike[str],
+    *,
+    texture_size: int = 1024,
+    bins: int = 24,
+    metadata: dict[str, Any] | None = None,
 ) -> dict[str, Path]:
     """Write the files of ``docs/reflectance.md`` into ``out_dir``; returns them by name.
 
@@ -64,7 +71,6 @@ def write_outputs(
     ``reflectance.h5`` (the per-point data); ``reflectance.json`` (the summary); and
     ``report.html``.
     """
-
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     files: dict[str, Path] = {}
@@ -80,6 +86,7 @@ def write_outputs(
     if result.uv is not None:
         for m in result.methods:
             texture = uv_texture(result, m, texture_size)
+            assert texture is not None  # the mesh has UVs
             files[f"texture-{m}.exr"] = _write_exr(out / f"texture-{m}.exr", texture)
             files[f"texture-{m}.png"] = textures[m] = _albedo_png(out / f"texture-{m}.png", texture, scale)
     profiles = reflectance_profiles(result, bins)

@@ -5,8 +5,11 @@ from __future__ import annotations
 import html
 import logging
 import math
+import os
+from collections.abc import Iterable, Sequence
 from datetime import UTC, datetime
 from pathlib import Path
+from typing import Any, Protocol
 
 import numpy as np
 from matplotlib.figure import Figure
@@ -18,10 +21,18 @@ from processing.report.markup import CSS, embedded_img, html_note, html_table
 log = logging.getLogger("mirrorgonio.processing")
 
 
+class Embed(Protocol):
+    """``embed(key, alt, caption)``: the named image as a ``<figure>``, or "" when there is none."""
+
+    def __call__(self, key: str, alt: str, caption: str = "") -> str: ...
+
+
 _METHOD_NAMES = {"collimated": "collimated", "isotropic": "isotropic point", "measured": "measured near-field model"}
 
 
-def reflectance_profiles_figure(profiles: dict, methods=("collimated", "isotropic", "measured")) -> Figure:
+def reflectance_profiles_figure(
+    profiles: dict[str, Any], methods: Sequence[str] = ("collimated", "isotropic", "measured")
+) -> Figure:
     """ρ along the object's vertical axis, one panel per light model (the reference paper's Fig. 11).
 
     ``profiles`` is :func:`processing.reflectance.maps.reflectance_profiles`'s dict: per height bin
@@ -57,7 +68,7 @@ def reflectance_profiles_figure(profiles: dict, methods=("collimated", "isotropi
     return fig
 
 
-def _swatch(rgb) -> str:
+def _swatch(rgb: Iterable[float]) -> str:
     r, g, b = (int(c) for c in rgb)
     return (
         f'<span style="display:inline-block;width:1.2em;height:1em;border:1px solid #888;'
@@ -65,7 +76,7 @@ def _swatch(rgb) -> str:
     )
 
 
-def _fmt(value, digits: int = 4) -> str:
+def _fmt(value: Any, digits: int = 4) -> str:
     if value is None:
         return "—"
     if isinstance(value, (list, tuple)):
@@ -77,7 +88,7 @@ def _fmt(value, digits: int = 4) -> str:
     return f"{v:.{digits}g}" if math.isfinite(v) else "—"
 
 
-def reflectance_section(summary: dict, images: dict | None = None) -> str:
+def reflectance_section(summary: dict[str, Any], images: dict[str, Path] | None = None) -> str:
     """The reflectance results as an HTML fragment (headings ``<h2>`` and below).
 
     Parameters
@@ -108,7 +119,7 @@ def reflectance_section(summary: dict, images: dict | None = None) -> str:
     return "\n".join(p for p in parts if p)
 
 
-def _albedo_part(summary: dict, methods: list[str], embed) -> list[str]:
+def _albedo_part(summary: dict[str, Any], methods: list[str], embed: Embed) -> list[str]:
     """The albedo maps under the three light models and their statistics."""
     parts = [
         "<h2>Albedo under three light models</h2>",
@@ -156,7 +167,7 @@ def _albedo_part(summary: dict, methods: list[str], embed) -> list[str]:
     return parts
 
 
-def _profiles_part(embed) -> list[str]:
+def _profiles_part(embed: Embed) -> list[str]:
     """The profiles of ρ along the object's vertical axis."""
     figure = embed(
         "profiles",
@@ -169,7 +180,7 @@ def _profiles_part(embed) -> list[str]:
     return ["<h2>Profiles along the object's vertical axis</h2>", figure or html_note("no profile figure.")]
 
 
-def _reasons_part(summary: dict, embed) -> list[str]:
+def _reasons_part(summary: dict[str, Any], embed: Embed) -> list[str]:
     """The reason map, the pixels and the samples counted per reason code."""
     counts = summary.get("pixel_reasons", {})
     body = "".join(
@@ -193,7 +204,7 @@ def _reasons_part(summary: dict, embed) -> list[str]:
     ]
 
 
-def _textures_part(methods: list[str], embed) -> list[str]:
+def _textures_part(methods: list[str], embed: Embed) -> list[str]:
     """The albedo in the mesh's UV space, where the mesh has UVs."""
     textures = "".join(embed(f"texture-{m}", f"UV texture, {m}", _METHOD_NAMES[m]) for m in methods)
     if not textures:
@@ -201,7 +212,7 @@ def _textures_part(methods: list[str], embed) -> list[str]:
     return ["<h2>Albedo in the mesh's UV space</h2>", f'<div class="strip wide">{textures}</div>']
 
 
-def _lights_part(summary: dict) -> list[str]:
+def _lights_part(summary: dict[str, Any]) -> list[str]:
     """Each light position, what the isotropic and collimated models made of it, the thresholds."""
     rows = []
     for light in summary.get("light_positions", []):
@@ -226,7 +237,9 @@ def _lights_part(summary: dict) -> list[str]:
     return parts
 
 
-def write_reflectance_report(path, summary: dict, *, images: dict | None = None) -> Path:
+def write_reflectance_report(
+    path: str | os.PathLike[str], summary: dict[str, Any], *, images: dict[str, Path] | None = None
+) -> Path:
     """Write the reflectance report: one self-contained HTML page (figures embedded).
 
     Parameters

@@ -3,13 +3,16 @@
 from __future__ import annotations
 
 import logging
+import os
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import trimesh
 
-from drivers.contracts.rig import Light
+from drivers.contracts.rig import Light, Rig
 from drivers.contracts.runfile import RunFile, RunFileError, file_sha256
 from drivers.pose import Pose
 from processing.hdr.mosaic import superpixels
@@ -26,8 +29,11 @@ from processing.trace import RigGeometry, light_pose_at_position
 
 log = logging.getLogger("mirrorgonio.processing")
 
+#: ``progress(stage, done, total)``, stage ``"hdr"``, ``"rays"`` or ``"lights"``.
+Progress = Callable[[str, int, int], None]
 
-def load_mesh(path, units_m: float = 1.0, pose: Pose | None = None):
+
+def load_mesh(path: str | os.PathLike[str], units_m: float = 1.0, pose: Pose | None = None) -> trimesh.Trimesh:
     """Read a PLY, OBJ or STL mesh with trimesh and place it in the rig frame.
 
     ``x_rig = R·(units_m·v) + t`` for the pose's rotation ``R`` and position ``t``
@@ -58,7 +64,7 @@ def load_mesh(path, units_m: float = 1.0, pose: Pose | None = None):
     return mesh
 
 
-def find_light_model(light) -> Path:
+def find_light_model(light: str | os.PathLike[str]) -> Path:
     """The ``.light.json`` a ``--light`` argument means.
 
     ``light`` may be the light-model file itself, the light run's results folder (holding
@@ -90,7 +96,7 @@ def find_light_model(light) -> Path:
     raise ReflectanceError(f"{path}: not a light model, a results folder or a results file")
 
 
-def _light_section(rig_like) -> dict | None:
+def _light_section(rig_like: Rig | dict[str, Any] | None) -> dict[str, Any] | None:
     """The ``[light]`` of a rig (a Rig or its dict) as comparable numbers, or None."""
 
     if rig_like is None:
@@ -108,7 +114,7 @@ def _light_section(rig_like) -> dict | None:
     }
 
 
-def _light_run_rig(light_model):
+def _light_run_rig(light_model: LightModel) -> Rig | dict[str, Any] | None:
     """The light run's rig: ``provenance["rig"]`` when it is the rig itself, else the rig
     stored in the run file the provenance names (None when neither is at hand)."""
     for key in ("rig_description", "rig"):
@@ -125,7 +131,9 @@ def _light_run_rig(light_model):
     return None
 
 
-def check_light_frame(light_model, light_path, rig, run_path) -> str | None:
+def check_light_frame(
+    light_model: LightModel, light_path: str | os.PathLike[str], rig: Rig, run_path: str | os.PathLike[str]
+) -> str | None:
     """Refuse a light model measured on a rig whose ``[light]`` differs from the object run's.
 
     The light frame is the arm's tool frame composed with ``light_to_tool``; a model made
@@ -157,7 +165,7 @@ def check_light_frame(light_model, light_path, rig, run_path) -> str | None:
     return None
 
 
-def _results_for(run_path: Path, out: Path, progress) -> Path:
+def _results_for(run_path: Path, out: Path, progress: Progress | None) -> Path:
     """The run's HDR results: beside the run, in ``out``, or made now (in ``out``)."""
 
     for folder in (run_path.parent, out):
@@ -175,12 +183,12 @@ def _results_for(run_path: Path, out: Path, progress) -> Path:
 
 
 def reflectance_from_run(
-    object_run,
-    light=None,
-    mesh=None,
-    out_dir=None,
+    object_run: str | os.PathLike[str],
+    light: str | os.PathLike[str] | None = None,
+    mesh: str | os.PathLike[str] | None = None,
+    out_dir: str | os.PathLike[str] | None = None,
     *,
-    progress=None,
+    progress: Progress | None = None,
     settings: ReflectanceSettings | None = None,
     texture_size: int = 1024,
     bins: int = 24,
@@ -254,7 +262,14 @@ def reflectance_from_run(
     return result
 
 
-def _gathered(run_path: Path, light, mesh, out: Path, progress, warnings: list[str]):
+def _gathered(
+    run_path: Path,
+    light: str | os.PathLike[str] | None,
+    mesh: str | os.PathLike[str] | None,
+    out: Path,
+    progress: Progress | None,
+    warnings: list[str],
+) -> tuple[Rig, str, Path, Pose | None, trimesh.Trimesh, Path, LightModel, Path, _MeasuredRates]:
     """Everything the estimate needs from the object run, its mesh, its light model and its
     HDR results (merged now where missing), with what is worth a warning added to ``warnings``."""
     try:
@@ -271,7 +286,7 @@ def _gathered(run_path: Path, light, mesh, out: Path, progress, warnings: list[s
         return rig, run.header.run_id, mesh_path, object_pose, mesh_rig, light_path, light_model, results_file, measured
 
 
-def _light_and_mesh(light_path: Path, light_model: LightModel, mesh_path: Path) -> dict:
+def _light_and_mesh(light_path: Path, light_model: LightModel, mesh_path: Path) -> dict[str, Any]:
     """What the reflectance was measured with, for its summary."""
     return {
         "light_model": str(light_path),
@@ -281,7 +296,9 @@ def _light_and_mesh(light_path: Path, light_model: LightModel, mesh_path: Path) 
     }
 
 
-def _object_mesh(run_path: Path, rig, references: dict, mesh, warnings: list[str]):
+def _object_mesh(
+    run_path: Path, rig: Rig, references: dict[str, Any], mesh: str | os.PathLike[str] | None, warnings: list[str]
+) -> tuple[Path, Pose | None, trimesh.Trimesh]:
     """(mesh file, object pose, the mesh in the rig frame): the one given, or the rig's ``[object]``."""
     obj = rig.object
     if mesh is None:
@@ -300,7 +317,9 @@ def _object_mesh(run_path: Path, rig, references: dict, mesh, warnings: list[str
     return mesh_path, object_pose, mesh_rig
 
 
-def _light_model(run_path: Path, rig, references: dict, light, warnings: list[str]) -> tuple[Path, LightModel]:
+def _light_model(
+    run_path: Path, rig: Rig, references: dict[str, Any], light: str | os.PathLike[str] | None, warnings: list[str]
+) -> tuple[Path, LightModel]:
     """The light model given, or the one the run recorded, checked against the run's light frame."""
     recorded = references.get("light_model") or {}
     if light is None:

@@ -4,11 +4,15 @@ light's irradiance there under every light model, and the reason each excluded s
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from drivers.contracts.rig import Camera
+from drivers.pose import Pose
+from processing.lightmodel import LightModel
 from processing.reflectance.camera import SuperpixelRays, dilate, edge_core, first_hits
 from processing.reflectance.codes import (
     PIXEL_BACKGROUND,
@@ -30,6 +34,9 @@ from processing.reflectance.codes import (
 from processing.reflectance.lights import LIGHT_MODELS, light_centre, to_rig
 from processing.trace import housing_blocks
 
+if TYPE_CHECKING:
+    import trimesh
+
 
 @dataclass
 class Surface:
@@ -48,7 +55,9 @@ class Surface:
     faces: np.ndarray
 
 
-def surface_seen(camera, mesh_rig, shape, settings: ReflectanceSettings, mesh_name: str) -> Surface:
+def surface_seen(
+    camera: Camera, mesh_rig: trimesh.Trimesh, shape: tuple[int, int], settings: ReflectanceSettings, mesh_name: str
+) -> Surface:
     """The chief rays of the superpixel grid ``shape`` cast on the mesh, with the pixels at
     silhouettes and depth steps (dilated by ``edge_margin``) and those seen at a grazing angle
     marked.
@@ -114,17 +123,17 @@ class LightSamples:
     codes: np.ndarray  # (n_lights, N) uint8
     irradiance: dict[str, np.ndarray]  # (n_lights, N)
     tints: dict[str, np.ndarray | None]  # (n_lights, N, 3) float32
-    lights: list[dict]
+    lights: list[dict[str, Any]]
 
 
 def light_samples(
     surface: Surface,
-    mesh_rig,
-    light_poses,
-    light_model,
+    mesh_rig: trimesh.Trimesh,
+    light_poses: Sequence[Pose],
+    light_model: LightModel,
     object_centre: np.ndarray,
     methods: tuple[str, ...],
-    housing,
+    housing: tuple[float, float] | None,
     no_data: np.ndarray,
     settings: ReflectanceSettings,
     progress: Callable[[int], None],
@@ -148,9 +157,10 @@ def light_samples(
         for m, lm in models.items():
             samples.irradiance[m][j], tint = lm.irradiance_and_tint(surface.points, surface.normals)
             if tint is not None:
-                if samples.tints[m] is None:
-                    samples.tints[m] = np.ones((n_lights, n_points, 3), np.float32)
-                samples.tints[m][j] = tint
+                tints = samples.tints[m]
+                if tints is None:
+                    tints = samples.tints[m] = np.ones((n_lights, n_points, 3), np.float32)
+                tints[j] = tint
         samples.lights.append(
             {
                 "index": j,
@@ -185,7 +195,7 @@ def _cos_specular(settings: ReflectanceSettings) -> float:
     return math.cos(math.radians(settings.specular_deg)) if settings.specular_deg > 0 else 2.0
 
 
-def _hidden_by_housing(surface: Surface, pose, housing) -> np.ndarray:
+def _hidden_by_housing(surface: Surface, pose: Pose, housing: tuple[float, float] | None) -> np.ndarray:
     """(N,) the points the light's housing hides from the camera at this light pose."""
     if housing is None or not housing[0] > 0:
         return np.zeros(len(surface.points), bool)
@@ -193,7 +203,14 @@ def _hidden_by_housing(surface: Surface, pose, housing) -> np.ndarray:
     return housing_blocks(start, surface.points, pose, float(housing[0]), float(housing[1]))
 
 
-def _cast_shadow(surface: Surface, mesh_rig, pose, light_model, lit_side: np.ndarray, settings) -> np.ndarray:
+def _cast_shadow(
+    surface: Surface,
+    mesh_rig: trimesh.Trimesh,
+    pose: Pose,
+    light_model: LightModel,
+    lit_side: np.ndarray,
+    settings: ReflectanceSettings,
+) -> np.ndarray:
     """(N,) the points on the lit side whose ray to any source of the measured model meets the
     mesh, dilated by ``shadow_margin`` superpixels on the grid."""
     n_points = len(surface.points)

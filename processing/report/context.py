@@ -6,15 +6,57 @@ import logging
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any, Protocol
 
 import numpy as np
+from numpy.typing import ArrayLike
 
+from drivers.contracts.runfile import RunFile
+from drivers.pose import Pose
+from processing.hdr.model import NoiseModel
 from processing.lightmodel import LightModel, SourceModel
 from processing.report.drawing import COLOURS
 from processing.report.markup import FigureEncoder
-from processing.trace import RigGeometry, ball_pixel_box, box_pixels, grid_stride, light_pose_at, trace_pixels
+from processing.trace import (
+    ChiefRays,
+    RigGeometry,
+    ball_pixel_box,
+    box_pixels,
+    grid_stride,
+    light_pose_at,
+    trace_pixels,
+)
 
 log = logging.getLogger("mirrorgonio.processing")
+
+#: A simulated run's true radiant intensity, ``truth(source, theta)``: the source by its index or
+#: its name, θ in radians; it raises LookupError (or TypeError) for a source it does not know.
+Truth = Callable[[int | str, np.ndarray], ArrayLike | None]
+
+
+class SampleColumns(Protocol):
+    """What the report reads of the pipeline's samples (``processing.light_run.SourceSamples``):
+    one row per position, one column per source."""
+
+    positions: np.ndarray
+    theta: np.ndarray
+    phi: np.ndarray
+    intensity: np.ndarray
+    sigma: np.ndarray
+    cell_sum: np.ndarray
+
+
+class RunReport(Protocol):
+    """What the report reads of the pipeline's report (``processing.light_run.ProcessReport``)."""
+
+    run_file: Path
+    results_file: Path
+    noise: NoiseModel
+    outputs: dict[str, list[Path]]
+    estimator: str
+    estimator_reason: str
+    spatial_resolution_m: float
 
 
 @dataclass
@@ -34,9 +76,9 @@ class MiddlePosition:
     """The middle position's chief-ray trace, when the run is at hand."""
 
     index: int
-    pose: object
-    geometry: object
-    rays: object | None = None
+    pose: Pose
+    geometry: RigGeometry
+    rays: ChiefRays | None = None
     pixel_polygon: np.ndarray | None = None  # (4, 2) metres on the light plane
     pixel_at: tuple[float, float] | None = None
 
@@ -46,7 +88,7 @@ class ReportContext:
     model: LightModel
     data: list[SourceData]
     azimuth: float  # the sweep's main azimuth φ_s, radians in (−π/2, π/2]
-    truth: Callable | None
+    truth: Truth | None
     resolution_m: float
     colours: list[str] = field(default_factory=list)
     geometry: MiddlePosition | None = None
@@ -54,13 +96,13 @@ class ReportContext:
     encoder: FigureEncoder | None = None
 
 
-def _column(table: dict, key: str) -> np.ndarray | None:
+def _column(table: dict[str, Any], key: str) -> np.ndarray | None:
     if key not in table or table[key] is None:
         return None
     return np.asarray([np.nan if v is None else v for v in table[key]], dtype=float)
 
 
-def source_data(model: LightModel, samples=None) -> list[SourceData]:
+def source_data(model: LightModel, samples: SampleColumns | None = None) -> list[SourceData]:
     """Every source's samples: the model's tables (what was fitted), else the pipeline's
     :class:`SourceSamples` columns."""
     out = []
@@ -124,13 +166,13 @@ def in_degrees(angle: float) -> str:
     return f"{round(math.degrees(angle)):d}°"
 
 
-def signed_theta(theta, phi, azimuth: float) -> np.ndarray:
+def signed_theta(theta: ArrayLike, phi: ArrayLike, azimuth: float) -> np.ndarray:
     """θ with the sign of its side: + within 90° of the sweep's azimuth, − opposite."""
     theta = np.asarray(theta, dtype=float)
     return np.where(np.cos(np.asarray(phi, dtype=float) - azimuth) >= 0.0, theta, -theta)
 
 
-def truth_values(truth, k: int, name: str, theta: np.ndarray) -> np.ndarray | None:
+def truth_values(truth: Truth | None, k: int, name: str, theta: np.ndarray) -> np.ndarray | None:
     if truth is None:
         return None
     for key in (k, name):
@@ -144,7 +186,7 @@ def truth_values(truth, k: int, name: str, theta: np.ndarray) -> np.ndarray | No
     return None
 
 
-def truth_error(source: SourceModel, truth, k: int) -> float | None:
+def truth_error(source: SourceModel, truth: Truth | None, k: int) -> float | None:
     """RMS(I_fit − I_true) / max(I_true) over the θ the samples cover (``measurement.md``)."""
     lo, hi = source.fit.theta_range
     if not (math.isfinite(lo) and math.isfinite(hi)):
@@ -156,13 +198,19 @@ def truth_error(source: SourceModel, truth, k: int) -> float | None:
     return math.sqrt(float(np.mean((source.fit(grid) - true) ** 2))) / float(np.max(true))
 
 
-def report_context(model: LightModel, *, samples=None, truth=None, resolution_m=float("nan")) -> ReportContext:
+def report_context(
+    model: LightModel,
+    *,
+    samples: SampleColumns | None = None,
+    truth: Truth | None = None,
+    resolution_m: float = float("nan"),
+) -> ReportContext:
     data = source_data(model, samples)
     colours = [COLOURS[k % len(COLOURS)] for k in range(len(model.sources))]
     return ReportContext(model, data, _sweep_azimuth(data), truth, resolution_m, colours)
 
 
-def middle_position(run, samples) -> MiddlePosition:
+def middle_position(run: RunFile, samples: SampleColumns | None) -> MiddlePosition:
     """The sweep's middle position: its index, the light's pose there and the rig's geometry (no ray yet)."""
 
     rig = run.header.rig

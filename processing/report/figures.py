@@ -4,22 +4,41 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Sequence
+from typing import cast
 
 import numpy as np
+from matplotlib.artist import Artist
+from matplotlib.axes import Axes
 from matplotlib.collections import LineCollection
 from matplotlib.container import ErrorbarContainer
 from matplotlib.figure import Figure
+from matplotlib.lines import Line2D
 from matplotlib.patches import Circle, Polygon
 from matplotlib.ticker import MaxNLocator
+from numpy.typing import ArrayLike
 
 from processing.lightmodel import LightModel, SourceModel
-from processing.report.context import ReportContext, in_degrees, report_context, signed_theta, truth_values
+from processing.report.context import (
+    ReportContext,
+    SampleColumns,
+    SourceData,
+    Truth,
+    in_degrees,
+    report_context,
+    signed_theta,
+    truth_values,
+)
 from processing.report.drawing import COLOURS, add_line, axes_in, grown_runs, new_figure, panel_grid, settle_axes
+from processing.trace import ChiefRays
 
 log = logging.getLogger("mirrorgonio.processing")
 
+#: What a panel's legend shows: a line, or the samples' markers with their error bars.
+Handle = Line2D | ErrorbarContainer
 
-def fit_curve(source: SourceModel, signed_theta: np.ndarray, azimuth: float):
+
+def fit_curve(source: SourceModel, signed_theta: np.ndarray, azimuth: float) -> tuple[np.ndarray, np.ndarray]:
     theta = np.abs(signed_theta)
     phi = np.where(signed_theta >= 0.0, azimuth, azimuth + math.pi)
     values, extrapolated = source.fit.evaluate(theta, phi)
@@ -27,10 +46,10 @@ def fit_curve(source: SourceModel, signed_theta: np.ndarray, azimuth: float):
     return values, extrapolated
 
 
-def _polar_frame(ax, rmax: float, clip) -> None:
+def _polar_frame(ax: Axes, rmax: float, clip: Polygon) -> None:
     """The half disc's grid, drawn by hand: spokes every 30°, arcs at round radii, their labels."""
     arc = np.radians(np.linspace(-90.0, 90.0, 181))
-    ticks = MaxNLocator(nbins=6, steps=[1, 2, 2.5, 5, 10]).tick_values(0.0, rmax)
+    ticks = cast(np.ndarray, MaxNLocator(nbins=6, steps=[1, 2, 2.5, 5, 10]).tick_values(0.0, rmax))  # an array
     ticks = ticks[(ticks >= 0.0) & (ticks < rmax * (1.0 - 1e-9))]
     segments = [np.column_stack([t / rmax * np.sin(arc), t / rmax * np.cos(arc)]) for t in ticks if t > 0.0]
     spokes = np.radians(np.arange(-90, 91, 30))
@@ -55,7 +74,7 @@ def _polar_frame(ax, rmax: float, clip) -> None:
             ax.text(-t / rmax, -0.03, f"{t:.{decimals}f}", fontsize=7, ha="center", va="top")
 
 
-def _polar_panel(ax, ctx: ReportContext, k: int) -> list:
+def _polar_panel(ax: Axes, ctx: ReportContext, k: int) -> list[Handle]:
     """One source's half-polar plot, drawn on a Cartesian axes whose unit is the radial scale's top
     (θ from the vertical, signed by side: x = r sin θ, y = r cos θ); returns the legend handles it drew."""
     source, d, colour = ctx.model.sources[k], ctx.data[k], ctx.colours[k]
@@ -83,15 +102,15 @@ def _polar_panel(ax, ctx: ReportContext, k: int) -> list:
     return handles
 
 
-def _polar_xy(theta, r, rmax: float) -> tuple[np.ndarray, np.ndarray]:
+def _polar_xy(theta: np.ndarray, r: ArrayLike, rmax: float) -> tuple[np.ndarray, np.ndarray]:
     """A point at angle ``theta`` from the vertical and radius ``r``, in the panel's unit."""
     r = np.asarray(r, dtype=float) / rmax
     return r * np.sin(theta), r * np.cos(theta)
 
 
-def _coverage_wedges(ax, signed: np.ndarray) -> list:
+def _coverage_wedges(ax: Axes, signed: np.ndarray) -> list[Artist]:
     """The θ the samples cover, side by side, as grey wedges."""
-    drawn = []
+    drawn: list[Artist] = []
     for side in (1.0, -1.0):
         on_side = signed[np.isfinite(signed) & (np.sign(signed) == side)] if signed.size else np.zeros(0)
         if on_side.size:
@@ -107,13 +126,21 @@ def _coverage_wedges(ax, signed: np.ndarray) -> list:
     return drawn
 
 
-def _curves(ax, grid, fit, extrapolated, true, rmax: float, colour: str) -> list:
+def _curves(
+    ax: Axes,
+    grid: np.ndarray,
+    fit: np.ndarray,
+    extrapolated: np.ndarray,
+    true: np.ndarray | None,
+    rmax: float,
+    colour: str,
+) -> list[Handle]:
     """The fit, solid where the samples cover θ and dashed where it extrapolates, and the truth."""
     sin_grid, cos_grid = np.sin(grid), np.cos(grid)
     shown = np.where(fit <= 1.05 * rmax, fit, np.nan) / rmax
     solid = np.where(~extrapolated, shown, np.nan)
     dashed = np.where(grown_runs(extrapolated), shown, np.nan)
-    handles = [
+    handles: list[Handle] = [
         add_line(ax, solid * sin_grid, solid * cos_grid, color=colour, lw=2.0, label="fit (θ covered)"),
         add_line(
             ax,
@@ -132,10 +159,18 @@ def _curves(ax, grid, fit, extrapolated, true, rmax: float, colour: str) -> list
     return handles
 
 
-def _sample_markers(ax, d, signed, sigma, rmax: float, colour: str, drawn: list) -> list:
+def _sample_markers(
+    ax: Axes,
+    d: SourceData,
+    signed: np.ndarray,
+    sigma: np.ndarray,
+    rmax: float,
+    colour: str,
+    drawn: list[Artist],
+) -> list[Handle]:
     """The chief-ray cell sums (where they are not the samples themselves) and the samples with
     their ±1σ bars along the radius (the bars are added to ``drawn``, to be clipped)."""
-    handles = []
+    handles: list[Handle] = []
     if (
         d.cell_sum is not None
         and np.any(np.isfinite(d.cell_sum))
@@ -157,7 +192,7 @@ def _sample_markers(ax, d, signed, sigma, rmax: float, colour: str, drawn: list)
     if not d.intensity.size:
         return handles
     has_sigma = bool(np.any(np.isfinite(d.sigma) & (d.sigma > 0)))
-    bars = ()
+    bars: tuple[LineCollection, ...] = ()
     if has_sigma:
         ends = np.stack(
             [
@@ -166,7 +201,8 @@ def _sample_markers(ax, d, signed, sigma, rmax: float, colour: str, drawn: list)
             ],
             axis=1,
         )
-        bars = (ax.add_artist(LineCollection(ends, colors=colour, linewidths=0.9)),)
+        segments = LineCollection(ends, colors=colour, linewidths=0.9)  # type: ignore[arg-type]  # stubs: an array is accepted
+        bars = (cast(LineCollection, ax.add_artist(segments)),)  # add_artist returns the artist it adds
         drawn += bars
     line = add_line(
         ax,
@@ -184,7 +220,7 @@ def _sample_markers(ax, d, signed, sigma, rmax: float, colour: str, drawn: list)
     return handles
 
 
-def polar_figure(model: LightModel, *, samples=None, truth=None) -> Figure:
+def polar_figure(model: LightModel, *, samples: SampleColumns | None = None, truth: Truth | None = None) -> Figure:
     """Per source, the radiant intensity ``I_s(θ)`` on a half-polar plot (θ from −90° to 90°).
 
     Dots: the samples with ±1σ bars; solid line: the fit over the θ its samples cover,
@@ -208,7 +244,7 @@ def context_polar_figure(ctx: ReportContext) -> Figure:
     pad_x, pad_bottom, pad_top = 0.45, 0.3, 0.3  # around the half disc, for its labels
     width, height = cell_w * cols, top_band + cell_h * rows + legend_band
     fig = new_figure(width, height, layout=None)
-    handles = {}
+    handles: dict[object, Handle] = {}  # by label
     for k in range(n):
         r, c = divmod(k, cols)
         cell_top = height - top_band - r * cell_h
@@ -238,7 +274,7 @@ def context_polar_figure(ctx: ReportContext) -> Figure:
         )
     order = ["samples ± 1σ", "fit (θ covered)", "fit, extrapolated", "chief-ray cell sums", "truth"]
     shown = [handles[label] for label in order if label in handles]
-    fig.legend(
+    fig.legend(  # type: ignore[call-overload]  # stubs: containers are handles too, labels any object
         shown,
         [h.get_label() for h in shown],
         loc="lower center",
@@ -259,7 +295,9 @@ def context_polar_figure(ctx: ReportContext) -> Figure:
     return fig
 
 
-def layout_figure(model: LightModel, *, resolution_m: float = float("nan"), pixel_polygon=None) -> Figure:
+def layout_figure(
+    model: LightModel, *, resolution_m: float = float("nan"), pixel_polygon: np.ndarray | None = None
+) -> Figure:
     """The sources on the light plane (circles of their radius) and, drawn to scale, the
     footprint of one pixel: the point spread's (diameter ``resolution_m``) and, when known,
     the chief ray's own (``pixel_polygon``, (4, 2) metres)."""
@@ -291,7 +329,7 @@ def layout_figure(model: LightModel, *, resolution_m: float = float("nan"), pixe
             color=colours[k],
             fontweight="bold",
         )
-    handles = []
+    handles: list[Artist] = []
     lo = (centres - radii[:, None]).min(axis=0)
     hi = (centres + radii[:, None]).max(axis=0)
     if has_footprint:
@@ -312,7 +350,9 @@ def layout_figure(model: LightModel, *, resolution_m: float = float("nan"), pixe
     return fig
 
 
-def _footprint_circle(ax, centroid, rad: float, lo, hi, handles: list):
+def _footprint_circle(
+    ax: Axes, centroid: np.ndarray, rad: float, lo: np.ndarray, hi: np.ndarray, handles: list[Artist]
+) -> tuple[np.ndarray, np.ndarray]:
     """The point spread's footprint, a dashed circle of radius ``rad`` mm about the sources'
     centroid; the plot's (lo, hi) grown to hold it."""
     label = f"what one pixel gathers light from: the point spread's footprint ({2 * rad:.1f} mm across)"
@@ -321,7 +361,15 @@ def _footprint_circle(ax, centroid, rad: float, lo, hi, handles: list):
     return np.minimum(lo, centroid - rad), np.maximum(hi, centroid + rad)
 
 
-def _pixel_glyph(ax, pixel_polygon, centres, radii, lo, hi, handles: list):
+def _pixel_glyph(
+    ax: Axes,
+    pixel_polygon: ArrayLike,
+    centres: np.ndarray,
+    radii: np.ndarray,
+    lo: np.ndarray,
+    hi: np.ndarray,
+    handles: list[Artist],
+) -> tuple[np.ndarray, np.ndarray]:
     """One pixel's chief-ray footprint as a scale glyph in the lower-left corner, clear of the
     sources (its shape and size are the pixel's); the plot's (lo, hi) grown to hold it."""
     poly = np.asarray(pixel_polygon, dtype=float) * 1e3
@@ -336,13 +384,13 @@ def _pixel_glyph(ax, pixel_polygon, centres, radii, lo, hi, handles: list):
     return np.minimum(lo, poly.min(axis=0)), np.maximum(hi, poly.max(axis=0))
 
 
-def coverage_figure(model: LightModel, *, samples=None) -> Figure:
+def coverage_figure(model: LightModel, *, samples: SampleColumns | None = None) -> Figure:
     """The θ (signed by side) each source was sampled at, against the position index."""
     ctx = report_context(model, samples=samples)
     return context_coverage_figure(ctx, samples)
 
 
-def context_coverage_figure(ctx: ReportContext, samples=None) -> Figure:
+def context_coverage_figure(ctx: ReportContext, samples: SampleColumns | None = None) -> Figure:
     fig = new_figure(7.6, 3.9, layout=None)
     ax = axes_in(fig, 0.75, 0.5, 0.1, 0.1)
     for k, source in enumerate(ctx.model.sources):
@@ -377,10 +425,10 @@ def context_coverage_figure(ctx: ReportContext, samples=None) -> Figure:
 
 
 def angles_figure(
-    rays,
+    rays: ChiefRays,
     *,
     index: int | None = None,
-    centre_m=(0.0, 0.0),
+    centre_m: Sequence[float] = (0.0, 0.0),
     light_radius_m: float = 0.01,
     ball_half_angle: float | None = None,
     ball_distance_ratio: float | None = None,
@@ -424,10 +472,10 @@ def angles_figure(
         # the camera's view angle off the ball's centre that gives each deflection (the same for any azimuth)
         k = ball_distance_ratio
 
-        def to_view(defl):
+        def to_view(defl: ArrayLike) -> np.ndarray:
             return np.degrees(np.arcsin(np.clip(np.cos(np.radians(np.asarray(defl, dtype=float)) / 2.0) / k, -1, 1)))
 
-        def to_deflection(view):
+        def to_deflection(view: ArrayLike) -> np.ndarray:
             return np.degrees(2.0 * np.arccos(np.clip(np.sin(np.radians(np.asarray(view, dtype=float))) * k, -1, 1)))
 
         top = ax.secondary_xaxis("top", functions=(to_view, to_deflection))
@@ -445,7 +493,7 @@ def angles_figure(
     return fig
 
 
-def residuals_figure(model: LightModel, *, samples=None) -> Figure:
+def residuals_figure(model: LightModel, *, samples: SampleColumns | None = None) -> Figure:
     """Per source, the normalised residuals ``(data − fit)/σ`` against θ (signed by side)."""
     ctx = report_context(model, samples=samples)
     return context_residuals_figure(ctx)
@@ -467,7 +515,7 @@ def context_residuals_figure(ctx: ReportContext) -> Figure:
         wspace=wgap / ((width - left - right - (cols - 1) * wgap) / cols),
         hspace=hgap / ((height - bottom - top - (rows - 1) * hgap) / rows),
     )
-    axes = []
+    axes: list[Axes] = []
     for k, source in enumerate(ctx.model.sources):
         ax = fig.add_subplot(grid[divmod(k, cols)], sharey=axes[0] if axes else None)
         axes.append(ax)

@@ -6,6 +6,7 @@ import base64
 import html
 import logging
 import math
+from concurrent.futures import Executor, Future
 
 from matplotlib.figure import Figure
 
@@ -60,9 +61,9 @@ class FigureEncoder:
     figure is drawn: :meth:`figure` draws and returns the ``<figure>`` with a placeholder that
     :meth:`fill` replaces by the embedded image."""
 
-    def __init__(self, pool):
+    def __init__(self, pool: Executor) -> None:
         self.pool = pool
-        self.pending: dict[str, tuple[object, str]] = {}
+        self.pending: dict[str, tuple[Future[bytes], str]] = {}
 
     def figure(self, fig: Figure, alt: str, caption: str) -> str:
         token = f"\x00figure-{len(self.pending)}\x00"

@@ -6,13 +6,27 @@ import gc
 import html
 import logging
 import math
+import os
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import replace
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
+from drivers.contracts.runfile import RunFile
+from processing.calibration import BallFit
 from processing.lightmodel import LightModel
-from processing.report.context import MiddlePosition, ReportContext, middle_position, report_context, trace_middle
+from processing.parallel import Compute
+from processing.report.context import (
+    MiddlePosition,
+    ReportContext,
+    RunReport,
+    SampleColumns,
+    Truth,
+    middle_position,
+    report_context,
+    trace_middle,
+)
 from processing.report.markup import CSS, FigureEncoder, html_note
 from processing.report.sections import (
     SECTIONS,
@@ -26,6 +40,9 @@ from processing.report.sections import (
     residuals_section,
 )
 
+if TYPE_CHECKING:
+    import distributed
+
 log = logging.getLogger("mirrorgonio.processing")
 
 
@@ -34,7 +51,7 @@ log = logging.getLogger("mirrorgonio.processing")
 #: rest. Drawing is mostly matplotlib's text rendering, Python holding the GIL: threads would not
 #: share it out, processes do. Measured on 2 cores, a whole run's page: 0.62 s in one process, of
 #: which these five sections 0.5 s (50-150 ms each); 0.37-0.55 s with two workers drawing them.
-_REMOTE_SECTIONS: dict[str, Callable[[ReportContext, object], str]] = {
+_REMOTE_SECTIONS: dict[str, Callable[[ReportContext, SampleColumns | None], str]] = {
     SECTIONS[0]: lambda ctx, samples: intensity_section(ctx),
     SECTIONS[1]: lambda ctx, samples: layout_section(ctx),
     SECTIONS[2]: lambda ctx, samples: coverage_section(ctx, samples),
@@ -47,7 +64,7 @@ _REMOTE_SECTIONS: dict[str, Callable[[ReportContext, object], str]] = {
 _NEEDS_RAYS = frozenset({SECTIONS[3]})
 
 
-def draw_section(name: str, ctx: ReportContext, samples) -> str:
+def draw_section(name: str, ctx: ReportContext, samples: SampleColumns | None) -> str:
     """One of :data:`_REMOTE_SECTIONS` drawn here, its figures encoded here: a task a Dask
     worker runs for :func:`write_report`."""
     ctx = replace(ctx, encoder=None)
@@ -58,10 +75,10 @@ class _RemoteSections:
     """The sections :func:`write_report` hands to a cluster's workers; each one the workers
     could not draw is drawn here when asked for, with the same result."""
 
-    def __init__(self, compute, samples):
+    def __init__(self, compute: Compute | None, samples: SampleColumns | None) -> None:
         self.compute = compute if compute is not None and getattr(compute, "dask", False) else None
         self.samples = samples
-        self.futures: dict[str, object] = {}
+        self.futures: dict[str, distributed.Future[str]] = {}
 
     def start(self, name: str, ctx: ReportContext) -> None:
         if self.compute is None:
@@ -87,7 +104,15 @@ class _RemoteSections:
 
 
 def write_report(
-    path, model: LightModel, *, run=None, samples=None, report=None, truth=None, calibration=None, compute=None
+    path: str | os.PathLike[str],
+    model: LightModel,
+    *,
+    run: RunFile | None = None,
+    samples: SampleColumns | None = None,
+    report: RunReport | None = None,
+    truth: Truth | None = None,
+    calibration: BallFit | dict[str, Any] | None = None,
+    compute: Compute | None = None,
 ) -> Path:
     """Write the run's report: one self-contained HTML file.
 
@@ -148,7 +173,16 @@ def guarded(title: str, build: Callable[[], str]) -> str:
         return html_note(f"this section could not be drawn: {type(exc).__name__}: {exc}")
 
 
-def _write_report(path: Path, model: LightModel, run, samples, report, truth, calibration, compute=None) -> Path:
+def _write_report(
+    path: Path,
+    model: LightModel,
+    run: RunFile | None,
+    samples: SampleColumns | None,
+    report: RunReport | None,
+    truth: Truth | None,
+    calibration: BallFit | dict[str, Any] | None,
+    compute: Compute | None = None,
+) -> Path:
     resolution = float(model.provenance.get("spatial_resolution_m") or float("nan"))
     if not math.isfinite(resolution) and report is not None:
         resolution = float(getattr(report, "spatial_resolution_m", float("nan")))
@@ -179,7 +213,7 @@ def _write_report(path: Path, model: LightModel, run, samples, report, truth, ca
     # decoding and the figures' PNG encoding (OpenCV, ISA-L). Its tasks run in the order given.
     with ThreadPoolExecutor(max_workers=1, thread_name_prefix="mirrorgonio-report") as pool:
         ctx.encoder = FigureEncoder(pool)
-        built: dict[str, str | Future] = {
+        built: dict[str, str | Future[str]] = {
             calibrated: pool.submit(
                 guarded, calibrated, lambda: calibration_section(model, run, report, calibration, position)
             ),
@@ -195,7 +229,8 @@ def _write_report(path: Path, model: LightModel, run, samples, report, truth, ca
         title = f"mirrorgonio light report: {run_id}" if run_id else "mirrorgonio light report"
         body = [f"<h1>{html.escape(title)}</h1>", header_table(model, run, report, samples, resolution)]
         for name in SECTIONS:
-            content = built[name].result() if isinstance(built[name], Future) else built[name]
+            entry = built[name]
+            content = entry.result() if isinstance(entry, Future) else entry
             body.append(f"<h2>{html.escape(name)}</h2>\n{ctx.encoder.fill(content)}")
     page = (
         f'<!DOCTYPE html>\n<html lang="en">\n<head>\n<meta charset="utf-8">\n<title>{html.escape(title)}</title>\n'

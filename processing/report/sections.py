@@ -8,13 +8,23 @@ import math
 import re
 from datetime import UTC, datetime
 from pathlib import Path
+from typing import Any, cast
 
 import cv2
 import numpy as np
 
-from processing.calibration import angle_sensitivity, calibrate_ball, compare_with_rig
+from drivers.contracts.runfile import RunFile
+from processing.calibration import BallFit, angle_sensitivity, calibrate_ball, compare_with_rig
 from processing.lightmodel import LightModel, SourceModel, describe_fitted
-from processing.report.context import MiddlePosition, ReportContext, in_degrees, source_data, truth_error
+from processing.report.context import (
+    MiddlePosition,
+    ReportContext,
+    RunReport,
+    SampleColumns,
+    in_degrees,
+    source_data,
+    truth_error,
+)
 from processing.report.figures import (
     angles_figure,
     context_coverage_figure,
@@ -50,7 +60,13 @@ _PREVIEW_WIDTH = 320
 _PREVIEW_CROP = 200
 
 
-def calibration_section(model: LightModel, run, report, calibration, geo: MiddlePosition | None) -> str:
+def calibration_section(
+    model: LightModel,
+    run: RunFile | None,
+    report: RunReport | None,
+    calibration: BallFit | dict[str, Any] | None,
+    geo: MiddlePosition | None,
+) -> str:
     rig = run.header.rig if run is not None else None
     found = calibration
     if found is None and report is not None:
@@ -58,8 +74,9 @@ def calibration_section(model: LightModel, run, report, calibration, geo: Middle
     if found is None:
         found = model.provenance.get("calibration")
     if found is None and run is not None and callable(getattr(run, "calibration_image", None)):
-        image = run.calibration_image()
+        image = cast(Any, run).calibration_image()  # a run file that offers one (RunFile has none)
         if image is not None:
+            assert rig is not None  # the run's
             found = calibrate_ball(image, rig)
     parts = []
     comparison = None
@@ -155,7 +172,7 @@ def _half_width(source: SourceModel) -> float | None:
     return float(np.degrees(theta[below[0]])) if below.size else None
 
 
-def _previews(report, run, model: LightModel, path: Path) -> list[Path]:
+def _previews(report: RunReport | None, run: RunFile | None, model: LightModel, path: Path) -> list[Path]:
     outputs = getattr(report, "outputs", None) or {}
     pngs = [Path(p) for p in outputs.get("png", [])]
     if not pngs:
@@ -176,7 +193,7 @@ def _previews(report, run, model: LightModel, path: Path) -> list[Path]:
     return [p for p in pngs if p.exists()]
 
 
-def _ball_box(geo: MiddlePosition | None):
+def _ball_box(geo: MiddlePosition | None) -> tuple[float, float, float, int] | None:
     """The ball's image as ``(col, row, radius, sensor width)`` in sensor pixels, to crop the previews."""
     if geo is None:
         return None
@@ -187,7 +204,7 @@ def _ball_box(geo: MiddlePosition | None):
     return float(centre[0]), float(centre[1]), 1.15 * radius, g.width
 
 
-def _preview_strip(pngs: list[Path], box=None) -> str:
+def _preview_strip(pngs: list[Path], box: tuple[float, float, float, int] | None = None) -> str:
 
     picks = sorted(set(np.linspace(0, len(pngs) - 1, min(_PREVIEWS, len(pngs))).round().astype(int).tolist()))
     cells = []
@@ -221,7 +238,9 @@ def _preview_strip(pngs: list[Path], box=None) -> str:
     return f'<div class="strip">{"".join(cells)}</div>' if cells else ""
 
 
-def header_table(model: LightModel, run, report, samples, resolution_m: float) -> str:
+def header_table(
+    model: LightModel, run: RunFile | None, report: RunReport | None, samples: SampleColumns | None, resolution_m: float
+) -> str:
     prov = model.provenance
     header = run.header if run is not None else None
     run_id = prov.get("run_id") or (header.run_id if header else None) or "unknown"
@@ -377,6 +396,7 @@ def layout_section(ctx: ReportContext) -> str:
             f"sources, a pixel mixes them and only the templates' unmixing tells them apart. "
         )
     if polygon is not None:
+        assert ctx.geometry is not None and ctx.geometry.pixel_at is not None  # set with the polygon
         caption += (
             f"The small black patch is where one pixel's chief ray alone would look (pixel "
             f"{ctx.geometry.pixel_at[0]:.0f}, {ctx.geometry.pixel_at[1]:.0f} at position "
@@ -390,7 +410,7 @@ def layout_section(ctx: ReportContext) -> str:
     return "\n".join(parts)
 
 
-def coverage_section(ctx: ReportContext, samples) -> str:
+def coverage_section(ctx: ReportContext, samples: SampleColumns | None) -> str:
     caption = (
         "The angle θ each source's sample leaves at, position by position (signed by side as in the polar "
         "plots). A sweep past the ball draws one line per source crossing 0 near the middle; the gaps "
@@ -469,7 +489,9 @@ def residuals_section(ctx: ReportContext) -> str:
     return "\n".join(parts)
 
 
-def previews_section(report, run, model: LightModel, path: Path, geo: MiddlePosition | None) -> str:
+def previews_section(
+    report: RunReport | None, run: RunFile | None, model: LightModel, path: Path, geo: MiddlePosition | None
+) -> str:
     pngs = _previews(report, run, model, path)
     if not pngs:
         return html_note("no HDR previews found (the hdr step writes them beside the results as position-NNN.png).")

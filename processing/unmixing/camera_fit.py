@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -97,7 +98,19 @@ def fit_aperture(
     return ApertureFit(2.0 * described * scale, 2.0 * described, chi2, chi2_described, pixels, evaluations)
 
 
-def _fit_scale(data, builder, cfa_pattern, layout, margin_px, inset_px, bounds, xatol, chi2_at, what: str, shown):
+def _fit_scale(
+    data: list[LayoutData],
+    builder: TemplateBuilder,
+    cfa_pattern: str,
+    layout: list[Source],
+    margin_px: int,
+    inset_px: int,
+    bounds: tuple[float, float],
+    xatol: float,
+    chi2_at: Callable[[LayoutProblem, float], float],
+    what: str,
+    shown: Callable[[float], str],
+) -> tuple[float, float, float, int, int]:
     """The factor in ``bounds`` on one of the camera's described numbers whose templates explain
     the data best (bounded Brent search, ``scipy.optimize.minimize_scalar``, to ``xatol``):
     (factor, χ² there, χ² at 1, pixels, evaluations). ``chi2_at(problem, factor)`` sets the

@@ -8,12 +8,13 @@ import numpy as np
 
 from drivers.pose import Pose
 from processing.hdr.mosaic import cfa_channels
+from processing.radiometry import ElectronRates
 from processing.trace import ChiefRays, RigGeometry, footprint_areas, specular_points, trace_pixels
 from processing.unmixing.sources import Source
 
 
 def cell_sums(
-    rate_e: np.ndarray,
+    rate_e: np.ndarray | ElectronRates,
     usable: np.ndarray,
     geometry: RigGeometry,
     sensitivity: float,

@@ -9,6 +9,7 @@ from scipy.optimize import least_squares
 
 from drivers.pose import Pose
 from processing.hdr.mosaic import cfa_channels
+from processing.trace import RigGeometry
 from processing.unmixing.sources import Source
 from processing.unmixing.templates import TemplateBuilder
 from processing.unmixing.unmix import nnls_via_cholesky, place_template
@@ -60,7 +61,7 @@ class LayoutProblem:
         self.builder = replace(builder, airy_margin_px=max(builder.airy_margin_px, margin_px + int(spread)))
         pad = self.builder.airy_margin_px - builder.airy_margin_px if builder.diffraction else 0
         self.windows = []
-        self._columns: dict[tuple, np.ndarray] = {}
+        self._columns: dict[tuple[int, float, float, float], list[np.ndarray]] = {}
         for item, built in zip(data, first_built, strict=True):
             if not built:
                 continue
@@ -101,11 +102,11 @@ class LayoutProblem:
             return column
         pose, window, channel, picks, *_ = self.windows[p]
         top, bottom, left, right = window
-        column = np.zeros((bottom - top, right - left))
+        image = np.zeros((bottom - top, right - left))
         template = self.builder.build(Source("trial", (u, v), radius), pose)
         if template is not None:
-            place_template(template, window, channel, column)
-        column = [column[pick] for pick in picks]
+            place_template(template, window, channel, image)
+        column = [image[pick] for pick in picks]
         if len(self._columns) >= 64 * len(self.windows):  # a Jacobian's worth several times over; oldest out
             for old in list(self._columns)[: len(self._columns) // 2]:
                 del self._columns[old]
@@ -117,13 +118,13 @@ class LayoutProblem:
 
         self.set_geometry(replace(self.builder.geometry, aperture_radius=radius))
 
-    def set_geometry(self, geometry) -> None:
+    def set_geometry(self, geometry: RigGeometry) -> None:
         """Build the templates through ``geometry`` from now on (the pixels stay)."""
 
         self.builder = replace(self.builder, geometry=geometry)
         self._columns.clear()
 
-    def solve(self, centres: np.ndarray, radius) -> tuple[np.ndarray, np.ndarray]:
+    def solve(self, centres: np.ndarray, radius: float | np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(weighted residuals, intensities (positions, 3, sources)) for discs of ``radius`` (one
         for all, or one per source) at ``centres`` (S, 2), in metres."""
         residuals, intensities = [], np.zeros((len(self.windows), 3, len(centres)))
@@ -140,11 +141,11 @@ class LayoutProblem:
                 residuals.append(a @ x - targets[c])
         return np.concatenate(residuals), intensities
 
-    def chi2(self, centres: np.ndarray, radius: float) -> float:
+    def chi2(self, centres: np.ndarray, radius: float | np.ndarray) -> float:
         r, _ = self.solve(centres, radius)
         return float(r @ r)
 
-    def light(self, centres: np.ndarray, radius: float) -> np.ndarray:
+    def light(self, centres: np.ndarray, radius: float | np.ndarray) -> np.ndarray:
         """Each source's intensity summed over the positions and channels (0: it explains nothing)."""
         return self.solve(centres, radius)[1].sum(axis=(0, 1))
 

@@ -28,7 +28,7 @@ def _shoelace(points: np.ndarray) -> float:
 
 
 @numba.njit(cache=True, error_model="numpy")
-def _edge_lines(polygon: np.ndarray):
+def _edge_lines(polygon: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Outward unit normals (N, 2) and offsets (N,) of a convex polygon's edges: the
     points ``q`` inside are those with ``normal · q <= offset`` for every edge."""
     n = polygon.shape[0]
@@ -153,7 +153,7 @@ def diffract(
     pitch: float,
     aperture: float,
     sensor_distance: float,
-    wavelengths,
+    wavelengths: list[float],
 ) -> np.ndarray:
     """``geometric`` (n × n, placed ``margin`` in from the corner of a ``size`` square)
     convolved with each channel's Airy pattern as the OTF on a ``padded`` grid does it;

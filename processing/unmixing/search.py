@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -32,14 +33,16 @@ def lit_box(
     return (float(u.min()), float(u.max()), float(v.min()), float(v.max()))
 
 
-def candidate_grid(boxes, *, spacing: float = 1.5e-3, margin: float = 3e-3):
+def candidate_grid(
+    boxes: Iterable[tuple[float, float, float, float] | None], *, spacing: float = 1.5e-3, margin: float = 3e-3
+) -> tuple[list[Source], np.ndarray, np.ndarray]:
     """Candidate point sources every ``spacing`` over the union of ``boxes`` (None ignored)
     plus ``margin``: (candidates, us, vs), the candidates row by row (v) along u."""
-    boxes = [b for b in boxes if b is not None]
-    if not boxes:
+    lit = [b for b in boxes if b is not None]
+    if not lit:
         raise SourcesError("no light in the data to find sources in")
-    u0, u1 = min(b[0] for b in boxes) - margin, max(b[1] for b in boxes) + margin
-    v0, v1 = min(b[2] for b in boxes) - margin, max(b[3] for b in boxes) + margin
+    u0, u1 = min(b[0] for b in lit) - margin, max(b[1] for b in lit) + margin
+    v0, v1 = min(b[2] for b in lit) - margin, max(b[3] for b in lit) + margin
     us = np.arange(math.floor(u0 / spacing), math.ceil(u1 / spacing) + 1) * spacing
     vs = np.arange(math.floor(v0 / spacing), math.ceil(v1 / spacing) + 1) * spacing
     candidates = [
@@ -144,7 +147,7 @@ def refine_layout(
     builder: TemplateBuilder,
     cfa_pattern: str,
     first: list[Source],
-    seeds: list[tuple[float, float]] = (),
+    seeds: Sequence[tuple[float, float]] = (),
     *,
     min_gain: float = 0.02,
     min_share: float = 0.02,

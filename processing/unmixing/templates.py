@@ -136,7 +136,7 @@ class TemplateBuilder:
         sensor = rim_cam + (image - rim_cam) * (g.sensor_distance / v)[:, None]  # on the plane z = -f
         return np.stack([g.K[0, 2] - sensor[:, 0] / g.pitch, g.K[1, 2] - sensor[:, 1] / g.pitch], -1)
 
-    def _render(self, outline: np.ndarray, disc: np.ndarray, centre: np.ndarray):
+    def _render(self, outline: np.ndarray, disc: np.ndarray, centre: np.ndarray) -> tuple[int, int, np.ndarray]:
         g, os_ = self.geometry, self.oversample
         reach = float(np.max(np.linalg.norm(outline - centre, axis=1)) + np.max(np.linalg.norm(disc, axis=1)) + 2.0)
         half = int(math.ceil(reach))

@@ -10,6 +10,7 @@ from scipy.linalg import solve_triangular
 
 from drivers.pose import Pose
 from processing.hdr.mosaic import cfa_channels
+from processing.radiometry import ElectronRates
 from processing.unmixing.sources import Source
 from processing.unmixing.templates import Template, TemplateBuilder
 
@@ -24,14 +25,14 @@ class PositionEstimate:
     theta: np.ndarray  # (n_sources,)
     phi: np.ndarray
     visible: np.ndarray  # (n_sources,) bool
-    templates: list = field(default_factory=list)
+    templates: list[Template | None] = field(default_factory=list)
     residual_rms: np.ndarray = field(default_factory=lambda: np.zeros(3))  # weighted, per channel
 
 
 def unmix_position(
     index: int,
-    rate_e: np.ndarray,
-    variance_e: np.ndarray,
+    rate_e: np.ndarray | ElectronRates,
+    variance_e: np.ndarray | ElectronRates,
     usable: np.ndarray,
     cfa_pattern: str,
     builder: TemplateBuilder,
@@ -64,17 +65,18 @@ def unmix_position(
     # Fit where every template is whole: outside its patch a template is cut to zero
     # while the data still holds its diffraction tail.
     pick_lo, pick_hi = (max, min) if region == "intersection" else (min, max)
-    top = max(0, pick_lo(templates[i].row0 for i in shown))
-    left = max(0, pick_lo(templates[i].col0 for i in shown))
-    bottom = min(h, pick_hi(templates[i].row0 + templates[i].image.shape[1] for i in shown))
-    right = min(w, pick_hi(templates[i].col0 + templates[i].image.shape[2] for i in shown))
+    placed = [t for t in templates if t is not None]  # the templates of ``shown``, in its order
+    top = max(0, pick_lo(t.row0 for t in placed))
+    left = max(0, pick_lo(t.col0 for t in placed))
+    bottom = min(h, pick_hi(t.row0 + t.image.shape[1] for t in placed))
+    right = min(w, pick_hi(t.col0 + t.image.shape[2] for t in placed))
     if bottom <= top or right <= left:
         return PositionEstimate(index, intensity, sigma, theta, phi, np.zeros(n, bool), templates, residual)
     rows, cols = np.mgrid[top:bottom, left:right]
     channel = cfa_channels(cfa_pattern, rows, cols)
     columns = np.zeros((len(shown), bottom - top, right - left))
-    for k, i in enumerate(shown):
-        place_template(templates[i], (top, bottom, left, right), channel, columns[k])
+    for k, template in enumerate(placed):
+        place_template(template, (top, bottom, left, right), channel, columns[k])
     data = rate_e[top:bottom, left:right]
     var = variance_e[top:bottom, left:right]
     ok = usable[top:bottom, left:right] & np.isfinite(data) & np.isfinite(var) & (var > 0)

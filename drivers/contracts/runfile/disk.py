@@ -8,7 +8,7 @@ import os
 from pathlib import Path
 
 
-def file_sha256(path, chunk_bytes: int = 1 << 20) -> str:
+def file_sha256(path: str | os.PathLike[str], chunk_bytes: int = 1 << 20) -> str:
     """Hex SHA-256 of a file's bytes (the identity of a referenced file)."""
     digest = hashlib.sha256()
     with open(path, "rb") as f:

@@ -39,7 +39,7 @@ def _rig_from_json(rig_json: str, source: str) -> Rig:
 #: processing opens the run file again, and checking its layout and rebuilding the header costs
 #: some 30 HDF5 lookups each time. A file that changes (one being written, one replaced) is
 #: checked again: its modification time, size or inode differ.
-_HEADERS: dict[tuple, RunHeader] = {}
+_HEADERS: dict[tuple[str, int, int, int, int], RunHeader] = {}
 _HEADERS_KEPT = 8
 
 
@@ -81,7 +81,7 @@ def read_header_once(f: h5py.File, path: Path) -> RunHeader:
     )
 
 
-def read_header(f: h5py.File, path) -> RunHeader:
+def read_header(f: h5py.File, path: str | os.PathLike[str]) -> RunHeader:
     """Check the layout and rebuild the :class:`RunHeader`.
 
     Parameters
@@ -149,7 +149,7 @@ def read_header(f: h5py.File, path) -> RunHeader:
     )
 
 
-def encode_header(path, header: RunHeader) -> tuple[str, str]:
+def encode_header(path: str | os.PathLike[str], header: RunHeader) -> tuple[str, str]:
     """Validate a new run's header and encode it as the file stores it.
 
     Parameters

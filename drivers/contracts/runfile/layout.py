@@ -7,8 +7,10 @@ writer of :mod:`drivers.contracts.runfile` build on it.
 
 from __future__ import annotations
 
+import os
 import re
 from dataclasses import dataclass, field
+from typing import Any
 
 import h5py
 import hdf5plugin
@@ -116,13 +118,13 @@ class RunHeader:
     light_poses: list[Pose]
     max_exposures: int
     frame_shape: tuple[int, int]
-    bracket: dict
-    metadata: dict
-    devices: dict
+    bracket: dict[str, Any]
+    metadata: dict[str, Any]
+    devices: dict[str, Any]
     software_version: str
     created_utc: str
     preset: str = ""
-    references: dict = field(default_factory=dict)
+    references: dict[str, Any] = field(default_factory=dict)
 
     @property
     def n_positions(self) -> int:
@@ -188,7 +190,7 @@ def empty_frame_records(n: int, max_exposures: int) -> dict[str, np.ndarray]:
     }
 
 
-def check_format(f: h5py.File, path) -> None:
+def check_format(f: h5py.File, path: str | os.PathLike[str]) -> None:
     """Raise a :class:`RunFileError` unless ``f`` is a mirrorgonio run file of a version this reads."""
     fmt = f.attrs.get("format")
     if fmt is None:
@@ -226,7 +228,7 @@ def encode_message(message: str) -> bytes:
     return data
 
 
-def as_text(value) -> str:
+def as_text(value: object) -> str:
     """A string read from the file (bytes, a scalar array or a str) as a str."""
     if isinstance(value, bytes):
         return value.decode("utf-8", errors="replace")
@@ -235,6 +237,6 @@ def as_text(value) -> str:
     return str(value)
 
 
-def is_whole(value) -> bool:
+def is_whole(value: object) -> bool:
     """Whether ``value`` is an integer (a bool is not)."""
     return isinstance(value, (int, np.integer)) and not isinstance(value, bool)

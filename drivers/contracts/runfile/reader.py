@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import Any
 
 import h5py
 import numpy as np
@@ -61,7 +62,7 @@ class RunFile:
         self._f = f
 
     @classmethod
-    def open(cls, path) -> RunFile:
+    def open(cls, path: str | os.PathLike[str]) -> RunFile:
         """Open a run file for reading.
 
         Raises
@@ -114,7 +115,7 @@ class RunFile:
     def __enter__(self) -> RunFile:
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
     def refresh(self) -> None:
@@ -221,22 +222,22 @@ class RunFile:
             raise RunFileError(f"{self.path}: the run file is closed")
         return self._f[name]
 
-    def _read(self, name: str, selection, what: str | None = None):
+    def _read(self, name: str, selection: Any, what: str | None = None) -> Any:
         dset = self._dset(name)
         try:
             return dset[selection]
         except (OSError, RuntimeError) as exc:
             raise RunFileError(f"{self.path}: cannot read {what or '/' + name}: {h5_cause(exc)}") from None
 
-    def _check_index(self, i) -> None:
+    def _check_index(self, i: int) -> None:
         if not is_whole(i) or not 0 <= i < self.n_positions:
             raise RunFileError(f"{self.path}: position {i!r} out of range (0 to {self.n_positions - 1})")
 
-    def _is_complete(self, i) -> bool:
+    def _is_complete(self, i: int) -> bool:
         self._check_index(i)
         return bool(self._read("positions/complete", i) == 1)
 
-    def _count(self, i) -> int:
+    def _count(self, i: int) -> int:
         if not self._is_complete(i):
             raise RunFileError(f"{self.path}: position {i} is not complete")
         k = int(self._read("positions/frame_count", i))

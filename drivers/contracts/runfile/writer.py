@@ -7,6 +7,7 @@ import math
 import os
 import threading
 from pathlib import Path
+from typing import Any
 
 import h5py
 import numpy as np
@@ -51,7 +52,7 @@ def _open_swmr_write(path: Path) -> h5py.File:
     return h5py.File(fid)
 
 
-def _float(value) -> float | None:
+def _float(value: Any) -> float | None:
     if isinstance(value, bool):
         return None
     try:
@@ -85,7 +86,7 @@ class RunFileWriter:
 
     # --- opening -------------------------------------------------------------------------
     @classmethod
-    def create(cls, path, header: RunHeader) -> RunFileWriter:
+    def create(cls, path: str | os.PathLike[str], header: RunHeader) -> RunFileWriter:
         """Create a new run file and open it for writing.
 
         Parameters
@@ -138,7 +139,7 @@ class RunFileWriter:
             raise
 
     @classmethod
-    def reopen(cls, path) -> RunFileWriter:
+    def reopen(cls, path: str | os.PathLike[str]) -> RunFileWriter:
         """Open an existing run file to go on writing (resume).
 
         A file whose writer was killed cannot be opened for writing again (HDF5 leaves
@@ -243,7 +244,9 @@ class RunFileWriter:
             except OSError as exc:
                 raise RunFileError(f"{self.path}: position {index}: write failed: {h5_cause(exc)}") from None
 
-    def _validate(self, index, measured, times, frames) -> dict[str, np.ndarray]:
+    def _validate(
+        self, index: int, measured: Pose, times: PositionTimes, frames: list[RawFrame]
+    ) -> dict[str, np.ndarray]:
         where = f"{self.path}: position {index}"
         if not is_whole(index) or not 0 <= index < self._n:
             raise RunFileError(f"{self.path}: position {index!r} out of range (0 to {self._n - 1})")
@@ -381,5 +384,5 @@ class RunFileWriter:
     def __enter__(self) -> RunFileWriter:
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()
