@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from datetime import datetime
+from datetime import UTC, datetime, timedelta
 from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, PositiveFloat, StrictBool, field_validator, model_validator
@@ -140,6 +140,15 @@ class JobRequest(BaseModel):
         return self.model_dump(mode="json", exclude={"steps"}, exclude_defaults=True)
 
 
+#: The instant the API document's examples start at (its run's id says it too).
+_EXAMPLE_START = datetime(2026, 11, 21, 13, 45, 1, tzinfo=UTC)
+
+
+def _example_time(seconds: float) -> str:
+    """An example timestamp, ``seconds`` after :data:`_EXAMPLE_START`, as the API writes them."""
+    return (_EXAMPLE_START + timedelta(seconds=seconds)).isoformat()
+
+
 # --- responses -----------------------------------------------------------------------------
 class RunStatus(BaseModel):
     """Everything about a run in one answer."""
@@ -157,8 +166,8 @@ class RunStatus(BaseModel):
                     "current_position": 12,
                     "eta_s": 310.0,
                     "last_error": None,
-                    "created_utc": "2026-11-21T13:45:01+00:00",
-                    "started_utc": "2026-11-21T13:45:02+00:00",
+                    "created_utc": _example_time(0),
+                    "started_utc": _example_time(1),
                     "finished_utc": None,
                     "exposures_per_position": 3,
                     "file_url": "/runs/run-20261121-134501-3f2a/file",
@@ -199,9 +208,9 @@ class JobStatus(BaseModel):
                     "message": "66 of 66 positions in 21.4 s on local Dask cluster: 2 worker processes x 1 thread",
                     "result_dir": "/srv/mirrorgonio/runs",
                     "claimed_by": "lab-pc-4242",
-                    "heartbeat_utc": "2026-11-21T14:00:25+00:00",
-                    "created_utc": "2026-11-21T14:00:00+00:00",
-                    "updated_utc": "2026-11-21T14:00:26+00:00",
+                    "heartbeat_utc": _example_time(924),
+                    "created_utc": _example_time(899),
+                    "updated_utc": _example_time(925),
                     "artifacts": {
                         "report": "/jobs/job-20261121-140000-aa01/artifacts/report",
                         "ies": "/jobs/job-20261121-140000-aa01/artifacts/ies",

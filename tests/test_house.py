@@ -24,7 +24,7 @@ KEPT_WHOLE = re.compile(r"\bkept whole\b", re.IGNORECASE)
 #: is imported in a function with ruff's ``noqa: PLC0415`` and the reason on its line.
 LAZY_PROJECT_IMPORTS = ("acquisition/cli/",)
 SAYS_WHY = "noqa: PLC0415 - "
-DATE = re.compile(r"\b20\d\d-[01]\d-[0-3]\d\b")
+DATE = re.compile(r"20\d\d-[01]\d-[0-3]\d")  # as `grep "20[0-9][0-9]-[01][0-9]-[0-3][0-9]"`
 
 
 def _modules(root: Path = ROOT) -> list[Path]:
