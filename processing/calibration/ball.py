@@ -10,9 +10,11 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
-from scipy.optimize import least_squares
+from numpy.typing import ArrayLike
+from scipy.optimize import OptimizeResult, least_squares
 
 from drivers.contracts.rig import Rig
 from processing.calibration.errors import CalibrationError
@@ -77,7 +79,7 @@ def _cone_guess(d: np.ndarray, radius: float) -> np.ndarray:
     return (w / norm) * radius / sin_beta
 
 
-def _mean_reflectance(ball_index, cos_i: np.ndarray) -> np.ndarray:
+def _mean_reflectance(ball_index: tuple[ArrayLike, ArrayLike], cos_i: np.ndarray) -> np.ndarray:
     n, k = (np.atleast_1d(np.asarray(x, dtype=float)) for x in ball_index)
     eta = (n + 1j * k)[None, :]
     c = np.clip(cos_i, 0.0, 1.0)[:, None]
@@ -88,12 +90,12 @@ def _mean_reflectance(ball_index, cos_i: np.ndarray) -> np.ndarray:
 
 
 def fresnel_rim_shift_px(
-    kappa,
+    kappa: ArrayLike,
     sin_beta: float,
-    ball_index,
+    ball_index: tuple[ArrayLike, ArrayLike],
     window_px: tuple[float, float],
     curvature: float = 0.0,
-    line_spread=None,
+    line_spread: tuple[np.ndarray, np.ndarray] | None = None,
     step: float = 0.05,
 ) -> np.ndarray:
     """Outward shift (px) of the flux-balanced edge caused by the Fresnel rim.
@@ -130,28 +132,30 @@ def fresnel_rim_shift_px(
     sharp = np.where(sub[None, :, :] < 0.0, reflectance, 0.0).mean(axis=2)
     blurred = np.stack([np.convolve(row, kernel, mode="same") for row in sharp])
 
-    def profile_at(offsets):
+    def profile_at(offsets: np.ndarray) -> np.ndarray:
         return np.stack([np.interp(o, grid, b) for o, b in zip(offsets, blurred, strict=True)])
 
     shift, *_ = flux_edges(profile_at, kappa.size, x1, x2, step, curvature, iterations=6)
     return shift
 
 
-def _tangent_fit(d: np.ndarray, start: np.ndarray, radius: float):
+def _tangent_fit(d: np.ndarray, start: np.ndarray, radius: float) -> OptimizeResult:
     """Least squares (Levenberg-Marquardt) of the distances from the centre to the rays ``d`` minus R."""
 
-    def residual(c):
+    def residual(c: np.ndarray) -> np.ndarray:
         q = c[None, :] - (d @ c)[:, None] * d
         return np.linalg.norm(q, axis=1) - radius
 
-    def jacobian(c):
+    def jacobian(c: np.ndarray) -> np.ndarray:
         q = c[None, :] - (d @ c)[:, None] * d
         return q / np.linalg.norm(q, axis=1, keepdims=True)
 
     return least_squares(residual, start, jac=jacobian, method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15)
 
 
-def _rim_shift(silhouette: Silhouette, k_inv: np.ndarray, sin_beta: float, ball_index) -> np.ndarray:
+def _rim_shift(
+    silhouette: Silhouette, k_inv: np.ndarray, sin_beta: float, ball_index: tuple[ArrayLike, ArrayLike]
+) -> np.ndarray:
     """The Fresnel rim's outward shift (px) at each edge point of a ball of angular radius ``asin(sin_beta)``:
     :func:`fresnel_rim_shift_px` on a grid of the points' radians per pixel along the normal, interpolated."""
     pts = np.asarray(silhouette.points, dtype=float)
@@ -166,11 +170,11 @@ def _rim_shift(silhouette: Silhouette, k_inv: np.ndarray, sin_beta: float, ball_
 
 def solve_ball_centre(
     silhouette: Silhouette,
-    camera_matrix,
+    camera_matrix: ArrayLike,
     radius_m: float,
     *,
     extrinsics: tuple[np.ndarray, np.ndarray] | None = None,
-    ball_index: tuple | None = None,
+    ball_index: tuple[ArrayLike, ArrayLike] | None = None,
     iterations: int = 3,
 ) -> BallFit:
     """The ball's centre from its silhouette and known radius.
@@ -241,7 +245,7 @@ def solve_ball_centre(
     return fit
 
 
-def calibrate_ball(image, rig: Rig, *, method: str = "ellipse") -> BallFit:
+def calibrate_ball(image: ArrayLike, rig: Rig, *, method: str = "ellipse") -> BallFit:
     """Silhouette and centre in one call, with the rig's intrinsics, extrinsics and ball."""
     silhouette = detect_silhouette(image, method=method)
     fit = solve_ball_centre(
@@ -255,7 +259,7 @@ def calibrate_ball(image, rig: Rig, *, method: str = "ellipse") -> BallFit:
     return fit
 
 
-def compare_with_rig(fit: BallFit, rig: Rig) -> dict:
+def compare_with_rig(fit: BallFit, rig: Rig) -> dict[str, Any]:
     """The measured centre against the rig description's, in millimetres.
 
     Returns ``measured_mm`` and ``described_mm`` (rig frame), ``discrepancy_mm`` (measured

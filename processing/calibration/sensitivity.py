@@ -4,6 +4,7 @@ ball is off where the processing thinks."""
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 
@@ -19,7 +20,7 @@ def _wrapped(angle: np.ndarray) -> np.ndarray:
 
 def angle_sensitivity(
     rig: Rig, light_pose: Pose, shift_m: float = 1e-3, *, plane_radius_m: float | None = None, max_pixels: int = 250_000
-) -> dict:
+) -> dict[str, Any]:
     """How far the recovered outgoing angles move when the ball is ``shift_m`` off.
 
     Chief rays of a grid of pixels on the ball are traced (``processing.trace``) with the
@@ -45,10 +46,10 @@ def angle_sensitivity(
     cols, rows = np.asarray(cols, float).ravel()[on_light], np.asarray(rows, float).ravel()[on_light]
     base_theta, base_phi, base_u, base_v = base.theta[on_light], base.phi[on_light], base.u[on_light], base.v[on_light]
 
-    def direction(theta, phi):
+    def direction(theta: np.ndarray, phi: np.ndarray) -> np.ndarray:
         return np.stack([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi), np.cos(theta)], axis=-1)
 
-    out: dict = {"shift_mm": shift_m * 1e3, "plane_radius_mm": radius * 1e3}
+    out: dict[str, Any] = {"shift_mm": shift_m * 1e3, "plane_radius_mm": radius * 1e3}
     pixels = []
     for i, name in enumerate("xyz"):
         centre = np.asarray(rig.ball.centre_m, dtype=float).copy()

@@ -8,10 +8,12 @@ then edges placed by flux conservation along profiles normal to it (:func:`flux_
 from __future__ import annotations
 
 import math
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
+from numpy.typing import ArrayLike
 from scipy import ndimage
 
 from processing.calibration.errors import CalibrationError
@@ -28,7 +30,7 @@ class Ellipse:
     angle_deg: float
 
     @classmethod
-    def from_cv(cls, box) -> Ellipse:
+    def from_cv(cls, box: tuple[Sequence[float], Sequence[float], float]) -> Ellipse:
         (cx, cy), (w, h), angle = box
         return cls((float(cx), float(cy)), (float(w) / 2.0, float(h) / 2.0), float(angle))
 
@@ -106,7 +108,7 @@ class Silhouette:
 
 
 # --- images ------------------------------------------------------------------------------------
-def mosaic_luminance(mosaic: np.ndarray, black_level=0.0) -> np.ndarray:
+def mosaic_luminance(mosaic: np.ndarray, black_level: ArrayLike = 0.0) -> np.ndarray:
     """A smooth luminance image from a Bayer mosaic, black level removed.
 
     The 3x3 binomial filter ``[1 2 1]ᵀ[1 2 1] / 16`` weighs R, G and B as 1:2:1 at every
@@ -123,7 +125,7 @@ def mosaic_luminance(mosaic: np.ndarray, black_level=0.0) -> np.ndarray:
     return cv2.filter2D(m - black, cv2.CV_64F, kernel, borderType=cv2.BORDER_REFLECT_101)
 
 
-def _as_gray(image) -> np.ndarray:
+def _as_gray(image: ArrayLike) -> np.ndarray:
     a = np.asarray(image)
     if a.ndim == 3:
         if a.shape[-1] in (3, 4):
@@ -152,7 +154,7 @@ def _noise_sigma(image: np.ndarray, mask: np.ndarray) -> float:
 
 
 # --- the silhouette -----------------------------------------------------------------------------
-def _coarse_outline(img: np.ndarray):
+def _coarse_outline(img: np.ndarray) -> tuple[Ellipse, np.ndarray, tuple[float, float]]:
     """Threshold, the largest bright component, its outer contour and ellipse."""
     h, w = img.shape
     lo, hi = np.percentile(img, [1.0, 99.5])
@@ -216,7 +218,7 @@ def _profile_grid(x1: float, x2: float, step: float) -> np.ndarray:
     return np.arange(-n, n + 1) * step
 
 
-def _line_fit(t, values, mask):
+def _line_fit(t: np.ndarray, values: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Least-squares line ``a + b t`` per row over the masked samples; also the RMS residual."""
     w = mask.astype(np.float64)
     n = w.sum(axis=1)
@@ -230,7 +232,15 @@ def _line_fit(t, values, mask):
     return a, b, rms
 
 
-def flux_edges(profile_at, count: int, x1: float, x2: float, step: float, curvature=0.0, iterations: int = 4):
+def flux_edges(
+    profile_at: Callable[[np.ndarray], np.ndarray],
+    count: int,
+    x1: float,
+    x2: float,
+    step: float,
+    curvature: ArrayLike = 0.0,
+    iterations: int = 4,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Flux-balanced edge offsets along ``count`` profiles.
 
     With lines ``a_i + b_i t`` fitted over [-x2, -x1] (inside) and ``a_o + b_o t`` over
@@ -272,7 +282,7 @@ def flux_edges(profile_at, count: int, x1: float, x2: float, step: float, curvat
     kappa = np.broadcast_to(np.asarray(curvature, dtype=float), (count,))
     weights = 1.0 + kappa[:, None] * tm[None, :]
 
-    def primitive(a, b, x):  # ∫ (a + b t)(1 + κ t) dt
+    def primitive(a: np.ndarray, b: np.ndarray, x: float | np.ndarray) -> np.ndarray:  # ∫ (a + b t)(1 + κ t) dt
         return a * x + (b + a * kappa) * x * x / 2.0 + b * kappa * x**3 / 3.0
 
     s0 = np.zeros(count)
@@ -320,7 +330,9 @@ def _edge_windows(img: np.ndarray, ellipse: Ellipse, count: int, step: float) ->
     return blur, x1, x2
 
 
-def _edge_profiles(img: np.ndarray, ellipse: Ellipse, count: int, windows: tuple[float, float], step: float):
+def _edge_profiles(
+    img: np.ndarray, ellipse: Ellipse, count: int, windows: tuple[float, float], step: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
     """Flux-balanced edges along ``count`` profiles normal to ``ellipse``, those whose windows stay in the
     image: the profiles' points, normals and curvature, and what :func:`flux_edges` returns for them."""
     h, w = img.shape
@@ -333,13 +345,15 @@ def _edge_profiles(img: np.ndarray, ellipse: Ellipse, count: int, windows: tuple
     pts, normals = pts[inside_image], normals[inside_image]
     curvature = ellipse.curvature(count)[inside_image]
 
-    def profile_at(offsets):
+    def profile_at(offsets: np.ndarray) -> np.ndarray:
         return _sample(img, pts[:, None, :] + offsets[..., None] * normals[:, None, :])
 
     return pts, normals, curvature, flux_edges(profile_at, len(pts), x1, x2, step, curvature)
 
 
-def _usable_edges(edge, offset, contrast, rms, x1: float, count: int) -> np.ndarray:
+def _usable_edges(
+    edge: np.ndarray, offset: np.ndarray, contrast: np.ndarray, rms: np.ndarray, x1: float, count: int
+) -> np.ndarray:
     """The edge points to keep: the typical contrast, a clean inner level, an edge near the outline it was
     sought from, and no outlier from the ellipse fitted to those."""
     typical = np.median(contrast)
@@ -358,7 +372,14 @@ def _usable_edges(edge, offset, contrast, rms, x1: float, count: int) -> np.ndar
     return good & (np.abs(dev) < max(5.0 * mad, 0.25))
 
 
-def _line_spread(img, points, normals, levels, x2: float, step: float) -> tuple[np.ndarray, np.ndarray]:
+def _line_spread(
+    img: np.ndarray,
+    points: np.ndarray,
+    normals: np.ndarray,
+    levels: tuple[np.ndarray, np.ndarray],
+    x2: float,
+    step: float,
+) -> tuple[np.ndarray, np.ndarray]:
     """The camera's line spread across the edge, ``(offsets, weights)``: the derivative of the median edge
     profile normalised by each point's ``levels = (outside, inside)``, symmetrised (the camera's blur is
     symmetric; the Fresnel rim adds an odd part)."""
@@ -373,7 +394,7 @@ def _line_spread(img, points, normals, levels, x2: float, step: float) -> tuple[
     return t, lsf
 
 
-def detect_silhouette(image, *, method: str = "ellipse", profiles: int | None = None) -> Silhouette:
+def detect_silhouette(image: ArrayLike, *, method: str = "ellipse", profiles: int | None = None) -> Silhouette:
     """Find the mirrored ball's outline in a calibration image, with sub-pixel precision.
 
     Parameters
