@@ -40,12 +40,14 @@ import datetime as _dt
 import math
 import os
 import struct
+from collections.abc import Iterable
 from pathlib import Path
+from typing import Any, BinaryIO
 
 import numpy as np
 
 from drivers.contracts.version import __version__
-from processing.lightmodel import LightModel
+from processing.lightmodel import LightModel, SourceModel
 
 __all__ = [
     "ExportError",
@@ -90,7 +92,7 @@ def _num(x: float, digits: int = 6) -> str:
     return np.format_float_positional(x, precision=digits, unique=False, fractional=False, trim="-")
 
 
-def _grid(path, name: str, step: float, stop: float) -> np.ndarray:
+def _grid(path: Path, name: str, step: float, stop: float) -> np.ndarray:
     if not (step > 0 and math.isfinite(step)):
         raise ExportError(f"{path}: {name}: must be a positive number of degrees, got {step!r}")
     n = stop / step
@@ -99,14 +101,16 @@ def _grid(path, name: str, step: float, stop: float) -> np.ndarray:
     return np.linspace(0.0, stop, int(round(n)) + 1)
 
 
-def _far_field_table(model: LightModel, gamma_deg, c_deg) -> np.ndarray:
+def _far_field_table(model: LightModel, gamma_deg: np.ndarray, c_deg: np.ndarray) -> np.ndarray:
     """``Σ_s I_s`` on a (C, γ) grid, shape ``(len(c), len(gamma))``, in model units."""
     theta = np.radians(np.asarray(gamma_deg, dtype=float))[None, :]
     phi = np.radians(np.mod(-np.asarray(c_deg, dtype=float), 360.0))[:, None]
     return model.far_field(theta, phi)
 
 
-def _scaling(path, model: LightModel, table: np.ndarray, calibration, lamp_lumens):
+def _scaling(
+    path: Path, model: LightModel, table: np.ndarray, calibration: float | None, lamp_lumens: float | None
+) -> tuple[float, float, bool]:
     """``(factor, lamp_flux, absolute)``: what multiplies the model's intensities, and the lamp flux."""
     if calibration is not None and lamp_lumens is not None:
         raise ExportError(
@@ -154,7 +158,7 @@ def _write_text(path: Path, lines: list[str], newline: str) -> Path:
     return path
 
 
-def _wrap_numbers(values, per_line: int = 10) -> list[str]:
+def _wrap_numbers(values: Iterable[str], per_line: int = 10) -> list[str]:
     values = list(values)
     return [" ".join(values[i : i + per_line]) for i in range(0, len(values), per_line)] or [""]
 
@@ -186,7 +190,9 @@ def _describe(model: LightModel) -> tuple[str, str, str]:
     return run, rig, ", ".join(methods)
 
 
-def _ies_angles(path, vertical_step_deg, vertical_max_deg, horizontal_step_deg) -> tuple[np.ndarray, np.ndarray]:
+def _ies_angles(
+    path: Path, vertical_step_deg: float, vertical_max_deg: float, horizontal_step_deg: float
+) -> tuple[np.ndarray, np.ndarray]:
     """The vertical angles γ (to 90° or 180°, type C) and the horizontal angles C (to 360°), degrees."""
     if vertical_max_deg not in (90, 180):
         raise ExportError(f"{path}: vertical_max_deg: must be 90 or 180 (type C), got {vertical_max_deg!r}")
@@ -194,7 +200,7 @@ def _ies_angles(path, vertical_step_deg, vertical_max_deg, horizontal_step_deg) 
     return gamma, _grid(path, "horizontal_step_deg", horizontal_step_deg, 360.0)
 
 
-def _ies_file_generation_type(path, token: str | None, lamp_lumens) -> str:
+def _ies_file_generation_type(path: Path, token: str | None, lamp_lumens: float | None) -> str:
     """The LM-63-2019 Table 2 token: the one given, else a test with an interpolated angle set (lumen scaled)."""
     if token is None:
         token = "1.01100" if lamp_lumens is not None else "1.01000"
@@ -206,7 +212,9 @@ def _ies_file_generation_type(path, token: str | None, lamp_lumens) -> str:
     return token
 
 
-def _ies_units(model: LightModel, absolute: bool, calibration, lamp_lumens) -> tuple[str, str]:
+def _ies_units(
+    model: LightModel, absolute: bool, calibration: float | None, lamp_lumens: float | None
+) -> tuple[str, str]:
     """``([_UNITS], [OTHER])``: what the intensities are, in a word and in a sentence."""
     if absolute:
         return "candela", (
@@ -247,7 +255,15 @@ def _ies_keywords(model: LightModel, given: dict, manufacturer: str, grid: str, 
     return lines + _keyword("_SOFTWARE", f"mirrorgonio {__version__}")
 
 
-def _ies_photometry(model: LightModel, gamma, c, intensities, lumens: str, file_generation_type: str, input_watts):
+def _ies_photometry(
+    model: LightModel,
+    gamma: np.ndarray,
+    c: np.ndarray,
+    intensities: np.ndarray,
+    lumens: str,
+    file_generation_type: str,
+    input_watts: float,
+) -> list[str]:
     """``TILT=NONE``, the lamp and ballast lines, the angles, then the intensities one C plane after another."""
     length, width = _opening(model)
     lines = ["TILT=NONE", f"1 {lumens} 1 {len(gamma)} {len(c)} 1 2 {_num(width)} {_num(length)} 0"]
@@ -261,7 +277,7 @@ def _ies_photometry(model: LightModel, gamma, c, intensities, lumens: str, file_
 
 def write_ies(
     model: LightModel,
-    path,
+    path: str | os.PathLike[str],
     *,
     calibration: float | None = None,
     lamp_lumens: float | None = None,
@@ -342,15 +358,14 @@ def _ldt_description(model: LightModel, file_name: str, absolute: bool, grid: tu
     """EULUMDAT lines 1-12: the company and the units, the type and symmetry indicators, the angle grid
     ``(Mc, Dc, Ng, Dg)``, the report, the luminaire's name and number, the file name and the date.
 
-    ``names`` is ``(company, luminaire, luminaire_number)``, the arguments of :func:`write_ldt`.
-    """
+    ``names`` is ``(company, luminaire, luminaire_number)``, the arguments of :func:`write_ldt`."""
     company, luminaire, luminaire_number = names
     n_c, c_step_deg, n_gamma, gamma_step_deg = grid
     symmetric = all(s.fit.method != "gaussian-2d" for s in model.sources)
     run, rig, methods = _describe(model)
     units = "candela (calibrated)" if absolute else f"relative ({model.units}, uncalibrated)"
 
-    def line(text, limit):
+    def line(text: str, limit: int) -> str:
         return _ascii(text)[:limit]
 
     return [
@@ -383,7 +398,7 @@ def _ldt_luminaire_and_lamps(model: LightModel, absolute: bool, lamp_flux: float
 
 def write_ldt(
     model: LightModel,
-    path,
+    path: str | os.PathLike[str],
     *,
     calibration: float | None = None,
     lamp_lumens: float | None = None,
@@ -418,13 +433,12 @@ def write_ldt(
 
     Notes
     -----
-    Every C-plane is stored (Isym 0): readers differ on how many C angles a file with
-    Isym 1 lists, and a full table reads the same everywhere. The type indicator says
-    whether the far field is rotationally symmetric (Ityp 1: every source has a 1-D fit)
-    or not (Ityp 3). The downward flux fraction and the light
-    output ratio are 100 % (everything leaves the front of the plane, the model is the
-    light itself); the direct ratios (utilisation factors for standard rooms) are not
-    computed and are written as zero.
+    Every C-plane is stored (Isym 0): readers differ on how many C angles a file with Isym 1
+    lists, and a full table reads the same everywhere. The type indicator says whether the
+    far field is rotationally symmetric (Ityp 1: every source has a 1-D fit) or not
+    (Ityp 3). The downward flux fraction and the light output ratio are 100 % (everything
+    leaves the front of the plane, the model is the light itself); the direct ratios
+    (utilisation factors for standard rooms) are not computed and are written as zero.
     """
     path = Path(path)
     c_all = _grid(path, "c_step_deg", c_step_deg, 360.0)[:-1]
@@ -443,7 +457,6 @@ def write_ldt(
 
 
 # --------------------------------------------------------------------------- TM-25-13
-
 _FLAG_COLUMNS = {
     "position": ("x", "y", "z"),
     "direction": ("kx", "ky", "kz"),
@@ -484,14 +497,14 @@ def _from_utf32(raw: bytes) -> str:
     return text.split("\0", 1)[0]
 
 
-def _sample_directions(source, n: int, rng: np.random.Generator, n_theta: int = 2048, n_phi: int = 256):
+def _sample_directions(
+    source: SourceModel, n: int, rng: np.random.Generator, n_theta: int = 2048, n_phi: int = 256
+) -> np.ndarray:
     """``n`` unit vectors drawn with density ∝ ``I_s(θ, φ)`` over the hemisphere.
 
-    The intensity is tabulated on cells of equal Δθ (and Δφ for 2-D fits); a cell is drawn
-    with probability ∝ its flux ``I(θ_mid, φ_mid)·Δcosθ·Δφ``, then a direction uniformly in
-    solid angle within it (uniform in cos θ and φ): the exact sampling of the piecewise-constant
-    intensity.
-    """
+    The intensity is tabulated on cells of equal Δθ (and Δφ for 2-D fits); a cell is drawn with probability ∝ its
+    flux ``I(θ_mid, φ_mid)·Δcosθ·Δφ``, then a direction uniformly in solid angle within it (uniform in cos θ and φ):
+    the exact sampling of the piecewise-constant intensity."""
     edges = np.linspace(0.0, 0.5 * math.pi, n_theta + 1)
     mids = 0.5 * (edges[:-1] + edges[1:])
     dcos = np.cos(edges[:-1]) - np.cos(edges[1:])
@@ -524,7 +537,7 @@ def _allocate(fluxes: np.ndarray, n_rays: int) -> np.ndarray:
     return counts
 
 
-def _emitting_fluxes(path, model: LightModel, n_rays) -> np.ndarray:
+def _emitting_fluxes(path: Path, model: LightModel, n_rays: int) -> np.ndarray:
     """The sources' fluxes ``∫ I_s dΩ``, for a light that emits and has a ray for each emitting source."""
     fluxes = np.array([s.flux() for s in model.sources])
     if not np.all(np.isfinite(fluxes)) or not fluxes.sum() > 0:
@@ -592,7 +605,7 @@ def _tm25_header_and_flags(creation_method: int, radiant_flux: float, n_rays: in
 
 def write_tm25(
     model: LightModel,
-    path,
+    path: str | os.PathLike[str],
     n_rays: int,
     *,
     seed: int,
@@ -657,7 +670,7 @@ def write_tm25(
     return path
 
 
-def _read_tm25_flags(path, head: bytes) -> dict[str, bool]:
+def _read_tm25_flags(path: Path, head: bytes) -> dict[str, bool]:
     """The eight column flags (4.7.2) by name; position, direction and a flux must be there."""
     flag_values = struct.unpack_from("<8i", head, 256)
     flags = {}
@@ -672,7 +685,7 @@ def _read_tm25_flags(path, head: bytes) -> dict[str, bool]:
     return flags
 
 
-def _read_tm25_header(path, head: bytes) -> tuple[dict, tuple[int, int, int]]:
+def _read_tm25_header(path: Path, head: bytes) -> tuple[dict[str, Any], tuple[int, int, int]]:
     """The header (4.7.1), the column flags and the text fields (4.7.3) from the file's first bytes, checked;
     also the counts of what follows them: spectral tables, additional columns, bytes of additional text."""
     if len(head) < _SPECTRA_START:
@@ -713,7 +726,7 @@ def _read_tm25_header(path, head: bytes) -> tuple[dict, tuple[int, int, int]]:
     return header, (n_spectra, n_addtl, addtl_text)
 
 
-def _read_tm25_spectra(path, f, n_spectra: int) -> list[dict[str, np.ndarray]]:
+def _read_tm25_spectra(path: Path, f: BinaryIO, n_spectra: int) -> list[dict[str, np.ndarray]]:
     """The spectral tables (wavelength, weight pairs) and their zero padding to a multiple of 32 bytes."""
     spectra, nbytes = [], 0
     for i in range(n_spectra):
@@ -732,7 +745,7 @@ def _read_tm25_spectra(path, f, n_spectra: int) -> list[dict[str, np.ndarray]]:
     return spectra
 
 
-def read_tm25(path) -> tuple[dict, np.ndarray]:
+def read_tm25(path: str | os.PathLike[str]) -> tuple[dict[str, Any], np.ndarray]:
     """Read an IES TM-25-13 binary ray file.
 
     Parameters
