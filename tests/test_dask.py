@@ -132,7 +132,7 @@ def _results(folder: Path, stem: str) -> dict:
     with h5py.File(folder / f"{stem}.results.h5", "r") as f:
         arrays = {name: f["hdr"][name][()] for name in ("radiance", "variance", "count", "saturated", "done")}
     model = json.loads((folder / f"{stem}.light.json").read_text())
-    from processing.exports import read_tm25
+    from processing.exports.tm25 import read_tm25
 
     _, rays = read_tm25(folder / f"{stem}.tm25ray")  # its header has the time it was written
     return {"arrays": arrays, "model": model, "ies": (folder / f"{stem}.ies").read_text(), "rays": np.asarray(rays)}

@@ -13,15 +13,10 @@ import numpy as np
 import pytest
 from scipy.integrate import trapezoid
 
-from processing.exports import (
-    FILE_GENERATION_TYPES,
-    ExportError,
-    TM25Error,
-    read_tm25,
-    write_ies,
-    write_ldt,
-    write_tm25,
-)
+from processing.exports.far_field import ExportError
+from processing.exports.ies import FILE_GENERATION_TYPES, write_ies
+from processing.exports.ldt import write_ldt
+from processing.exports.tm25 import TM25Error, read_tm25, write_tm25
 from processing.fit import Samples, fit_intensity
 from processing.lightmodel import LightModel, SourceModel, samples_table
 

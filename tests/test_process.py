@@ -128,7 +128,7 @@ def test_a_run_without_any_complete_position_is_refused(simulated_run, tmp_path)
 
 
 def test_process_with_a_layout_writes_the_light_model_and_the_light_files(simulated_run, tmp_path):
-    from processing.exports import read_tm25
+    from processing.exports.tm25 import read_tm25
     from processing.lightmodel import LightModel
     from sim_devices.lights import LIGHTS_DIR
 

@@ -9,7 +9,9 @@ from pathlib import Path
 
 import numpy as np
 
-from processing.exports import write_ies, write_ldt, write_tm25
+from processing.exports.ies import write_ies
+from processing.exports.ldt import write_ldt
+from processing.exports.tm25 import write_tm25
 from processing.light_run.errors import open_run
 from processing.light_run.light_fit import fit_light_model
 from processing.light_run.position import SourceRow, SourcesPlan

@@ -1,0 +1,122 @@
+"""What the far-field files (IES, EULUMDAT) share: the far field's table and its scaling, the numbers and the text."""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Iterable
+from pathlib import Path
+
+import numpy as np
+
+from processing.lightmodel import LightModel
+
+
+class ExportError(ValueError):
+    """An export that cannot be written (one line naming the file and the field)."""
+
+
+def plain_number(x: float, digits: int = 6) -> str:
+    """A number in plain positional notation (no exponent), ``digits`` significant digits."""
+    x = float(x)
+    if x == 0 or not math.isfinite(x):
+        return "0"
+    return np.format_float_positional(x, precision=digits, unique=False, fractional=False, trim="-")
+
+
+def angle_grid(path: Path, name: str, step: float, stop: float) -> np.ndarray:
+    if not (step > 0 and math.isfinite(step)):
+        raise ExportError(f"{path}: {name}: must be a positive number of degrees, got {step!r}")
+    n = stop / step
+    if abs(n - round(n)) > 1e-9:
+        raise ExportError(f"{path}: {name}: {step:g}° does not divide {stop:g}°")
+    return np.linspace(0.0, stop, int(round(n)) + 1)
+
+
+def far_field_table(model: LightModel, gamma_deg: np.ndarray, c_deg: np.ndarray) -> np.ndarray:
+    """``Σ_s I_s`` on a (C, γ) grid, shape ``(len(c), len(gamma))``, in model units."""
+    theta = np.radians(np.asarray(gamma_deg, dtype=float))[None, :]
+    phi = np.radians(np.mod(-np.asarray(c_deg, dtype=float), 360.0))[:, None]
+    return model.far_field(theta, phi)
+
+
+def far_field_scaling(
+    path: Path, model: LightModel, table: np.ndarray, calibration: float | None, lamp_lumens: float | None
+) -> tuple[float, float, bool]:
+    """``(factor, lamp_flux, absolute)``: what multiplies the model's intensities, and the lamp flux."""
+    if calibration is not None and lamp_lumens is not None:
+        raise ExportError(
+            f"{path}: give calibration (absolute candela) or lamp_lumens (relative, lumen scaled), not both"
+        )
+    flux = model.total_flux()
+    if not (flux > 0) or not np.any(table > 0):
+        raise ExportError(f"{path}: the light model emits no flux in front of its plane")
+    if calibration is not None:
+        calibration = float(calibration)
+        if not (calibration > 0 and math.isfinite(calibration)):
+            raise ExportError(
+                f"{path}: calibration: must be a positive factor (cd per model unit), got {calibration!r}"
+            )
+        return calibration, calibration * flux, True
+    if lamp_lumens is not None:
+        lamp_lumens = float(lamp_lumens)
+        if not (lamp_lumens > 0 and math.isfinite(lamp_lumens)):
+            raise ExportError(f"{path}: lamp_lumens: must be a positive number of lumens, got {lamp_lumens!r}")
+        return lamp_lumens / flux, lamp_lumens, False
+    factor = 1000.0 / float(np.max(table))
+    return factor, factor * flux, False
+
+
+def luminous_opening(model: LightModel) -> tuple[float, float]:
+    """``(length along light x, width along light y)`` of the sources' discs, metres."""
+    u = np.array([s.centre_m[0] for s in model.sources])
+    v = np.array([s.centre_m[1] for s in model.sources])
+    r = np.array([s.radius_m for s in model.sources])
+    return float(np.max(u + r) - np.min(u - r)), float(np.max(v + r) - np.min(v - r))
+
+
+def theta_cover(model: LightModel) -> tuple[float, float]:
+    lo = min(s.fit.theta_range[0] for s in model.sources)
+    hi = max(s.fit.theta_range[1] for s in model.sources)
+    return math.degrees(lo), math.degrees(hi)
+
+
+def write_text(path: Path, lines: list[str], newline: str) -> Path:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "w", encoding="ascii", errors="replace", newline="") as f:
+        f.write(newline.join(lines) + newline)
+    os.replace(tmp, path)
+    return path
+
+
+def wrap_numbers(values: Iterable[str], per_line: int = 10) -> list[str]:
+    values = list(values)
+    return [" ".join(values[i : i + per_line]) for i in range(0, len(values), per_line)] or [""]
+
+
+def ascii_only(text: str) -> str:
+    return "".join(c if 32 <= ord(c) < 127 else "?" for c in str(text))
+
+
+def keyword_lines(name: str, text: str, width: int = 132) -> list[str]:
+    """``[NAME] text``, continued on ``[MORE]`` lines so that no line passes ``width`` characters."""
+    text = " ".join(ascii_only(text).split())
+    head, lines = f"[{name}] ", []
+    while True:
+        room = width - len(head)
+        if len(text) <= room:
+            lines.append((head + text).rstrip())
+            return lines
+        cut = text.rfind(" ", 0, room)
+        cut = room if cut <= 0 else cut
+        lines.append(head + text[:cut].rstrip())
+        text, head = text[cut:].lstrip(), "[MORE] "
+
+
+def describe_light(model: LightModel) -> tuple[str, str, str]:
+    prov = model.provenance
+    run = str(prov.get("run_id") or "unknown run")
+    rig = str(prov.get("rig") or "unknown rig")
+    methods = sorted({s.fit.method for s in model.sources})
+    return run, rig, ", ".join(methods)

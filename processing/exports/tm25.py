@@ -1,0 +1,369 @@
+"""IES TM-25-13 binary ray files: the near field, rays leaving each source's emitting disc."""
+
+from __future__ import annotations
+
+import datetime as _dt
+import math
+import os
+import struct
+from pathlib import Path
+from typing import Any, BinaryIO
+
+import numpy as np
+
+from drivers.contracts.version import __version__
+from processing.exports.far_field import ExportError
+from processing.lightmodel import LightModel, SourceModel
+
+
+class TM25Error(ExportError):
+    """An unreadable or malformed TM-25 ray file (one line naming the file and the field)."""
+
+
+_FLAG_COLUMNS = {
+    "position": ("x", "y", "z"),
+    "direction": ("kx", "ky", "kz"),
+    "radiant_flux": ("phi",),
+    "wavelength": ("lambda",),
+    "luminous_flux": ("Tri_Y",),
+    "stokes": ("S1", "S2", "S3", "PolEllipseX", "PolEllipseY", "PolEllipseZ"),
+    "tristimulus": ("Tri_X", "Tri_Z"),
+    "spectrum_index": ("spectrumIdx",),
+}
+
+
+_FLAG_NAMES = tuple(_FLAG_COLUMNS)
+
+
+TM25_COLUMNS = tuple(column for columns in _FLAG_COLUMNS.values() for column in columns)
+
+
+_TEXT_FIELDS = (
+    "name",
+    "manufacturer",
+    "model_creator",
+    "rayfile_creator",
+    "equipment",
+    "camera",
+    "light_source_operation",
+    "additional_info",
+    "data_reference",
+)
+
+
+_HEADER = struct.Struct("<4siiffQ28siifffiii168x")  # 4.7.1, 256 bytes
+_TEXT_START, _TEXT_BYTES, _SPECTRA_START = 288, 4000, 36288
+assert _HEADER.size == 256
+
+
+def _utf32(text: str, nbytes: int) -> bytes:
+    raw = str(text).encode("utf-32-le")[: nbytes - 4]  # keep a terminating zero
+    return raw + b"\0" * (nbytes - len(raw))
+
+
+def _from_utf32(raw: bytes) -> str:
+    text = raw.decode("utf-32-le", errors="replace")
+    return text.split("\0", 1)[0]
+
+
+def _sample_directions(
+    source: SourceModel, n: int, rng: np.random.Generator, n_theta: int = 2048, n_phi: int = 256
+) -> np.ndarray:
+    """``n`` unit vectors drawn with density ∝ ``I_s(θ, φ)`` over the hemisphere.
+
+    The intensity is tabulated on cells of equal Δθ (and Δφ for 2-D fits); a cell is drawn with probability ∝ its
+    flux ``I(θ_mid, φ_mid)·Δcosθ·Δφ``, then a direction uniformly in solid angle within it (uniform in cos θ and φ):
+    the exact sampling of the piecewise-constant intensity."""
+    edges = np.linspace(0.0, 0.5 * math.pi, n_theta + 1)
+    mids = 0.5 * (edges[:-1] + edges[1:])
+    dcos = np.cos(edges[:-1]) - np.cos(edges[1:])
+    n_p = n_phi if source.fit.method == "gaussian-2d" else 1
+    phi_edges = np.linspace(0.0, 2.0 * math.pi, n_p + 1)
+    phi_mids = 0.5 * (phi_edges[:-1] + phi_edges[1:])
+    weight = source.intensity(mids[:, None], phi_mids[None, :]) * dcos[:, None]
+    cdf = np.cumsum(weight.ravel())
+    if not cdf[-1] > 0:
+        raise ExportError(f"source {source.name!r}: emits nothing to sample")
+    cell = np.minimum(np.searchsorted(cdf, rng.random(n) * cdf[-1], side="right"), cdf.size - 1)
+    i, j = np.divmod(cell, n_p)
+    cos_t = np.cos(edges[i]) - rng.random(n) * dcos[i]
+    phi = phi_edges[j] + rng.random(n) * (phi_edges[j + 1] - phi_edges[j])
+    sin_t = np.sqrt(np.maximum(0.0, 1.0 - cos_t**2))
+    return np.column_stack([sin_t * np.cos(phi), sin_t * np.sin(phi), cos_t])
+
+
+def _allocate(fluxes: np.ndarray, n_rays: int) -> np.ndarray:
+    """Rays per source ∝ flux (largest remainder), at least one for every emitting source."""
+    emitting = fluxes > 0
+    counts = np.zeros(len(fluxes), dtype=np.int64)
+    counts[emitting] = 1
+    rest = n_rays - int(counts.sum())
+    share = fluxes / fluxes.sum() * rest
+    counts += np.floor(share).astype(np.int64)
+    remainder = n_rays - int(counts.sum())
+    order = np.argsort(-(share - np.floor(share)), kind="stable")
+    counts[order[:remainder]] += 1
+    return counts
+
+
+def _emitting_fluxes(path: Path, model: LightModel, n_rays: int) -> np.ndarray:
+    """The sources' fluxes ``∫ I_s dΩ``, for a light that emits and has a ray for each emitting source."""
+    fluxes = np.array([s.flux() for s in model.sources])
+    if not np.all(np.isfinite(fluxes)) or not fluxes.sum() > 0:
+        raise ExportError(f"{path}: the light model emits no flux in front of its plane")
+    if n_rays < int(np.count_nonzero(fluxes > 0)):
+        raise ExportError(
+            f"{path}: n_rays: {n_rays} is fewer than the {int(np.count_nonzero(fluxes > 0))} emitting sources"
+        )
+    return fluxes
+
+
+def _sample_rays(model: LightModel, fluxes: np.ndarray, n_rays: int, rng: np.random.Generator) -> np.ndarray:
+    """``(n_rays, 7)`` rays ``x y z kx ky kz phi``, source after source: a share of the rays ∝ the source's
+    flux, starting uniformly on its disc (mm, z = 0), directions drawn from its intensity, each carrying
+    ``Φ_s / n_s``."""
+    counts = _allocate(fluxes, n_rays)
+    rays = np.empty((n_rays, 7), dtype=np.float64)
+    row = 0
+    for s, flux, k in zip(model.sources, fluxes, counts, strict=True):
+        if k == 0:
+            continue
+        r = s.radius_m * np.sqrt(rng.random(k))
+        a = rng.random(k) * 2.0 * math.pi
+        rays[row : row + k, 0] = 1000.0 * (s.centre_m[0] + r * np.cos(a))
+        rays[row : row + k, 1] = 1000.0 * (s.centre_m[1] + r * np.sin(a))
+        rays[row : row + k, 2] = 0.0
+        rays[row : row + k, 3:6] = _sample_directions(s, int(k), rng)
+        rays[row : row + k, 6] = flux / k
+        row += k
+    return rays
+
+
+def _tm25_texts(model: LightModel, name: str | None, manufacturer: str, seed: int) -> dict[str, str]:
+    """The nine text fields (4.7.3) by name: the light, who made the model and the file, and how."""
+    prov = model.provenance
+    run = str(prov.get("run_id") or "unknown run")
+    unit_note = "W (radiant flux)" if model.units == "W/sr" else "relative units (uncalibrated measurement)"
+    return {
+        "name": name or f"light of mirrorgonio run {run}",
+        "manufacturer": manufacturer,
+        "model_creator": f"mirrorgonio {__version__} ({prov.get('method', 'unknown method')})",
+        "rayfile_creator": f"mirrorgonio {__version__}",
+        "equipment": f"mirror-ball goniophotometer, rig {prov.get('rig') or 'unknown'}",
+        "camera": str(prov.get("camera") or ""),
+        "light_source_operation": str(prov.get("operation") or ""),
+        "additional_info": (
+            f"Rays sampled (seed {seed}) from a near-field model of {len(model.sources)} point sources "
+            f"on emitting discs; ray flux column phi in {unit_note}; positions in mm in the light "
+            f"frame (emission towards +z)."
+        ),
+        "data_reference": f"run {run}, file {prov.get('run_file') or 'unknown'}",
+    }
+
+
+def _tm25_header_and_flags(creation_method: int, radiant_flux: float, n_rays: int) -> bytes:
+    """The header (4.7.1) with the current date and time, no luminous flux (NaN) and no spectrum, then the column
+    flags (4.7.2): position, direction and radiant flux."""
+    now = _dt.datetime.now(_dt.UTC).replace(microsecond=0).isoformat().encode("ascii")[:28]
+    nan = float("nan")
+    # File type, version, creation method, luminous and radiant flux, rays, date and time, start position,
+    # spectrum type, wavelength and its range, spectral tables, additional columns, additional text (bytes).
+    header = _HEADER.pack(b"TM25", 2013, creation_method, nan, radiant_flux, n_rays, now, 0, 0, nan, nan, nan, 0, 0, 0)
+    return header + struct.pack("<8i", 1, 1, 1, 0, 0, 0, 0, 0)
+
+
+def write_tm25(
+    model: LightModel,
+    path: str | os.PathLike[str],
+    n_rays: int,
+    *,
+    seed: int,
+    name: str | None = None,
+    manufacturer: str = "unknown",
+    creation_method: int = 1,
+) -> Path:
+    """Write the light's near field as an IES TM-25-13 binary ray file.
+
+    Rays are sampled from the near-field model: each source gets a share of ``n_rays``
+    proportional to its flux ``∫ I_s dΩ``; a ray starts uniformly on the source's emitting
+    disc (radius ``radius_m`` about ``(u_s, v_s, 0)``), leaves in a direction drawn with
+    density ∝ ``I_s(θ, φ)``, and carries the flux ``Φ_s / n_s`` so that the rays add up to
+    the model's total flux.
+
+    Parameters
+    ----------
+    model : LightModel
+        The light.
+    path : path-like
+        The ``.tm25ray`` file to write.
+    n_rays : int
+        Number of rays (at least the number of emitting sources).
+    seed : int
+        Seed of the random generator: the same seed writes the same file.
+    name, manufacturer : str, optional
+        Text fields 4.7.3.1 and 4.7.3.2.
+    creation_method : int
+        4.7.1.3: 1 measurement (default: the model is measured), 0 simulation.
+
+    Returns
+    -------
+    Path
+        The file written.
+
+    Notes
+    -----
+    Positions are millimetres in the light frame (the plane at z = 0, emission towards +z);
+    the flux column is radiant flux (``phi``, flag 4.7.2.3) in the model's units × sr: W
+    when the model is W/sr, relative otherwise (text field 4.7.3.8 says which). The header's
+    luminous flux is NaN (not given), the spectrum type 0 (none).
+    """
+    path = Path(path)
+    if isinstance(n_rays, bool) or not isinstance(n_rays, (int, np.integer)) or n_rays < 1:
+        raise ExportError(f"{path}: n_rays: must be a positive integer, got {n_rays!r}")
+    if creation_method not in (0, 1):
+        raise ExportError(
+            f"{path}: creation_method: must be 0 (simulation) or 1 (measurement), got {creation_method!r}"
+        )
+    fluxes = _emitting_fluxes(path, model, n_rays)
+    rays32 = _sample_rays(model, fluxes, int(n_rays), np.random.default_rng(seed)).astype("<f4")
+    total = float(np.sum(rays32[:, 6], dtype=np.float64))
+    texts = _tm25_texts(model, name, manufacturer, seed)
+    head = _tm25_header_and_flags(int(creation_method), total, int(n_rays))
+    text = b"".join(_utf32(texts[k], _TEXT_BYTES) for k in _TEXT_FIELDS)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "wb") as f:
+        f.write(head + text)  # no spectral tables, column labels or additional text
+        f.write(rays32.tobytes())
+    os.replace(tmp, path)
+    return path
+
+
+def _read_tm25_flags(path: Path, head: bytes) -> dict[str, bool]:
+    """The eight column flags (4.7.2) by name; position, direction and a flux must be there."""
+    flag_values = struct.unpack_from("<8i", head, 256)
+    flags = {}
+    for name, value in zip(_FLAG_NAMES, flag_values, strict=True):
+        if value not in (0, 1):
+            raise TM25Error(f"{path}: {name} flag: {value}, must be 0 or 1")
+        flags[name] = bool(value)
+    if not (flags["position"] and flags["direction"]):
+        raise TM25Error(f"{path}: position and direction flags must be 1, are {flag_values[0]} and {flag_values[1]}")
+    if not (flags["radiant_flux"] or flags["luminous_flux"]):
+        raise TM25Error(f"{path}: neither the radiant nor the luminous flux flag is set")
+    return flags
+
+
+def _read_tm25_header(path: Path, head: bytes) -> tuple[dict[str, Any], tuple[int, int, int]]:
+    """The header (4.7.1), the column flags and the text fields (4.7.3) from the file's first bytes, checked;
+    also the counts of what follows them: spectral tables, additional columns, bytes of additional text."""
+    if len(head) < _SPECTRA_START:
+        raise TM25Error(f"{path}: {len(head)} bytes, shorter than a TM-25 header ({_SPECTRA_START} bytes)")
+    magic, version, method, lum, rad, n_rays, date, start, spectrum, lam, lam_min, lam_max, *counts = (
+        _HEADER.unpack_from(head, 0)
+    )
+    if magic != b"TM25":
+        raise TM25Error(f"{path}: not a TM-25 ray file (file type {magic!r}, expected b'TM25')")
+    if version != 2013:
+        raise TM25Error(f"{path}: file version: {version}, this reader knows TM-25-13 (2013)")
+    flags = _read_tm25_flags(path, head)
+    n_spectra, n_addtl, addtl_text = counts
+    if n_spectra < 0 or n_addtl < 0 or addtl_text < 0 or addtl_text % 4:
+        raise TM25Error(
+            f"{path}: header: negative counts or a text size that is not whole characters "
+            f"(spectra {n_spectra}, items {n_addtl}, text {addtl_text} bytes)"
+        )
+    header = {
+        "format": "TM25",
+        "version": version,
+        "creation_method": method,
+        "luminous_flux": lum,
+        "radiant_flux": rad,
+        "n_rays": n_rays,
+        "date_time": date.split(b"\0", 1)[0].decode("ascii", errors="replace"),
+        "start_position": start,
+        "spectrum_type": spectrum,
+        "wavelength": lam,
+        "wavelength_min": lam_min,
+        "wavelength_max": lam_max,
+        "flags": flags,
+        "texts": {
+            k: _from_utf32(head[_TEXT_START + i * _TEXT_BYTES : _TEXT_START + (i + 1) * _TEXT_BYTES])
+            for i, k in enumerate(_TEXT_FIELDS)
+        },
+    }
+    return header, (n_spectra, n_addtl, addtl_text)
+
+
+def _read_tm25_spectra(path: Path, f: BinaryIO, n_spectra: int) -> list[dict[str, np.ndarray]]:
+    """The spectral tables (wavelength, weight pairs) and their zero padding to a multiple of 32 bytes."""
+    spectra, nbytes = [], 0
+    for i in range(n_spectra):
+        raw = f.read(4)
+        if len(raw) < 4:
+            raise TM25Error(f"{path}: spectral table {i + 1}: file ends in it")
+        (m,) = struct.unpack("<i", raw)
+        if m <= 0:
+            raise TM25Error(f"{path}: spectral table {i + 1}: {m} entries")
+        pairs = np.frombuffer(f.read(8 * m), dtype="<f4")
+        if pairs.size < 2 * m:
+            raise TM25Error(f"{path}: spectral table {i + 1}: file ends in it")
+        spectra.append({"wavelength": pairs[0::2].copy(), "weight": pairs[1::2].copy()})
+        nbytes += 4 + 8 * m
+    f.read((-nbytes) % 32)
+    return spectra
+
+
+def read_tm25(path: str | os.PathLike[str]) -> tuple[dict[str, Any], np.ndarray]:
+    """Read an IES TM-25-13 binary ray file.
+
+    Parameters
+    ----------
+    path : path-like
+        The ray file.
+
+    Returns
+    -------
+    header : dict
+        ``version``, ``creation_method`` (0 simulation, 1 measurement),
+        ``luminous_flux`` (lm, NaN if not given), ``radiant_flux`` (W, NaN if not given),
+        ``n_rays``, ``date_time``, ``start_position``, ``spectrum_type``, ``wavelength``,
+        ``wavelength_min``, ``wavelength_max``, ``flags`` (the eight column flags by name),
+        ``texts`` (the nine description fields by name), ``spectra`` (list of
+        ``{"wavelength", "weight"}`` arrays), ``additional_columns``, ``additional_text``,
+        ``columns`` (names of the ray array's columns, see :data:`TM25_COLUMNS`) and
+        ``ray_offset`` (byte where the rays start).
+    rays : ndarray (n_rays, n_columns) float32
+        One row per ray, columns as ``header["columns"]``: position in mm, direction, then
+        the flagged items (``phi`` radiant flux, ``Tri_Y`` luminous flux, …).
+
+    Raises
+    ------
+    TM25Error
+        One line naming the file and the field: not TM-25, another version, a bad flag,
+        a truncated file.
+
+    Notes
+    -----
+    The header's total flux and the sum of the rays' fluxes need not agree (real files
+    exist where they do not); both are returned as they are.
+    """
+    path = Path(path)
+    try:
+        size = path.stat().st_size
+        with open(path, "rb") as f:
+            header, (n_spectra, n_addtl, addtl_text) = _read_tm25_header(path, f.read(_SPECTRA_START))
+            header["spectra"] = _read_tm25_spectra(path, f, n_spectra)
+            header["additional_columns"] = labels = [_from_utf32(f.read(512)) for _ in range(n_addtl)]
+            header["additional_text"] = _from_utf32(f.read(addtl_text)) if addtl_text else ""
+            offset = f.tell()
+    except OSError as e:
+        raise TM25Error(f"{path}: cannot read ({e.strerror or e})") from None
+    flags, n_rays = header["flags"], header["n_rays"]
+    columns = [c for flag in _FLAG_NAMES if flags[flag] for c in _FLAG_COLUMNS[flag]] + labels
+    expected = offset + n_rays * len(columns) * 4
+    if size < expected:
+        raise TM25Error(f"{path}: {size} bytes, {n_rays} rays of {len(columns)} columns need {expected}: truncated")
+    rays = np.fromfile(path, dtype="<f4", count=n_rays * len(columns), offset=offset).reshape(n_rays, len(columns))
+    header.update(columns=columns, ray_offset=offset, trailing_bytes=size - expected)
+    return header, rays
