@@ -226,40 +226,55 @@ def reflectance_from_run(
     run_path = Path(object_run)
     out = Path(out_dir) if out_dir is not None else run_path.with_name(f"{run_path.stem}.reflectance")
     warnings: list[str] = []
-    rig, run_id, mesh_path, object_pose, mesh_rig, light_path, light_model, results_file, measured = _gathered(
-        run_path, light, mesh, out, progress, warnings
-    )
-    obj = rig.object
+    inputs = _gathered(run_path, light, mesh, out, progress, warnings)
+    rig, measured, obj = inputs.rig, inputs.measured, inputs.rig.object
     for text in warnings:
         log.warning("%s", text)
     result = estimate_reflectance(
         np.stack(measured.rates),
         np.stack(measured.saturated),
         rig.camera,
-        mesh_rig,
+        inputs.mesh,
         measured.poses,
-        light_model,
-        object_pose=object_pose,
+        inputs.light_model,
+        object_pose=inputs.object_pose,
         up=obj.up if obj is not None else (0.0, 1.0, 0.0),
         housing=(rig.light.housing_radius_m, rig.light.housing_depth_m),
         settings=settings,
-        mesh_name=str(mesh_path),
+        mesh_name=str(inputs.mesh_path),
         progress=progress,
     )
     result.warnings[:0] = warnings
     result.metadata = {
         "object_run": str(run_path),
-        "run_id": run_id,
+        "run_id": inputs.run_id,
         "rig": rig.name,
-        "results_file": str(results_file),
+        "results_file": str(inputs.results_file),
         "positions": [int(i) for i in measured.positions],
-        **_light_and_mesh(light_path, light_model, mesh_path),
+        **_light_and_mesh(inputs.light_path, inputs.light_model, inputs.mesh_path),
         "camera_sensitivity_e_per_s": rig.camera.sensitivity_e_per_s,
         "gain_e_per_dn": measured.gain,
         "gain_source": "rig",
     }
     write_outputs(result, out, texture_size=texture_size, bins=bins, metadata=result.metadata)
     return result
+
+
+@dataclass
+class _ObjectInputs:
+    """What the estimate takes from an object run: its rig and id, the mesh in the rig frame
+    (with its file and the object's pose), the light model (with its file), the HDR results
+    file and the measured rates."""
+
+    rig: Rig
+    run_id: str
+    mesh_path: Path
+    object_pose: Pose | None
+    mesh: trimesh.Trimesh
+    light_path: Path
+    light_model: LightModel
+    results_file: Path
+    measured: _MeasuredRates
 
 
 def _gathered(
@@ -269,7 +284,7 @@ def _gathered(
     out: Path,
     progress: Progress | None,
     warnings: list[str],
-) -> tuple[Rig, str, Path, Pose | None, trimesh.Trimesh, Path, LightModel, Path, _MeasuredRates]:
+) -> _ObjectInputs:
     """Everything the estimate needs from the object run, its mesh, its light model and its
     HDR results (merged now where missing), with what is worth a warning added to ``warnings``."""
     try:
@@ -283,7 +298,9 @@ def _gathered(
         out.mkdir(parents=True, exist_ok=True)
         results_file = _results_for(run_path, out, progress)
         measured = _measured_rates(run, run_path, results_file, warnings)
-        return rig, run.header.run_id, mesh_path, object_pose, mesh_rig, light_path, light_model, results_file, measured
+        return _ObjectInputs(
+            rig, run.header.run_id, mesh_path, object_pose, mesh_rig, light_path, light_model, results_file, measured
+        )
 
 
 def _light_and_mesh(light_path: Path, light_model: LightModel, mesh_path: Path) -> dict[str, Any]:
