@@ -18,6 +18,7 @@ from acquisition.cli.app import (
     fail,
     print_result,
 )
+from processing.options import FitMethod
 
 RecordOption = Annotated[
     Path | None,
@@ -155,7 +156,7 @@ def bench_accuracy_command(
     noise: Annotated[bool, typer.Option(help="Photon, read and quantisation noise.")] = True,
     truth: Annotated[str, typer.Option(help="Shipped truth light.")] = "five-gaussians",
     positions: Annotated[int, typer.Option(min=3, help="Schedule positions (the first N of the sweep).")] = 66,
-    fit: Annotated[str, typer.Option(help="Fit method: gaussian, polynomial, cos-power.")] = "gaussian",
+    fit: Annotated[FitMethod, typer.Option(help="The model every source's I(θ) is fitted to.")] = FitMethod.GAUSSIAN,
     rig: RigOption = None,
     layout_from_data: Annotated[
         bool,
