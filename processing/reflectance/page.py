@@ -16,7 +16,7 @@ from matplotlib.figure import Figure
 
 from processing.reflectance.codes import PIXEL_CODES, PIXEL_COLOURS, PIXEL_SHORT, SAMPLE_CODES, SAMPLE_SHORT
 from processing.report.drawing import COLOURS, new_figure
-from processing.report.markup import CSS, embedded_img, html_note, html_table
+from processing.report.markup import CSS, embedded_img, html_note, html_table, write_page
 
 log = logging.getLogger("mirrorgonio.processing")
 
@@ -287,12 +287,4 @@ def write_reflectance_report(
         log.warning("reflectance report: %s", exc, exc_info=True)
         body.append(html_note(f"the reflectance section could not be drawn: {type(exc).__name__}: {exc}"))
     css = CSS + ".strip.wide img { width: 360px; }\n"
-    page = (
-        f'<!DOCTYPE html>\n<html lang="en">\n<head>\n<meta charset="utf-8">\n<title>{html.escape(title)}</title>\n'
-        f"<style>{css}</style>\n</head>\n<body>\n" + "\n".join(body) + "\n</body>\n</html>\n"
-    )
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(page, encoding="utf-8")
-    tmp.replace(path)
-    return path
+    return write_page(path, title, body, css)

@@ -7,6 +7,7 @@ import html
 import logging
 import math
 from concurrent.futures import Executor, Future
+from pathlib import Path
 
 from matplotlib.figure import Figure
 
@@ -80,3 +81,17 @@ class FigureEncoder:
                     image = html_note(f"this figure could not be encoded: {type(exc).__name__}: {exc}")
                 text = text.replace(token, image)
         return text
+
+
+def write_page(path: Path, title: str, body: list[str], css: str = CSS) -> Path:
+    """One self-contained HTML page (``title``, the style sheet, ``body``'s pieces), written
+    whole: through a temporary file beside ``path``, so a reader never sees half a page."""
+    page = (
+        f'<!DOCTYPE html>\n<html lang="en">\n<head>\n<meta charset="utf-8">\n<title>{html.escape(title)}</title>\n'
+        f"<style>{css}</style>\n</head>\n<body>\n" + "\n".join(body) + "\n</body>\n</html>\n"
+    )
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(page, encoding="utf-8")
+    tmp.replace(path)
+    return path

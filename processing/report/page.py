@@ -27,7 +27,7 @@ from processing.report.context import (
     report_context,
     trace_middle,
 )
-from processing.report.markup import CSS, FigureEncoder, html_note
+from processing.report.markup import FigureEncoder, html_note, write_page
 from processing.report.sections import (
     SECTIONS,
     angles_section,
@@ -232,12 +232,4 @@ def _write_report(
             entry = built[name]
             content = entry.result() if isinstance(entry, Future) else entry
             body.append(f"<h2>{html.escape(name)}</h2>\n{ctx.encoder.fill(content)}")
-    page = (
-        f'<!DOCTYPE html>\n<html lang="en">\n<head>\n<meta charset="utf-8">\n<title>{html.escape(title)}</title>\n'
-        f"<style>{CSS}</style>\n</head>\n<body>\n" + "\n".join(body) + "\n</body>\n</html>\n"
-    )
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(page, encoding="utf-8")
-    tmp.replace(path)
-    return path
+    return write_page(path, title, body)
