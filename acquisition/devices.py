@@ -112,13 +112,13 @@ def _open_camera(settings: DaemonSettings, rig: Rig, simulated: dict, arm: Arm) 
     cfg = settings.camera
     spool = Path(settings.data_dir) / "spool"
     if cfg.kind == "simulated":
-        light_to_tool = rig.light.light_to_tool.to_pose()
+        light_to_tool, base = rig.light.light_to_tool.to_pose(), rig.arm.base.to_pose()
         if "stage" in simulated:  # the simulated stage in this process: its true pose
-            world = SimWorld(simulated["stage"].true_pose, light_to_tool)
+            world = SimWorld(simulated["stage"].true_pose, light_to_tool, arm_base=base)
         else:
             # Any other arm (the simulated arm in its own process or container, or a real
             # one): the light is where the arm's controller says the tool is.
-            world = SimWorld.following(arm.position, light_to_tool)
+            world = SimWorld.following(arm.position, light_to_tool, arm_base=base)
         sim = cfg.simulated
         camera = SimulatedCamera(
             rig,

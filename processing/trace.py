@@ -19,7 +19,7 @@ import numba
 import numpy as np
 from numpy.typing import ArrayLike
 
-from drivers.contracts.rig import Rig
+from drivers.contracts.rig import PoseSpec, Rig
 from drivers.contracts.runfile import RunFile
 from drivers.pose import Pose
 
@@ -47,6 +47,7 @@ class RigGeometry:
     width: int
     height: int
     inverse_focal: float = 0.0  # 1/F of a thin lens; 0 for a pinhole
+    arm_base: Pose | None = None  # the arm's base frame in the rig frame; None: the rig frame
 
     def with_sensor_distance(self, sensor_distance: float) -> RigGeometry:
         """The same rig with the sensor ``sensor_distance`` behind the pinhole (or lens): the
@@ -88,6 +89,7 @@ class RigGeometry:
             inverse_focal=(1.0 / cam.sensor_distance_m + 1.0 / cam.thin_lens.focus_distance_m)
             if cam.thin_lens
             else 0.0,
+            arm_base=None if rig.arm.base == PoseSpec() else rig.arm.base.to_pose(),
         )
 
     def pixel_directions(self, cols: np.ndarray, rows: np.ndarray) -> np.ndarray:
@@ -300,8 +302,10 @@ def footprint_areas(geometry: RigGeometry, light_pose: Pose, rays: ChiefRays, st
 
 
 def light_pose_at(geometry: RigGeometry, tool_pose: Pose) -> Pose:
-    """The light's pose for a tool pose."""
-    return tool_pose.compose(geometry.light_to_tool)
+    """The light's pose (rig frame) for a tool pose (the arm's base frame):
+    ``arm_base ∘ tool ∘ light_to_tool``."""
+    light = tool_pose.compose(geometry.light_to_tool)
+    return light if geometry.arm_base is None else geometry.arm_base.compose(light)
 
 
 def specular_points(

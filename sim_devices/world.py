@@ -27,6 +27,8 @@ class SimWorld:
         Returns the pose of the arm's tool (normally ``SimulatedStage.true_pose``).
     light_to_tool : Pose
         The light's frame expressed in the tool's frame (fixed by the light's mount).
+    arm_base : Pose, optional
+        The arm's base frame in the rig frame, where the tool poses are (the rig frame if None).
     hold_within_m, hold_within_rad : float
         A read-back pose jitters from one reading to the next (encoder noise) while the
         tool stands still. A reading within these of the pose returned last is taken as
@@ -39,11 +41,13 @@ class SimWorld:
         tool_pose: Callable[[], Pose],
         light_to_tool: Pose | None = None,
         *,
+        arm_base: Pose | None = None,
         hold_within_m: float = 0.0,
         hold_within_rad: float = 0.0,
     ):
         self._tool_pose = tool_pose
         self.light_to_tool = light_to_tool or Pose(0.0, 0.0, 0.0)
+        self.arm_base = arm_base
         self.hold_within_m = hold_within_m
         self.hold_within_rad = hold_within_rad
         self._held: Pose | None = None
@@ -54,6 +58,7 @@ class SimWorld:
         read_tool_pose: Callable[[], Pose],
         light_to_tool: Pose | None = None,
         *,
+        arm_base: Pose | None = None,
         hold_within_m: float = 50e-6,
         hold_within_rad: float = 2e-4,
     ) -> SimWorld:
@@ -64,7 +69,8 @@ class SimWorld:
         0.2 mrad) is well above the read-back noise of the simulated stage (5 um,
         0.01 mrad) and of a lab arm's encoders, and far below the spacing of any schedule.
         """
-        return cls(read_tool_pose, light_to_tool, hold_within_m=hold_within_m, hold_within_rad=hold_within_rad)
+        hold = {"hold_within_m": hold_within_m, "hold_within_rad": hold_within_rad}
+        return cls(read_tool_pose, light_to_tool, arm_base=arm_base, **hold)
 
     def tool_pose(self) -> Pose:
         pose = self._tool_pose()
@@ -79,4 +85,6 @@ class SimWorld:
         return pose
 
     def light_pose(self) -> Pose:
-        return self.tool_pose().compose(self.light_to_tool)
+        """The light's pose in the rig frame: ``arm_base ∘ tool ∘ light_to_tool``."""
+        light = self.tool_pose().compose(self.light_to_tool)
+        return light if self.arm_base is None else self.arm_base.compose(light)

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from drivers.contracts.rig import DEFAULT_RIG_PATH, RigError, load_rig, rig_from_dict
+from drivers.pose import Pose
 
 
 def _default_data():
@@ -55,6 +56,48 @@ def test_light_to_tool_offsets_the_commanded_tool_pose():
     back = tool.compose(rig.light.light_to_tool.to_pose())
     assert back.distance_to(light)[0] < 1e-12
     np.testing.assert_allclose(light.position - tool.position, 0.05 * light.rotation[:, 2], atol=1e-12)
+
+
+def test_the_arms_base_frame_places_its_tool_poses_in_the_rig():
+    """The arm's tool poses are in its base frame: commanded to ``base⁻¹ ∘ light ∘ mount⁻¹``,
+    the light lands on the schedule's pose in the rig frame, as the simulated world and the
+    processing compose it."""
+    from processing.trace import RigGeometry, light_pose_at
+    from sim_devices.world import SimWorld
+
+    data = _default_data()
+    data["arm"]["base"] = {"position_m": [0.03, -0.02, 0.01], "rotation_deg": [0.5, -1.0, 10.0]}
+    data["light"]["light_to_tool"] = {"position_m": [0.0, 0.01, 0.05], "rotation_deg": [2.0, 0.0, 0.0]}
+    rig = rig_from_dict(data)
+    geometry = RigGeometry.from_rig(rig)
+    for light, tool in zip(rig.light_poses(), rig.tool_poses(), strict=True):
+        assert rig.light_pose(tool).distance_to(light)[0] < 1e-12
+        world = SimWorld(lambda tool=tool: tool, rig.light.light_to_tool.to_pose(), arm_base=rig.arm.base.to_pose())
+        assert world.light_pose().distance_to(light)[0] < 1e-12
+        assert light_pose_at(geometry, tool).distance_to(light)[0] < 1e-12
+    # The tool poses differ from those of an arm whose frame is the rig's: the base moves them.
+    in_rig_frame = rig_from_dict(_default_data() | {"light": data["light"]})
+    assert rig.tool_poses()[0].distance_to(in_rig_frame.tool_poses()[0])[0] > 0.02
+
+
+def test_a_version_1_rig_loads_with_the_arm_in_the_rig_frame_and_default_tolerances(tmp_path):
+    text = DEFAULT_RIG_PATH.read_text().replace("schema_version = 2", "schema_version = 1")
+    (tmp_path / "old.toml").write_text(text)
+    old, new = load_rig(tmp_path / "old.toml"), load_rig()
+    assert old.schema_version == 1 and new.schema_version == 2
+    assert old.arm.base.to_pose() == Pose(0.0, 0.0, 0.0) and old.tolerances == new.tolerances
+    assert [p.as_tuple() for p in old.tool_poses()] == [p.as_tuple() for p in new.tool_poses()]
+
+
+def test_tolerances_are_read_and_checked(tmp_path):
+    data = _default_data()
+    data["tolerances"] = {"camera_rotation_deg": 0.1, "pinhole_fraction": 0.05}
+    rig = rig_from_dict(data)
+    assert rig.tolerances.camera_rotation_deg == 0.1 and rig.tolerances.pinhole_fraction == 0.05
+    assert rig.tolerances.arm_base_position_m == 0.003  # the others keep their defaults
+    for bad in ({"camera_rotation_deg": 0.0}, {"pinhole_fraction": 0.7}, {"camera_yaw_deg": 0.1}):
+        with pytest.raises(RigError, match="tolerances"):
+            rig_from_dict(_default_data() | {"tolerances": bad})
 
 
 def test_raster_object_arc_and_pose_list_schedules():

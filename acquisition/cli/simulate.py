@@ -83,7 +83,7 @@ def _capture_one(
     if not exposure > 0 or not math.isfinite(exposure):
         raise fail(f"--exposure: must be a positive number of seconds, got {exposure}")
     tool: Pose = tool_poses[position]
-    world = SimWorld(lambda: tool, rig.light.light_to_tool.to_pose())
+    world = SimWorld(lambda: tool, rig.light.light_to_tool.to_pose(), arm_base=rig.arm.base.to_pose())
     camera = SimulatedCamera(
         rig,
         world,

@@ -26,7 +26,9 @@ from drivers.pose import Pose, rotation_from_angles
 # ObjectArc.light_poses): at the top it would more than double the import time of this module,
 # which every process imports (the daemon, each worker, every command).
 
-RIG_SCHEMA_VERSION: Final = 1
+#: Version 2 added the arm's base frame (``[arm] base``) and the tolerances (``[tolerances]``);
+#: a version-1 file loads unchanged (the base frame is the rig frame, the tolerances default).
+RIG_SCHEMA_VERSION: Final = 2
 #: The rigs shipped with the package (package data: also there in a wheel); ``rigs/`` at the top
 #: of a checkout links here.
 RIGS_DIR = Path(__file__).resolve().parent / "rigs"
@@ -280,7 +282,32 @@ class AxisRange(ConfigModel):
 
 
 class Arm(ConfigModel):
+    """The arm: its soft limits (on the tool pose, in the arm's own frame) and where that frame
+    is. ``base`` is the arm's base frame in the rig frame: the tool poses the arm is commanded
+    to and reads back are in the base frame, and the light sits at
+    ``base ∘ tool ∘ light.light_to_tool`` in the rig frame. Identity by default (the arm's frame
+    is the rig frame)."""
+
     soft_limits: AxisRange = AxisRange()
+    base: PoseSpec = PoseSpec()
+
+
+class Tolerances(ConfigModel):
+    """How far each measured number of the rig may be off: the bounds the processing fits the
+    rig's numbers within (``docs/rig.md``, ``docs/lab-guide.md``). The defaults are what a careful
+    lab measures with a ruler, a protractor and a datasheet; a lab that measured better says so.
+    """
+
+    camera_rotation_deg: PositiveFloat = 1.0
+    camera_position_m: PositiveFloat = 0.005
+    principal_point_px: PositiveFloat = 20.0
+    sensor_distance_fraction: Annotated[float, Field(gt=0.0, lt=0.5)] = 0.03
+    pinhole_fraction: Annotated[float, Field(gt=0.0, lt=0.5)] = 0.25
+    arm_base_rotation_deg: PositiveFloat = 1.0
+    arm_base_position_m: PositiveFloat = 0.003
+    light_rotation_deg: PositiveFloat = 2.0
+    light_position_m: PositiveFloat = 0.002
+    ball_radius_m: PositiveFloat = 5e-5
 
 
 # --- schedules ---------------------------------------------------------------------------
@@ -420,13 +447,14 @@ class Simulation(ConfigModel):
 class Rig(ConfigModel):
     """A whole rig: camera, ball, light, arm and the schedule of light poses."""
 
-    schema_version: Literal[1] = RIG_SCHEMA_VERSION
+    schema_version: Literal[1, 2] = RIG_SCHEMA_VERSION
     name: str = "default"
     camera: Camera = Camera()
     ball: Ball = Ball()
     light: Light = Light()
     arm: Arm = Arm()
     schedule: Schedule = LightSweep()
+    tolerances: Tolerances = Tolerances()
     simulation: Simulation = Simulation()
     object: SceneObject | None = None
 
@@ -436,9 +464,18 @@ class Rig(ConfigModel):
         return self.schedule.light_poses()
 
     def tool_poses(self) -> list[Pose]:
-        """What the arm is commanded to: light pose composed with tool-from-light."""
+        """What the arm is commanded to, in its base frame: ``base⁻¹ ∘ light ∘ light_to_tool⁻¹``."""
         light_from_tool = self.light.light_to_tool.to_pose().inverse()
-        return [p.compose(light_from_tool) for p in self.light_poses()]
+        tools = [p.compose(light_from_tool) for p in self.light_poses()]
+        if self.arm.base == PoseSpec():  # the arm's frame is the rig frame
+            return tools
+        rig_to_base = self.arm.base.to_pose().inverse()
+        return [rig_to_base.compose(tool) for tool in tools]
+
+    def light_pose(self, tool_pose: Pose) -> Pose:
+        """Where the light is (rig frame) with the tool at ``tool_pose`` (the arm's base frame)."""
+        light = tool_pose.compose(self.light.light_to_tool.to_pose())
+        return light if self.arm.base == PoseSpec() else self.arm.base.to_pose().compose(light)
 
     def soft_limits(self) -> SoftLimits:
         return self.arm.soft_limits.to_soft_limits()
