@@ -4,8 +4,10 @@ that costs the fitted sources."""
 from __future__ import annotations
 
 import json
+import math
 import re
 
+import numpy as np
 import pytest
 from conftest import REDUCED_RIG
 from typer.testing import CliRunner
@@ -46,6 +48,71 @@ def test_each_error_changes_one_number_of_the_description_and_nothing_else():
     )
     assert described_wrong(RIG, "pinhole-0.5%")["camera"]["pinhole_diameter_m"] == pytest.approx(1.99e-4, rel=1e-12)
     assert described_wrong(RIG, "pinhole+10µm")["camera"]["pinhole_diameter_m"] == pytest.approx(2.1e-4, rel=1e-12)
+
+
+def test_the_camera_the_arm_and_the_light_are_turned_and_moved_as_a_lab_gets_them_wrong():
+    """Pose errors: the camera turned about its own axes (its pinhole held) moves the ball's image
+    by f·δ, the principal point by its pixels, the camera moved across by f·d/distance; the arm's
+    base frame and the light's mount turn or move, nothing else changes."""
+    from drivers.contracts.rig import load_rig, rig_from_dict, rig_to_toml_dict
+
+    taken = rig_to_toml_dict(load_rig())
+    rig = rig_from_dict(taken)
+    f_px = rig.camera.sensor_distance_m / rig.camera.pixel_pitch_m
+
+    def ball_image(data: dict) -> np.ndarray:
+        described = rig_from_dict(data)
+        rotation, translation = described.camera.pose.extrinsics()
+        seen = described.camera.camera_matrix() @ (rotation @ np.zeros(3) + translation)
+        return seen[:2] / seen[2]
+
+    start = ball_image(taken)
+    yawed = described_wrong(taken, "camera-yaw+0.05deg")
+    assert ball_image(yawed) - start == pytest.approx([f_px * math.radians(0.05), 0.0], abs=0.01)
+    assert rig_from_dict(yawed).camera.centre() == pytest.approx(rig.camera.centre(), abs=1e-12)
+    assert abs(ball_image(described_wrong(taken, "camera-pitch-0.2deg"))[1] - start[1]) == pytest.approx(
+        f_px * math.radians(0.2), rel=1e-3
+    )
+    assert ball_image(described_wrong(taken, "camera-roll+0.3deg")) == pytest.approx(start, abs=1e-9)
+    assert ball_image(described_wrong(taken, "principal-x+3px")) - start == pytest.approx([3.0, 0.0], abs=1e-9)
+    across = described_wrong(taken, "camera-across+1mm")
+    assert abs(ball_image(across)[0] - start[0]) == pytest.approx(f_px * 1e-3 / 0.2, rel=1e-6)
+    along = rig_from_dict(described_wrong(taken, "camera-along-2mm")).camera.centre()
+    assert along - rig.camera.centre() == pytest.approx([0.0, 0.0, 0.002], abs=1e-12)  # 2 mm farther from the ball
+    arm = rig_from_dict(described_wrong(taken, "arm-yaw+0.5deg")).arm.base
+    assert arm.rotation_deg == pytest.approx((0.0, 0.5, 0.0), abs=1e-12) and arm.position_m == (0.0, 0.0, 0.0)
+    assert rig_from_dict(described_wrong(taken, "arm-z-1mm")).arm.base.position_m == pytest.approx((0, 0, -1e-3))
+    tilted = rig_from_dict(described_wrong(taken, "light-tilt+1deg"))
+    assert tilted.light.light_to_tool.rotation_deg == pytest.approx((1.0, 0.0, 0.0), abs=1e-12)
+    for name in ("camera-yaw+1mm", "principal-x+2deg", "arm-x+1%"):
+        with pytest.raises(ValueError, match=f"^--errors: {re.escape(repr(name))}: "):
+            parse_error(name)
+
+
+def test_a_model_in_a_turned_frame_is_scored_as_the_rig_sees_it():
+    """A fit made in a light frame tilted 2° from the truth's is right as the rig sees it: scored
+    in its own frame against the truth it looks wrong, scored through the frame it is right."""
+    from types import SimpleNamespace
+
+    from acquisition.benchmarks.scoring import score_fit, score_fit_in_frame
+    from drivers.pose import Pose
+    from sim_devices.lights import load_truth
+
+    emitter = load_truth("five-gaussians").emitters[0]
+    frame = Pose(0.0, 0.0, 0.0, math.radians(2.0), 0.0, 0.0)  # the model's frame in the truth's
+    theta = np.radians(np.linspace(2.0, 40.0, 40))
+    phi = np.full(theta.shape, math.pi / 2)  # a sweep across the tilt
+
+    def in_truth_frame(t, p):  # the truth's emission, seen from the model's frame
+        d = np.stack([np.sin(t) * np.cos(p), np.sin(t) * np.sin(p), np.cos(t)], axis=-1) @ frame.rotation.T
+        return emitter.intensity_w_sr(np.arccos(np.clip(d[..., 2], -1, 1)))
+
+    samples = {"theta": theta.tolist(), "phi": phi.tolist(), "position": list(range(theta.size))}
+    turned = SimpleNamespace(samples=samples, fit=in_truth_frame)
+    assert score_fit_in_frame(turned, emitter, frame)[0] < 1e-12
+    assert score_fit(lambda t: in_truth_frame(t, math.pi / 2), emitter, theta)[0] > 0.01
+    straight = SimpleNamespace(samples=samples, fit=lambda t, p=0.0: emitter.intensity_w_sr(t))
+    assert score_fit_in_frame(straight, emitter, Pose(0.0, 0.0, 0.0))[0] < 1e-12
 
 
 def test_the_errors_read_from_their_names():

@@ -4,6 +4,11 @@
 emitter it stands for over the θ range its samples cover,
 ``error = RMS(I_fit − I_true) / max(I_true)``. ``bench accuracy``, ``bench tolerance`` and
 ``mirrorgonio demo`` all score this way.
+
+Where the light frame the model was made in is not the truth's (the light's mount or the
+arm's base frame described off: the model then places the same emission in another frame),
+the two are compared as the rig sees them: ``frame``, the model's light frame in the truth's,
+maps each direction the samples left in, and each source's place, into the truth's frame.
 """
 
 from __future__ import annotations
@@ -12,6 +17,7 @@ import math
 
 import numpy as np
 
+from drivers.pose import Pose
 from processing.fit import FitError, Samples, fit_intensity
 
 
@@ -40,16 +46,50 @@ def score_fit(fit, truth_emitter, theta_samples) -> tuple[float, float, float]:
     return error, math.degrees(lo), math.degrees(hi)
 
 
+def score_fit_in_frame(source, truth_emitter, frame: Pose) -> tuple[float, float, float]:
+    """:func:`score_fit` for a source whose light frame is ``frame`` in the truth's: along the
+    directions its samples left in (in the model's frame, in position order, 200 points
+    between them), the fit against the truth at the same directions seen in the truth's frame."""
+    theta = np.asarray(source.samples["theta"], float)
+    phi = np.asarray(source.samples.get("phi") or np.zeros_like(theta), float)
+    order = np.argsort(np.asarray(source.samples.get("position") or np.arange(theta.size), float), kind="stable")
+    theta, phi = theta[order], phi[order]
+    along = np.linspace(0.0, theta.size - 1.0, 200)
+    direction = np.stack([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi), np.cos(theta)], axis=-1)
+    path = np.stack([np.interp(along, np.arange(theta.size), direction[:, i]) for i in range(3)], axis=-1)
+    path /= np.linalg.norm(path, axis=1, keepdims=True)
+    model_theta = np.arccos(np.clip(path[:, 2], -1.0, 1.0))
+    model_phi = np.arctan2(path[:, 1], path[:, 0])
+    seen = path @ frame.rotation.T
+    true = truth_emitter.intensity_w_sr(np.arccos(np.clip(seen[:, 2], -1.0, 1.0)), np.arctan2(seen[:, 1], seen[:, 0]))
+    error = math.sqrt(float(np.mean((source.fit(model_theta, model_phi) - true) ** 2))) / float(np.max(true))
+    return error, math.degrees(float(theta.min())), math.degrees(float(theta.max()))
+
+
+def source_place(source, frame: Pose | None) -> np.ndarray:
+    """A source's centre on the truth's light plane: (u, v), its model frame mapped by ``frame``."""
+    centre = np.array([*source.centre_m, 0.0])
+    return centre[:2] if frame is None else (frame.rotation @ centre + frame.position)[:2]
+
+
 def score_sources(
-    model, samples, truth_light, *, matched: bool, fit_method: str = "gaussian", cell_sums: bool = True
+    model,
+    samples,
+    truth_light,
+    *,
+    matched: bool,
+    fit_method: str = "gaussian",
+    cell_sums: bool = True,
+    frame: Pose | None = None,
 ) -> dict:
     """Each truth emitter's fitted source scored against it (:func:`score_fit`).
 
     ``matched``: the sources were found in the data, so each emitter is scored against the
     nearest source found (``sources[i]["centre_error_um"]`` says how far; ``matched`` in the
     result lists which source each took); otherwise source k is emitter k. ``cell_sums``:
-    also score a fit of the chief-ray cell sums at the same positions."""
-    found = np.array([s.centre_m for s in model.sources], float).reshape(-1, 2)
+    also score a fit of the chief-ray cell sums at the same positions. ``frame``: the model's
+    light frame in the truth's (:func:`score_fit_in_frame`), None where they are one."""
+    found = np.array([source_place(s, frame) for s in model.sources], float).reshape(-1, 2)
     out_sources, taken = [], []
     for k, emitter in enumerate(truth_light.emitters):
         if matched:  # the source found nearest the emitter
@@ -58,7 +98,10 @@ def score_sources(
             taken.append(k)
         source = model.sources[k]
         theta = np.asarray(source.samples["theta"])
-        error, lo, hi = score_fit(source.fit, emitter, theta)
+        if frame is None:
+            error, lo, hi = score_fit(source.fit, emitter, theta)
+        else:
+            error, lo, hi = score_fit_in_frame(source, emitter, frame)
         entry = {
             "name": emitter.name,
             "rms_rel_error": round(error, 6),

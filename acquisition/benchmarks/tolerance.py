@@ -22,7 +22,8 @@ import h5py
 from acquisition.benchmarks.accuracy import REFERENCE_EXPOSURES_S, acquire_simulated
 from acquisition.benchmarks.description_errors import DEFAULT_ERRORS, described_wrong, parse_error
 from acquisition.benchmarks.scoring import score_sources
-from drivers.contracts.rig import RIGS_DIR, load_rig
+from drivers.contracts.rig import RIGS_DIR, load_rig, rig_from_dict
+from drivers.pose import Pose
 from processing.light_run.errors import ProcessingError
 from processing.light_run.position import warm_up_worker
 from processing.light_run.run import process_run
@@ -110,7 +111,8 @@ def bench_tolerance(
                     row = {"error": error or "none", "layout": layout_name}
                     if error is not None:
                         row["what"] = parse_error(error).what
-                    rows.append(_process_one_way(copy, base / f"out-{k}-{w}", way, compute, truth_light, row, say))
+                    out_dir = base / f"out-{k}-{w}"
+                    rows.append(_process_one_way(copy, out_dir, way, compute, (rig, truth_light), row, say))
     result = {
         "benchmark": "tolerance",
         "rig": str(Path(rig_path or DEFAULT_RIG_PATH)),
@@ -140,9 +142,11 @@ def _ways(given: Path, layout_from_data: bool, fit_aperture: bool, fit_sensor_di
     }
 
 
-def _process_one_way(copy: Path, out_dir: Path, way: tuple, compute, truth_light, row: dict, say) -> dict:
+def _process_one_way(copy: Path, out_dir: Path, way: tuple, compute, truth: tuple, row: dict, say) -> dict:
     """``row`` completed with one processing of the run file ``copy`` the ``way`` :func:`_ways`
-    names, its sources scored against the truth; a processing that fails is said in the row."""
+    names, its sources scored against the truth (the rig the run was taken with and its light);
+    a processing that fails is said in the row."""
+    truth_rig, truth_light = truth
     layout, fitted, distance = way
     t0 = time.perf_counter()
     try:
@@ -162,7 +166,10 @@ def _process_one_way(copy: Path, out_dir: Path, way: tuple, compute, truth_light
         row.update(failed=str(exc), process_s=round(time.perf_counter() - t0, 1))
         say(f"{row['error']}, layout {row['layout']}: failed: {exc}")
         return row
-    scored = score_sources(report.model, report.samples, truth_light, matched=layout is None, cell_sums=False)
+    frame = model_frame(report.model, truth_rig)
+    scored = score_sources(
+        report.model, report.samples, truth_light, matched=layout is None, cell_sums=False, frame=frame
+    )
     row.update(
         sources_found=len(report.model.sources),
         max_rms_rel_error=max(s["rms_rel_error"] for s in scored["sources"]),
@@ -180,6 +187,17 @@ def _process_one_way(copy: Path, out_dir: Path, way: tuple, compute, truth_light
         f"{100 * row['max_rms_rel_error']:.2f} % ({row['process_s']:.1f} s)"
     )
     return row
+
+
+def model_frame(model, truth_rig) -> Pose | None:
+    """The light frame the model was made in, in the truth's light frame, at the sweep's middle
+    position (None where they are one): the model's rig (its provenance) composing the arm's
+    tool pose there with its own base frame and mount, against the truth's."""
+    model_rig = rig_from_dict(model.provenance["rig_description"])
+    tool = truth_rig.tool_poses()[len(truth_rig.tool_poses()) // 2]
+    frame = truth_rig.light_pose(tool).inverse().compose(model_rig.light_pose(tool))
+    moved, turned = frame.distance_to(Pose(0.0, 0.0, 0.0))
+    return None if moved < 1e-12 and turned < 1e-9 else frame
 
 
 def markdown_table(result: dict) -> str:

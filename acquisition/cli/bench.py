@@ -225,8 +225,9 @@ def _rig_errors_help() -> str:
 
     return (
         "Comma-separated errors of the rig description to try, each PART±SIZE: PART one of "
-        f"{', '.join(ERROR_PARTS)}; SIZE in mm or um, or in % of the pinhole, the sensor distance or the "
-        f"ball's radius (e.g. pinhole+1%, ball-x-20um). Default: {', '.join(DEFAULT_ERRORS)}."
+        f"{', '.join(ERROR_PARTS)}; SIZE in mm or um (lengths), deg (turns), px (the principal point) or % "
+        "(of the pinhole, the sensor distance or the ball's radius), e.g. pinhole+1%, ball-x-20um, "
+        f"camera-yaw+0.05deg. Default: {', '.join(DEFAULT_ERRORS)}."
     )
 
 
