@@ -21,8 +21,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from drivers.contracts.rig import rig_from_dict
-from drivers.pose import Pose, angles_from_rotation, rotation_from_angles
+from drivers.contracts.rig import PoseSpec, rig_from_dict
+from drivers.pose import Pose, rotation_from_angles
 
 #: The numbers an error can touch, by name: (what it changes, which axis or component, the units it
 #: takes). What it changes: a rig field (``scale`` by %, or ``add`` a length), or one of the
@@ -222,8 +222,7 @@ def _light_turn(out: dict, axis: int, angle: float) -> None:
 
 
 def _pose_spec(pose: Pose) -> dict:
-    angles = [math.degrees(a) for a in angles_from_rotation(pose.rotation)]
-    return {"position_m": pose.position.tolist(), "rotation_deg": angles}
+    return PoseSpec.of(pose).model_dump()
 
 
 _POSE_ERRORS = {

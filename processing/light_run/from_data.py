@@ -21,7 +21,7 @@ from processing.light_run.records import FittedNumber
 from processing.parallel import Compute
 from processing.radiometry import electron_rates, radiometric_gain
 from processing.results import Results
-from processing.trace import light_pose_at_position
+from processing.trace import light_pose_at, light_pose_at_position
 from processing.unmixing.camera_fit import ApertureFit, SensorDistanceFit, fit_aperture, fit_sensor_distance
 from processing.unmixing.problem import LayoutData
 from processing.unmixing.search import (
@@ -261,7 +261,9 @@ def _layout_data(
     cfa = "RGGB"
     for index in picks:
         rate, var, usable, cfa = _merged_rates(run, results_file, index)
-        data.append(LayoutData(rate, var, usable, light_pose_at_position(run, geometry, index)))
+        measured = run.measured_pose(index)
+        tool = measured if measured is not None else run.header.tool_poses[index]
+        data.append(LayoutData(rate, var, usable, light_pose_at(geometry, tool), tool))
     return data, builder, cfa
 
 

@@ -1,0 +1,158 @@
+"""The rig's numbers fitted to the data with the sources' places: :func:`fit_rig`."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.optimize import least_squares
+from threadpoolctl import threadpool_limits
+
+from drivers.contracts.rig import Tolerances
+from processing.rig_fit.correction import FITTED, HELD, RigCorrection, bounds
+from processing.rig_fit.problem import RigProblem, SilhouetteTerm
+from processing.unmixing.problem import LayoutData, LayoutProblem
+from processing.unmixing.sources import Source, SourcesError
+from processing.unmixing.templates import TemplateBuilder
+
+
+@dataclass(frozen=True)
+class RigFit:
+    """What :func:`fit_rig` found.
+
+    Attributes
+    ----------
+    correction : RigCorrection
+        The fitted numbers (:data:`~processing.rig_fit.correction.FITTED`), in their fit units.
+    sigma : tuple of float
+        Each one's 1σ, from the fit's Jacobian with the residuals' scatter (χ² per degree of
+        freedom) as the noise: the templates' own error counted in.
+    sources : list of Source
+        The sources at their fitted places.
+    chi2_described, chi2 : float
+        The templates' χ² over ``pixels`` with the rig as described (the sources refitted there
+        first) and as fitted.
+    pixels : int
+    at_bound : tuple of str
+        Fitted numbers that ended at their tolerance's bound (the description is further off, or
+        something else is).
+    silhouette_residual : tuple of float
+        The ball's image, fitted rig against the calibration frames: (x, y, radius) in σ.
+    """
+
+    correction: RigCorrection
+    sigma: tuple[float, ...]
+    sources: list[Source]
+    chi2_described: float
+    chi2: float
+    pixels: int
+    evaluations: int
+    at_bound: tuple[str, ...] = ()
+    silhouette_residual: tuple[float, ...] = ()
+    held: dict[str, str] = field(default_factory=lambda: dict(HELD))
+
+    def record(self) -> dict:
+        """A JSON-able record: each fitted number with its 1σ, the held ones with why, χ²/pixel."""
+        return {
+            "fitted": {
+                n.name: {"value": round(v, 6), "sigma": round(s, 6), "unit": n.unit, "what": n.what}
+                for n, v, s in zip(FITTED, self.correction.values, self.sigma, strict=True)
+            },
+            "held": dict(self.held),
+            "chi2_per_pixel_described": round(self.chi2_described / self.pixels, 5),
+            "chi2_per_pixel": round(self.chi2 / self.pixels, 5),
+            "pixels": self.pixels,
+            "evaluations": self.evaluations,
+            "at_bound": list(self.at_bound),
+            "silhouette_residual_sigma": [round(r, 3) for r in self.silhouette_residual],
+        }
+
+
+def fit_rig(
+    data: list[LayoutData],
+    builder: TemplateBuilder,
+    cfa_pattern: str,
+    layout: list[Source],
+    tolerances: Tolerances,
+    light_axis: np.ndarray,
+    silhouette: SilhouetteTerm | None = None,
+    *,
+    start: RigCorrection | None = None,
+    max_radius: float = 1.5e-3,
+    max_nfev: int = 60,
+    margin_px: int = 48,
+    inset_px: int = 8,
+) -> RigFit:
+    """The correction of the rig, and the sources' places, that explain the data best.
+
+    The templates' χ² over a few merged positions spread over the sweep (the pixels of
+    :class:`~processing.unmixing.problem.LayoutProblem`, fixed by ``builder``'s rig and the
+    ``layout`` as found), together with the ball's silhouette where ``silhouette`` is given,
+    minimised by a bounded least-squares fit (``scipy.optimize.least_squares``, trust-region
+    reflective) over the fitted numbers (within the rig's ``tolerances``), the sources' centres
+    and their common radius. The data's positions carry the arm's tool poses (``LayoutData.tool``):
+    the light's poses follow the arm's corrected frame.
+
+    Raises
+    ------
+    SourcesError
+        No sources, a position without its tool pose, or no position with a window where
+        every template is whole.
+    """
+    if not layout:
+        raise SourcesError("no sources to fit the rig at")
+    if any(item.tool is None for item in data):
+        raise SourcesError("the rig's fit needs every position's tool pose")
+    with threadpool_limits(limits=1, user_api="blas"):  # one order of sums, as in refine_layout
+        problem = LayoutProblem(data, builder, cfa_pattern, layout, margin_px, inset_px)
+        if not problem.windows or problem.pixels < 16:
+            raise SourcesError("no position has a window where every template is whole")
+        rig = RigProblem(problem, builder.geometry, [item.tool for item in data], light_axis, silhouette)  # type: ignore[misc]
+        limit = bounds(tolerances, builder.geometry)
+        n = len(FITTED)
+        centres = np.array([s.centre for s in layout], float)
+        radius = min(float(np.median([s.radius for s in layout])), max_radius)
+        described = problem.fit(centres, radius, max_radius, max_nfev // 2)
+        x0 = np.concatenate([(start or RigCorrection()).vector, described[0].ravel() * 1e3, [described[1] * 1e3]])
+        lower = np.concatenate([-limit, np.full(x0.size - n - 1, -np.inf), [0.02]])
+        upper = np.concatenate([limit, np.full(x0.size - n - 1, np.inf), [max_radius * 1e3]])
+        x0 = np.clip(x0, lower + 1e-9, upper - 1e-9)
+        result = least_squares(
+            lambda x: rig.residuals(*rig.split(x)),
+            x0,
+            bounds=(lower, upper),
+            diff_step=0.01,
+            xtol=1e-4,
+            ftol=1e-6,
+            max_nfev=max_nfev,
+        )
+        correction, fitted_centres, fitted_radius = rig.split(result.x)
+        geometry = rig.set_correction(correction)
+        chi2 = problem.chi2(fitted_centres, fitted_radius)
+    sources = [Source(f"source-{k}", (float(u), float(v)), fitted_radius) for k, (u, v) in enumerate(fitted_centres)]
+    sigma = _sigma(result.jac, result.fun, n)
+    at_bound = tuple(
+        number.name
+        for number, value, bound in zip(FITTED, correction.values, limit, strict=True)
+        if abs(value) >= bound * (1.0 - 1e-3)
+    )
+    return RigFit(
+        correction,
+        tuple(float(s) for s in sigma),
+        sources,
+        described[2],
+        chi2,
+        problem.pixels,
+        int(result.nfev),
+        at_bound,
+        tuple(float(r) for r in silhouette.residuals(geometry)) if silhouette is not None else (),
+    )
+
+
+def _sigma(jac: np.ndarray, residuals: np.ndarray, n: int) -> np.ndarray:
+    """The first ``n`` parameters' 1σ: ``(JᵀJ)⁻¹`` scaled by the residuals' χ² per degree of
+    freedom (so that a misfit the noise does not explain widens them)."""
+    dof = max(1, residuals.size - jac.shape[1])
+    scale = float(residuals @ residuals) / dof
+    covariance = np.linalg.pinv(jac.T @ jac) * scale
+    return np.sqrt(np.clip(np.diag(covariance)[:n], 0.0, None))
