@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import shutil
 import signal
 import subprocess
@@ -18,8 +19,10 @@ import pytest
 from drivers.camera import RawFrame
 from drivers.contracts.rig import DEFAULT_RIG_PATH, rig_from_dict
 from drivers.contracts.runfile import (
+    CALIBRATION_SETS,
     RUN_FILE_FORMAT,
     RUN_FILE_VERSION,
+    CalibrationFrames,
     PositionTimes,
     RunFile,
     RunFileError,
@@ -515,7 +518,7 @@ def _missing_dataset(path):
         (None, "run file not found"),
         (lambda p: p.write_text("hello\n"), "not an HDF5 file"),
         (_foreign, r"not a mirrorgonio run file \(no 'format' attribute\)"),
-        (_future_version, r"run file format version 2 is newer than this software reads \(up to 1\)"),
+        (_future_version, r"run file format version 3 is newer than this software reads \(up to 2\)"),
         (_truncated, r"truncated or corrupt HDF5 file \(truncated: \d+ of \d+ bytes\)"),
         (_missing_dataset, "corrupt run file: /positions/times is missing"),
     ],
@@ -570,3 +573,146 @@ def test_rewrite_completed_position_after_reopen(tmp_path):
     with h5py.File(path, "r") as f:  # the earlier take's extra frames are gone
         assert not f["frames/raw"][2, 1:].any()
         assert np.isnan(f["frames/exposure_s"][2, 1:]).all()
+
+
+# --- calibration frames (format version 2) -----------------------------------------------------
+def calibration_data(role: str, when: str, count: int = 2, seed: int = SEED) -> list[RawFrame]:
+    """The frames of one calibration set, the same on every call."""
+    frames = []
+    for k in range(count):
+        rng = np.random.default_rng([seed, CALIBRATION_SETS.index((role, when)), k])
+        level = 64 if role == "dark" else 900
+        mosaic = (level + rng.integers(0, 8, (H, W))).astype(np.uint16)
+        black = np.array([[64.0, 64.5], [63.75, 64.25]]) + 0.5 * k
+        frames.append(RawFrame(mosaic, black, 4095 - k, "RGGB", 0.01 * 4**k, 1.8e9 + k, "sim", f"/tmp/cal-{k}.dng"))
+    return frames
+
+
+def check_calibration(got: CalibrationFrames, expected: list[RawFrame]) -> None:
+    assert got.frames.dtype == np.uint16 and got.frames.shape == (len(expected), H, W)
+    for k, frame in enumerate(expected):
+        assert np.array_equal(got.frames[k], frame.mosaic)
+    np.testing.assert_array_equal(got.exposures_s, [f.exposure_s for f in expected])
+    np.testing.assert_array_equal(got.timestamps, [f.timestamp for f in expected])
+    assert got.exposures_s.dtype == np.float64 and got.timestamps.dtype == np.float64
+    np.testing.assert_allclose(got.black_level, np.mean([f.black_level for f in expected], axis=0))
+    assert got.black_level.shape == (2, 2) and got.black_level.dtype == np.float64
+    assert got.white_level == min(f.white_level for f in expected) and isinstance(got.white_level, int)
+    assert got.cfa_pattern == "RGGB"
+
+
+def test_calibration_round_trip(tmp_path):
+    path = tmp_path / "run.h5"
+    plan = {"sets": [["ambient", "before"], ["dark", "before"], ["ambient", "after"]], "switch": "test"}
+    header = make_header(3)
+    header.calibration = plan
+    with RunFileWriter.create(path, header) as writer:
+        assert not writer.calibration_complete("ambient", "before")
+        writer.write_calibration("ambient", "before", calibration_data("ambient", "before", 3))
+        writer.write_calibration("dark", "before", calibration_data("dark", "before", 1))
+        writer.write_position(0, *position_data(SEED, 0))
+        writer.write_calibration("ambient", "after", calibration_data("ambient", "after", 2))
+        writer.write_calibration("ambient", "after", calibration_data("ambient", "after", 1, seed=7))  # re-taken
+        assert writer.calibration_complete("ambient", "before") and not writer.calibration_complete("dark", "after")
+        with pytest.raises(RunFileError, match=r"run\.h5: calibration role 'flat' is not one of ambient, dark"):
+            writer.write_calibration("flat", "before", calibration_data("ambient", "before"))
+        with pytest.raises(RunFileError, match=r"calibration time 'during' is not one of before, after"):
+            writer.write_calibration("dark", "during", calibration_data("dark", "before"))
+        with pytest.raises(RunFileError, match=r"calibration dark after: 17 frames, expected 1 to 16"):
+            writer.write_calibration("dark", "after", calibration_data("dark", "after", 17))
+        mixed = calibration_data("dark", "after", 2)
+        mixed[1].cfa_pattern = "BGGR"
+        with pytest.raises(RunFileError, match=r"calibration dark after: the frames mix CFA patterns \(BGGR, RGGB\)"):
+            writer.write_calibration("dark", "after", mixed)
+        assert not writer.calibration_complete("dark", "after")  # refused input writes nothing
+    with RunFile.open(path) as run:
+        assert run.header.calibration == plan
+        assert run.calibration_sets() == [("ambient", "before"), ("ambient", "after"), ("dark", "before")]
+        check_calibration(run.calibration_frames("ambient"), calibration_data("ambient", "before", 3))
+        check_calibration(run.calibration_frames("dark", "before"), calibration_data("dark", "before", 1))
+        check_calibration(run.calibration_frames("ambient", "after"), calibration_data("ambient", "after", 1, 7))
+        assert run.calibration_frames("dark", "after") is None
+        with pytest.raises(RunFileError, match="calibration role 'Ambient'"):
+            run.calibration_frames("Ambient")
+        check_position(run, SEED, 0)
+    with h5py.File(path, "r") as f:  # the layout docs/run-file.md gives
+        cal = f["calibration"]
+        assert [(r.decode(), w.decode()) for r, w in zip(cal["role"], cal["when"], strict=True)] == list(
+            CALIBRATION_SETS
+        )
+        assert cal["raw"].shape == (4, 16, H, W) and cal["raw"].chunks == (1, 1, H, W)
+        assert cal["complete"][()].tolist() == [1, 1, 1, 0] and cal["frame_count"][()].tolist() == [3, 1, 1, 0]
+        assert not cal["raw"][1, 1:].any()  # the earlier take's second frame is gone
+        assert cal["black_level"].shape == (4, 16, 2, 2) and cal["cfa_pattern"][0, 0] == b"RGGB"
+
+
+def _as_version_1(path: Path) -> None:
+    """A run file as format version 1 wrote it: the same without ``/calibration``."""
+    with h5py.File(path, "a") as f:
+        del f["calibration"]
+        f.attrs["format_version"] = 1
+        run = json.loads(f["header/run_json"][()])
+        del run["calibration"]
+        del f["header/run_json"]
+        f["header"].create_dataset("run_json", data=json.dumps(run), dtype=h5py.string_dtype("utf-8"))
+
+
+def test_a_version_1_file_reads_without_calibration_frames(tmp_path):
+    path = tmp_path / "run.h5"
+    write_run(path, 3, [0, 2])
+    _as_version_1(path)
+    with RunFile.open(path) as run:
+        assert run.header.calibration == {} and not run.has_calibration_group
+        assert run.calibration_frames("ambient") is None and run.calibration_frames("dark", "after") is None
+        assert run.calibration_sets() == []
+        check_position(run, SEED, 2)
+        run.refresh()
+    with RunFileWriter.reopen(path) as writer:  # resumed: positions as before, no room for calibration
+        assert not writer.calibration_complete("ambient", "before")
+        with pytest.raises(RunFileError, match="format version 1 has no room for calibration frames"):
+            writer.write_calibration("ambient", "before", calibration_data("ambient", "before"))
+        writer.write_position(1, *position_data(SEED, 1))
+    with RunFile.open(path) as run:
+        assert run.complete.all()
+
+
+TORN_CALIBRATION_SCRIPT = """
+import os, signal, sys
+sys.path.insert(0, {tests!r})
+from test_runfile import SEED, calibration_data, make_header, position_data
+from drivers.contracts.runfile import CALIBRATION_SETS, RunFileWriter
+
+writer = RunFileWriter.create(sys.argv[1], make_header(3))
+writer.write_calibration("ambient", "before", calibration_data("ambient", "before", 2))
+writer.write_position(0, *position_data(SEED, 0))
+# The dark set torn: its first frame and records written and flushed, its complete flag not.
+f, slot = writer._f, CALIBRATION_SETS.index(("dark", "before"))
+frames = calibration_data("dark", "before", 2)
+f["calibration/raw"][slot, 0] = frames[0].mosaic
+f["calibration/exposure_s"][slot, 0] = frames[0].exposure_s
+f["calibration/frame_count"][slot] = 2
+f.flush()
+os.kill(os.getpid(), signal.SIGKILL)
+"""
+
+
+def test_a_torn_calibration_set_is_salvaged_away(tmp_path):
+    path = tmp_path / "run.h5"
+    script = tmp_path / "torn.py"
+    script.write_text(TORN_CALIBRATION_SCRIPT.format(tests=str(TESTS_DIR)))
+    proc = subprocess.run([sys.executable, str(script), str(path)], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == -signal.SIGKILL, proc.stderr
+    with RunFile.open(path) as run:  # read as it was left: the torn set is not trusted
+        assert run.calibration_sets() == [("ambient", "before")]
+        assert run.calibration_frames("dark") is None
+    with RunFileWriter.reopen(path) as writer:  # salvaged
+        assert writer.calibration_complete("ambient", "before") and not writer.calibration_complete("dark", "before")
+    with RunFile.open(path) as run:
+        assert run.status == "interrupted" and "calibration sets complete: ambient before" in run.status_message
+        check_calibration(run.calibration_frames("ambient"), calibration_data("ambient", "before", 2))
+        assert run.calibration_frames("dark") is None
+        check_position(run, SEED, 0)
+    with h5py.File(path, "r") as f:  # nothing of the torn set was copied
+        slot = CALIBRATION_SETS.index(("dark", "before"))
+        assert f["calibration/raw"].id.get_chunk_info_by_coord((slot, 0, 0, 0)).size == 0
+        assert f["calibration/frame_count"][slot] == 0 and np.isnan(f["calibration/exposure_s"][slot]).all()

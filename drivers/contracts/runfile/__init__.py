@@ -5,7 +5,7 @@ acquisition writes with :class:`RunFileWriter`; the processing and anyone else r
 :class:`RunFile`. Its modules, in the order of the data:
 
 * :mod:`~drivers.contracts.runfile.layout`: the format, the records (:class:`RunHeader`,
-  :class:`PositionTimes`) and the empty layout of a new file;
+  :class:`PositionTimes`, :class:`CalibrationFrames`) and the empty layout of a new file;
 * :mod:`~drivers.contracts.runfile.header`: the header encoded for a new file, read back
   and checked from an existing one;
 * :mod:`~drivers.contracts.runfile.writer`: :class:`RunFileWriter`, with its lock
@@ -25,11 +25,14 @@ position that was complete before the kill stays readable, bit-exact:
 * the writer then works in HDF5's single-writer/multiple-reader (SWMR) mode, and never
   creates a dataset, group or attribute afterwards;
 * a position is committed by its ``/positions/complete`` flag, written and flushed after
-  everything else of the position; a reader trusts only positions whose flag is 1;
+  everything else of the position; a reader trusts only positions whose flag is 1; a
+  calibration set (:meth:`RunFileWriter.write_calibration`) likewise by its
+  ``/calibration/complete`` flag;
 * readers always open with ``swmr=True``, which works on a file whose writer was killed
   (a normal open refuses it: HDF5 marks it "already open for write");
-* :meth:`RunFileWriter.reopen` of a killed run copies its complete positions, frames as
-  their compressed chunks, into a fresh file that replaces the old one (salvage).
+* :meth:`RunFileWriter.reopen` of a killed run copies its complete positions and calibration
+  sets, frames as their compressed chunks, into a fresh file that replaces the old one
+  (salvage).
 
 A lock file ``PATH.lock`` (``flock``, released by the kernel when the writer dies) keeps
 a second writer off a run that is still being written; it is removed on a clean close.
@@ -37,11 +40,16 @@ a second writer off a run that is still being written; it is removed on a clean 
 
 from drivers.contracts.runfile.disk import file_sha256
 from drivers.contracts.runfile.layout import (
+    CALIBRATION_MAX_FRAMES,
+    CALIBRATION_ROLES,
+    CALIBRATION_SETS,
+    CALIBRATION_WHENS,
     MESSAGE_BYTES,
     RUN_FILE_FORMAT,
     RUN_FILE_VERSION,
     STATE_BYTES,
     STATES,
+    CalibrationFrames,
     PositionTimes,
     RunFileError,
     RunHeader,
@@ -50,11 +58,16 @@ from drivers.contracts.runfile.reader import RunFile
 from drivers.contracts.runfile.writer import RunFileWriter
 
 __all__ = [
+    "CALIBRATION_MAX_FRAMES",
+    "CALIBRATION_ROLES",
+    "CALIBRATION_SETS",
+    "CALIBRATION_WHENS",
     "MESSAGE_BYTES",
     "RUN_FILE_FORMAT",
     "RUN_FILE_VERSION",
     "STATES",
     "STATE_BYTES",
+    "CalibrationFrames",
     "PositionTimes",
     "RunFile",
     "RunFileError",

@@ -15,6 +15,8 @@ import numpy as np
 
 from drivers.contracts.rig import Rig, rig_from_dict
 from drivers.contracts.runfile.layout import (
+    CALIBRATION_DATASETS,
+    CALIBRATION_SETS,
     DATASETS,
     FRAME_RECORDS,
     RunFileError,
@@ -78,6 +80,7 @@ def read_header_once(f: h5py.File, path: Path) -> RunHeader:
         metadata=copy.deepcopy(header.metadata),
         devices=copy.deepcopy(header.devices),
         references=copy.deepcopy(header.references),
+        calibration=copy.deepcopy(header.calibration),
     )
 
 
@@ -96,8 +99,8 @@ def read_header(f: h5py.File, path: str | os.PathLike[str]) -> RunHeader:
     RunFileError
         Not a run file, a newer format, or a layout or header that is broken.
     """
-    check_format(f, path)
-    for name, ndim in DATASETS.items():
+    version = check_format(f, path)
+    for name, ndim in (DATASETS | CALIBRATION_DATASETS if version >= 2 else DATASETS).items():
         try:
             dset = f[name]
         except (KeyError, OSError, RuntimeError):
@@ -121,6 +124,8 @@ def read_header(f: h5py.File, path: str | os.PathLike[str]) -> RunHeader:
     for name in FRAME_RECORDS:
         if f[f"frames/{name}"].shape[:2] != (n, max_exposures):
             raise RunFileError(f"{path}: corrupt run file: /frames/{name} does not match /frames/raw")
+    if version >= 2:
+        _check_calibration_layout(f, path, (int(height), int(width)))
     try:
         run = json.loads(run_json)
         rig_data = json.loads(rig_json)
@@ -146,7 +151,30 @@ def read_header(f: h5py.File, path: str | os.PathLike[str]) -> RunHeader:
         created_utc=str(run.get("created_utc", "")),
         preset=str(run.get("preset", "")),
         references=run.get("references", {}) if isinstance(run.get("references", {}), dict) else {},
+        calibration=run.get("calibration", {}) if isinstance(run.get("calibration", {}), dict) else {},
     )
+
+
+def _check_calibration_layout(f: h5py.File, path: str | os.PathLike[str], frame_shape: tuple[int, int]) -> None:
+    """Raise a :class:`RunFileError` unless ``/calibration`` has a slot per calibration set, each
+    of frames the size of the positions' frames."""
+    try:
+        raw_shape = f["calibration/raw"].shape
+        roles = [as_text(v) for v in f["calibration/role"][()]]
+        whens = [as_text(v) for v in f["calibration/when"][()]]
+    except (OSError, RuntimeError) as exc:
+        raise RunFileError(f"{path}: corrupt run file: {h5_cause(exc)}") from None
+    m, max_frames = raw_shape[0], raw_shape[1]
+    if tuple(raw_shape[2:]) != frame_shape or max_frames < 1:
+        raise RunFileError(f"{path}: corrupt run file: /calibration/raw does not match /frames/raw")
+    if list(zip(roles, whens, strict=False)) != list(CALIBRATION_SETS) or len(roles) != m or len(whens) != m:
+        raise RunFileError(f"{path}: corrupt run file: /calibration/role and /calibration/when are not the sets")
+    for name in ("calibration/frame_count", "calibration/complete"):
+        if f[name].shape[0] != m:
+            raise RunFileError(f"{path}: corrupt run file: /{name} does not match /calibration/raw")
+    for name in FRAME_RECORDS:
+        if f[f"calibration/{name}"].shape[:2] != (m, max_frames):
+            raise RunFileError(f"{path}: corrupt run file: /calibration/{name} does not match /calibration/raw")
 
 
 def encode_header(path: str | os.PathLike[str], header: RunHeader) -> tuple[str, str]:
@@ -186,7 +214,7 @@ def encode_header(path: str | os.PathLike[str], header: RunHeader) -> tuple[str,
         problems.append(f"frame_shape: must be (height, width) in pixels (got {header.frame_shape!r})")
     if not isinstance(header.bracket, dict) or header.bracket.get("mode") not in ("fixed", "auto"):
         problems.append("bracket: must be a dict with mode 'fixed' or 'auto'")
-    for name in ("metadata", "devices", "references"):
+    for name in ("metadata", "devices", "references", "calibration"):
         if not isinstance(getattr(header, name), dict):
             problems.append(f"{name}: must be a dict")
     if not header.run_id:
@@ -202,6 +230,7 @@ def encode_header(path: str | os.PathLike[str], header: RunHeader) -> tuple[str,
         "software_version": str(header.software_version),
         "created_utc": str(header.created_utc),
         "references": header.references,
+        "calibration": header.calibration,
     }
     try:
         run_json = json.dumps(run, ensure_ascii=False, allow_nan=False)

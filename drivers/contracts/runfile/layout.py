@@ -20,7 +20,8 @@ from drivers.contracts.rig import Rig
 from drivers.pose import Pose
 
 RUN_FILE_FORMAT = "mirrorgonio-run"
-RUN_FILE_VERSION = 1
+#: 2: the ``/calibration`` group (frames taken with the light off, before and after the sweep).
+RUN_FILE_VERSION = 2
 
 #: The states a run file's ``/status/state`` may hold.
 STATES = ("created", "running", "paused", "complete", "aborted", "failed", "interrupted")
@@ -32,7 +33,7 @@ FRAME_RECORDS = ("exposure_s", "black_level", "white_level", "timestamp", "cfa_p
 
 
 #: Every dataset of the layout and its number of dimensions (None: a scalar string).
-DATASETS = {
+DATASETS: dict[str, int | None] = {
     "header/rig_json": None,
     "header/run_json": None,
     "schedule/commanded_pose": 2,
@@ -49,6 +50,30 @@ DATASETS = {
     "frames/cfa_pattern": 2,
     "status/state": 0,
     "status/message": 0,
+}
+
+#: What a calibration frame shows: ``ambient``, the light off and the room lit (the ball's
+#: silhouette); ``dark``, the light off and the room dark (the black level and read noise).
+CALIBRATION_ROLES = ("ambient", "dark")
+#: When a calibration set is taken: before the first position or after the last one.
+CALIBRATION_WHENS = ("before", "after")
+#: The calibration sets a run file has room for, in the order of ``/calibration``'s first axis.
+CALIBRATION_SETS = tuple((role, when) for role in CALIBRATION_ROLES for when in CALIBRATION_WHENS)
+#: The most frames one calibration set may hold.
+CALIBRATION_MAX_FRAMES = 16
+
+#: The datasets of ``/calibration`` (format version 2) and their number of dimensions.
+CALIBRATION_DATASETS: dict[str, int | None] = {
+    "calibration/role": 1,
+    "calibration/when": 1,
+    "calibration/frame_count": 1,
+    "calibration/complete": 1,
+    "calibration/raw": 4,
+    "calibration/exposure_s": 2,
+    "calibration/black_level": 4,
+    "calibration/white_level": 2,
+    "calibration/timestamp": 2,
+    "calibration/cfa_pattern": 2,
 }
 
 
@@ -73,6 +98,34 @@ class PositionTimes:
     move_started: float
     in_position: float
     frames_done: float
+
+
+@dataclass(frozen=True, eq=False)
+class CalibrationFrames:
+    """One calibration set: the frames of a role taken at one time (see ``docs/run-file.md``).
+
+    Attributes
+    ----------
+    frames : ndarray of uint16, shape (k, H, W)
+        The raw mosaics.
+    exposures_s : ndarray of float64, shape (k,)
+        Their exposure times, as the camera recorded them.
+    black_level : ndarray of float64, shape (2, 2)
+        Black level per CFA site, laid out like ``cfa_pattern``: the mean of the frames' own.
+    white_level : int
+        The saturation level: the lowest of the frames' own.
+    cfa_pattern : str
+        The 2x2 CFA tile, row-major, e.g. ``"RGGB"`` (one for the whole set).
+    timestamps : ndarray of float64, shape (k,)
+        Capture times, unix seconds.
+    """
+
+    frames: np.ndarray
+    exposures_s: np.ndarray
+    black_level: np.ndarray
+    white_level: int
+    cfa_pattern: str
+    timestamps: np.ndarray
 
 
 @dataclass
@@ -110,6 +163,11 @@ class RunHeader:
         Files the run belongs with, each ``{"path", "sha256", ...}``: ``light_model`` (the
         processed light run whose model lit an object run) and ``object_mesh`` (the object's
         geometry, with its ``units_m`` and ``pose``). Empty for a light run.
+    calibration : dict
+        The calibration sets the run planned and how (``docs/run-file.md``): ``sets`` (a list
+        of ``[role, when]``), ``switch`` (the light switch), the ``ambient_exposures_s`` and the
+        way dark frames are taken; ``sets`` empty, with a ``reason``, for a run that takes none.
+        Empty for a file of format version 1.
     """
 
     run_id: str
@@ -125,6 +183,7 @@ class RunHeader:
     created_utc: str
     preset: str = ""
     references: dict[str, Any] = field(default_factory=dict)
+    calibration: dict[str, Any] = field(default_factory=dict)
 
     @property
     def n_positions(self) -> int:
@@ -140,6 +199,7 @@ def build_layout(
     light: np.ndarray,
     max_exposures: int,
     frame_shape: tuple[int, int],
+    calibration_frames: int = CALIBRATION_MAX_FRAMES,
 ) -> None:
     """Create every group, attribute and dataset, small ones with their initial values.
 
@@ -174,9 +234,50 @@ def build_layout(
     )
     for name, value in empty_frame_records(n, max_exposures).items():
         frames.create_dataset(name, data=value)
+    build_calibration_layout(f, calibration_frames, frame_shape)
     status = f.create_group("status")
     status.create_dataset("state", data=np.bytes_(b"created"), dtype=f"S{STATE_BYTES}")
     status.create_dataset("message", data=np.bytes_(b""), dtype=f"S{MESSAGE_BYTES}")
+
+
+def build_calibration_layout(f: h5py.File, max_frames: int, frame_shape: tuple[int, int]) -> None:
+    """Create ``/calibration``: a slot per calibration set, each with room for ``max_frames``.
+
+    The slots' ``role`` and ``when`` are written now; a slot is committed, like a position, by
+    its ``complete`` flag.
+    """
+    m = len(CALIBRATION_SETS)
+    height, width = frame_shape
+    group = f.create_group("calibration")
+    group.create_dataset("role", data=np.array([role for role, _ in CALIBRATION_SETS], dtype="S8"))
+    group.create_dataset("when", data=np.array([when for _, when in CALIBRATION_SETS], dtype="S8"))
+    group.create_dataset("frame_count", data=np.zeros(m, np.int16))
+    group.create_dataset("complete", data=np.zeros(m, np.uint8))
+    group.create_dataset(
+        "raw",
+        shape=(m, max_frames, height, width),
+        dtype=np.uint16,
+        chunks=(1, 1, height, width),
+        fillvalue=0,
+        **hdf5plugin.LZ4(),
+    )
+    for name, value in empty_frame_records(m, max_frames).items():
+        group.create_dataset(name, data=value)
+
+
+def calibration_slot(role: str, when: str) -> int:
+    """The index of the calibration set ``(role, when)`` in ``/calibration``.
+
+    Raises
+    ------
+    RunFileError
+        An unknown role or time.
+    """
+    if role not in CALIBRATION_ROLES:
+        raise RunFileError(f"calibration role {role!r} is not one of {', '.join(CALIBRATION_ROLES)}")
+    if when not in CALIBRATION_WHENS:
+        raise RunFileError(f"calibration time {when!r} is not one of {', '.join(CALIBRATION_WHENS)}")
+    return CALIBRATION_SETS.index((role, when))
 
 
 def empty_frame_records(n: int, max_exposures: int) -> dict[str, np.ndarray]:
@@ -190,8 +291,9 @@ def empty_frame_records(n: int, max_exposures: int) -> dict[str, np.ndarray]:
     }
 
 
-def check_format(f: h5py.File, path: str | os.PathLike[str]) -> None:
-    """Raise a :class:`RunFileError` unless ``f`` is a mirrorgonio run file of a version this reads."""
+def check_format(f: h5py.File, path: str | os.PathLike[str]) -> int:
+    """The format version of ``f``; a :class:`RunFileError` unless it is a mirrorgonio run file of
+    a version this reads."""
     fmt = f.attrs.get("format")
     if fmt is None:
         raise RunFileError(f"{path}: not a mirrorgonio run file (no 'format' attribute)")
@@ -209,6 +311,7 @@ def check_format(f: h5py.File, path: str | os.PathLike[str]) -> None:
         )
     if version < 1:
         raise RunFileError(f"{path}: run file has an invalid format_version {version}")
+    return version
 
 
 # --- values shared by the reader and the writer -------------------------------------------

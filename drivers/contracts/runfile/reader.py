@@ -12,11 +12,15 @@ import numpy as np
 from drivers.camera import RawFrame
 from drivers.contracts.runfile.header import read_header_once
 from drivers.contracts.runfile.layout import (
+    CALIBRATION_DATASETS,
+    CALIBRATION_SETS,
     DATASETS,
+    CalibrationFrames,
     PositionTimes,
     RunFileError,
     RunHeader,
     as_text,
+    calibration_slot,
     h5_cause,
     is_whole,
 )
@@ -123,6 +127,9 @@ class RunFile:
         for name, _ in DATASETS.items():
             if name.startswith(("positions/", "frames/", "status/")):
                 self._dset(name).refresh()
+        if self.has_calibration_group:
+            for name in CALIBRATION_DATASETS:
+                self._dset(name).refresh()
 
     # --- the run ---------------------------------------------------------------------------
     @property
@@ -214,6 +221,66 @@ class RunFile:
             timestamp=float(self._read("frames/timestamp", (i, k))),
             camera_id=str(camera),
             source=f"{self.path}:/frames/raw[{i},{k}]",
+        )
+
+    # --- calibration frames -----------------------------------------------------------------
+    @property
+    def has_calibration_group(self) -> bool:
+        """Whether the file has room for calibration frames (format version 2 and later)."""
+        if self._f is None:
+            raise RunFileError(f"{self.path}: the run file is closed")
+        return "calibration" in self._f
+
+    def calibration_sets(self) -> list[tuple[str, str]]:
+        """The complete calibration sets, as ``(role, when)``, in the file's order."""
+        if not self.has_calibration_group:
+            return []
+        complete = self._read("calibration/complete", ()) == 1
+        return [pair for pair, done in zip(CALIBRATION_SETS, complete, strict=True) if done]
+
+    def calibration_frames(self, role: str, when: str = "before") -> CalibrationFrames | None:
+        """One calibration set: the frames of ``role`` taken ``when``.
+
+        Parameters
+        ----------
+        role : str
+            ``ambient`` (the light off, the room lit) or ``dark`` (the light off, the room
+            dark; see ``calibration`` in the header for how the run took them).
+        when : str
+            ``before`` the first position or ``after`` the last.
+
+        Returns
+        -------
+        CalibrationFrames or None
+            The set; None when the run has no complete set of that role and time (always for
+            a file of format version 1).
+
+        Raises
+        ------
+        RunFileError
+            An unknown role or time, or a set that cannot be read.
+        """
+        try:
+            slot = calibration_slot(role, when)
+        except RunFileError as exc:
+            raise RunFileError(f"{self.path}: {exc}") from None
+        if not self.has_calibration_group or self._read("calibration/complete", slot) != 1:
+            return None
+        k = int(self._read("calibration/frame_count", slot))
+        if not 1 <= k <= self._dset("calibration/raw").shape[1]:
+            raise RunFileError(f"{self.path}: corrupt run file: calibration {role} {when} has frame_count {k}")
+        frames = slice(0, k)
+        patterns = {as_text(v) for v in self._read("calibration/cfa_pattern", (slot, frames))}
+        if len(patterns) != 1:
+            raise RunFileError(f"{self.path}: corrupt run file: calibration {role} {when} mixes CFA patterns")
+        black = self._read("calibration/black_level", (slot, frames)).astype(np.float64)
+        return CalibrationFrames(
+            frames=self._read("calibration/raw", (slot, frames), what=f"calibration {role} {when} frames"),
+            exposures_s=self._read("calibration/exposure_s", (slot, frames)).astype(np.float64),
+            black_level=black.mean(axis=0),
+            white_level=int(self._read("calibration/white_level", (slot, frames)).min()),
+            cfa_pattern=patterns.pop(),
+            timestamps=self._read("calibration/timestamp", (slot, frames)).astype(np.float64),
         )
 
     # --- internals -------------------------------------------------------------------------

@@ -1,8 +1,9 @@
 """Salvage: the complete positions of a run whose writer was killed, copied into a fresh file.
 
 HDF5 leaves the file of a killed writer marked "open for write", and it cannot be opened for
-writing again; its complete positions (frames copied as their compressed chunks) go into a
-fresh file that replaces it.
+writing again; its complete positions and complete calibration sets (frames copied as their
+compressed chunks) go into a fresh file that replaces it. A set or position being written when
+the writer died is left out, to be taken again.
 """
 
 from __future__ import annotations
@@ -17,6 +18,8 @@ import numpy as np
 from drivers.contracts.runfile.disk import fsync_dir, fsync_path
 from drivers.contracts.runfile.header import read_header
 from drivers.contracts.runfile.layout import (
+    CALIBRATION_MAX_FRAMES,
+    CALIBRATION_SETS,
     FRAME_RECORDS,
     RunFileError,
     as_text,
@@ -46,6 +49,7 @@ def salvage_run(path: Path) -> None:
         except (OSError, RuntimeError) as exc:
             raise RunFileError(f"{path}: cannot salvage the run file: {h5_cause(exc)}") from None
         complete &= (counts >= 1) & (counts <= max_exposures)
+        calibration_frames = src["calibration/raw"].shape[1] if "calibration" in src else CALIBRATION_MAX_FRAMES
         with h5py.File(tmp, "w", libver="latest") as dst:
             build_layout(
                 dst,
@@ -55,7 +59,9 @@ def salvage_run(path: Path) -> None:
                 src["schedule/light_pose"][()],
                 max_exposures,
                 header.frame_shape,
+                calibration_frames,
             )
+            sets_kept = _copy_calibration(src, dst) if "calibration" in src else []
             src_raw, dst_raw = src["frames/raw"], dst["frames/raw"]
             kept, lost = [], []
             for i in np.flatnonzero(complete):
@@ -77,6 +83,8 @@ def salvage_run(path: Path) -> None:
             message = f"salvaged after the writer stopped unexpectedly: {len(kept)} of {n} positions complete"
             if lost:
                 message += f"; positions {', '.join(map(str, lost))} were unreadable and will be taken again"
+            if sets_kept:
+                message += f"; calibration sets complete: {', '.join(sets_kept)}"
             dst["status/state"][()] = np.bytes_(b"interrupted")
             dst["status/message"][()] = np.bytes_(encode_message(message))
     except OSError as exc:
@@ -92,3 +100,34 @@ def salvage_run(path: Path) -> None:
     fsync_path(tmp)
     os.replace(tmp, path)
     fsync_dir(path)
+
+
+def _copy_calibration(src: h5py.File, dst: h5py.File) -> list[str]:
+    """Copy the complete, readable calibration sets of ``src`` into ``dst`` (records, then the
+    frames as their compressed chunks, then the complete flags); their names ("ambient before")."""
+    try:
+        complete = src["calibration/complete"][()] == 1
+        counts = src["calibration/frame_count"][()].astype(np.int64)
+        rows = {name: src[f"calibration/{name}"][()] for name in (*FRAME_RECORDS, "frame_count")}
+    except (OSError, RuntimeError):
+        return []
+    max_frames = src["calibration/raw"].shape[1]
+    complete &= (counts >= 1) & (counts <= max_frames)
+    src_raw, dst_raw = src["calibration/raw"], dst["calibration/raw"]
+    kept = []
+    for slot in np.flatnonzero(complete):
+        try:
+            chunks = [src_raw.id.read_direct_chunk((slot, k, 0, 0)) for k in range(counts[slot])]
+        except (OSError, RuntimeError, ValueError):
+            continue  # an unreadable set is taken again
+        for k, (mask, data) in enumerate(chunks):
+            dst_raw.id.write_direct_chunk((slot, k, 0, 0), data, filter_mask=mask)
+        kept.append(int(slot))
+    for name, values in rows.items():
+        fresh = dst[f"calibration/{name}"][()]
+        fresh[kept] = values[kept]
+        dst[f"calibration/{name}"][...] = fresh
+    flags = np.zeros(len(CALIBRATION_SETS), np.uint8)
+    flags[kept] = 1
+    dst["calibration/complete"][...] = flags  # after the data, as always
+    return [" ".join(CALIBRATION_SETS[slot]) for slot in kept]

@@ -22,6 +22,7 @@ from drivers.contracts.runfile.layout import (
     RunFileError,
     RunHeader,
     build_layout,
+    calibration_slot,
     empty_frame_records,
     encode_message,
     h5_cause,
@@ -258,14 +259,26 @@ class RunFileWriter:
             raise RunFileError(f"{where}: times must be a PositionTimes (got {times!r})") from None
         if not np.all(np.isfinite(time_row)):
             raise RunFileError(f"{where}: times must be finite (got {times!r})")
-        maximum = self.header.max_exposures
+        records = self._frame_records(where, frames, self.header.max_exposures)
+        records["measured_pose"] = np.array(measured.as_tuple(), dtype=np.float64)
+        records["times"] = time_row
+        return records
+
+    def _frame_records(self, where: str, frames: list[RawFrame], maximum: int) -> dict[str, np.ndarray]:
+        """The per-frame records of ``frames`` (a slot of ``maximum`` frames), every frame checked.
+
+        Raises
+        ------
+        RunFileError
+            Not a list of 1 to ``maximum`` frames, or a frame whose mosaic or metadata is
+            unusable (the message names ``where``, the frame and the field).
+        """
         if not isinstance(frames, (list, tuple)):
             raise RunFileError(f"{where}: frames must be a list of RawFrame (got {type(frames).__name__})")
         if not 1 <= len(frames) <= maximum:
             raise RunFileError(f"{where}: {len(frames)} frames, expected 1 to {maximum}")
         height, width = self.header.frame_shape
-        records = empty_frame_records(1, maximum)
-        records = {name: value[0] for name, value in records.items()}
+        records = {name: value[0] for name, value in empty_frame_records(1, maximum).items()}
         for k, frame in enumerate(frames):
             at = f"{where} frame {k}"
             mosaic = getattr(frame, "mosaic", None)
@@ -299,36 +312,102 @@ class RunFileWriter:
             records["black_level"][k] = black
             records["white_level"][k] = int(white)
             records["cfa_pattern"][k] = cfa.encode("ascii")
-        records["measured_pose"] = np.array(measured.as_tuple(), dtype=np.float64)
-        records["times"] = time_row
         return records
 
     def _write(self, index: int, records: dict[str, np.ndarray], frames: list[RawFrame]) -> None:
+        extra = {"measured_pose": records["measured_pose"], "times": records["times"]}
+        self._commit("frames", "positions", index, records, frames, extra)
+
+    def _commit(
+        self,
+        frames_group: str,
+        flags_group: str,
+        index: int,
+        records: dict[str, np.ndarray],
+        frames: list[RawFrame],
+        extra: dict[str, np.ndarray],
+    ) -> None:
+        """Write slot ``index``'s frames (``frames_group``) and records, then set its complete flag.
+
+        ``flags_group`` holds the slot's ``complete`` flag, its ``frame_count`` and the ``extra``
+        records. A complete slot is first marked incomplete (flushed), so that a reader never
+        trusts a slot being rewritten; the flag is written and flushed last: the commit marker.
+        """
         f = self._f
-        complete = f["positions/complete"]
+        complete = f[f"{flags_group}/complete"]
         if complete[index]:
             complete[index] = 0
             self._flush(complete)
-        raw = f["frames/raw"]
+        raw = f[f"{frames_group}/raw"]
         for k, frame in enumerate(frames):
             raw[index, k] = frame.mosaic
-        for k in range(len(frames), self.header.max_exposures):  # frames of an earlier take
+        for k in range(len(frames), raw.shape[1]):  # frames of an earlier take
             if raw.id.get_chunk_info_by_coord((index, k, 0, 0)).size:
                 raw[index, k] = 0
+        written = [raw]
         for name in FRAME_RECORDS:
-            f[f"frames/{name}"][index] = records[name]
-        f["positions/measured_pose"][index] = records["measured_pose"]
-        f["positions/times"][index] = records["times"]
-        f["positions/frame_count"][index] = len(frames)
-        self._flush(
-            raw,
-            *(f[f"frames/{name}"] for name in FRAME_RECORDS),
-            f["positions/measured_pose"],
-            f["positions/times"],
-            f["positions/frame_count"],
-        )
+            written.append(f[f"{frames_group}/{name}"])
+            written[-1][index] = records[name]
+        for name, value in {**extra, "frame_count": np.int16(len(frames))}.items():
+            written.append(f[f"{flags_group}/{name}"])
+            written[-1][index] = value
+        self._flush(*written)
         complete[index] = 1  # the commit marker, written and flushed last
         self._flush(complete)
+
+    # --- calibration frames ----------------------------------------------------------------
+    def write_calibration(self, role: str, when: str, frames: list[RawFrame]) -> None:
+        """Write one calibration set (``docs/run-file.md``), then mark it complete.
+
+        Crash-safe like a position: the set is committed by its ``complete`` flag, so a reader
+        sees it whole or not at all. A set already complete is replaced.
+
+        Parameters
+        ----------
+        role : str
+            ``ambient`` (the light off, the room lit) or ``dark`` (the light off, the room dark,
+            or the shortest exposure where the room cannot be darkened).
+        when : str
+            ``before`` the first position or ``after`` the last.
+        frames : list of RawFrame
+            1 to 16 frames of ``frame_shape``, of one CFA pattern.
+
+        Raises
+        ------
+        RunFileError
+            An unknown role or time, a file of format version 1, bad frames (naming the set,
+            the frame and the field), or the write failed.
+        """
+        with self._mutex:
+            self._check_open()
+            slot = self._calibration_slot(role, when)
+            where = f"{self.path}: calibration {role} {when}"
+            records = self._frame_records(where, frames, int(self._f["calibration/raw"].shape[1]))
+            patterns = sorted({frame.cfa_pattern for frame in frames})
+            if len(patterns) > 1:
+                raise RunFileError(f"{where}: the frames mix CFA patterns ({', '.join(patterns)})")
+            try:
+                self._commit("calibration", "calibration", slot, records, frames, {})
+            except OSError as exc:
+                raise RunFileError(f"{where}: write failed: {h5_cause(exc)}") from None
+
+    def calibration_complete(self, role: str, when: str) -> bool:
+        """Whether the calibration set ``(role, when)`` is complete (False in a version-1 file)."""
+        with self._mutex:
+            self._check_open()
+            if "calibration" not in self._f:
+                calibration_slot(role, when)  # an unknown role or time is still an error
+                return False
+            return bool(self._f["calibration/complete"][self._calibration_slot(role, when)] == 1)
+
+    def _calibration_slot(self, role: str, when: str) -> int:
+        try:
+            slot = calibration_slot(role, when)
+        except RunFileError as exc:
+            raise RunFileError(f"{self.path}: {exc}") from None
+        if "calibration" not in self._f:
+            raise RunFileError(f"{self.path}: a run file of format version 1 has no room for calibration frames")
+        return slot
 
     def _flush(self, *datasets: h5py.Dataset) -> None:
         for dset in datasets:
