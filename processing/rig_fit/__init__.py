@@ -9,6 +9,16 @@ correction and the sources' places move, and :mod:`~processing.rig_fit.fit` fits
 
 from processing.rig_fit.correction import FITTED, HELD, RigCorrection, fitted_rig
 from processing.rig_fit.fit import RigFit, fit_rig
-from processing.rig_fit.problem import SilhouetteTerm, ball_image
+from processing.rig_fit.silhouette import SilhouetteTerm, coarse_correction, silhouette_term
 
-__all__ = ["FITTED", "HELD", "RigCorrection", "RigFit", "SilhouetteTerm", "ball_image", "fit_rig", "fitted_rig"]
+__all__ = [
+    "FITTED",
+    "HELD",
+    "RigCorrection",
+    "RigFit",
+    "SilhouetteTerm",
+    "coarse_correction",
+    "fit_rig",
+    "fitted_rig",
+    "silhouette_term",
+]

@@ -10,7 +10,8 @@ from threadpoolctl import threadpool_limits
 
 from drivers.contracts.rig import Tolerances
 from processing.rig_fit.correction import FITTED, HELD, RigCorrection, bounds
-from processing.rig_fit.problem import RigProblem, SilhouetteTerm
+from processing.rig_fit.problem import RigProblem
+from processing.rig_fit.silhouette import SilhouetteTerm
 from processing.unmixing.problem import LayoutData, LayoutProblem
 from processing.unmixing.sources import Source, SourcesError
 from processing.unmixing.templates import TemplateBuilder
@@ -36,8 +37,8 @@ class RigFit:
     at_bound : tuple of str
         Fitted numbers that ended at their tolerance's bound (the description is further off, or
         something else is).
-    silhouette_residual : tuple of float
-        The ball's image, fitted rig against the calibration frames: (x, y, radius) in σ.
+    silhouette : dict
+        The silhouette's term at the fitted rig (:meth:`SilhouetteTerm.record`), empty without one.
     """
 
     correction: RigCorrection
@@ -48,7 +49,7 @@ class RigFit:
     pixels: int
     evaluations: int
     at_bound: tuple[str, ...] = ()
-    silhouette_residual: tuple[float, ...] = ()
+    silhouette: dict = field(default_factory=dict)
     held: dict[str, str] = field(default_factory=lambda: dict(HELD))
 
     def record(self) -> dict:
@@ -64,7 +65,7 @@ class RigFit:
             "pixels": self.pixels,
             "evaluations": self.evaluations,
             "at_bound": list(self.at_bound),
-            "silhouette_residual_sigma": [round(r, 3) for r in self.silhouette_residual],
+            "silhouette": dict(self.silhouette),
         }
 
 
@@ -107,8 +108,9 @@ def fit_rig(
         problem = LayoutProblem(data, builder, cfa_pattern, layout, margin_px, inset_px)
         if not problem.windows or problem.pixels < 16:
             raise SourcesError("no position has a window where every template is whole")
-        rig = RigProblem(problem, builder.geometry, [item.tool for item in data], light_axis, silhouette)  # type: ignore[misc]
         limit = bounds(tolerances, builder.geometry)
+        tools = [item.tool for item in data]
+        rig = RigProblem(problem, builder.geometry, tools, light_axis, silhouette, limit)  # type: ignore[arg-type]
         n = len(FITTED)
         centres = np.array([s.centre for s in layout], float)
         radius = min(float(np.median([s.radius for s in layout])), max_radius)
@@ -145,7 +147,7 @@ def fit_rig(
         problem.pixels,
         int(result.nfev),
         at_bound,
-        tuple(float(r) for r in silhouette.residuals(geometry)) if silhouette is not None else (),
+        silhouette.record(geometry) if silhouette is not None else {},
     )
 
 

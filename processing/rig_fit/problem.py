@@ -10,45 +10,20 @@ centres and their common radius.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 
 from drivers.pose import Pose
 from processing.rig_fit.correction import FITTED, RigCorrection
+from processing.rig_fit.silhouette import SilhouetteTerm
 from processing.trace import RigGeometry, light_pose_at
 from processing.unmixing.problem import LayoutProblem
-
-
-@dataclass(frozen=True)
-class SilhouetteTerm:
-    """The ball's image measured on calibration frames: its centre and apparent radius in pixels,
-    each with its 1σ; the fit keeps the rig's prediction of them there."""
-
-    centre_px: tuple[float, float]
-    radius_px: float
-    sigma_px: tuple[float, float, float]
-
-    def residuals(self, geometry: RigGeometry) -> np.ndarray:
-        """(predicted − measured) / σ for the centre's x, y and the radius."""
-        centre, radius = ball_image(geometry)
-        measured = np.array([*self.centre_px, self.radius_px])
-        return (np.array([*centre, radius]) - measured) / np.asarray(self.sigma_px)
-
-
-def ball_image(geometry: RigGeometry) -> tuple[np.ndarray, float]:
-    """Where the rig puts the ball's image: the projection of its centre (pixels) and the
-    apparent radius of its silhouette, ``f·tan(asin(R/d))`` in pixels."""
-    centre = geometry.project(geometry.ball_centre[None, :])[0]
-    distance = float(np.linalg.norm(geometry.ball_centre - geometry.camera_centre))
-    radius = geometry.K[0, 0] * np.tan(np.arcsin(min(1.0, geometry.ball_radius / distance)))
-    return centre, float(radius)
 
 
 class RigProblem:
     """The weighted residuals of the data (and the silhouette) for a correction of the rig, the
     sources' centres (S, 2) and their common radius, over ``problem``'s fixed pixels.
 
+    ``prior`` is each fitted number's 1σ before the data (the rig's tolerance), or None.
     ``tools`` are the arm's tool poses of ``problem``'s positions (the data it was made from, in
     order): the light's poses follow the corrected arm frame. ``light_axis`` is the direction the
     correction's ``arm_along`` moves the arm (the light's axis, rig frame).
@@ -61,10 +36,12 @@ class RigProblem:
         tools: list[Pose],
         light_axis: np.ndarray,
         silhouette: SilhouetteTerm | None = None,
+        prior: np.ndarray | None = None,
     ):
         self.problem, self.geometry, self.tools = problem, geometry, tools
         self.light_axis = np.asarray(light_axis, float)
         self.silhouette = silhouette
+        self.prior = prior
         self.correction: RigCorrection | None = None
 
     def set_correction(self, correction: RigCorrection) -> RigGeometry:
@@ -77,11 +54,15 @@ class RigProblem:
         return geometry
 
     def residuals(self, correction: RigCorrection, centres: np.ndarray, radius: float) -> np.ndarray:
+        """The templates' weighted residuals, then the silhouette's misses in σ, then each fitted
+        number over its ``prior`` 1σ (the description's word, where the data say little)."""
         geometry = self.set_correction(correction)
-        templates = self.problem.solve(centres, radius)[0]
-        if self.silhouette is None:
-            return templates
-        return np.concatenate([templates, self.silhouette.residuals(geometry)])
+        parts = [self.problem.solve(centres, radius)[0]]
+        if self.silhouette is not None:
+            parts.append(self.silhouette.residuals(geometry))
+        if self.prior is not None:
+            parts.append(correction.vector / self.prior)
+        return np.concatenate(parts)
 
     def split(self, x: np.ndarray) -> tuple[RigCorrection, np.ndarray, float]:
         """A vector of the fit (the correction in its units, the centres and radius in mm) unpacked."""
