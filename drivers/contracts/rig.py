@@ -551,3 +551,14 @@ def load_rig(path: str | Path | None = None) -> Rig:
 def rig_to_toml_dict(rig: Rig) -> dict[str, Any]:
     """The rig as plain data (for storing inside run files), None values dropped."""
     return rig.model_dump(mode="json", exclude_none=True)
+
+
+def write_rig(rig: Rig, path: str | Path, comment: str = "") -> Path:
+    """``rig`` as a rig file at ``path`` (TOML; :func:`load_rig` reads it back the same), with
+    ``comment`` as its opening lines."""
+    import tomli_w  # noqa: PLC0415 - only the processing writes rig files; the daemon's start stays light
+
+    head = "".join(f"# {line}\n" if line else "#\n" for line in comment.splitlines())
+    path = Path(path)
+    path.write_text(head + tomli_w.dumps(rig_to_toml_dict(rig)), encoding="utf-8")
+    return path

@@ -230,7 +230,7 @@ def _fitted_aperture(
     prepare_task()
 
     with open_run(run_path) as run:
-        data, builder, cfa = _layout_data(run, results_file, ball_centre, picks, camera)
+        data, builder, cfa = layout_data(run, results_file, ball_centre, picks, camera)
         return fit_aperture(data, builder, cfa, list(layout))
 
 
@@ -247,11 +247,11 @@ def _fitted_sensor_distance(
     prepare_task()
 
     with open_run(run_path) as run:
-        data, builder, cfa = _layout_data(run, results_file, ball_centre, picks, camera)
+        data, builder, cfa = layout_data(run, results_file, ball_centre, picks, camera)
         return fit_sensor_distance(data, builder, cfa, list(layout), refit=refit)
 
 
-def _layout_data(
+def layout_data(
     run: RunFile, results_file: str, ball_centre: BallCentre, picks: Iterable[int], camera: CameraFit | None = None
 ) -> tuple[list[LayoutData], TemplateBuilder, str]:
     """The merged positions ``picks`` as the layout fits take them: (data, builder, cfa pattern)."""
@@ -417,7 +417,7 @@ def _refined_layout(
     prepare_task()
 
     with open_run(run_path) as run:
-        data, builder, cfa = _layout_data(run, results_file, ball_centre, picks, camera)
+        data, builder, cfa = layout_data(run, results_file, ball_centre, picks, camera)
         return refine_layout(data, builder, cfa, first, seeds)
 
 

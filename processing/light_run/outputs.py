@@ -9,13 +9,16 @@ from pathlib import Path
 
 import numpy as np
 
+from drivers.contracts.rig import rig_to_toml_dict, write_rig
+from drivers.contracts.version import __version__
 from processing.exports.ies import write_ies
 from processing.exports.ldt import write_ldt
 from processing.exports.tm25 import write_tm25
 from processing.light_run.errors import open_run
 from processing.light_run.light_fit import fit_light_model
 from processing.light_run.position import SourceRow, SourcesPlan
-from processing.light_run.records import ProcessReport, camera_provenance
+from processing.light_run.quality import judge
+from processing.light_run.records import ProcessReport, RigCalibration, camera_provenance
 from processing.light_run.samples import assemble_samples
 from processing.options import ProcessingOptions
 from processing.parallel import Compute
@@ -59,6 +62,12 @@ def finish_sources(
     )
     model.provenance["aperture_m"] = camera_provenance(report.aperture_fit, "--fit-aperture")
     model.provenance["sensor_distance_m"] = camera_provenance(report.sensor_distance_fit, "--fit-sensor-distance")
+    if report.rig_calibration is not None:
+        report.outputs["rig"] = [record_calibration(model.provenance, report.rig_calibration, out / run_path.stem)]
+    report.quality = judge(rows, report.rig_calibration)
+    model.quality = report.quality.record()
+    if not report.quality.ok:
+        log.warning("%s: %s", run_path, report.quality.line())
     report.light_model = model.save(out / f"{run_path.stem}.light.json")
     stem = out / run_path.stem
     luminaire = f"mirrorgonio run {run_path.stem}"
@@ -98,3 +107,18 @@ def finish_sources(
         timings["report"] = time.perf_counter() - clock
         report.outputs.update(exports.result())
     report.outputs["report"] = [drawn]
+
+
+def record_calibration(provenance: dict, calibration: RigCalibration, stem: Path) -> Path:
+    """The self-calibration in the light model's provenance (``rig_calibration``; the rig as
+    fitted becomes its ``rig_description``, the one described ``rig_described``), and the rig
+    as fitted written beside it (``RUN.rig-fitted.toml``, a rig file the daemon and later
+    processing can take). The rig file's path."""
+    provenance["rig_described"] = provenance["rig_description"]
+    provenance["rig_description"] = rig_to_toml_dict(calibration.rig)
+    provenance["rig_calibration"] = calibration.record()
+    note = (
+        f"The rig of run {stem.name} as fitted to its data by mirrorgonio {__version__} (self-calibration):\n"
+        + "\n".join(f"  {line}" for line in calibration.summary())
+    )
+    return write_rig(calibration.rig, stem.with_name(f"{stem.name}.rig-fitted.toml"), note)

@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from drivers.pose import Pose
-from processing.rig_fit.correction import FITTED, RigCorrection
+from processing.rig_fit.correction import RigCorrection
 from processing.rig_fit.silhouette import SilhouetteTerm
 from processing.trace import RigGeometry, light_pose_at
 from processing.unmixing.problem import LayoutProblem
@@ -63,8 +63,3 @@ class RigProblem:
         if self.prior is not None:
             parts.append(correction.vector / self.prior)
         return np.concatenate(parts)
-
-    def split(self, x: np.ndarray) -> tuple[RigCorrection, np.ndarray, float]:
-        """A vector of the fit (the correction in its units, the centres and radius in mm) unpacked."""
-        n = len(FITTED)
-        return RigCorrection.of(x[:n], self.light_axis), x[n:-1].reshape(-1, 2) * 1e-3, float(x[-1]) * 1e-3
