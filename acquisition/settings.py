@@ -27,6 +27,10 @@ class SettingsError(ValueError):
 
 
 class _Section(ConfigModel):
+    """A section of the settings. Each settings object has its own sections (``default_factory``):
+    they are changed in place (relative paths resolved, tests' overrides), which must not reach
+    another settings object."""
+
     model_config = ConfigDict(frozen=False)  # loading resolves relative paths in place
 
 
@@ -63,7 +67,7 @@ class ArmSettings(_Section):
     timeout_s: Seconds = 1.0
     retries: int = Field(default=3, ge=0)
     move_timeout_s: Seconds = 120.0
-    simulated: SimulatedStageSettings = SimulatedStageSettings()
+    simulated: SimulatedStageSettings = Field(default_factory=SimulatedStageSettings)
 
     @field_validator("profile")
     @classmethod
@@ -97,7 +101,7 @@ class CameraSettings(_Section):
     gphoto2_model: str | None = None
     capture_timeout_s: Seconds = 30.0
     keep_raw_files: bool = False
-    simulated: SimulatedCameraSettings = SimulatedCameraSettings()
+    simulated: SimulatedCameraSettings = Field(default_factory=SimulatedCameraSettings)
 
 
 #: The default ambient bracket of a run's calibration frames: room light, seconds.
@@ -147,10 +151,10 @@ class DaemonSettings(BaseSettings):
     port: int = Field(default=8000, ge=0, le=65535)
     token: SecretStr | None = None
     device_retries: int = Field(default=2, ge=0, description="retries of a transient device error")
-    arm: ArmSettings = ArmSettings()
-    camera: CameraSettings = CameraSettings()
-    light: LightSettings = LightSettings()
-    auto_bracket: AutoBracketSettings = AutoBracketSettings()
+    arm: ArmSettings = Field(default_factory=ArmSettings)
+    camera: CameraSettings = Field(default_factory=CameraSettings)
+    light: LightSettings = Field(default_factory=LightSettings)
+    auto_bracket: AutoBracketSettings = Field(default_factory=AutoBracketSettings)
     default_exposures_s: list[Seconds] = Field(default_factory=lambda: [0.0002, 0.001, 0.005])
 
     @property
