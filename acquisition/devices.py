@@ -1,4 +1,4 @@
-"""Build the arm and the camera the configuration names.
+"""Build the arm, the camera and the light switch the configuration names.
 
 The daemon knows devices only through the :mod:`drivers` interfaces; this module is the
 one place that turns configuration into concrete objects, the simulated rig included.
@@ -16,22 +16,27 @@ from drivers.camera import Camera
 from drivers.contracts.rig import Rig
 from drivers.folder_camera import FolderCamera
 from drivers.gphoto2_camera import Gphoto2Camera
+from drivers.light import SWEEP, LightSwitch, ManualLightSwitch, NoLightSwitch
 from drivers.modbus_arm import ModbusArm
 from drivers.modbus_profile import SIM_STAGE_PROFILE
 from drivers.serial_arm import MelfaSerialArm
-from sim_devices.camera import SimulatedCamera
+from sim_devices.camera import ROOM_RADIANCE, SimulatedCamera
 from sim_devices.lights import load_truth
-from sim_devices.world import SimWorld
+from sim_devices.world import SimulatedLightSwitch, SimWorld
 
 
 @dataclass
 class Devices:
-    """The devices of one rig, and what must be stopped when the daemon exits."""
+    """The devices of one rig, and what must be stopped when the daemon exits.
+
+    Without a ``light`` switch the runs take no calibration frames.
+    """
 
     arm: Arm
     camera: Camera
     simulated: dict = field(default_factory=dict)  # the simulated parts, for tests and health
     _closers: list = field(default_factory=list)
+    light: LightSwitch = field(default_factory=NoLightSwitch)
 
     def close(self) -> None:
         for closer in reversed(self._closers):
@@ -43,7 +48,7 @@ class Devices:
 
 
 def open_devices(settings: DaemonSettings, rig: Rig) -> Devices:
-    """Create, start and connect the configured arm and camera."""
+    """Create, start and connect the configured arm, camera and light switch."""
     closers: list = []
     simulated: dict = {}
     try:
@@ -51,11 +56,27 @@ def open_devices(settings: DaemonSettings, rig: Rig) -> Devices:
         camera = _open_camera(settings, rig, simulated, arm)
         camera.connect()
         closers.append(camera.close)
+        light = _open_light(settings, simulated)
     except BaseException:
         for closer in reversed(closers):
             closer()
         raise
-    return Devices(arm=arm, camera=camera, simulated=simulated, _closers=closers)
+    return Devices(arm=arm, camera=camera, simulated=simulated, _closers=closers, light=light)
+
+
+def _open_light(settings: DaemonSettings, simulated: dict) -> LightSwitch:
+    """The light switch: the simulated world's with the simulated camera, manual with any other
+    unless the settings name one."""
+    kind = settings.light.kind or ("simulated" if "world" in simulated else "manual")
+    if kind == "simulated":
+        if "world" not in simulated:
+            raise SettingsError("light.kind: the simulated light switch needs the simulated camera (camera.kind)")
+        switch: LightSwitch = SimulatedLightSwitch(simulated["world"])
+        simulated["light"] = switch
+        return switch
+    if kind == "manual":
+        return ManualLightSwitch()
+    return NoLightSwitch()
 
 
 def _open_arm(settings: DaemonSettings, rig: Rig, closers: list, simulated: dict) -> Arm:
@@ -113,12 +134,13 @@ def _open_camera(settings: DaemonSettings, rig: Rig, simulated: dict, arm: Arm) 
     spool = Path(settings.data_dir) / "spool"
     if cfg.kind == "simulated":
         light_to_tool, base = rig.light.light_to_tool.to_pose(), rig.arm.base.to_pose()
+        lights = {"light_on": SWEEP.light_on, "room_lit": SWEEP.room_lit}  # the lab as a sweep needs it
         if "stage" in simulated:  # the simulated stage in this process: its true pose
-            world = SimWorld(simulated["stage"].true_pose, light_to_tool, arm_base=base)
+            world = SimWorld(simulated["stage"].true_pose, light_to_tool, arm_base=base, **lights)
         else:
             # Any other arm (the simulated arm in its own process or container, or a real
             # one): the light is where the arm's controller says the tool is.
-            world = SimWorld.following(arm.position, light_to_tool, arm_base=base)
+            world = SimWorld.following(arm.position, light_to_tool, arm_base=base, **lights)
         sim = cfg.simulated
         camera = SimulatedCamera(
             rig,
@@ -128,6 +150,7 @@ def _open_camera(settings: DaemonSettings, rig: Rig, simulated: dict, arm: Arm) 
             noise=sim.noise,
             diffraction=sim.diffraction,
             latency_s=sim.latency_s,
+            environment_radiance=ROOM_RADIANCE if sim.room_radiance is None else sim.room_radiance,
         )
         simulated["world"] = world
         return camera

@@ -1,8 +1,9 @@
 """Build a run file from raw files captured elsewhere (``mirrorgonio import``).
 
 The input is a folder of raw files (any format :func:`drivers.raw_decode.decode_raw` reads:
-DNG, NEF, CR2, ARW, ...), a CSV that says which schedule position each file belongs to,
-and the rig TOML whose schedule those positions index (``docs/import.md``). The output is
+DNG, NEF, CR2, ARW, ...), a CSV that says which schedule position each file belongs to (or
+which calibration set: ambient or dark frames, before or after the sweep), and the rig TOML
+whose schedule those positions index (``docs/import.md``). The output is
 the same run file the daemon writes (``docs/run-file.md``), so it processes the same way.
 
 Nothing half-done is ever written. The import runs in three stages:
@@ -35,7 +36,17 @@ from pathlib import Path
 
 from drivers.camera import RawFrame
 from drivers.contracts.rig import Rig, RigError, load_rig
-from drivers.contracts.runfile import PositionTimes, RunFileError, RunFileWriter, RunHeader, file_sha256
+from drivers.contracts.runfile import (
+    CALIBRATION_MAX_FRAMES,
+    CALIBRATION_ROLES,
+    CALIBRATION_SETS,
+    CALIBRATION_WHENS,
+    PositionTimes,
+    RunFileError,
+    RunFileWriter,
+    RunHeader,
+    file_sha256,
+)
 from drivers.contracts.version import __version__
 from drivers.errors import RawFileError
 from drivers.pose import Pose
@@ -45,8 +56,11 @@ from drivers.raw_decode import RAW_EXTENSIONS, decode_raw
 REQUIRED_COLUMNS = ("file", "position")
 #: The measured tool pose, optional, all six or none: metres and degrees (like the rig TOML).
 POSE_COLUMNS = ("x_m", "y_m", "z_m", "rx_deg", "ry_deg", "rz_deg")
+#: What a row's frame is (the ``role`` column): a frame of the sweep, at a position, or a
+#: calibration frame (``docs/run-file.md``), in the set ``when`` names.
+ROLES = ("sweep", *CALIBRATION_ROLES)
 #: Every column an import CSV may have.
-KNOWN_COLUMNS = (*REQUIRED_COLUMNS, "exposure_s", *POSE_COLUMNS)
+KNOWN_COLUMNS = (*REQUIRED_COLUMNS, "exposure_s", "role", "when", *POSE_COLUMNS)
 
 #: Two exposures this close (relative) are the same exposure: a repeated frame.
 SAME_EXPOSURE_RTOL = 1e-6
@@ -71,20 +85,26 @@ class ImportRow:
         The ``file`` cell as written.
     path : Path
         The raw file, resolved against the folder.
-    position : int
-        The schedule position.
+    position : int or None
+        The schedule position; None for a calibration frame.
     exposure_s : float or None
         The CSV's exposure time, which overrides the file's; None to read it from the file.
     pose : Pose or None
         The measured tool pose the CSV gives (metres, radians), or None.
+    role : str
+        ``sweep``, or a calibration frame's role: ``ambient`` or ``dark``.
+    when : str
+        A calibration frame's set: ``before`` or ``after`` the sweep; empty for a sweep frame.
     """
 
     line: int
     name: str
     path: Path
-    position: int
+    position: int | None
     exposure_s: float | None = None
     pose: Pose | None = None
+    role: str = "sweep"
+    when: str = ""
 
 
 @dataclass(frozen=True)
@@ -114,6 +134,8 @@ class ImportReport:
         Positions of the rig's schedule (the run's length).
     positions_with_frames : list of int
         Positions written, complete.
+    calibration_sets : dict
+        The calibration sets written, ``"ambient before"`` and so on, with their frame counts.
     empty_positions : list of int
         Positions the CSV gives no frame for, left incomplete in the run file.
     frame_shape : tuple of int
@@ -121,7 +143,7 @@ class ImportReport:
     cfa_pattern : str
         The mosaics' CFA tile.
     exposures_s : list of float
-        Every exposure time imported, sorted, without repeats.
+        Every exposure time of the positions' frames, sorted, without repeats.
     cameras : list of str
         The cameras the files name.
     ignored_files : list of str
@@ -142,6 +164,7 @@ class ImportReport:
     cameras: list[str]
     ignored_files: list[str] = field(default_factory=list)
     exposure_overrides: int = 0
+    calibration_sets: dict[str, int] = field(default_factory=dict)
 
 
 def format_ranges(values: list[int]) -> str:
@@ -214,6 +237,7 @@ def _read_rows(reader, csv_path: Path, folder: Path, n_positions: int) -> list[I
     rows: list[ImportRow] = []
     seen_files: dict[Path, int] = {}
     position_pose: dict[int, tuple[Pose, int]] = {}
+    set_sizes: dict[tuple[str, str], int] = {}  # the frames of each calibration set so far
     for cells in reader:
         line = reader.line_num
         where = f"{csv_path}: line {line}"
@@ -227,10 +251,19 @@ def _read_rows(reader, csv_path: Path, folder: Path, n_positions: int) -> list[I
         if path in seen_files:
             raise RunImportError(f"{where}: file: {name!r} repeats the frame of line {seen_files[path]}")
         seen_files[path] = line
-        position = _row_position(values["position"], where, n_positions)
+        role, when = _row_role(values, where)
+        position = _row_position(values["position"], where, n_positions) if role == "sweep" else None
+        if position is None:
+            _check_calibration_row(values, where, (role, when), pose_given)
+            set_sizes[role, when] = set_sizes.get((role, when), 0) + 1
+            if set_sizes[role, when] > CALIBRATION_MAX_FRAMES:
+                raise RunImportError(
+                    f"{where}: role: more than {CALIBRATION_MAX_FRAMES} {role} frames {when} the sweep "
+                    f"(at most {CALIBRATION_MAX_FRAMES} a set)"
+                )
         exposure = _row_exposure(values.get("exposure_s", ""), where)
-        pose = _row_pose(values, where) if pose_given else None
-        if pose is not None:
+        pose = _row_pose(values, where) if pose_given and position is not None else None
+        if pose is not None and position is not None:
             if position in position_pose:
                 other, other_line = position_pose[position]
                 if other != pose:
@@ -240,10 +273,41 @@ def _read_rows(reader, csv_path: Path, folder: Path, n_positions: int) -> list[I
                     )
             else:
                 position_pose[position] = (pose, line)
-        rows.append(ImportRow(line, name, path, position, exposure, pose))
+        rows.append(ImportRow(line, name, path, position, exposure, pose, role, when))
     if not rows:
         raise RunImportError(f"{csv_path}: no frames: the CSV has a header but no rows")
+    if all(row.position is None for row in rows):
+        raise RunImportError(f"{csv_path}: no frames of the sweep: every row is a calibration frame")
     return rows
+
+
+def _row_role(values: dict[str, str], where: str) -> tuple[str, str]:
+    """The ``role`` and ``when`` cells: ``sweep`` (the default) without a time, or a calibration
+    role with its time (``before`` by default)."""
+    role = values.get("role", "").lower() or "sweep"
+    if role not in ROLES:
+        raise RunImportError(f"{where}: role: {values['role']!r} is not one of {', '.join(ROLES)}")
+    when = values.get("when", "").lower()
+    if role == "sweep":
+        if when:
+            raise RunImportError(f"{where}: when: only for calibration frames (role ambient or dark), not sweep")
+        return role, ""
+    when = when or "before"
+    if when not in CALIBRATION_WHENS:
+        raise RunImportError(f"{where}: when: {values['when']!r} is not one of {', '.join(CALIBRATION_WHENS)}")
+    return role, when
+
+
+def _check_calibration_row(values: dict[str, str], where: str, which: tuple[str, str], pose_given: bool) -> None:
+    """Check that a calibration frame's row names no position and no pose (it has neither)."""
+    role = which[0]
+    frame = f"{'an' if role == 'ambient' else 'a'} {role} frame"
+    if values["position"]:
+        raise RunImportError(
+            f"{where}: position: {frame} belongs to no position (leave it empty; got {values['position']!r})"
+        )
+    if pose_given and any(values[name] for name in POSE_COLUMNS):
+        raise RunImportError(f"{where}: x_m..rz_deg: {frame} has no pose (leave them empty)")
 
 
 def _read_columns(reader, csv_path: Path) -> list[str]:
@@ -363,13 +427,14 @@ def _check_frames(
         exposure = row.exposure_s if row.exposure_s is not None else float(frame.exposure_s)
         if not (exposure > 0 and math.isfinite(exposure)):  # decode_raw refuses these; be sure
             raise RunImportError(f"{where}: exposure_s: {row.name} has no positive exposure time")
-        for other, other_line in brackets.setdefault(row.position, []):
-            if math.isclose(other, exposure, rel_tol=SAME_EXPOSURE_RTOL):
-                raise RunImportError(
-                    f"{where}: position {row.position} already has a frame of exposure {exposure:g} s "
-                    f"(line {other_line}): the frame is repeated"
-                )
-        brackets[row.position].append((exposure, row.line))
+        if row.position is not None:  # calibration sets may repeat an exposure (several dark frames)
+            for other, other_line in brackets.setdefault(row.position, []):
+                if math.isclose(other, exposure, rel_tol=SAME_EXPOSURE_RTOL):
+                    raise RunImportError(
+                        f"{where}: position {row.position} already has a frame of exposure {exposure:g} s "
+                        f"(line {other_line}): the frame is repeated"
+                    )
+            brackets[row.position].append((exposure, row.line))
         checked.append(_Checked(shape, frame.cfa_pattern, exposure, float(frame.timestamp), frame.camera_id))
         del frame
         if progress:
@@ -467,16 +532,24 @@ def import_run(
     checked = _check_frames(rows, csv_path, rig_path, rig, progress)
 
     by_position: dict[int, list[int]] = {}  # the rows of each position with frames
+    by_set: dict[tuple[str, str], list[int]] = {}  # the rows of each calibration set
     for k, row in enumerate(rows):
-        by_position.setdefault(row.position, []).append(k)
+        if row.position is None:
+            by_set.setdefault((row.role, row.when), []).append(k)
+        else:
+            by_position.setdefault(row.position, []).append(k)
+    by_set = {pair: by_set[pair] for pair in CALIBRATION_SETS if pair in by_set}  # the file's order
     cameras = sorted({c.camera_id for c in checked})
     metadata = {**(metadata or {}), "imported_from": _sources(folder, csv_path, rig_path)}
     header = _run_header(rig, (tool_poses, light_poses), run_id or out.stem, metadata, checked, by_position, cameras)
+    header.calibration = {"switch": "import", "sets": [list(pair) for pair in by_set]}
+    if not by_set:
+        header.calibration["reason"] = "the import CSV gives no calibration frames"
     empty = [i for i in range(n) if i not in by_position]
     note = f"imported from {folder}: {len(by_position)} of {n} positions have frames"
     if empty:
         note += f"; positions {format_ranges(empty)} have none and are left incomplete"
-    _write_run(out, header, rows, checked, by_position, csv_path, note, progress)
+    _write_run(out, header, rows, checked, (by_position, by_set), csv_path, note, progress)
 
     return ImportReport(
         run_file=out,
@@ -487,10 +560,11 @@ def import_run(
         empty_positions=empty,
         frame_shape=checked[0].shape,
         cfa_pattern=checked[0].cfa_pattern,
-        exposures_s=sorted({c.exposure_s for c in checked}),
+        exposures_s=sorted({checked[k].exposure_s for ks in by_position.values() for k in ks}),
         cameras=cameras,
         ignored_files=_ignored_files(folder, rows),
         exposure_overrides=sum(row.exposure_s is not None for row in rows),
+        calibration_sets={f"{role} {when}": len(ks) for (role, when), ks in by_set.items()},
     )
 
 
@@ -561,13 +635,15 @@ def _write_run(
     header: RunHeader,
     rows: list[ImportRow],
     checked: list[_Checked],
-    by_position: dict[int, list[int]],
+    groups: tuple[dict[int, list[int]], dict[tuple[str, str], list[int]]],
     csv_path: Path,
     note: str,
     progress: Progress | None,
 ) -> None:
     """Stage 3: write the run in a hidden temporary file, decoding each raw file again, then
-    publish it at ``out``; the temporary file is removed whatever happens."""
+    publish it at ``out``; the temporary file is removed whatever happens. ``groups``: the
+    rows of each position, and of each calibration set."""
+    by_position, by_set = groups
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
@@ -585,6 +661,11 @@ def _write_run(
                 times = PositionTimes(min(stamps), min(stamps), max(stamps))
                 writer.write_position(position, pose, times, frames)
                 del frames
+                if progress:
+                    progress("writing", done, len(rows))
+            for (role, when), ks in by_set.items():
+                writer.write_calibration(role, when, [_decode_again(rows[k], checked[k], csv_path) for k in ks])
+                done += len(ks)
                 if progress:
                     progress("writing", done, len(rows))
             writer.set_status("complete", note)

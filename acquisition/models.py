@@ -7,6 +7,7 @@ from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, PositiveFloat, StrictBool, field_validator, model_validator
 
+from acquisition.settings import DEFAULT_AMBIENT_EXPOSURES_S
 from drivers.contracts.rig import MAX_POSITIONS, PoseSpec
 from processing.options import Estimator, FitChoice, FitMethod, NoiseSource
 from processing.steps import StepsError, resolve_steps
@@ -47,6 +48,26 @@ class AutoBracket(BaseModel):
 Bracket = Annotated[FixedBracket | AutoBracket, Field(discriminator="mode")]
 
 
+class CalibrationOptions(BaseModel):
+    """The run's calibration frames, taken with the measured light off (``docs/daemon.md``)."""
+
+    model_config = ConfigDict(
+        extra="forbid",
+        json_schema_extra={
+            "examples": [{"before": True, "after": True, "ambient_exposures_s": [0.01, 0.04, 0.16], "dark": True}]
+        },
+    )
+    before: StrictBool = Field(default=True, description="take calibration frames before the first position")
+    after: StrictBool = Field(default=False, description="and after the last position too (to see drift)")
+    ambient_exposures_s: list[Annotated[float, Field(gt=0.0, le=3600.0)]] = Field(
+        default_factory=lambda: list(DEFAULT_AMBIENT_EXPOSURES_S),
+        min_length=1,
+        max_length=16,
+        description="the bracket of the ambient frames (the light off, the room lit); default: the daemon's",
+    )
+    dark: StrictBool = Field(default=True, description="take dark frames too (the light off, the room dark)")
+
+
 class RunRequest(BaseModel):
     """Start a run: a schedule preset × a bracket × metadata."""
 
@@ -68,6 +89,10 @@ class RunRequest(BaseModel):
     poses: list[PoseSpec] | None = Field(default=None, max_length=10000, description="light poses, for preset 'poses'")
     count: int | None = Field(default=None, ge=1, le=MAX_POSITIONS, description="take only the first COUNT positions")
     bracket: Bracket = Field(default_factory=lambda: FixedBracket(exposures_s=[0.0002, 0.001, 0.005]))
+    calibration: CalibrationOptions = Field(
+        default_factory=CalibrationOptions,
+        description="calibration frames with the light off, before (and after) the sweep",
+    )
     operator: str = Field(default="", max_length=200)
     light_source: str = Field(default="", max_length=200)
     notes: str = Field(default="", max_length=4000)
@@ -171,6 +196,7 @@ class RunStatus(BaseModel):
                     "finished_utc": None,
                     "exposures_per_position": 3,
                     "file_url": "/runs/run-20261121-134501-3f2a/file",
+                    "step": "sweep: position 13 of 66",
                 }
             ]
         }
@@ -189,6 +215,11 @@ class RunStatus(BaseModel):
     finished_utc: datetime | None
     exposures_per_position: int | None
     file_url: str
+    step: str | None = Field(
+        default=None,
+        description="what the run is doing now (the calibration frames, the sweep), or what the operator must "
+        "do before resuming it; None when the run is not in progress",
+    )
 
 
 class JobStatus(BaseModel):

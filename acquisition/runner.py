@@ -6,6 +6,12 @@ its fault is cleared). Pause takes effect between frames; abort stops the arm an
 every frame taken; a transient device error is retried, a persistent one fails the run
 with the device's own message.
 
+A run takes calibration frames with the measured light off (``docs/daemon.md``): with the arm
+at the first position, ambient frames (the room lit) and dark frames (the room dark), then the
+light goes back on for the sweep; after the last position the same again when the request
+asks for it. The light switch is a device; a manual one pauses the run with what the operator
+must do, and the operator resumes it. A resumed run takes only the sets its file lacks.
+
 Frames of position i are written by a writer thread while the arm already moves to
 position i + 1, so the software's time hides behind the hardware's.
 """
@@ -34,11 +40,15 @@ from drivers.contracts.rig import LightSweep, ObjectArc, Raster, Rig, RigError, 
 from drivers.contracts.runfile import PositionTimes, RunFileWriter, RunHeader, file_sha256
 from drivers.contracts.version import __version__
 from drivers.errors import CommunicationError, DeviceError, DeviceTimeoutError, MoveInterruptedError
+from drivers.light import AMBIENT, DARK, SWEEP, Lighting
 from drivers.pose import Pose
 
 log = logging.getLogger("mirrorgonio.runner")
 
 ACTIVE_STATES = ("queued", "running", "paused")
+
+#: How a run whose room cannot be darkened takes its dark frames (``RunHeader.calibration``).
+DARK_IN_LIT_ROOM = "shortest exposure, room lit"
 
 
 class RunEngineError(Exception):
@@ -77,6 +87,17 @@ class _WriteBehind:
     errors: list[BaseException] = field(default_factory=list)
     durations: list[float] = field(default_factory=list)
     thread: threading.Thread | None = None
+
+
+@dataclass
+class _Arrival:
+    """The arm arrived at position ``index``: the pose it read back, and when the move started
+    and ended (unix s)."""
+
+    index: int
+    measured: Pose
+    move_started: float
+    in_position: float
 
 
 @dataclass
@@ -141,6 +162,7 @@ class RunEngine:
         self.latest_frame_run: str | None = None
         self._preview_cache: tuple[int, bytes] | None = None
         self._frame_serial = 0
+        self._step: str | None = None
         Path(settings.runs_dir).mkdir(parents=True, exist_ok=True)
 
     # --- presets ---------------------------------------------------------------------------
@@ -298,6 +320,10 @@ class RunEngine:
             self._notify()
             self._thread.join(timeout=30)
 
+    def step(self, run_id: str) -> str | None:
+        """What run ``run_id`` is doing now (``RunStatus.step``); None unless it is in progress."""
+        return self._step if run_id == self._current and self.busy else None
+
     def preview(self) -> bytes | None:
         frame, serial = self.latest_frame, self._frame_serial
         if frame is None:
@@ -393,7 +419,26 @@ class RunEngine:
             created_utc=datetime.now(UTC).isoformat(timespec="seconds"),
             preset=request.preset,
             references=self.references(plan.rig, request),
+            calibration=self._calibration_plan(request),
         )
+
+    def _calibration_plan(self, request: RunRequest) -> dict:
+        """The calibration sets a new run takes, and how (``RunHeader.calibration``)."""
+        options, switch = request.calibration, self.devices.light
+        plan: dict = {"switch": switch.identity, "sets": []}
+        if not switch.takes_calibration:
+            return {**plan, "reason": "the daemon has no light switch (light.kind = none)"}
+        roles = ["ambient", "dark"] if options.dark else ["ambient"]
+        for when, asked in (("before", options.before), ("after", options.after)):
+            plan["sets"] += [[role, when] for role in roles] if asked else []
+        if not plan["sets"]:
+            return {**plan, "reason": "the run request asked for none"}
+        plan["ambient_exposures_s"] = list(options.ambient_exposures_s)
+        if options.dark and self.settings.light.room_can_be_dark:
+            plan.update(dark="room dark", dark_exposures_s=list(options.ambient_exposures_s))
+        elif options.dark:
+            plan.update(dark=DARK_IN_LIT_ROOM, dark_exposures_s=[self.settings.light.dark_exposure_s])
+        return plan
 
     def _discard_raw(self, frame: RawFrame) -> None:
         if not self.settings.camera.keep_raw_files and frame.source:
@@ -437,15 +482,26 @@ class RunEngine:
         return writer
 
     def _take_positions(self, plan: RunPlan, writer: RunFileWriter, behind: _WriteBehind) -> None:
-        """Every position the run file does not hold complete, in order, until the last is written."""
+        """The calibration frames before the sweep, every position the run file does not hold
+        complete, in order, until the last is written, then the calibration frames after it.
+
+        The calibration frames before are taken at the first position to take, and that
+        position's frames follow without another move; those after, at the last position.
+        """
         index = writer.first_incomplete()
+        arrival = self._calibrate(plan, writer, "before", 0 if index is None else index)
+        if index is not None:
+            self._ready_for_sweep(plan.run_id, bool(_calibration_sets(writer.header.calibration)))
         while index is not None and index < len(plan.tool_poses):
             if writer.complete[index]:
                 index += 1
                 continue
             try:
-                self._take_position(plan, index, behind.queue, behind.durations)
+                arrival = self._take_position(
+                    plan, index, behind, arrival if arrival and arrival.index == index else None
+                )
             except _OperatorStop:
+                arrival = None
                 self._pause_after_stop(plan.run_id, index)
                 continue  # re-take this position once resumed
             if behind.errors:
@@ -454,6 +510,104 @@ class RunEngine:
         behind.queue.join()
         if behind.errors:
             raise behind.errors[0]
+        last = len(plan.tool_poses) - 1
+        self._calibrate(plan, writer, "after", last, arrival if arrival and arrival.index == last else None)
+
+    def _move(self, plan: RunPlan, index: int) -> _Arrival:
+        """Move the arm to position ``index``."""
+        move_started = self._wall()
+        measured = self._device(
+            "move", self.devices.arm.move_to, plan.tool_poses[index], timeout=self.settings.arm.move_timeout_s
+        )
+        return _Arrival(index, measured, move_started, self._wall())
+
+    # --- calibration frames ----------------------------------------------------------------
+    def _calibrate(
+        self, plan: RunPlan, writer: RunFileWriter, when: str, index: int, arrival: _Arrival | None = None
+    ) -> _Arrival | None:
+        """Take the run's calibration sets of ``when`` (``before`` or ``after`` the sweep) that the
+        run file does not hold complete, with the arm at position ``index`` (moved there unless
+        ``arrival`` says it is). Returns the arm's arrival there, if it moved or was there."""
+        calibration = writer.header.calibration
+        pending = [role for role, at in _calibration_sets(calibration) if at == when]
+        pending = [role for role in pending if not writer.calibration_complete(role, when)]
+        if not pending:
+            return arrival
+        if not self.devices.light.takes_calibration:
+            log.warning("run %s: no light switch: the calibration frames %s the sweep are not taken", plan.run_id, when)
+            return arrival
+        for role in pending:
+            lighting, exposures = _calibration_shot(calibration, role)
+            while True:
+                try:
+                    self._checkpoint()
+                    if arrival is None:
+                        self._set_step(f"calibration: moving to position {index} for the frames {when} the sweep")
+                        arrival = self._move(plan, index)
+                    frames = self._calibration_frames(plan.run_id, (role, when), lighting, exposures)
+                    break
+                except _OperatorStop:
+                    arrival = None
+                    self._pause_after_stop(plan.run_id, index)  # taken again once resumed
+            writer.write_calibration(role, when, frames)
+            for frame in frames:
+                self._discard_raw(frame)
+        return arrival
+
+    def _calibration_frames(
+        self, run_id: str, which: tuple[str, str], lighting: Lighting, exposures: list[float]
+    ) -> list[RawFrame]:
+        """One calibration set's frames, the lights in ``lighting``."""
+        role, when = which
+        self._switch(run_id, lighting)
+        frames: list[RawFrame] = []
+        for k, exposure in enumerate(exposures):
+            self._checkpoint()
+            self._set_step(
+                f"calibration: {role} frames {when} the sweep ({lighting.describe()}), "
+                f"frame {k + 1} of {len(exposures)}"
+            )
+            frame = self._device("calibration capture", self.devices.camera.capture, exposure)
+            frames.append(frame)
+            self._show(run_id, frame)
+        return frames
+
+    def _ready_for_sweep(self, run_id: str, calibrates: bool) -> None:
+        """The light on and the room dark before the sweep: after calibration frames, or whenever
+        the switch left them otherwise. A switch whose state is unknown (a manual one when the
+        daemon has just started) is left alone unless the run takes calibration frames."""
+        switch = self.devices.light
+        if switch.takes_calibration and switch.state != SWEEP and (switch.state is not None or calibrates):
+            self._switch(run_id, SWEEP)
+
+    def _switch(self, run_id: str, lighting: Lighting) -> None:
+        """Put the lights in ``lighting``: at once, or once the operator has done it and resumed."""
+        switch = self.devices.light
+        if switch.state == lighting:
+            return
+        instruction = switch.instruction(lighting)
+        if instruction is not None:
+            self._wait_for_operator(run_id, instruction)
+        self._device("light switch", switch.set, lighting)
+
+    def _wait_for_operator(self, run_id: str, instruction: str) -> None:
+        """Pause the run, saying what the operator must do; return when it is resumed."""
+        log.info("run %s paused for the operator: %s", run_id, instruction)
+        with self._lock:
+            if self.catalog.get_run(run_id).state != "paused":
+                self.catalog.transition_run(run_id, "paused")
+            self._control.pause.set()
+        self._set_step(f"waiting for the operator: {instruction}")
+        self._checkpoint()
+
+    def _set_step(self, step: str) -> None:
+        self._step = step
+        self.events.publish()
+
+    def _show(self, run_id: str, frame: RawFrame) -> None:
+        """The frame the preview shows."""
+        self.latest_frame, self.latest_frame_run = frame, run_id
+        self._frame_serial += 1
 
     def _write_loop(self, run_id: str, writer: RunFileWriter, behind: _WriteBehind) -> None:
         """The writer thread: write each position handed over, and record the run's progress.
@@ -514,30 +668,32 @@ class RunEngine:
         if state != outcome:
             self.catalog.transition_run(run_id, outcome, error=message or None)
         self._current = None if outcome != "paused" else run_id
+        self._step = None
         self.events.publish()
 
-    def _take_position(self, plan: RunPlan, index: int, write_queue: queue.Queue, durations: list[float]) -> None:
+    def _take_position(
+        self, plan: RunPlan, index: int, behind: _WriteBehind, arrival: _Arrival | None = None
+    ) -> _Arrival:
+        """Move to position ``index`` (unless ``arrival`` says the arm is there), take its bracket
+        and hand it to the writer thread."""
         started = self._mono()
         self._checkpoint()
         self.catalog.update_progress(plan.run_id, positions_done=self._done(plan), current_position=index)
-        self.events.publish()
-        move_started = self._wall()
-        measured = self._device(
-            "move", self.devices.arm.move_to, plan.tool_poses[index], timeout=self.settings.arm.move_timeout_s
-        )
-        in_position = self._wall()
+        self._set_step(f"sweep, position {index}")
+        if arrival is None:
+            arrival = self._move(plan, index)
         exposures = self._bracket(plan.request.bracket)
         frames: list[RawFrame] = []
         for exposure in exposures:
             self._checkpoint()
             frame = self._device("capture", self.devices.camera.capture, exposure)
             frames.append(frame)
-            self.latest_frame, self.latest_frame_run = frame, plan.run_id
-            self._frame_serial += 1
-        times = PositionTimes(move_started, in_position, self._wall())
-        durations.append(self._mono() - started)
+            self._show(plan.run_id, frame)
+        times = PositionTimes(arrival.move_started, arrival.in_position, self._wall())
+        behind.durations.append(self._mono() - started)
         # Blocks only while the previous position is still being written.
-        write_queue.put((index, measured, times, frames))
+        behind.queue.put((index, arrival.measured, times, frames))
+        return arrival
 
     def _done(self, plan: RunPlan) -> int:
         return self.catalog.get_run(plan.run_id).positions_done
@@ -548,3 +704,17 @@ class RunEngine:
         self._control.pause.set()
         self._control.operator_stop.clear()
         self.events.publish()
+
+
+def _calibration_sets(calibration: dict) -> list[tuple[str, str]]:
+    """The ``(role, when)`` sets a run's calibration plan (``RunHeader.calibration``) names."""
+    sets = calibration.get("sets", []) if isinstance(calibration, dict) else []
+    return [(str(entry[0]), str(entry[1])) for entry in sets if isinstance(entry, list | tuple) and len(entry) == 2]
+
+
+def _calibration_shot(calibration: dict, role: str) -> tuple[Lighting, list[float]]:
+    """The lights and the exposures of a calibration set of ``role``, as the run's plan says."""
+    if role == "ambient":
+        return AMBIENT, [float(t) for t in calibration["ambient_exposures_s"]]
+    lighting = AMBIENT if calibration.get("dark") == DARK_IN_LIT_ROOM else DARK
+    return lighting, [float(t) for t in calibration["dark_exposures_s"]]

@@ -27,6 +27,10 @@ class SettingsError(ValueError):
 
 
 class _Section(ConfigModel):
+    """A section of the settings. Each settings object has its own sections (``default_factory``):
+    they are changed in place (relative paths resolved, tests' overrides), which must not reach
+    another settings object."""
+
     model_config = ConfigDict(frozen=False)  # loading resolves relative paths in place
 
 
@@ -63,7 +67,7 @@ class ArmSettings(_Section):
     timeout_s: Seconds = 1.0
     retries: int = Field(default=3, ge=0)
     move_timeout_s: Seconds = 120.0
-    simulated: SimulatedStageSettings = SimulatedStageSettings()
+    simulated: SimulatedStageSettings = Field(default_factory=SimulatedStageSettings)
 
     @field_validator("profile")
     @classmethod
@@ -77,10 +81,15 @@ class ArmSettings(_Section):
 
 
 class SimulatedCameraSettings(_Section):
+    """The simulated camera: the truth light, noise, diffraction, the time a capture takes, and
+    the radiance of the simulated room while its lights are on (the simulated camera's
+    ``ROOM_RADIANCE`` when not given)."""
+
     truth: str | None = None
     noise: bool | None = None
     diffraction: bool | None = None
     latency_s: float = Field(default=0.0, ge=0.0, le=DAY_S)
+    room_radiance: float | None = Field(default=None, ge=0.0, le=1e9)
 
 
 class CameraSettings(_Section):
@@ -92,7 +101,30 @@ class CameraSettings(_Section):
     gphoto2_model: str | None = None
     capture_timeout_s: Seconds = 30.0
     keep_raw_files: bool = False
-    simulated: SimulatedCameraSettings = SimulatedCameraSettings()
+    simulated: SimulatedCameraSettings = Field(default_factory=SimulatedCameraSettings)
+
+
+#: The default ambient bracket of a run's calibration frames: room light, seconds.
+DEFAULT_AMBIENT_EXPOSURES_S = (0.01, 0.04, 0.16)
+
+
+class LightSettings(_Section):
+    """The light switch a run's calibration frames need (``docs/daemon.md``, "Calibration frames").
+
+    ``kind``: ``simulated`` (the simulated world's lights; the default with the simulated
+    camera), ``manual`` (the run pauses and tells the operator what to switch; the default
+    with any other camera) or ``none`` (runs take no calibration frames).
+    ``room_can_be_dark`` False: dark frames are taken with the room lit, at
+    ``dark_exposure_s`` (the camera's shortest exposure), for the black level only.
+    ``ambient_exposures_s``: the ambient bracket of a run request that does not give one.
+    """
+
+    kind: Literal["simulated", "manual", "none"] | None = None
+    room_can_be_dark: bool = True
+    dark_exposure_s: Seconds = 1e-4
+    ambient_exposures_s: list[Annotated[float, Field(gt=0.0, le=3600.0)]] = Field(
+        default_factory=lambda: list(DEFAULT_AMBIENT_EXPOSURES_S), min_length=1, max_length=16
+    )
 
 
 class AutoBracketSettings(_Section):
@@ -119,9 +151,10 @@ class DaemonSettings(BaseSettings):
     port: int = Field(default=8000, ge=0, le=65535)
     token: SecretStr | None = None
     device_retries: int = Field(default=2, ge=0, description="retries of a transient device error")
-    arm: ArmSettings = ArmSettings()
-    camera: CameraSettings = CameraSettings()
-    auto_bracket: AutoBracketSettings = AutoBracketSettings()
+    arm: ArmSettings = Field(default_factory=ArmSettings)
+    camera: CameraSettings = Field(default_factory=CameraSettings)
+    light: LightSettings = Field(default_factory=LightSettings)
+    auto_bracket: AutoBracketSettings = Field(default_factory=AutoBracketSettings)
     default_exposures_s: list[Seconds] = Field(default_factory=lambda: [0.0002, 0.001, 0.005])
 
     @property

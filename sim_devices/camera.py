@@ -3,7 +3,10 @@ decodes it back.
 
 Every frame goes through the same decode path as a real camera's raw file
 (:func:`drivers.raw_decode.decode_raw`), so the acquisition cannot tell the difference.
-The light's pose comes from the shared :class:`~sim_devices.world.SimWorld`.
+The light's pose, and whether the light and the room are lit, come from the shared
+:class:`~sim_devices.world.SimWorld`: the light's emitters are rendered only while it shines,
+the room (a uniform environment the ball reflects) only while it is lit. With both dark a
+frame is the sensor's bias and read noise.
 """
 
 from __future__ import annotations
@@ -24,6 +27,13 @@ from sim_devices.lights import TruthLight, load_truth
 from sim_devices.optics import MirrorBallRenderer, Rendering
 from sim_devices.sensor import SensorModel
 from sim_devices.world import SimWorld
+
+#: The simulated lab's room radiance when its lights are on (the daemon's simulated camera).
+#: The ball's brightest pixels then gather about 99 000 e⁻/s with the default optics (a
+#: chrome ball reflects 55 % at normal incidence; sensitivity 1000 e⁻/s per unit radiance):
+#: at the daemon's default ambient bracket (10, 40 and 160 ms) 5, 20 and 79 % of the full
+#: well, the longest frame well exposed and unclipped.
+ROOM_RADIANCE = 180.0
 
 
 class SimulatedCamera(Camera):
@@ -49,10 +59,11 @@ class SimulatedCamera(Camera):
     latency_s : float
         Time a capture takes beyond the exposure (0 for benchmarks).
     environment_radiance : float or (R, G, B)
-        Uniform radiance of the room the ball reflects (0, a dark room, by default): a
+        Uniform radiance of the room the ball reflects while the world's room is lit (0, a
+        dark room, by default; :data:`ROOM_RADIANCE` for the daemon's simulated lab): a
         calibration frame shows the ball as a bright disc against a dark background.
-        Settable later, as is ``light_on`` (False: the light's emitters are dark, its
-        housing still in place), for taking a calibration frame between runs.
+        Settable later, as is ``light_on`` (the world's: False, the light's emitters are
+        dark, its housing still in place), for taking a calibration frame between runs.
     """
 
     def __init__(
@@ -102,32 +113,47 @@ class SimulatedCamera(Camera):
         self._sleep = sleep
         self.latency_s = latency_s
         self._counter = itertools.count()
-        self._cached_pose = None
-        self._cached: Rendering | None = None
-        self.light_on = True
+        # The last rendering of each state of the lights, with the pose it is for: calibration
+        # frames (the light off) between sweeps do not throw away the sweep's rendering.
+        self._cached: dict[tuple[bool, bool], tuple[tuple, Rendering]] = {}
+        self._room = self.renderer.environment.copy()
 
     @property
     def environment_radiance(self):
-        return self.renderer.environment.copy()
+        """The room's radiance (R, G, B) while it is lit."""
+        return self._room.copy()
 
     @environment_radiance.setter
     def environment_radiance(self, value) -> None:
-        self.renderer.set_environment(value)
-        self._cached_pose = None
+        self.renderer.set_environment(value)  # checked there
+        self._room = self.renderer.environment.copy()
+        self._cached.clear()
+
+    @property
+    def light_on(self) -> bool:
+        """Whether the light shines (the world's state, shared with its light switch)."""
+        return self.world.light_on
+
+    @light_on.setter
+    def light_on(self, value: bool) -> None:
+        self.world.light_on = bool(value)
 
     @property
     def identity(self) -> str:
         return f"mirrorgonio {self.name} {self.serial}"
 
     def rendering(self) -> Rendering:
-        """The noise-free expected electron rates for the light's current pose."""
+        """The noise-free expected electron rates for the light's current pose and the lights' state."""
         pose = self.world.light_pose()
-        key = (*(round(v, 10) for v in pose.as_tuple()), self.light_on)
-        if key != self._cached_pose:
-            self.renderer.truth = self.truth if self.light_on else None
-            self._cached = self.renderer.render(pose)
-            self._cached_pose = key
-        return self._cached
+        lights = (self.world.light_on, self.world.room_lit)
+        key = tuple(round(v, 10) for v in pose.as_tuple())
+        cached = self._cached.get(lights)
+        if cached is None or cached[0] != key:
+            self.renderer.truth = self.truth if lights[0] else None
+            self.renderer.set_environment(self._room if lights[1] else 0.0)
+            cached = (key, self.renderer.render(pose))
+            self._cached[lights] = cached
+        return cached[1]
 
     def capture(self, exposure_s: float) -> RawFrame:
         return self.capture_to(self.out_dir / f"sim-{next(self._counter):06d}.dng", exposure_s)

@@ -1,4 +1,4 @@
-"""The simulated world shared by the simulated arm and camera.
+"""The simulated world shared by the simulated arm, camera and light switch.
 
 The camera learns where the light is from here: the arm's tool pose composed with the
 light-to-tool transform, never from the acquisition code's schedule. Where the tool
@@ -9,17 +9,23 @@ pose comes from depends on where the arm is:
   Modbus TCP, or a real arm): the pose its controller reads back through the driver, so
   the simulated camera photographs the light where the arm actually is
   (:meth:`SimWorld.following`).
+
+The world also holds the state of the lights: whether the measured light shines and whether
+the room is lit. The camera renders the light's emitters only while it shines and the room
+(its environment radiance) only while it is lit; :class:`SimulatedLightSwitch` is the
+daemon's switch of them.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
 
+from drivers.light import Lighting, LightSwitch
 from drivers.pose import Pose
 
 
 class SimWorld:
-    """Where the light is, right now.
+    """Where the light is, right now, and whether it and the room are lit.
 
     Parameters
     ----------
@@ -34,6 +40,11 @@ class SimWorld:
         tool stands still. A reading within these of the pose returned last is taken as
         the same pose, so the camera renders a standing light once, not once per frame.
         Zero (the default, for a true pose) returns every reading as it is.
+    light_on : bool
+        The measured light shines (its emitters are rendered; its housing is always there).
+    room_lit : bool
+        The room is lit: the camera renders its environment radiance (a camera's default
+        environment is dark anyway, so a world built without a room state changes nothing).
     """
 
     def __init__(
@@ -44,8 +55,12 @@ class SimWorld:
         arm_base: Pose | None = None,
         hold_within_m: float = 0.0,
         hold_within_rad: float = 0.0,
+        light_on: bool = True,
+        room_lit: bool = True,
     ):
         self._tool_pose = tool_pose
+        self.light_on = light_on
+        self.room_lit = room_lit
         self.light_to_tool = light_to_tool or Pose(0.0, 0.0, 0.0)
         self.arm_base = arm_base
         self.hold_within_m = hold_within_m
@@ -61,6 +76,8 @@ class SimWorld:
         arm_base: Pose | None = None,
         hold_within_m: float = 50e-6,
         hold_within_rad: float = 2e-4,
+        light_on: bool = True,
+        room_lit: bool = True,
     ) -> SimWorld:
         """A world whose light follows an arm known only through its read-back pose.
 
@@ -70,7 +87,7 @@ class SimWorld:
         0.01 mrad) and of a lab arm's encoders, and far below the spacing of any schedule.
         """
         hold = {"hold_within_m": hold_within_m, "hold_within_rad": hold_within_rad}
-        return cls(read_tool_pose, light_to_tool, arm_base=arm_base, **hold)
+        return cls(read_tool_pose, light_to_tool, arm_base=arm_base, light_on=light_on, room_lit=room_lit, **hold)
 
     def tool_pose(self) -> Pose:
         pose = self._tool_pose()
@@ -88,3 +105,23 @@ class SimWorld:
         """The light's pose in the rig frame: ``arm_base ∘ tool ∘ light_to_tool``."""
         light = self.tool_pose().compose(self.light_to_tool)
         return light if self.arm_base is None else self.arm_base.compose(light)
+
+    @property
+    def lighting(self) -> Lighting:
+        """The lights' state now."""
+        return Lighting(light_on=self.light_on, room_lit=self.room_lit)
+
+
+class SimulatedLightSwitch(LightSwitch):
+    """The light switch of the simulated rig: it tells the :class:`SimWorld` the lights' state."""
+
+    name = "simulated light switch"
+
+    def __init__(self, world: SimWorld):
+        super().__init__()
+        self.world = world
+        self.state = world.lighting
+
+    def set(self, lighting: Lighting) -> None:
+        self.world.light_on, self.world.room_lit = lighting.light_on, lighting.room_lit
+        self.state = lighting

@@ -475,3 +475,45 @@ def test_real_gphoto2_camera_captures_a_raw_frame(tmp_path):
     # The nearest shutter step of any camera is within a third of a stop or so.
     assert 1 / 200 < frame.exposure_s < 1 / 50
     assert Path(frame.source).suffix.lower() in RAW_EXTENSIONS
+
+
+# -- the simulated camera and the lights of the simulated world --------------------------
+def test_the_simulated_camera_renders_the_light_only_when_on_and_the_room_only_when_lit(tmp_path):
+    from conftest import rig_with
+
+    from drivers.light import AMBIENT, DARK, SWEEP, Lighting
+    from sim_devices.camera import ROOM_RADIANCE, SimulatedCamera
+    from sim_devices.world import SimulatedLightSwitch, SimWorld
+
+    rig = rig_with(camera__width=250, camera__height=164, camera__pixel_pitch_m=47.2e-6)
+    pose = rig.tool_poses()[33]  # the light faces the camera
+    world = SimWorld(lambda: pose, rig.light.light_to_tool.to_pose(), light_on=True, room_lit=False)
+    camera = SimulatedCamera(rig, world, tmp_path, seed=1, diffraction=False, environment_radiance=ROOM_RADIANCE)
+    switch = SimulatedLightSwitch(world)
+    assert switch.state == SWEEP  # as the world was built
+    rates = {}
+    for lighting in (SWEEP, AMBIENT, DARK, Lighting(light_on=True, room_lit=True)):
+        switch.set(lighting)
+        assert (world.light_on, world.room_lit) == (lighting.light_on, lighting.room_lit)
+        rates[lighting] = camera.rendering().rate
+    sweep, ambient, dark, both = rates.values()
+    assert not dark.any()  # nothing lit: a dark frame is the bias and the read noise
+    # The sweep: the emitters' reflection, a few pixels; the room: the whole ball, at the
+    # Fresnel reflectance of chrome (about 0.55 head-on) times the sensitivity and the radiance.
+    assert 0 < np.count_nonzero(sweep.sum(axis=0)) < 0.02 * sweep[0].size
+    assert np.count_nonzero(ambient.sum(axis=0)) > 0.3 * ambient[0].size
+    assert ambient.max() == pytest.approx(0.55 * rig.camera.sensitivity_e_per_s * ROOM_RADIANCE, rel=0.05)
+    assert both.sum() == pytest.approx(sweep.sum() + ambient.sum(), rel=0.01)  # both, less what the emitters hide
+    # One rendering kept per state of the lights: back to the sweep, nothing is rendered again.
+    switch.set(SWEEP)
+    assert camera.rendering().rate is sweep
+    # The camera's own switch of the light is the world's.
+    camera.light_on = False
+    assert not world.light_on and not camera.rendering().rate.any()
+    frame = camera.capture(0.1)
+    black, gain = (
+        rig.camera.black_level_dn,
+        rig.camera.full_well_e / (rig.camera.white_level - rig.camera.black_level_dn),
+    )
+    assert abs(frame.mosaic.mean() - black) < 0.05
+    assert frame.mosaic.std() == pytest.approx(np.hypot(rig.camera.read_noise_e / gain, 12**-0.5), rel=0.25)

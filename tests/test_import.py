@@ -151,6 +151,49 @@ def test_a_common_bracket_is_recorded_as_fixed(tmp_path, tiny_rig):
         assert run.header.run_id == "run-x"
 
 
+def test_calibration_frames_are_imported_by_their_role(tmp_path, tiny_rig):
+    raw = tmp_path / "raw"
+    specs = [("s1.dng", 0.001), ("s2.dng", 0.004), ("amb1.dng", 0.02), ("amb2.dng", 0.08)]
+    specs += [("dark1.dng", 0.02), ("dark2.dng", 0.02), ("late.dng", 0.02)]
+    mosaics = write_frames(raw, specs)
+    csv = write_csv(
+        tmp_path / "p.csv",
+        "file,position,role,when,exposure_s",
+        "amb1.dng,,ambient,,",
+        "s1.dng,0,,,",
+        "amb2.dng,,Ambient,before,",
+        "dark1.dng,,dark,,",
+        "dark2.dng,,dark,before,0.03",  # a repeated exposure is fine in a calibration set
+        "s2.dng,0,sweep,,",
+        "late.dng,,ambient,after,",
+    )
+    out = tmp_path / "run.h5"
+    report = import_run(raw, csv, tiny_rig, out)
+    assert report.positions_with_frames == [0] and report.frames == 7 and report.exposures_s == [0.001, 0.004]
+    assert report.calibration_sets == {"ambient before": 2, "ambient after": 1, "dark before": 2}
+    with RunFile.open(out) as run:
+        assert run.header.calibration == {
+            "switch": "import",
+            "sets": [["ambient", "before"], ["ambient", "after"], ["dark", "before"]],
+        }
+        np.testing.assert_array_equal(run.frames(0), np.stack([mosaics["s1.dng"], mosaics["s2.dng"]]))
+        ambient = run.calibration_frames("ambient")
+        np.testing.assert_array_equal(ambient.frames, np.stack([mosaics["amb1.dng"], mosaics["amb2.dng"]]))
+        assert ambient.exposures_s.tolist() == [0.02, 0.08] and ambient.cfa_pattern == "RGGB"
+        np.testing.assert_array_equal(ambient.black_level, PER_SITE_BLACK)
+        assert ambient.timestamps.tolist() == pytest.approx([T0 + 2, T0 + 3], abs=1e-3)
+        dark = run.calibration_frames("dark", "before")
+        np.testing.assert_array_equal(dark.frames, np.stack([mosaics["dark1.dng"], mosaics["dark2.dng"]]))
+        assert dark.exposures_s.tolist() == [0.02, 0.03]
+        np.testing.assert_array_equal(run.calibration_frames("ambient", "after").frames, mosaics["late.dng"][None])
+        assert run.calibration_frames("dark", "after") is None
+    # Without a role column every frame is the sweep's, and the run says it has no calibration frames.
+    plain = write_csv(tmp_path / "plain.csv", "file,position", "s1.dng,1")
+    import_run(raw, plain, tiny_rig, tmp_path / "plain.h5")
+    with RunFile.open(tmp_path / "plain.h5") as run:
+        assert run.calibration_sets() == [] and run.header.calibration["sets"] == []
+
+
 def test_format_ranges():
     assert format_ranges([8, 0, 1, 2, 5, 7]) == "0-2, 5, 7-8"
     assert format_ranges([]) == ""
@@ -212,6 +255,29 @@ GOOD = [("a.dng", 0.001), ("b.dng", 0.004), ("c.dng", 0.004)]
         ),
         (["file,position", "a.dng,1,extra"], GOOD, "line 2: 3 fields but the header names 2 columns"),
         (["file,position"], GOOD, "no frames: the CSV has a header but no rows"),
+        (["file,position,role", "a.dng,1,flat"], GOOD, "line 2: role: 'flat' is not one of sweep, ambient, dark"),
+        (["file,position,role", "a.dng,1,ambient"], GOOD, "line 2: position: an ambient frame belongs to no position"),
+        (
+            ["file,position,role,when", "a.dng,,dark,during"],
+            GOOD,
+            "line 2: when: 'during' is not one of before, after",
+        ),
+        (
+            ["file,position,when", "a.dng,1,after"],
+            GOOD,
+            "line 2: when: only for calibration frames (role ambient or dark), not sweep",
+        ),
+        (
+            ["file,position,role,x_m,y_m,z_m,rx_deg,ry_deg,rz_deg", "a.dng,,dark,0,0,0.3,0,0,0"],
+            GOOD,
+            "line 2: x_m..rz_deg: a dark frame has no pose",
+        ),
+        (["file,position,role", "a.dng,,ambient"], GOOD, "no frames of the sweep: every row is a calibration frame"),
+        (
+            ["file,position,role,exposure_s", *(f"f{k}.dng,,dark,0.01" for k in range(17))],
+            [(f"f{k}.dng", 0.01) for k in range(17)],
+            "line 18: role: more than 16 dark frames before the sweep (at most 16 a set)",
+        ),
         ([], GOOD, "empty CSV"),
     ],
 )

@@ -11,7 +11,8 @@ from fastapi.responses import FileResponse, StreamingResponse
 from acquisition.api.deps import TOKEN_ERRORS, CatalogDep, EngineDep, SettingsDep, TokenDep
 from acquisition.api.jobs import job_status
 from acquisition.catalog import RunRecord
-from acquisition.models import JobRequest, JobStatus, Problem, RunRequest, RunStatus
+from acquisition.models import CalibrationOptions, JobRequest, JobStatus, Problem, RunRequest, RunStatus
+from acquisition.runner import RunEngine
 
 router = APIRouter(prefix="/runs", tags=["runs"])
 FINAL = ("complete", "aborted", "failed", "interrupted")
@@ -21,7 +22,8 @@ GUARDED_ERRORS = {**ERRORS, **TOKEN_ERRORS}  # and 401/403 from the token
 BODY_ERRORS = {400: {"model": Problem, "description": "the body cannot be read"}}
 
 
-def run_status(record: RunRecord) -> RunStatus:
+def run_status(record: RunRecord, engine: RunEngine | None = None) -> RunStatus:
+    """The API's view of a run; with the engine, what it is doing now (``step``)."""
     percent = 100.0 * record.positions_done / record.n_positions if record.n_positions else 0.0
     return RunStatus(
         id=record.id,
@@ -38,6 +40,7 @@ def run_status(record: RunRecord) -> RunStatus:
         finished_utc=record.finished_utc,
         exposures_per_position=record.exposures_per_position,
         file_url=f"/runs/{record.id}/file",
+        step=engine.step(record.id) if engine is not None else None,
     )
 
 
@@ -55,41 +58,47 @@ def run_status(record: RunRecord) -> RunStatus:
 )
 def start_run(body: RunRequest, engine: EngineDep, settings: SettingsDep) -> RunStatus:
     """Start a run. Only one run at a time per rig: a second one gets 409."""
+    if "ambient_exposures_s" not in body.calibration.model_fields_set:
+        options = {**body.calibration.model_dump(), "ambient_exposures_s": settings.light.ambient_exposures_s}
+        body = body.model_copy(update={"calibration": CalibrationOptions.model_validate(options)})
     if "bracket" not in body.model_fields_set:
         default = {"mode": "fixed", "exposures_s": settings.default_exposures_s}
         body = RunRequest.model_validate({**body.model_dump(exclude={"bracket"}), "bracket": default})
-    return run_status(engine.start_run(body))
+    return run_status(engine.start_run(body), engine)
 
 
 @router.get("", response_model=list[RunStatus])
-def list_runs(catalog: CatalogDep, limit: int = 100) -> list[RunStatus]:
+def list_runs(catalog: CatalogDep, engine: EngineDep, limit: int = 100) -> list[RunStatus]:
     """Runs, newest first."""
-    return [run_status(r) for r in catalog.list_runs(limit=max(1, min(limit, 1000)))]
+    return [run_status(r, engine) for r in catalog.list_runs(limit=max(1, min(limit, 1000)))]
 
 
 @router.get("/{run_id}", response_model=RunStatus, responses=ERRORS)
-def get_run(run_id: str, catalog: CatalogDep) -> RunStatus:
-    """What happened to a run: state, percent done, ETA, current position, last error."""
-    return run_status(catalog.get_run(run_id))
+def get_run(run_id: str, catalog: CatalogDep, engine: EngineDep) -> RunStatus:
+    """What happened to a run: state, percent done, ETA, current position, what it is doing now
+    (``step``: the calibration frames, the sweep, or what the operator must do before resuming
+    it), last error."""
+    return run_status(catalog.get_run(run_id), engine)
 
 
 @router.post("/{run_id}/pause", response_model=RunStatus, dependencies=[TokenDep], responses=GUARDED_ERRORS)
 def pause(run_id: str, engine: EngineDep) -> RunStatus:
     """Pause between frames."""
-    return run_status(engine.pause(run_id))
+    return run_status(engine.pause(run_id), engine)
 
 
 @router.post("/{run_id}/resume", response_model=RunStatus, dependencies=[TokenDep], responses=GUARDED_ERRORS)
 def resume(run_id: str, engine: EngineDep) -> RunStatus:
-    """Resume a paused run, or continue an interrupted (daemon crash) or failed (device
-    fault, now cleared) run from its first incomplete position."""
-    return run_status(engine.resume(run_id))
+    """Resume a paused run (one paused for the operator to switch the lights, once that is
+    done), or continue an interrupted (daemon crash) or failed (device fault, now cleared) run
+    from its first incomplete position or calibration set."""
+    return run_status(engine.resume(run_id), engine)
 
 
 @router.post("/{run_id}/abort", response_model=RunStatus, dependencies=[TokenDep], responses=GUARDED_ERRORS)
 def abort(run_id: str, engine: EngineDep) -> RunStatus:
     """Stop the arm and end the run; every frame taken is kept."""
-    return run_status(engine.abort(run_id))
+    return run_status(engine.abort(run_id), engine)
 
 
 @router.get("/{run_id}/events", responses={200: {"content": {"text/event-stream": {}}}, **ERRORS})
@@ -106,7 +115,7 @@ async def events(run_id: str, request: Request, catalog: CatalogDep, engine: Eng
             if current != version:
                 version = current
                 record = await asyncio.to_thread(catalog.get_run, run_id)
-                yield f"event: progress\ndata: {run_status(record).model_dump_json()}\n\n"
+                yield f"event: progress\ndata: {run_status(record, engine).model_dump_json()}\n\n"
                 if record.state in FINAL:
                     return
             await asyncio.sleep(0.2)

@@ -304,6 +304,9 @@ function render(run) {
     $("eta").textContent = "—";
   }
   $("run-exposures").textContent = run.exposures_per_position ?? "—";
+  // What the run does now; while it waits for the operator (to switch the lights), what to do.
+  $("step").textContent = run.step || "—";
+  $("step").className = run.step && run.state === "paused" ? "attention" : "";
   $("last-error").textContent = run.last_error || "none";
   $("last-error").className = run.last_error ? "bad" : "";
   $("pause").disabled = run.state !== "running";
@@ -316,8 +319,8 @@ function render(run) {
 }
 
 function refreshPreview(run) {
-  const key = `${run.id}:${run.positions_done}:${run.state}:${run.current_position}`;
-  if (key === previewKey || (run.positions_done === 0 && run.current_position === null)) return;
+  const key = `${run.id}:${run.positions_done}:${run.state}:${run.current_position}:${run.step}`;
+  if (key === previewKey || (run.positions_done === 0 && run.current_position === null && !run.step)) return;
   previewKey = key;
   $("preview").src = `/runs/${encodeURIComponent(run.id)}/preview.png?t=${Date.now()}`;
 }
