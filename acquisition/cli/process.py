@@ -141,6 +141,16 @@ def process(
             "the demo rig (docs/light-model.md).",
         ),
     ] = False,
+    calibrate_rig: Annotated[
+        bool | None,
+        typer.Option(
+            "--calibrate-rig/--no-calibrate-rig",
+            help="Fit the rig's geometry to the data with the sources (self-calibration, docs/self-calibration.md): "
+            "the camera's pose, sensor distance and pinhole, the arm's base frame. Default: where the sources are "
+            "searched for (no --layout); with --layout and --calibrate-rig the layout's places are held.",
+            show_default=False,
+        ),
+    ] = None,
     scheduler: SchedulerOption = "local",
     workers: WorkersOption = None,
 ) -> None:
@@ -163,6 +173,7 @@ def process(
             images=images,
             fit_aperture={None: FitChoice.AUTO, True: FitChoice.ALWAYS, False: FitChoice.NEVER}[fit_aperture],
             fit_sensor_distance=FitChoice.ALWAYS if fit_sensor_distance else FitChoice.NEVER,
+            calibrate_rig={None: FitChoice.AUTO, True: FitChoice.ALWAYS, False: FitChoice.NEVER}[calibrate_rig],
         )
         check_scheduler(scheduler, workers)
     except (OptionsError, ComputeError) as exc:
@@ -251,6 +262,16 @@ def _say_processed(run: Path, report) -> None:
             typer.echo(f"  {label}: {fitted.describe(digits)}{later}")
         elif fitted is not None and fitted.failed:
             typer.echo(f"  {label}: as the rig describes it (the fit to the data failed: {fitted.failed})")
+    calibration = report.rig_calibration
+    if calibration is not None:
+        fit = calibration.fit
+        typer.echo(
+            f"  rig: fitted to the data (χ²/pixel {fit.chi2_described / fit.pixels:.4f} as described, "
+            f"{fit.chi2 / fit.pixels:.4f} as fitted; the silhouette from {calibration.silhouette}): "
+            f"{report.outputs['rig'][0]}"
+        )
+    if report.quality is not None:
+        typer.echo(f"  {report.quality.line()}")
     files = ", ".join(
         f"{kind.upper()} {paths[0]}"
         for kind, paths in report.outputs.items()

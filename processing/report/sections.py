@@ -33,6 +33,7 @@ from processing.report.figures import (
     layout_figure,
 )
 from processing.report.markup import embedded_img, figure_html, html_note, html_table, in_mm
+from processing.report.trust import rig_calibration_part
 
 log = logging.getLogger("mirrorgonio.processing")
 
@@ -78,9 +79,11 @@ def calibration_section(
         if image is not None:
             assert rig is not None  # the run's
             found = calibrate_ball(image, rig)
-    parts = []
+    parts = [rig_calibration_part(model)]
     comparison = None
-    if found is None:
+    if found is None and parts[0]:
+        parts.append("<p>No separate measurement of the ball's centre was given (<code>--ball-centre</code>).</p>")
+    elif found is None:
         parts.append(html_note(f"{NO_CALIBRATION}: the processing used the ball centre of the rig description."))
     elif isinstance(found, dict):
         comparison = found
