@@ -503,6 +503,7 @@ def test_process_fits_the_aperture_by_default_where_it_searches_for_the_sources(
     path, _, rig = simulated_run
 
     def process(run, out, *options):
+        options = ("--no-calibrate-rig", *options)  # the aperture fitted alone, the rig held as described
         result = runner.invoke(app, ["process", str(run), "--no-images", "--out", str(out), *options])
         light = out / f"{run.stem}.light.json"
         return result, (json.loads(light.read_text())["provenance"]["aperture_m"] if light.exists() else None)
@@ -518,14 +519,14 @@ def test_process_fits_the_aperture_by_default_where_it_searches_for_the_sources(
 
     # 40 % wide: the first search's spurious sources take a fit to 0.24 mm; the search with that finds
     # the sources, and the fit at them hits the 0.75 x bound: said, and the 0.24 mm kept.
-    wide = _copy_described(path, tmp_path / "run-wide.h5", "pinhole+40%")
+    wide = _copy_described(path, tmp_path / "run-wide.h5", ["pinhole+40%"])
     result, aperture = process(wide, tmp_path / "wide")
     assert result.exit_code == 0, result.output
     assert "the best aperture lies at the search's bound" in aperture["failed"], aperture
     assert 0.21e-3 < aperture["fitted_m"] < 0.28e-3 and aperture["searches"] == 1, aperture
     assert "(a later fit failed: " in result.output
     # 80 % wide: the first fit already fails: the rig's diameter is kept, and said so.
-    wider = _copy_described(path, tmp_path / "run-wider.h5", "pinhole+80%")
+    wider = _copy_described(path, tmp_path / "run-wider.h5", ["pinhole+80%"])
     result, aperture = process(wider, tmp_path / "wider")
     assert result.exit_code == 0, result.output
     assert aperture.startswith("as described by the rig (the fit to the data failed: "), aperture
@@ -546,12 +547,22 @@ def test_process_fits_the_sensor_distance_when_asked(simulated_run, tmp_path):
     from sim_devices.lights import LIGHTS_DIR
 
     path, _, rig = simulated_run
-    long = _copy_described(path, tmp_path / "run-long.h5", "sensor-distance+0.5%")
+    long = _copy_described(path, tmp_path / "run-long.h5", ["sensor-distance+0.5%"])
     truth = rig.camera.sensor_distance_m
     for way, options in (("given", ["--layout", str(LIGHTS_DIR / "five-gaussians.toml")]), ("found", [])):
         out = tmp_path / way
         result = runner.invoke(
-            app, ["process", str(long), "--fit-sensor-distance", "--no-images", "--out", str(out), *options]
+            app,
+            [
+                "process",
+                str(long),
+                "--fit-sensor-distance",
+                "--no-calibrate-rig",
+                "--no-images",
+                "--out",
+                str(out),
+                *options,
+            ],
         )
         assert result.exit_code == 0, result.output
         provenance = json.loads((out / "run-long.light.json").read_text())["provenance"]

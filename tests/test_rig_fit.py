@@ -12,7 +12,7 @@ from conftest import REDUCED_RIG
 
 from drivers.contracts.rig import load_rig, write_rig
 from processing.light_run.position import SourceRow
-from processing.light_run.quality import CHI2_ALLOWANCE, judge
+from processing.light_run.quality import MODEL_ERROR_ALLOWANCE, judge
 from processing.rig_fit import FITTED, RigCorrection, SilhouetteTerm, coarse_correction, fit_rig, fitted_rig
 from processing.rig_fit.correction import bounds
 from processing.trace import RigGeometry, light_pose_at
@@ -162,24 +162,28 @@ def test_the_rig_fit_takes_the_description_back_to_the_rig_the_frames_were_taken
     assert not fit.at_bound
 
 
-def _row(chi2: float, dof: float = 1000.0) -> SourceRow:
+def _row(chi2: float, dof: float = 1000.0, signal: float = 40000.0) -> SourceRow:
     empty = np.zeros(1)
-    return SourceRow(empty, empty, np.zeros((1, 3)), np.zeros((1, 3)), empty, chi2, dof)
+    return SourceRow(empty, empty, np.zeros((1, 3)), np.zeros((1, 3)), empty, chi2, dof, signal)
 
 
 def test_the_verdict_says_suspect_with_the_reason_where_the_templates_do_not_explain_the_sweep():
-    """Sixty positions at χ²/pixel 1.05: ok. The same with seven at 1.6 (a misfit that comes and
-    goes): suspect, naming the positions' share. All at 1.3: suspect on the sweep's χ²/pixel."""
-    ok = judge({i: _row(1050.0) for i in range(60)}, None)
-    assert ok.ok and ok.record() == {
-        "status": "ok",
-        "chi2_per_pixel": 1.05,
-        "chi2_allowance": CHI2_ALLOWANCE,
-        "positions": 60,
-        "unexplained_positions": [],
-    }
-    patchy = judge({i: _row(1600.0 if i < 7 else 1050.0) for i in range(60)}, None)
+    """The misfit read as the templates' relative error ε (χ² = dof + ε²·Σ(m/σ)²): sixty
+    positions at ε 2 %: ok, whatever χ²/pixel that makes; seven of them at 10 % (a misfit that
+    comes and goes): suspect, naming the positions' share; all at 5 %: suspect on the sweep's ε."""
+
+    def at(epsilon: float, signal: float = 40000.0) -> SourceRow:
+        return _row(1000.0 + epsilon**2 * signal, signal=signal)
+
+    ok = judge({i: at(0.02, signal=1e3 * (i + 1)) for i in range(60)}, None)
+    assert (
+        ok.ok
+        and ok.model_error == pytest.approx(0.02)
+        and ok.record()["model_error_allowance"] == MODEL_ERROR_ALLOWANCE
+    )
+    assert ok.record()["unexplained_positions"] == [] and "quality ok" in ok.line()
+    patchy = judge({i: at(0.10 if i < 7 else 0.01) for i in range(60)}, None)
     assert patchy.status == "suspect" and patchy.unexplained_positions == tuple(range(7))
     assert "7 of 60 positions are unexplained" in patchy.reason and "quality SUSPECT" in patchy.line()
-    bad = judge({i: _row(1300.0) for i in range(60)}, None)
-    assert "explain the sweep only to χ²/pixel 1.300" in bad.reason
+    bad = judge({i: at(0.05) for i in range(60)}, None)
+    assert "the templates miss the sweep's light by 5.0 %" in bad.reason

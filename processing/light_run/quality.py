@@ -6,11 +6,14 @@ per-pixel σ from the HDR merge's variance, a model that explains the data to th
 gives χ²/pixel 1. The rig's self-calibration fits five positions; the other sixty are a test it
 did not see: a rig still off, or sources that are not there, show at the positions between.
 
-The rule (``docs/light-model.md``): the model is ``suspect`` where
+The misfit beyond the noise is read as the templates' relative error ε: a template a fraction ε
+off adds ``ε² Σ(m/σ)²`` to χ² (``m`` the model, ``σ`` the HDR merge's noise), so
+``ε = √(max(0, χ² − dof) / Σ(m/σ)²)`` (:func:`model_error`). Unlike χ²/pixel, ε does not grow
+with the signal-to-noise ratio or the pixels' size: the same rule holds for every rig and
+exposure. The rule (``docs/light-model.md``): the model is ``suspect`` where
 
-- the sweep's χ²/pixel exceeds :data:`CHI2_ALLOWANCE` (the templates' own model error leaves
-  1.06 with the rig described exactly, on the simulator), or
-- a tenth of the positions exceed :data:`CHI2_POSITION_ALLOWANCE` (a misfit that comes and goes
+- the sweep's ε exceeds :data:`MODEL_ERROR_ALLOWANCE`, or
+- a tenth of the positions exceed :data:`POSITION_ALLOWANCE` (a misfit that comes and goes
   along the sweep, which the average hides), or
 - a number the self-calibration fitted ended at its tolerance's bound (the description is
   further off than it says, or something else is wrong), or
@@ -27,12 +30,11 @@ import numpy as np
 from processing.light_run.position import SourceRow
 from processing.light_run.records import Quality, RigCalibration
 
-#: χ²/pixel over the sweep above which a light model is suspect: the templates leave 1.06 with
-#: the rig exact (their own model error); a rig 0.05° or 1 px off leaves 1.09 or more.
-CHI2_ALLOWANCE = 1.12
+#: The templates' relative error over the sweep above which a light model is suspect.
+MODEL_ERROR_ALLOWANCE = 0.03
 
-#: χ²/pixel above which a position is counted as unexplained.
-CHI2_POSITION_ALLOWANCE = 1.25
+#: The relative error above which a position is counted as unexplained.
+POSITION_ALLOWANCE = 0.06
 
 #: The share of unexplained positions above which the model is suspect.
 UNEXPLAINED_SHARE = 0.1
@@ -45,20 +47,22 @@ def judge(rows: dict[int, SourceRow], calibration: RigCalibration | None) -> Qua
     """The verdict on the sources estimated at ``rows`` (the module's rule)."""
     chi2 = np.array([row.chi2 for row in rows.values()])
     dof = np.array([row.dof for row in rows.values()])
-    fitted = dof > 0
+    signal = np.array([row.signal for row in rows.values()])
+    fitted = (dof > 0) & (signal > 0)
     overall = float(chi2[fitted].sum() / dof[fitted].sum()) if fitted.any() else float("nan")
-    per_position = np.where(fitted, chi2 / np.maximum(dof, 1.0), 0.0)
-    unexplained = tuple(int(i) for i, value in zip(rows, per_position, strict=True) if value > CHI2_POSITION_ALLOWANCE)
+    sweep_error = model_error(chi2[fitted].sum(), dof[fitted].sum(), signal[fitted].sum())
+    per_position = [model_error(c, d, g) if ok else 0.0 for c, d, g, ok in zip(chi2, dof, signal, fitted, strict=True)]
+    unexplained = tuple(int(i) for i, value in zip(rows, per_position, strict=True) if value > POSITION_ALLOWANCE)
     reasons = []
-    if not overall <= CHI2_ALLOWANCE:
+    if not sweep_error <= MODEL_ERROR_ALLOWANCE:
         reasons.append(
-            f"the templates explain the sweep only to χ²/pixel {overall:.3f} (allowed {CHI2_ALLOWANCE}): the rig or "
-            "the sources are not what the data show"
+            f"the templates miss the sweep's light by {100 * sweep_error:.1f} % of it (χ²/pixel {overall:.3f}; "
+            f"allowed {100 * MODEL_ERROR_ALLOWANCE:.0f} %): the rig or the sources are not what the data show"
         )
     if len(unexplained) > UNEXPLAINED_SHARE * max(1, int(fitted.sum())):
         reasons.append(
-            f"{len(unexplained)} of {int(fitted.sum())} positions are unexplained (χ²/pixel above "
-            f"{CHI2_POSITION_ALLOWANCE}): the misfit moves along the sweep"
+            f"{len(unexplained)} of {int(fitted.sum())} positions are unexplained (the templates miss more than "
+            f"{100 * POSITION_ALLOWANCE:.0f} % of their light): the misfit moves along the sweep"
         )
     if calibration is not None:
         if calibration.fit.at_bound:
@@ -73,5 +77,27 @@ def judge(rows: dict[int, SourceRow], calibration: RigCalibration | None) -> Qua
                 "or the ball's radius are off"
             )
     return Quality(
-        "suspect" if reasons else "ok", tuple(reasons), overall, unexplained, int(fitted.sum()), CHI2_ALLOWANCE
+        "suspect" if reasons else "ok",
+        tuple(reasons),
+        overall,
+        sweep_error,
+        unexplained,
+        int(fitted.sum()),
+        MODEL_ERROR_ALLOWANCE,
     )
+
+
+def model_error(chi2: float, dof: float, signal: float) -> float:
+    """The templates' relative error ε that the misfit beyond the noise stands for:
+    ``χ² = dof + ε² Σ(m/σ)²``, so ``ε = √(max(0, χ² − dof) / Σ(m/σ)²)``.
+
+    Examples
+    --------
+    >>> round(model_error(1100.0, 1000.0, 40000.0), 3)  # 100 of excess χ² over a signal of 4e4: 5 %
+    0.05
+    >>> model_error(990.0, 1000.0, 40000.0)  # within the noise
+    0.0
+    """
+    if signal <= 0:
+        return 0.0
+    return float(np.sqrt(max(0.0, chi2 - dof) / signal))

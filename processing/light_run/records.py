@@ -132,11 +132,13 @@ class RigCalibration:
 @dataclass(frozen=True)
 class Quality:
     """The verdict on a light model (:func:`processing.light_run.quality.judge`): ``ok`` or
-    ``suspect``, with the reasons and the figures."""
+    ``suspect``, with the reasons and the figures: χ² per pixel over the sweep, and the
+    templates' relative error ε it stands for (``χ² = dof + ε² Σ(m/σ)²``)."""
 
     status: str
     reasons: tuple[str, ...]
     chi2_per_pixel: float
+    model_error: float
     unexplained_positions: tuple[int, ...]
     positions: int
     allowance: float
@@ -154,18 +156,21 @@ class Quality:
         out: dict = {"status": self.status}
         if self.reasons:
             out["reason"] = self.reason
-        out |= {
+        return out | {
+            "model_error": round(self.model_error, 5),
+            "model_error_allowance": self.allowance,
             "chi2_per_pixel": round(self.chi2_per_pixel, 5),
-            "chi2_allowance": self.allowance,
             "positions": self.positions,
             "unexplained_positions": list(self.unexplained_positions),
         }
-        return out
 
     def line(self) -> str:
         """One line, as the command line and the job's note say it."""
         if self.ok:
-            return f"quality ok: the templates explain the sweep to χ²/pixel {self.chi2_per_pixel:.3f}"
+            return (
+                f"quality ok: the templates explain the sweep to {100 * self.model_error:.1f} % of its light "
+                f"(χ²/pixel {self.chi2_per_pixel:.3f})"
+            )
         return f"quality SUSPECT: {self.reason}"
 
 

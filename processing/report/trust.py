@@ -16,9 +16,10 @@ def quality_banner(model: LightModel) -> str:
     if not quality:
         return html_note("the light model carries no quality verdict (made without the sweep's χ² judged)")
     figures = (
-        f"χ²/pixel over the sweep {quality.get('chi2_per_pixel', float('nan')):.3f} "
-        f"(allowed {quality.get('chi2_allowance', float('nan'))}), "
-        f"{len(quality.get('unexplained_positions', []))} of {quality.get('positions', '?')} positions unexplained"
+        f"the templates miss {100 * quality.get('model_error', float('nan')):.1f} % of the sweep's light "
+        f"(allowed {100 * quality.get('model_error_allowance', float('nan')):.0f} %; χ²/pixel "
+        f"{quality.get('chi2_per_pixel', float('nan')):.3f}), {len(quality.get('unexplained_positions', []))} of "
+        f"{quality.get('positions', '?')} positions unexplained"
     )
     if quality.get("status") == "ok":
         return f'<p class="quality-ok">Quality ok: the templates explain the data ({html.escape(figures)}).</p>'
