@@ -343,7 +343,7 @@ def test_the_self_calibration_brings_a_camera_described_off_back_and_says_so():
     for error in errors.split(","):
         held, fitted = runs[error, "found"], runs[error, "found, self-calibrated"]
         assert held["max_rms_rel_error"] > 0.1, held
-        assert fitted["max_rms_rel_error"] < as_taken["max_rms_rel_error"] + 0.01, fitted
+        assert fitted["max_rms_rel_error"] < as_taken["max_rms_rel_error"] + 0.03, fitted
         assert fitted["quality"]["status"] == "ok" and fitted["sources_found"] == 5, fitted
     distance = runs["sensor-distance+1%", "found, self-calibrated"]["rig_fit"]["fitted"]["sensor_distance"]
     assert distance["truth"] == pytest.approx(100 * (1 / 1.01 - 1))

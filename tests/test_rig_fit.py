@@ -187,3 +187,11 @@ def test_the_verdict_says_suspect_with_the_reason_where_the_templates_do_not_exp
     assert "7 of 60 positions are unexplained" in patchy.reason and "quality SUSPECT" in patchy.line()
     bad = judge({i: at(0.05) for i in range(60)}, None)
     assert "the templates miss the sweep's light by 5.0 %" in bad.reason
+    # the misfit growing beyond the positions the fits used (10-50 of 60): a fit that explains only
+    # what it saw; a mild rise at the ends (the sources seen more obliquely) is not one
+    ends = {i: at(0.005 if 10 <= i <= 50 else 0.02) for i in range(60)}
+    beyond = judge(ends, None, [10, 20, 30, 40, 50])
+    assert beyond.status == "suspect" and "at the sweep's ends, beyond the positions the fits used" in beyond.reason
+    assert beyond.record()["model_error_outside"] == pytest.approx(0.02, rel=1e-6)
+    mild = judge({i: at(0.005 if 10 <= i <= 50 else 0.0065) for i in range(60)}, None, [10, 20, 30, 40, 50])
+    assert mild.ok, mild.reason

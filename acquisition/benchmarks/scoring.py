@@ -161,7 +161,7 @@ def coverage(source, emitter, frame: Pose | None) -> dict:
         "samples": int(theta.size),
     }
     law = getattr(emitter, "intensity", None)
-    turned = frame is not None and frame.distance_to(Pose(0.0, 0.0, 0.0))[1] > math.radians(0.01)
+    turned = frame is not None and frame.distance_to(Pose(0.0, 0.0, 0.0))[1] > math.radians(0.2)
     if source.fit.method == "gaussian" and getattr(law, "model", "") == "gaussian" and not turned:
         params = [name for name in _GAUSSIAN_TRUTH if name in source.fit.params]
         within = [

@@ -15,6 +15,7 @@ from processing.exports.ies import write_ies
 from processing.exports.ldt import write_ldt
 from processing.exports.tm25 import write_tm25
 from processing.light_run.errors import open_run
+from processing.light_run.from_data import FIT_FRACTIONS, spread_over
 from processing.light_run.light_fit import fit_light_model
 from processing.light_run.position import SourceRow, SourcesPlan
 from processing.light_run.quality import judge
@@ -64,7 +65,12 @@ def finish_sources(
     model.provenance["sensor_distance_m"] = camera_provenance(report.sensor_distance_fit, "--fit-sensor-distance")
     if report.rig_calibration is not None:
         report.outputs["rig"] = [record_calibration(model.provenance, report.rig_calibration, out / run_path.stem)]
-    report.quality = judge(rows, report.rig_calibration)
+    calibration = report.rig_calibration
+    if calibration is not None:
+        fit_positions: list[int] | None = list(calibration.positions)
+    else:  # the layout search's refinement, where the sources were searched for
+        fit_positions = spread_over(positions, FIT_FRACTIONS) if options.layout is None else None
+    report.quality = judge(rows, calibration, fit_positions)
     model.quality = report.quality.record()
     if not report.quality.ok:
         log.warning("%s: %s", run_path, report.quality.line())

@@ -142,6 +142,8 @@ class Quality:
     unexplained_positions: tuple[int, ...]
     positions: int
     allowance: float
+    inside_outside: tuple[float, float] | None = None  # ε between the fits' positions, and beyond them
+    position_errors: tuple[float, ...] = ()  # ε at each position
 
     @property
     def ok(self) -> bool:
@@ -162,6 +164,15 @@ class Quality:
             "chi2_per_pixel": round(self.chi2_per_pixel, 5),
             "positions": self.positions,
             "unexplained_positions": list(self.unexplained_positions),
+            **(
+                {
+                    "model_error_inside": round(self.inside_outside[0], 5),
+                    "model_error_outside": round(self.inside_outside[1], 5),
+                }
+                if self.inside_outside is not None
+                else {}
+            ),
+            "model_error_per_position": list(self.position_errors),
         }
 
     def line(self) -> str:
