@@ -333,7 +333,8 @@ def test_the_ways_are_named_or_chosen_by_the_flags():
 
 def test_the_self_calibration_brings_a_camera_described_off_back_and_says_so():
     """The reduced rig's first 12 positions, the camera described 0.2° off in yaw and the sensor
-    1 % long: held as described, the sources found in the data are wrong by tens of per cent; with
+    1 % long: held as described, the sources found in the data are wrong by several per cent (the
+    sensor) to hundreds (the yaw); with
     the rig fitted (the way `process` takes by default), the fits come back to near those of the
     exact description, the quality is ok, the fitted sensor distance is within its 1σ of the
     truth or 0.2 %, and the table says so."""
@@ -342,8 +343,8 @@ def test_the_self_calibration_brings_a_camera_described_off_back_and_says_so():
     as_taken = runs["none", "found, self-calibrated"]
     for error in errors.split(","):
         held, fitted = runs[error, "found"], runs[error, "found, self-calibrated"]
-        assert held["max_rms_rel_error"] > 0.1, held
         assert fitted["max_rms_rel_error"] < as_taken["max_rms_rel_error"] + 0.03, fitted
+        assert held["max_rms_rel_error"] > max(0.05, 2 * fitted["max_rms_rel_error"]), (held, fitted)
         assert fitted["quality"]["status"] == "ok" and fitted["sources_found"] == 5, fitted
     distance = runs["sensor-distance+1%", "found, self-calibrated"]["rig_fit"]["fitted"]["sensor_distance"]
     assert distance["truth"] == pytest.approx(100 * (1 / 1.01 - 1))

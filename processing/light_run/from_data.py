@@ -252,7 +252,7 @@ def _fitted_sensor_distance(
 
 
 def layout_data(
-    run: RunFile, results_file: str, ball_centre: BallCentre, picks: Iterable[int], camera: CameraFit | None = None
+    run: RunFile, results_file: PathArg, ball_centre: BallCentre, picks: Iterable[int], camera: CameraFit | None = None
 ) -> tuple[list[LayoutData], TemplateBuilder, str]:
     """The merged positions ``picks`` as the layout fits take them: (data, builder, cfa pattern)."""
 
@@ -260,7 +260,7 @@ def layout_data(
     data: list[LayoutData] = []
     cfa = "RGGB"
     for index in picks:
-        rate, var, usable, cfa = _merged_rates(run, results_file, index)
+        rate, var, usable, cfa = _merged_rates(run, str(results_file), index)
         measured = run.measured_pose(index)
         tool = measured if measured is not None else run.header.tool_poses[index]
         data.append(LayoutData(rate, var, usable, light_pose_at(geometry, tool), tool))

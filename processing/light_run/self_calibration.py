@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Sequence
+from pathlib import Path
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -53,7 +54,7 @@ log = logging.getLogger("mirrorgonio.processing")
 
 def layout_and_rig(
     run: RunFile,
-    results_file: str,
+    results_file: str | Path,
     positions: ArrayLike,
     ball_centre: BallCentre,
     compute: Compute,
@@ -98,7 +99,7 @@ def layout_and_rig(
 
 def rig_at_layout(
     run: RunFile,
-    results_file: str,
+    results_file: str | Path,
     positions: ArrayLike,
     layout: Sequence[Source],
     ball_centre: BallCentre,
@@ -140,7 +141,7 @@ def _start(run: RunFile, ball_centre: BallCentre) -> tuple[SilhouetteTerm | None
 
 def _fit_task(
     run: RunFile,
-    results_file: str,
+    results_file: str | Path,
     ball_centre: BallCentre,
     picks: Sequence[int],
     layout: Sequence[Source],
@@ -182,7 +183,7 @@ def _settled(before: RigFit, after: RigFit, limit: np.ndarray) -> bool:
 
 def _fitted_rig(
     run_path: str,
-    results_file: str,
+    results_file: str | Path,
     ball_centre: BallCentre,
     picks: Sequence[int],
     layout: Sequence[Source],

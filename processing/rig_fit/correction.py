@@ -108,7 +108,8 @@ class RigCorrection:
 
     @classmethod
     def of(cls, vector: np.ndarray, light_axis: np.ndarray) -> RigCorrection:
-        return cls(tuple(float(v) for v in vector), tuple(float(a) for a in light_axis))
+        x, y, z = (float(a) for a in light_axis)
+        return cls(tuple(float(v) for v in vector), (x, y, z))
 
     def value(self, name: str) -> float:
         return self.values[[n.name for n in FITTED].index(name)]
