@@ -272,7 +272,7 @@ def preset_errors(preset: str, seed: int) -> list[str]:
     --------
     >>> errors = preset_errors("typical-lab", 0)
     >>> len(errors), errors[-1]
-    (21, 'sensor-distance+1%')
+    (21, 'sensor-distance-1%')
     >>> preset_errors("typical-lab", 0) == errors
     True
     """

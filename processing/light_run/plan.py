@@ -70,13 +70,21 @@ class ProcessingPlan:
         return int(self.merge) + int(self.estimate and not self.fused)
 
 
-def plan_processing(options: ProcessingOptions) -> ProcessingPlan:
+#: The merged positions the self-calibration needs before ``AUTO`` runs it: the rig's turns about
+#: the ball and the sources' places move the light alike at any one position, and only positions
+#: spread over the sweep tell them apart (its fits take five).
+RIG_FIT_MIN_POSITIONS = 5
+
+
+def plan_processing(options: ProcessingOptions, positions: int | None = None) -> ProcessingPlan:
     """The plan for ``options``: the given layout loaded, each ``FitChoice.AUTO`` decided.
 
     ``AUTO`` fits the rig where the sources are searched for in the data: a search explains a
     wrong point spread or a misplaced ball with sources that are not there, which a given
     layout cannot do. The self-calibration fits the aperture and the sensor distance with the
-    rest of the rig, so where it runs neither is fitted alone.
+    rest of the rig, so where it runs neither is fitted alone. With ``positions`` merged
+    positions known and fewer than :data:`RIG_FIT_MIN_POSITIONS`, ``AUTO`` holds the rig (and
+    fits the aperture alone where it searches).
 
     Raises
     ------
@@ -92,6 +100,8 @@ def plan_processing(options: ProcessingOptions) -> ProcessingPlan:
     >>> plan = plan_processing(ProcessingOptions.checked(steps="hdr,sources", calibrate_rig="never"))
     >>> plan.calibrate_rig, plan.fit_aperture, plan.aperture_fit_required
     (False, True, False)
+    >>> plan_processing(ProcessingOptions.checked(steps="hdr,sources"), positions=3).calibrate_rig
+    False
     """
     layout = None
     if Step.SOURCES in options.steps and options.layout is not None:
@@ -104,7 +114,8 @@ def plan_processing(options: ProcessingOptions) -> ProcessingPlan:
     def wanted(choice: FitChoice) -> bool:
         return choice is FitChoice.ALWAYS or (choice is FitChoice.AUTO and searched)
 
-    calibrate = wanted(options.calibrate_rig)
+    enough = positions is None or positions >= RIG_FIT_MIN_POSITIONS
+    calibrate = options.calibrate_rig is FitChoice.ALWAYS or (wanted(options.calibrate_rig) and enough)
     for name, choice in (
         ("--fit-aperture", options.fit_aperture),
         ("--fit-sensor-distance", options.fit_sensor_distance),

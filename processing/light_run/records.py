@@ -118,6 +118,24 @@ class RigCalibration:
         )
         return lines
 
+    def camera_record(self, number: str) -> dict:
+        """The light model's ``aperture_m`` (``number`` "pinhole") or ``sensor_distance_m``
+        ("sensor_distance") as the self-calibration fitted it, in metres: the fitted value, its
+        1σ, the one described, and the joint fit's χ²/pixel as fitted and as described."""
+        field = {"pinhole": "pinhole_diameter_m", "sensor_distance": "sensor_distance_m"}[number]
+        percent = self.correction.value(number)
+        sigma = self.fit.sigma[[n.name for n in FITTED].index(number)]
+        fitted = float(getattr(self.rig.camera, field))
+        described = fitted / (1.0 + percent / 100.0)
+        return {
+            "fitted_m": fitted,
+            "sigma_m": described * sigma / 100.0,
+            "described_m": described,
+            "chi2_per_pixel": round(self.fit.chi2 / self.fit.pixels, 5),
+            "chi2_per_pixel_described": round(self.fit.chi2_described / self.fit.pixels, 5),
+            "how": "fitted to the data with the rest of the rig (self-calibration)",
+        }
+
     def record(self) -> dict:
         """The light model's ``rig_calibration``: each number fitted (value, 1σ, unit), each
         held with why, χ²/pixel as described and as fitted, where it started."""

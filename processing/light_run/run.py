@@ -31,7 +31,7 @@ from processing.light_run.from_data import camera_at_layout, fitted_camera, layo
 from processing.light_run.geometry import CameraFit
 from processing.light_run.noise import choose_noise, report_gain_mismatch
 from processing.light_run.outputs import finish_sources
-from processing.light_run.plan import ProcessingPlan, plan_processing
+from processing.light_run.plan import RIG_FIT_MIN_POSITIONS, ProcessingPlan, plan_processing
 from processing.light_run.position import (
     HDRWork,
     PositionResult,
@@ -43,7 +43,7 @@ from processing.light_run.position import (
 from processing.light_run.records import ProcessReport
 from processing.light_run.samples import plan_sources
 from processing.light_run.self_calibration import layout_and_rig, rig_at_layout
-from processing.options import OptionsError, ProcessingOptions
+from processing.options import FitChoice, OptionsError, ProcessingOptions
 from processing.parallel import Compute
 from processing.radiometry import rig_noise
 from processing.report.context import Truth
@@ -187,6 +187,15 @@ class LightRun:
         if self.plan.estimate:
             report_gain_mismatch(run, self.report.noise)
         self.positions = positions
+        if self.plan.calibrate_rig and self.options.calibrate_rig is FitChoice.AUTO:
+            self.plan = plan_processing(self.options, int(positions.size))
+            if not self.plan.calibrate_rig:
+                log.info(
+                    "%s: %d merged positions: the rig is held as described (the self-calibration needs %d)",
+                    self.run_path,
+                    positions.size,
+                    RIG_FIT_MIN_POSITIONS,
+                )
         self.report.n_positions = run.n_positions
         self.report.partial = positions.size < run.n_positions
         self.report.compute = self.compute.description

@@ -67,11 +67,12 @@ def layout_and_rig(
     Raises
     ------
     ProcessingError
-        The sources cannot be found, the rig's fit fails, or the calibration frames hold no
-        silhouette (one line naming the run).
+        The sources cannot be found, or the rig's fit fails (one line naming the run). Ambient
+        frames that show no ball are said in the log and the calibration's record, and the rig
+        is fitted without them.
     """
     positions = np.asarray(positions)
-    silhouette, start, limit = _start(run, ball_centre)
+    silhouette, start, limit, frames = _start(run, ball_centre)
     picks = spread_over(positions, FIT_FRACTIONS)
     correction = start
     fit: RigFit | None = None
@@ -92,7 +93,7 @@ def layout_and_rig(
         if settled:
             break
     assert fit is not None  # max_searches >= 1
-    calibration = _calibration(run, fit, start, silhouette, search, picks, ball_centre)
+    calibration = _calibration(run, fit, start, frames, search, picks, ball_centre)
     layout = LayoutFit(fit.sources, True, f"{found.message}; then fitted with the rig", fit.chi2, fit.pixels)
     return layout, calibration
 
@@ -111,32 +112,35 @@ def rig_at_layout(
     Raises
     ------
     ProcessingError
-        The rig's fit fails, or the calibration frames hold no silhouette (one line naming
-        the run).
+        The rig's fit fails (one line naming the run).
     """
-    silhouette, start, _ = _start(run, ball_centre)
+    silhouette, start, _, frames = _start(run, ball_centre)
     picks = spread_over(np.asarray(positions), FIT_FRACTIONS)
     fit = _fit_task(run, results_file, ball_centre, picks, layout, start, silhouette, compute, hold_sources=True)
-    return _calibration(run, fit, start, silhouette, 0, picks, ball_centre)
+    return _calibration(run, fit, start, frames, 0, picks, ball_centre)
 
 
-def _start(run: RunFile, ball_centre: BallCentre) -> tuple[SilhouetteTerm | None, RigCorrection, np.ndarray]:
-    """The silhouette on the run's ambient frames (None without them), the coarse correction
-    it gives (none without it) and the fit's bounds."""
+def _start(run: RunFile, ball_centre: BallCentre) -> tuple[SilhouetteTerm | None, RigCorrection, np.ndarray, str]:
+    """The silhouette on the run's ambient frames (None without them, or where they show no
+    ball), the coarse correction it gives (none without it), the fit's bounds, and which frames
+    the silhouette came from or why there is none."""
     geometry, _ = geometry_and_builder(run, ball_centre)
     limit = bounds(run.header.rig.tolerances, geometry)
     try:
         silhouette = silhouette_term(run, geometry)
-    except CalibrationError as exc:
-        raise ProcessingError(str(exc)) from None
-    if silhouette is None:
-        log.warning(
-            "%s: no ambient calibration frames: the rig is fitted to the sweep alone, from the description "
-            "(an error of the ball's image beyond a few pixels is out of its reach)",
-            run.path,
-        )
-        return None, RigCorrection(), limit
-    return silhouette, coarse_correction(silhouette, geometry, limit), limit
+    except CalibrationError as exc:  # a light or its housing before the ball, a dark room: go on without it
+        why = f"unusable: {exc}"
+    else:
+        if silhouette is not None:
+            return silhouette, coarse_correction(silhouette, geometry, limit), limit, silhouette.frames
+        why = "none: the run has no ambient calibration frames"
+    log.warning(
+        "%s: the ball's silhouette: %s; the rig is fitted to the sweep alone, from the description (an error of "
+        "the ball's image beyond a few pixels is out of its reach)",
+        run.path,
+        why,
+    )
+    return None, RigCorrection(), limit, why
 
 
 def _fit_task(
@@ -165,12 +169,11 @@ def _calibration(
     run: RunFile,
     fit: RigFit,
     start: RigCorrection,
-    silhouette: SilhouetteTerm | None,
+    frames: str,
     searches: int,
     picks: Sequence[int],
     ball_centre: BallCentre,
 ) -> RigCalibration:
-    frames = silhouette.frames if silhouette is not None else "none: the run has no ambient calibration frames"
     rig = fitted_rig(run.header.rig, fit.correction, None if ball_centre is None else np.asarray(ball_centre))
     return RigCalibration(fit, start, frames, searches, tuple(int(i) for i in picks), rig)
 
