@@ -332,30 +332,26 @@ def test_the_ways_are_named_or_chosen_by_the_flags():
 
 
 def test_the_self_calibration_brings_a_camera_described_off_back_and_says_so():
-    """The reduced rig's first 12 positions, the camera described 0.2° off in yaw and the sensor
-    1 % long. Held as described, the sources found in the data are wrong by 9 % (the sensor) and
-    over 100 % (the yaw, which the verdict calls suspect). With the rig fitted (the way
-    `process` takes by default), the fits come back to near those of the exact description
-    (this coarse rig's templates miss its light by about 2 %, so "near" is within 3 % of
-    peak), the quality is ok, the fitted sensor distance is closer to the truth than the
-    description, and the table says so."""
-    errors = "camera-yaw+0.2deg,sensor-distance+1%"
-    out, runs = _tolerance("--errors", errors, "--ways", "found,found, self-calibrated", "--scheduler", "none")
+    """The reduced rig's first 12 positions, the camera described 0.2° off in yaw. Held as
+    described, the sources found in the data are wrong by over 100 % of peak, and the verdict
+    calls the light model suspect. With the rig fitted (the way `process` takes by default),
+    the fits come back to near those of the exact description (this coarse rig's templates
+    miss its light by about 2 %, so "near" is within 3 % of peak), five sources, the quality
+    ok, the camera's yaw fitted back, and the table says so."""
+    out, runs = _tolerance(
+        "--errors", "camera-yaw+0.2deg", "--ways", "found,found, self-calibrated", "--scheduler", "none"
+    )
     as_taken = runs["none", "found, self-calibrated"]
-    for error in errors.split(","):
-        held, fitted = runs[error, "found"], runs[error, "found, self-calibrated"]
-        assert fitted["max_rms_rel_error"] < as_taken["max_rms_rel_error"] + 0.03, fitted
-        assert held["max_rms_rel_error"] > fitted["max_rms_rel_error"] + 0.02, (held, fitted)
-        assert fitted["quality"]["status"] == "ok" and fitted["sources_found"] == 5, fitted
-    yawed = runs["camera-yaw+0.2deg", "found"]
-    assert yawed["max_rms_rel_error"] > 0.5 and yawed["quality"]["status"] == "suspect", yawed
-    distance = runs["sensor-distance+1%", "found, self-calibrated"]["rig_fit"]["fitted"]["sensor_distance"]
-    assert distance["truth"] == pytest.approx(100 * (1 / 1.01 - 1))
-    # Closer to the truth than described; on this coarse rig the camera's and the sensor's
-    # distances trade along a valley that the templates' 2 % model error tilts (0.6 % off here,
-    # well beyond the fit's statistical 1σ: docs/self-calibration.md, "Limits").
-    assert abs(distance["value"] - distance["truth"]) < 0.7 * abs(distance["truth"]), distance
-    assert out["summary"]["found, self-calibrated"]["cases"] == 3
+    held, fitted = runs["camera-yaw+0.2deg", "found"], runs["camera-yaw+0.2deg", "found, self-calibrated"]
+    assert held["max_rms_rel_error"] > 0.5 and held["quality"]["status"] == "suspect", held
+    assert fitted["max_rms_rel_error"] < as_taken["max_rms_rel_error"] + 0.03, fitted
+    assert fitted["quality"]["status"] == "ok" and fitted["sources_found"] == 5, fitted
+    yaw = fitted["rig_fit"]["fitted"]["camera_yaw"]
+    # Measured: -0.2007 ± 0.0002° here, and -0.0007 ± 0.0002° with the description exact: the
+    # fit's statistical 1σ is about a third of its error (docs/self-calibration.md, "Limits").
+    assert yaw["value"] == pytest.approx(-0.2, abs=0.005), yaw
+    assert abs(as_taken["rig_fit"]["fitted"]["camera_yaw"]["value"]) < 0.005, as_taken["rig_fit"]
+    assert out["summary"]["found, self-calibrated"]["cases"] == 2
     assert (
         out["markdown"]
         .splitlines()[0]
