@@ -139,13 +139,20 @@ class JobRequest(BaseModel):
     noise: NoiseSource | None = Field(default=None, description="HDR noise model; default: auto")
     fit_aperture: FitChoice | None = Field(
         default=None,
-        description="fit the camera's aperture (pinhole) diameter to the data (docs/light-model.md): auto (the "
-        "default) where the sources are searched for in the data (no layout), the rig's diameter kept if that fit "
-        "fails; always (a failed fit fails the job); never",
+        description="fit the camera's aperture (pinhole) diameter to the data on its own (docs/light-model.md), "
+        "where the self-calibration is off (calibrate_rig never): auto (the default) where the sources are searched "
+        "for in the data (no layout), the rig's diameter kept if that fit fails; always (a failed fit fails the job);"
+        " never",
     )
     fit_sensor_distance: FitChoice | None = Field(
         default=None,
         description="fit the sensor distance (pinhole to sensor) to the data too, as fit_aperture; default: never",
+    )
+    calibrate_rig: FitChoice | None = Field(
+        default=None,
+        description="fit the rig's geometry to the data with the sources (self-calibration, docs/self-calibration.md):"
+        " auto (the default) where the sources are searched for; always (with a layout too, its places held); never. "
+        "It fits the aperture and the sensor distance with the rest: their own fits then stay off",
     )
 
     @field_validator("steps")

@@ -55,6 +55,8 @@ JOB_OPTIONS = {
     "for), always, or never",
     "fit_sensor_distance": "fit the sensor distance (pinhole to sensor) to the data too: auto, always, or never "
     "(the default)",
+    "calibrate_rig": "fit the rig's geometry to the data with the sources (self-calibration): auto (where the sources "
+    "are searched for), always, or never",
 }
 #: The result files a job records, by kind: the daemon serves exactly these.
 ARTIFACT_KINDS = ("report", "ies", "ldt", "tm25", "light_model", "results")
@@ -322,6 +324,7 @@ class JobWorker:
             noise=options.get("noise", "auto"),
             fit_aperture=options.get("fit_aperture"),
             fit_sensor_distance=options.get("fit_sensor_distance"),
+            calibrate_rig=options.get("calibrate_rig"),
         )
         artifacts = {"results": report.results_file}
         if report.light_model is not None:
@@ -335,6 +338,8 @@ class JobWorker:
             f"{' (partial: the run was still being acquired)' if report.partial and job.options.get('partial') else ''}"
             f" in {seconds:.1f} s on {report.compute}"
         )
+        if report.quality is not None:  # the verdict first: a job's note is where the lab looks
+            message = f"{report.quality.line()}; {message}"
         return run_path.parent, {k: str(v) for k, v in artifacts.items()}, message
 
 

@@ -234,6 +234,10 @@ class LightModel:
         ``method`` (e.g. ``"template-unmixing"`` or ``"cell-sums"``),
         ``spatial_resolution_m`` (the point spread's footprint on the light plane), and
         anything else worth keeping (JSON-able).
+    quality : dict
+        Whether the model can be trusted (:mod:`processing.light_run.quality`): ``status``
+        ``ok`` or ``suspect``, the ``reason`` where suspect, and the figures it was judged on;
+        empty for a model made without that judgement.
 
     Notes
     -----
@@ -244,6 +248,7 @@ class LightModel:
     sources: list[SourceModel]
     units: str = "relative"
     provenance: dict[str, Any] = field(default_factory=dict)
+    quality: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         self.sources = list(self.sources)
@@ -260,6 +265,8 @@ class LightModel:
             raise LightModelError(f"sources: duplicate name {', '.join(map(repr, dupes))}")
         if not isinstance(self.provenance, dict):
             raise LightModelError("provenance: expected a table (dict)")
+        if not isinstance(self.quality, dict):
+            raise LightModelError("quality: expected a table (dict)")
 
     # ----------------------------------------------------------------- lookups
 
@@ -379,6 +386,7 @@ class LightModel:
             "format_version": LIGHT_MODEL_VERSION,
             "units": self.units,
             "provenance": json_ready(self.provenance),
+            **({"quality": json_ready(self.quality)} if self.quality else {}),
             "sources": [s.to_dict() for s in self.sources],
         }
 
@@ -437,7 +445,7 @@ class LightModel:
             except (LightModelError, TypeError, ValueError) as e:
                 raise LightModelError(f"{where}: {e}") from None
         try:
-            return cls(sources, d["units"], d.get("provenance", {}))
+            return cls(sources, d["units"], d.get("provenance", {}), d.get("quality", {}))
         except LightModelError as e:
             raise LightModelError(f"{origin}: {e}") from None
 

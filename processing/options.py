@@ -63,8 +63,8 @@ class Units(StrEnum):
 
 
 class FitChoice(StrEnum):
-    """Whether one of the camera's numbers (the aperture's diameter, the sensor distance) is
-    fitted to the data."""
+    """Whether some of the rig's numbers (the camera's aperture diameter, its sensor distance,
+    the rig's geometry in the self-calibration) are fitted to the data."""
 
     AUTO = "auto"  # fitted where the sources are searched for in the data; a failed fit keeps the rig's number
     ALWAYS = "always"  # fitted; a failed fit fails the processing
@@ -91,7 +91,12 @@ class ProcessingOptions:
     images : bool
         An OpenEXR and a PNG preview per position (the ``hdr`` step).
     fit_aperture, fit_sensor_distance : FitChoice
-        Whether the camera's aperture diameter and its sensor distance are fitted to the data.
+        Whether the camera's aperture diameter and its sensor distance are fitted to the data
+        on their own (the self-calibration fits both with the rest).
+    calibrate_rig : FitChoice
+        Whether the rig's geometry is fitted to the data (the self-calibration,
+        :mod:`processing.light_run.self_calibration`): ``auto`` where the sources are searched
+        for, ``always`` with a given layout too (its places then held).
 
     Examples
     --------
@@ -115,6 +120,7 @@ class ProcessingOptions:
     images: bool = True
     fit_aperture: FitChoice = FitChoice.AUTO
     fit_sensor_distance: FitChoice = FitChoice.NEVER
+    calibrate_rig: FitChoice = FitChoice.AUTO
 
     @classmethod
     def checked(cls, **values: Any) -> ProcessingOptions:
@@ -197,4 +203,5 @@ _CHECKS: dict[str, Callable[[str, Any], Any]] = {
     "images": _flag,
     "fit_aperture": _member(FitChoice),
     "fit_sensor_distance": _member(FitChoice),
+    "calibrate_rig": _member(FitChoice),
 }

@@ -131,7 +131,9 @@ def test_a_worker_processes_a_job_and_records_its_result_files(captured, data):
     assert done.artifacts["tm25"] == str(folder / f"{stem}.tm25ray")
     for path in done.artifacts.values():
         assert Path(path).is_file() and Path(path).stat().st_size > 100, path
-    assert done.message.startswith("3 of 66 positions in ") and "this process" in done.message
+    # The note leads with the verdict on the light model, then what was processed where.
+    assert done.message.startswith("quality ok: the templates explain the sweep to "), done.message
+    assert "; 3 of 66 positions in " in done.message and "this process" in done.message
     with Results.open(done.artifacts["results"]) as results:
         assert results.hdr_done.sum() == 3
     assert data.worker().run_once() is None  # nothing left
@@ -185,7 +187,7 @@ def test_a_job_for_a_run_being_acquired_waits_or_takes_the_complete_positions(ca
         assert job.message.startswith(f"waiting: run {live.id} is still being acquired (its state is running)")
         assert data.catalog.get_job(other.id).state == "complete"
         done = data.catalog.get_job(partial.id)
-        assert done.state == "complete" and done.message.startswith("3 of 66 positions (partial"), done.message
+        assert done.state == "complete" and "; 3 of 66 positions (partial" in done.message, done.message
         with Results.open(done.artifacts["results"]) as results:
             assert np.flatnonzero(results.hdr_done).tolist() == list(POSITIONS)
         # The acquisition ends: the waiting job runs once its wait is over, on every position.
@@ -197,7 +199,7 @@ def test_a_job_for_a_run_being_acquired_waits_or_takes_the_complete_positions(ca
     assert worker.run_once() is None  # still inside its wait
     data.later = timedelta(seconds=61)  # its wait is over (the catalog's clock, not a race with the processing)
     done = worker.run_once()
-    assert done.id == waiting.id and done.state == "complete" and done.message.startswith("4 of 66 positions in")
+    assert done.id == waiting.id and done.state == "complete" and "; 4 of 66 positions in" in done.message
 
 
 def test_a_run_file_still_held_by_its_writer_waits_even_if_the_catalog_gave_up_on_it(captured, data):
@@ -331,7 +333,8 @@ def test_the_worker_command_once_and_its_errors(captured, data, tmp_path):
     runner = CliRunner()
     result = runner.invoke(app, ["worker", "--data-dir", str(data.root), "--scheduler", "none", "--once"])
     assert result.exit_code == 0, result.output
-    assert f"{job.id} complete ({run.id}): 3 of 66 positions" in result.output
+    assert f"{job.id} complete ({run.id}): quality ok: " in result.output
+    assert "; 3 of 66 positions" in result.output
     assert "  report: " in result.output and "  tm25: " in result.output
     missing = runner.invoke(app, ["worker", "--data-dir", str(tmp_path / "nope"), "--once"])
     assert missing.exit_code == 2 and "is not a folder" in missing.output

@@ -9,7 +9,10 @@ axes (yaw about its image's vertical, pitch about its horizontal, roll about its
 or moved along its axis or across it; the principal point off the sensor's centre; the arm's
 base frame turned about the rig's axes through the rig's origin (yaw about the vertical +y,
 pitch about +x, roll about +z) or moved; the light tilted on its mount (about the light
-frame's x axis) or moved on it.
+frame's x axis, ``light-tilt``, or its y axis, ``light-tilt-y``) or moved on it.
+
+A *preset* is many errors at once, as a lab makes them (:data:`PRESETS`): each part at its
+size, in a direction drawn from a seed (:func:`preset_errors`).
 """
 
 from __future__ import annotations
@@ -21,8 +24,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from drivers.contracts.rig import rig_from_dict
-from drivers.pose import Pose, angles_from_rotation, rotation_from_angles
+from drivers.contracts.rig import PoseSpec, rig_from_dict
+from drivers.pose import Pose, rotation_from_angles
 
 #: The numbers an error can touch, by name: (what it changes, which axis or component, the units it
 #: takes). What it changes: a rig field (``scale`` by %, or ``add`` a length), or one of the
@@ -39,10 +42,12 @@ ERROR_PARTS: dict[str, tuple[str, str | int | None, tuple[str, ...]]] = {
     "light-y": ("light.light_to_tool.position_m", 1, ("mm", "um")),
     "light-z": ("light.light_to_tool.position_m", 2, ("mm", "um")),
     "light-tilt": ("light-turn", 0, ("deg",)),
+    "light-tilt-y": ("light-turn", 1, ("deg",)),
     "camera-pitch": ("camera-turn", 0, ("deg",)),
     "camera-yaw": ("camera-turn", 1, ("deg",)),
     "camera-roll": ("camera-turn", 2, ("deg",)),
     "camera-across": ("camera-move", 0, ("mm", "um")),
+    "camera-across-y": ("camera-move", 1, ("mm", "um")),
     "camera-along": ("camera-move", 2, ("mm", "um")),
     "principal-x": ("principal", 0, ("px",)),
     "principal-y": ("principal", 1, ("px",)),
@@ -222,8 +227,7 @@ def _light_turn(out: dict, axis: int, angle: float) -> None:
 
 
 def _pose_spec(pose: Pose) -> dict:
-    angles = [math.degrees(a) for a in angles_from_rotation(pose.rotation)]
-    return {"position_m": pose.position.tolist(), "rotation_deg": angles}
+    return PoseSpec.of(pose).model_dump()
 
 
 _POSE_ERRORS = {
@@ -234,3 +238,60 @@ _POSE_ERRORS = {
     "arm-move": _arm_move,
     "light-turn": _light_turn,
 }
+
+
+#: Many errors at once, by name: each part with its size, in a direction a seed draws
+#: (:func:`preset_errors`). ``typical-lab``: what a careful lab measures its rig to (the camera's
+#: axis 0.3° and its roll 0.3°, the principal point 10 px, the camera 2 mm along its axis and
+#: 1 mm across, the ball's radius 10 µm, the arm's base 0.5° and 1 mm, the light's tilt 1° and
+#: its mount 0.5 mm, the pinhole 10 %, the sensor distance 1 %).
+PRESETS: dict[str, tuple[tuple[tuple[str, ...], float, str], ...]] = {
+    "typical-lab": (
+        (("camera-yaw", "camera-pitch"), 0.3, "deg"),
+        (("camera-roll",), 0.3, "deg"),
+        (("principal-x", "principal-y"), 10.0, "px"),
+        (("camera-along",), 2.0, "mm"),
+        (("camera-across", "camera-across-y"), 1.0, "mm"),
+        (("ball-radius",), 10.0, "um"),
+        (("arm-pitch", "arm-yaw", "arm-roll"), 0.5, "deg"),
+        (("arm-x", "arm-y", "arm-z"), 1.0, "mm"),
+        (("light-tilt", "light-tilt-y"), 1.0, "deg"),
+        (("light-x", "light-y"), 0.5, "mm"),
+        (("pinhole",), 10.0, "%"),
+        (("sensor-distance",), 1.0, "%"),
+    ),
+}
+
+
+def preset_errors(preset: str, seed: int) -> list[str]:
+    """The errors of ``preset`` (:data:`PRESETS`) for one ``seed``: each part's size along a
+    direction drawn uniformly (a sign for one number, a unit vector for two or three), as names
+    :func:`parse_error` reads.
+
+    Examples
+    --------
+    >>> errors = preset_errors("typical-lab", 0)
+    >>> len(errors), errors[-1]
+    (21, 'sensor-distance-1%')
+    >>> preset_errors("typical-lab", 0) == errors
+    True
+    """
+    if preset not in PRESETS:
+        raise ValueError(f"--preset: {preset!r} is not one of {', '.join(PRESETS)}")
+    rng = np.random.default_rng(seed)
+    names = []
+    for parts, size, unit in PRESETS[preset]:
+        direction = rng.standard_normal(len(parts)) if len(parts) > 1 else rng.choice([-1.0, 1.0], 1)
+        direction /= np.linalg.norm(direction)
+        for part, component in zip(parts, direction, strict=True):
+            amount = round(size * float(component), 4)
+            if amount != 0.0:
+                names.append(f"{part}{'+' if amount > 0 else '-'}{abs(amount):g}{unit}")
+    return names
+
+
+def described_wrong_all(rig: dict, errors: list[str]) -> dict:
+    """``rig`` with every error of ``errors`` made in it, in turn (:func:`described_wrong`)."""
+    for error in errors:
+        rig = described_wrong(rig, error)
+    return rig

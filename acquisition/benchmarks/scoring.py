@@ -114,13 +114,73 @@ def score_sources(
             entry["centre_error_um"] = round(1e6 * float(distances[k]), 1)
             entry["found_radius_mm"] = round(1e3 * source.radius_m, 3)
             entry["true_radius_mm"] = round(1e3 * emitter.radius_m, 3)
+        entry["coverage"] = coverage(source, emitter, frame)
         if cell_sums:
             entry.update(_score_cell_sums(samples, k, emitter, theta, fit_method))
         if fit_method == "cos-power":
             entry["mu_fit"] = source.fit.params.get("mu")
             entry["mu_true"] = getattr(emitter.intensity, "mu", None)
         out_sources.append(entry)
-    return {"sources": out_sources, "matched": taken}
+    result = {"sources": out_sources, "matched": taken, "coverage": coverage_share(out_sources)}
+    if matched:
+        result |= _relative_places(found[taken], truth_light, out_sources)
+    return result
+
+
+def _relative_places(places: np.ndarray, truth_light, scored_sources: list[dict]) -> dict:
+    """The sources' places against the truth's after their common offset: what the data fix
+    where the rig's frame is only known up to the turns the self-calibration cannot tell apart
+    (the camera's roll or its place around the ball take the light around the ball with them)."""
+    offsets = places - np.array([e.centre_m for e in truth_light.emitters], float)
+    common = offsets.mean(axis=0)
+    for entry, offset in zip(scored_sources, offsets - common, strict=True):
+        entry["centre_error_relative_um"] = round(1e6 * float(np.hypot(*offset)), 1)
+    return {"centre_offset_um": [round(1e6 * float(x), 1) for x in common]}
+
+
+#: The truth's parameter each fitted gaussian parameter stands for, in the fit's units.
+_GAUSSIAN_TRUTH = {"a": lambda law: law.peak_w_sr, "sigma": lambda law: math.radians(law.sigma_deg)}
+
+
+def coverage(source, emitter, frame: Pose | None) -> dict:
+    """How many of the source's quoted 1σ cover the truth: its samples' error bars (each
+    sample's intensity against the truth's in the same direction, seen through ``frame``) and
+    its fit's parameters (a gaussian's peak and width against the truth's gaussian, where the
+    frames agree in direction: a turned frame makes the truth's lobe another function)."""
+    theta = np.asarray(source.samples["theta"], float)
+    phi = np.asarray(source.samples.get("phi") or np.zeros_like(theta), float)
+    direction = np.stack([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi), np.cos(theta)], axis=-1)
+    if frame is not None:
+        direction = direction @ frame.rotation.T
+    true = emitter.intensity_w_sr(
+        np.arccos(np.clip(direction[:, 2], -1.0, 1.0)), np.arctan2(direction[:, 1], direction[:, 0])
+    )
+    error = np.abs(np.asarray(source.samples["intensity"], float) - true)
+    out = {
+        "samples_within": int(np.count_nonzero(error <= np.asarray(source.samples["sigma"], float))),
+        "samples": int(theta.size),
+    }
+    law = getattr(emitter, "intensity", None)
+    turned = frame is not None and frame.distance_to(Pose(0.0, 0.0, 0.0))[1] > math.radians(0.2)
+    if source.fit.method == "gaussian" and getattr(law, "model", "") == "gaussian" and not turned:
+        params = [name for name in _GAUSSIAN_TRUTH if name in source.fit.params]
+        within = [
+            abs(source.fit.params[name] - _GAUSSIAN_TRUTH[name](law)) <= source.fit.uncertainties[name]
+            for name in params
+        ]
+        out |= {"parameters_within": int(sum(within)), "parameters": len(params)}
+    return out
+
+
+def coverage_share(scored_sources: list[dict]) -> dict:
+    """The share of quoted 1σ that cover the truth over all sources: parameters and samples
+    (a true 1σ covers 68 %)."""
+    share = {}
+    for kind in ("parameters", "samples"):
+        total = sum(entry["coverage"].get(kind, 0) for entry in scored_sources)
+        within = sum(entry["coverage"].get(f"{kind}_within", 0) for entry in scored_sources)
+        share[kind] = round(within / total, 3) if total else None
+    return share
 
 
 def _score_cell_sums(samples, k: int, emitter, theta, fit_method: str) -> dict:

@@ -238,6 +238,25 @@ def bench_tolerance_command(
     truth: Annotated[str, typer.Option(help="Shipped truth light.")] = "five-gaussians",
     positions: Annotated[int, typer.Option(min=3, help="Schedule positions (the first N of the sweep).")] = 66,
     errors: Annotated[str | None, typer.Option(help=_rig_errors_help())] = None,
+    preset: Annotated[
+        str | None,
+        typer.Option(
+            help="Many errors at once instead of --errors, as a lab makes them, in directions drawn from each seed: "
+            "typical-lab (the camera's axis 0.3° and roll 0.3°, the principal point 10 px, the camera 2 mm along "
+            "and 1 mm across, the ball's radius 10 µm, the arm's base 0.5° and 1 mm, the light's tilt 1° and "
+            "mount 0.5 mm, the pinhole 10 %, the sensor distance 1 %)."
+        ),
+    ] = None,
+    seeds: Annotated[int, typer.Option(min=1, help="With --preset: the seeds 0 .. N-1, one case each.")] = 5,
+    ways: Annotated[
+        str | None,
+        typer.Option(
+            help="Comma-separated ways to process each description, instead of the flags' choice: given; given, "
+            "aperture fitted; given, sensor distance fitted; given, self-calibrated; found; found, aperture "
+            "fitted; found, sensor distance fitted; found, self-calibrated (as `process` does by default). Give "
+            "them separated by commas, e.g. 'found,found, self-calibrated'.",
+        ),
+    ] = None,
     layout_from_data: Annotated[
         bool, typer.Option("--layout-from-data", help="Also find the sources in the data with each description.")
     ] = False,
@@ -261,7 +280,8 @@ def bench_tolerance_command(
     record: RecordOption = None,
 ) -> None:
     """How exact the rig description must be: one simulated run (the demo rig by default)
-    processed with one number of its description wrong at a time, scored against the truth.
+    processed with one number of its description wrong at a time (or a preset's many at once),
+    in each way (held as described, or self-calibrated), scored against the truth.
     Progress goes to standard error; the JSON, then (without --json) the markdown table, to
     standard output."""
     from acquisition.benchmarks.tolerance import bench_tolerance
@@ -276,6 +296,9 @@ def bench_tolerance_command(
             truth=truth,
             positions=positions,
             errors=chosen,
+            preset=preset,
+            seeds=seeds,
+            ways=_way_names(ways),
             layout_from_data=layout_from_data,
             fit_aperture=fit_aperture,
             fit_sensor_distance=fit_sensor_distance,
@@ -290,6 +313,19 @@ def bench_tolerance_command(
         typer.echo("")
         typer.echo(result["markdown"])
     _record(recording, "tolerance", result)
+
+
+def _way_names(text: str | None) -> list[str] | None:
+    """``--ways``: names split at commas, a name's own ", " kept (``found, self-calibrated``)."""
+    if text is None:
+        return None
+    names: list[str] = []
+    for piece in (p.strip() for p in text.split(",")):
+        if names and piece and piece.split()[0] in ("aperture", "sensor", "self-calibrated"):
+            names[-1] = f"{names[-1]}, {piece}"
+        elif piece:
+            names.append(piece)
+    return names
 
 
 @bench_app.command("speed")

@@ -98,6 +98,10 @@ def _print_batch_summary(outcomes: list) -> None:
     )
 
 
+#: A tri-state flag's choice: neither flag given (the default), the flag, or its --no- form.
+CHOICE = {None: FitChoice.AUTO, True: FitChoice.ALWAYS, False: FitChoice.NEVER}
+
+
 @app.command("process")
 def process(
     runs: Annotated[list[Path], typer.Argument(help="Run files (HDF5) to process.")],
@@ -127,9 +131,8 @@ def process(
         bool | None,
         typer.Option(
             "--fit-aperture/--no-fit-aperture",
-            help="Fit the camera's aperture (pinhole) diameter to the data before the sources are estimated "
-            "(docs/light-model.md), or keep the rig's. Default: fitted when the sources are searched for in the "
-            "data (no --layout), the rig's diameter kept if that fit fails.",
+            help="Fit the pinhole's diameter alone to the data (docs/light-model.md), or keep the rig's. Default: "
+            "fitted where the sources are searched for and the rig is not self-calibrated.",
             show_default=False,
         ),
     ] = None,
@@ -137,10 +140,19 @@ def process(
         bool,
         typer.Option(
             "--fit-sensor-distance",
-            help="Fit the sensor distance (pinhole to sensor) to the data too, before the aperture: minutes more on "
-            "the demo rig (docs/light-model.md).",
+            help="Fit the sensor distance to the data too, before the aperture (docs/light-model.md).",
         ),
     ] = False,
+    calibrate_rig: Annotated[
+        bool | None,
+        typer.Option(
+            "--calibrate-rig/--no-calibrate-rig",
+            help="Fit the rig's geometry to the data with the sources (self-calibration, docs/self-calibration.md): "
+            "the camera's pose, sensor distance and pinhole, the arm's base frame. Default: where the sources are "
+            "searched for (no --layout); with --layout and --calibrate-rig the layout's places are held.",
+            show_default=False,
+        ),
+    ] = None,
     scheduler: SchedulerOption = "local",
     workers: WorkersOption = None,
 ) -> None:
@@ -161,17 +173,14 @@ def process(
             fit_method=fit,
             ball_centre=ball_centre,
             images=images,
-            fit_aperture={None: FitChoice.AUTO, True: FitChoice.ALWAYS, False: FitChoice.NEVER}[fit_aperture],
-            fit_sensor_distance=FitChoice.ALWAYS if fit_sensor_distance else FitChoice.NEVER,
+            fit_aperture=CHOICE[fit_aperture],
+            fit_sensor_distance=CHOICE[fit_sensor_distance or False],
+            calibrate_rig=CHOICE[calibrate_rig],
         )
         check_scheduler(scheduler, workers)
     except (OptionsError, ComputeError) as exc:
         raise fail(str(exc)) from None
-    missing = [run for run in runs if not run.is_file()]
-    if missing:
-        raise fail(f"{missing[0]}: no such run file")
-    if options.layout is not None and not options.layout.is_file():
-        raise fail(f"--layout: {options.layout}: no such file")
+    _check_files(runs, options)
     distinct = _distinct_runs(runs)
     outcomes = _process_all(distinct, _output_folders(distinct, out), options, scheduler, workers)
     if len(distinct) > 1:
@@ -181,6 +190,15 @@ def process(
         typer.echo(f"error: {error}", err=True)
     if failed:
         raise typer.Exit(code=2)
+
+
+def _check_files(runs: list[Path], options: ProcessingOptions) -> None:
+    """Every run file and the layout exist (one line naming the first missing)."""
+    missing = [run for run in runs if not run.is_file()]
+    if missing:
+        raise fail(f"{missing[0]}: no such run file")
+    if options.layout is not None and not options.layout.is_file():
+        raise fail(f"--layout: {options.layout}: no such file")
 
 
 def _process_all(runs: list[Path], folders: dict, options: ProcessingOptions, scheduler: str, workers) -> list:
@@ -251,6 +269,16 @@ def _say_processed(run: Path, report) -> None:
             typer.echo(f"  {label}: {fitted.describe(digits)}{later}")
         elif fitted is not None and fitted.failed:
             typer.echo(f"  {label}: as the rig describes it (the fit to the data failed: {fitted.failed})")
+    calibration = report.rig_calibration
+    if calibration is not None:
+        fit = calibration.fit
+        typer.echo(
+            f"  rig: fitted to the data (χ²/pixel {fit.chi2_described / fit.pixels:.4f} as described, "
+            f"{fit.chi2 / fit.pixels:.4f} as fitted; the silhouette from {calibration.silhouette}): "
+            f"{report.outputs['rig'][0]}"
+        )
+    if report.quality is not None:
+        typer.echo(f"  {report.quality.line()}")
     files = ", ".join(
         f"{kind.upper()} {paths[0]}"
         for kind, paths in report.outputs.items()

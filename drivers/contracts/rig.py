@@ -20,7 +20,7 @@ from pydantic import Field, PositiveFloat, PositiveInt, model_validator
 
 from drivers.arm import SoftLimits
 from drivers.config_files import ConfigModel, load_model, validate_model
-from drivers.pose import Pose, rotation_from_angles
+from drivers.pose import Pose, angles_from_rotation, rotation_from_angles
 
 # scipy.spatial.transform is imported where a rotation is computed (CameraPose.extrinsics,
 # ObjectArc.light_poses): at the top it would more than double the import time of this module,
@@ -60,6 +60,12 @@ class PoseSpec(ConfigModel):
     def to_pose(self) -> Pose:
         rx, ry, rz = (math.radians(a) for a in self.rotation_deg)
         return Pose(*self.position_m, rx, ry, rz)
+
+    @classmethod
+    def of(cls, pose: Pose) -> PoseSpec:
+        """The spec of ``pose`` (its angles as :func:`drivers.pose.angles_from_rotation` gives them)."""
+        angles = tuple(math.degrees(a) for a in angles_from_rotation(pose.rotation))
+        return cls(position_m=tuple(float(x) for x in pose.position), rotation_deg=angles)  # type: ignore[arg-type]
 
 
 def look_rotation(forward: ArrayLike, x_hint: ArrayLike) -> np.ndarray:
@@ -545,3 +551,14 @@ def load_rig(path: str | Path | None = None) -> Rig:
 def rig_to_toml_dict(rig: Rig) -> dict[str, Any]:
     """The rig as plain data (for storing inside run files), None values dropped."""
     return rig.model_dump(mode="json", exclude_none=True)
+
+
+def write_rig(rig: Rig, path: str | Path, comment: str = "") -> Path:
+    """``rig`` as a rig file at ``path`` (TOML; :func:`load_rig` reads it back the same), with
+    ``comment`` as its opening lines."""
+    import tomli_w  # noqa: PLC0415 - only the processing writes rig files; the daemon's start stays light
+
+    head = "".join(f"# {line}\n" if line else "#\n" for line in comment.splitlines())
+    path = Path(path)
+    path.write_text(head + tomli_w.dumps(rig_to_toml_dict(rig)), encoding="utf-8")
+    return path

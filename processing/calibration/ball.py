@@ -43,6 +43,9 @@ class BallFit:
         Median inward shift applied to the edge points for the Fresnel rim (0 without
         the ball's refractive index).
     points_used : int
+    edge_points_px : (N, 2) or None
+        The edge points the centre was fitted to (col, row), the rim's shift removed: what a
+        later fit of the camera's pose takes as the silhouette measured.
     """
 
     centre_camera: np.ndarray
@@ -55,6 +58,7 @@ class BallFit:
     naive_centre_camera: np.ndarray | None = None
     rim_shift_px: float = 0.0
     points_used: int = 0
+    edge_points_px: np.ndarray | None = None
     extra: dict = field(default_factory=dict)
 
     @property
@@ -237,6 +241,7 @@ def solve_ball_centre(
         naive_centre_camera=axis * radius / math.sin(half),
         rim_shift_px=float(np.median(shift)),
         points_used=len(pts),
+        edge_points_px=use,
     )
     if extrinsics is not None:
         rot, t = (np.asarray(x, dtype=float) for x in extrinsics)

@@ -21,7 +21,7 @@ from processing.light_run.records import FittedNumber
 from processing.parallel import Compute
 from processing.radiometry import electron_rates, radiometric_gain
 from processing.results import Results
-from processing.trace import light_pose_at_position
+from processing.trace import light_pose_at, light_pose_at_position
 from processing.unmixing.camera_fit import ApertureFit, SensorDistanceFit, fit_aperture, fit_sensor_distance
 from processing.unmixing.problem import LayoutData
 from processing.unmixing.search import (
@@ -230,7 +230,7 @@ def _fitted_aperture(
     prepare_task()
 
     with open_run(run_path) as run:
-        data, builder, cfa = _layout_data(run, results_file, ball_centre, picks, camera)
+        data, builder, cfa = layout_data(run, results_file, ball_centre, picks, camera)
         return fit_aperture(data, builder, cfa, list(layout))
 
 
@@ -247,12 +247,12 @@ def _fitted_sensor_distance(
     prepare_task()
 
     with open_run(run_path) as run:
-        data, builder, cfa = _layout_data(run, results_file, ball_centre, picks, camera)
+        data, builder, cfa = layout_data(run, results_file, ball_centre, picks, camera)
         return fit_sensor_distance(data, builder, cfa, list(layout), refit=refit)
 
 
-def _layout_data(
-    run: RunFile, results_file: str, ball_centre: BallCentre, picks: Iterable[int], camera: CameraFit | None = None
+def layout_data(
+    run: RunFile, results_file: PathArg, ball_centre: BallCentre, picks: Iterable[int], camera: CameraFit | None = None
 ) -> tuple[list[LayoutData], TemplateBuilder, str]:
     """The merged positions ``picks`` as the layout fits take them: (data, builder, cfa pattern)."""
 
@@ -260,8 +260,10 @@ def _layout_data(
     data: list[LayoutData] = []
     cfa = "RGGB"
     for index in picks:
-        rate, var, usable, cfa = _merged_rates(run, results_file, index)
-        data.append(LayoutData(rate, var, usable, light_pose_at_position(run, geometry, index)))
+        rate, var, usable, cfa = _merged_rates(run, str(results_file), index)
+        measured = run.measured_pose(index)
+        tool = measured if measured is not None else run.header.tool_poses[index]
+        data.append(LayoutData(rate, var, usable, light_pose_at(geometry, tool), tool))
     return data, builder, cfa
 
 
@@ -415,7 +417,7 @@ def _refined_layout(
     prepare_task()
 
     with open_run(run_path) as run:
-        data, builder, cfa = _layout_data(run, results_file, ball_centre, picks, camera)
+        data, builder, cfa = layout_data(run, results_file, ball_centre, picks, camera)
         return refine_layout(data, builder, cfa, first, seeds)
 
 

@@ -10,6 +10,7 @@ import numpy as np
 
 from drivers.contracts.rig import Rig
 from drivers.contracts.runfile import RunFile
+from processing.rig_fit import RigCorrection
 from processing.trace import RigGeometry
 from processing.unmixing.templates import TemplateBuilder
 
@@ -23,7 +24,8 @@ def geometry_and_builder(
     run: RunFile, ball_centre: Sequence[float] | np.ndarray | None, camera: CameraFit | None = None
 ) -> tuple[RigGeometry, TemplateBuilder]:
     """The rig's geometry and template builder (ball at ``ball_centre``, or where the rig says;
-    the camera's aperture and sensor distance as ``camera`` has them, or as the rig says).
+    the camera's aperture and sensor distance as ``camera`` has them, or as the rig says; the
+    rig corrected as ``camera.rig`` says).
 
     Kept per process for the rig object the run file's header shares (``drivers.contracts.runfile``
     validates a rig once per text): every position task of a run asks for the same one, and
@@ -40,6 +42,8 @@ def geometry_and_builder(
             geometry = replace(geometry, aperture_radius=0.5 * float(camera.aperture_m))
         if camera.sensor_distance_m is not None:
             geometry = geometry.with_sensor_distance(float(camera.sensor_distance_m))
+        if camera.rig is not None:
+            geometry = camera.rig.apply(geometry)
         if len(_GEOMETRIES) >= 8:
             _GEOMETRIES.pop(next(iter(_GEOMETRIES)))
         held = _GEOMETRIES[key] = (rig, geometry, TemplateBuilder(geometry, rig.camera.sensitivity_e_per_s))
@@ -48,8 +52,10 @@ def geometry_and_builder(
 
 @dataclass(frozen=True)
 class CameraFit:
-    """The camera's numbers fitted to the data (``--fit-aperture``, ``--fit-sensor-distance``);
-    each None where the rig's description stands."""
+    """The rig's numbers fitted to the data: the camera's aperture and sensor distance
+    (``--fit-aperture``, ``--fit-sensor-distance``), then the self-calibration's correction of
+    the rig (``--calibrate-rig``); each None where the rig's description stands."""
 
     aperture_m: float | None = None
     sensor_distance_m: float | None = None
+    rig: RigCorrection | None = None

@@ -9,7 +9,7 @@ import numpy as np
 
 from drivers.contracts.runfile import RunFile
 from drivers.contracts.version import __version__
-from processing.fit import FitError, Samples, fit_intensity
+from processing.fit import FitError, Samples, fit_with_model_error
 from processing.light_run.errors import ProcessingError
 from processing.light_run.samples import SourceSamples
 from processing.lightmodel import LightModel, SourceModel, samples_table
@@ -59,7 +59,7 @@ def fit_light_model(
             sigma = np.full(ok.sum(), 0.01 * max(np.nanmax(samples.intensity[:, k]), 1e-30))
         data = Samples(samples.theta[:, k][ok], samples.phi[:, k][ok], samples.intensity[:, k][ok], sigma)
         try:
-            fit = fit_intensity(data, method=method)
+            fit, data = fit_with_model_error(data, method=method)
         except FitError as exc:
             raise ProcessingError(f"{run.path}: source {source.name}: {exc}") from None
         table = samples_table(data, samples.positions[ok], samples.cell_sum[:, k][ok])

@@ -9,14 +9,19 @@ from pathlib import Path
 
 import numpy as np
 
+from drivers.contracts.rig import rig_to_toml_dict, write_rig
+from drivers.contracts.version import __version__
 from processing.exports.ies import write_ies
 from processing.exports.ldt import write_ldt
 from processing.exports.tm25 import write_tm25
 from processing.light_run.errors import open_run
+from processing.light_run.from_data import FIT_FRACTIONS, spread_over
 from processing.light_run.light_fit import fit_light_model
 from processing.light_run.position import SourceRow, SourcesPlan
-from processing.light_run.records import ProcessReport, camera_provenance
+from processing.light_run.quality import judge
+from processing.light_run.records import ProcessReport, RigCalibration, camera_provenance
 from processing.light_run.samples import assemble_samples
+from processing.lightmodel import LightModel
 from processing.options import ProcessingOptions
 from processing.parallel import Compute
 from processing.report.context import Truth
@@ -52,13 +57,7 @@ def finish_sources(
             footprint=plan.footprint,
         )
     timings["fit"] = time.perf_counter() - clock
-    ball_centre = plan.ball_centre
-    model.provenance["ball_centre_m"] = list(ball_centre) if ball_centre is not None else "as described by the rig"
-    model.provenance["layout"] = (
-        str(options.layout) if options.layout is not None else f"found in the data: {report.layout_search}"
-    )
-    model.provenance["aperture_m"] = camera_provenance(report.aperture_fit, "--fit-aperture")
-    model.provenance["sensor_distance_m"] = camera_provenance(report.sensor_distance_fit, "--fit-sensor-distance")
+    record_provenance(model, report, plan, options, out / run_path.stem, positions, rows)
     report.light_model = model.save(out / f"{run_path.stem}.light.json")
     stem = out / run_path.stem
     luminaire = f"mirrorgonio run {run_path.stem}"
@@ -98,3 +97,52 @@ def finish_sources(
         timings["report"] = time.perf_counter() - clock
         report.outputs.update(exports.result())
     report.outputs["report"] = [drawn]
+
+
+def record_provenance(
+    model: LightModel,
+    report: ProcessReport,
+    plan: SourcesPlan,
+    options: ProcessingOptions,
+    stem: Path,
+    positions: np.ndarray,
+    rows: dict[int, SourceRow],
+) -> None:
+    """How the light model came to be, in its provenance (the ball's centre, the layout, the
+    camera's numbers, the self-calibration), and the verdict on it (``quality``)."""
+    ball_centre = plan.ball_centre
+    model.provenance["ball_centre_m"] = list(ball_centre) if ball_centre is not None else "as described by the rig"
+    model.provenance["layout"] = (
+        str(options.layout) if options.layout is not None else f"found in the data: {report.layout_search}"
+    )
+    model.provenance["aperture_m"] = camera_provenance(report.aperture_fit, "--fit-aperture")
+    model.provenance["sensor_distance_m"] = camera_provenance(report.sensor_distance_fit, "--fit-sensor-distance")
+    if report.rig_calibration is not None:
+        report.outputs["rig"] = [record_calibration(model.provenance, report.rig_calibration, stem)]
+    calibration = report.rig_calibration
+    if calibration is not None:
+        fit_positions: list[int] | None = list(calibration.positions)
+    else:  # the layout search's refinement, where the sources were searched for
+        fit_positions = spread_over(positions, FIT_FRACTIONS) if options.layout is None else None
+    report.quality = judge(rows, calibration, fit_positions)
+    model.quality = report.quality.record()
+    if not report.quality.ok:
+        log.warning("%s: %s", report.run_file, report.quality.line())
+
+
+def record_calibration(provenance: dict, calibration: RigCalibration, stem: Path) -> Path:
+    """The self-calibration in the light model's provenance (``rig_calibration``; the rig as
+    fitted becomes its ``rig_description``, the one described ``rig_described``), and the rig
+    as fitted written beside it (``RUN.rig-fitted.toml``, a rig file the daemon and later
+    processing can take). The rig file's path."""
+    provenance["rig_described"] = provenance["rig_description"]
+    provenance["rig_description"] = rig_to_toml_dict(calibration.rig)
+    provenance["rig_calibration"] = calibration.record()
+    if calibration.rig.camera.thin_lens is None:
+        provenance["aperture_m"] = calibration.camera_record("pinhole")
+    provenance["sensor_distance_m"] = calibration.camera_record("sensor_distance")
+    note = (
+        f"The rig of run {stem.name} as fitted to its data by mirrorgonio {__version__} (self-calibration):\n"
+        + "\n".join(f"  {line}" for line in calibration.summary())
+    )
+    return write_rig(calibration.rig, stem.with_name(f"{stem.name}.rig-fitted.toml"), note)

@@ -26,6 +26,9 @@ class ProcessingPlan:
     aperture_fit_required, sensor_distance_fit_required : bool
         A fit that fails fails the processing (``FitChoice.ALWAYS``); otherwise it is said
         and the rig's number (or the last one fitted) kept.
+    calibrate_rig : bool
+        The rig's geometry fitted to the data with the sources (the self-calibration); it
+        fits the aperture and the sensor distance with the rest, so neither is fitted alone.
     """
 
     options: ProcessingOptions
@@ -34,6 +37,7 @@ class ProcessingPlan:
     fit_sensor_distance: bool
     aperture_fit_required: bool
     sensor_distance_fit_required: bool
+    calibrate_rig: bool = False
 
     @property
     def merge(self) -> bool:
@@ -52,7 +56,7 @@ class ProcessingPlan:
 
     @property
     def fits_camera(self) -> bool:
-        return self.fit_aperture or self.fit_sensor_distance
+        return self.fit_aperture or self.fit_sensor_distance or self.calibrate_rig
 
     @property
     def fused(self) -> bool:
@@ -66,23 +70,38 @@ class ProcessingPlan:
         return int(self.merge) + int(self.estimate and not self.fused)
 
 
-def plan_processing(options: ProcessingOptions) -> ProcessingPlan:
+#: The merged positions the self-calibration needs before ``AUTO`` runs it: the rig's turns about
+#: the ball and the sources' places move the light alike at any one position, and only positions
+#: spread over the sweep tell them apart (its fits take five).
+RIG_FIT_MIN_POSITIONS = 5
+
+
+def plan_processing(options: ProcessingOptions, positions: int | None = None) -> ProcessingPlan:
     """The plan for ``options``: the given layout loaded, each ``FitChoice.AUTO`` decided.
 
-    ``AUTO`` fits a camera number where the sources are searched for in the data: a search
-    explains a wrong point spread with sources that are not there, which a given layout
-    cannot do.
+    ``AUTO`` fits the rig where the sources are searched for in the data: a search explains a
+    wrong point spread or a misplaced ball with sources that are not there, which a given
+    layout cannot do. The self-calibration fits the aperture and the sensor distance with the
+    rest of the rig, so where it runs neither is fitted alone. With ``positions`` merged
+    positions known and fewer than :data:`RIG_FIT_MIN_POSITIONS`, ``AUTO`` holds the rig (and
+    fits the aperture alone where it searches).
 
     Raises
     ------
     ProcessingError
-        The layout file cannot be read (one line naming it).
+        The layout file cannot be read, or a camera number is to be fitted alone where the
+        self-calibration fits it (one line naming it).
 
     Examples
     --------
     >>> plan = plan_processing(ProcessingOptions.checked(steps="hdr,sources"))
-    >>> plan.search, plan.fit_aperture, plan.aperture_fit_required, plan.fit_sensor_distance, plan.passes
+    >>> plan.search, plan.calibrate_rig, plan.fit_aperture, plan.fit_sensor_distance, plan.passes
     (True, True, False, False, 2)
+    >>> plan = plan_processing(ProcessingOptions.checked(steps="hdr,sources", calibrate_rig="never"))
+    >>> plan.calibrate_rig, plan.fit_aperture, plan.aperture_fit_required
+    (False, True, False)
+    >>> plan_processing(ProcessingOptions.checked(steps="hdr,sources"), positions=3).calibrate_rig
+    False
     """
     layout = None
     if Step.SOURCES in options.steps and options.layout is not None:
@@ -95,11 +114,23 @@ def plan_processing(options: ProcessingOptions) -> ProcessingPlan:
     def wanted(choice: FitChoice) -> bool:
         return choice is FitChoice.ALWAYS or (choice is FitChoice.AUTO and searched)
 
+    enough = positions is None or positions >= RIG_FIT_MIN_POSITIONS
+    calibrate = options.calibrate_rig is FitChoice.ALWAYS or (wanted(options.calibrate_rig) and enough)
+    for name, choice in (
+        ("--fit-aperture", options.fit_aperture),
+        ("--fit-sensor-distance", options.fit_sensor_distance),
+    ):
+        if calibrate and choice is FitChoice.ALWAYS:
+            raise ProcessingError(
+                f"{name} always: the self-calibration fits it with the rest of the rig "
+                "(--calibrate-rig never to fit it alone)"
+            )
     return ProcessingPlan(
         options,
         layout,
-        fit_aperture=wanted(options.fit_aperture),
-        fit_sensor_distance=wanted(options.fit_sensor_distance),
+        fit_aperture=wanted(options.fit_aperture) and not calibrate,
+        fit_sensor_distance=wanted(options.fit_sensor_distance) and not calibrate,
         aperture_fit_required=options.fit_aperture is FitChoice.ALWAYS,
         sensor_distance_fit_required=options.fit_sensor_distance is FitChoice.ALWAYS,
+        calibrate_rig=calibrate,
     )

@@ -115,6 +115,9 @@ class SourceRow:
     intensity_rgb: np.ndarray  # (n_sources, 3)
     sigma_rgb: np.ndarray
     cell_sum: np.ndarray  # (n_sources,)
+    chi2: float = 0.0  # the templates' weighted χ² over the pixels fitted
+    dof: float = 0.0  # those pixels less the sources, over the channels
+    signal: float = 0.0  # Σ (template model / σ)² over those pixels: what a relative model error scales with
 
 
 @dataclass
@@ -234,4 +237,13 @@ def _estimate_at(
     sums = cell_sums(
         rate, lit, geometry, run.header.rig.camera.sensitivity_e_per_s, layout, pose, plan.cell_radius, cfa
     ).mean(axis=1)
-    return SourceRow(estimate.theta, estimate.phi, estimate.intensity, estimate.sigma, sums)
+    return SourceRow(
+        estimate.theta,
+        estimate.phi,
+        estimate.intensity,
+        estimate.sigma,
+        sums,
+        estimate.chi2,
+        float(estimate.dof.sum()),
+        float(estimate.signal.sum()),
+    )

@@ -5,9 +5,11 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+from drivers.contracts.rig import Rig
 from processing.hdr.model import NoiseModel
 from processing.light_run.position import PositionResult
 from processing.lightmodel import describe_fitted
+from processing.rig_fit import FITTED, RigCorrection, RigFit
 
 
 @dataclass(frozen=True)
@@ -73,6 +75,134 @@ def camera_provenance(fit: FittedNumber | None, option: str) -> dict | str:
     return "as described by the rig"
 
 
+@dataclass(frozen=True)
+class RigCalibration:
+    """What the self-calibration did.
+
+    Attributes
+    ----------
+    fit : RigFit
+        The last fit: the correction with its 1σ, χ² as described and as fitted.
+    start : RigCorrection
+        Where the fits started: the silhouette's coarse correction, or none.
+    silhouette : str
+        The calibration frames the silhouette was measured on, or why it was not.
+    searches : int
+        Searches for the sources made.
+    positions : tuple of int
+        The merged positions the fits used.
+    rig : Rig
+        The rig as fitted (what ``RUN.rig-fitted.toml`` holds).
+    """
+
+    fit: RigFit
+    start: RigCorrection
+    silhouette: str
+    searches: int
+    positions: tuple[int, ...]
+    rig: Rig
+
+    @property
+    def correction(self) -> RigCorrection:
+        return self.fit.correction
+
+    def summary(self) -> list[str]:
+        """In words, one line per number: "camera_yaw -0.012 ± 0.0008 deg" and χ²/pixel."""
+        lines = [
+            f"{n.name} {v:+.4g} ± {s:.2g} {n.unit}"
+            for n, v, s in zip(FITTED, self.fit.correction.values, self.fit.sigma, strict=True)
+        ]
+        lines.append(
+            f"χ²/pixel {self.fit.chi2_described / self.fit.pixels:.4f} as described, "
+            f"{self.fit.chi2 / self.fit.pixels:.4f} as fitted ({self.fit.pixels} pixels)"
+        )
+        return lines
+
+    def camera_record(self, number: str) -> dict:
+        """The light model's ``aperture_m`` (``number`` "pinhole") or ``sensor_distance_m``
+        ("sensor_distance") as the self-calibration fitted it, in metres: the fitted value, its
+        1σ, the one described, and the joint fit's χ²/pixel as fitted and as described."""
+        field = {"pinhole": "pinhole_diameter_m", "sensor_distance": "sensor_distance_m"}[number]
+        percent = self.correction.value(number)
+        sigma = self.fit.sigma[[n.name for n in FITTED].index(number)]
+        fitted = float(getattr(self.rig.camera, field))
+        described = fitted / (1.0 + percent / 100.0)
+        return {
+            "fitted_m": fitted,
+            "sigma_m": described * sigma / 100.0,
+            "described_m": described,
+            "chi2_per_pixel": round(self.fit.chi2 / self.fit.pixels, 5),
+            "chi2_per_pixel_described": round(self.fit.chi2_described / self.fit.pixels, 5),
+            "how": "fitted to the data with the rest of the rig (self-calibration)",
+        }
+
+    def record(self) -> dict:
+        """The light model's ``rig_calibration``: each number fitted (value, 1σ, unit), each
+        held with why, χ²/pixel as described and as fitted, where it started."""
+        return self.fit.record() | {
+            "silhouette_frames": self.silhouette,
+            "start": {n.name: round(v, 6) for n, v in zip(FITTED, self.start.values, strict=True) if v},
+            "searches": self.searches,
+            "positions": list(self.positions),
+        }
+
+
+@dataclass(frozen=True)
+class Quality:
+    """The verdict on a light model (:func:`processing.light_run.quality.judge`): ``ok`` or
+    ``suspect``, with the reasons and the figures: χ² per pixel over the sweep, and the
+    templates' relative error ε it stands for (``χ² = dof + ε² Σ(m/σ)²``)."""
+
+    status: str
+    reasons: tuple[str, ...]
+    chi2_per_pixel: float
+    model_error: float
+    unexplained_positions: tuple[int, ...]
+    positions: int
+    allowance: float
+    inside_outside: tuple[float, float] | None = None  # ε between the fits' positions, and beyond them
+    position_errors: tuple[float, ...] = ()  # ε at each position
+
+    @property
+    def ok(self) -> bool:
+        return self.status == "ok"
+
+    @property
+    def reason(self) -> str:
+        return "; ".join(self.reasons)
+
+    def record(self) -> dict:
+        """The light model's ``quality``."""
+        out: dict = {"status": self.status}
+        if self.reasons:
+            out["reason"] = self.reason
+        return out | {
+            "model_error": round(self.model_error, 5),
+            "model_error_allowance": self.allowance,
+            "chi2_per_pixel": round(self.chi2_per_pixel, 5),
+            "positions": self.positions,
+            "unexplained_positions": list(self.unexplained_positions),
+            **(
+                {
+                    "model_error_inside": round(self.inside_outside[0], 5),
+                    "model_error_outside": round(self.inside_outside[1], 5),
+                }
+                if self.inside_outside is not None
+                else {}
+            ),
+            "model_error_per_position": list(self.position_errors),
+        }
+
+    def line(self) -> str:
+        """One line, as the command line and the job's note say it."""
+        if self.ok:
+            return (
+                f"quality ok: the templates explain the sweep to {100 * self.model_error:.1f} % of its light "
+                f"(χ²/pixel {self.chi2_per_pixel:.3f})"
+            )
+        return f"quality SUSPECT: {self.reason}"
+
+
 @dataclass
 class ProcessReport:
     """What :func:`process_run` did and wrote.
@@ -99,6 +229,8 @@ class ProcessReport:
     layout_search: str = ""  # how the sources were found in the data (empty when a layout was given)
     aperture_fit: FittedNumber | None = None  # the aperture's diameter fitted to the data, or why that failed
     sensor_distance_fit: FittedNumber | None = None  # the sensor distance fitted to the data
+    rig_calibration: RigCalibration | None = None  # the rig fitted to the data (self-calibration)
+    quality: Quality | None = None  # the verdict on the light model
     spatial_resolution_m: float = float("nan")
     n_positions: int = 0
     partial: bool = False

@@ -28,9 +28,10 @@ from drivers.contracts.runfile import RunFile, RunFileError
 from drivers.contracts.version import __version__
 from processing.light_run.errors import ProcessingError, open_run
 from processing.light_run.from_data import camera_at_layout, fitted_camera, layout_and_camera
+from processing.light_run.geometry import CameraFit
 from processing.light_run.noise import choose_noise, report_gain_mismatch
 from processing.light_run.outputs import finish_sources
-from processing.light_run.plan import ProcessingPlan, plan_processing
+from processing.light_run.plan import RIG_FIT_MIN_POSITIONS, ProcessingPlan, plan_processing
 from processing.light_run.position import (
     HDRWork,
     PositionResult,
@@ -41,7 +42,8 @@ from processing.light_run.position import (
 )
 from processing.light_run.records import ProcessReport
 from processing.light_run.samples import plan_sources
-from processing.options import OptionsError, ProcessingOptions
+from processing.light_run.self_calibration import layout_and_rig, rig_at_layout
+from processing.options import FitChoice, OptionsError, ProcessingOptions
 from processing.parallel import Compute
 from processing.radiometry import rig_noise
 from processing.report.context import Truth
@@ -185,6 +187,15 @@ class LightRun:
         if self.plan.estimate:
             report_gain_mismatch(run, self.report.noise)
         self.positions = positions
+        if self.plan.calibrate_rig and self.options.calibrate_rig is FitChoice.AUTO:
+            self.plan = plan_processing(self.options, int(positions.size))
+            if not self.plan.calibrate_rig:
+                log.info(
+                    "%s: %d merged positions: the rig is held as described (the self-calibration needs %d)",
+                    self.run_path,
+                    positions.size,
+                    RIG_FIT_MIN_POSITIONS,
+                )
         self.report.n_positions = run.n_positions
         self.report.partial = positions.size < run.n_positions
         self.report.compute = self.compute.description
@@ -246,6 +257,8 @@ class LightRun:
     def _settle_sources(self, run: RunFile) -> SourcesPlan:
         """The sources to estimate with (given, or searched for) and the camera as the plan fits it."""
         plan, options, args = self.plan, self.options, (run, self.results_file, self.positions)
+        if plan.calibrate_rig:
+            return self._calibrated_sources(run)
         if plan.search:
             with self._timed("layout"):
                 found, aperture, distance = layout_and_camera(*args, options.ball_centre, self.compute, plan)
@@ -263,6 +276,22 @@ class LightRun:
                 aperture, distance = camera_at_layout(*args, layout, options.ball_centre, self.compute, plan)
         self.report.aperture_fit, self.report.sensor_distance_fit = aperture, distance
         camera = fitted_camera(aperture, distance)
+        return plan_sources(run, layout, options.estimator, options.ball_centre, self.positions, camera)
+
+    def _calibrated_sources(self, run: RunFile) -> SourcesPlan:
+        """The sources (searched for, or given) with the rig fitted to the data with them."""
+        plan, options, args = self.plan, self.options, (run, self.results_file, self.positions)
+        with self._timed("layout"):
+            if plan.search:
+                found, calibration = layout_and_rig(*args, options.ball_centre, self.compute)
+                self.report.layout_search = f"candidate grid (NNLS), then positions and radius fitted: {found.message}"
+                layout: Sequence[Source] = found.sources
+            else:
+                assert plan.layout is not None  # given, where the plan does not search for it
+                layout = plan.layout
+                calibration = rig_at_layout(*args, layout, options.ball_centre, self.compute)
+        self.report.rig_calibration = calibration
+        camera = CameraFit(rig=calibration.correction)
         return plan_sources(run, layout, options.estimator, options.ball_centre, self.positions, camera)
 
     def _estimate_pass(self, sources: SourcesPlan) -> None:

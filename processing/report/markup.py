@@ -54,6 +54,8 @@ figcaption, .caption { font-size: 0.92em; color: #444; max-width: 60em; }
 .note { color: #7a4b00; background: #fff6e0; padding: 0.4em 0.7em; border-left: 3px solid #e0a000; }
 .strip { display: flex; flex-wrap: wrap; gap: 0.6em; } .strip figure { margin: 0; }
 .strip img { width: 180px; } .strip figcaption { text-align: center; }
+.quality-suspect { color: #fff; background: #b00020; padding: 0.7em 1em; font-size: 1.05em; margin: 0.6em 0; }
+.quality-ok { color: #1b5e20; background: #e8f5e9; padding: 0.3em 0.7em; border-left: 3px solid #2e7d32; }
 """
 
 

@@ -39,6 +39,7 @@ from processing.report.sections import (
     previews_section,
     residuals_section,
 )
+from processing.report.trust import quality_banner
 
 if TYPE_CHECKING:
     import distributed
@@ -227,7 +228,11 @@ def _write_report(
             built[name] = elsewhere.result(name, ctx)
         run_id = model.provenance.get("run_id") or (run.header.run_id if run is not None else "")
         title = f"mirrorgonio light report: {run_id}" if run_id else "mirrorgonio light report"
-        body = [f"<h1>{html.escape(title)}</h1>", header_table(model, run, report, samples, resolution)]
+        body = [
+            f"<h1>{html.escape(title)}</h1>",
+            quality_banner(model),
+            header_table(model, run, report, samples, resolution),
+        ]
         for name in SECTIONS:
             entry = built[name]
             content = entry.result() if isinstance(entry, Future) else entry

@@ -13,6 +13,7 @@ from typing import Any, cast
 import cv2
 import numpy as np
 
+from drivers.contracts.rig import Rig
 from drivers.contracts.runfile import RunFile
 from processing.calibration import BallFit, angle_sensitivity, calibrate_ball, compare_with_rig
 from processing.lightmodel import LightModel, SourceModel, describe_fitted
@@ -33,6 +34,7 @@ from processing.report.figures import (
     layout_figure,
 )
 from processing.report.markup import embedded_img, figure_html, html_note, html_table, in_mm
+from processing.report.trust import rig_calibration_part
 
 log = logging.getLogger("mirrorgonio.processing")
 
@@ -78,9 +80,11 @@ def calibration_section(
         if image is not None:
             assert rig is not None  # the run's
             found = calibrate_ball(image, rig)
-    parts = []
+    parts = [rig_calibration_part(model)]
     comparison = None
-    if found is None:
+    if found is None and parts[0]:
+        parts.append("<p>No separate measurement of the ball's centre was given (<code>--ball-centre</code>).</p>")
+    elif found is None:
         parts.append(html_note(f"{NO_CALIBRATION}: the processing used the ball centre of the rig description."))
     elif isinstance(found, dict):
         comparison = found
@@ -108,37 +112,45 @@ def calibration_section(
                 text += f" ({float(significance):.1f} σ of the measurement)"
             parts.append(f"<p>{html.escape(text)}.</p>")
     if rig is not None and geo is not None:
-        sens = angle_sensitivity(rig, geo.pose, 1e-3, max_pixels=40_000)
-        rows = [
-            [
-                axis,
-                f"{sens[axis]['theta_median_deg']:.3f}",
-                f"{sens[axis]['theta_max_deg']:.3f}",
-                f"{sens[axis]['direction_median_deg']:.3f}",
-                f"{sens[axis]['uv_median_mm']:.3f}",
-            ]
-            for axis in "xyz"
-        ]
-        parts.append(
-            f"<p>What 1 mm of error in the ball's position costs, at position {geo.index} "
-            f"(chief rays landing within {sens['plane_radius_mm']:.0f} mm of the light's axis):</p>"
-        )
-        parts.append(
-            html_table(
-                [
-                    "ball moved 1 mm along",
-                    "Δθ median [°]",
-                    "Δθ max [°]",
-                    "Δdirection median [°]",
-                    "Δ(u, v) median [mm]",
-                ],
-                rows,
-            )
-        )
-        if comparison is not None and comparison.get("distance_mm") is not None:
-            shift = float(comparison["distance_mm"]) * sens["theta_median_deg"]
-            parts.append(f"<p>At the measured discrepancy that is about {shift:.3f}° of θ (median, worst axis).</p>")
+        parts.extend(_ball_error_costs(rig, geo, comparison))
     return "\n".join(parts)
+
+
+def _ball_error_costs(rig: Rig, geo: MiddlePosition, comparison: dict[str, Any] | None) -> list[str]:
+    """What 1 mm of error in the ball's position costs in θ at the middle position (and at the
+    measured discrepancy, where there is one)."""
+    out: list[str] = []
+    sens = angle_sensitivity(rig, geo.pose, 1e-3, max_pixels=40_000)
+    rows = [
+        [
+            axis,
+            f"{sens[axis]['theta_median_deg']:.3f}",
+            f"{sens[axis]['theta_max_deg']:.3f}",
+            f"{sens[axis]['direction_median_deg']:.3f}",
+            f"{sens[axis]['uv_median_mm']:.3f}",
+        ]
+        for axis in "xyz"
+    ]
+    out.append(
+        f"<p>What 1 mm of error in the ball's position costs, at position {geo.index} "
+        f"(chief rays landing within {sens['plane_radius_mm']:.0f} mm of the light's axis):</p>"
+    )
+    out.append(
+        html_table(
+            [
+                "ball moved 1 mm along",
+                "Δθ median [°]",
+                "Δθ max [°]",
+                "Δdirection median [°]",
+                "Δ(u, v) median [mm]",
+            ],
+            rows,
+        )
+    )
+    if comparison is not None and comparison.get("distance_mm") is not None:
+        shift = float(comparison["distance_mm"]) * sens["theta_median_deg"]
+        out.append(f"<p>At the measured discrepancy that is about {shift:.3f}° of θ (median, worst axis).</p>")
+    return out
 
 
 def _param_rows(source: SourceModel, units: str) -> list[list[str]]:

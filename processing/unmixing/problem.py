@@ -17,12 +17,14 @@ from processing.unmixing.unmix import nnls_via_cholesky, place_template
 
 @dataclass(frozen=True)
 class LayoutData:
-    """One position's merged mosaic for the layout search: e⁻/s, (e⁻/s)², usable pixels, light pose."""
+    """One position's merged mosaic for the layout search: e⁻/s, (e⁻/s)², usable pixels, the
+    light's pose, and the arm's tool pose it was taken at (for fits that move the arm's frame)."""
 
     rate: np.ndarray
     variance: np.ndarray
     usable: np.ndarray
     pose: Pose
+    tool: Pose | None = None
 
 
 class LayoutProblem:
@@ -61,8 +63,10 @@ class LayoutProblem:
         self.builder = replace(builder, airy_margin_px=max(builder.airy_margin_px, margin_px + int(spread)))
         pad = self.builder.airy_margin_px - builder.airy_margin_px if builder.diffraction else 0
         self.windows = []
-        self._columns: dict[tuple[int, float, float, float], list[np.ndarray]] = {}
-        for item, built in zip(data, first_built, strict=True):
+        self.window_data: list[int] = []  # which item of ``data`` each window is
+        self._columns: dict[tuple[object, int, float, float, float], list[np.ndarray]] = {}
+        self._geometry_key: object = None
+        for index, (item, built) in enumerate(zip(data, first_built, strict=True)):
             if not built:
                 continue
             h, w = item.rate.shape
@@ -81,6 +85,7 @@ class LayoutProblem:
             )
             picks = [ok & (channel == c) for c in range(3)]
             weights = [1.0 / np.sqrt(var[pick]) for pick in picks]
+            self.window_data.append(index)
             self.windows.append(
                 (
                     item.pose,
@@ -96,7 +101,7 @@ class LayoutProblem:
     def _column(self, p: int, u: float, v: float, radius: float) -> list[np.ndarray]:
         """The template of a unit source at (u, v) over window ``p``: per channel, its values
         at that channel's fitted photosites."""
-        key = (p, u, v, radius)
+        key = (self._geometry_key, p, u, v, radius)
         column = self._columns.get(key)
         if column is not None:
             return column
@@ -118,11 +123,18 @@ class LayoutProblem:
 
         self.set_geometry(replace(self.builder.geometry, aperture_radius=radius))
 
-    def set_geometry(self, geometry: RigGeometry) -> None:
-        """Build the templates through ``geometry`` from now on (the pixels stay)."""
-
+    def set_geometry(self, geometry: RigGeometry, key: object = None) -> None:
+        """Build the templates through ``geometry`` from now on (the pixels stay). A ``key`` that
+        names the geometry keeps the templates built through it for when it comes back (a
+        Jacobian's columns move one number at a time); without one they are dropped."""
         self.builder = replace(self.builder, geometry=geometry)
-        self._columns.clear()
+        self._geometry_key = key
+        if key is None:
+            self._columns.clear()
+
+    def set_poses(self, poses: list[Pose]) -> None:
+        """The light's pose at each window's position (``poses[i]`` for the window of ``data[i]``)."""
+        self.windows = [(poses[i], *window[1:]) for i, window in zip(self.window_data, self.windows, strict=True)]
 
     def solve(self, centres: np.ndarray, radius: float | np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(weighted residuals, intensities (positions, 3, sources)) for discs of ``radius`` (one

@@ -27,6 +27,13 @@ class PositionEstimate:
     visible: np.ndarray  # (n_sources,) bool
     templates: list[Template | None] = field(default_factory=list)
     residual_rms: np.ndarray = field(default_factory=lambda: np.zeros(3))  # weighted, per channel
+    dof: np.ndarray = field(default_factory=lambda: np.zeros(3))  # pixels fitted less sources, per channel
+    signal: np.ndarray = field(default_factory=lambda: np.zeros(3))  # Σ (model/σ)² over those pixels, per channel
+
+    @property
+    def chi2(self) -> float:
+        """The templates' weighted χ² over the pixels fitted (all channels)."""
+        return float(np.nansum(self.residual_rms**2 * self.dof))
 
 
 def unmix_position(
@@ -57,7 +64,7 @@ def unmix_position(
     sigma = np.full((n, 3), np.nan)
     theta = np.array([t.theta if t else np.nan for t in templates])
     phi = np.array([t.phi if t else np.nan for t in templates])
-    residual = np.full(3, np.nan)
+    residual, dofs, signal = np.full(3, np.nan), np.zeros(3), np.zeros(3)
     shown = [i for i in range(n) if visible[i]]
     if not shown:
         return PositionEstimate(index, intensity, sigma, theta, phi, visible, templates, residual)
@@ -97,8 +104,10 @@ def unmix_position(
         intensity[shown, c] = solution
         sigma[shown, c] = err
         dof = max(1, a.shape[0] - len(shown))
-        residual[c] = float(np.sqrt(np.sum((a @ solution - b) ** 2) / dof))
-    return PositionEstimate(index, intensity, sigma, theta, phi, visible, templates, residual)
+        model = a @ solution
+        residual[c] = float(np.sqrt(np.sum((model - b) ** 2) / dof))
+        dofs[c], signal[c] = dof, float(model @ model)
+    return PositionEstimate(index, intensity, sigma, theta, phi, visible, templates, residual, dofs, signal)
 
 
 def place_template(template: Template, window: tuple[int, int, int, int], channel: np.ndarray, out: np.ndarray) -> None:

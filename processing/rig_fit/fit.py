@@ -1,0 +1,205 @@
+"""The rig's numbers fitted to the data with the sources' places: :func:`fit_rig`."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from typing import cast
+
+import numpy as np
+from scipy.optimize import least_squares
+from threadpoolctl import threadpool_limits
+
+from drivers.contracts.rig import Tolerances
+from drivers.pose import Pose
+from processing.rig_fit.correction import FITTED, HELD, RigCorrection, bounds
+from processing.rig_fit.problem import RigProblem
+from processing.rig_fit.silhouette import SilhouetteTerm
+from processing.trace import light_pose_at
+from processing.unmixing.problem import LayoutData, LayoutProblem
+from processing.unmixing.sources import Source, SourcesError
+from processing.unmixing.templates import TemplateBuilder
+
+
+@dataclass(frozen=True)
+class RigFit:
+    """What :func:`fit_rig` found.
+
+    Attributes
+    ----------
+    correction : RigCorrection
+        The fitted numbers (:data:`~processing.rig_fit.correction.FITTED`), in their fit units.
+    sigma : tuple of float
+        Each one's 1σ, from the fit's Jacobian with the residuals' scatter (χ² per degree of
+        freedom) as the noise: the templates' own error counted in.
+    sources : list of Source
+        The sources at their fitted places.
+    chi2_described, chi2 : float
+        The templates' χ² over ``pixels`` with the rig as described (the sources refitted there
+        first) and as fitted.
+    pixels : int
+    at_bound : tuple of str
+        Fitted numbers that ended at their tolerance's bound (the description is further off, or
+        something else is).
+    silhouette : dict
+        The silhouette's term at the fitted rig (:meth:`SilhouetteTerm.record`), empty without one.
+    """
+
+    correction: RigCorrection
+    sigma: tuple[float, ...]
+    sources: list[Source]
+    chi2_described: float
+    chi2: float
+    pixels: int
+    evaluations: int
+    at_bound: tuple[str, ...] = ()
+    silhouette: dict = field(default_factory=dict)
+    held: dict[str, str] = field(default_factory=lambda: dict(HELD))
+
+    def record(self) -> dict:
+        """A JSON-able record: each fitted number with its 1σ, the held ones with why, χ²/pixel."""
+        return {
+            "fitted": {
+                n.name: {"value": round(v, 6), "sigma": round(s, 6), "unit": n.unit, "what": n.what}
+                for n, v, s in zip(FITTED, self.correction.values, self.sigma, strict=True)
+            },
+            "held": dict(self.held),
+            "chi2_per_pixel_described": round(self.chi2_described / self.pixels, 5),
+            "chi2_per_pixel": round(self.chi2 / self.pixels, 5),
+            "pixels": self.pixels,
+            "evaluations": self.evaluations,
+            "at_bound": list(self.at_bound),
+            "silhouette": dict(self.silhouette),
+        }
+
+
+def fit_rig(
+    data: list[LayoutData],
+    builder: TemplateBuilder,
+    cfa_pattern: str,
+    layout: list[Source],
+    tolerances: Tolerances,
+    light_axis: np.ndarray,
+    silhouette: SilhouetteTerm | None = None,
+    *,
+    start: RigCorrection | None = None,
+    hold_sources: bool = False,
+    max_radius: float = 1.5e-3,
+    max_nfev: int = 40,
+    margin_px: int = 48,
+    inset_px: int = 8,
+) -> RigFit:
+    """The correction of the rig, and the sources' places, that explain the data best.
+
+    The templates' χ² over a few merged positions spread over the sweep (the pixels of
+    :class:`~processing.unmixing.problem.LayoutProblem`, fixed by the ``layout`` as found
+    through the rig corrected by ``start``), together with the ball's silhouette where
+    ``silhouette`` is given and the tolerances as each number's prior 1σ, minimised by a bounded
+    least-squares fit (``scipy.optimize.least_squares``, trust-region reflective) over the
+    fitted numbers (within the rig's ``tolerances``), the sources' centres and their common
+    radius (held as given with ``hold_sources``). ``builder`` is the rig as described; the
+    data's positions carry the arm's tool poses (``LayoutData.tool``): the light's poses follow
+    the arm's corrected frame.
+
+    Raises
+    ------
+    SourcesError
+        No sources, a position without its tool pose, or no position with a window where
+        every template is whole.
+    """
+    if not layout:
+        raise SourcesError("no sources to fit the rig at")
+    if any(item.tool is None for item in data):
+        raise SourcesError("the rig's fit needs every position's tool pose")
+    start = start or RigCorrection.of(np.zeros(len(FITTED)), light_axis)
+    tools = cast(list[Pose], [item.tool for item in data])
+    with threadpool_limits(limits=1, user_api="blas"):  # one order of sums, as in refine_layout
+        at_start = start.apply(builder.geometry)  # the pixels chosen where the layout was found
+        problem = LayoutProblem(
+            [replace(item, pose=light_pose_at(at_start, tool)) for item, tool in zip(data, tools, strict=True)],
+            replace(builder, geometry=at_start),
+            cfa_pattern,
+            layout,
+            margin_px,
+            inset_px,
+        )
+        if not problem.windows or problem.pixels < 16:
+            raise SourcesError("no position has a window where every template is whole")
+        limit = bounds(tolerances, builder.geometry)
+        rig = RigProblem(problem, builder.geometry, tools, light_axis, silhouette, limit)
+        centres = np.array([s.centre for s in layout], float)
+        radius = min(float(np.median([s.radius for s in layout])), max_radius)
+        rig.set_correction(RigCorrection.of(np.zeros(len(FITTED)), light_axis))
+        chi2_described = (
+            problem.chi2(centres, radius) if hold_sources else problem.fit(centres, radius, max_radius, 8)[2]
+        )
+        vector = _Vector(len(FITTED), limit, centres, radius, max_radius, hold_sources)
+        x0 = vector.pack(start.vector, centres, radius)
+        result = least_squares(
+            lambda x: rig.residuals(*vector.unpack(x, light_axis)),
+            x0,
+            bounds=vector.bounds,
+            diff_step=0.01,
+            xtol=1e-4,
+            ftol=1e-6,
+            max_nfev=max_nfev,
+        )
+        correction, fitted_centres, fitted_radius = vector.unpack(result.x, light_axis)
+        geometry = rig.set_correction(correction)
+        chi2 = problem.chi2(fitted_centres, fitted_radius)
+    sources = [
+        replace(source, centre=(float(u), float(v)), radius=fitted_radius)
+        for source, (u, v) in zip(layout, fitted_centres, strict=True)
+    ]
+    at_bound = tuple(
+        number.name
+        for number, value, bound in zip(FITTED, correction.values, limit, strict=True)
+        if abs(value) >= bound * (1.0 - 1e-3)
+    )
+    return RigFit(
+        correction,
+        tuple(float(s) for s in _sigma(result.jac, result.fun, len(FITTED))),
+        sources,
+        chi2_described,
+        chi2,
+        problem.pixels,
+        int(result.nfev),
+        at_bound,
+        silhouette.record(geometry) if silhouette is not None else {},
+    )
+
+
+class _Vector:
+    """The fit's vector: the correction in its units, then (unless held) the sources' centres
+    and their common radius in millimetres (least_squares' relative step of 0.01 is then
+    10-40 µm, a small fraction of a pixel on the sensor)."""
+
+    def __init__(
+        self, n: int, limit: np.ndarray, centres: np.ndarray, radius: float, max_radius: float, hold: bool
+    ) -> None:
+        self.n, self.centres, self.radius, self.hold = n, centres, radius, hold
+        free = 0 if hold else centres.size + 1
+        lower = np.concatenate([-limit, np.full(free, -np.inf)])
+        upper = np.concatenate([limit, np.full(free, np.inf)])
+        if not hold:
+            lower[-1], upper[-1] = 0.02, max_radius * 1e3
+        self.bounds = (lower, upper)
+
+    def pack(self, correction: np.ndarray, centres: np.ndarray, radius: float) -> np.ndarray:
+        x = correction if self.hold else np.concatenate([correction, centres.ravel() * 1e3, [radius * 1e3]])
+        lower, upper = self.bounds
+        return np.clip(x, lower + 1e-9, upper - 1e-9)
+
+    def unpack(self, x: np.ndarray, light_axis: np.ndarray) -> tuple[RigCorrection, np.ndarray, float]:
+        correction = RigCorrection.of(x[: self.n], light_axis)
+        if self.hold:
+            return correction, self.centres, self.radius
+        return correction, x[self.n : -1].reshape(-1, 2) * 1e-3, float(x[-1]) * 1e-3
+
+
+def _sigma(jac: np.ndarray, residuals: np.ndarray, n: int) -> np.ndarray:
+    """The first ``n`` parameters' 1σ: ``(JᵀJ)⁻¹`` scaled by the residuals' χ² per degree of
+    freedom (so that a misfit the noise does not explain widens them)."""
+    dof = max(1, residuals.size - jac.shape[1])
+    scale = float(residuals @ residuals) / dof
+    covariance = np.linalg.pinv(jac.T @ jac) * scale
+    return np.sqrt(np.clip(np.diag(covariance)[:n], 0.0, None))
