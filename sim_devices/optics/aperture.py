@@ -110,9 +110,8 @@ class ApertureShape:
     @property
     def finest_detail(self) -> float:
         """The smallest length the sampling must resolve besides the edge (the rough edge's
-        correlation length, a mask's pixel), or ``inf``."""
-        if self.mask is not None:
-            return self.mask_pixel
+        correlation length), or ``inf``. (A mask's pixels need not be: each cell takes the exact
+        mean of the image over it, as it takes a circle's area fraction.)"""
         return self.roughness_correlation if self.roughness_rms > 0 else math.inf
 
     # --- sampling -------------------------------------------------------------------------------

@@ -115,10 +115,17 @@ class PathCurvature:
 
     def image_distances(self) -> tuple[float, float, float]:
         """The point's image distances in front of the pinhole along the incident wave's principal
-        axes, and the first axis's angle (radians from x): the eigenvalues of ``Q − G/pitch``,
-        inverted. (Off the axis, the one in the plane of the chief ray's tilt β reads
-        ``z₁ / cos²β``: 0.3 % at 3°.)"""
-        values, vectors = np.linalg.eigh(self.quadratic - self.conjugate / self.pitch)
+        axes, and the first axis's angle (radians from x).
+
+        The wave's share of ``Q`` is ``C = Q − G/pitch``; a wave of curvature ``K`` (in the plane
+        across the chief ray) arriving along ``û`` gives ``C = S^½ K S^½`` with
+        ``S = (I − ûûᵀ) = G r / pitch``, ``r = pitch / (G's largest eigenvalue)``.
+        """
+        r = self.pitch / float(np.linalg.eigvalsh(self.conjugate)[-1])
+        values, vectors = np.linalg.eigh(self.conjugate * (r / self.pitch))
+        root_inv = vectors @ np.diag(values**-0.5) @ vectors.T
+        curvature = root_inv @ (self.quadratic - self.conjugate / self.pitch) @ root_inv
+        values, vectors = np.linalg.eigh(curvature)
         return 1.0 / values[0], 1.0 / values[1], math.atan2(vectors[1, 0], vectors[0, 0])
 
     def fresnel_number(self, radius: float, wavelength: float) -> float:
