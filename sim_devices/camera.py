@@ -54,6 +54,8 @@ class SimulatedCamera(Camera):
         Folder the DNG files are written to (injected: tests use a temporary folder).
     truth : TruthLight, optional
         Overrides ``rig.simulation.truth``.
+    point_spread : {"geometric-airy", "fresnel"}, optional
+        Overrides ``rig.simulation.point_spread`` (the mirrored ball only).
     wall_clock : callable
         Seconds since the epoch, for the frames' timestamps.
     latency_s : float

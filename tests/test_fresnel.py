@@ -15,6 +15,7 @@ from conftest import rig_with
 from scipy.special import j1
 
 from drivers.contracts.rig import RigError, load_rig
+from sim_devices.camera import ROOM_RADIANCE, SimulatedCamera
 from sim_devices.lights import Emitter, GaussianIntensity, TruthLight
 from sim_devices.optics import LightPlane, MirrorBallRenderer, trace
 from sim_devices.optics.aperture import ApertureShape
@@ -27,6 +28,7 @@ from sim_devices.optics.fresnel import (
     psf_grid,
     to_pixels,
 )
+from sim_devices.world import SimWorld
 
 PITCH, Z2, RADIUS, LAM = 5.9e-6, 0.025, 1e-4, 540e-9  # the reference camera, green
 Z1 = 0.187  # the light's virtual image in front of the pinhole (issue 23)
@@ -387,6 +389,28 @@ def test_the_renderer_caches_its_kernels(point_source_frames):
     assert 0.1855 < min(z_a, z_b) and max(z_a, z_b) < 0.1895
     renderer.render(rig.light_poses()[34])  # the light 2.5 mm on: the same rounded path
     assert stats.computed == 3 and stats.reused >= 3
+
+
+def test_the_simulated_camera_takes_the_rigs_point_spread_and_blurs_the_lit_room(tmp_path):
+    """``simulation.point_spread = "fresnel"`` reaches the renderer; a calibration frame (the room
+    lit, the light off: the whole ball) keeps the geometric frame's flux and shows a sharper
+    silhouette (the Fresnel pattern is a third as wide at half height as the geometric⊗Airy one)."""
+    rig = rig_with(
+        camera__width=500, camera__height=328, camera__pixel_pitch_m=23.6e-6, simulation__point_spread="fresnel"
+    )
+    world = SimWorld(lambda: rig.tool_poses()[33], rig.light.light_to_tool.to_pose(), light_on=False, room_lit=True)
+    camera = SimulatedCamera(rig, world, tmp_path, seed=1, environment_radiance=ROOM_RADIANCE)
+    assert camera.renderer.fresnel is not None
+    fresnel = camera.rendering().rate
+    room = {"seed": 1, "environment_radiance": ROOM_RADIANCE}
+    old = SimulatedCamera(rig, world, tmp_path, point_spread="geometric-airy", **room)
+    assert old.renderer.fresnel is None
+    airy = old.rendering().rate
+    assert fresnel.sum() == pytest.approx(airy.sum(), rel=2e-3)
+    # The silhouette's steepest step along the middle row, over the ball's brightness there.
+    row = fresnel.shape[1] // 2
+    steepness = [np.abs(np.diff(rate[1, row])).max() / rate[1, row].max() for rate in (fresnel, airy)]
+    assert steepness[0] > 1.5 * steepness[1], steepness  # measured: 1.73 times as steep
 
 
 def test_without_diffraction_the_fresnel_camera_is_the_geometric_one():
