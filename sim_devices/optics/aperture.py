@@ -91,18 +91,6 @@ class ApertureShape:
 
     # --- properties -----------------------------------------------------------------------------
     @property
-    def key(self) -> tuple:
-        """A hashable identity (for caches)."""
-        return (
-            self.semi_axes,
-            self.angle,
-            self.roughness_rms,
-            self.roughness_correlation,
-            self.roughness_seed,
-            self.mask_digest,
-        )
-
-    @property
     def radius(self) -> float:
         """A radius that holds the whole hole (metres)."""
         return max(self.semi_axes) + 4.0 * self.roughness_rms

@@ -10,13 +10,15 @@ a pixel at the default rig, 0.2 at the demo's).
 
 A path's kernel is cached by (channel, the path rounded): ``Q`` to steps that move the Fresnel
 number by at most 0.001 and ``G`` to 0.25 % (the pattern's scale), so that the points of a run,
-whose image distances stay within a few millimetres, share a few kernels.
+whose image distances stay within a few millimetres, share a few kernels (the least recently
+used dropped past :data:`MAX_KERNELS`).
 """
 
 from __future__ import annotations
 
 import math
 import time
+from collections import OrderedDict
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -33,6 +35,9 @@ CONJUGATE_STEP = 2.5e-3
 #: A kernel reaches as far as the Airy pattern's encircled energy leaves this fraction outside;
 #: that tail is folded into the kernel (its flux kept, its place approximate, ~1e-5 of the peak).
 KERNEL_TAIL = 0.005
+#: Kernels kept (single precision; six paths' three channels, 6.4 MB each at the default rig):
+#: the default sweep meets 9 paths, going out and back, and computes 12 with six kept.
+MAX_KERNELS = 18
 
 
 @dataclass
@@ -70,7 +75,7 @@ class FresnelBlur:
         g = camera.pixel_pitch_m / camera.sensor_distance_m
         # The Airy pattern leaves 2λ / (π² D g r) of its flux beyond r pixels (for r ≫ λ/Dg).
         self.kernel_radius = int(math.ceil(2.0 * lam_max / (math.pi**2 * 2.0 * radius * g * KERNEL_TAIL)))
-        self._kernels: dict[tuple, np.ndarray] = {}
+        self._kernels: OrderedDict[tuple, np.ndarray] = OrderedDict()
         self.stats = PointSpreadStats()
 
     def rounded(self, path: PathCurvature) -> PathCurvature:
@@ -80,18 +85,22 @@ class FresnelBlur:
     def kernel(self, channel: int, path: PathCurvature) -> np.ndarray:
         """The point spread of ``path`` (rounded) in ``channel``, sampled at the pixels' centres
         over ``2 · kernel_radius + 1`` pixels a side, the chief ray's point at the centre, its
-        period's flux beyond folded in (it sums to 1)."""
+        period's flux beyond folded in (it sums to 1; single precision)."""
         rounded = self.rounded(path)
         key = (channel, rounded.key)
         cached = self._kernels.get(key)
         if cached is not None:
             self.stats.reused += 1
+            self._kernels.move_to_end(key)
             return cached
         start = time.perf_counter()
         wavelengths, weights = self.bands[channel]
         psf = fresnel_psf(self.aperture, wavelengths, rounded, weights=weights, pixel_integrated=False)
         kernel = fold(psf, self.kernel_radius)
+        kernel = (kernel / kernel.sum()).astype(np.float32)
         self._kernels[key] = kernel
+        if len(self._kernels) > MAX_KERNELS:
+            self._kernels.popitem(last=False)
         self.stats.computed += 1
         self.stats.seconds += time.perf_counter() - start
         self.stats.keys.append(key)

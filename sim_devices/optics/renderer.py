@@ -68,7 +68,8 @@ class MirrorBallRenderer:
         Rays per sub-pixel sample over the whole aperture for emitters wider than it.
     diffraction : bool
         Blur with the aperture's diffraction (``point_spread``); without it, the geometric image.
-    point_spread : {"geometric-airy", "fresnel"}
+    point_spread : {"geometric-airy", "fresnel"}, optional
+        The rig's ``simulation.point_spread`` by default.
         ``geometric-airy``: rays sampled over the whole aperture (its geometric shadow), then
         the Airy pattern of each channel's wavelength. ``fresnel``: the chief rays only (the
         sharp image), each emitter's then convolved with the Fresnel point spread of its own
@@ -97,13 +98,14 @@ class MirrorBallRenderer:
         aperture_samples: int = 48,
         wide_aperture_samples: int = 16,
         diffraction: bool = True,
-        point_spread: str = "geometric-airy",
+        point_spread: str | None = None,
         band_samples: int = BAND_SAMPLES,
         seed: int = 0,
         chunk_rays: int = 2_000_000,
         environment_radiance: float | tuple[float, float, float] = 0.0,
         environment_aperture_samples: int = 32,
     ):
+        point_spread = rig.simulation.point_spread if point_spread is None else point_spread
         if point_spread not in POINT_SPREADS:
             raise ValueError(f"point_spread must be one of {', '.join(POINT_SPREADS)}, got {point_spread!r}")
         self.rig = rig
