@@ -55,7 +55,7 @@ class SimulatedCamera(Camera):
     truth : TruthLight, optional
         Overrides ``rig.simulation.truth``.
     point_spread : {"geometric-airy", "fresnel"}, optional
-        Overrides ``rig.simulation.point_spread`` (the mirrored ball only).
+        Overrides ``rig.camera.point_spread`` (the mirrored ball only).
     wall_clock : callable
         Seconds since the epoch, for the frames' timestamps.
     latency_s : float
@@ -97,7 +97,7 @@ class SimulatedCamera(Camera):
         options = dict(renderer_options or {})
         if rig.object is None:
             renderer_class = MirrorBallRenderer
-            options.setdefault("point_spread", sim.point_spread if point_spread is None else point_spread)
+            options.setdefault("point_spread", rig.camera.point_spread if point_spread is None else point_spread)
         else:
             from sim_devices.object_scene import ObjectSceneRenderer  # noqa: PLC0415 - heavy: trimesh, for an object
 

@@ -430,12 +430,10 @@ def test_the_kernel_cache_keeps_the_most_recent_paths():
 
 
 def test_the_simulated_camera_takes_the_rigs_point_spread_and_blurs_the_lit_room(tmp_path):
-    """``simulation.point_spread = "fresnel"`` reaches the renderer; a calibration frame (the room
+    """``camera.point_spread = "fresnel"`` reaches the renderer; a calibration frame (the room
     lit, the light off: the whole ball) keeps the geometric frame's flux and shows a sharper
     silhouette (the Fresnel pattern is a third as wide at half height as the geometric⊗Airy one)."""
-    rig = rig_with(
-        camera__width=500, camera__height=328, camera__pixel_pitch_m=23.6e-6, simulation__point_spread="fresnel"
-    )
+    rig = rig_with(camera__width=500, camera__height=328, camera__pixel_pitch_m=23.6e-6, camera__point_spread="fresnel")
     world = SimWorld(lambda: rig.tool_poses()[33], rig.light.light_to_tool.to_pose(), light_on=False, room_lit=True)
     camera = SimulatedCamera(rig, world, tmp_path, seed=1, environment_radiance=ROOM_RADIANCE)
     assert camera.renderer.fresnel is not None
@@ -471,7 +469,7 @@ def test_an_astigmatic_wave_throws_an_elliptical_shadow():
 
 
 def test_without_diffraction_the_fresnel_camera_is_the_geometric_one():
-    rig = _crop_rig(simulation__point_spread="fresnel", simulation__diffraction=False)
+    rig = _crop_rig(camera__point_spread="fresnel", simulation__diffraction=False)
     renderer = MirrorBallRenderer(rig, None, diffraction=False, point_spread="fresnel")
     assert renderer.fresnel is None and renderer.camera.aperture_radius == pytest.approx(1e-4)
 
@@ -499,7 +497,7 @@ def test_without_diffraction_the_fresnel_camera_is_the_geometric_one():
             {"camera__spectral_response": {"wavelengths_m": [4e-7, 5e-7], "r": [1], "g": [1, 1], "b": [1, 1]}},
             "camera.spectral_response: r: 1 values for 2 wavelengths",
         ),
-        ({"simulation__point_spread": "wave"}, "simulation.point_spread: Input should be"),
+        ({"camera__point_spread": "wave"}, "camera.point_spread: Input should be"),
     ],
 )
 def test_the_rigs_new_fields_are_refused_in_one_line(edits, message):

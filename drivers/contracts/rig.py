@@ -152,7 +152,7 @@ class ThinLens(ConfigModel):
 
 class Aperture(ConfigModel):
     """The pinhole's actual shape, as the simulated camera's Fresnel point spread sees it
-    (``simulation.point_spread = "fresnel"``).
+    (``camera.point_spread = "fresnel"``: the simulated camera's and the processing's templates).
 
     In the camera's aperture plane, seen from the sensor looking out through the pinhole: x
     along the image's columns, y along its rows. ``circle`` is a hole of ``pinhole_diameter_m``
@@ -249,6 +249,7 @@ class Camera(ConfigModel):
     ] = (80e-9, 80e-9, 80e-9)
     spectral_response: SpectralResponse | None = None
     aperture: Aperture = Aperture()
+    point_spread: Literal["geometric-airy", "fresnel"] = "geometric-airy"
     sensitivity_e_per_s: PositiveFloat = 1000.0
 
     @model_validator(mode="after")
@@ -522,16 +523,13 @@ class Simulation(ConfigModel):
 
     ``surface`` names the simulated object's reflectance (``sim_devices/surfaces/``: a base
     albedo, painted patches and an optional specular lobe) when the rig has an ``object``.
-    With ``diffraction``, ``point_spread`` is how the aperture blurs the ball's image:
-    ``geometric-airy`` (the aperture's geometric shadow convolved with the Airy pattern of each
-    channel's wavelength) or ``fresnel`` (the scalar Fresnel diffraction of the actual aperture,
-    ``camera.aperture``, over each channel's band); without it, the geometric shadow alone.
+    Without ``diffraction`` the simulated camera's blur is the aperture's geometric shadow
+    alone (``camera.point_spread`` otherwise).
     """
 
     truth: str = "five-gaussians"
     seed: int = 0
     diffraction: bool = True
-    point_spread: Literal["geometric-airy", "fresnel"] = "geometric-airy"
     noise: bool = True
     surface: str = "uniform"
 
@@ -587,8 +585,8 @@ class Rig(ConfigModel):
         rot, t = self.camera.pose.extrinsics()
         if (rot @ centre + t)[2] <= radius:
             raise ValueError("camera.pose: the ball is not in front of the camera")
-        if self.object is not None and self.simulation.point_spread == "fresnel":
-            raise ValueError("simulation.point_spread: the object scene has no Fresnel point spread (geometric-airy)")
+        if self.object is not None and self.camera.point_spread == "fresnel":
+            raise ValueError("camera.point_spread: the object scene has no Fresnel point spread (geometric-airy)")
 
         try:
             lights = self.light_poses()

@@ -92,19 +92,12 @@ class FresnelPupil:
 
     @classmethod
     def from_camera(cls, camera: Camera) -> FresnelPupil:
-        """The rig camera's aperture (``[camera.aperture]``: a circle or an ellipse) and bands
-        (``channel_bandwidths_m`` about ``channel_wavelengths_m``, or ``spectral_response``).
-
-        Raises
-        ------
-        ValueError
-            A thin lens, or an aperture given as a mask image (one line naming the field).
+        """The rig camera's aperture (``[camera.aperture]``: a circle or an ellipse; a mask image,
+        the simulator's, is taken as the circle of ``pinhole_diameter_m``) and bands
+        (``channel_bandwidths_m`` about ``channel_wavelengths_m``, or ``spectral_response``). A
+        thin lens's stop is a circle too: its power is in the curvature the templates trace.
         """
-        if camera.thin_lens is not None:
-            raise ValueError("camera.thin_lens: the Fresnel point spread is a pinhole's")
         aperture = camera.aperture
-        if aperture.shape == "mask":
-            raise ValueError("camera.aperture.shape: a mask image: give the processing a measured point spread")
         ratios = (1.0, 1.0)
         if aperture.axes_m is not None:
             ratios = (aperture.axes_m[0] / camera.pinhole_diameter_m, aperture.axes_m[1] / camera.pinhole_diameter_m)

@@ -69,7 +69,7 @@ class MirrorBallRenderer:
     diffraction : bool
         Blur with the aperture's diffraction (``point_spread``); without it, the geometric image.
     point_spread : {"geometric-airy", "fresnel"}, optional
-        The rig's ``simulation.point_spread`` by default.
+        The rig's ``camera.point_spread`` by default.
         ``geometric-airy``: rays sampled over the whole aperture (its geometric shadow), then
         the Airy pattern of each channel's wavelength. ``fresnel``: the chief rays only (the
         sharp image), each emitter's then convolved with the Fresnel point spread of its own
@@ -105,7 +105,7 @@ class MirrorBallRenderer:
         environment_radiance: float | tuple[float, float, float] = 0.0,
         environment_aperture_samples: int = 32,
     ):
-        point_spread = rig.simulation.point_spread if point_spread is None else point_spread
+        point_spread = rig.camera.point_spread if point_spread is None else point_spread
         if point_spread not in POINT_SPREADS:
             raise ValueError(f"point_spread must be one of {', '.join(POINT_SPREADS)}, got {point_spread!r}")
         self.rig = rig
