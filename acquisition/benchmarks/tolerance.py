@@ -12,6 +12,7 @@ RMS(I_fit − I_true) / max(I_true) over the θ each source's samples cover.
 from __future__ import annotations
 
 import json
+import math
 import shutil
 import tempfile
 import time
@@ -313,7 +314,12 @@ def _cell(row: dict) -> str:
         return f" failed: {row['failed'].replace('|', '/')} |"
     parts = []
     if "max_centre_error_um" in row:
-        parts += [f"{row['sources_found']} sources", f"{row['max_centre_error_um']:.0f} µm"]
+        parts.append(f"{row['sources_found']} sources")
+        offset = math.hypot(*row.get("centre_offset_um", (0.0, 0.0)))
+        if offset >= 1.0:  # a mount error moves the light's frame: the places after that common offset
+            parts.append(f"{row['max_centre_error_relative_um']:.0f} µm (after a common {offset:.0f} µm)")
+        else:
+            parts.append(f"{row['max_centre_error_um']:.0f} µm")
     if "sensor_distance_fit" in row:
         parts.append(f"{1e3 * row['sensor_distance_fit']['fitted_m']:.3f} mm")
     if "aperture_fit" in row:
