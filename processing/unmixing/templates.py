@@ -108,21 +108,9 @@ class TemplateBuilder:
         # The source disc's own image through the pinhole's centre.
         disc_image = g.project(disc_paths)
         centre_px = g.project(p0[None, :])[0]
-        if self.pupil is None:
-            top, left, pixels = self._render(outline, disc_image - centre_px, centre_px)
-            area_ratio = 1.0
-        else:
-            curvature = shadow_curvature(rim_cam[:, :2], outline, g.pitch, g.sensor_distance)
-            shadow = float(np.max(np.linalg.norm(outline - centre_px, axis=1)))
-            top, left, pixels = self._render_fresnel(curvature, shadow, disc_image - centre_px, centre_px)
-            area_ratio = self.pupil.area_ratio  # the solid angle is the round rim's
-        scale = (
-            self.sensitivity
-            * g.sensor_distance**2
-            / (g.pitch**2 * math.pi * g.aperture_radius**2)
-            * solid_angle
-            * area_ratio
-        )
+        top, left, pixels, area_ratio = self._blurred(outline, rim_cam, disc_image - centre_px, centre_px)
+        scale = self.sensitivity * g.sensor_distance**2 / (g.pitch**2 * math.pi * g.aperture_radius**2)
+        scale *= solid_angle * area_ratio
         pixels = pixels * (scale * fresnel)[:, None, None]
         theta = float(math.acos(np.clip(local[2], -1.0, 1.0)))
         phi = float(math.atan2(local[1], local[0]))
@@ -156,6 +144,18 @@ class TemplateBuilder:
         image = np.stack([-p_cam[:, 0] * v / u, -p_cam[:, 1] * v / u, -v], axis=-1)
         sensor = rim_cam + (image - rim_cam) * (g.sensor_distance / v)[:, None]  # on the plane z = -f
         return np.stack([g.K[0, 2] - sensor[:, 0] / g.pitch, g.K[1, 2] - sensor[:, 1] / g.pitch], -1)
+
+    def _blurred(
+        self, outline: np.ndarray, rim_cam: np.ndarray, disc: np.ndarray, centre: np.ndarray
+    ) -> tuple[int, int, np.ndarray, float]:
+        """The source's image blurred as the builder models the camera: (top, left, pixels, the
+        aperture's area over the round rim's, whose solid angle scales the template)."""
+        if self.pupil is None:
+            return (*self._render(outline, disc, centre), 1.0)
+        g = self.geometry
+        curvature = shadow_curvature(rim_cam[:, :2], outline, g.pitch, g.sensor_distance)
+        shadow = float(np.max(np.linalg.norm(outline - centre, axis=1)))
+        return (*self._render_fresnel(curvature, shadow, disc, centre), self.pupil.area_ratio)
 
     def _render_fresnel(
         self, curvature: np.ndarray, shadow: float, disc: np.ndarray, centre: np.ndarray
