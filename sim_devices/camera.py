@@ -47,13 +47,15 @@ class SimulatedCamera(Camera):
     ----------
     rig : Rig
         Camera, ball and light geometry; ``rig.simulation`` gives the truth, seed,
-        noise and diffraction switches unless overridden here.
+        noise and diffraction switches and the point spread unless overridden here.
     world : SimWorld
         Where the light is at the moment of capture.
     out_dir : path
         Folder the DNG files are written to (injected: tests use a temporary folder).
     truth : TruthLight, optional
         Overrides ``rig.simulation.truth``.
+    point_spread : {"geometric-airy", "fresnel"}, optional
+        Overrides ``rig.camera.point_spread`` (the mirrored ball only).
     wall_clock : callable
         Seconds since the epoch, for the frames' timestamps.
     latency_s : float
@@ -75,6 +77,7 @@ class SimulatedCamera(Camera):
         truth: TruthLight | None = None,
         noise: bool | None = None,
         diffraction: bool | None = None,
+        point_spread: str | None = None,
         seed: int | None = None,
         renderer_options: dict | None = None,
         wall_clock: Callable[[], float] = time.time,
@@ -91,8 +94,10 @@ class SimulatedCamera(Camera):
         self.truth = truth or load_truth(sim.truth)
         seed = sim.seed if seed is None else seed
         # The rig's object, when it has one, is photographed instead of the ball.
+        options = dict(renderer_options or {})
         if rig.object is None:
             renderer_class = MirrorBallRenderer
+            options.setdefault("point_spread", rig.camera.point_spread if point_spread is None else point_spread)
         else:
             from sim_devices.object_scene import ObjectSceneRenderer  # noqa: PLC0415 - heavy: trimesh, for an object
 
@@ -103,7 +108,7 @@ class SimulatedCamera(Camera):
             diffraction=sim.diffraction if diffraction is None else diffraction,
             seed=seed,
             environment_radiance=environment_radiance,
-            **(renderer_options or {}),
+            **options,
         )
         self.sensor = SensorModel.from_rig(rig.camera, noise=sim.noise if noise is None else noise)
         self.rng = np.random.default_rng(seed + 1)

@@ -10,9 +10,12 @@ fitted and scored on the same data, so the gain from unmixing is shown, not clai
 
 from __future__ import annotations
 
+import json
 import tempfile
 import time
 from pathlib import Path
+
+import h5py
 
 from acquisition.benchmarks.scoring import score_sources
 from acquisition.catalog import Catalog
@@ -83,13 +86,21 @@ def bench_accuracy(
     fit_method: str = "gaussian",
     workdir: str | Path | None = None,
     layout_from_data: bool = False,
+    templates: str | None = None,
 ) -> dict:
     """Run the reference simulation and score the fitted sources against the truth.
 
     ``layout_from_data``: the processing is not given the truth's layout but finds the
     sources in the data; each truth emitter is then scored against the nearest source found,
     and the distance between them is reported too. The target then also asks for as many
-    sources as the truth has, each the nearest of a different emitter."""
+    sources as the truth has, each the nearest of a different emitter.
+
+    ``templates``: the point spread the processing's templates model (``geometric-airy`` or
+    ``fresnel``), where it is not the camera's (the rig's ``camera.point_spread``, which the
+    simulated camera takes): the run's header then describes the camera with it, so that what
+    a model costs on a camera of the other kind is measured."""
+    if templates not in (None, "geometric-airy", "fresnel"):
+        raise ValueError(f"--templates: {templates!r} is not geometric-airy or fresnel")
     rig = load_rig(rig_path)
     truth_light = load_truth(truth)
     layout = None if layout_from_data else LIGHTS_DIR / f"{truth}.toml"
@@ -98,6 +109,8 @@ def bench_accuracy(
         base = Path(workdir) if workdir is not None else Path(tmp)
         run_path = acquire_simulated(rig, truth, noise, exposures, positions, base)
         acquired = time.perf_counter()
+        if templates is not None and templates != rig.camera.point_spread:
+            describe_point_spread(run_path, templates)
         report = process_run(
             run_path,
             base / "out",
@@ -120,6 +133,8 @@ def bench_accuracy(
         "truth": truth,
         "layout": model.provenance.get("layout", ""),
         "aperture": model.provenance.get("aperture_m", ""),  # fitted to the data where the sources were searched for
+        "point_spread": {"camera": rig.camera.point_spread, "templates": templates or rig.camera.point_spread},
+        "quality": model.quality,
         "sources_found": len(model.sources),
         "positions": positions,
         "exposures_s": list(exposures),
@@ -133,3 +148,12 @@ def bench_accuracy(
         "acquire_s": round(acquired - started, 1),
         "process_s": round(processed - acquired, 1),
     }
+
+
+def describe_point_spread(run_path: Path, point_spread: str) -> None:
+    """The run file's header made to describe its camera's point spread as ``point_spread``."""
+    with h5py.File(run_path, "r+") as f:
+        rig = json.loads(f["header/rig_json"][()])
+        rig["camera"]["point_spread"] = point_spread
+        del f["header/rig_json"]
+        f.create_dataset("header/rig_json", data=json.dumps(rig, ensure_ascii=False), dtype=h5py.string_dtype("utf-8"))

@@ -166,6 +166,13 @@ def bench_accuracy_command(
             "giving the truth's layout; score each emitter against the nearest found.",
         ),
     ] = False,
+    templates: Annotated[
+        str | None,
+        typer.Option(
+            help="The point spread the templates model, geometric-airy or fresnel, where not the camera's "
+            "(the rig's camera.point_spread): what the other model costs.",
+        ),
+    ] = None,
     as_json: Annotated[bool, typer.Option("--json", help="Print JSON only.")] = False,
     record: RecordOption = None,
 ) -> None:
@@ -173,6 +180,8 @@ def bench_accuracy_command(
     from acquisition.benchmarks.accuracy import bench_accuracy
     from processing.light_run.errors import ProcessingError
 
+    if templates not in (None, "geometric-airy", "fresnel"):
+        raise fail(f"--templates: {templates!r} is not geometric-airy or fresnel")
     recording = _start_recording(ctx, record)
     try:
         result = bench_accuracy(
@@ -182,6 +191,7 @@ def bench_accuracy_command(
             rig_path=rig,
             fit_method=fit,
             layout_from_data=layout_from_data,
+            templates=templates,
         )
     except (*domain_errors(), ProcessingError) as exc:
         raise fail(str(exc)) from None

@@ -150,6 +150,77 @@ class ThinLens(ConfigModel):
     f_number: PositiveFloat
 
 
+class Aperture(ConfigModel):
+    """The pinhole's actual shape, as the simulated camera's Fresnel point spread sees it
+    (``camera.point_spread = "fresnel"``: the simulated camera's and the processing's templates).
+
+    In the camera's aperture plane, seen from the sensor looking out through the pinhole: x
+    along the image's columns, y along its rows. ``circle`` is a hole of ``pinhole_diameter_m``
+    (the lens's stop with ``thin_lens``); ``ellipse`` has full ``axes_m`` (its own x then y
+    diameter), its x axis ``angle_deg`` from the camera's +x towards +y; ``mask`` is a greyscale
+    PNG of the hole's transmission (grey level over the format's full scale), ``mask_pixel_m``
+    metres a pixel, its rows along y and its transmission-weighted centroid the hole's centre.
+    A circle or an ellipse may have a rough edge: a seeded random radial perturbation of RMS
+    ``edge_roughness_rms_m`` whose Gaussian correlation length along the edge is
+    ``edge_correlation_m``.
+    """
+
+    shape: Literal["circle", "ellipse", "mask"] = "circle"
+    axes_m: tuple[PositiveFloat, PositiveFloat] | None = None
+    angle_deg: float = 0.0
+    mask: str | None = Field(default=None, min_length=1)
+    mask_pixel_m: PositiveFloat | None = None
+    edge_roughness_rms_m: Annotated[float, Field(ge=0.0)] = 0.0
+    edge_correlation_m: PositiveFloat = 5e-6
+    roughness_seed: Annotated[int, Field(ge=0)] = 0
+
+    @model_validator(mode="after")
+    def _one_shape(self) -> Self:
+        if (self.shape == "ellipse") != (self.axes_m is not None):
+            raise ValueError("axes_m: required for an ellipse, and only for one")
+        if self.shape != "ellipse" and self.angle_deg != 0.0:
+            raise ValueError("angle_deg: only for an ellipse")
+        for name in ("mask", "mask_pixel_m"):
+            if (self.shape == "mask") != (getattr(self, name) is not None):
+                raise ValueError(f"{name}: required for a mask, and only for one")
+        if self.shape == "mask" and self.edge_roughness_rms_m > 0:
+            raise ValueError("edge_roughness_rms_m: a mask already has its own edge")
+        return self
+
+    def mask_path(self, base: Path | None = None) -> Path | None:
+        if self.mask is None:
+            return None
+        path = Path(self.mask).expanduser()
+        return path if path.is_absolute() or base is None else base / path
+
+
+class SpectralResponse(ConfigModel):
+    """Tabulated sensitivity curves of the three channels: the relative response of R, G and B
+    at each of ``wavelengths_m`` (ascending), linear in between and zero outside."""
+
+    wavelengths_m: list[PositiveFloat] = Field(min_length=2, max_length=10_000)
+    r: list[Annotated[float, Field(ge=0.0)]]
+    g: list[Annotated[float, Field(ge=0.0)]]
+    b: list[Annotated[float, Field(ge=0.0)]]
+
+    @model_validator(mode="after")
+    def _a_curve_each(self) -> Self:
+        if any(b <= a for a, b in zip(self.wavelengths_m, self.wavelengths_m[1:], strict=False)):
+            raise ValueError("wavelengths_m: must be strictly ascending")
+        for name in ("r", "g", "b"):
+            values = getattr(self, name)
+            if len(values) != len(self.wavelengths_m):
+                raise ValueError(f"{name}: {len(values)} values for {len(self.wavelengths_m)} wavelengths")
+            if not any(v > 0 for v in values):
+                raise ValueError(f"{name}: the channel responds nowhere")
+        return self
+
+    def curve(self, channel: int) -> tuple[np.ndarray, np.ndarray]:
+        """(wavelengths in metres, relative response) of channel 0, 1 or 2 (R, G, B)."""
+        values = (self.r, self.g, self.b)[channel]
+        return np.asarray(self.wavelengths_m, dtype=float), np.asarray(values, dtype=float)
+
+
 class Camera(ConfigModel):
     """The camera: a pinhole of finite diameter, or a thin lens.
 
@@ -173,6 +244,12 @@ class Camera(ConfigModel):
     full_well_e: PositiveFloat = 20000.0
     read_noise_e: Annotated[float, Field(ge=0.0)] = 3.0
     channel_wavelengths_m: RGB = (610e-9, 540e-9, 465e-9)
+    channel_bandwidths_m: tuple[
+        Annotated[float, Field(ge=0.0)], Annotated[float, Field(ge=0.0)], Annotated[float, Field(ge=0.0)]
+    ] = (80e-9, 80e-9, 80e-9)
+    spectral_response: SpectralResponse | None = None
+    aperture: Aperture = Aperture()
+    point_spread: Literal["geometric-airy", "fresnel"] = "geometric-airy"
     sensitivity_e_per_s: PositiveFloat = 1000.0
 
     @model_validator(mode="after")
@@ -186,6 +263,12 @@ class Camera(ConfigModel):
             cx, cy = self.principal_point_px
             if not (0 <= cx < self.width and 0 <= cy < self.height):
                 raise ValueError("principal_point_px lies outside the sensor")
+        for centre, width in zip(self.channel_wavelengths_m, self.channel_bandwidths_m, strict=True):
+            if width >= centre:
+                raise ValueError("channel_bandwidths_m: each band must be narrower than its channel's wavelength")
+        rough = self.aperture.edge_roughness_rms_m
+        if rough > 0 and rough >= 0.1 * min(self.aperture.axes_m or (self.aperture_diameter_m,)) / 2:
+            raise ValueError("aperture.edge_roughness_rms_m: must be below 10 % of the aperture's radius")
         return self
 
     @property
@@ -440,6 +523,8 @@ class Simulation(ConfigModel):
 
     ``surface`` names the simulated object's reflectance (``sim_devices/surfaces/``: a base
     albedo, painted patches and an optional specular lobe) when the rig has an ``object``.
+    Without ``diffraction`` the simulated camera's blur is the aperture's geometric shadow
+    alone (``camera.point_spread`` otherwise).
     """
 
     truth: str = "five-gaussians"
@@ -500,6 +585,8 @@ class Rig(ConfigModel):
         rot, t = self.camera.pose.extrinsics()
         if (rot @ centre + t)[2] <= radius:
             raise ValueError("camera.pose: the ball is not in front of the camera")
+        if self.object is not None and self.camera.point_spread == "fresnel":
+            raise ValueError("camera.point_spread: the object scene has no Fresnel point spread (geometric-airy)")
 
         try:
             lights = self.light_poses()
@@ -537,14 +624,18 @@ def rig_from_dict(data: dict[str, Any], source: str = "<rig>") -> Rig:
 def load_rig(path: str | Path | None = None) -> Rig:
     """Load and validate a rig TOML file (the default rig when ``path`` is None).
 
-    An object's relative mesh path is made absolute against the rig file's folder, so the
-    rig stored in a run file still finds its mesh.
+    An object's relative mesh path, and an aperture mask's, is made absolute against the rig
+    file's folder, so the rig stored in a run file still finds them.
     """
     path = Path(path) if path is not None else DEFAULT_RIG_PATH
     rig = load_model(path, Rig, "rig file", RigError)
     if rig.object is not None:
         mesh = rig.object.mesh_path(path.resolve().parent)
         rig = rig.model_copy(update={"object": rig.object.model_copy(update={"mesh": str(mesh)})})
+    mask = rig.camera.aperture.mask_path(path.resolve().parent)
+    if mask is not None:
+        aperture = rig.camera.aperture.model_copy(update={"mask": str(mask)})
+        rig = rig.model_copy(update={"camera": rig.camera.model_copy(update={"aperture": aperture})})
     return rig
 
 

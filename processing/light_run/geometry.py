@@ -12,6 +12,7 @@ from drivers.contracts.rig import Rig
 from drivers.contracts.runfile import RunFile
 from processing.rig_fit import RigCorrection
 from processing.trace import RigGeometry
+from processing.unmixing.fresnel import FresnelPupil
 from processing.unmixing.templates import TemplateBuilder
 
 log = logging.getLogger("mirrorgonio.processing")
@@ -25,7 +26,7 @@ def geometry_and_builder(
 ) -> tuple[RigGeometry, TemplateBuilder]:
     """The rig's geometry and template builder (ball at ``ball_centre``, or where the rig says;
     the camera's aperture and sensor distance as ``camera`` has them, or as the rig says; the
-    rig corrected as ``camera.rig`` says).
+    rig corrected as ``camera.rig`` says; the point spread the rig's camera names).
 
     Kept per process for the rig object the run file's header shares (``drivers.contracts.runfile``
     validates a rig once per text): every position task of a run asks for the same one, and
@@ -46,7 +47,9 @@ def geometry_and_builder(
             geometry = camera.rig.apply(geometry)
         if len(_GEOMETRIES) >= 8:
             _GEOMETRIES.pop(next(iter(_GEOMETRIES)))
-        held = _GEOMETRIES[key] = (rig, geometry, TemplateBuilder(geometry, rig.camera.sensitivity_e_per_s))
+        pupil = FresnelPupil.from_camera(rig.camera) if rig.camera.point_spread == "fresnel" else None
+        builder = TemplateBuilder(geometry, rig.camera.sensitivity_e_per_s, pupil=pupil)
+        held = _GEOMETRIES[key] = (rig, geometry, builder)
     return held[1], held[2]
 
 

@@ -199,3 +199,11 @@ def convolve_same(image: np.ndarray, kernel: np.ndarray) -> np.ndarray:
     product *= sfft.fft(sfft.rfft(kernel, n=length, axis=1), n=length, axis=0)
     back = sfft.ifft(product, axis=0, overwrite_x=True)[half : half + n]
     return sfft.irfft(back, n=length, axis=1)[:, half : half + n]
+
+
+def convolve_full(image: np.ndarray, kernel: np.ndarray) -> np.ndarray:
+    """The full linear convolution of two square arrays (``n + k - 1`` a side), by FFT."""
+    length = image.shape[0] + kernel.shape[0] - 1
+    size = sfft.next_fast_len(length, real=True)
+    product = sfft.rfft2(image, s=(size, size)) * sfft.rfft2(kernel, s=(size, size))
+    return sfft.irfft2(product, s=(size, size))[:length, :length]

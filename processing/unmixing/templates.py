@@ -10,7 +10,8 @@ from scipy import fft as sfft
 
 from drivers.pose import Pose
 from processing.trace import RigGeometry, conductor_reflectance, housing_blocks, specular_points
-from processing.unmixing.psf import convex_coverage, convolve_same, diffract, polygon_area
+from processing.unmixing.fresnel import FresnelPupil, fresnel_kernel, rounded_curvature, shadow_curvature
+from processing.unmixing.psf import convex_coverage, convolve_full, convolve_same, diffract, polygon_area
 from processing.unmixing.sources import Source
 
 
@@ -37,7 +38,14 @@ class Template:
 
 @dataclass
 class TemplateBuilder:
-    """Templates of sources on the light plane for a rig (``measurement.md`` step 3)."""
+    """Templates of sources on the light plane for a rig (``measurement.md`` step 3).
+
+    The camera's blur is the aperture's geometric shadow (traced through the mirror) convolved
+    with each channel's Airy pattern; with ``pupil``, the Fresnel pattern of that aperture
+    over each channel's band instead (:mod:`processing.unmixing.fresnel`), its curvature read
+    off the same traced shadow. ``airy_margin_px`` is how far the diffraction reaches beyond
+    the geometric image, in pixels.
+    """
 
     geometry: RigGeometry
     sensitivity: float
@@ -45,6 +53,7 @@ class TemplateBuilder:
     rim_points: int = 96
     oversample: int = 4
     airy_margin_px: int = 32
+    pupil: FresnelPupil | None = None
 
     def build(self, source: Source, light_pose: Pose) -> Template | None:
         """The source's template, or None if the ball does not show it to the camera."""
@@ -99,9 +108,9 @@ class TemplateBuilder:
         # The source disc's own image through the pinhole's centre.
         disc_image = g.project(disc_paths)
         centre_px = g.project(p0[None, :])[0]
-        image = self._render(outline, disc_image - centre_px, centre_px)
-        top, left, pixels = image
-        scale = self.sensitivity * g.sensor_distance**2 / (g.pitch**2 * math.pi * g.aperture_radius**2) * solid_angle
+        top, left, pixels, area_ratio = self._blurred(outline, rim_cam, disc_image - centre_px, centre_px)
+        scale = self.sensitivity * g.sensor_distance**2 / (g.pitch**2 * math.pi * g.aperture_radius**2)
+        scale *= solid_angle * area_ratio
         pixels = pixels * (scale * fresnel)[:, None, None]
         theta = float(math.acos(np.clip(local[2], -1.0, 1.0)))
         phi = float(math.atan2(local[1], local[0]))
@@ -135,6 +144,50 @@ class TemplateBuilder:
         image = np.stack([-p_cam[:, 0] * v / u, -p_cam[:, 1] * v / u, -v], axis=-1)
         sensor = rim_cam + (image - rim_cam) * (g.sensor_distance / v)[:, None]  # on the plane z = -f
         return np.stack([g.K[0, 2] - sensor[:, 0] / g.pitch, g.K[1, 2] - sensor[:, 1] / g.pitch], -1)
+
+    def _blurred(
+        self, outline: np.ndarray, rim_cam: np.ndarray, disc: np.ndarray, centre: np.ndarray
+    ) -> tuple[int, int, np.ndarray, float]:
+        """The source's image blurred as the builder models the camera: (top, left, pixels, the
+        aperture's area over the round rim's, whose solid angle scales the template)."""
+        if self.pupil is None:
+            return (*self._render(outline, disc, centre), 1.0)
+        g = self.geometry
+        curvature = shadow_curvature(rim_cam[:, :2], outline, g.pitch, g.sensor_distance)
+        shadow = float(np.max(np.linalg.norm(outline - centre, axis=1)))
+        return (*self._render_fresnel(curvature, shadow, disc, centre), self.pupil.area_ratio)
+
+    def _render_fresnel(
+        self, curvature: np.ndarray, shadow: float, disc: np.ndarray, centre: np.ndarray
+    ) -> tuple[int, int, np.ndarray]:
+        """The disc's sharp image about ``centre`` (pixel-integrated on the fine grid), convolved
+        with each channel's Fresnel pattern for the wave's ``curvature``, over the aperture's
+        geometric ``shadow`` (its radius, pixels) and the diffraction's margin beyond."""
+        g, os_ = self.geometry, self.oversample
+        assert self.pupil is not None  # the Fresnel way
+        half = int(math.ceil(float(np.max(np.linalg.norm(disc, axis=1))) + 2.0))
+        c0, r0 = int(round(centre[0])) - half, int(round(centre[1])) - half
+        n = 2 * half + 1
+        sub = 1.0 / os_
+        xs = c0 - 0.5 + (np.arange(n * os_) + 0.5) * sub - centre[0]
+        ys = r0 - 0.5 + (np.arange(n * os_) + 0.5) * sub - centre[1]
+        if polygon_area(disc) > (0.25 * sub) ** 2:
+            sharp = convex_coverage(disc, xs, ys, sub)
+        else:  # a point: its weight shared bilinearly between the four nearest fine samples
+            sharp = np.outer(np.clip(1.0 - np.abs(ys) / sub, 0.0, None), np.clip(1.0 - np.abs(xs) / sub, 0.0, None))
+        sharp /= sharp.sum()
+        geometric = sharp.reshape(n, os_, n, os_).sum(axis=(1, 3))
+        reach = int(math.ceil(shadow)) + self.airy_margin_px
+        key = rounded_curvature(curvature)
+        # The kernels are not renormalised: a hard edge's far tails (a few per cent of the light
+        # beyond the reach) land outside the template, as in the frames.
+        shape = self.pupil.shape(g.aperture_radius)
+        kernels = [
+            fresnel_kernel(shape, key, float(g.sensor_distance), float(g.pitch), self.pupil.bands[c], reach)
+            for c in range(3)
+        ]
+        channels = np.stack([convolve_full(geometric, kernel) for kernel in kernels])
+        return r0 - reach, c0 - reach, channels
 
     def _render(self, outline: np.ndarray, disc: np.ndarray, centre: np.ndarray) -> tuple[int, int, np.ndarray]:
         g, os_ = self.geometry, self.oversample
