@@ -108,8 +108,10 @@ def test_the_simulated_rig_takes_ambient_and_dark_frames_before_and_after_the_sw
     assert http.get(f"/runs/{run['id']}").json()["step"] is None  # the run is over
 
 
+# The demo's rig: the default rig's field of view at half its resolution. The full resolution
+# takes 35-40 s more here (its room rendered at 2000 x 1312) for the same path through the code.
 @pytest.mark.slow
-@pytest.mark.parametrize("rig_name", ["default", "demo"])
+@pytest.mark.parametrize("rig_name", ["demo"])
 def test_the_silhouette_of_the_daemons_ambient_frames_is_where_the_rig_puts_the_ball(daemon, rig_name):  # noqa: F811
     http, engine = daemon(speed=float("inf"), rig=ROOT / "rigs" / f"{rig_name}.toml")
     run = http.post("/runs", json={"count": 1, "calibration": {"dark": False}}).json()
