@@ -223,17 +223,7 @@ def build_layout(
     positions.create_dataset("times", data=np.full((n, 3), np.nan))
     positions.create_dataset("frame_count", data=np.zeros(n, np.int16))
     positions.create_dataset("complete", data=np.zeros(n, np.uint8))
-    frames = f.create_group("frames")
-    frames.create_dataset(
-        "raw",
-        shape=(n, max_exposures, height, width),
-        dtype=np.uint16,
-        chunks=(1, 1, height, width),
-        fillvalue=0,
-        **hdf5plugin.LZ4(),
-    )
-    for name, value in empty_frame_records(n, max_exposures).items():
-        frames.create_dataset(name, data=value)
+    create_frame_stack(f.create_group("frames"), n, max_exposures, (height, width))
     build_calibration_layout(f, calibration_frames, frame_shape)
     status = f.create_group("status")
     status.create_dataset("state", data=np.bytes_(b"created"), dtype=f"S{STATE_BYTES}")
@@ -253,15 +243,22 @@ def build_calibration_layout(f: h5py.File, max_frames: int, frame_shape: tuple[i
     group.create_dataset("when", data=np.array([when for _, when in CALIBRATION_SETS], dtype="S8"))
     group.create_dataset("frame_count", data=np.zeros(m, np.int16))
     group.create_dataset("complete", data=np.zeros(m, np.uint8))
+    create_frame_stack(group, m, max_frames, (height, width))
+
+
+def create_frame_stack(group: h5py.Group, slots: int, per_slot: int, frame_shape: tuple[int, int]) -> None:
+    """``raw`` (slots × per_slot frames, one LZ4 chunk a frame) and its per-frame records, in
+    ``group``: the sweep's positions and the calibration sets share the layout."""
+    height, width = frame_shape
     group.create_dataset(
         "raw",
-        shape=(m, max_frames, height, width),
+        shape=(slots, per_slot, height, width),
         dtype=np.uint16,
         chunks=(1, 1, height, width),
         fillvalue=0,
         **hdf5plugin.LZ4(),
     )
-    for name, value in empty_frame_records(m, max_frames).items():
+    for name, value in empty_frame_records(slots, per_slot).items():
         group.create_dataset(name, data=value)
 
 
