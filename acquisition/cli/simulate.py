@@ -1,4 +1,5 @@
-"""``mirrorgonio simulate``: the simulated arm's Modbus server, one rendered capture."""
+"""``mirrorgonio simulate``: the simulated arm's Modbus server, one rendered capture, a measured
+point spread."""
 
 from __future__ import annotations
 
@@ -118,3 +119,33 @@ def simulate_capture(
         f"wrote {output} ({frame.mosaic.shape[1]}x{frame.mosaic.shape[0]}, {frame.cfa_pattern}, "
         f"exposure {frame.exposure_s:g} s, max {int(frame.mosaic.max())} DN)"
     )
+
+
+@simulate_app.command("point-spread")
+def simulate_point_spread(
+    output: Annotated[Path, typer.Option("-o", "--output", help="The .npz file to write.")],
+    distance: Annotated[
+        float, typer.Option(min=1e-3, help="The LED's distance in front of the pinhole (m); about the light's image's.")
+    ],
+    rig: RigOption = None,
+    side: Annotated[int, typer.Option(min=11, max=1025, help="Pixels a side.")] = 129,
+    peak_electrons: Annotated[
+        float | None, typer.Option(min=1.0, help="The brightest pixel's electrons, with photon and read noise.")
+    ] = None,
+    seed: Annotated[int, typer.Option(help="Random seed of the noise.")] = 0,
+) -> None:
+    """Image a small LED through the rig's simulated pinhole (its Fresnel point spread, each
+    channel's band), as a lab measures its camera's point spread for
+    ``[camera.measured_point_spread]``."""
+    import numpy as np
+
+    from drivers.contracts.rig import load_rig
+    from sim_devices.optics.point_spread import led_point_spread
+
+    try:
+        camera = load_rig(rig or default_rig()).camera
+        psf = led_point_spread(camera, distance, side | 1, peak_electrons, seed)
+        np.savez(output, psf=psf, distance_m=distance, pixel_pitch_m=camera.pixel_pitch_m)
+    except domain_errors() as exc:
+        raise fail(str(exc)) from None
+    typer.echo(f"wrote {output} ({psf.shape[2]}x{psf.shape[1]} px a channel, the LED {1e3 * distance:g} mm away)")

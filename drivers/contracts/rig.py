@@ -194,6 +194,23 @@ class Aperture(ConfigModel):
         return path if path.is_absolute() or base is None else base / path
 
 
+class MeasuredPointSpread(ConfigModel):
+    """A point spread the lab measured, which the processing's templates take instead of
+    computing one from ``point_spread`` (the simulated camera keeps its own physics).
+
+    ``file`` is a NumPy ``.npz`` holding ``psf`` (3, h, w): the image of a small LED through
+    the pinhole, one linear image per channel on the sensor's own pixels (dark frame
+    subtracted); ``distance_m``: the LED's distance in front of the pinhole; ``pixel_pitch_m``:
+    the sensor's pitch. A relative path is taken against the rig file's folder.
+    """
+
+    file: str = Field(min_length=1)
+
+    def path(self, base: Path | None = None) -> Path:
+        path = Path(self.file).expanduser()
+        return path if path.is_absolute() or base is None else base / path
+
+
 class SpectralResponse(ConfigModel):
     """Tabulated sensitivity curves of the three channels: the relative response of R, G and B
     at each of ``wavelengths_m`` (ascending), linear in between and zero outside."""
@@ -250,6 +267,7 @@ class Camera(ConfigModel):
     spectral_response: SpectralResponse | None = None
     aperture: Aperture = Aperture()
     point_spread: Literal["geometric-airy", "fresnel"] = "geometric-airy"
+    measured_point_spread: MeasuredPointSpread | None = None
     sensitivity_e_per_s: PositiveFloat = 1000.0
 
     @model_validator(mode="after")
@@ -624,8 +642,8 @@ def rig_from_dict(data: dict[str, Any], source: str = "<rig>") -> Rig:
 def load_rig(path: str | Path | None = None) -> Rig:
     """Load and validate a rig TOML file (the default rig when ``path`` is None).
 
-    An object's relative mesh path, and an aperture mask's, is made absolute against the rig
-    file's folder, so the rig stored in a run file still finds them.
+    An object's relative mesh path, an aperture mask's and a measured point spread's are made
+    absolute against the rig file's folder, so the rig stored in a run file still finds them.
     """
     path = Path(path) if path is not None else DEFAULT_RIG_PATH
     rig = load_model(path, Rig, "rig file", RigError)
@@ -636,6 +654,10 @@ def load_rig(path: str | Path | None = None) -> Rig:
     if mask is not None:
         aperture = rig.camera.aperture.model_copy(update={"mask": str(mask)})
         rig = rig.model_copy(update={"camera": rig.camera.model_copy(update={"aperture": aperture})})
+    measured = rig.camera.measured_point_spread
+    if measured is not None:
+        measured = measured.model_copy(update={"file": str(measured.path(path.resolve().parent))})
+        rig = rig.model_copy(update={"camera": rig.camera.model_copy(update={"measured_point_spread": measured})})
     return rig
 
 

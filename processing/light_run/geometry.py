@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import functools
 import logging
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
+from pathlib import Path
 
 import numpy as np
 
@@ -13,6 +15,7 @@ from drivers.contracts.runfile import RunFile
 from processing.rig_fit import RigCorrection
 from processing.trace import RigGeometry
 from processing.unmixing.fresnel import FresnelPupil
+from processing.unmixing.measured import MeasuredKernels, load_measured_point_spread
 from processing.unmixing.templates import TemplateBuilder
 
 log = logging.getLogger("mirrorgonio.processing")
@@ -26,7 +29,8 @@ def geometry_and_builder(
 ) -> tuple[RigGeometry, TemplateBuilder]:
     """The rig's geometry and template builder (ball at ``ball_centre``, or where the rig says;
     the camera's aperture and sensor distance as ``camera`` has them, or as the rig says; the
-    rig corrected as ``camera.rig`` says; the point spread the rig's camera names).
+    rig corrected as ``camera.rig`` says; the point spread the rig's camera names, or the one
+    it measured).
 
     Kept per process for the rig object the run file's header shares (``drivers.contracts.runfile``
     validates a rig once per text): every position task of a run asks for the same one, and
@@ -48,9 +52,36 @@ def geometry_and_builder(
         if len(_GEOMETRIES) >= 8:
             _GEOMETRIES.pop(next(iter(_GEOMETRIES)))
         pupil = FresnelPupil.from_camera(rig.camera) if rig.camera.point_spread == "fresnel" else None
-        builder = TemplateBuilder(geometry, rig.camera.sensitivity_e_per_s, pupil=pupil)
+        builder = TemplateBuilder(
+            geometry, rig.camera.sensitivity_e_per_s, pupil=pupil, measured=measured_point_spread(rig)
+        )
         held = _GEOMETRIES[key] = (rig, geometry, builder)
     return held[1], held[2]
+
+
+def measured_point_spread(rig: Rig) -> MeasuredKernels | None:
+    """The point spread the rig's camera measured (``[camera.measured_point_spread]``), or None.
+
+    Raises
+    ------
+    PointSpreadError
+        The file cannot be read or used (one line naming it).
+    """
+    measured = rig.camera.measured_point_spread
+    if measured is None:
+        return None
+    path = Path(measured.file)
+    try:
+        stat = path.stat()
+    except OSError:
+        stat = None
+    version = (stat.st_mtime_ns, stat.st_size) if stat is not None else None
+    return _measured(str(path), version, float(rig.camera.pixel_pitch_m))
+
+
+@functools.lru_cache(maxsize=4)
+def _measured(path: str, version: tuple[int, int] | None, pitch: float) -> MeasuredKernels:
+    return load_measured_point_spread(path, pitch)
 
 
 @dataclass(frozen=True)

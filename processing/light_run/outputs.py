@@ -117,6 +117,8 @@ def record_provenance(
     )
     model.provenance["aperture_m"] = camera_provenance(report.aperture_fit, "--fit-aperture")
     model.provenance["sensor_distance_m"] = camera_provenance(report.sensor_distance_fit, "--fit-sensor-distance")
+    if report.point_spread is not None:
+        model.provenance["point_spread"] = report.point_spread
     if report.rig_calibration is not None:
         report.outputs["rig"] = [record_calibration(model.provenance, report.rig_calibration, stem)]
     calibration = report.rig_calibration

@@ -79,7 +79,14 @@ class ProcessingPlan:
 RIG_FIT_MIN_POSITIONS = 24
 
 
-def plan_processing(options: ProcessingOptions, positions: int | None = None) -> ProcessingPlan:
+#: How far the measured point spread's Fresnel number may be from the run's before the
+#: processing warns: 1 % moves the pattern's peak by about 1 % (docs/lab-guide.md).
+FRESNEL_MISMATCH_WARNING = 0.01
+
+
+def plan_processing(
+    options: ProcessingOptions, positions: int | None = None, point_spread_measured: bool = False
+) -> ProcessingPlan:
     """The plan for ``options``: the given layout loaded, each ``FitChoice.AUTO`` decided.
 
     ``AUTO`` fits the rig where the sources are searched for in the data: a search explains a
@@ -87,7 +94,8 @@ def plan_processing(options: ProcessingOptions, positions: int | None = None) ->
     layout cannot do. The self-calibration fits the aperture and the sensor distance with the
     rest of the rig, so where it runs neither is fitted alone. With ``positions`` merged
     positions known and fewer than :data:`RIG_FIT_MIN_POSITIONS`, ``AUTO`` holds the rig (and
-    fits the aperture alone where it searches).
+    fits the aperture alone where it searches). With the camera's point spread measured
+    (``point_spread_measured``) no aperture changes the templates, so the aperture is not fitted.
 
     Raises
     ------
@@ -123,6 +131,11 @@ def plan_processing(options: ProcessingOptions, positions: int | None = None) ->
         ("--fit-aperture", options.fit_aperture),
         ("--fit-sensor-distance", options.fit_sensor_distance),
     ):
+        if name == "--fit-aperture" and point_spread_measured and choice is FitChoice.ALWAYS:
+            raise ProcessingError(
+                "--fit-aperture always: the rig's camera has a measured point spread "
+                "(camera.measured_point_spread), which no aperture changes"
+            )
         if calibrate and choice is FitChoice.ALWAYS:
             raise ProcessingError(
                 f"{name} always: the self-calibration fits it with the rest of the rig "
@@ -131,7 +144,7 @@ def plan_processing(options: ProcessingOptions, positions: int | None = None) ->
     return ProcessingPlan(
         options,
         layout,
-        fit_aperture=wanted(options.fit_aperture) and not calibrate,
+        fit_aperture=wanted(options.fit_aperture) and not calibrate and not point_spread_measured,
         fit_sensor_distance=wanted(options.fit_sensor_distance) and not calibrate,
         aperture_fit_required=options.fit_aperture is FitChoice.ALWAYS,
         sensor_distance_fit_required=options.fit_sensor_distance is FitChoice.ALWAYS,

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Any
 
 from drivers.contracts.rig import Rig
 from processing.hdr.model import NoiseModel
@@ -230,6 +231,7 @@ class ProcessReport:
     aperture_fit: FittedNumber | None = None  # the aperture's diameter fitted to the data, or why that failed
     sensor_distance_fit: FittedNumber | None = None  # the sensor distance fitted to the data
     rig_calibration: RigCalibration | None = None  # the rig fitted to the data (self-calibration)
+    point_spread: dict[str, Any] | None = None  # the measured point spread, where the rig's camera has one
     quality: Quality | None = None  # the verdict on the light model
     spatial_resolution_m: float = float("nan")
     n_positions: int = 0

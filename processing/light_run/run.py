@@ -28,10 +28,10 @@ from drivers.contracts.runfile import RunFile, RunFileError
 from drivers.contracts.version import __version__
 from processing.light_run.errors import ProcessingError, open_run
 from processing.light_run.from_data import camera_at_layout, fitted_camera, layout_and_camera
-from processing.light_run.geometry import CameraFit
+from processing.light_run.geometry import CameraFit, measured_point_spread
 from processing.light_run.noise import choose_noise, report_gain_mismatch
 from processing.light_run.outputs import finish_sources
-from processing.light_run.plan import RIG_FIT_MIN_POSITIONS, ProcessingPlan, plan_processing
+from processing.light_run.plan import FRESNEL_MISMATCH_WARNING, RIG_FIT_MIN_POSITIONS, ProcessingPlan, plan_processing
 from processing.light_run.position import (
     HDRWork,
     PositionResult,
@@ -48,6 +48,8 @@ from processing.parallel import Compute
 from processing.radiometry import rig_noise
 from processing.report.context import Truth
 from processing.results import HDRInfo, Results, ResultsError, ResultsWriter, results_path_for
+from processing.trace import RigGeometry
+from processing.unmixing.measured import PointSpreadError, virtual_image_distance
 from processing.unmixing.sources import Source
 
 log = logging.getLogger("mirrorgonio.processing")
@@ -123,6 +125,7 @@ class LightRun:
         self.timings: dict[str, float] = {}
         self.rows: dict[int, SourceRow] = {}
         self.saturated_all: dict[int, bool] = {}
+        self.point_spread: dict[str, Any] | None = None  # the measured point spread's record, where there is one
         self.done = 0
 
     def process(self) -> ProcessReport:
@@ -175,6 +178,8 @@ class LightRun:
             raise ProcessingError(str(exc)) from None
         if positions.size == 0:
             raise ProcessingError(f"{self.run_path}: the run has no complete position (no frames to process)")
+        if self.plan.estimate:
+            self._point_spread(run)
         self.out.mkdir(parents=True, exist_ok=True)
         if self.plan.merge:
             with self._timed("noise"):
@@ -188,7 +193,7 @@ class LightRun:
             report_gain_mismatch(run, self.report.noise)
         self.positions = positions
         if self.plan.calibrate_rig and self.options.calibrate_rig is FitChoice.AUTO:
-            self.plan = plan_processing(self.options, int(positions.size))
+            self.plan = plan_processing(self.options, int(positions.size), self.point_spread is not None)
             if not self.plan.calibrate_rig:
                 log.info(
                     "%s: %d merged positions: the rig is held as described (the self-calibration needs %d)",
@@ -197,9 +202,42 @@ class LightRun:
                     RIG_FIT_MIN_POSITIONS,
                 )
         self.report.n_positions = run.n_positions
+        self.report.point_spread = self.point_spread
         self.report.partial = positions.size < run.n_positions
         self.report.compute = self.compute.description
         self.total = self.plan.passes * int(positions.size)
+
+    def _point_spread(self, run: RunFile) -> None:
+        """The measured point spread the rig names, read and checked before any work, and the
+        plan made without the aperture fit it leaves nothing to."""
+        rig = run.header.rig
+        try:
+            measured = measured_point_spread(rig)
+        except PointSpreadError as exc:
+            raise ProcessingError(str(exc)) from None
+        if measured is None:
+            return
+        self.plan = plan_processing(self.options, point_spread_measured=True)
+        geometry = RigGeometry.from_rig(rig)
+        poses = rig.light_poses()
+        light = poses[len(poses) // 2].position
+        needed = virtual_image_distance(
+            float(np.linalg.norm(geometry.camera_centre - geometry.ball_centre)),
+            float(np.linalg.norm(light - geometry.ball_centre)),
+            float(geometry.ball_radius),
+        )
+        z2 = float(geometry.sensor_distance)
+        mismatch = (1.0 / measured.distance_m + 1.0 / z2) / (1.0 / needed + 1.0 / z2) - 1.0
+        self.point_spread = {**measured.record(), "virtual_image_m": needed, "fresnel_number_mismatch": mismatch}
+        if abs(mismatch) > FRESNEL_MISMATCH_WARNING:
+            log.warning(
+                "%s: the point spread was measured with the LED %.0f mm in front of the pinhole, where the "
+                "light's image lies %.0f mm: its Fresnel number is %+.1f %% off (place the LED there)",
+                self.run_path,
+                1e3 * measured.distance_m,
+                1e3 * needed,
+                100 * mismatch,
+            )
 
     def _merged_before(self, run: RunFile) -> np.ndarray:
         """The positions an earlier ``hdr`` step merged (the report made from its results)."""

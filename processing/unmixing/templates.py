@@ -11,6 +11,7 @@ from scipy import fft as sfft
 from drivers.pose import Pose
 from processing.trace import RigGeometry, conductor_reflectance, housing_blocks, specular_points
 from processing.unmixing.fresnel import FresnelPupil, fresnel_kernel, rounded_curvature, shadow_curvature
+from processing.unmixing.measured import MeasuredKernels
 from processing.unmixing.psf import convex_coverage, convolve_full, convolve_same, diffract, polygon_area
 from processing.unmixing.sources import Source
 
@@ -43,8 +44,9 @@ class TemplateBuilder:
     The camera's blur is the aperture's geometric shadow (traced through the mirror) convolved
     with each channel's Airy pattern; with ``pupil``, the Fresnel pattern of that aperture
     over each channel's band instead (:mod:`processing.unmixing.fresnel`), its curvature read
-    off the same traced shadow. ``airy_margin_px`` is how far the diffraction reaches beyond
-    the geometric image, in pixels.
+    off the same traced shadow; with ``measured``, the lab's measured point spread
+    (:mod:`processing.unmixing.measured`). ``airy_margin_px`` is how far the diffraction
+    reaches beyond the geometric image, in pixels.
     """
 
     geometry: RigGeometry
@@ -54,6 +56,7 @@ class TemplateBuilder:
     oversample: int = 4
     airy_margin_px: int = 32
     pupil: FresnelPupil | None = None
+    measured: MeasuredKernels | None = None
 
     def build(self, source: Source, light_pose: Pose) -> Template | None:
         """The source's template, or None if the ball does not show it to the camera."""
@@ -150,21 +153,31 @@ class TemplateBuilder:
     ) -> tuple[int, int, np.ndarray, float]:
         """The source's image blurred as the builder models the camera: (top, left, pixels, the
         aperture's area over the round rim's, whose solid angle scales the template)."""
+        g = self.geometry
+        reach = int(math.ceil(float(np.max(np.linalg.norm(outline - centre, axis=1))))) + self.airy_margin_px
+        if self.measured is not None:
+            measured = self.measured
+            kernels = [measured.kernel(c, reach) for c in range(3)]
+            return (*self._convolved(kernels, disc, centre), 1.0)
         if self.pupil is None:
             return (*self._render(outline, disc, centre), 1.0)
-        g = self.geometry
-        curvature = shadow_curvature(rim_cam[:, :2], outline, g.pitch, g.sensor_distance)
-        shadow = float(np.max(np.linalg.norm(outline - centre, axis=1)))
-        return (*self._render_fresnel(curvature, shadow, disc, centre), self.pupil.area_ratio)
+        # The kernels are not renormalised: a hard edge's far tails (a few per cent of the light
+        # beyond the reach) land outside the template, as in the frames.
+        curvature = rounded_curvature(shadow_curvature(rim_cam[:, :2], outline, g.pitch, g.sensor_distance))
+        shape = self.pupil.shape(g.aperture_radius)
+        kernels = [
+            fresnel_kernel(shape, curvature, float(g.sensor_distance), float(g.pitch), self.pupil.bands[c], reach)
+            for c in range(3)
+        ]
+        return (*self._convolved(kernels, disc, centre), self.pupil.area_ratio)
 
-    def _render_fresnel(
-        self, curvature: np.ndarray, shadow: float, disc: np.ndarray, centre: np.ndarray
+    def _convolved(
+        self, kernels: list[np.ndarray], disc: np.ndarray, centre: np.ndarray
     ) -> tuple[int, int, np.ndarray]:
         """The disc's sharp image about ``centre`` (pixel-integrated on the fine grid), convolved
-        with each channel's Fresnel pattern for the wave's ``curvature``, over the aperture's
-        geometric ``shadow`` (its radius, pixels) and the diffraction's margin beyond."""
-        g, os_ = self.geometry, self.oversample
-        assert self.pupil is not None  # the Fresnel way
+        with each channel's point spread (``kernels``, square, the chief ray's pixel in the
+        middle): the Fresnel pattern of the wave's curvature, or the measured one."""
+        os_ = self.oversample
         half = int(math.ceil(float(np.max(np.linalg.norm(disc, axis=1))) + 2.0))
         c0, r0 = int(round(centre[0])) - half, int(round(centre[1])) - half
         n = 2 * half + 1
@@ -177,15 +190,7 @@ class TemplateBuilder:
             sharp = np.outer(np.clip(1.0 - np.abs(ys) / sub, 0.0, None), np.clip(1.0 - np.abs(xs) / sub, 0.0, None))
         sharp /= sharp.sum()
         geometric = sharp.reshape(n, os_, n, os_).sum(axis=(1, 3))
-        reach = int(math.ceil(shadow)) + self.airy_margin_px
-        key = rounded_curvature(curvature)
-        # The kernels are not renormalised: a hard edge's far tails (a few per cent of the light
-        # beyond the reach) land outside the template, as in the frames.
-        shape = self.pupil.shape(g.aperture_radius)
-        kernels = [
-            fresnel_kernel(shape, key, float(g.sensor_distance), float(g.pitch), self.pupil.bands[c], reach)
-            for c in range(3)
-        ]
+        reach = kernels[0].shape[0] // 2
         channels = np.stack([convolve_full(geometric, kernel) for kernel in kernels])
         return r0 - reach, c0 - reach, channels
 

@@ -146,3 +146,32 @@ def fold(psf: np.ndarray, radius: int) -> np.ndarray:
     out = np.zeros((side, side))
     np.add.at(out.T, index, rows.T)
     return out
+
+
+def led_point_spread(
+    camera: Camera, distance_m: float, side: int = 129, peak_e: float | None = None, seed: int = 0
+) -> np.ndarray:
+    """What a lab measures of ``camera``'s point spread: a small LED ``distance_m`` in front of
+    the pinhole, on its axis, imaged per channel on the sensor's pixels (each channel's band,
+    pixel-integrated), ``side`` pixels a side about the chief ray, each channel scaled to unit
+    sum. With ``peak_e``, the brightest pixel collects that many electrons and each pixel's
+    photon and read noise is drawn (``seed``), a dark frame taken off.
+
+    Returns
+    -------
+    ndarray, shape (3, side, side)
+    """
+    aperture = ApertureShape.from_rig(camera)
+    path = PathCurvature.on_axis(distance_m, camera.sensor_distance_m, camera.pixel_pitch_m)
+    images = []
+    for channel in range(3):
+        wavelengths, weights = channel_band(camera, channel, BAND_SAMPLES)
+        psf = fresnel_psf(aperture, wavelengths, path, weights=weights, min_pixels=side)
+        middle, half = psf.shape[0] // 2, side // 2
+        images.append(psf[middle - half : middle - half + side, middle - half : middle - half + side])
+    out = np.stack(images)
+    if peak_e is not None:
+        rng = np.random.default_rng(seed)
+        electrons = out * (peak_e / out.max())
+        out = rng.poisson(electrons) + rng.normal(0.0, camera.read_noise_e, out.shape)
+    return out / out.sum(axis=(1, 2), keepdims=True)  # a lab knows only what its window holds
