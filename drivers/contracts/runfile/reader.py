@@ -178,6 +178,10 @@ class RunFile:
             return None
         return PositionTimes(*(float(v) for v in self._read("positions/times", i)))
 
+    def frame_count(self, i: int) -> int:
+        """How many frames position ``i`` holds."""
+        return self._count(i)
+
     def exposures(self, i: int) -> np.ndarray:
         """Exposure times (s) of position ``i``'s frames, shape (k,)."""
         k = self._count(i)
@@ -341,6 +345,38 @@ class RunFile:
             if progress is not None:
                 progress(done, total)
         return found
+
+    def structure_problems(self) -> list[str]:
+        """What is wrong with the file's structure, one line each (empty when nothing is): every
+        dataset read whole (HDF5 checks the checksums of its own metadata), and each complete
+        position's and calibration set's frame count and per-frame records."""
+        names = list(DATASETS) + (list(CALIBRATION_DATASETS) if self.has_calibration_group else [])
+        problems, values = [], {}
+        for name in names:
+            if name.endswith("/raw"):
+                continue  # the frames: corrupt_frames
+            try:
+                values[name] = self._dset(name)[()]
+            except (OSError, RuntimeError, KeyError) as exc:
+                problems.append(f"/{name} cannot be read ({h5_cause(exc)})")
+        groups = [("frames", "positions", [f"position {i}" for i in range(self.n_positions)])]
+        if self.has_calibration_group:
+            groups.append(("calibration", "calibration", [f"calibration {r} {w}" for r, w in CALIBRATION_SETS]))
+        for frames, flags, labels in groups:
+            needed = [f"{flags}/complete", f"{flags}/frame_count", f"{frames}/exposure_s", f"{frames}/white_level"]
+            if any(name not in values for name in needed):
+                continue
+            complete, counts = values[f"{flags}/complete"], values[f"{flags}/frame_count"]
+            for slot in np.flatnonzero(complete == 1):
+                k = int(counts[slot])
+                if not 1 <= k <= self._dset(f"{frames}/raw").shape[1]:
+                    problems.append(f"{labels[slot]} is complete with frame_count {k}")
+                    continue
+                exposures, whites = values[f"{frames}/exposure_s"][slot, :k], values[f"{frames}/white_level"][slot, :k]
+                bad = np.flatnonzero(~(np.isfinite(exposures) & (exposures > 0)) | (whites <= 0))
+                if bad.size:
+                    problems.append(f"{labels[slot]} frame {int(bad[0])} has no valid exposure or white level")
+        return problems
 
     def _read_raw(self, group: str, slot: int, label: str, frames: range | int) -> np.ndarray:
         """Frames ``frames`` (a range, or one index) of ``slot`` in ``group``; a corrupt one raises
