@@ -27,7 +27,6 @@ from processing.light_run.outputs import skipped_record
 from processing.report.trust import skipped_note
 from processing.results import Results, results_path_for
 from sim_devices.camera import SimulatedCamera
-from sim_devices.lights import LIGHTS_DIR
 from sim_devices.world import SimWorld
 
 runner = CliRunner()

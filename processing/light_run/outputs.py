@@ -26,9 +26,9 @@ from processing.light_run.samples import assemble_samples
 from processing.lightmodel import LightModel
 from processing.options import ProcessingOptions
 from processing.parallel import Compute
-from processing.results import run_name
 from processing.report.context import Truth
 from processing.report.page import write_report
+from processing.results import run_name
 
 log = logging.getLogger("mirrorgonio.processing")
 
