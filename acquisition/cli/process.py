@@ -100,6 +100,24 @@ def _print_batch_summary(outcomes: list) -> None:
     )
 
 
+IgnoreCorruptOption = Annotated[
+    bool,
+    typer.Option(
+        "--ignore-corrupt",
+        help="Process the rest of a run with frames that fail their checksums: a position with a corrupt frame "
+        "is skipped whole (said on stderr, in the light model and the report). Without it such a frame stops "
+        "the run's processing before any work.",
+    ),
+]
+OverwriteOption = Annotated[
+    bool,
+    typer.Option(
+        "--overwrite",
+        help="Write over outputs of the same name that another run's processing wrote (or whose run is unknown). "
+        "Without it they stop the processing before any work.",
+    ),
+]
+
 #: A tri-state flag's choice: neither flag given (the default), the flag, or its --no- form.
 CHOICE = {None: FitChoice.AUTO, True: FitChoice.ALWAYS, False: FitChoice.NEVER}
 
@@ -155,23 +173,8 @@ def process(
             show_default=False,
         ),
     ] = None,
-    ignore_corrupt: Annotated[
-        bool,
-        typer.Option(
-            "--ignore-corrupt",
-            help="Process the rest of a run with frames that fail their checksums: a position with a corrupt "
-            "frame is skipped whole (said on stderr, in the light model and the report). Without it such a "
-            "frame stops the run's processing before any work.",
-        ),
-    ] = False,
-    overwrite: Annotated[
-        bool,
-        typer.Option(
-            "--overwrite",
-            help="Write over outputs of the same name that another run's processing wrote (or whose run is "
-            "unknown). Without it they stop the run's processing before any work.",
-        ),
-    ] = False,
+    ignore_corrupt: IgnoreCorruptOption = False,
+    overwrite: OverwriteOption = False,
     scheduler: SchedulerOption = "local",
     workers: WorkersOption = None,
 ) -> None:
@@ -206,10 +209,13 @@ def process(
     _check_files(runs, options)
     distinct = _distinct_runs(runs)
     folders = _output_folders(distinct, out)
-    if not options.overwrite:
-        _check_outputs(folders)
-    outcomes = _process_all(distinct, folders, options, scheduler, workers)
-    if len(distinct) > 1:
+    _check_outputs(folders, options.overwrite)
+    _finish(_process_all(distinct, folders, options, scheduler, workers))
+
+
+def _finish(outcomes: list) -> None:
+    """The batch's summary table (for more than one run), its errors, and its exit status."""
+    if len(outcomes) > 1:
         _print_batch_summary(outcomes)
     failed = [error for *_, error in outcomes if error]
     for error in failed:
@@ -227,8 +233,11 @@ def _check_files(runs: list[Path], options: ProcessingOptions) -> None:
         raise fail(f"--layout: {options.layout}: no such file")
 
 
-def _check_outputs(folders: dict[Path, Path | None]) -> None:
-    """No run's outputs would write over another run's (one line naming the first in the way)."""
+def _check_outputs(folders: dict[Path, Path | None], overwrite: bool) -> None:
+    """No run's outputs would write over another run's (one line naming the first in the way),
+    unless ``overwrite``."""
+    if overwrite:
+        return
     from drivers.contracts.runfile import RunFile, RunFileError  # noqa: PLC0415 - h5py, once the options are checked
     from processing.light_run import ProcessingError  # noqa: PLC0415 - heavy
     from processing.light_run.output_guard import check_outputs  # noqa: PLC0415 - heavy
