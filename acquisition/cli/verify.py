@@ -38,12 +38,13 @@ def verify(
 
 def _verify_one(run) -> int:
     """Check one open run file and print what was found; its exit status."""
-    from rich.progress import Progress  # noqa: PLC0415 - rich's progress, only for a check
+    from rich.console import Console  # noqa: PLC0415 - rich's progress, only for a check
+    from rich.progress import Progress  # noqa: PLC0415
 
     positions, sets = run.completed_positions(), run.calibration_sets()
     problems = run.structure_problems()
     slots = [("position", i) for i in positions if not any(p.startswith(f"position {i} ") for p in problems)]
-    with Progress(transient=True) as bar:
+    with Progress(console=Console(stderr=True), transient=True) as bar:  # stdout: the summary alone
         task = bar.add_task(run.path.name, total=None)
         corrupt = run.corrupt_frames(
             positions=[i for _, i in slots],
