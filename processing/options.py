@@ -97,6 +97,13 @@ class ProcessingOptions:
         Whether the rig's geometry is fitted to the data (the self-calibration,
         :mod:`processing.light_run.self_calibration`): ``auto`` where the sources are searched
         for, ``always`` with a given layout too (its places then held).
+    ignore_corrupt : bool
+        Process the positions whose frames read back, skipping those with a frame that fails its
+        checksum (and a corrupt ambient calibration set); without it such a frame stops the
+        processing before any work.
+    overwrite : bool
+        Write over outputs already in the folder that another run's processing wrote (or whose
+        run is unknown); without it they stop the processing before any work.
 
     Examples
     --------
@@ -121,6 +128,8 @@ class ProcessingOptions:
     fit_aperture: FitChoice = FitChoice.AUTO
     fit_sensor_distance: FitChoice = FitChoice.NEVER
     calibrate_rig: FitChoice = FitChoice.AUTO
+    ignore_corrupt: bool = False
+    overwrite: bool = False
 
     @classmethod
     def checked(cls, **values: Any) -> ProcessingOptions:
@@ -204,4 +213,6 @@ _CHECKS: dict[str, Callable[[str, Any], Any]] = {
     "fit_aperture": _member(FitChoice),
     "fit_sensor_distance": _member(FitChoice),
     "calibrate_rig": _member(FitChoice),
+    "ignore_corrupt": _flag,
+    "overwrite": _flag,
 }

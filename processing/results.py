@@ -42,11 +42,33 @@ class ResultsError(ValueError):
     """An unreadable or foreign results file (one line naming the file)."""
 
 
+#: The suffixes a run file's name may end with that are not part of the run's name.
+RUN_FILE_SUFFIXES = (".h5", ".hdf5", ".hdf")
+
+
+def run_name(run_path: str | Path) -> str:
+    """The name a run's outputs are named after: the run file's whole name without its HDF5 suffix.
+
+    Only ``.h5`` (``.hdf5``, ``.hdf``) is dropped, so that runs whose names differ after a dot
+    keep distinct outputs.
+
+    Examples
+    --------
+    >>> run_name("data/yaw-0.05.h5"), run_name("a.1.hdf5"), run_name("run-7")
+    ('yaw-0.05', 'a.1', 'run-7')
+    """
+    name = Path(run_path).name
+    for suffix in RUN_FILE_SUFFIXES:
+        if name.lower().endswith(suffix) and len(name) > len(suffix):
+            return name[: -len(suffix)]
+    return name
+
+
 def results_path_for(run_path: str | Path, out_dir: str | Path | None = None) -> Path:
-    """``RUN.results.h5`` beside the run, or in ``out_dir``."""
+    """``RUN.results.h5`` beside the run, or in ``out_dir`` (``RUN``: :func:`run_name`)."""
     run_path = Path(run_path)
     folder = Path(out_dir) if out_dir is not None else run_path.parent
-    return folder / f"{run_path.stem}.results.h5"
+    return folder / f"{run_name(run_path)}.results.h5"
 
 
 def _stem(results_path: Path) -> str:

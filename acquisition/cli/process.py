@@ -44,9 +44,11 @@ def _output_folders(runs: list[Path], out: Path | None) -> dict[Path, Path | Non
     """
     if out is None:
         return {run: None for run in runs}
+    from processing.results import run_name  # noqa: PLC0415 - the processing, once the options are checked
+
     by_stem: dict[str, list[Path]] = {}
     for run in runs:
-        by_stem.setdefault(run.stem, []).append(run)
+        by_stem.setdefault(run_name(run), []).append(run)
     folders: dict[Path, Path | None] = {}
     for group in by_stem.values():
         if len(group) == 1:
@@ -97,6 +99,24 @@ def _print_batch_summary(outcomes: list) -> None:
         highlight=False,
     )
 
+
+IgnoreCorruptOption = Annotated[
+    bool,
+    typer.Option(
+        "--ignore-corrupt",
+        help="Process the rest of a run with frames that fail their checksums: a position with a corrupt frame "
+        "is skipped whole (said on stderr, in the light model and the report). Without it such a frame stops "
+        "the run's processing before any work.",
+    ),
+]
+OverwriteOption = Annotated[
+    bool,
+    typer.Option(
+        "--overwrite",
+        help="Write over outputs of the same name that another run's processing wrote (or whose run is unknown). "
+        "Without it they stop the processing before any work.",
+    ),
+]
 
 #: A tri-state flag's choice: neither flag given (the default), the flag, or its --no- form.
 CHOICE = {None: FitChoice.AUTO, True: FitChoice.ALWAYS, False: FitChoice.NEVER}
@@ -153,6 +173,8 @@ def process(
             show_default=False,
         ),
     ] = None,
+    ignore_corrupt: IgnoreCorruptOption = False,
+    overwrite: OverwriteOption = False,
     scheduler: SchedulerOption = "local",
     workers: WorkersOption = None,
 ) -> None:
@@ -161,8 +183,10 @@ def process(
 
     Several runs in one call: each is processed in turn, a failed run does not stop the
     others, a summary table ends the output and the exit status is 2 if any run failed.
-    With --out, each run's results are named after the run (RUN.results.h5, RUN.hdr/, ...);
-    runs of the same name from different folders go to a subfolder each (docs/import.md)."""
+    With --out, each run's results are named after the run's whole name (a.1.h5 gives a.1.results.h5,
+    a.1.hdr/, a.1.ies, ...); runs of the same name from different folders go to a subfolder each
+    (docs/import.md). Outputs of another run already at those names stop that run before any work
+    (--overwrite replaces them)."""
     try:
         options = ProcessingOptions.checked(
             steps=steps,
@@ -176,14 +200,22 @@ def process(
             fit_aperture=CHOICE[fit_aperture],
             fit_sensor_distance=CHOICE[fit_sensor_distance or False],
             calibrate_rig=CHOICE[calibrate_rig],
+            ignore_corrupt=ignore_corrupt,
+            overwrite=overwrite,
         )
         check_scheduler(scheduler, workers)
     except (OptionsError, ComputeError) as exc:
         raise fail(str(exc)) from None
     _check_files(runs, options)
     distinct = _distinct_runs(runs)
-    outcomes = _process_all(distinct, _output_folders(distinct, out), options, scheduler, workers)
-    if len(distinct) > 1:
+    folders = _output_folders(distinct, out)
+    _check_outputs(folders, options.overwrite)
+    _finish(_process_all(distinct, folders, options, scheduler, workers))
+
+
+def _finish(outcomes: list) -> None:
+    """The batch's summary table (for more than one run), its errors, and its exit status."""
+    if len(outcomes) > 1:
         _print_batch_summary(outcomes)
     failed = [error for *_, error in outcomes if error]
     for error in failed:
@@ -199,6 +231,27 @@ def _check_files(runs: list[Path], options: ProcessingOptions) -> None:
         raise fail(f"{missing[0]}: no such run file")
     if options.layout is not None and not options.layout.is_file():
         raise fail(f"--layout: {options.layout}: no such file")
+
+
+def _check_outputs(folders: dict[Path, Path | None], overwrite: bool) -> None:
+    """No run's outputs would write over another run's (one line naming the first in the way),
+    unless ``overwrite``."""
+    if overwrite:
+        return
+    from drivers.contracts.runfile import RunFile, RunFileError  # noqa: PLC0415 - h5py, once the options are checked
+    from processing.light_run import ProcessingError  # noqa: PLC0415 - heavy
+    from processing.light_run.output_guard import check_outputs  # noqa: PLC0415 - heavy
+
+    for run, folder in folders.items():
+        try:
+            with RunFile.open(run) as opened:
+                run_id = opened.header.run_id
+        except RunFileError:
+            continue  # the processing says what is wrong with the file, in its turn
+        try:
+            check_outputs(run, run_id, folder if folder is not None else run.parent)
+        except ProcessingError as exc:
+            raise fail(str(exc)) from None
 
 
 def _process_all(runs: list[Path], folders: dict, options: ProcessingOptions, scheduler: str, workers) -> list:
@@ -251,11 +304,16 @@ def _process_all(runs: list[Path], folders: dict, options: ProcessingOptions, sc
 
 def _say_processed(run: Path, report) -> None:
     """What one run's processing wrote, and the camera's numbers it fitted."""
+    from processing.light_run.run import skipped_line  # noqa: PLC0415 - the processing, once a run is done
+    from processing.results import run_name  # noqa: PLC0415
+
+    if report.skipped_corrupt:
+        typer.echo(f"warning: {run}: {skipped_line(report.skipped_corrupt)}", err=True)
     noise = report.noise
     typer.echo(
         f"{run}: {report.positions} positions -> {report.results_file} "
         f"(noise {noise.source}: gain {noise.gain_e_per_dn:.3f} e-/DN, read noise {noise.read_noise_dn:.3f} DN; "
-        f"EXR and PNG in {report.results_file.parent / (run.stem + '.hdr')})"
+        f"EXR and PNG in {report.results_file.parent / (run_name(run) + '.hdr')})"
     )
     if not report.light_model:
         return

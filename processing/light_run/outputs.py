@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from drivers.contracts.rig import rig_to_toml_dict, write_rig
+from drivers.contracts.runfile import CorruptFrame
 from drivers.contracts.version import __version__
 from processing.exports.ies import write_ies
 from processing.exports.ldt import write_ldt
@@ -17,6 +18,7 @@ from processing.exports.tm25 import write_tm25
 from processing.light_run.errors import open_run
 from processing.light_run.from_data import FIT_FRACTIONS, spread_over
 from processing.light_run.light_fit import fit_light_model
+from processing.light_run.output_guard import output_path
 from processing.light_run.position import SourceRow, SourcesPlan
 from processing.light_run.quality import judge
 from processing.light_run.records import ProcessReport, RigCalibration, camera_provenance
@@ -26,6 +28,7 @@ from processing.options import ProcessingOptions
 from processing.parallel import Compute
 from processing.report.context import Truth
 from processing.report.page import write_report
+from processing.results import run_name
 
 log = logging.getLogger("mirrorgonio.processing")
 
@@ -57,17 +60,17 @@ def finish_sources(
             footprint=plan.footprint,
         )
     timings["fit"] = time.perf_counter() - clock
-    record_provenance(model, report, plan, options, out / run_path.stem, positions, rows)
-    report.light_model = model.save(out / f"{run_path.stem}.light.json")
-    stem = out / run_path.stem
-    luminaire = f"mirrorgonio run {run_path.stem}"
+    name = run_name(run_path)
+    record_provenance(model, report, plan, options, out / name, positions, rows)
+    report.light_model = model.save(output_path(run_path, out, ".light.json"))
+    luminaire = f"mirrorgonio run {name}"
 
     def light_files() -> dict[str, list[Path]]:
         started = time.perf_counter()
         files = {
-            "ies": [write_ies(model, stem.with_suffix(".ies"), luminaire=luminaire)],
-            "ldt": [write_ldt(model, stem.with_suffix(".ldt"), luminaire=luminaire)],
-            "tm25": [write_tm25(model, stem.with_suffix(".tm25ray"), n_rays=100_000, seed=0)],
+            "ies": [write_ies(model, output_path(run_path, out, ".ies"), luminaire=luminaire)],
+            "ldt": [write_ldt(model, output_path(run_path, out, ".ldt"), luminaire=luminaire)],
+            "tm25": [write_tm25(model, output_path(run_path, out, ".tm25ray"), n_rays=100_000, seed=0)],
         }
         timings["exports"] = time.perf_counter() - started
         return files
@@ -86,7 +89,7 @@ def finish_sources(
         clock = time.perf_counter()
         with open_run(run_path) as run:  # the report draws the rig's chief rays at the middle position
             drawn = write_report(
-                stem.with_suffix(".report.html"),
+                output_path(run_path, out, ".report.html"),
                 model,
                 run=run,
                 samples=samples,
@@ -119,6 +122,8 @@ def record_provenance(
     model.provenance["sensor_distance_m"] = camera_provenance(report.sensor_distance_fit, "--fit-sensor-distance")
     if report.point_spread is not None:
         model.provenance["point_spread"] = report.point_spread
+    if report.skipped_corrupt:  # --ignore-corrupt: the frames the run file failed to give back
+        model.provenance["skipped_corrupt"] = skipped_record(report.skipped_corrupt)
     if report.rig_calibration is not None:
         report.outputs["rig"] = [record_calibration(model.provenance, report.rig_calibration, stem)]
     calibration = report.rig_calibration
@@ -130,6 +135,16 @@ def record_provenance(
     model.quality = report.quality.record()
     if not report.quality.ok:
         log.warning("%s: %s", report.run_file, report.quality.line())
+
+
+def skipped_record(corrupt: list[CorruptFrame]) -> dict[str, list]:
+    """The frames ``--ignore-corrupt`` skipped, as the light model's ``skipped_corrupt`` holds them:
+    the positions left out, and each frame (``where``, ``position``, ``frame``, ``exposure_s``,
+    ``cause``)."""
+    return {
+        "positions": sorted({frame.position for frame in corrupt if frame.position is not None}),
+        "frames": [frame.record() for frame in corrupt],
+    }
 
 
 def record_calibration(provenance: dict, calibration: RigCalibration, stem: Path) -> Path:
@@ -147,4 +162,4 @@ def record_calibration(provenance: dict, calibration: RigCalibration, stem: Path
         f"The rig of run {stem.name} as fitted to its data by mirrorgonio {__version__} (self-calibration):\n"
         + "\n".join(f"  {line}" for line in calibration.summary())
     )
-    return write_rig(calibration.rig, stem.with_name(f"{stem.name}.rig-fitted.toml"), note)
+    return write_rig(calibration.rig, stem.with_name(f"{stem.name}.rig-fitted.toml"), note)  # output_path's name

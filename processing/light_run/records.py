@@ -7,6 +7,7 @@ from pathlib import Path
 from typing import Any
 
 from drivers.contracts.rig import Rig
+from drivers.contracts.runfile import CorruptFrame
 from processing.hdr.model import NoiseModel
 from processing.light_run.position import PositionResult
 from processing.lightmodel import describe_fitted
@@ -239,6 +240,7 @@ class ProcessReport:
     compute: str = ""
     timings: dict[str, float] = field(default_factory=dict)
     task_stages: dict[str, float] = field(default_factory=dict)
+    skipped_corrupt: list[CorruptFrame] = field(default_factory=list)  # --ignore-corrupt: the frames skipped
 
     def add_task(self, result: PositionResult) -> None:
         for stage, seconds in result.stages.items():

@@ -24,12 +24,13 @@ from typing import Any
 
 import numpy as np
 
-from drivers.contracts.runfile import RunFile, RunFileError
+from drivers.contracts.runfile import CorruptFrame, RunFile, RunFileError
 from drivers.contracts.version import __version__
 from processing.light_run.errors import ProcessingError, open_run
 from processing.light_run.from_data import camera_at_layout, fitted_camera, layout_and_camera
 from processing.light_run.geometry import CameraFit, measured_point_spread
 from processing.light_run.noise import choose_noise, report_gain_mismatch
+from processing.light_run.output_guard import check_outputs, output_path
 from processing.light_run.outputs import finish_sources
 from processing.light_run.plan import FRESNEL_MISMATCH_WARNING, RIG_FIT_MIN_POSITIONS, ProcessingPlan, plan_processing
 from processing.light_run.position import (
@@ -132,6 +133,7 @@ class LightRun:
         started = time.perf_counter()
         sources = None
         with open_run(self.run_path) as run:
+            check_outputs(self.run_path, run.header.run_id, self.out, self.options.overwrite)
             self._start(run)
             if self.plan.fused:  # with the layout known, each position is merged and unmixed by one task
                 assert self.plan.layout is not None  # fused: the layout is given
@@ -180,8 +182,11 @@ class LightRun:
             raise ProcessingError(f"{self.run_path}: the run has no complete position (no frames to process)")
         if self.plan.estimate:
             self._point_spread(run)
+        with self._timed("checksums"):  # the frames to merge; merged before, only the ambient ones
+            sound, skipped = self._sound_positions(run, positions if self.plan.merge else positions[:0])
         self.out.mkdir(parents=True, exist_ok=True)
         if self.plan.merge:
+            positions = sound
             with self._timed("noise"):
                 noise = choose_noise(run, positions, self.options.noise, self.compute)
             self.report = ProcessReport(
@@ -189,6 +194,7 @@ class LightRun:
             )
         else:
             positions = self._merged_before(run)
+        self.report.skipped_corrupt = skipped
         if self.plan.estimate:
             report_gain_mismatch(run, self.report.noise)
         self.positions = positions
@@ -239,6 +245,36 @@ class LightRun:
                 100 * mismatch,
             )
 
+    def _sound_positions(self, run: RunFile, positions: np.ndarray) -> tuple[np.ndarray, list[CorruptFrame]]:
+        """Every frame the processing will read (the positions', the ambient calibration sets')
+        read through its checksum, before any work: the positions to process and the frames
+        skipped.
+
+        A position with a corrupt frame is skipped whole (its bracket merged without one exposure
+        would hold saturated or noisier pixels than its neighbours'), and a corrupt ambient set is
+        left out of the self-calibration; only with ``ignore_corrupt``: without it the first
+        corrupt frame is a one-line :class:`ProcessingError`.
+        """
+        ambient = [pair for pair in run.calibration_sets() if pair[0] == "ambient"]
+        try:
+            corrupt = run.corrupt_frames(positions, ambient)
+        except RunFileError as exc:
+            raise ProcessingError(str(exc)) from None
+        if not corrupt:
+            return positions, []
+        if not self.options.ignore_corrupt:
+            more = f", and {len(corrupt) - 1} more corrupt frames (`mirrorgonio verify` lists them)"
+            raise ProcessingError(
+                f"{self.run_path}: {corrupt[0].describe()}{more if len(corrupt) > 1 else ''}; "
+                "--ignore-corrupt processes the rest"
+            )
+        bad = {frame.position for frame in corrupt if frame.position is not None}
+        kept = np.array([i for i in positions if int(i) not in bad], dtype=positions.dtype)
+        log.warning("%s: %s", self.run_path, skipped_line(corrupt))
+        if kept.size == 0 and positions.size:
+            raise ProcessingError(f"{self.run_path}: every complete position has a corrupt frame: nothing to process")
+        return kept, corrupt
+
     def _merged_before(self, run: RunFile) -> np.ndarray:
         """The positions an earlier ``hdr`` step merged (the report made from its results)."""
         try:
@@ -255,7 +291,7 @@ class LightRun:
     def _merge_pass(self, run: RunFile, sources: SourcesPlan | None) -> None:
         """Merge every position (and unmix it, with ``sources``) on the cluster; write the
         results as they come."""
-        folder = self.out / f"{self.run_path.stem}.hdr"  # the position files, and the images beside them
+        folder = output_path(self.run_path, self.out, ".hdr")  # the position files, and the images beside them
         folder.mkdir(exist_ok=True)
         try:
             cfa = run.cfa_pattern(int(self.positions[0]))[0]
@@ -352,6 +388,16 @@ class LightRun:
 
     def _timed(self, stage: str) -> _Stage:
         return _Stage(self.timings, stage)
+
+
+def skipped_line(corrupt: Sequence[CorruptFrame]) -> str:
+    """What ``--ignore-corrupt`` skipped, on one line."""
+    positions = sorted({frame.position for frame in corrupt if frame.position is not None})
+    sets = sorted({frame.slot for frame in corrupt if frame.position is None})
+    parts = [f"positions {', '.join(map(str, positions))}"] if positions else []
+    parts += [f"the {name} frames" for name in sets]
+    frames = "; ".join(frame.describe() for frame in corrupt[:3]) + ("; …" if len(corrupt) > 3 else "")
+    return f"skipped {' and '.join(parts)} (--ignore-corrupt): {len(corrupt)} corrupt frames: {frames}"
 
 
 class _Stage:

@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import ArrayLike
 
-from drivers.contracts.runfile import RunFile
+from drivers.contracts.runfile import FrameCorruptError, RunFile
 from processing.calibration import CalibrationError
 from processing.light_run.errors import ProcessingError, open_run
 from processing.light_run.from_data import FIT_FRACTIONS, BallCentre, layout_data, layout_from_data, spread_over
@@ -128,7 +128,9 @@ def _start(run: RunFile, ball_centre: BallCentre) -> tuple[SilhouetteTerm | None
     limit = bounds(run.header.rig.tolerances, geometry)
     try:
         silhouette = silhouette_term(run, geometry)
-    except CalibrationError as exc:  # a light or its housing before the ball, a dark room: go on without it
+    # A light or its housing before the ball, a dark room, or (--ignore-corrupt; refused before any
+    # work without it) a corrupt ambient frame: go on without it.
+    except (CalibrationError, FrameCorruptError) as exc:
         why = f"unusable: {exc}"
     else:
         if silhouette is not None:

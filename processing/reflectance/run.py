@@ -24,7 +24,7 @@ from processing.reflectance.camera import superpixel_any
 from processing.reflectance.codes import ReflectanceError, ReflectanceSettings
 from processing.reflectance.estimate import ReflectanceResult, estimate_reflectance
 from processing.reflectance.outputs import write_outputs
-from processing.results import Results, ResultsError, results_path_for
+from processing.results import Results, ResultsError, results_path_for, run_name
 from processing.trace import RigGeometry, light_pose_at_position
 
 log = logging.getLogger("mirrorgonio.processing")
@@ -224,7 +224,7 @@ def reflectance_from_run(
     """
 
     run_path = Path(object_run)
-    out = Path(out_dir) if out_dir is not None else run_path.with_name(f"{run_path.stem}.reflectance")
+    out = Path(out_dir) if out_dir is not None else run_path.with_name(f"{run_name(run_path)}.reflectance")
     warnings: list[str] = []
     inputs = _gathered(run_path, light, mesh, out, progress, warnings)
     rig, measured, obj = inputs.rig, inputs.measured, inputs.rig.object

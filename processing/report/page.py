@@ -39,7 +39,7 @@ from processing.report.sections import (
     previews_section,
     residuals_section,
 )
-from processing.report.trust import quality_banner
+from processing.report.trust import quality_banner, skipped_note
 
 if TYPE_CHECKING:
     import distributed
@@ -231,6 +231,7 @@ def _write_report(
         body = [
             f"<h1>{html.escape(title)}</h1>",
             quality_banner(model),
+            skipped_note(model),
             header_table(model, run, report, samples, resolution),
         ]
         for name in SECTIONS:

@@ -35,6 +35,7 @@ from processing.report.figures import (
 )
 from processing.report.markup import embedded_img, figure_html, html_note, html_table, in_mm
 from processing.report.trust import rig_calibration_part
+from processing.results import run_name
 
 log = logging.getLogger("mirrorgonio.processing")
 
@@ -190,13 +191,13 @@ def _previews(report: RunReport | None, run: RunFile | None, model: LightModel, 
     if not pngs:
         stems = []
         if report is not None:
-            stems.append(Path(report.results_file).parent / f"{Path(report.run_file).stem}.hdr")
+            stems.append(Path(report.results_file).parent / f"{run_name(report.run_file)}.hdr")
         if run is not None:
-            stems.append(path.parent / f"{Path(run.path).stem}.hdr")
-            stems.append(Path(run.path).parent / f"{Path(run.path).stem}.hdr")
+            stems.append(path.parent / f"{run_name(run.path)}.hdr")
+            stems.append(Path(run.path).parent / f"{run_name(run.path)}.hdr")
         if model.provenance.get("run_file"):
             run_file = Path(model.provenance["run_file"])
-            stems += [path.parent / f"{run_file.stem}.hdr", run_file.parent / f"{run_file.stem}.hdr"]
+            stems += [path.parent / f"{run_name(run_file)}.hdr", run_file.parent / f"{run_name(run_file)}.hdr"]
         for folder in stems:
             if folder.is_dir():
                 pngs = sorted(folder.glob("position-*.png"))

@@ -30,6 +30,23 @@ def quality_banner(model: LightModel) -> str:
     )
 
 
+def skipped_note(model: LightModel) -> str:
+    """The frames ``--ignore-corrupt`` skipped (the light model's ``skipped_corrupt``), as a red
+    banner naming each; empty when none was."""
+    skipped = model.provenance.get("skipped_corrupt")
+    if not skipped:
+        return ""
+    frames = "; ".join(
+        f"{frame.get('where')} frame {frame.get('frame')} (exposure index {frame.get('frame')}): {frame.get('cause')}"
+        for frame in skipped.get("frames", [])
+    )
+    positions = ", ".join(map(str, skipped.get("positions", []))) or "none"
+    return (
+        '<div class="quality-suspect"><strong>Corrupt frames skipped (--ignore-corrupt):</strong> '
+        f"positions left out: {html.escape(positions)}. {html.escape(frames)}.</div>"
+    )
+
+
 def rig_calibration_part(model: LightModel) -> str:
     """The self-calibration's record (the light model's ``rig_calibration``): each number fitted
     with its 1σ, the held ones and why, χ²/pixel as described and as fitted. Empty without one."""

@@ -11,7 +11,9 @@ acquisition writes with :class:`RunFileWriter`; the processing and anyone else r
 * :mod:`~drivers.contracts.runfile.writer`: :class:`RunFileWriter`, with its lock
   (:mod:`~drivers.contracts.runfile.lock`) and the salvage of a killed run
   (:mod:`~drivers.contracts.runfile.salvage`);
-* :mod:`~drivers.contracts.runfile.reader`: :class:`RunFile`;
+* :mod:`~drivers.contracts.runfile.reader`: :class:`RunFile`, whose frames are read through
+  their checksums (:mod:`~drivers.contracts.runfile.check`: a frame that fails its checksum is
+  a :class:`FrameCorruptError`);
 * :mod:`~drivers.contracts.runfile.disk`: syncing files to the disk, a file's SHA-256.
 
 Crash safety
@@ -38,6 +40,7 @@ A lock file ``PATH.lock`` (``flock``, released by the kernel when the writer die
 a second writer off a run that is still being written; it is removed on a clean close.
 """
 
+from drivers.contracts.runfile.check import CorruptFrame, FrameCorruptError
 from drivers.contracts.runfile.disk import file_sha256
 from drivers.contracts.runfile.layout import (
     CALIBRATION_MAX_FRAMES,
@@ -68,6 +71,8 @@ __all__ = [
     "STATES",
     "STATE_BYTES",
     "CalibrationFrames",
+    "CorruptFrame",
+    "FrameCorruptError",
     "PositionTimes",
     "RunFile",
     "RunFileError",

@@ -247,8 +247,13 @@ def build_calibration_layout(f: h5py.File, max_frames: int, frame_shape: tuple[i
 
 
 def create_frame_stack(group: h5py.Group, slots: int, per_slot: int, frame_shape: tuple[int, int]) -> None:
-    """``raw`` (slots × per_slot frames, one LZ4 chunk a frame) and its per-frame records, in
-    ``group``: the sweep's positions and the calibration sets share the layout."""
+    """``raw`` (slots × per_slot frames, one chunk a frame: LZ4, then a Fletcher32 checksum of the
+    compressed bytes) and its per-frame records, in ``group``: the sweep's positions and the
+    calibration sets share the layout.
+
+    HDF5 checks the checksum on every read of a chunk and refuses a chunk that fails it, so a
+    flipped bit is an error, never different pixels (LZ4 alone decodes many flips silently).
+    """
     height, width = frame_shape
     group.create_dataset(
         "raw",
@@ -256,6 +261,7 @@ def create_frame_stack(group: h5py.Group, slots: int, per_slot: int, frame_shape
         dtype=np.uint16,
         chunks=(1, 1, height, width),
         fillvalue=0,
+        fletcher32=True,
         **hdf5plugin.LZ4(),
     )
     for name, value in empty_frame_records(slots, per_slot).items():

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any
 
@@ -10,6 +11,7 @@ import h5py
 import numpy as np
 
 from drivers.camera import RawFrame
+from drivers.contracts.runfile.check import CorruptFrame, FrameCorruptError, frame_fault, is_checksummed
 from drivers.contracts.runfile.header import read_header_once
 from drivers.contracts.runfile.layout import (
     CALIBRATION_DATASETS,
@@ -176,15 +178,25 @@ class RunFile:
             return None
         return PositionTimes(*(float(v) for v in self._read("positions/times", i)))
 
+    def frame_count(self, i: int) -> int:
+        """How many frames position ``i`` holds."""
+        return self._count(i)
+
     def exposures(self, i: int) -> np.ndarray:
         """Exposure times (s) of position ``i``'s frames, shape (k,)."""
         k = self._count(i)
         return self._read("frames/exposure_s", (i, slice(0, k)))
 
     def frames(self, i: int) -> np.ndarray:
-        """Raw mosaics of position ``i``, uint16, shape (k, height, width)."""
+        """Raw mosaics of position ``i``, uint16, shape (k, height, width).
+
+        Raises
+        ------
+        FrameCorruptError
+            A frame fails its checksum or cannot be decoded (naming the position and frame).
+        """
         k = self._count(i)
-        return self._read("frames/raw", (i, slice(0, k)), what=f"position {i} frames")
+        return self._read_raw("frames", i, f"position {i}", range(k))
 
     def black_level(self, i: int) -> np.ndarray:
         """Black levels of position ``i``'s frames, shape (k, 2, 2)."""
@@ -213,7 +225,7 @@ class RunFile:
             raise RunFileError(f"{self.path}: position {i} has no frame {k!r} ({count} frames)")
         camera = self.header.devices.get("camera", "") if isinstance(self.header.devices, dict) else ""
         return RawFrame(
-            mosaic=self._read("frames/raw", (i, k), what=f"position {i} frame {k}"),
+            mosaic=self._read_raw("frames", i, f"position {i}", k),
             black_level=self._read("frames/black_level", (i, k)).astype(np.float64),
             white_level=int(self._read("frames/white_level", (i, k))),
             cfa_pattern=as_text(self._read("frames/cfa_pattern", (i, k))),
@@ -266,22 +278,136 @@ class RunFile:
             raise RunFileError(f"{self.path}: {exc}") from None
         if not self.has_calibration_group or self._read("calibration/complete", slot) != 1:
             return None
-        k = int(self._read("calibration/frame_count", slot))
-        if not 1 <= k <= self._dset("calibration/raw").shape[1]:
-            raise RunFileError(f"{self.path}: corrupt run file: calibration {role} {when} has frame_count {k}")
+        k = self._set_count(slot, role, when)
         frames = slice(0, k)
         patterns = {as_text(v) for v in self._read("calibration/cfa_pattern", (slot, frames))}
         if len(patterns) != 1:
             raise RunFileError(f"{self.path}: corrupt run file: calibration {role} {when} mixes CFA patterns")
         black = self._read("calibration/black_level", (slot, frames)).astype(np.float64)
         return CalibrationFrames(
-            frames=self._read("calibration/raw", (slot, frames), what=f"calibration {role} {when} frames"),
+            frames=self._read_raw("calibration", slot, f"calibration {role} {when}", range(k)),
             exposures_s=self._read("calibration/exposure_s", (slot, frames)).astype(np.float64),
             black_level=black.mean(axis=0),
             white_level=int(self._read("calibration/white_level", (slot, frames)).min()),
             cfa_pattern=patterns.pop(),
             timestamps=self._read("calibration/timestamp", (slot, frames)).astype(np.float64),
         )
+
+    # --- checksums -------------------------------------------------------------------------
+    @property
+    def checksummed(self) -> bool:
+        """Whether the file's frames carry checksums (Fletcher32; ``docs/run-file.md``)."""
+        raws = ["frames/raw"] + (["calibration/raw"] if self.has_calibration_group else [])
+        return all(is_checksummed(self._dset(name)) for name in raws)
+
+    def corrupt_frames(
+        self,
+        positions: Iterable[int] | None = None,
+        sets: Iterable[tuple[str, str]] | None = None,
+        progress: Callable[[int, int], None] | None = None,
+    ) -> list[CorruptFrame]:
+        """The frames that do not read back as written: each read whole, through its checksum.
+
+        Parameters
+        ----------
+        positions : iterable of int, optional
+            Complete positions to check (default: every complete position).
+        sets : iterable of (role, when), optional
+            Complete calibration sets to check (default: every complete set).
+        progress : callable, optional
+            ``progress(frames_done, frames_total)`` after each position or set.
+
+        Returns
+        -------
+        list of CorruptFrame
+            In the order of the file: positions, then calibration sets.
+
+        Raises
+        ------
+        RunFileError
+            A position or set that is not complete, or whose frame count is out of range.
+        """
+        chosen = self.completed_positions() if positions is None else positions
+        slots = [("frames", int(i), f"position {int(i)}", self._count(int(i))) for i in chosen]
+        for role, when in self.calibration_sets() if sets is None else sets:
+            slot = calibration_slot(role, when)
+            slots.append(("calibration", slot, f"calibration {role} {when}", self._set_count(slot, role, when)))
+        total, done = sum(count for *_, count in slots), 0
+        buffer = np.empty(self.frame_shape, dtype=np.uint16)
+        found = []
+        for group, slot, label, count in slots:
+            raw = self._dset(f"{group}/raw")
+            for k in range(count):
+                cause = frame_fault(raw, slot, k, buffer)
+                if cause is not None:
+                    found.append(self._corrupt(group, slot, label, k, cause))
+            done += count
+            if progress is not None:
+                progress(done, total)
+        return found
+
+    def structure_problems(self) -> list[str]:
+        """What is wrong with the file's structure, one line each (empty when nothing is): every
+        dataset read whole (HDF5 checks the checksums of its own metadata), and each complete
+        position's and calibration set's frame count and per-frame records."""
+        names = list(DATASETS) + (list(CALIBRATION_DATASETS) if self.has_calibration_group else [])
+        problems, values = [], {}
+        for name in names:
+            if name.endswith("/raw"):
+                continue  # the frames: corrupt_frames
+            try:
+                values[name] = self._dset(name)[()]
+            except (OSError, RuntimeError, KeyError) as exc:
+                problems.append(f"/{name} cannot be read ({h5_cause(exc)})")
+        groups = [("frames", "positions", [f"position {i}" for i in range(self.n_positions)])]
+        if self.has_calibration_group:
+            groups.append(("calibration", "calibration", [f"calibration {r} {w}" for r, w in CALIBRATION_SETS]))
+        for frames, flags, labels in groups:
+            needed = [f"{flags}/complete", f"{flags}/frame_count", f"{frames}/exposure_s", f"{frames}/white_level"]
+            if any(name not in values for name in needed):
+                continue
+            complete, counts = values[f"{flags}/complete"], values[f"{flags}/frame_count"]
+            for slot in np.flatnonzero(complete == 1):
+                k = int(counts[slot])
+                if not 1 <= k <= self._dset(f"{frames}/raw").shape[1]:
+                    problems.append(f"{labels[slot]} is complete with frame_count {k}")
+                    continue
+                exposures, whites = values[f"{frames}/exposure_s"][slot, :k], values[f"{frames}/white_level"][slot, :k]
+                bad = np.flatnonzero(~(np.isfinite(exposures) & (exposures > 0)) | (whites <= 0))
+                if bad.size:
+                    problems.append(f"{labels[slot]} frame {int(bad[0])} has no valid exposure or white level")
+        return problems
+
+    def _read_raw(self, group: str, slot: int, label: str, frames: range | int) -> np.ndarray:
+        """Frames ``frames`` (a range, or one index) of ``slot`` in ``group``; a corrupt one raises
+        a :class:`FrameCorruptError` naming it."""
+        raw = self._dset(f"{group}/raw")
+        try:
+            if isinstance(frames, range):
+                return raw[slot, frames.start : frames.stop]
+            return raw[slot, frames]
+        except (OSError, RuntimeError) as exc:
+            for k in frames if isinstance(frames, range) else [frames]:
+                cause = frame_fault(raw, slot, k)
+                if cause is not None:
+                    raise FrameCorruptError(self._corrupt(group, slot, label, k, cause)) from None
+            raise RunFileError(f"{self.path}: cannot read {label} frames: {h5_cause(exc)}") from None
+
+    def _corrupt(self, group: str, slot: int, label: str, k: int, cause: str) -> CorruptFrame:
+        try:
+            exposure = float(self._dset(f"{group}/exposure_s")[slot, k])
+        except (OSError, RuntimeError):
+            exposure = float("nan")
+        position = slot if group == "frames" else None
+        return CorruptFrame(self.path, label, position, k, exposure, cause)
+
+    def _set_count(self, slot: int, role: str, when: str) -> int:
+        if not self.has_calibration_group or self._read("calibration/complete", slot) != 1:
+            raise RunFileError(f"{self.path}: calibration {role} {when} is not complete")
+        k = int(self._read("calibration/frame_count", slot))
+        if not 1 <= k <= self._dset("calibration/raw").shape[1]:
+            raise RunFileError(f"{self.path}: corrupt run file: calibration {role} {when} has frame_count {k}")
+        return k
 
     # --- internals -------------------------------------------------------------------------
     def _dset(self, name: str) -> h5py.Dataset:

@@ -3,18 +3,22 @@
 HDF5 leaves the file of a killed writer marked "open for write", and it cannot be opened for
 writing again; its complete positions and complete calibration sets (frames copied as their
 compressed chunks) go into a fresh file that replaces it. A set or position being written when
-the writer died is left out, to be taken again.
+the writer died is left out, to be taken again, and so is one with a frame that fails its
+checksum or cannot be read (a warning names it): every frame is read through its checksum
+before its chunk is copied.
 """
 
 from __future__ import annotations
 
 import contextlib
+import logging
 import os
 from pathlib import Path
 
 import h5py
 import numpy as np
 
+from drivers.contracts.runfile.check import frame_fault, is_checksummed
 from drivers.contracts.runfile.disk import fsync_dir, fsync_path
 from drivers.contracts.runfile.header import read_header
 from drivers.contracts.runfile.layout import (
@@ -27,6 +31,8 @@ from drivers.contracts.runfile.layout import (
     encode_message,
     h5_cause,
 )
+
+log = logging.getLogger("mirrorgonio.runfile")
 
 
 def salvage_run(path: Path) -> None:
@@ -62,17 +68,14 @@ def salvage_run(path: Path) -> None:
                 calibration_frames,
             )
             sets_kept = _copy_calibration(src, dst) if "calibration" in src else []
-            src_raw, dst_raw = src["frames/raw"], dst["frames/raw"]
             kept, lost = [], []
             for i in np.flatnonzero(complete):
-                try:
-                    chunks = [src_raw.id.read_direct_chunk((i, k, 0, 0)) for k in range(counts[i])]
-                except (OSError, RuntimeError, ValueError):
-                    lost.append(int(i))
+                fault = copy_frames(src["frames/raw"], dst["frames/raw"], int(i), int(counts[i]))
+                if fault is None:
+                    kept.append(int(i))
                     continue
-                for k, (mask, data) in enumerate(chunks):
-                    dst_raw.id.write_direct_chunk((i, k, 0, 0), data, filter_mask=mask)
-                kept.append(int(i))
+                lost.append(int(i))
+                log.warning("%s: salvage: position %d frame %s: dropped, to be taken again", path, i, fault)
             for name, values in rows.items():
                 fresh = dst[name][()]
                 fresh[kept] = values[kept]
@@ -82,7 +85,10 @@ def salvage_run(path: Path) -> None:
             dst["positions/complete"][...] = flags  # after the data, as always
             message = f"salvaged after the writer stopped unexpectedly: {len(kept)} of {n} positions complete"
             if lost:
-                message += f"; positions {', '.join(map(str, lost))} were unreadable and will be taken again"
+                message += (
+                    f"; positions {', '.join(map(str, lost))} were unreadable or failed their checksums "
+                    "and will be taken again"
+                )
             if sets_kept:
                 message += f"; calibration sets complete: {', '.join(sets_kept)}"
             dst["status/state"][()] = np.bytes_(b"interrupted")
@@ -113,16 +119,14 @@ def _copy_calibration(src: h5py.File, dst: h5py.File) -> list[str]:
         return []
     max_frames = src["calibration/raw"].shape[1]
     complete &= (counts >= 1) & (counts <= max_frames)
-    src_raw, dst_raw = src["calibration/raw"], dst["calibration/raw"]
     kept = []
     for slot in np.flatnonzero(complete):
-        try:
-            chunks = [src_raw.id.read_direct_chunk((slot, k, 0, 0)) for k in range(counts[slot])]
-        except (OSError, RuntimeError, ValueError):
-            continue  # an unreadable set is taken again
-        for k, (mask, data) in enumerate(chunks):
-            dst_raw.id.write_direct_chunk((slot, k, 0, 0), data, filter_mask=mask)
-        kept.append(int(slot))
+        fault = copy_frames(src["calibration/raw"], dst["calibration/raw"], int(slot), int(counts[slot]))
+        if fault is None:
+            kept.append(int(slot))
+        else:  # taken again
+            name = " ".join(CALIBRATION_SETS[slot])
+            log.warning("%s: salvage: calibration %s frame %s: dropped, to be taken again", src.filename, name, fault)
     for name, values in rows.items():
         fresh = dst[f"calibration/{name}"][()]
         fresh[kept] = values[kept]
@@ -131,3 +135,31 @@ def _copy_calibration(src: h5py.File, dst: h5py.File) -> list[str]:
     flags[kept] = 1
     dst["calibration/complete"][...] = flags  # after the data, as always
     return [" ".join(CALIBRATION_SETS[slot]) for slot in kept]
+
+
+def copy_frames(src_raw: h5py.Dataset, dst_raw: h5py.Dataset, slot: int, count: int) -> str | None:
+    """Copy frames ``0 … count − 1`` of ``slot`` from ``src_raw`` to ``dst_raw``, each read through
+    its checksum first: None when copied, else what is wrong with the first bad frame
+    (``"1 fails its checksum …"``), and nothing is copied.
+
+    Frames go as their compressed chunks (not recompressed) where both datasets store them alike;
+    frames of a file without checksums are decoded and written again, with theirs.
+    """
+    buffer = np.empty(src_raw.shape[2:], dtype=src_raw.dtype)
+    chunks = []
+    for k in range(count):
+        fault = frame_fault(src_raw, slot, k, buffer)
+        if fault is None:
+            try:
+                chunks.append(src_raw.id.read_direct_chunk((slot, k, 0, 0)))
+            except (OSError, RuntimeError, ValueError) as exc:
+                fault = f"cannot be read ({h5_cause(exc)})"
+        if fault is not None:
+            return f"{k} {fault}"
+    if is_checksummed(src_raw) == is_checksummed(dst_raw):
+        for k, (mask, data) in enumerate(chunks):
+            dst_raw.id.write_direct_chunk((slot, k, 0, 0), data, filter_mask=mask)
+    else:
+        for k in range(count):
+            dst_raw[slot, k] = src_raw[slot, k]
+    return None

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import logging
 import math
 import os
 import threading
@@ -13,9 +14,11 @@ import h5py
 import numpy as np
 
 from drivers.camera import RawFrame
+from drivers.contracts.runfile.check import frame_fault
 from drivers.contracts.runfile.disk import fsync_dir, fsync_path
 from drivers.contracts.runfile.header import encode_header, read_header
 from drivers.contracts.runfile.layout import (
+    CALIBRATION_SETS,
     FRAME_RECORDS,
     STATES,
     PositionTimes,
@@ -34,6 +37,8 @@ from drivers.contracts.runfile.salvage import salvage_run
 from drivers.pose import Pose
 
 _CFA_SITES = 4
+
+log = logging.getLogger("mirrorgonio.runfile")
 
 
 def _poses_array(poses: list[Pose]) -> np.ndarray:
@@ -147,7 +152,9 @@ class RunFileWriter:
         it marked "open for write"); it is salvaged: its header, schedule and complete
         positions (frames copied as their compressed chunks) go into a fresh file that
         replaces it, status ``interrupted``. Incomplete positions are left empty, to be
-        taken again.
+        taken again. Either way every complete position's and calibration set's frames are read
+        through their checksums, and one with a frame that fails it is marked incomplete (a
+        warning names it), to be taken again.
 
         Parameters
         ----------
@@ -198,7 +205,35 @@ class RunFileWriter:
         for suffix in (".tmp", ".salvage.tmp"):  # left by a creation or salvage that was killed
             with contextlib.suppress(OSError):
                 Path(str(path) + suffix).unlink()
-        return cls(path, f, header, lock)
+        writer = cls(path, f, header, lock)
+        if salvage:  # resumed without a salvage (which checks what it copies): check here
+            try:
+                writer._drop_corrupt()
+            except BaseException:
+                writer._f.close()
+                raise
+        return writer
+
+    def _drop_corrupt(self) -> None:
+        """Mark incomplete every complete position and calibration set with a frame that fails
+        its checksum or cannot be read, so that it is taken again (a warning for each)."""
+        f = self._f
+        groups = [("frames", "positions", [f"position {i}" for i in range(self._n)])]
+        if "calibration" in f:
+            groups.append(("calibration", "calibration", [f"calibration {r} {w}" for r, w in CALIBRATION_SETS]))
+        for frames_group, flags_group, labels in groups:
+            raw, complete = f[f"{frames_group}/raw"], f[f"{flags_group}/complete"]
+            counts = f[f"{flags_group}/frame_count"][()]
+            for slot in np.flatnonzero(complete[()] == 1):
+                count = int(counts[slot])
+                faults = (frame_fault(raw, int(slot), k) for k in range(min(max(count, 0), raw.shape[1])))
+                fault = next((f"{k} {why}" for k, why in enumerate(faults) if why is not None), None)
+                if fault is None and 1 <= count <= raw.shape[1]:
+                    continue
+                complete[slot] = 0
+                self._flush(complete)
+                why = fault or f"count {count} out of range"
+                log.warning("%s: %s frame %s: marked incomplete, to be taken again", self.path, labels[slot], why)
 
     # --- state ---------------------------------------------------------------------------
     @property
