@@ -29,13 +29,17 @@ def serve(
     data_dir: Annotated[Path | None, typer.Option("--data-dir", help="Where run files and the catalog live.")] = None,
 ) -> None:
     """Run the acquisition daemon (REST API and web page) under uvicorn."""
-    from acquisition.devices import check_configured_files
     from acquisition.settings import SettingsError, load_settings
-    from drivers.modbus_profile import ProfileError
 
     try:
         settings = load_settings(config, host=host, port=port, data_dir=data_dir)
         settings.require_token_off_loopback()
+    except (SettingsError, OSError) as exc:
+        raise fail(str(exc)) from None
+    from acquisition.devices import check_configured_files
+    from drivers.modbus_profile import ProfileError
+
+    try:
         check_configured_files(settings)
     except (SettingsError, ProfileError, *domain_errors()) as exc:
         raise fail(str(exc)) from None
