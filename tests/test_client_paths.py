@@ -93,7 +93,7 @@ def test_a_daemon_refuses_special_files_as_light_results_quickly_and_says_nothin
     assert rss_mb(daemon.proc.pid) - rss_before < 100
     log = daemon.log_path.read_text()
     for words in ("a character device", "a FIFO (named pipe)", "a directory", "more than the 16 MiB", "not found"):
-        assert f"(a client's light model): light_results: " in log and words in log, words
+        assert "(a client's light model): light_results: " in log and words in log, words
 
 
 def test_a_token_holder_is_told_why_the_file_cannot_be_used(tmp_path):
@@ -104,7 +104,8 @@ def test_a_token_holder_is_told_why_the_file_cannot_be_used(tmp_path):
     with TestClient(create_app(settings), headers={"Authorization": f"Bearer {token}"}) as http:
         answer = http.post("/runs", json={"light_results": str(fifo)})
     assert answer.status_code == 422
-    assert answer.json() == {"detail": f"light_results: {fifo}: a FIFO (named pipe), not a light model (a regular file)"}
+    reason = f"light_results: {fifo}: a FIFO (named pipe), not a light model (a regular file)"
+    assert answer.json() == {"detail": reason}
 
 
 def test_a_job_whose_layout_cannot_be_used_fails_at_once_and_its_error_says_nothing_of_it(tmp_path):
