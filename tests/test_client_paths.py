@@ -129,4 +129,3 @@ def test_a_job_whose_layout_cannot_be_used_fails_at_once_and_its_error_says_noth
         assert data.catalog.requeue_stale_jobs(0.0) == []  # none left running
     finally:
         data.catalog.close()
-
