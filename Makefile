@@ -6,7 +6,7 @@ VENV   ?= .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test install browser bench clean
+.PHONY: demo test install browser bench constraints clean
 
 $(PY):
 	$(PYTHON) -m venv $(VENV)
@@ -56,6 +56,23 @@ test: $(STAMP) browser
 bench: $(STAMP)
 	$(VENV)/bin/mirrorgonio bench render --record docs/benchmarks.md
 	$(VENV)/bin/mirrorgonio bench acquire --record docs/benchmarks.md
+
+# constraints.txt, the versions the image installs: a fresh install of the project with its
+# gphoto2 extra (and the build's setuptools and wheel) in a throwaway venv, frozen. Run with
+# the image's Python (3.11): make constraints CONSTRAINTS_PYTHON=python3.11.
+CONSTRAINTS_PYTHON ?= python3.11
+CONSTRAINTS_VENV   := build/constraints-venv
+
+constraints:
+	rm -rf $(CONSTRAINTS_VENV)
+	$(CONSTRAINTS_PYTHON) -m venv $(CONSTRAINTS_VENV)
+	$(CONSTRAINTS_VENV)/bin/python -m pip install --quiet --upgrade pip setuptools wheel
+	$(CONSTRAINTS_VENV)/bin/python -m pip install --quiet '.[gphoto2]'
+	{ echo "# Every package the image installs (Dockerfile: pip install -c constraints.txt), pinned: a fresh"; \
+	  echo "# install of the project with its gphoto2 extra on the image's Python (3.11), frozen."; \
+	  echo "# Regenerate after changing the dependencies: make constraints (docs/deploy.md)."; \
+	  $(CONSTRAINTS_VENV)/bin/python -m pip freeze --all --exclude mirrorgonio --exclude pip; } > constraints.txt
+	rm -rf $(CONSTRAINTS_VENV)
 
 clean:
 	rm -rf $(VENV) build *.egg-info demo-output demo-data

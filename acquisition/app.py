@@ -24,6 +24,7 @@ from acquisition.catalog import (
     UnknownJobError,
     UnknownRunError,
 )
+from acquisition.client_files import ClientFileError
 from acquisition.devices import open_devices
 from acquisition.runner import RunConflictError, RunEngine, RunEngineError
 from acquisition.settings import DaemonSettings
@@ -43,6 +44,7 @@ ERROR_STATUS: list[tuple[type[Exception], int]] = [
     (ActiveRunError, status.HTTP_409_CONFLICT),
     (RunConflictError, status.HTTP_409_CONFLICT),
     (RigError, status.HTTP_422_UNPROCESSABLE_CONTENT),
+    (ClientFileError, status.HTTP_422_UNPROCESSABLE_CONTENT),
     (CatalogError, status.HTTP_400_BAD_REQUEST),
     (RunEngineError, status.HTTP_400_BAD_REQUEST),
     (DeviceError, status.HTTP_503_SERVICE_UNAVAILABLE),
@@ -62,6 +64,16 @@ def _json_safe(value):
     if isinstance(value, list | tuple):
         return [_json_safe(v) for v in value]
     return value
+
+
+def _public_detail(exc: Exception, settings: DaemonSettings) -> str:
+    """What an error answer says. A file a client named: why it cannot be used only where a
+    token is configured (the request then held it: only control endpoints read such files);
+    without one, any local program or web page may ask, and the answer says nothing of the
+    machine's filesystem."""
+    if isinstance(exc, ClientFileError):
+        return exc.detail if settings.token is not None and settings.token.get_secret_value() else str(exc)
+    return str(exc)
 
 
 def create_app(settings: DaemonSettings) -> FastAPI:
@@ -95,7 +107,7 @@ def create_app(settings: DaemonSettings) -> FastAPI:
     async def domain_error(request: Request, exc: Exception) -> JSONResponse:
         for kind, code in ERROR_STATUS:
             if isinstance(exc, kind):
-                return JSONResponse({"detail": str(exc)}, status_code=code)
+                return JSONResponse({"detail": _public_detail(exc, settings)}, status_code=code)
         raise exc  # pragma: no cover - only registered for the kinds above
 
     for kind, _ in ERROR_STATUS:

@@ -13,14 +13,14 @@ from pathlib import Path
 from acquisition.settings import DaemonSettings, SettingsError
 from drivers.arm import Arm
 from drivers.camera import Camera
-from drivers.contracts.rig import Rig
+from drivers.contracts.rig import Rig, load_rig
 from drivers.folder_camera import FolderCamera
 from drivers.gphoto2_camera import Gphoto2Camera
 from drivers.light import SWEEP, LightSwitch, ManualLightSwitch, NoLightSwitch
 from drivers.modbus_arm import ModbusArm
-from drivers.modbus_profile import SIM_STAGE_PROFILE
+from drivers.modbus_profile import SIM_STAGE_PROFILE, load_profile
 from drivers.serial_arm import MelfaSerialArm
-from sim_devices.camera import ROOM_RADIANCE, SimulatedCamera
+from sim_devices.camera import ROOM_RADIANCE, SimulatedCamera, require_render_memory
 from sim_devices.lights import load_truth
 from sim_devices.world import SimulatedLightSwitch, SimWorld
 
@@ -45,6 +45,27 @@ class Devices:
             except Exception:  # noqa: BLE001 - best effort at shutdown; each closer is independent
                 pass
         self._closers.clear()
+
+
+def check_configured_files(settings: DaemonSettings) -> None:
+    """Read the files the configuration names (the rig, the arm's profile, the simulated
+    camera's truth) and check that the simulated camera's frames fit in memory, as
+    :func:`open_devices` will: ``mirrorgonio serve`` calls it before the server starts, so a
+    bad file ends the start with one line (inside the server's startup it came with a
+    traceback).
+
+    Raises
+    ------
+    RigError, ProfileError, TruthError
+        One line naming the file and, where there is one, the field.
+    """
+    rig = load_rig(settings.rig)
+    if settings.arm.kind in ("modbus-tcp", "modbus-rtu") and settings.arm.profile is not None:
+        load_profile(settings.arm.profile)
+    if settings.camera.kind == "simulated":
+        if settings.camera.simulated.truth:
+            load_truth(settings.camera.simulated.truth)
+        require_render_memory(rig, str(settings.rig))
 
 
 def open_devices(settings: DaemonSettings, rig: Rig) -> Devices:
@@ -151,6 +172,7 @@ def _open_camera(settings: DaemonSettings, rig: Rig, simulated: dict, arm: Arm) 
             diffraction=sim.diffraction,
             latency_s=sim.latency_s,
             environment_radiance=ROOM_RADIANCE if sim.room_radiance is None else sim.room_radiance,
+            source=str(settings.rig),
         )
         simulated["world"] = world
         return camera

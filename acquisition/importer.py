@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import contextlib
 import csv
+import io
 import math
 import os
 import uuid
@@ -35,6 +36,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 
 from drivers.camera import RawFrame
+from drivers.config_files import read_input_text
 from drivers.contracts.rig import Rig, RigError, load_rig
 from drivers.contracts.runfile import (
     CALIBRATION_MAX_FRAMES,
@@ -52,6 +54,8 @@ from drivers.errors import RawFileError
 from drivers.pose import Pose
 from drivers.raw_decode import RAW_EXTENSIONS, decode_raw
 
+#: The largest import CSV read, in bytes: a line is under 200 bytes, so some 300 000 frames.
+MAX_CSV_BYTES = 64 * 2**20
 #: Columns every import CSV must have.
 REQUIRED_COLUMNS = ("file", "position")
 #: The measured tool pose, optional, all six or none: metres and degrees (like the rig TOML).
@@ -216,19 +220,11 @@ def read_import_csv(csv_path, folder, n_positions: int) -> list[ImportRow]:
         poses, or no rows at all; the message names the CSV line and the column.
     """
     csv_path, folder = Path(csv_path), Path(folder)
+    text = read_input_text(csv_path, "CSV file", RunImportError, limit=MAX_CSV_BYTES, encoding="utf-8-sig")
     try:
-        handle = open(csv_path, encoding="utf-8-sig", newline="")  # noqa: SIM115 - closed below
-    except FileNotFoundError:
-        raise RunImportError(f"{csv_path}: CSV file not found") from None
-    except OSError as exc:
-        raise RunImportError(f"{csv_path}: cannot read the CSV: {exc.strerror}") from None
-    with handle:
-        try:
-            return _read_rows(csv.reader(handle), csv_path, folder, n_positions)
-        except UnicodeDecodeError:
-            raise RunImportError(f"{csv_path}: not UTF-8 text") from None
-        except csv.Error as exc:
-            raise RunImportError(f"{csv_path}: not a valid CSV file ({exc})") from None
+        return _read_rows(csv.reader(io.StringIO(text, newline="")), csv_path, folder, n_positions)
+    except csv.Error as exc:
+        raise RunImportError(f"{csv_path}: not a valid CSV file ({exc})") from None
 
 
 def _read_rows(reader, csv_path: Path, folder: Path, n_positions: int) -> list[ImportRow]:

@@ -31,6 +31,7 @@ from pathlib import Path
 
 from acquisition.bracketing import NoiseModel, exposures_from_metering, is_saturated
 from acquisition.catalog import Catalog, RunRecord
+from acquisition.client_files import load_client_file
 from acquisition.devices import Devices
 from acquisition.models import AutoBracket, FixedBracket, RunRequest
 from acquisition.preview import preview_png
@@ -75,6 +76,16 @@ class RunPlan:
     light_poses: list[Pose]
     request: RunRequest
     path: Path
+    #: The files the run belongs with, read once when the run is asked for (``references``).
+    references: dict | None = None
+
+
+def _light_model(text: str) -> dict:
+    """A light-model file's text as its record; ``ValueError`` if it is not one."""
+    model = json.loads(text)
+    if not isinstance(model, dict) or model.get("format") != "mirrorgonio-light-model":
+        raise ValueError("not a mirrorgonio light model file")
+    return model
 
 
 @dataclass
@@ -190,7 +201,8 @@ class RunEngine:
         """The files an object run belongs with (``RunHeader.references``), checked now.
 
         A light model that cannot be read is refused before the run starts, so an
-        hour of captures is never recorded against the wrong file.
+        hour of captures is never recorded against the wrong file: a
+        :class:`~acquisition.client_files.ClientFileError` (the path is the client's).
         """
         refs: dict = {}
         if rig.object is not None:
@@ -204,19 +216,11 @@ class RunEngine:
                 "pose": rig.object.pose.model_dump(mode="json"),
             }
         if request.light_results is not None:
-            path = Path(request.light_results).expanduser()
-            try:
-                model = json.loads(path.read_text(encoding="utf-8"))
-            except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-                raise RunEngineError(
-                    f"light_results: {path}: not a readable light model ({type(exc).__name__})"
-                ) from None
-            if not isinstance(model, dict) or model.get("format") != "mirrorgonio-light-model":
-                raise RunEngineError(f"light_results: {path}: not a mirrorgonio light model file")
+            model, sha256 = load_client_file(request.light_results, "light_results", "light model", _light_model)
             provenance = model.get("provenance") if isinstance(model.get("provenance"), dict) else {}
             refs["light_model"] = {
-                "path": str(path.resolve()),
-                "sha256": file_sha256(path),
+                "path": str(Path(request.light_results).expanduser().resolve()),
+                "sha256": sha256,
                 "run_id": str(provenance.get("run_id", "")),
             }
         return refs
@@ -228,7 +232,7 @@ class RunEngine:
 
     def start_run(self, request: RunRequest) -> RunRecord:
         rig = self.plan_schedule(request)
-        self.references(rig, request)  # refuse unreadable references before anything starts
+        references = self.references(rig, request)  # refuse unreadable references before anything starts
         with self._lock:
             active = self.catalog.active_run()
             if active is not None or self.busy:
@@ -243,7 +247,7 @@ class RunEngine:
                 n_positions=len(tool),
                 request=request.model_dump(mode="json"),
             )
-            plan = RunPlan(record.id, rig, tool, light, request, Path(record.path))
+            plan = RunPlan(record.id, rig, tool, light, request, Path(record.path), references)
             self._launch(plan, resume=False)
         return record
 
@@ -418,7 +422,7 @@ class RunEngine:
             software_version=__version__,
             created_utc=datetime.now(UTC).isoformat(timespec="seconds"),
             preset=request.preset,
-            references=self.references(plan.rig, request),
+            references=plan.references if plan.references is not None else self.references(plan.rig, request),
             calibration=self._calibration_plan(request),
         )
 

@@ -29,16 +29,19 @@ import socket
 import sqlite3
 import threading
 import time
+import tomllib
 from collections.abc import Callable
 from pathlib import Path
 
 from acquisition.catalog import ACTIVE_RUN_STATES, Catalog, CatalogError, JobClaimError, JobRecord, RunRecord
+from acquisition.client_files import ClientFileError, load_client_file
 from drivers.contracts.runfile import RunFile, RunFileError
 from processing.hdr.model import HDRError
 from processing.light_run import ProcessingError, process_run
 from processing.parallel import Compute, ComputeError
 from processing.results import ResultsError
 from processing.steps import StepsError, resolve_steps
+from processing.unmixing.sources import layout_from_dict
 
 log = logging.getLogger("mirrorgonio.worker")
 
@@ -215,6 +218,11 @@ class JobWorker:
             run = self.catalog.get_run(job.run_id)
         except (StepsError, CatalogError) as exc:
             return self._fail(job, one_line(exc))
+        if job.options.get("layout") is not None:
+            try:  # the client's path: read here, with a time limit, before the job is started
+                load_client_file(str(job.options["layout"]), "layout", "layout file", _layout)
+            except ClientFileError as exc:
+                return self._fail(job, str(exc))
         partial = bool(job.options.get("partial", False))
         acquiring = self._acquiring(run)
         if acquiring and not partial:
@@ -341,6 +349,11 @@ class JobWorker:
         if report.quality is not None:  # the verdict first: a job's note is where the lab looks
             message = f"{report.quality.line()}; {message}"
         return run_path.parent, {k: str(v) for k, v in artifacts.items()}, message
+
+
+def _layout(text: str) -> list:
+    """A layout file's text as its sources; ``ValueError`` if it is not one."""
+    return layout_from_dict(tomllib.loads(text), "layout")
 
 
 def _has_complete_position(path: Path) -> bool:

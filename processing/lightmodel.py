@@ -26,6 +26,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 from scipy.special import roots_legendre
 
+from drivers.config_files import read_json
 from processing.fit import FitError, IntensityFit, Samples
 
 __all__ = [
@@ -473,17 +474,7 @@ class LightModel:
             version, or a bad field.
         """
         path = Path(path)
-        try:
-            text = path.read_text(encoding="utf-8")
-        except OSError as e:
-            raise LightModelError(f"{path}: cannot read ({e.strerror or e})") from None
-        except UnicodeDecodeError:
-            raise LightModelError(f"{path}: not a light-model file (not UTF-8 text)") from None
-        try:
-            d = json.loads(text)
-        except json.JSONDecodeError as e:
-            raise LightModelError(f"{path}: not JSON ({e.msg}, line {e.lineno})") from None
-        return cls.from_dict(d, origin=str(path))
+        return cls.from_dict(read_json(path, "light-model file", LightModelError), origin=str(path))
 
 
 def _dumps(obj: Any, indent: int = 0) -> str:

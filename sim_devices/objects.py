@@ -38,7 +38,7 @@ from pydantic import Field, PositiveFloat, model_validator
 from scipy.interpolate import CubicSpline
 from scipy.spatial import cKDTree
 
-from drivers.config_files import ConfigModel, load_model
+from drivers.config_files import MAX_BINARY_BYTES, ConfigModel, check_input_file, load_model
 from drivers.contracts.rig import RIGS_DIR, Rig
 
 SURFACES_DIR = Path(__file__).resolve().parent / "surfaces"
@@ -292,8 +292,7 @@ def _uv_of(mesh) -> np.ndarray | None:
 def load_mesh(path: str | Path) -> trimesh.Trimesh:
     """Read a mesh file (PLY, OBJ, STL, ...) with trimesh's defaults, as one mesh."""
     path = Path(path)
-    if not path.exists():
-        raise ObjectError(f"{path}: object mesh not found")
+    check_input_file(path, "object mesh", ObjectError, limit=MAX_BINARY_BYTES)  # no FIFO, device, directory
     try:
         mesh = trimesh.load(path, force="mesh")
     except Exception as exc:  # noqa: BLE001 - trimesh's loaders raise many kinds

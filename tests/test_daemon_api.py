@@ -270,7 +270,7 @@ def test_object_arc_run_records_its_object_and_light(daemon, tmp_path):
     assert presets["object-arc"]["valid"] and presets["object-arc"]["positions"] == 5
 
     bad = http.post("/runs", json={"preset": "object-arc", "light_results": str(tmp_path / "missing.json")})
-    assert bad.status_code == 400 and "light_results" in bad.json()["detail"]
+    assert bad.status_code == 422 and bad.json()["detail"].startswith("light_results: ")
     run = http.post(
         "/runs",
         json={

@@ -35,6 +35,8 @@ import yaml
 
 ROOT = Path(__file__).resolve().parent.parent
 COMPOSE = ROOT / "docker-compose.yml"
+RIG_COMPOSE = ROOT / "docker-compose.rig.yml"
+RIG_FILE_MESSAGE = "set MG_RIG_FILE to the rig description (TOML) of this rig"
 DOCKERFILE = ROOT / "Dockerfile"
 DOCKERIGNORE = ROOT / ".dockerignore"
 TOKEN_MESSAGE = "set MG_TOKEN to the API token"
@@ -312,17 +314,12 @@ def compose_problems(
     return problems + daemon_problems + _links_problems(services, argv, data_dir)
 
 
-def _daemon_problems(services: dict, argv: dict) -> tuple[list[str], str | None]:
-    """The daemon's environment and options are a valid configuration that reaches the arm;
-    and its data folder (the catalog and the runs)."""
-    from acquisition.settings import SettingsError, load_settings
+def daemon_settings(service: dict, args: list[str]):
+    """The settings ``mirrorgonio serve`` builds in the container from the service's
+    environment and command line (``SettingsError`` if it refuses them)."""
+    from acquisition.settings import load_settings
 
-    if "daemon" not in services:
-        return [], None
-    env = {k: str(v) for k, v in (services["daemon"].get("environment") or {}).items()}
-    if not env.get("MG_TOKEN"):
-        return ["daemon: MG_TOKEN is not passed to the daemon"], None
-    args = argv["daemon"]
+    env = {k: str(v) for k, v in (service.get("environment") or {}).items()}
     saved = {k: v for k, v in os.environ.items() if k.startswith("MG_")}
     try:
         for key in saved:
@@ -336,22 +333,47 @@ def _daemon_problems(services: dict, argv: dict) -> tuple[list[str], str | None]
             data_dir=_option(args, "--data-dir"),
         )
         settings.require_token_off_loopback()
-    except (SettingsError, ValueError) as exc:
-        return [f"daemon: its configuration is refused: {exc}"], None
+        return settings
     finally:
         for key in env:
             os.environ.pop(key, None)
         os.environ.update(saved)
+
+
+def published_ports(service: dict) -> list[tuple[str, str, str]]:
+    """``(host address, host port, container port)`` of each published port, in either of
+    the forms a resolved file has (``{published, target, host_ip}`` or ``[IP:]HOST:TARGET[/tcp]``)."""
+    out = []
+    for port in service.get("ports") or []:
+        if isinstance(port, dict):
+            out.append((str(port.get("host_ip", "")), str(port.get("published", "")), str(port.get("target"))))
+        else:
+            parts = str(port).split("/")[0].split(":")
+            parts = [""] * (3 - len(parts)) + parts
+            out.append((parts[0], parts[1], parts[2]))
+    return out
+
+
+def _daemon_problems(services: dict, argv: dict) -> tuple[list[str], str | None]:
+    """The daemon's environment and options are a valid configuration that reaches the arm;
+    and its data folder (the catalog and the runs)."""
+    from acquisition.settings import SettingsError
+
+    if "daemon" not in services:
+        return [], None
+    if not (services["daemon"].get("environment") or {}).get("MG_TOKEN"):
+        return ["daemon: MG_TOKEN is not passed to the daemon"], None
+    try:
+        settings = daemon_settings(services["daemon"], argv["daemon"])
+    except (SettingsError, ValueError) as exc:
+        return [f"daemon: its configuration is refused: {exc}"], None
     problems = []
     if str(settings.data_dir) != "/data":
         problems.append(f"daemon: data in {settings.data_dir}, not on the /data volume")
     if settings.host != "0.0.0.0":
         problems.append(f"daemon: listens on {settings.host}; other containers cannot reach it")
-    published = [
-        str(p.get("target") if isinstance(p, dict) else p).rpartition(":")[2]
-        for p in services["daemon"].get("ports") or []
-    ]
-    if str(settings.port) not in published:
+    published = published_ports(services["daemon"])
+    if str(settings.port) not in [target for *_, target in published]:
         problems.append(f"daemon: port {settings.port} is not published ({published})")
     if settings.arm.kind != "simulated":
         if settings.arm.profile is None or not Path(settings.arm.profile).is_file():
@@ -574,6 +596,111 @@ def test_a_planted_mistake_is_found(tmp_path, old, new, tool):
     assert set(problems) - set(compose_problems(tool=chosen)), f"planting {new!r} went unnoticed"
 
 
+def test_the_daemon_is_published_on_this_host_only_unless_asked():
+    """Plain HTTP: published on 127.0.0.1 (a reverse proxy with TLS in front, docs/deploy.md)
+    unless MG_HTTP_BIND says otherwise; the same in the real rig's file."""
+    for path, env in ((COMPOSE, {}), (RIG_COMPOSE, {"MG_RIG_FILE": str(ROOT / "rigs" / "default.toml")})):
+        env = {"MG_TOKEN": "x", **env}
+        daemon = _parse_compose(path, env)["services"]["daemon"]
+        assert published_ports(daemon) == [("127.0.0.1", "8000", "8000")], path.name
+        daemon = _parse_compose(path, {**env, "MG_HTTP_BIND": "0.0.0.0", "MG_HTTP_PORT": "8080"})["services"]["daemon"]
+        assert published_ports(daemon) == [("0.0.0.0", "8080", "8000")], path.name
+
+
+# --- the real rig: docker-compose.rig.yml ---------------------------------------------------------
+def rig_problems(path: Path = RIG_COMPOSE, env: dict[str, str] | None = None, tool: str | None = DOCKER_COMPOSE):
+    """What is wrong with the real rig's compose file: the daemon's settings name real
+    drivers, and the devices they open are passed to the container, to a user of the groups
+    that own them on the host."""
+    from acquisition.settings import SettingsError
+
+    env = {"MG_TOKEN": "test-token", "MG_RIG_FILE": str(ROOT / "rigs" / "default.toml")} if env is None else env
+    try:
+        config = resolve_compose(path, env, tool)
+    except ComposeError as exc:
+        return [f"compose file does not resolve: {exc}"]
+    services = config.get("services") or {}
+    if set(services) != {"daemon", "worker"}:
+        return [f"services {sorted(services)}, expected the daemon and the worker (no simulated arm)"]
+    problems = []
+    argv = {name: service_argv(svc) for name, svc in services.items()}
+    for name, args in argv.items():
+        try:
+            parse_command_line(args)
+        except USAGE_ERRORS as exc:
+            problems.append(f"{name}: {shlex.join(args)}: {exc.format_message()}")
+    base = _parse_compose(COMPOSE, {"MG_TOKEN": "x"})["services"]["daemon"]
+    for name, svc in services.items():
+        if svc.get("image") != base["image"]:
+            problems.append(f"{name}: image {svc.get('image')}, not docker-compose.yml's {base['image']}")
+        mounts = [str(v) if isinstance(v, str) else f"{v.get('source')}:{v.get('target')}" for v in svc["volumes"]]
+        if not any(m.startswith("mg-data:/data") for m in mounts):
+            problems.append(f"{name}: /data is not the mg-data volume ({mounts})")
+    daemon = services["daemon"]
+    if (daemon.get("depends_on") or {}) or (services["worker"].get("depends_on") or {}).get("daemon") != {
+        "condition": "service_healthy"
+    }:
+        problems.append("the worker waits for a healthy daemon, the daemon for nothing")
+    if _healthcheck_code(daemon) != _healthcheck_code(base):
+        problems.append("daemon: not docker-compose.yml's healthcheck")
+    try:
+        settings = daemon_settings(daemon, argv["daemon"])
+    except (SettingsError, ValueError) as exc:
+        return [*problems, f"daemon: its configuration is refused: {exc}"]
+    mounts = [str(v) if isinstance(v, str) else f"{v.get('source')}:{v.get('target')}" for v in daemon["volumes"]]
+    targets = {m.split(":")[1] for m in mounts}
+    devices = {str(d).split(":")[1] for d in daemon.get("devices") or []}
+    if str(settings.rig) not in targets:
+        problems.append(f"daemon: its rig {settings.rig} is not mounted ({mounts})")
+    if settings.camera.kind != "gphoto2":
+        problems.append(f"daemon: camera {settings.camera.kind}, not the real camera (gphoto2)")
+    elif "/dev/bus/usb" not in targets | devices or "c 189:* rmw" not in (daemon.get("device_cgroup_rules") or []):
+        problems.append("daemon: the USB bus (/dev/bus/usb, character major 189) is not passed to the camera")
+    if settings.arm.kind not in ("serial", "modbus-rtu"):
+        problems.append(f"daemon: arm {settings.arm.kind}, not a serial arm")
+    elif settings.arm.serial_port not in devices:
+        problems.append(f"daemon: the arm's serial port {settings.arm.serial_port} is not among the devices {devices}")
+    # The host's plugdev and dialout (Debian's numbers by default), which own the device nodes.
+    if {str(g) for g in daemon.get("group_add") or []} != {"46", "20"}:
+        problems.append(f"daemon: group_add {daemon.get('group_add')}, not the host's plugdev (46) and dialout (20)")
+    return problems
+
+
+@pytest.mark.parametrize("tool", ["docker-compose", "parser"])
+def test_the_real_rig_file_passes_the_devices_to_the_real_drivers(tool):
+    if tool == "docker-compose" and DOCKER_COMPOSE is None:
+        _without_docker_compose("the rig file is checked by the parser alone")
+    assert rig_problems(tool=DOCKER_COMPOSE if tool == "docker-compose" else None) == []
+    # The rig description is the lab's own: no default.
+    env = {"MG_TOKEN": "x"}
+    assert rig_problems(env=env, tool=None) == [
+        f'compose file does not resolve: Missing mandatory value for "compose.services.daemon.volumes": '
+        f"{RIG_FILE_MESSAGE}"
+    ]
+    if tool == "docker-compose":
+        assert RIG_FILE_MESSAGE in rig_problems(env=env)[0]
+
+
+RIG_PLANTED = [
+    ("MG_CAMERA__KIND: gphoto2", "MG_CAMERA__KIND: simulated"),
+    ('      - "c 189:* rmw"', '      - "c 188:* rmw"'),
+    ("MG_ARM__SERIAL_PORT: ${MG_ARM_SERIAL_DEVICE:-/dev/ttyUSB0}", "MG_ARM__SERIAL_PORT: /dev/ttyACM0"),
+    ('      - "${MG_DIALOUT_GID:-20}"\n', ""),
+    ("MG_RIG: /config/rig.toml", "MG_RIG: /config/my-rig.toml"),
+    ("MG_ARM__KIND: serial", "MG_ARM__KIND: modbus-tcp"),
+]
+
+
+@pytest.mark.parametrize(("old", "new"), RIG_PLANTED, ids=[new or f"without {old.strip()}" for old, new in RIG_PLANTED])
+def test_a_planted_mistake_in_the_rig_file_is_found(tmp_path, old, new):
+    text = RIG_COMPOSE.read_text()
+    assert text.count(old) == 1, f"the rig file changed: update the planted mistake {old!r}"
+    broken = tmp_path / "docker-compose.rig.yml"
+    broken.write_text(text.replace(old, new))
+    shutil.copy(COMPOSE, tmp_path / "docker-compose.yml")
+    assert rig_problems(broken, tool=None), f"planting {new!r} went unnoticed"
+
+
 # --- the Dockerfile -------------------------------------------------------------------------------
 def _shell_commands(script: str) -> list[list[str]]:
     """The simple commands of a RUN line, split at ``&&``, ``||``, ``;`` and ``|`` outside quotes."""
@@ -591,7 +718,7 @@ def _shell_commands(script: str) -> list[list[str]]:
 def test_the_dockerfile_installs_this_project_as_a_user_with_data_on_a_volume():
     instructions = dockerfile_instructions()
     keywords = [k for k, _ in instructions]
-    assert instructions[0] == ("FROM", "python:3.11-slim")
+    assert instructions[0] == ("FROM", "python:3.11-slim-bookworm")
     workdir = next(args for k, args in instructions if k == "WORKDIR")
     copied_before = set()
     installs_project = False
@@ -615,6 +742,94 @@ def test_the_dockerfile_installs_this_project_as_a_user_with_data_on_a_volume():
     assert any(k == "RUN" and "chown" in args and "/data" in args for k, args in instructions), (
         "/data is not writable by the user"
     )
+
+
+def _pip_installs() -> list[list[str]]:
+    return [
+        words
+        for keyword, args in dockerfile_instructions()
+        if keyword == "RUN"
+        for words in _shell_commands(args)
+        if words[:2] == ["pip", "install"]
+    ]
+
+
+def test_the_image_installs_the_gphoto2_extra_at_the_pinned_versions_for_a_user_of_the_device_groups():
+    """Every pip install that resolves dependencies takes constraints.txt, copied before it; the
+    requirements the Dockerfile's own snippet lists (run here on pyproject.toml) are the
+    project's and its gphoto2 extra's; Debian's libgphoto2 and gphoto2 tool are installed; the
+    user is in plugdev and dialout."""
+    import tomllib
+
+    instructions = dockerfile_instructions()
+    copies = [i for i, (k, args) in enumerate(instructions) if k == "COPY" and "constraints.txt" in shlex.split(args)]
+    assert copies, "constraints.txt is not copied into the image"
+    resolving = [words for words in _pip_installs() if "--no-deps" not in words]
+    assert resolving
+    for words in resolving:
+        assert "-c" in words and words[words.index("-c") + 1] == "constraints.txt", words
+    # The requirement list, from the Dockerfile's snippet itself.
+    (snippet,) = [
+        words[2]
+        for keyword, args in instructions
+        if keyword == "RUN"
+        for words in _shell_commands(args)
+        if words[:2] == ["python", "-c"] and "pyproject.toml" in words[2]
+    ]
+    listed = subprocess.run([sys.executable, "-c", snippet], capture_output=True, text=True, cwd=ROOT, check=True)
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    wanted = project["dependencies"] + project["optional-dependencies"]["gphoto2"]
+    assert listed.stdout.split("\n")[: len(wanted)] == wanted
+    assert any(r.startswith("gphoto2") for r in listed.stdout.split())
+    apt = [
+        w for k, args in instructions if k == "RUN" for w in _shell_commands(args) if w[:2] == ["apt-get", "install"]
+    ]
+    assert apt and {"libgphoto2-6", "gphoto2"} <= set(apt[0]), apt
+    (useradd,) = [w for k, args in instructions if k == "RUN" for w in _shell_commands(args) if w[:1] == ["useradd"]]
+    groups = useradd[useradd.index("--groups") + 1].split(",")
+    assert {"plugdev", "dialout"} <= set(groups), useradd
+
+
+def constraints() -> dict[str, str]:
+    """constraints.txt as ``{canonical name: version}``; every line ``NAME==VERSION``, once."""
+    from packaging.utils import canonicalize_name
+
+    pins: dict[str, str] = {}
+    for number, line in enumerate((ROOT / "constraints.txt").read_text().splitlines(), 1):
+        if not line.strip() or line.startswith("#"):
+            continue
+        match = re.fullmatch(r"([A-Za-z0-9][A-Za-z0-9._-]*)==([A-Za-z0-9.+!_-]+)", line.strip())
+        assert match, f"constraints.txt:{number}: {line!r} is not NAME==VERSION"
+        name = canonicalize_name(match[1])
+        assert name not in pins, f"constraints.txt:{number}: {name} pinned twice"
+        pins[name] = match[2]
+    return pins
+
+
+def test_the_constraints_pin_every_dependency_within_pyproject_s_ranges():
+    """Every dependency of the image (pyproject's, its extras' that the image takes, the build's
+    setuptools and wheel) is pinned with == to a version its range in pyproject.toml allows,
+    and the project itself is not (it is installed from the source)."""
+    import tomllib
+
+    from packaging.requirements import Requirement
+    from packaging.utils import canonicalize_name
+
+    pins = constraints()
+    pyproject = tomllib.loads((ROOT / "pyproject.toml").read_text())
+    requirements = [
+        Requirement(text)
+        for text in pyproject["project"]["dependencies"]
+        + pyproject["project"]["optional-dependencies"]["gphoto2"]
+        + pyproject["build-system"]["requires"]
+    ]
+    for requirement in requirements:
+        name = canonicalize_name(requirement.name)
+        assert name in pins, f"{requirement}: not in constraints.txt"
+        assert requirement.specifier.contains(pins[name], prereleases=True), f"{requirement}: pinned {pins[name]}"
+    # dask[distributed]: the extra's own package is pinned too.
+    assert "distributed" in pins
+    assert "mirrorgonio" not in pins and "pip" not in pins
 
 
 def test_the_dockerfile_copies_what_exists_and_is_not_ignored():

@@ -513,7 +513,7 @@ def test_an_unreadable_mask_names_the_field(tmp_path):
     )
     camera = load_rig(tmp_path / "rig.toml").camera
     assert camera.aperture.mask == str(tmp_path / "missing.png")
-    with pytest.raises(RigError, match=r"^camera\.aperture\.mask: cannot read .*missing\.png"):
+    with pytest.raises(RigError, match=r"^camera\.aperture\.mask: .*missing\.png: aperture mask not found$"):
         ApertureShape.from_rig(camera)
     cv2.imwrite(str(tmp_path / "missing.png"), np.zeros((4, 4, 3), np.uint8))
     with pytest.raises(RigError, match="not an 8- or 16-bit greyscale image"):

@@ -36,6 +36,13 @@ def serve(
         settings.require_token_off_loopback()
     except (SettingsError, OSError) as exc:
         raise fail(str(exc)) from None
+    from acquisition.devices import check_configured_files
+    from drivers.modbus_profile import ProfileError
+
+    try:
+        check_configured_files(settings)
+    except (SettingsError, ProfileError, *domain_errors()) as exc:
+        raise fail(str(exc)) from None
     import uvicorn
 
     from acquisition.app import create_app

@@ -225,12 +225,17 @@ def _finish(outcomes: list) -> None:
 
 
 def _check_files(runs: list[Path], options: ProcessingOptions) -> None:
-    """Every run file and the layout exist (one line naming the first missing)."""
+    """Every run file exists and the layout can be read (one line naming the first that cannot)."""
     missing = [run for run in runs if not run.is_file()]
     if missing:
         raise fail(f"{missing[0]}: no such run file")
-    if options.layout is not None and not options.layout.is_file():
-        raise fail(f"--layout: {options.layout}: no such file")
+    if options.layout is not None:
+        from processing.unmixing.sources import SourcesError, load_layout
+
+        try:
+            load_layout(options.layout, field="--layout")
+        except SourcesError as exc:
+            raise fail(str(exc)) from None
 
 
 def _check_outputs(folders: dict[Path, Path | None], overwrite: bool) -> None:

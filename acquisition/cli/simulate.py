@@ -93,6 +93,7 @@ def _capture_one(
         noise=noise,
         diffraction=diffraction,
         seed=seed,
+        source=str(rig_path),
     )
     return camera.capture_to(output, exposure)
 

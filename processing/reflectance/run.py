@@ -12,6 +12,7 @@ from typing import Any
 import numpy as np
 import trimesh
 
+from drivers.config_files import MAX_BINARY_BYTES, check_input_file
 from drivers.contracts.rig import Light, Rig
 from drivers.contracts.runfile import RunFile, RunFileError, file_sha256
 from drivers.pose import Pose
@@ -46,8 +47,7 @@ def load_mesh(path: str | os.PathLike[str], units_m: float = 1.0, pose: Pose | N
     """
 
     path = Path(path)
-    if not path.is_file():
-        raise ReflectanceError(f"{path}: mesh file not found")
+    check_input_file(path, "mesh file", ReflectanceError, limit=MAX_BINARY_BYTES)  # no FIFO, device, directory
     try:
         mesh = trimesh.load(str(path), force="mesh")
     except Exception as exc:  # noqa: BLE001 - trimesh's loaders raise anything

@@ -17,6 +17,7 @@ import cv2
 import numpy as np
 from scipy import ndimage
 
+from drivers.config_files import MAX_BINARY_BYTES, read_input_bytes
 from drivers.contracts.rig import Camera, RigError
 
 #: Samples of the edge's radius over a turn (the rough edge is interpolated from them).
@@ -180,7 +181,8 @@ def read_mask(path: str | Path) -> np.ndarray:
     Raises :class:`~drivers.contracts.rig.RigError` naming ``camera.aperture.mask`` when the file
     cannot be read or is not a greyscale image.
     """
-    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    data = read_input_bytes(path, "aperture mask", RigError, field="camera.aperture.mask", limit=MAX_BINARY_BYTES)
+    image = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
     if image is None:
         raise RigError(f"camera.aperture.mask: cannot read {path} as an image")
     if image.ndim != 2 or image.dtype not in (np.uint8, np.uint16):
