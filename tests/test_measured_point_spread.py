@@ -47,7 +47,7 @@ def test_each_channel_is_centred_on_its_own_centroid_and_its_background_taken_of
 @pytest.mark.parametrize(
     ("write", "says"),
     [
-        (lambda p: None, "camera.measured_point_spread.file: no such file"),
+        (lambda p: None, "measured point spread not found"),
         (lambda p: p.write_bytes(b"not a zip"), "camera.measured_point_spread.file: not a NumPy .npz"),
         (lambda p: np.savez(p, psf=np.ones((3, 41, 41)), distance_m=0.186), "pixel_pitch_m: missing"),
         (lambda p: _save(p, np.ones((41, 41))), "psf: shape (41, 41), expected (3, h, w)"),
@@ -63,7 +63,7 @@ def test_a_point_spread_that_cannot_be_used_is_refused_in_one_line_naming_the_fi
     with pytest.raises(PointSpreadError) as raised:
         load_measured_point_spread(path, PITCH)
     message = str(raised.value)
-    assert message.startswith(str(path)) and says in message and "\n" not in message
+    assert str(path) in message and says in message and "\n" not in message
 
 
 def test_the_rig_names_the_file_against_its_own_folder(tmp_path):

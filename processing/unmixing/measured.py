@@ -14,6 +14,7 @@ show, moves the pattern by less than 1 % on the reference rig.
 from __future__ import annotations
 
 import hashlib
+import io
 import math
 import zipfile
 from dataclasses import dataclass
@@ -21,6 +22,8 @@ from pathlib import Path
 
 import numpy as np
 from scipy import ndimage
+
+from drivers.config_files import read_input_bytes
 
 #: How far the measured pixel pitch may differ from the rig camera's (a different sensor).
 PITCH_TOLERANCE = 0.01
@@ -94,11 +97,13 @@ def load_measured_point_spread(path: str | Path, pixel_pitch_m: float) -> Measur
     [20.0, 20.0]
     """
     path = Path(path)
+    # A 1025² float64 image a channel is 25 MB; a compressed or float32 one less.
+    raw = read_input_bytes(
+        path, "measured point spread", PointSpreadError, field="camera.measured_point_spread.file", limit=64 * 2**20
+    )
     try:
-        with np.load(path, allow_pickle=False) as data:
+        with np.load(io.BytesIO(raw), allow_pickle=False) as data:
             fields = {name: data[name] for name in ("psf", "distance_m", "pixel_pitch_m") if name in data}
-    except FileNotFoundError:
-        raise PointSpreadError(f"{path}: camera.measured_point_spread.file: no such file") from None
     except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
         raise PointSpreadError(f"{path}: camera.measured_point_spread.file: not a NumPy .npz ({exc})") from None
     missing = [name for name in ("psf", "distance_m", "pixel_pitch_m") if name not in fields]
