@@ -231,7 +231,7 @@ def _profiles(service: dict) -> set[str]:
 def compose_problems(
     path: Path = COMPOSE, env: dict[str, str] | None = None, tool: str | None = DOCKER_COMPOSE
 ) -> list[str]:
-    env = {"MG_TOKEN": "test-token"} if env is None else env
+    env = {"MG_TOKEN": "test-token-0123456789"} if env is None else env
     try:
         config = resolve_compose(path, env, tool)
     except ComposeError as exc:
