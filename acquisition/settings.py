@@ -135,7 +135,9 @@ def split_host(value: str) -> tuple[str, int | None]:
             raise ValueError(f"{value!r} is not HOST or HOST:PORT")
     if port_text is None:
         return name, None
-    if not port_text.isascii() or not port_text.isdigit() or not 0 < int(port_text) <= 65535:
+    if not port_text.isascii() or not port_text.isdigit():
+        raise ValueError(f"{value!r} is not HOST or HOST:PORT")
+    if not 0 < int(port_text) <= 65535:
         raise ValueError(f"{value!r}: the port is not a number from 1 to 65535")
     return name, int(port_text)
 
@@ -218,7 +220,7 @@ class DaemonSettings(BaseSettings):
             return None
         if len(text) < MIN_TOKEN_LENGTH:
             raise ValueError(
-                f"too short ({len(text)} characters): at least {MIN_TOKEN_LENGTH} are needed "
+                f"too short ({len(text)} character{'s' * (len(text) > 1)}): at least {MIN_TOKEN_LENGTH} are needed "
                 "(set token in the configuration or MG_TOKEN, e.g. to the output of "
                 "`python3 -c 'import secrets; print(secrets.token_hex(16))'`)"
             )

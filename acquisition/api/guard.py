@@ -65,10 +65,11 @@ class RequestGuard:
         for key, value in scope["headers"]:
             headers.setdefault(key.decode("latin-1").lower(), []).append(value.decode("latin-1"))
         hosts = headers.get("host", [])
-        if len(hosts) != 1 or not self.allowed(hosts[0]):
-            shown = repr(hosts[0]) if len(hosts) == 1 else f"{len(hosts)} Host headers"
+        if len(hosts) != 1:
+            return 400, f"host: a request names one Host (it has {len(hosts)})"
+        if not self.allowed(hosts[0]):
             return 400, (
-                f"host: {shown} is not a host this daemon answers to (its setting allowed_hosts, MG_ALLOWED_HOSTS)"
+                f"host: {hosts[0]!r} is not a host this daemon answers to (its setting allowed_hosts, MG_ALLOWED_HOSTS)"
             )
         lengths = headers.get("content-length", [])
         if lengths:

@@ -118,21 +118,31 @@ function el(tag, props = {}, ...children) {
 }
 
 // --- device status, every 2 s --------------------------------------------------------------
+// The health needs no token; the devices do, while tokens guard reads.
 async function refreshStatus() {
   try {
-    const [health, devices] = await Promise.all([api("GET", "/health", undefined, [503]), api("GET", "/devices")]);
-    renderHealth(health);
-    renderDevices(devices);
-    $("devices-updated").textContent = `updated ${new Date().toLocaleTimeString()}`;
-    // Follow whatever run the daemon is busy with once ours has ended.
-    if (health.active_run && health.active_run !== followed && (!current || !ACTIVE.includes(current.state))) {
-      follow(health.active_run);
-    }
-  } catch (err) {
-    setBadge($("health-status"), "unreachable", "badge-unreachable");
-    $("health-summary").textContent = err.message;
+    await showStatus();
   } finally {
     setTimeout(refreshStatus, STATUS_PERIOD_MS);
+  }
+}
+
+async function showStatus() {
+  const [health, devices] = await Promise.allSettled([api("GET", "/health", undefined, [503]), api("GET", "/devices")]);
+  if (health.status === "fulfilled") {
+    renderHealth(health.value);
+    const active = health.value.active_run;
+    // Follow whatever run the daemon is busy with once ours has ended.
+    if (active && active !== followed && (!current || !ACTIVE.includes(current.state))) follow(active);
+  } else {
+    setBadge($("health-status"), "unreachable", "badge-unreachable");
+    $("health-summary").textContent = health.reason.message;
+  }
+  if (devices.status === "fulfilled") {
+    renderDevices(devices.value);
+    $("devices-updated").textContent = `updated ${new Date().toLocaleTimeString()}`;
+  } else {
+    $("devices-updated").textContent = `cannot read the devices: ${devices.reason.message}`;
   }
 }
 
