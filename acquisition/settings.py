@@ -110,7 +110,8 @@ MIN_TOKEN_LENGTH = 16
 #: The default limit of a request's body: the largest request the API takes (``POST /runs``
 #: with 10 000 poses written at full float precision) is about 2 MB.
 DEFAULT_MAX_BODY_BYTES = 4 * 1024 * 1024
-#: The loopback names every daemon answers to, on any port (SSH tunnels, published ports).
+#: The loopback names every daemon answers to, on any port (an SSH tunnel, a published port):
+#: only a page the browser has from this machine names them (a rebound name is the page's own).
 LOOPBACK_HOSTS = ("localhost", "127.0.0.1", "[::1]")
 
 
@@ -195,8 +196,8 @@ class DaemonSettings(BaseSettings):
     )
     allowed_hosts: Annotated[list[str] | None, NoDecode] = Field(
         default=None,
-        description="the Host names (NAME or NAME:PORT, '*' for any) the daemon answers to; "
-        "default: localhost, 127.0.0.1, [::1] and the listening address",
+        description="the Host names (NAME or NAME:PORT, '*' for any) the daemon answers to besides "
+        "localhost, 127.0.0.1, [::1] and the listening address",
     )
     max_body_bytes: int = Field(
         default=DEFAULT_MAX_BODY_BYTES, ge=1024, le=1 << 30, description="the largest request body taken"
@@ -229,9 +230,12 @@ class DaemonSettings(BaseSettings):
     @field_validator("allowed_hosts", mode="before")
     @classmethod
     def _host_list(cls, value: object) -> object:
-        """A list, or (``MG_ALLOWED_HOSTS``) a JSON list or names separated by commas."""
+        """A list, or (``MG_ALLOWED_HOSTS``) a JSON list or names separated by commas; empty:
+        none besides the defaults."""
         if isinstance(value, str):
             text = value.strip()
+            if not text:
+                return None
             if text.startswith("["):
                 try:
                     return json.loads(text)
@@ -251,10 +255,11 @@ class DaemonSettings(BaseSettings):
 
     def host_allow_list(self) -> list[tuple[str, int | None]]:
         """The hosts requests may name (``Host``, and ``Origin`` of a request that changes
-        something), as (name, port or None for any); ``("*", None)`` for any host."""
-        if self.allowed_hosts is not None:
-            return [("*", None) if e.strip() == "*" else split_host(e) for e in self.allowed_hosts]
+        something), as (name, port or None for any); ``("*", None)`` for any host: the
+        loopback names, the listening address on its port, and ``allowed_hosts``."""
         hosts: list[tuple[str, int | None]] = [(name, None) for name in LOOPBACK_HOSTS]
+        for entry in self.allowed_hosts or []:
+            hosts.append(("*", None) if entry.strip() == "*" else split_host(entry))
         bind = self.host.strip().lower()
         name = f"[{bind}]" if ":" in bind and not bind.startswith("[") else bind
         if name not in ("", "0.0.0.0", "[::]", *LOOPBACK_HOSTS):  # a wildcard address is no name

@@ -249,11 +249,14 @@ def test_allowed_hosts_default_and_setting(monkeypatch):
     assert guard(host="192.168.4.2", port=8000, token=TOKEN).allowed("192.168.4.2:8000")
     assert not guard(host="192.168.4.2", port=8000, token=TOKEN).allowed("192.168.4.2:8001")
     assert not guard(host="0.0.0.0", token=TOKEN).allowed("0.0.0.0:8000")
-    # Set: exactly those; with MG_ALLOWED_HOSTS, names separated by commas (or a JSON list).
+    # Set: those too; with MG_ALLOWED_HOSTS, names separated by commas (or a JSON list).
     monkeypatch.setenv("MG_ALLOWED_HOSTS", "daemon:8000, lab.example.org")
     named = guard()
     assert named.allowed("daemon:8000") and named.allowed("lab.example.org") and named.allowed("lab.example.org:443")
-    assert not named.allowed("daemon:8001") and not named.allowed("localhost:8000")
+    assert not named.allowed("daemon:8001") and not named.allowed("evil.example")
+    assert named.allowed("localhost:8000")  # a healthcheck on the machine itself
+    monkeypatch.setenv("MG_ALLOWED_HOSTS", " ")
+    assert guard().hosts == default.hosts
     monkeypatch.setenv("MG_ALLOWED_HOSTS", '["*"]')
     assert guard().allowed("anything.example:1")
     monkeypatch.setenv("MG_ALLOWED_HOSTS", "lab.example.org, http://x/")

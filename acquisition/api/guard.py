@@ -18,11 +18,18 @@ Each refusal is a JSON problem (``{"detail": "one line"}``), like the API's othe
 from __future__ import annotations
 
 import json
+from collections.abc import Awaitable, Callable, MutableMapping
+from typing import Any
 from urllib.parse import urlsplit
 
-from starlette.types import ASGIApp, Message, Receive, Scope, Send
-
 from acquisition.settings import DaemonSettings, split_host
+
+# The ASGI interface (as ``starlette.types`` spells it).
+Scope = MutableMapping[str, Any]
+Message = MutableMapping[str, Any]
+Receive = Callable[[], Awaitable[Message]]
+Send = Callable[[Message], Awaitable[None]]
+ASGIApp = Callable[[Scope, Receive, Send], Awaitable[None]]
 
 #: The methods that change nothing: no content type or origin is asked of them.
 SAFE_METHODS = frozenset({"GET", "HEAD", "OPTIONS"})
