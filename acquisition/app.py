@@ -15,7 +15,9 @@ from fastapi.encoders import jsonable_encoder
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse, HTMLResponse, JSONResponse
 
-from acquisition.api import arm, health, jobs, presets, preview, runs
+from acquisition.api import arm, health, jobs, presets, preview, runs, session
+from acquisition.api.deps import GUARD_ERRORS
+from acquisition.api.guard import RequestGuard
 from acquisition.catalog import (
     ActiveRunError,
     Catalog,
@@ -100,9 +102,12 @@ def create_app(settings: DaemonSettings) -> FastAPI:
         version=__version__,
         description="Drives the arm and the camera of a mirror-ball goniophotometer and writes run files.",
         lifespan=lifespan,
+        responses=GUARD_ERRORS,
     )
-    for router in (health.router, presets.router, runs.router, preview.router, arm.router, jobs.router):
+    for router in (health.router, presets.router, runs.router, preview.router, arm.router, jobs.router, session.router):
         app.include_router(router)
+    # Host, Origin, content type and body size, before routing, the token and the body's parsing.
+    app.add_middleware(RequestGuard, settings=settings)
 
     async def domain_error(request: Request, exc: Exception) -> JSONResponse:
         for kind, code in ERROR_STATUS:

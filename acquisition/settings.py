@@ -8,11 +8,12 @@ and the simulated camera. A file names real devices instead (``docs/daemon.md``)
 from __future__ import annotations
 
 import ipaddress
+import json
 from pathlib import Path
 from typing import Annotated, Literal
 
 from pydantic import ConfigDict, Field, PositiveFloat, SecretStr, field_validator
-from pydantic_settings import BaseSettings, SettingsConfigDict
+from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
 from drivers.config_files import ConfigModel, read_toml, validate_model
 from drivers.contracts.rig import DEFAULT_RIG_PATH
@@ -104,6 +105,44 @@ class CameraSettings(_Section):
     simulated: SimulatedCameraSettings = Field(default_factory=SimulatedCameraSettings)
 
 
+#: The shortest API token ``serve`` accepts (after stripping whitespace).
+MIN_TOKEN_LENGTH = 16
+#: The default limit of a request's body: the largest request the API takes (``POST /runs``
+#: with 10 000 poses written at full float precision) is about 2 MB.
+DEFAULT_MAX_BODY_BYTES = 4 * 1024 * 1024
+#: The loopback names every daemon answers to, on any port (an SSH tunnel, a published port):
+#: only a page the browser has from this machine names them (a rebound name is the page's own).
+LOOPBACK_HOSTS = ("localhost", "127.0.0.1", "[::1]")
+
+
+def split_host(value: str) -> tuple[str, int | None]:
+    """``NAME``, ``NAME:PORT``, ``[IPV6]`` or ``[IPV6]:PORT`` (a Host header, or the network
+    location of an Origin) as the lower-case name (an IPv6 address in brackets, a name without
+    its final dot) and the port (None when not given). ``ValueError`` for anything else."""
+    text = value.strip().lower()
+    if text.startswith("["):
+        inside, bracket, rest = text[1:].partition("]")
+        try:
+            ipaddress.IPv6Address(inside)
+        except ValueError:
+            raise ValueError(f"{value!r} is not HOST or HOST:PORT") from None
+        if not bracket or (rest and not rest.startswith(":")):
+            raise ValueError(f"{value!r} is not HOST or HOST:PORT")
+        name, port_text = f"[{inside}]", (rest[1:] if rest else None)
+    else:
+        name, colon, after = text.partition(":")
+        name, port_text = name.removesuffix("."), (after if colon else None)
+        if not name or not name.isascii() or not all(c.isalnum() or c in "-._" for c in name):
+            raise ValueError(f"{value!r} is not HOST or HOST:PORT")
+    if port_text is None:
+        return name, None
+    if not port_text.isascii() or not port_text.isdigit():
+        raise ValueError(f"{value!r} is not HOST or HOST:PORT")
+    if not 0 < int(port_text) <= 65535:
+        raise ValueError(f"{value!r}: the port is not a number from 1 to 65535")
+    return name, int(port_text)
+
+
 #: The default ambient bracket of a run's calibration frames: room light, seconds.
 DEFAULT_AMBIENT_EXPOSURES_S = (0.01, 0.04, 0.16)
 
@@ -149,13 +188,83 @@ class DaemonSettings(BaseSettings):
     rig: Path = DEFAULT_RIG_PATH
     host: str = "127.0.0.1"
     port: int = Field(default=8000, ge=0, le=65535)
-    token: SecretStr | None = None
+    token: SecretStr | None = Field(
+        default=None, description=f"the API token: at least {MIN_TOKEN_LENGTH} characters; none: loopback only"
+    )
+    token_guards_reads: bool = Field(
+        default=True, description="with a token, every endpoint but /health and the page's shell needs it"
+    )
+    allowed_hosts: Annotated[list[str] | None, NoDecode] = Field(
+        default=None,
+        description="the Host names (NAME or NAME:PORT, '*' for any) the daemon answers to besides "
+        "localhost, 127.0.0.1, [::1] and the listening address",
+    )
+    max_body_bytes: int = Field(
+        default=DEFAULT_MAX_BODY_BYTES, ge=1024, le=1 << 30, description="the largest request body taken"
+    )
     device_retries: int = Field(default=2, ge=0, description="retries of a transient device error")
     arm: ArmSettings = Field(default_factory=ArmSettings)
     camera: CameraSettings = Field(default_factory=CameraSettings)
     light: LightSettings = Field(default_factory=LightSettings)
     auto_bracket: AutoBracketSettings = Field(default_factory=AutoBracketSettings)
     default_exposures_s: list[Seconds] = Field(default_factory=lambda: [0.0002, 0.001, 0.005])
+
+    @field_validator("token", mode="before")
+    @classmethod
+    def _long_token(cls, value: object) -> object:
+        """Whitespace around the token is dropped (an empty one is no token); a shorter token
+        than :data:`MIN_TOKEN_LENGTH` is refused."""
+        if value is None:
+            return None
+        text = (value.get_secret_value() if isinstance(value, SecretStr) else str(value)).strip()
+        if not text:
+            return None
+        if len(text) < MIN_TOKEN_LENGTH:
+            raise ValueError(
+                f"too short ({len(text)} character{'s' * (len(text) > 1)}): at least {MIN_TOKEN_LENGTH} are needed "
+                "(set token in the configuration or MG_TOKEN, e.g. to the output of "
+                "`python3 -c 'import secrets; print(secrets.token_hex(16))'`)"
+            )
+        return text
+
+    @field_validator("allowed_hosts", mode="before")
+    @classmethod
+    def _host_list(cls, value: object) -> object:
+        """A list, or (``MG_ALLOWED_HOSTS``) a JSON list or names separated by commas; empty:
+        none besides the defaults."""
+        if isinstance(value, str):
+            text = value.strip()
+            if not text:
+                return None
+            if text.startswith("["):
+                try:
+                    return json.loads(text)
+                except json.JSONDecodeError:
+                    raise ValueError(f"not a JSON list of host names: {text!r}") from None
+            return [part.strip() for part in text.split(",") if part.strip()]
+        return value
+
+    @field_validator("allowed_hosts")
+    @classmethod
+    def _host_names(cls, value: list[str] | None) -> list[str] | None:
+        if value is not None:
+            for entry in value:
+                if entry.strip() != "*":
+                    split_host(entry)
+        return value
+
+    def host_allow_list(self) -> list[tuple[str, int | None]]:
+        """The hosts requests may name (``Host``, and ``Origin`` of a request that changes
+        something), as (name, port or None for any); ``("*", None)`` for any host: the
+        loopback names, the listening address on its port, and ``allowed_hosts``."""
+        hosts: list[tuple[str, int | None]] = [(name, None) for name in LOOPBACK_HOSTS]
+        for entry in self.allowed_hosts or []:
+            hosts.append(("*", None) if entry.strip() == "*" else split_host(entry))
+        bind = self.host.strip().lower()
+        name = f"[{bind}]" if ":" in bind and not bind.startswith("[") else bind
+        if name not in ("", "0.0.0.0", "[::]", *LOOPBACK_HOSTS):  # a wildcard address is no name
+            hosts.append((name, self.port or None))
+        return hosts
 
     @property
     def catalog_path(self) -> Path:

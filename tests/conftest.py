@@ -71,7 +71,11 @@ class DaemonProcess:
         raise RuntimeError(f"daemon did not start: {self.log_path.read_text()[-2000:]}")
 
     def client(self) -> httpx.Client:
-        headers = {"Authorization": f"Bearer {self.token}"} if self.token else {}
+        """A client with the token, if any; every request is sent as JSON (the daemon takes
+        nothing else for a request that changes something, body or none)."""
+        headers = {"Content-Type": "application/json"}
+        if self.token:
+            headers["Authorization"] = f"Bearer {self.token}"
         return httpx.Client(base_url=self.url, headers=headers, timeout=30.0)
 
     def kill(self) -> None:

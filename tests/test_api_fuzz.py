@@ -38,8 +38,9 @@ from acquisition.catalog import CatalogError
 from acquisition.runner import RunConflictError
 from acquisition.settings import load_settings
 
-TOKEN = "fuzz-token"
+TOKEN = "fuzz-token-0123456789"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
+JSON = {"Content-Type": "application/json"}
 FINAL = {"complete", "aborted", "failed", "interrupted"}
 # Not `positive_data_acceptance`: a schema-valid request may rightly be refused, by a rule
 # across fields (poses only with preset "poses"), by the rig (soft limits, collisions: 422)
@@ -54,7 +55,8 @@ CHECKS = [
 
 
 def make_app(data_dir):
-    settings = load_settings(None, data_dir=data_dir, rig=REDUCED_RIG, token=TOKEN)
+    # The host name schemathesis's and Starlette's test clients send.
+    settings = load_settings(None, data_dir=data_dir, rig=REDUCED_RIG, token=TOKEN, allowed_hosts=["testserver"])
     settings.arm.simulated.speed_m_s = 0.5
     settings.arm.simulated.accel_m_s2 = 5.0
     return create_app(settings)
@@ -90,7 +92,7 @@ def daemon_app(tmp_path_factory):
     that the fuzzer can aim at ids that exist (its lifespan is run once here to seed it)."""
     app = make_app(tmp_path_factory.mktemp("fuzz") / "data")
     known: dict[str, list[str]] = {"run_id": [], "job_id": []}
-    with TestClient(app, headers=AUTH) as http:
+    with TestClient(app, headers=AUTH | JSON) as http:
         bracket = {"mode": "fixed", "exposures_s": [0.001]}
         done = http.post("/runs", json={"count": 1, "bracket": bracket}).json()
         assert wait_final(http, done["id"])["state"] == "complete"
@@ -144,6 +146,8 @@ def test_api_conforms_to_its_openapi_document(case, daemon_app):
     # Mostly the daemon's token; sometimes none (401) or a wrong one (403).
     auth = pick(case, "auth", ["good", "good", "good", "none", "wrong"])
     headers = {"good": AUTH, "none": {}, "wrong": {"Authorization": "Bearer not-the-token"}}[auth]
+    if case.media_type is None:  # no body: sent as JSON all the same, as a request that changes something must be
+        headers = headers | JSON
     try:
         case.call_and_validate(headers=headers, checks=CHECKS, app=daemon_app)
     finally:
@@ -153,7 +157,7 @@ def test_api_conforms_to_its_openapi_document(case, daemon_app):
 # --- explicit checks ---------------------------------------------------------------------
 @pytest.fixture()
 def http(tmp_path):
-    with TestClient(make_app(tmp_path / "data"), headers=AUTH) as client:
+    with TestClient(make_app(tmp_path / "data"), headers=AUTH | JSON) as client:
         yield client
         abort_active_run(client.app)
 
@@ -198,3 +202,5 @@ def test_the_token_is_required_to_change_anything(http):
     assert http.post("/runs", json={"count": 1}, headers={"Authorization": ""}).status_code == 401
     assert http.post("/arm/stop", headers={"Authorization": "Bearer wrong"}).status_code == 403
     assert http.get("/runs").status_code == 200
+    assert http.get("/runs", headers={"Authorization": ""}).status_code == 401  # the token guards reads too
+    assert http.get("/health", headers={"Authorization": ""}).status_code == 200

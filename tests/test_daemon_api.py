@@ -18,6 +18,7 @@ from acquisition.settings import load_settings
 from drivers.contracts.runfile import RunFile
 
 EXPOSURES = [0.0002, 0.001, 0.005]
+JSON = {"Content-Type": "application/json"}
 
 
 @pytest.fixture()
@@ -28,7 +29,8 @@ def daemon(tmp_path):
         settings.camera.simulated.latency_s = camera_latency_s
         settings.arm.simulated.speed_m_s = speed
         settings.arm.simulated.accel_m_s2 = 10 * speed
-        client = TestClient(create_app(settings))
+        # A host the daemon answers to; the control endpoints take JSON only, body or none.
+        client = TestClient(create_app(settings), base_url="http://127.0.0.1", headers=JSON)
         client.__enter__()
         started.append(client)
         return client, client.app.state.engine

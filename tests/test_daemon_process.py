@@ -105,11 +105,11 @@ def test_alarm_at_position_10_fails_the_run_keeps_the_data_and_resume_completes(
 
 
 def test_token_is_required_off_loopback_and_checked(tmp_path, daemon_factory):
-    daemon = daemon_factory(write_config(tmp_path / "daemon.toml", tmp_path / "data"), token="s3cret")
+    daemon = daemon_factory(write_config(tmp_path / "daemon.toml", tmp_path / "data"), token="s3cret-token-0123456789")
     import httpx
 
-    with httpx.Client(base_url=daemon.url) as anonymous:
-        assert anonymous.get("/health").status_code == 200  # reading needs no token
+    with httpx.Client(base_url=daemon.url, headers={"Content-Type": "application/json"}) as anonymous:
+        assert anonymous.get("/health").status_code == 200  # the health needs no token
         missing = anonymous.post("/runs", json={"count": 1})
         assert missing.status_code == 401
         assert missing.headers["www-authenticate"] == "Bearer"

@@ -233,7 +233,7 @@ def _profiles(service: dict) -> set[str]:
 def compose_problems(
     path: Path = COMPOSE, env: dict[str, str] | None = None, tool: str | None = DOCKER_COMPOSE
 ) -> list[str]:
-    env = {"MG_TOKEN": "test-token"} if env is None else env
+    env = {"MG_TOKEN": "test-token-0123456789"} if env is None else env
     try:
         config = resolve_compose(path, env, tool)
     except ComposeError as exc:
@@ -368,6 +368,11 @@ def _daemon_problems(services: dict, argv: dict) -> tuple[list[str], str | None]
     except (SettingsError, ValueError) as exc:
         return [f"daemon: its configuration is refused: {exc}"], None
     problems = []
+    from acquisition.api.guard import RequestGuard
+
+    for netloc in re.findall(r"https?://([^/'\"]+)", _healthcheck_code(services["daemon"]) or ""):
+        if not RequestGuard(None, settings).allowed(netloc):  # the Host check would refuse it: 400
+            problems.append(f"daemon: its healthcheck's host {netloc} is not one it answers to (MG_ALLOWED_HOSTS)")
     if str(settings.data_dir) != "/data":
         problems.append(f"daemon: data in {settings.data_dir}, not on the /data volume")
     if settings.host != "0.0.0.0":
@@ -576,6 +581,7 @@ PLANTED = [
     ("MG_TOKEN: ${MG_TOKEN:?set MG_TOKEN to the API token}", "MG_TOKEN: ${MG_TOKEN:-}"),
     ("condition: service_healthy  # the daemon", "condition: service_started  # the daemon"),
     ("'http://127.0.0.1:8000/health'", "'http://127.0.0.1:8080/health'"),
+    ("'http://127.0.0.1:8000/health'", "'http://daemon:8000/health'"),  # a Host the daemon refuses
     ('"tcp://dask-scheduler:8786"]', '"tcp://dask-scheduler:8788"]'),
 ]
 

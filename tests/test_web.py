@@ -15,7 +15,8 @@ from conftest import write_config
 from playwright.sync_api import expect, sync_playwright
 from test_worker import captured  # noqa: F401 - a finished run of three positions
 
-TOKEN = "t0k"
+TOKEN = "t0k-for-the-page-0123"
+AUTH = {"Authorization": f"Bearer {TOKEN}"}
 # Debian's chromium, not a browser downloaded by `playwright install` (no network for that).
 # The flags keep it from reaching for the network it does not have.
 CHROMIUM_ARGS = [
@@ -64,8 +65,10 @@ def page(tmp_path):
 
 
 def open_page(page, daemon) -> None:
+    """Open the page and type the token: it guards the reads (the presets, the runs) too."""
     page.goto(daemon.url + "/")
-    expect(page.locator("#health-status")).to_have_text("ok")
+    expect(page.locator("#health-status")).to_have_text("ok")  # the health needs no token
+    page.fill("#token", TOKEN)
     # The presets are in the select, with the daemon's default bracket in the form.
     expect(page.locator("#preset option[value=light-sweep]")).to_have_count(1)
     expect(page.locator("#exposures")).to_have_value("0.0002, 0.001, 0.005")
@@ -80,7 +83,6 @@ def test_a_run_started_from_the_page_completes_with_preview_and_download(tmp_pat
     expect(page.locator("#camera-identity")).to_contain_text("SIM-0001")
     expect(page.locator("#stop-arm")).to_be_enabled()
 
-    page.fill("#token", TOKEN)
     page.select_option("#preset", "light-sweep")
     page.fill("#exposures", "0.001, 0.005")
     page.fill("#count", "8")
@@ -116,8 +118,10 @@ def test_a_run_started_from_the_page_completes_with_preview_and_download(tmp_pat
     expect(row).to_contain_text("100 %")
     link = row.locator("a.download")
     expect(link).to_have_attribute("href", status["file_url"])
-    download = httpx.get(daemon.url + link.get_attribute("href"), timeout=30)
-    assert download.status_code == 200 and download.content[:8] == b"\x89HDF\r\n\x1a\n"
+    assert httpx.get(daemon.url + link.get_attribute("href"), timeout=30).status_code == 401  # the token guards it
+    with page.expect_download() as clicked:  # the browser's own download carries the page's session
+        link.click()
+    assert Path(clicked.value.path()).read_bytes()[:8] == b"\x89HDF\r\n\x1a\n"
     row.locator("button.process").click()
     expect(page.locator("#message")).to_contain_text(f"queued for run {run_id}")
     with daemon.client() as http:
@@ -166,7 +170,8 @@ def test_the_page_shows_what_the_daemon_refuses_and_polls_without_events(tmp_pat
     expect(message).to_be_hidden()
 
     page.fill("#count", "8")
-    page.click("#start")  # no token yet
+    page.fill("#token", "")
+    page.click("#start")  # no token
     expect(message).to_contain_text("a bearer token is required (HTTP 401)")
 
     page.fill("#token", TOKEN)
@@ -206,7 +211,6 @@ def test_the_page_shows_each_job_and_links_its_report_ies_and_ray_file(tmp_path,
     daemon = daemon_factory(write_config(tmp_path / "daemon.toml", data.root), token=TOKEN)
     open_page(page, daemon)
     expect(page.locator("#jobs")).to_contain_text("no processing jobs yet")
-    page.fill("#token", TOKEN)
     row = page.locator(f'#runs tr[data-run-id="{run.id}"]')
     expect(row).to_contain_text("complete")
     row.locator("button.process").click()
@@ -236,9 +240,9 @@ def test_the_page_shows_each_job_and_links_its_report_ies_and_ray_file(tmp_path,
     expect(row.locator(".job-state")).to_contain_text("complete")
     assert row.locator("a.artifact").count() == 3
     for kind in ("report", "ies", "tm25"):
-        answer = httpx.get(daemon.url + links[kind].get_attribute("href"), timeout=30)
+        answer = httpx.get(daemon.url + links[kind].get_attribute("href"), headers=AUTH, timeout=30)
         assert answer.status_code == 200 and answer.content == Path(done.artifacts[kind]).read_bytes()
-    archive = httpx.get(daemon.url + links["results"].get_attribute("href"), timeout=30)
+    archive = httpx.get(daemon.url + links["results"].get_attribute("href"), headers=AUTH, timeout=30)
     assert archive.status_code == 200 and archive.content[:4] == b"PK\x03\x04"
     # The report opens in the browser.
     with page.context.expect_page() as opened:
@@ -262,7 +266,6 @@ def test_the_next_job_takes_the_options_set_on_the_page(tmp_path, daemon_factory
     run = data.run(captured[2])
     daemon = daemon_factory(write_config(tmp_path / "daemon.toml", data.root), token=TOKEN)
     open_page(page, daemon)
-    page.fill("#token", TOKEN)
     row = page.locator(f'#runs tr[data-run-id="{run.id}"]')
     expect(row).to_contain_text("complete")
     expect(page.locator("#fit-aperture")).to_have_value("auto")  # the worker's default

@@ -364,7 +364,7 @@ def test_the_daemon_serves_a_jobs_state_and_exactly_its_result_files(captured, d
     run = data.run(source)
     live = data.run(state="running")
     settings = load_settings(None, data_dir=data.root, rig=REDUCED_RIG)
-    with TestClient(create_app(settings)) as http:
+    with TestClient(create_app(settings), base_url="http://127.0.0.1") as http:
         bad = http.post(f"/runs/{run.id}/process", json={"steps": "hdr,dance"})
         assert bad.status_code == 422 and "unknown step 'dance'" in str(bad.json()["detail"])
         assert http.post(f"/runs/{run.id}/process", json={"steps": "hdr", "fit": "spline"}).status_code == 422

@@ -4,12 +4,12 @@ from __future__ import annotations
 
 from fastapi import APIRouter, status
 
-from acquisition.api.deps import TOKEN_ERRORS, EngineDep, TokenDep
+from acquisition.api.deps import WRITE_ERRORS, EngineDep, TokenDep
 
 router = APIRouter(prefix="/arm", tags=["arm"])
 
 
-@router.post("/stop", status_code=status.HTTP_202_ACCEPTED, dependencies=[TokenDep], responses=TOKEN_ERRORS)
+@router.post("/stop", status_code=status.HTTP_202_ACCEPTED, dependencies=[TokenDep], responses=WRITE_ERRORS)
 def stop_arm(engine: EngineDep) -> dict:
     """Stop the arm at once, also mid-move. A run in progress pauses and re-takes the
     interrupted position when resumed."""

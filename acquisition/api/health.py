@@ -6,7 +6,7 @@ import math
 
 from fastapi import APIRouter, Response, status
 
-from acquisition.api.deps import CatalogDep, EngineDep
+from acquisition.api.deps import TOKEN_ERRORS, CatalogDep, EngineDep, ReadTokenDep
 from acquisition.models import ArmState, CameraState, DevicesStatus, Health
 from drivers.contracts.version import __version__
 from drivers.errors import DeviceError
@@ -69,7 +69,9 @@ def health(engine: EngineDep, catalog: CatalogDep, response: Response) -> Health
     )
 
 
-@router.get("/devices", response_model=DevicesStatus, tags=["devices"])
+@router.get(
+    "/devices", response_model=DevicesStatus, tags=["devices"], dependencies=[ReadTokenDep], responses=TOKEN_ERRORS
+)
 def devices(engine: EngineDep) -> DevicesStatus:
     """Connection, read-back position and status of the arm; the camera's identity."""
     return DevicesStatus(arm=arm_state(engine), camera=camera_state(engine))

@@ -16,12 +16,12 @@ from pathlib import Path
 from fastapi import APIRouter, HTTPException, status
 from fastapi.responses import FileResponse, Response, StreamingResponse
 
-from acquisition.api.deps import CatalogDep
+from acquisition.api.deps import TOKEN_ERRORS, CatalogDep, ReadTokenDep
 from acquisition.catalog import JobRecord
 from acquisition.models import JobStatus, Problem
 from processing.results import Results, ResultsError
 
-router = APIRouter(prefix="/jobs", tags=["jobs"])
+router = APIRouter(prefix="/jobs", tags=["jobs"], dependencies=[ReadTokenDep], responses=TOKEN_ERRORS)
 
 #: How each kind of result file is served: media type, and whether a browser shows it.
 ARTIFACT_TYPES: dict[str, tuple[str, bool]] = {

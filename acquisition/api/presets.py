@@ -4,10 +4,10 @@ from __future__ import annotations
 
 from fastapi import APIRouter
 
-from acquisition.api.deps import EngineDep, SettingsDep
+from acquisition.api.deps import TOKEN_ERRORS, EngineDep, ReadTokenDep, SettingsDep
 from acquisition.models import RunRequest
 
-router = APIRouter(tags=["presets"])
+router = APIRouter(tags=["presets"], dependencies=[ReadTokenDep], responses=TOKEN_ERRORS)
 
 
 @router.get("/presets")

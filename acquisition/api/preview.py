@@ -4,10 +4,10 @@ from __future__ import annotations
 
 from fastapi import APIRouter, HTTPException, Response, status
 
-from acquisition.api.deps import EngineDep
+from acquisition.api.deps import TOKEN_ERRORS, EngineDep, ReadTokenDep
 from acquisition.models import Problem
 
-router = APIRouter(tags=["runs"])
+router = APIRouter(tags=["runs"], dependencies=[ReadTokenDep], responses=TOKEN_ERRORS)
 
 
 @router.get("/preview.png", responses={200: {"content": {"image/png": {}}}, 404: {"model": Problem}})

@@ -8,16 +8,24 @@ from pathlib import Path
 from fastapi import APIRouter, HTTPException, Request, Response, status
 from fastapi.responses import FileResponse, StreamingResponse
 
-from acquisition.api.deps import TOKEN_ERRORS, CatalogDep, EngineDep, SettingsDep, TokenDep
+from acquisition.api.deps import (
+    TOKEN_ERRORS,
+    WRITE_ERRORS,
+    CatalogDep,
+    EngineDep,
+    ReadTokenDep,
+    SettingsDep,
+    TokenDep,
+)
 from acquisition.api.jobs import job_status
 from acquisition.catalog import RunRecord
 from acquisition.models import CalibrationOptions, JobRequest, JobStatus, Problem, RunRequest, RunStatus
 from acquisition.runner import RunEngine
 
-router = APIRouter(prefix="/runs", tags=["runs"])
+router = APIRouter(prefix="/runs", tags=["runs"], dependencies=[ReadTokenDep], responses=TOKEN_ERRORS)
 FINAL = ("complete", "aborted", "failed", "interrupted")
 ERRORS = {404: {"model": Problem}, 409: {"model": Problem}}
-GUARDED_ERRORS = {**ERRORS, **TOKEN_ERRORS}  # and 401/403 from the token
+GUARDED_ERRORS = {**ERRORS, **WRITE_ERRORS}  # and 401/403 from the token, 415 from the guard
 # FastAPI's answer to a body it cannot read as JSON text at all (not UTF-8, say).
 BODY_ERRORS = {400: {"model": Problem, "description": "the body cannot be read"}}
 
@@ -53,7 +61,7 @@ def run_status(record: RunRecord, engine: RunEngine | None = None) -> RunStatus:
         409: {"model": Problem, "description": "another run is active"},
         422: {"model": Problem},
         **BODY_ERRORS,
-        **TOKEN_ERRORS,
+        **WRITE_ERRORS,
     },
 )
 def start_run(body: RunRequest, engine: EngineDep, settings: SettingsDep) -> RunStatus:

@@ -167,9 +167,9 @@ def _start_daemon(session: _Session, config: Path, folder: Path) -> tuple[Child,
                 child_env(token),
             )
             session.children.append(daemon)
-            session.client = httpx.Client(
-                base_url=f"http://127.0.0.1:{port}", headers={"Authorization": f"Bearer {token}"}, timeout=30.0
-            )
+            # JSON, body or none: the daemon takes nothing else for a request that changes something.
+            headers = {"Authorization": f"Bearer {token}", "Content-Type": "application/json"}
+            session.client = httpx.Client(base_url=f"http://127.0.0.1:{port}", headers=headers, timeout=30.0)
             try:
                 _wait_for_daemon(session.client, daemon)
                 break

@@ -30,11 +30,13 @@ function describeDetail(detail) {
 }
 
 // ``accept`` lists the error statuses whose JSON body is still an answer (503 of /health).
+// Every request carries the token (it guards reads too); every request that changes something
+// is sent as JSON, body or none (the daemon refuses anything else: docs/daemon.md, "Security").
 async function api(method, path, body, accept = []) {
   const headers = {};
   const token = $("token").value.trim();
-  if (method !== "GET" && token) headers.Authorization = `Bearer ${token}`;
-  if (body !== undefined) headers["Content-Type"] = "application/json";
+  if (token) headers.Authorization = `Bearer ${token}`;
+  if (method !== "GET") headers["Content-Type"] = "application/json";
   let resp;
   try {
     resp = await fetch(path, {
@@ -54,12 +56,37 @@ async function api(method, path, body, accept = []) {
   return data;
 }
 
-function showMessage(text, kind = "error") {
+// ``about`` names what the message is about, for hideMessage once that is settled.
+function showMessage(text, kind = "error", about = "") {
   const box = $("message");
   box.textContent = text;
   box.className = `message ${kind}`;
   box.setAttribute("role", kind === "error" ? "alert" : "status");
+  box.dataset.about = about;
   box.hidden = false;
+}
+
+function hideMessage(about) {
+  if ($("message").dataset.about === about) $("message").hidden = true;
+}
+
+// The browser's own requests (the event stream, the preview image, downloads, the report in a
+// tab) cannot carry the token: a session cookie set for it by POST /session stands in for it,
+// for reads only. ``session`` settles when the cookie matches the token field.
+let session = Promise.resolve();
+let sessionSeq = 0;
+
+function openSession() {
+  const seq = ++sessionSeq;
+  const token = $("token").value.trim();
+  session = (token ? api("POST", "/session") : api("DELETE", "/session"))
+    .then(() => {
+      if (seq !== sessionSeq) return;
+      loadPresets();
+      refreshRuns();
+    })
+    .catch(() => { /* a token being typed, or a wrong one: the reads say so */ });
+  return session;
 }
 
 // --- formatting --------------------------------------------------------------------------
@@ -91,21 +118,31 @@ function el(tag, props = {}, ...children) {
 }
 
 // --- device status, every 2 s --------------------------------------------------------------
+// The health needs no token; the devices do, while tokens guard reads.
 async function refreshStatus() {
   try {
-    const [health, devices] = await Promise.all([api("GET", "/health", undefined, [503]), api("GET", "/devices")]);
-    renderHealth(health);
-    renderDevices(devices);
-    $("devices-updated").textContent = `updated ${new Date().toLocaleTimeString()}`;
-    // Follow whatever run the daemon is busy with once ours has ended.
-    if (health.active_run && health.active_run !== followed && (!current || !ACTIVE.includes(current.state))) {
-      follow(health.active_run);
-    }
-  } catch (err) {
-    setBadge($("health-status"), "unreachable", "badge-unreachable");
-    $("health-summary").textContent = err.message;
+    await showStatus();
   } finally {
     setTimeout(refreshStatus, STATUS_PERIOD_MS);
+  }
+}
+
+async function showStatus() {
+  const [health, devices] = await Promise.allSettled([api("GET", "/health", undefined, [503]), api("GET", "/devices")]);
+  if (health.status === "fulfilled") {
+    renderHealth(health.value);
+    const active = health.value.active_run;
+    // Follow whatever run the daemon is busy with once ours has ended.
+    if (active && active !== followed && (!current || !ACTIVE.includes(current.state))) follow(active);
+  } else {
+    setBadge($("health-status"), "unreachable", "badge-unreachable");
+    $("health-summary").textContent = health.reason.message;
+  }
+  if (devices.status === "fulfilled") {
+    renderDevices(devices.value);
+    $("devices-updated").textContent = `updated ${new Date().toLocaleTimeString()}`;
+  } else {
+    $("devices-updated").textContent = `cannot read the devices: ${devices.reason.message}`;
   }
 }
 
@@ -155,8 +192,9 @@ async function loadPresets() {
       $("exposures").value = data.default_bracket.exposures_s.join(", ");
     }
     showPresetInfo();
+    hideMessage("presets");
   } catch (err) {
-    showMessage(`Cannot read the presets — ${err.message}`);
+    showMessage(`Cannot read the presets — ${err.message}`, "error", "presets");
   }
 }
 
@@ -255,8 +293,10 @@ async function fetchFollowed() {
   }
 }
 
-function openEvents(id) {
+async function openEvents(id) {
   if (!window.EventSource) { startPolling(id); return; }
+  await session;  // the stream reads with the session cookie
+  if (followed !== id || source) return;
   const es = new EventSource(`/runs/${encodeURIComponent(id)}/events`);
   source = es;
   es.addEventListener("progress", (e) => {
@@ -495,7 +535,10 @@ async function processRun(id) {
 function init() {
   const token = $("token");
   token.value = localStorage.getItem(TOKEN_KEY) || "";
-  token.addEventListener("input", () => localStorage.setItem(TOKEN_KEY, token.value.trim()));
+  token.addEventListener("input", () => {
+    localStorage.setItem(TOKEN_KEY, token.value.trim());
+    openSession();
+  });
   $("start-form").addEventListener("submit", startRun);
   $("preset").addEventListener("change", showPresetInfo);
   for (const radio of document.querySelectorAll("input[name=bracket]")) radio.addEventListener("change", showBracketFields);
@@ -506,9 +549,8 @@ function init() {
   $("preview").addEventListener("load", previewLoaded);
   $("preview").addEventListener("error", previewMissing);
   showBracketFields();
-  loadPresets();
   refreshStatus();
-  refreshRuns();
+  if (token.value) openSession(); else { loadPresets(); refreshRuns(); }
   setInterval(refreshRuns, STATUS_PERIOD_MS);
 }
 
