@@ -101,7 +101,9 @@ def test_a_token_holder_is_told_why_the_file_cannot_be_used(tmp_path):
     settings = load_settings(None, data_dir=tmp_path / "data", rig=REDUCED_RIG, token=token)
     fifo = tmp_path / "pipe.json"
     os.mkfifo(fifo)
-    with TestClient(create_app(settings), headers={"Authorization": f"Bearer {token}"}) as http:
+    with TestClient(
+        create_app(settings), base_url="http://127.0.0.1", headers={"Authorization": f"Bearer {token}"}
+    ) as http:
         answer = http.post("/runs", json={"light_results": str(fifo)})
     assert answer.status_code == 422
     reason = f"light_results: {fifo}: a FIFO (named pipe), not a light model (a regular file)"

@@ -620,7 +620,11 @@ def rig_problems(path: Path = RIG_COMPOSE, env: dict[str, str] | None = None, to
     that own them on the host."""
     from acquisition.settings import SettingsError
 
-    env = {"MG_TOKEN": "test-token", "MG_RIG_FILE": str(ROOT / "rigs" / "default.toml")} if env is None else env
+    env = (
+        {"MG_TOKEN": "test-token-0123456789", "MG_RIG_FILE": str(ROOT / "rigs" / "default.toml")}
+        if env is None
+        else env
+    )
     try:
         config = resolve_compose(path, env, tool)
     except ComposeError as exc:
