@@ -7,14 +7,21 @@ from __future__ import annotations
 import errno
 import gc
 import os
+import re
 import subprocess
+import time
 from pathlib import Path
 
 import h5py
 import numpy as np
 import pytest
+from conftest import REDUCED_RIG
+from fastapi.testclient import TestClient
 from test_runfile import SEED, make_header, position_data
 
+from acquisition.app import create_app
+from acquisition.runner import RunEngine
+from acquisition.settings import load_settings
 from drivers.contracts.runfile import RunFile, RunFileWriteError, RunFileWriter
 
 N_POSITIONS = 20
@@ -107,3 +114,96 @@ def test_a_write_the_disk_refuses_is_one_line_and_every_committed_position_survi
         writer.set_status("complete")
     assert hdf5_open_objects() == baseline
     assert_positions_intact(path, range(N_POSITIONS))
+
+
+# --- the daemon ------------------------------------------------------------------------------
+# One exposure per position and one calibration frame, on the reduced rig (500 x 328 frames,
+# ~130 kB each in the run file): a few MB hold a run.
+SMALL_RUN = {
+    "count": 12,
+    "bracket": {"mode": "fixed", "exposures_s": [0.001]},
+    "calibration": {"dark": False, "ambient_exposures_s": [0.01]},
+}
+
+
+@pytest.fixture()
+def daemon(tmp_path):
+    """``start(data_dir)``: the daemon in process on the reduced rig, its devices simulated,
+    its run thread, run files and catalog real; ``/health`` wants 0.5 MB free."""
+    clients: list[TestClient] = []
+
+    def start(data_dir: Path) -> tuple[TestClient, RunEngine]:
+        settings = load_settings(None, data_dir=data_dir, rig=REDUCED_RIG, storage={"min_free_mb": 0.5})
+        settings.arm.simulated.speed_m_s = settings.arm.simulated.accel_m_s2 = float("inf")
+        client = TestClient(create_app(settings))
+        client.__enter__()
+        clients.append(client)
+        return client, client.app.state.engine
+
+    yield start
+    for client in clients:
+        client.__exit__(None, None, None)
+
+
+def wait_end(http: TestClient, run_id: str, timeout: float = 60.0) -> dict:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        status = http.get(f"/runs/{run_id}").json()
+        if status["state"] not in ("queued", "running"):
+            return status
+        time.sleep(0.05)
+    raise AssertionError(f"run {run_id} did not end: {status}")
+
+
+def test_a_disk_that_fills_mid_run_fails_it_cleanly_and_the_run_resumes_once_space_is_freed(small_fs, tmp_path, daemon):
+    disk = small_fs(tmp_path / "disk", 8 * 1024)
+    http, engine = daemon(disk / "data")
+    assert http.get("/health").json()["status"] == "ok"
+    filler = fill(disk / "filler", leave=1_000_000)
+    # The estimate does not fit: refused before anything is written, with both figures.
+    refused = http.post("/runs", json=SMALL_RUN)
+    assert refused.status_code == 507, refused.text
+    assert re.fullmatch(
+        r"the run \(12 positions, 13 frames of 500 x 328\) needs about 4\.2 MB, 1\.0 MB free in \S+/runs: "
+        r'free some space, or send "force": true to start anyway',
+        refused.json()["detail"],
+    )
+    assert http.get("/runs").json() == []
+    run = http.post("/runs", json={**SMALL_RUN, "force": True}).json()
+    failed = wait_end(http, run["id"])
+    path = engine.catalog.get_run(run["id"]).path
+    assert failed["state"] == "failed" and engine.busy is False
+    assert re.fullmatch(rf"no space left on device writing {re.escape(path)} \(position \d+\)", failed["last_error"])
+    assert 2 <= failed["positions_done"] < 12
+    done = failed["positions_done"]
+    with RunFile.open(path) as f:  # readable, every completed position whole
+        assert list(np.flatnonzero(f.complete)) == list(range(done))
+        kept = [f.timestamps(i) for i in range(done)]
+        assert f.calibration_sets() == [("ambient", "before")]
+    assert engine.devices.arm.status().moving is False
+    health = http.get("/health")
+    assert health.status_code == 503 and health.json()["status"] == "degraded"
+    assert any(reason.startswith(f"data directory {disk / 'data'}: ") for reason in health.json()["reasons"])
+    # The catalog's disk is full too: its writes are a 507 with one line, never a 500.
+    rest = fill(disk / "rest")
+    for answer in (
+        http.post(f"/runs/{run['id']}/process", json={}),
+        http.post("/runs", json={**SMALL_RUN, "force": True}),
+        http.post(f"/runs/{run['id']}/resume"),
+    ):
+        assert answer.status_code == 507, answer.text
+        assert "\n" not in answer.json()["detail"]
+    assert http.post(f"/runs/{run['id']}/process", json={}).json()["detail"] == (
+        f"no space left on device writing the catalog {engine.catalog.path}"
+    )
+    # Space again: healthy, and the run resumes (its file salvaged) to its end, without a restart.
+    filler.unlink()
+    rest.unlink()
+    assert http.get("/health").json() == {**health.json(), "status": "ok", "reasons": []}
+    assert http.post(f"/runs/{run['id']}/resume").status_code == 200
+    assert wait_end(http, run["id"])["state"] == "complete"
+    with RunFile.open(path) as f:
+        assert f.complete.all() and f.status == "complete"
+        for i in range(done):
+            np.testing.assert_array_equal(f.timestamps(i), kept[i])
+    assert http.post(f"/runs/{run['id']}/process", json={}).status_code == 201

@@ -47,7 +47,13 @@ refuses to write again; the file on the disk keeps every position committed befo
 is salvaged like a killed run's when the run resumes (which needs room for the copy).
 """
 
-from drivers.contracts.runfile.disk import NO_SPACE_ERRNOS, STORAGE_ERRNOS, file_sha256, storage_errno
+from drivers.contracts.runfile.disk import (
+    NO_SPACE_ERRNOS,
+    STORAGE_ERRNOS,
+    file_sha256,
+    marked_open_for_write,
+    storage_errno,
+)
 from drivers.contracts.runfile.layout import (
     CALIBRATION_MAX_FRAMES,
     CALIBRATION_ROLES,
@@ -87,5 +93,6 @@ __all__ = [
     "RunFileWriter",
     "RunHeader",
     "file_sha256",
+    "marked_open_for_write",
     "storage_errno",
 ]

@@ -97,6 +97,24 @@ def fresh_file(path: Path) -> Iterator[h5py.File]:
         f.close()
 
 
+#: The HDF5 signature, and the superblock's file consistency flags "open for write" (bit 0)
+#: and "open for SWMR write" (bit 2), in the superblock versions 2 and 3 a run file has.
+_HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
+_OPEN_FOR_WRITE_FLAGS = 0b101
+
+
+def marked_open_for_write(path: str | os.PathLike[str]) -> bool:
+    """Whether the file at ``path`` is marked open for writing in its superblock: its writer
+    did not close it (killed, or stopped by a failed write), so reopening it to write salvages
+    it into a fresh copy (which needs room for the copy). False for a missing or other file."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(12)
+    except OSError:
+        return False
+    return len(head) == 12 and head[:8] == _HDF5_SIGNATURE and head[8] >= 2 and bool(head[11] & _OPEN_FOR_WRITE_FLAGS)
+
+
 def file_sha256(path: str | os.PathLike[str], chunk_bytes: int = 1 << 20) -> str:
     """Hex SHA-256 of a file's bytes (the identity of a referenced file)."""
     digest = hashlib.sha256()

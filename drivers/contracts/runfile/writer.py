@@ -463,10 +463,25 @@ class RunFileWriter:
 
     # --- closing -------------------------------------------------------------------------
     def close(self) -> None:
-        """Close the file and release the writer's lock (idempotent)."""
+        """Close the file and release the writer's lock (idempotent).
+
+        Raises
+        ------
+        RunFileWriteError
+            The last data could not be written (the file is closed all the same).
+        """
         with self._mutex:
             if self._f is None:
                 return
+            try:
+                if self._failed is None:  # what is still unwritten, dropped if the storage refuses it
+                    with self._writing("closing the run file"):
+                        self._f.flush()
+            finally:
+                self._close_file()
+
+    def _close_file(self) -> None:
+        if self._f is not None:
             try:
                 self._f.close()
             finally:
