@@ -517,7 +517,7 @@ class RunEngine:
 
     def _open_run_file(self, plan: RunPlan, resume: bool) -> RunFileWriter:
         """The run file, created or reopened, with the run marked running in it and in the catalog."""
-        if resume:
+        if resume and plan.path.exists():  # a run that failed creating it resumes by creating it
             writer = RunFileWriter.reopen(plan.path)
         else:
             writer = RunFileWriter.create(plan.path, self._header(plan))

@@ -12,7 +12,7 @@ import errno
 import os
 from pathlib import Path
 
-from drivers.contracts.runfile import STORAGE_ERRNOS, RunFileError, storage_errno
+from drivers.contracts.runfile import STORAGE_ERRNOS, RunFileError, RunFileWriteError, storage_errno
 
 MB = 1_000_000
 #: What a run needs besides its frames: the run file's header, schedule and records, and the
@@ -66,14 +66,16 @@ def min_free_bytes(min_free_mb: float | None, frame_shape: tuple[int, int], expo
 
 def failure_message(exc: BaseException, path: Path | None) -> str:
     """The one-line ``last_error`` of a run that failed with ``exc`` while writing ``path``: the
-    message of a run file's or the storage's error, the storage's words for another write it
-    refused (``no space left on device writing PATH``), else the exception's type and message."""
-    if isinstance(exc, RunFileError | StorageError):
+    message of a write error, the storage's words for another write it refused (``read-only
+    file system writing PATH``), else the error's own message."""
+    if isinstance(exc, RunFileWriteError | StorageError):
         return str(exc)
     code = storage_errno(exc)
-    if code is None or path is None:
-        return f"{type(exc).__name__}: {exc}"
-    return f"{STORAGE_ERRNOS[code]} writing {path}"
+    if code is not None and path is not None:
+        return f"{STORAGE_ERRNOS[code]} writing {path}"
+    if isinstance(exc, RunFileError):
+        return str(exc)
+    return f"{type(exc).__name__}: {exc}"
 
 
 def directory_problems(directories: list[Path], min_free: int) -> list[str]:

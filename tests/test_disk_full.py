@@ -15,14 +15,13 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
-from conftest import REDUCED_RIG
 from fastapi.testclient import TestClient
 from test_runfile import SEED, make_header, position_data
 
 from acquisition.app import create_app
 from acquisition.runner import RunEngine
 from acquisition.settings import load_settings
-from drivers.contracts.runfile import RunFile, RunFileWriteError, RunFileWriter
+from drivers.contracts.runfile import RunFile, RunFileWriteError, RunFileWriter, storage_errno
 
 N_POSITIONS = 20
 
@@ -117,10 +116,11 @@ def test_a_write_the_disk_refuses_is_one_line_and_every_committed_position_survi
 
 
 # --- the daemon ------------------------------------------------------------------------------
-# One exposure per position and one calibration frame, on the reduced rig (500 x 328 frames,
-# ~130 kB each in the run file): a few MB hold a run.
+# The default rig's field of view in 250 x 164 pixels (82 kB a frame, ~33 kB in the run file),
+# one exposure per position and one calibration frame: a run fits in a few hundred kB.
+TINY_RIG = "[camera]\nwidth = 250\nheight = 164\npixel_pitch_m = 47.2e-6\n"
 SMALL_RUN = {
-    "count": 12,
+    "count": 8,
     "bracket": {"mode": "fixed", "exposures_s": [0.001]},
     "calibration": {"dark": False, "ambient_exposures_s": [0.01]},
 }
@@ -128,12 +128,14 @@ SMALL_RUN = {
 
 @pytest.fixture()
 def daemon(tmp_path):
-    """``start(data_dir)``: the daemon in process on the reduced rig, its devices simulated,
-    its run thread, run files and catalog real; ``/health`` wants 0.5 MB free."""
+    """``start(data_dir)``: the daemon in process on a tiny rig, its devices simulated, its run
+    thread, run files and catalog real; ``/health`` wants 0.2 MB free."""
     clients: list[TestClient] = []
+    rig = tmp_path / "tiny.toml"
+    rig.write_text(TINY_RIG)
 
     def start(data_dir: Path) -> tuple[TestClient, RunEngine]:
-        settings = load_settings(None, data_dir=data_dir, rig=REDUCED_RIG, storage={"min_free_mb": 0.5})
+        settings = load_settings(None, data_dir=data_dir, rig=rig, storage={"min_free_mb": 0.2})
         settings.arm.simulated.speed_m_s = settings.arm.simulated.accel_m_s2 = float("inf")
         client = TestClient(create_app(settings))
         client.__enter__()
@@ -156,15 +158,15 @@ def wait_end(http: TestClient, run_id: str, timeout: float = 60.0) -> dict:
 
 
 def test_a_disk_that_fills_mid_run_fails_it_cleanly_and_the_run_resumes_once_space_is_freed(small_fs, tmp_path, daemon):
-    disk = small_fs(tmp_path / "disk", 8 * 1024)
+    disk = small_fs(tmp_path / "disk", 4 * 1024)
     http, engine = daemon(disk / "data")
     assert http.get("/health").json()["status"] == "ok"
-    filler = fill(disk / "filler", leave=1_000_000)
+    filler = fill(disk / "filler", leave=250_000)
     # The estimate does not fit: refused before anything is written, with both figures.
     refused = http.post("/runs", json=SMALL_RUN)
     assert refused.status_code == 507, refused.text
     assert re.fullmatch(
-        r"the run \(12 positions, 13 frames of 500 x 328\) needs about 4\.2 MB, 1\.0 MB free in \S+/runs: "
+        r"the run \(8 positions, 9 frames of 250 x 164\) needs about 1\.6 MB, 0\.2 MB free in \S+/runs: "
         r'free some space, or send "force": true to start anyway',
         refused.json()["detail"],
     )
@@ -174,7 +176,7 @@ def test_a_disk_that_fills_mid_run_fails_it_cleanly_and_the_run_resumes_once_spa
     path = engine.catalog.get_run(run["id"]).path
     assert failed["state"] == "failed" and engine.busy is False
     assert re.fullmatch(rf"no space left on device writing {re.escape(path)} \(position \d+\)", failed["last_error"])
-    assert 2 <= failed["positions_done"] < 12
+    assert 2 <= failed["positions_done"] < 8
     done = failed["positions_done"]
     with RunFile.open(path) as f:  # readable, every completed position whole
         assert list(np.flatnonzero(f.complete)) == list(range(done))
@@ -207,3 +209,44 @@ def test_a_disk_that_fills_mid_run_fails_it_cleanly_and_the_run_resumes_once_spa
         for i in range(done):
             np.testing.assert_array_equal(f.timestamps(i), kept[i])
     assert http.post(f"/runs/{run['id']}/process", json={}).status_code == 201
+
+
+def remount(path: Path, mode: str) -> None:
+    subprocess.run(["mount", "-o", f"remount,{mode}", str(path)], check=True, capture_output=True)
+
+
+def test_a_read_only_data_directory_degrades_health_and_a_forced_run_fails_cleanly(small_fs, tmp_path, daemon):
+    runs = small_fs(tmp_path / "data" / "runs", 2048)
+    http, engine = daemon(tmp_path / "data")
+    remount(runs, "ro")
+    health = http.get("/health")
+    assert health.status_code == 503 and f"data directory {runs}: read-only file system" in health.json()["reasons"]
+    request = {**SMALL_RUN, "count": 2}
+    refused = http.post("/runs", json=request)
+    assert refused.status_code == 503
+    assert refused.json()["detail"] == (
+        f"the run (2 positions, 3 frames of 250 x 164): data directory {runs}: read-only file system"
+    )
+    run = http.post("/runs", json={**request, "force": True}).json()
+    failed = wait_end(http, run["id"])
+    assert failed["state"] == "failed" and not engine.busy
+    assert failed["last_error"] == f"read-only file system writing {runs / (run['id'] + '.h5')}"
+    remount(runs, "rw")
+    assert http.get("/health").json()["status"] == "ok"
+    assert http.post(f"/runs/{run['id']}/resume").status_code == 200
+    assert wait_end(http, run["id"])["state"] == "complete"
+    with RunFile.open(runs / f"{run['id']}.h5") as f:
+        assert f.complete.all()
+
+
+@pytest.mark.parametrize(
+    ("error", "code"),
+    [
+        (RuntimeError("Unable to flush (file write failed: errno = 28, error message = 'No space left')"), 28),
+        (OSError(errno.EROFS, "Read-only file system"), errno.EROFS),
+        (ValueError("run.h5: cannot create run.h5.lock: Input/output error"), errno.EIO),
+        (OSError("Unable to open (file signature not found)"), None),
+    ],
+)
+def test_the_storage_refusal_behind_an_error_is_found_in_its_code_or_words(error, code):
+    assert storage_errno(error) == code
