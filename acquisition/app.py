@@ -30,6 +30,7 @@ from acquisition.client_files import ClientFileError
 from acquisition.devices import open_devices
 from acquisition.runner import RunConflictError, RunEngine, RunEngineError
 from acquisition.settings import DaemonSettings
+from acquisition.storage import InsufficientStorageError, StorageUnavailableError
 from drivers.contracts.rig import RigError, load_rig
 from drivers.contracts.version import __version__
 from drivers.errors import DeviceError
@@ -38,8 +39,11 @@ log = logging.getLogger("mirrorgonio.daemon")
 WEB_DIR = Path(__file__).resolve().parent / "web"
 WEB_PAGE = WEB_DIR / "index.html"
 
-# Domain errors and the HTTP status each one means.
+# Domain errors and the HTTP status each one means (the first that matches). A storage that
+# refuses a write (the catalog's or a run's) comes before the catalog's other errors.
 ERROR_STATUS: list[tuple[type[Exception], int]] = [
+    (InsufficientStorageError, status.HTTP_507_INSUFFICIENT_STORAGE),
+    (StorageUnavailableError, status.HTTP_503_SERVICE_UNAVAILABLE),
     (UnknownRunError, status.HTTP_404_NOT_FOUND),
     (UnknownJobError, status.HTTP_404_NOT_FOUND),
     (InvalidTransitionError, status.HTTP_409_CONFLICT),

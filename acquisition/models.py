@@ -93,6 +93,9 @@ class RunRequest(BaseModel):
         default_factory=CalibrationOptions,
         description="calibration frames with the light off, before (and after) the sweep",
     )
+    force: StrictBool = Field(
+        default=False, description="start even if the run's estimated size exceeds the free space (else 507)"
+    )
     operator: str = Field(default="", max_length=200)
     light_source: str = Field(default="", max_length=200)
     notes: str = Field(default="", max_length=4000)
@@ -296,6 +299,15 @@ class CameraState(BaseModel):
 class DevicesStatus(BaseModel):
     arm: ArmState
     camera: CameraState
+
+
+class ResumeRequest(BaseModel):
+    """Options of a resume (the body is optional)."""
+
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [{"force": True}]})
+    force: StrictBool = Field(
+        default=False, description="resume even if what the run has left exceeds the free space (else 507)"
+    )
 
 
 class Health(BaseModel):

@@ -31,14 +31,24 @@ from pathlib import Path
 
 from acquisition.bracketing import NoiseModel, exposures_from_metering, is_saturated
 from acquisition.catalog import Catalog, RunRecord
+from acquisition.catalog.pending import PendingEnds
 from acquisition.client_files import load_client_file
 from acquisition.devices import Devices
 from acquisition.models import AutoBracket, FixedBracket, RunRequest
 from acquisition.preview import preview_png
 from acquisition.settings import DaemonSettings
+from acquisition.storage import check_room, failure_message, run_bytes
 from drivers.camera import RawFrame
 from drivers.contracts.rig import LightSweep, ObjectArc, Raster, Rig, RigError, rig_from_dict
-from drivers.contracts.runfile import PositionTimes, RunFileWriter, RunHeader, file_sha256
+from drivers.contracts.runfile import (
+    PositionTimes,
+    RunFileError,
+    RunFileWriter,
+    RunHeader,
+    file_sha256,
+    marked_open_for_write,
+    storage_errno,
+)
 from drivers.contracts.version import __version__
 from drivers.errors import CommunicationError, DeviceError, DeviceTimeoutError, MoveInterruptedError
 from drivers.light import AMBIENT, DARK, SWEEP, Lighting
@@ -174,6 +184,7 @@ class RunEngine:
         self._preview_cache: tuple[int, bytes] | None = None
         self._frame_serial = 0
         self._step: str | None = None
+        self.pending = PendingEnds(catalog)  # runs' ends the catalog could not record yet
         Path(settings.runs_dir).mkdir(parents=True, exist_ok=True)
 
     # --- presets ---------------------------------------------------------------------------
@@ -225,6 +236,31 @@ class RunEngine:
             }
         return refs
 
+    # --- storage ---------------------------------------------------------------------------
+    def check_room(self, request: RunRequest, positions: int, extra_bytes: int = 0) -> None:
+        """Refuse a run (or what a resumed one has left: ``positions``, and ``extra_bytes`` for
+        the salvaged copy of its file) whose estimated size does not fit in the free space.
+
+        The estimate is every frame (the longest bracket at each position, and the calibration
+        sets) at ``storage.compression_ratio`` of its raw size, plus the run file's records.
+
+        Raises
+        ------
+        InsufficientStorageError
+            It does not fit (HTTP 507; the request's ``force`` starts it anyway).
+        StorageUnavailableError
+            The runs' directory cannot be written (HTTP 503).
+        """
+        if not self.settings.storage.check_before_run:
+            return
+        calibration = self._calibration_plan(request)
+        frames = positions * self._max_exposures(request)
+        frames += sum(len(_calibration_shot(calibration, role)[1]) for role, _ in _calibration_sets(calibration))
+        shape = (self.rig.camera.height, self.rig.camera.width)
+        needed = run_bytes(frames, shape, self.settings.storage.compression_ratio) + extra_bytes
+        what = f"the run ({positions} positions, {frames} frames of {shape[1]} x {shape[0]})"
+        check_room(Path(self.settings.runs_dir), needed, what)
+
     # --- control ---------------------------------------------------------------------------
     @property
     def busy(self) -> bool:
@@ -234,12 +270,15 @@ class RunEngine:
         rig = self.plan_schedule(request)
         references = self.references(rig, request)  # refuse unreadable references before anything starts
         with self._lock:
+            self.pending.save()
             active = self.catalog.active_run()
             if active is not None or self.busy:
                 raise RunConflictError(f"run {active.id if active else self._current} is already active on this rig")
             tool, light = rig.tool_poses(), rig.light_poses()
             if request.count is not None:
                 tool, light = tool[: request.count], light[: request.count]
+            if not request.force:
+                self.check_room(request, len(tool))
             runs_dir = Path(self.settings.runs_dir)
             record = self.catalog.create_run(
                 preset=request.preset,
@@ -251,9 +290,11 @@ class RunEngine:
             self._launch(plan, resume=False)
         return record
 
-    def resume(self, run_id: str) -> RunRecord:
-        """Continue a paused run, or restart an interrupted or failed one where it stopped."""
+    def resume(self, run_id: str, force: bool = False) -> RunRecord:
+        """Continue a paused run, or restart an interrupted or failed one where it stopped
+        (refused when what it has left to take does not fit in the free space, unless ``force``)."""
         with self._lock:
+            self.pending.save()
             record = self.catalog.get_run(run_id)
             if record.state == "paused" and self.busy and self._current == run_id:
                 self._control.operator_stop.clear()
@@ -273,6 +314,9 @@ class RunEngine:
             tool, light = rig.tool_poses(), rig.light_poses()
             if request.count is not None:
                 tool, light = tool[: request.count], light[: request.count]
+            if not force:
+                salvage = Path(record.path).stat().st_size if marked_open_for_write(record.path) else 0
+                self.check_room(request, record.n_positions - record.positions_done, salvage)
             if record.state == "failed":
                 # The technician has cleared the fault: acknowledge the controller's alarm.
                 self.devices.arm.reset_alarm()
@@ -294,6 +338,7 @@ class RunEngine:
 
     def abort(self, run_id: str) -> RunRecord:
         with self._lock:
+            self.pending.save()
             record = self.catalog.get_run(run_id)
             if record.state in ("interrupted", "failed") and not self.busy:
                 record = self.catalog.transition_run(run_id, "aborted")
@@ -468,14 +513,15 @@ class RunEngine:
         except DeviceError as exc:
             outcome, message = "failed", str(exc)
         except Exception as exc:  # noqa: BLE001 - any other failure still keeps the data
-            log.exception("run %s failed", plan.run_id)
-            outcome, message = "failed", f"{type(exc).__name__}: {exc}"
+            outcome, message = "failed", failure_message(exc, plan.path)
+            if storage_errno(exc) is None:
+                log.exception("run %s failed", plan.run_id)
         finally:
             self._end_run(plan.run_id, outcome, message, writer, behind)
 
     def _open_run_file(self, plan: RunPlan, resume: bool) -> RunFileWriter:
         """The run file, created or reopened, with the run marked running in it and in the catalog."""
-        if resume:
+        if resume and plan.path.exists():  # a run that failed creating it resumes by creating it
             writer = RunFileWriter.reopen(plan.path)
         else:
             writer = RunFileWriter.create(plan.path, self._header(plan))
@@ -629,21 +675,19 @@ class RunEngine:
                     continue
                 try:
                     writer.write_position(index, measured, times, frames)
+                    for frame in frames:
+                        self._discard_raw(frame)
+                    recent = behind.durations[-10:]
+                    self.catalog.update_progress(
+                        run_id,
+                        positions_done=int(writer.complete.sum()),
+                        current_position=index,
+                        seconds_per_position=sum(recent) / len(recent) if behind.durations else None,
+                        exposures_per_position=len(frames),
+                    )
                 except BaseException as exc:  # noqa: BLE001 - reported to the run thread
                     behind.errors.append(exc)
                     continue
-                for frame in frames:
-                    self._discard_raw(frame)
-                done = int(writer.complete.sum())
-                recent = behind.durations[-10:]
-                per_position = sum(recent) / len(recent) if behind.durations else None
-                self.catalog.update_progress(
-                    run_id,
-                    positions_done=done,
-                    current_position=index,
-                    seconds_per_position=per_position,
-                    exposures_per_position=len(frames),
-                )
                 self.events.publish()
             finally:
                 behind.queue.task_done()
@@ -662,18 +706,29 @@ class RunEngine:
             behind.queue.put(None)  # frames already taken are still written
             behind.thread.join()
         if behind.errors and outcome == "complete":
-            outcome, message = "failed", str(behind.errors[0])
+            outcome, message = "failed", failure_message(behind.errors[0], None)
         if writer is not None:
-            try:
-                writer.set_status(outcome, message)
-            finally:
-                writer.close()
-        state = self.catalog.get_run(run_id).state
-        if state != outcome:
-            self.catalog.transition_run(run_id, outcome, error=message or None)
+            outcome, message = self._close_run_file(writer, outcome, message)
+        self.pending.record(run_id, outcome, message)
         self._current = None if outcome != "paused" else run_id
         self._step = None
         self.events.publish()
+
+    def _close_run_file(self, writer: RunFileWriter, outcome: str, message: str) -> tuple[str, str]:
+        """Record the outcome in the run file and close it: the outcome and its message, a
+        write failure's when the file refused them (a run that took every position but could
+        not record that fails, and resumes to complete)."""
+        try:
+            writer.set_status(outcome, message)
+        except RunFileError as exc:
+            log.warning("run file %s: %s", writer.path, exc)
+        try:
+            writer.close()
+        except RunFileError as exc:
+            log.warning("run file %s: %s", writer.path, exc)
+        if writer.failed is not None and outcome != "aborted":
+            return "failed", str(writer.failed)
+        return outcome, message
 
     def _take_position(
         self, plan: RunPlan, index: int, behind: _WriteBehind, arrival: _Arrival | None = None

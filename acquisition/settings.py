@@ -179,6 +179,23 @@ class AutoBracketSettings(_Section):
     max_exposure_s: Seconds = 30.0
 
 
+class StorageSettings(_Section):
+    """The data directory's free space (``docs/daemon.md``, "When the disk fills").
+
+    ``min_free_mb``: ``/health`` is degraded with less free space (default: one position of
+    the default bracket, uncompressed, and 1 MB for the run file's records and the catalog).
+    ``check_before_run``: refuse (507) a run whose estimated size exceeds the free space,
+    unless its request says ``"force": true``. ``compression_ratio``: the stored size of a
+    frame over its raw size in that estimate (measured on the demo rig's simulated frames:
+    0.40 for the sweep's, 0.39-0.73 for the calibration frames; a real sensor's noise
+    compresses less: 1.0 assumes none).
+    """
+
+    min_free_mb: float | None = Field(default=None, ge=0.0, le=1e9)
+    check_before_run: bool = True
+    compression_ratio: float = Field(default=0.75, gt=0.0, le=2.0)
+
+
 class DaemonSettings(BaseSettings):
     """Everything ``mirrorgonio serve`` needs."""
 
@@ -207,6 +224,7 @@ class DaemonSettings(BaseSettings):
     camera: CameraSettings = Field(default_factory=CameraSettings)
     light: LightSettings = Field(default_factory=LightSettings)
     auto_bracket: AutoBracketSettings = Field(default_factory=AutoBracketSettings)
+    storage: StorageSettings = Field(default_factory=StorageSettings)
     default_exposures_s: list[Seconds] = Field(default_factory=lambda: [0.0002, 0.001, 0.005])
 
     @field_validator("token", mode="before")

@@ -6,8 +6,9 @@ import math
 
 from fastapi import APIRouter, Response, status
 
-from acquisition.api.deps import TOKEN_ERRORS, CatalogDep, EngineDep, ReadTokenDep
+from acquisition.api.deps import TOKEN_ERRORS, CatalogDep, EngineDep, ReadTokenDep, SettingsDep
 from acquisition.models import ArmState, CameraState, DevicesStatus, Health
+from acquisition.storage import StorageError, directory_problems, min_free_bytes
 from drivers.contracts.version import __version__
 from drivers.errors import DeviceError
 
@@ -47,9 +48,10 @@ def camera_state(engine) -> CameraState:
 
 
 @router.get("/health", response_model=Health, responses={503: {"model": Health, "description": "degraded"}})
-def health(engine: EngineDep, catalog: CatalogDep, response: Response) -> Health:
-    """``ok`` only when the arm answers without an alarm and the camera is there; else 503."""
-    reasons = []
+def health(engine: EngineDep, catalog: CatalogDep, settings: SettingsDep, response: Response) -> Health:
+    """``ok`` only when the arm answers without an alarm, the camera is there, and the data
+    directory can be written with room for a position; else 503 with the reasons."""
+    reasons = storage_problems(engine, settings)
     arm = arm_state(engine)
     if not arm.connected:
         reasons.append(f"arm: {arm.error}")
@@ -59,6 +61,8 @@ def health(engine: EngineDep, catalog: CatalogDep, response: Response) -> Health
     if not camera.connected:
         reasons.append(f"camera: {camera.error}")
     active = catalog.active_run()
+    if active is not None and active.id in engine.pending.held():
+        active = None  # it has ended; the catalog does not know yet
     if reasons:
         response.status_code = status.HTTP_503_SERVICE_UNAVAILABLE
     return Health(
@@ -67,6 +71,22 @@ def health(engine: EngineDep, catalog: CatalogDep, response: Response) -> Health
         version=__version__,
         active_run=active.id if active else None,
     )
+
+
+def storage_problems(engine, settings) -> list[str]:
+    """The data directory's problems (read-only, not writable, too little free space), and the
+    runs' ends the catalog could not record yet (recorded now if it can be written again)."""
+    directories = [settings.data_dir, settings.runs_dir]
+    frame_shape = (engine.rig.camera.height, engine.rig.camera.width)
+    problems = directory_problems(
+        directories, min_free_bytes(settings.storage.min_free_mb, frame_shape, len(settings.default_exposures_s))
+    )
+    try:
+        engine.pending.save()
+    except StorageError as exc:
+        held = ", ".join(f"{run_id} {state}" for run_id, (state, _) in engine.pending.held().items())
+        problems.append(f"catalog: not recorded yet ({held}): {exc}")
+    return problems
 
 
 @router.get(

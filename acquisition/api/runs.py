@@ -19,19 +19,30 @@ from acquisition.api.deps import (
 )
 from acquisition.api.jobs import job_status
 from acquisition.catalog import RunRecord
-from acquisition.models import CalibrationOptions, JobRequest, JobStatus, Problem, RunRequest, RunStatus
+from acquisition.models import CalibrationOptions, JobRequest, JobStatus, Problem, ResumeRequest, RunRequest, RunStatus
 from acquisition.runner import RunEngine
 
 router = APIRouter(prefix="/runs", tags=["runs"], dependencies=[ReadTokenDep], responses=TOKEN_ERRORS)
 FINAL = ("complete", "aborted", "failed", "interrupted")
 ERRORS = {404: {"model": Problem}, 409: {"model": Problem}}
-GUARDED_ERRORS = {**ERRORS, **WRITE_ERRORS}  # and 401/403 from the token, 415 from the guard
+# A storage that refuses the catalog's write, or a run that would not fit (docs/daemon.md).
+STORAGE_ERRORS = {
+    503: {"model": Problem, "description": "the data's storage cannot be written (read-only, an I/O error)"},
+    507: {
+        "model": Problem,
+        "description": "not enough free space (the catalog's disk is full, or the run would not fit)",
+    },
+}
+GUARDED_ERRORS = {**ERRORS, **WRITE_ERRORS, **STORAGE_ERRORS}  # and 401/403 from the token, 415 from the guard
 # FastAPI's answer to a body it cannot read as JSON text at all (not UTF-8, say).
 BODY_ERRORS = {400: {"model": Problem, "description": "the body cannot be read"}}
 
 
 def run_status(record: RunRecord, engine: RunEngine | None = None) -> RunStatus:
-    """The API's view of a run; with the engine, what it is doing now (``step``)."""
+    """The API's view of a run; with the engine, what it is doing now (``step``) and how it
+    ended if the catalog could not record that yet."""
+    if engine is not None:
+        record = engine.pending.known(record)
     percent = 100.0 * record.positions_done / record.n_positions if record.n_positions else 0.0
     return RunStatus(
         id=record.id,
@@ -62,10 +73,12 @@ def run_status(record: RunRecord, engine: RunEngine | None = None) -> RunStatus:
         422: {"model": Problem},
         **BODY_ERRORS,
         **WRITE_ERRORS,
+        **STORAGE_ERRORS,
     },
 )
 def start_run(body: RunRequest, engine: EngineDep, settings: SettingsDep) -> RunStatus:
-    """Start a run. Only one run at a time per rig: a second one gets 409."""
+    """Start a run. Only one run at a time per rig: a second one gets 409. A run whose
+    estimated size exceeds the free space gets 507 with both, unless it says ``"force": true``."""
     if "ambient_exposures_s" not in body.calibration.model_fields_set:
         options = {**body.calibration.model_dump(), "ambient_exposures_s": settings.light.ambient_exposures_s}
         body = body.model_copy(update={"calibration": CalibrationOptions.model_validate(options)})
@@ -95,12 +108,18 @@ def pause(run_id: str, engine: EngineDep) -> RunStatus:
     return run_status(engine.pause(run_id), engine)
 
 
-@router.post("/{run_id}/resume", response_model=RunStatus, dependencies=[TokenDep], responses=GUARDED_ERRORS)
-def resume(run_id: str, engine: EngineDep) -> RunStatus:
+@router.post(
+    "/{run_id}/resume",
+    response_model=RunStatus,
+    dependencies=[TokenDep],
+    responses={**GUARDED_ERRORS, **BODY_ERRORS},
+)
+def resume(run_id: str, engine: EngineDep, body: ResumeRequest | None = None) -> RunStatus:
     """Resume a paused run (one paused for the operator to switch the lights, once that is
-    done), or continue an interrupted (daemon crash) or failed (device fault, now cleared) run
-    from its first incomplete position or calibration set."""
-    return run_status(engine.resume(run_id), engine)
+    done), or continue an interrupted (daemon crash) or failed (device fault or full disk, now
+    cleared) run from its first incomplete position or calibration set. What it has left must
+    fit in the free space (else 507), unless the body says ``"force": true``."""
+    return run_status(engine.resume(run_id, force=body is not None and body.force), engine)
 
 
 @router.post("/{run_id}/abort", response_model=RunStatus, dependencies=[TokenDep], responses=GUARDED_ERRORS)
@@ -142,9 +161,9 @@ def run_preview(run_id: str, engine: EngineDep, catalog: CatalogDep) -> Response
 
 
 @router.get("/{run_id}/file", responses={200: {"content": {"application/x-hdf5": {}}}, **ERRORS})
-def download(run_id: str, catalog: CatalogDep) -> FileResponse:
+def download(run_id: str, catalog: CatalogDep, engine: EngineDep) -> FileResponse:
     """The run file (HDF5, ``docs/run-file.md``); refused while the run is being written."""
-    record = catalog.get_run(run_id)
+    record = engine.pending.known(catalog.get_run(run_id))
     if record.state in ("running", "paused", "queued"):
         raise HTTPException(
             status.HTTP_409_CONFLICT, f"run {run_id} is {record.state}: the file is still being written"

@@ -18,7 +18,9 @@ other processes holding the lock are waited for up to ``busy_timeout_s``. WAL ne
 local file system: do not put ``DATA_DIR`` on a network share.
 
 Bad input is refused with a one-line :class:`CatalogError` that names the run or the job
-and the states involved.
+and the states involved. A storage that refuses a read or a write is a one-line
+:class:`CatalogFullError` (the disk is full) or :class:`CatalogUnavailableError` (read-only,
+an I/O error, locked past the busy timeout), never SQLite's own exception.
 
 The package's modules: :mod:`~acquisition.catalog.records` (the states, their transitions and
 the records handed out), :mod:`~acquisition.catalog.errors`, :mod:`~acquisition.catalog.schema`
@@ -30,6 +32,8 @@ transactions and the checks of the values given), :mod:`~acquisition.catalog.run
 from acquisition.catalog.errors import (
     ActiveRunError,
     CatalogError,
+    CatalogFullError,
+    CatalogUnavailableError,
     InvalidTransitionError,
     JobClaimError,
     UnknownJobError,
@@ -96,6 +100,8 @@ __all__ = [
     "ActiveRunError",
     "Catalog",
     "CatalogError",
+    "CatalogFullError",
+    "CatalogUnavailableError",
     "InvalidTransitionError",
     "JobClaimError",
     "JobRecord",

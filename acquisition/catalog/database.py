@@ -3,6 +3,7 @@ and the checks of the values the runs and the jobs are given."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
@@ -15,9 +16,12 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Self
 
-from acquisition.catalog.errors import CatalogError
+from acquisition.catalog.errors import CatalogError, CatalogFullError, CatalogUnavailableError
 from acquisition.catalog.records import format_time
 from acquisition.catalog.schema import MIGRATIONS, SCHEMA_VERSION
+
+#: SQLite's primary result codes of a storage that refused (``sqlite3.Error.sqlite_errorcode & 0xFF``).
+_SQLITE_READONLY, _SQLITE_IOERR, _SQLITE_FULL = 8, 10, 13
 
 
 def _utc_now() -> datetime:
@@ -133,21 +137,46 @@ class CatalogDatabase:
     @contextmanager
     def _read(self) -> Iterator[sqlite3.Connection]:
         with self._lock:
-            yield self._connection()
+            conn = self._connection()
+            try:
+                yield conn
+            except sqlite3.DatabaseError as exc:
+                raise self._storage_error(exc, "reading") from None
 
     @contextmanager
     def _write(self) -> Iterator[sqlite3.Connection]:
         """One write transaction, holding SQLite's write lock from its start."""
         with self._lock:
             conn = self._connection()
-            conn.execute("BEGIN IMMEDIATE")
             try:
-                yield conn
-            except BaseException:
-                if conn.in_transaction:  # SQLite may already have rolled back (disk full, I/O error)
-                    conn.execute("ROLLBACK")
-                raise
-            conn.execute("COMMIT")
+                conn.execute("BEGIN IMMEDIATE")
+                try:
+                    yield conn
+                except BaseException:
+                    if conn.in_transaction:  # SQLite may already have rolled back (disk full, I/O error)
+                        with contextlib.suppress(sqlite3.Error):
+                            conn.execute("ROLLBACK")
+                    raise
+                conn.execute("COMMIT")
+            except sqlite3.DatabaseError as exc:
+                if conn.in_transaction:  # a failed COMMIT leaves the transaction open
+                    with contextlib.suppress(sqlite3.Error):
+                        conn.execute("ROLLBACK")
+                raise self._storage_error(exc, "writing") from None
+
+    def _storage_error(self, exc: sqlite3.DatabaseError, doing: str) -> Exception:
+        """The one-line catalog error of SQLite's ``exc``: full (507) or unavailable (503);
+        ``exc`` itself when it is a bug rather than the storage (a constraint, a bad statement)."""
+        if isinstance(exc, sqlite3.IntegrityError | sqlite3.ProgrammingError):
+            return exc
+        code = (getattr(exc, "sqlite_errorcode", 0) or 0) & 0xFF
+        if code == _SQLITE_FULL:
+            return CatalogFullError(f"no space left on device {doing} the catalog {self.path}")
+        if code == _SQLITE_READONLY:
+            return CatalogUnavailableError(f"the catalog {self.path} cannot be written ({exc})")
+        if code == _SQLITE_IOERR:
+            return CatalogUnavailableError(f"I/O error {doing} the catalog {self.path}")
+        return CatalogUnavailableError(f"catalog {self.path}: {doing} failed: {exc}")
 
     def _now(self) -> datetime:
         now = self._clock()

@@ -5,6 +5,8 @@ Each pickles with its arguments (``__reduce__``), so that it crosses a process b
 
 from __future__ import annotations
 
+from acquisition.storage import InsufficientStorageError, StorageUnavailableError
+
 
 class CatalogError(ValueError):
     """A refused catalog operation (one line: the run or job, the states, the cause)."""
@@ -82,3 +84,12 @@ class JobClaimError(CatalogError):
 
     def __reduce__(self):
         return (type(self), (self.job_id, self.worker_id, self.state, self.claimed_by))
+
+
+class CatalogFullError(CatalogError, InsufficientStorageError):
+    """The catalog could not be written: its disk is full (``SQLITE_FULL``; HTTP 507)."""
+
+
+class CatalogUnavailableError(CatalogError, StorageUnavailableError):
+    """The catalog could not be read or written: read-only, an I/O error, locked by another
+    process past the busy timeout, or damaged (HTTP 503)."""

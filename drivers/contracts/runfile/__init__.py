@@ -14,7 +14,8 @@ acquisition writes with :class:`RunFileWriter`; the processing and anyone else r
 * :mod:`~drivers.contracts.runfile.reader`: :class:`RunFile`, whose frames are read through
   their checksums (:mod:`~drivers.contracts.runfile.check`: a frame that fails its checksum is
   a :class:`FrameCorruptError`);
-* :mod:`~drivers.contracts.runfile.disk`: syncing files to the disk, a file's SHA-256.
+* :mod:`~drivers.contracts.runfile.disk`: syncing files to the disk, a file's SHA-256, the
+  writes the storage refuses.
 
 Crash safety
 ------------
@@ -38,10 +39,24 @@ position that was complete before the kill stays readable, bit-exact:
 
 A lock file ``PATH.lock`` (``flock``, released by the kernel when the writer dies) keeps
 a second writer off a run that is still being written; it is removed on a clean close.
+
+Write failures
+--------------
+A write the storage refuses (a full disk, a read-only file system, an I/O error) raises
+:class:`RunFileWriteError`, one line such as ``no space left on device writing
+/data/runs/X.h5 (position 12)``. The writer then drops what HDF5 holds unwritten and
+refuses to write again; the file on the disk keeps every position committed before, and
+is salvaged like a killed run's when the run resumes (which needs room for the copy).
 """
 
 from drivers.contracts.runfile.check import CorruptFrame, FrameCorruptError
-from drivers.contracts.runfile.disk import file_sha256
+from drivers.contracts.runfile.disk import (
+    NO_SPACE_ERRNOS,
+    STORAGE_ERRNOS,
+    file_sha256,
+    marked_open_for_write,
+    storage_errno,
+)
 from drivers.contracts.runfile.layout import (
     CALIBRATION_MAX_FRAMES,
     CALIBRATION_ROLES,
@@ -55,6 +70,7 @@ from drivers.contracts.runfile.layout import (
     CalibrationFrames,
     PositionTimes,
     RunFileError,
+    RunFileWriteError,
     RunHeader,
 )
 from drivers.contracts.runfile.reader import RunFile
@@ -66,17 +82,22 @@ __all__ = [
     "CALIBRATION_SETS",
     "CALIBRATION_WHENS",
     "MESSAGE_BYTES",
+    "NO_SPACE_ERRNOS",
     "RUN_FILE_FORMAT",
     "RUN_FILE_VERSION",
     "STATES",
     "STATE_BYTES",
+    "STORAGE_ERRNOS",
     "CalibrationFrames",
     "CorruptFrame",
     "FrameCorruptError",
     "PositionTimes",
     "RunFile",
     "RunFileError",
+    "RunFileWriteError",
     "RunFileWriter",
     "RunHeader",
     "file_sha256",
+    "marked_open_for_write",
+    "storage_errno",
 ]

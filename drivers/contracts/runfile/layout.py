@@ -81,6 +81,21 @@ class RunFileError(ValueError):
     """A run file that cannot be written or read (one line: the file and the cause)."""
 
 
+class RunFileWriteError(RunFileError):
+    """A write to the run file that failed (one line: what was written, where, and why).
+
+    Attributes
+    ----------
+    errno : int or None
+        The storage's refusal (``errno.ENOSPC``, ``EROFS``, ``EIO``, ...:
+        :data:`~drivers.contracts.runfile.disk.STORAGE_ERRNOS`), None for another failure.
+    """
+
+    def __init__(self, message: str, errno: int | None = None):
+        super().__init__(message)
+        self.errno = errno
+
+
 @dataclass
 class PositionTimes:
     """When a position was taken, unix seconds.

@@ -19,7 +19,7 @@ import h5py
 import numpy as np
 
 from drivers.contracts.runfile.check import frame_fault, is_checksummed
-from drivers.contracts.runfile.disk import fsync_dir, fsync_path
+from drivers.contracts.runfile.disk import fresh_file, fsync_dir, fsync_path, storage_errno, write_error
 from drivers.contracts.runfile.header import read_header
 from drivers.contracts.runfile.layout import (
     CALIBRATION_MAX_FRAMES,
@@ -56,7 +56,7 @@ def salvage_run(path: Path) -> None:
             raise RunFileError(f"{path}: cannot salvage the run file: {h5_cause(exc)}") from None
         complete &= (counts >= 1) & (counts <= max_exposures)
         calibration_frames = src["calibration/raw"].shape[1] if "calibration" in src else CALIBRATION_MAX_FRAMES
-        with h5py.File(tmp, "w", libver="latest") as dst:
+        with fresh_file(tmp) as dst:
             build_layout(
                 dst,
                 as_text(src["header/rig_json"][()]),
@@ -93,9 +93,11 @@ def salvage_run(path: Path) -> None:
                 message += f"; calibration sets complete: {', '.join(sets_kept)}"
             dst["status/state"][()] = np.bytes_(b"interrupted")
             dst["status/message"][()] = np.bytes_(encode_message(message))
-    except OSError as exc:
+    except (OSError, RuntimeError) as exc:
         with contextlib.suppress(OSError):
             tmp.unlink()
+        if storage_errno(exc) is not None:
+            raise write_error(path, "salvaging the run file", exc) from None
         raise RunFileError(f"{path}: cannot salvage the run file: {h5_cause(exc)}") from None
     except BaseException:
         with contextlib.suppress(OSError):

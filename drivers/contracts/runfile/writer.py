@@ -7,6 +7,7 @@ import logging
 import math
 import os
 import threading
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -15,7 +16,14 @@ import numpy as np
 
 from drivers.camera import RawFrame
 from drivers.contracts.runfile.check import frame_fault
-from drivers.contracts.runfile.disk import fsync_dir, fsync_path
+from drivers.contracts.runfile.disk import (
+    drop_unwritten,
+    fresh_file,
+    fsync_dir,
+    fsync_path,
+    storage_errno,
+    write_error,
+)
 from drivers.contracts.runfile.header import encode_header, read_header
 from drivers.contracts.runfile.layout import (
     CALIBRATION_SETS,
@@ -23,6 +31,7 @@ from drivers.contracts.runfile.layout import (
     STATES,
     PositionTimes,
     RunFileError,
+    RunFileWriteError,
     RunHeader,
     build_layout,
     calibration_slot,
@@ -89,6 +98,7 @@ class RunFileWriter:
         self._mutex = threading.RLock()
         self._sync_fd: int | None = os.open(path, os.O_RDONLY)
         self._n = header.n_positions
+        self._failed: RunFileWriteError | None = None
 
     # --- opening -------------------------------------------------------------------------
     @classmethod
@@ -122,7 +132,7 @@ class RunFileWriter:
                 raise RunFileError(f"{path}: run file already exists")
             tmp = Path(str(path) + ".tmp")
             try:
-                with h5py.File(tmp, "w", libver="latest") as f:
+                with fresh_file(tmp) as f:
                     build_layout(
                         f,
                         rig_json,
@@ -134,9 +144,11 @@ class RunFileWriter:
                     )
                 fsync_path(tmp)
                 os.replace(tmp, path)
-            except OSError as exc:
+            except (OSError, RuntimeError) as exc:
                 with contextlib.suppress(OSError):
                     tmp.unlink()
+                if storage_errno(exc) is not None:
+                    raise write_error(path, "creating the run file", exc) from None
                 raise RunFileError(f"{path}: cannot create the run file: {h5_cause(exc)}") from None
             fsync_dir(path)
             return cls._open_for_writing(path, lock)
@@ -275,10 +287,8 @@ class RunFileWriter:
         with self._mutex:
             self._check_open()
             records = self._validate(index, measured, times, frames)
-            try:
+            with self._writing(f"position {index}"):
                 self._write(index, records, frames)
-            except OSError as exc:
-                raise RunFileError(f"{self.path}: position {index}: write failed: {h5_cause(exc)}") from None
 
     def _validate(
         self, index: int, measured: Pose, times: PositionTimes, frames: list[RawFrame]
@@ -421,10 +431,8 @@ class RunFileWriter:
             patterns = sorted({frame.cfa_pattern for frame in frames})
             if len(patterns) > 1:
                 raise RunFileError(f"{where}: the frames mix CFA patterns ({', '.join(patterns)})")
-            try:
+            with self._writing(f"calibration {role} {when}"):
                 self._commit("calibration", "calibration", slot, records, frames, {})
-            except OSError as exc:
-                raise RunFileError(f"{where}: write failed: {h5_cause(exc)}") from None
 
     def calibration_complete(self, role: str, when: str) -> bool:
         """Whether the calibration set ``(role, when)`` is complete (False in a version-1 file)."""
@@ -443,6 +451,24 @@ class RunFileWriter:
         if "calibration" not in self._f:
             raise RunFileError(f"{self.path}: a run file of format version 1 has no room for calibration frames")
         return slot
+
+    @contextlib.contextmanager
+    def _writing(self, what: str) -> Iterator[None]:
+        """Around every write: a failed one raises :class:`RunFileWriteError` and drops what
+        HDF5 holds unwritten (:func:`~drivers.contracts.runfile.disk.drop_unwritten`); the
+        writer refuses every write and read after it (what it would read is no longer the
+        file), and :meth:`close` still works."""
+        try:
+            yield
+        except (OSError, RuntimeError) as exc:
+            self._failed = write_error(self.path, what, exc)
+            drop_unwritten(self._f)
+            raise self._failed from None
+
+    @property
+    def failed(self) -> RunFileWriteError | None:
+        """The write that failed, after which this writer writes nothing more (None if none)."""
+        return self._failed
 
     def _flush(self, *datasets: h5py.Dataset) -> None:
         for dset in datasets:
@@ -465,19 +491,32 @@ class RunFileWriter:
             raise RunFileError(f"{self.path}: unknown status {state!r} (one of {', '.join(STATES)})")
         with self._mutex:
             self._check_open()
-            try:
+            with self._writing("the run's status"):
                 self._f["status/state"][()] = np.bytes_(state.encode("ascii"))
                 self._f["status/message"][()] = np.bytes_(encode_message(message))
                 self._flush(self._f["status/state"], self._f["status/message"])
-            except OSError as exc:
-                raise RunFileError(f"{self.path}: cannot write the status: {h5_cause(exc)}") from None
 
     # --- closing -------------------------------------------------------------------------
     def close(self) -> None:
-        """Close the file and release the writer's lock (idempotent)."""
+        """Close the file and release the writer's lock (idempotent).
+
+        Raises
+        ------
+        RunFileWriteError
+            The last data could not be written (the file is closed all the same).
+        """
         with self._mutex:
             if self._f is None:
                 return
+            try:
+                if self._failed is None:  # what is still unwritten, dropped if the storage refuses it
+                    with self._writing("closing the run file"):
+                        self._f.flush()
+            finally:
+                self._close_file()
+
+    def _close_file(self) -> None:
+        if self._f is not None:
             try:
                 self._f.close()
             finally:
@@ -494,6 +533,8 @@ class RunFileWriter:
     def _check_open(self) -> None:
         if self._f is None:
             raise RunFileError(f"{self.path}: the run file writer is closed")
+        if self._failed is not None:
+            raise RunFileWriteError(f"{self.path}: the writer stopped after a failed write: {self._failed}")
 
     def __enter__(self) -> RunFileWriter:
         return self
