@@ -137,7 +137,9 @@ def daemon(tmp_path):
     def start(data_dir: Path) -> tuple[TestClient, RunEngine]:
         settings = load_settings(None, data_dir=data_dir, rig=rig, storage={"min_free_mb": 0.2})
         settings.arm.simulated.speed_m_s = settings.arm.simulated.accel_m_s2 = float("inf")
-        client = TestClient(create_app(settings))
+        client = TestClient(
+            create_app(settings), base_url="http://127.0.0.1", headers={"Content-Type": "application/json"}
+        )
         client.__enter__()
         clients.append(client)
         return client, client.app.state.engine
