@@ -37,6 +37,7 @@ from acquisition.catalog import Catalog, RunRecord
 from acquisition.devices import Devices
 from acquisition.models import AutoBracket, FixedBracket, RunRequest
 from acquisition.preview import preview_png
+from acquisition.run_control import Aborted, Control, OperatorStop, ProgressEvents
 from acquisition.settings import DaemonSettings
 from drivers.camera import RawFrame
 from drivers.contracts.rig import LightSweep, ObjectArc, Raster, Rig, RigError, rig_from_dict
@@ -60,14 +61,6 @@ class RunEngineError(Exception):
 
 class RunConflictError(RunEngineError):
     """Another run is active, or the run is not in a state that allows the request."""
-
-
-class _Aborted(Exception):
-    pass
-
-
-class _OperatorStop(Exception):
-    pass
 
 
 @dataclass
@@ -103,43 +96,6 @@ class _Arrival:
     in_position: float
 
 
-@dataclass
-class _Control:
-    """Flags the HTTP side sets and the run thread obeys.
-
-    ``stop`` is the serial number of the latest stop of the arm (``POST /arm/stop``): a move
-    that ends short while it changes was stopped by the operator, and its position is taken
-    again once the run resumes; any other move that ends short is a device fault.
-    """
-
-    pause: threading.Event = field(default_factory=threading.Event)
-    abort: threading.Event = field(default_factory=threading.Event)
-    wake: threading.Condition = field(default_factory=threading.Condition)
-    stop: int = 0
-
-
-class ProgressEvents:
-    """A version counter that server-sent-event streams wait on."""
-
-    def __init__(self):
-        self._version = 0
-        self._cond = threading.Condition()
-
-    def publish(self) -> None:
-        with self._cond:
-            self._version += 1
-            self._cond.notify_all()
-
-    @property
-    def version(self) -> int:
-        return self._version
-
-    def wait_newer(self, version: int, timeout: float) -> int:
-        with self._cond:
-            self._cond.wait_for(lambda: self._version != version, timeout=timeout)
-            return self._version
-
-
 class RunEngine:
     """Runs acquisitions on one rig's devices, recording them in the catalog."""
 
@@ -164,7 +120,7 @@ class RunEngine:
         self._sleep = sleep
         self._lock = threading.Lock()
         self._thread: threading.Thread | None = None
-        self._control = _Control()
+        self._control = Control()
         self._current: str | None = None
         self.latest_frame: RawFrame | None = None
         self.latest_frame_run: str | None = None
@@ -424,7 +380,7 @@ class RunEngine:
         if self.busy:
             raise RunConflictError(f"run {self._current or 'the previous run'} is still ending on this rig")
 
-    def _pause_for_stop(self, control: _Control) -> None:
+    def _pause_for_stop(self, control: Control) -> None:
         """After a stop of the arm: the run of ``control`` is paused in the catalog, unless it
         is ending (the stop does not concern it), was paused already, or was resumed since the
         stop set its pause (the later request stands)."""
@@ -445,7 +401,7 @@ class RunEngine:
             self._control.wake.notify_all()
 
     def _launch(self, plan: RunPlan, resume: bool) -> None:
-        self._control = _Control()
+        self._control = Control()
         self._current = plan.run_id
         self._finishing = False
         self._position = None
@@ -461,7 +417,7 @@ class RunEngine:
             while control.pause.is_set() and not control.abort.is_set():
                 control.wake.wait(timeout=0.5)
         if control.abort.is_set():
-            raise _Aborted()
+            raise Aborted()
 
     def _finish(self) -> None:
         """After the last frame: honour a pause or an abort that came in meanwhile, then mark
@@ -484,9 +440,9 @@ class RunEngine:
                 return action(*args, **kwargs)
             except MoveInterruptedError:
                 if control.abort.is_set():
-                    raise _Aborted() from None
+                    raise Aborted() from None
                 if control.stop != stop:
-                    raise _OperatorStop() from None
+                    raise OperatorStop() from None
                 raise
             except (CommunicationError, DeviceTimeoutError) as exc:
                 if attempt == attempts - 1 or control.abort.is_set():
@@ -571,7 +527,7 @@ class RunEngine:
             )
             behind.thread.start()
             self._take_positions(plan, writer, behind)
-        except _Aborted:
+        except Aborted:
             outcome, message = "aborted", "aborted by the operator"
         except DeviceError as exc:
             outcome, message = "failed", str(exc)
@@ -611,7 +567,7 @@ class RunEngine:
                 arrival = self._take_position(
                     plan, index, behind, arrival if arrival and arrival.index == index else None
                 )
-            except _OperatorStop:
+            except OperatorStop:
                 arrival = None
                 continue  # re-take this position once resumed
             if behind.errors:
@@ -659,7 +615,7 @@ class RunEngine:
                         arrival = self._move(plan, index)
                     frames = self._calibration_frames(plan.run_id, (role, when), lighting, exposures)
                     break
-                except _OperatorStop:
+                except OperatorStop:
                     arrival = None  # taken again once resumed
             writer.write_calibration(role, when, frames)
             for frame in frames:

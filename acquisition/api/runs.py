@@ -83,7 +83,7 @@ def get_run(run_id: str, catalog: CatalogDep, engine: EngineDep) -> RunStatus:
 
 @router.post("/{run_id}/pause", response_model=RunStatus, dependencies=[TokenDep], responses=GUARDED_ERRORS)
 def pause(run_id: str, engine: EngineDep) -> RunStatus:
-    """Pause between frames."""
+    """Pause between frames; 409 unless the run is running."""
     return run_status(engine.pause(run_id), engine)
 
 
@@ -91,7 +91,7 @@ def pause(run_id: str, engine: EngineDep) -> RunStatus:
 def resume(run_id: str, engine: EngineDep) -> RunStatus:
     """Resume a paused run (one paused for the operator to switch the lights, once that is
     done), or continue an interrupted (daemon crash) or failed (device fault, now cleared) run
-    from its first incomplete position or calibration set."""
+    from its first incomplete position or calibration set. A resume clears ``last_error``."""
     return run_status(engine.resume(run_id), engine)
 
 
