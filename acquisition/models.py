@@ -7,34 +7,43 @@ from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, PositiveFloat, StrictBool, field_validator, model_validator
 
-from acquisition.settings import DEFAULT_AMBIENT_EXPOSURES_S
+from acquisition.settings import BRACKET_LENGTH, DEFAULT_AMBIENT_EXPOSURES_S, Exposure
 from drivers.contracts.rig import MAX_POSITIONS, PoseSpec
 from processing.options import Estimator, FitChoice, FitMethod, NoiseSource
 from processing.steps import StepsError, resolve_steps
 
-
 # --- requests ------------------------------------------------------------------------------
 # A request's bracket must name its ``mode``: it is the discriminator of ``Bracket``. The
 # defaults serve Python callers only, so the JSON schemas list ``mode`` as required.
+# Every value is checked here, when the request is made (a 422 naming the field), and the
+# bounds are in the schema: an exposure is one the camera can take and the raw and run files
+# can hold (``drivers.camera.SHORTEST_EXPOSURE_S`` to ``LONGEST_EXPOSURE_S``), every number
+# is finite.
+_EXPOSURES_DOC = "seconds, each from 1e-05 (1/100000 s) to 3600"
+
+
 class FixedBracket(BaseModel):
     """A fixed list of exposure times, taken at every position in this order."""
 
     model_config = ConfigDict(
         extra="forbid",
+        allow_inf_nan=False,
         json_schema_extra={
             "required": ["mode", "exposures_s"],
             "examples": [{"mode": "fixed", "exposures_s": [0.0002, 0.001, 0.005]}],
         },
     )
     mode: Literal["fixed"] = "fixed"
-    exposures_s: list[Annotated[float, Field(gt=0.0, le=3600.0)]] = Field(min_length=1, max_length=16)
+    exposures_s: list[Exposure] = Field(**BRACKET_LENGTH, description=_EXPOSURES_DOC)
 
 
 class AutoBracket(BaseModel):
     """Exposures chosen per position from a metering frame (``docs/daemon.md``)."""
 
     model_config = ConfigDict(
-        extra="forbid", json_schema_extra={"required": ["mode"], "examples": [{"mode": "auto", "target_snr": 20}]}
+        extra="forbid",
+        allow_inf_nan=False,
+        json_schema_extra={"required": ["mode"], "examples": [{"mode": "auto", "target_snr": 20}]},
     )
     mode: Literal["auto"] = "auto"
     target_snr: PositiveFloat | None = Field(default=None, le=1000.0)
@@ -53,17 +62,18 @@ class CalibrationOptions(BaseModel):
 
     model_config = ConfigDict(
         extra="forbid",
+        allow_inf_nan=False,
         json_schema_extra={
             "examples": [{"before": True, "after": True, "ambient_exposures_s": [0.01, 0.04, 0.16], "dark": True}]
         },
     )
     before: StrictBool = Field(default=True, description="take calibration frames before the first position")
     after: StrictBool = Field(default=False, description="and after the last position too (to see drift)")
-    ambient_exposures_s: list[Annotated[float, Field(gt=0.0, le=3600.0)]] = Field(
+    ambient_exposures_s: list[Exposure] = Field(
         default_factory=lambda: list(DEFAULT_AMBIENT_EXPOSURES_S),
-        min_length=1,
-        max_length=16,
-        description="the bracket of the ambient frames (the light off, the room lit); default: the daemon's",
+        **BRACKET_LENGTH,
+        description=f"the bracket of the ambient frames (the light off, the room lit; {_EXPOSURES_DOC}); "
+        "default: the daemon's",
     )
     dark: StrictBool = Field(default=True, description="take dark frames too (the light off, the room dark)")
 
@@ -73,6 +83,7 @@ class RunRequest(BaseModel):
 
     model_config = ConfigDict(
         extra="forbid",
+        allow_inf_nan=False,
         json_schema_extra={
             "examples": [
                 {

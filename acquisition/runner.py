@@ -18,6 +18,7 @@ position i + 1, so the software's time hides behind the hardware's.
 
 from __future__ import annotations
 
+import itertools
 import json
 import logging
 import os
@@ -29,6 +30,8 @@ from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
 
+from pydantic import ValidationError
+
 from acquisition.bracketing import NoiseModel, exposures_from_metering, is_saturated
 from acquisition.catalog import Catalog, RunRecord
 from acquisition.catalog.pending import PendingEnds
@@ -36,6 +39,7 @@ from acquisition.client_files import load_client_file
 from acquisition.devices import Devices
 from acquisition.models import AutoBracket, FixedBracket, RunRequest
 from acquisition.preview import preview_png
+from acquisition.run_control import Aborted, Control, OperatorStop, ProgressEvents
 from acquisition.settings import DaemonSettings
 from acquisition.storage import check_room, failure_message, run_bytes
 from drivers.camera import RawFrame
@@ -68,14 +72,6 @@ class RunEngineError(Exception):
 
 class RunConflictError(RunEngineError):
     """Another run is active, or the run is not in a state that allows the request."""
-
-
-class _Aborted(Exception):
-    pass
-
-
-class _OperatorStop(Exception):
-    pass
 
 
 @dataclass
@@ -121,38 +117,6 @@ class _Arrival:
     in_position: float
 
 
-@dataclass
-class _Control:
-    """Flags the HTTP side sets and the run thread obeys."""
-
-    pause: threading.Event = field(default_factory=threading.Event)
-    abort: threading.Event = field(default_factory=threading.Event)
-    operator_stop: threading.Event = field(default_factory=threading.Event)
-    wake: threading.Condition = field(default_factory=threading.Condition)
-
-
-class ProgressEvents:
-    """A version counter that server-sent-event streams wait on."""
-
-    def __init__(self):
-        self._version = 0
-        self._cond = threading.Condition()
-
-    def publish(self) -> None:
-        with self._cond:
-            self._version += 1
-            self._cond.notify_all()
-
-    @property
-    def version(self) -> int:
-        return self._version
-
-    def wait_newer(self, version: int, timeout: float) -> int:
-        with self._cond:
-            self._cond.wait_for(lambda: self._version != version, timeout=timeout)
-            return self._version
-
-
 class RunEngine:
     """Runs acquisitions on one rig's devices, recording them in the catalog."""
 
@@ -177,7 +141,7 @@ class RunEngine:
         self._sleep = sleep
         self._lock = threading.Lock()
         self._thread: threading.Thread | None = None
-        self._control = _Control()
+        self._control = Control()
         self._current: str | None = None
         self.latest_frame: RawFrame | None = None
         self.latest_frame_run: str | None = None
@@ -185,6 +149,9 @@ class RunEngine:
         self._frame_serial = 0
         self._step: str | None = None
         self.pending = PendingEnds(catalog)  # runs' ends the catalog could not record yet
+        self._finishing = False  # the run thread has taken its last frame (or failed): it is ending
+        self._position: int | None = None  # the position the run thread is at, or moving to
+        self._stop_serial = itertools.count(1)
         Path(settings.runs_dir).mkdir(parents=True, exist_ok=True)
 
     # --- presets ---------------------------------------------------------------------------
@@ -262,18 +229,29 @@ class RunEngine:
         check_room(Path(self.settings.runs_dir), needed, what)
 
     # --- control ---------------------------------------------------------------------------
+    # Every request that changes a run's state takes ``_lock``, and so does the run thread where
+    # it decides to end: a request either applies to the run (and the run obeys it) or gets a
+    # RunConflictError saying why not (409). The run thread holds the lock only for catalog
+    # writes, never while a device works, so that a stop of the arm is never held up.
     @property
     def busy(self) -> bool:
         return self._thread is not None and self._thread.is_alive()
 
     def start_run(self, request: RunRequest) -> RunRecord:
+        """Start a run of ``request``; it is ``running`` when this returns.
+
+        Raises
+        ------
+        RunConflictError
+            Another run is active on this rig.
+        RigError, RunEngineError
+            The request's schedule or references cannot be used (nothing is started).
+        """
         rig = self.plan_schedule(request)
         references = self.references(rig, request)  # refuse unreadable references before anything starts
         with self._lock:
             self.pending.save()
-            active = self.catalog.active_run()
-            if active is not None or self.busy:
-                raise RunConflictError(f"run {active.id if active else self._current} is already active on this rig")
+            self._require_idle()
             tool, light = rig.tool_poses(), rig.light_poses()
             if request.count is not None:
                 tool, light = tool[: request.count], light[: request.count]
@@ -287,29 +265,41 @@ class RunEngine:
                 request=request.model_dump(mode="json"),
             )
             plan = RunPlan(record.id, rig, tool, light, request, Path(record.path), references)
+            # Running before the thread starts: a pause right after the start applies to it.
+            record = self.catalog.transition_run(record.id, "running")
             self._launch(plan, resume=False)
+        self.events.publish()
         return record
 
     def resume(self, run_id: str, force: bool = False) -> RunRecord:
         """Continue a paused run, or restart an interrupted or failed one where it stopped
-        (refused when what it has left to take does not fit in the free space, unless ``force``)."""
+        (refused when what it has left to take does not fit in the free space, unless ``force``).
+
+        A resumed run's ``last_error`` is cleared: it shows an error again only if one happens.
+        """
         with self._lock:
             self.pending.save()
             record = self.catalog.get_run(run_id)
             if record.state == "paused" and self.busy and self._current == run_id:
-                self._control.operator_stop.clear()
-                self._control.pause.clear()
+                if self._finishing:
+                    raise RunConflictError(f"run {run_id} is ending")
                 record = self.catalog.transition_run(run_id, "running")
+                self._control.pause.clear()
                 self._notify()
+                self.events.publish()
                 return record
             if record.state not in ("interrupted", "failed", "paused"):
                 raise RunConflictError(
                     f"run {run_id} is {record.state}: only a paused, interrupted or failed run can resume"
                 )
-            active = self.catalog.active_run()
-            if self.busy or (active is not None and active.id != run_id):
-                raise RunConflictError(f"run {self._current or active.id} is already active on this rig")
-            request = RunRequest.model_validate(record.request)
+            self._require_idle(run_id)
+            try:
+                request = RunRequest.model_validate(record.request)
+            except ValidationError as exc:  # stored by a version that checked less
+                where = ".".join(str(part) for part in exc.errors()[0]["loc"])
+                raise RunConflictError(
+                    f"run {run_id} cannot resume: its request's {where}: {exc.errors()[0]['msg']}"
+                ) from None
             rig = self.plan_schedule(request)
             tool, light = rig.tool_poses(), rig.light_poses()
             if request.count is not None:
@@ -329,33 +319,67 @@ class RunEngine:
             return record
 
     def pause(self, run_id: str) -> RunRecord:
+        """Pause a running run between frames.
+
+        Raises
+        ------
+        RunConflictError
+            The run is not running (already paused, ended, or taking no more frames).
+        """
         with self._lock:
-            self._require_current(run_id)
+            record = self._require_current(run_id)
+            if record.state != "running":
+                raise RunConflictError(f"run {run_id} is {record.state}: only a running run can pause")
             record = self.catalog.transition_run(run_id, "paused")
             self._control.pause.set()
             self._notify()
+            self.events.publish()
             return record
 
     def abort(self, run_id: str) -> RunRecord:
+        """End a run in progress (or an interrupted one) as ``aborted``, keeping every frame taken.
+
+        Raises
+        ------
+        RunConflictError
+            The run is neither in progress nor interrupted, or is already ending.
+        """
         with self._lock:
             self.pending.save()
             record = self.catalog.get_run(run_id)
-            if record.state in ("interrupted", "failed") and not self.busy:
-                record = self.catalog.transition_run(run_id, "aborted")
+            if record.state == "interrupted" and not (self.busy and self._current == run_id):
+                record = self.catalog.transition_run(run_id, "aborted", error="aborted by the operator")
                 self.events.publish()
                 return record
             self._require_current(run_id)
             self._control.abort.set()
             self._notify()
-        self.devices.arm.stop()
-        self._thread.join(timeout=60)
+            thread = self._thread
+        try:
+            self.devices.arm.stop()
+        except DeviceError as exc:  # the run thread tries again, and records it if that fails too
+            log.warning("abort of run %s: stopping the arm failed: %s", run_id, exc)
+        if thread is not None:
+            thread.join(timeout=60)
         return self.catalog.get_run(run_id)
 
     def stop_arm(self) -> None:
-        """Stop the arm at once; a run in progress pauses and re-takes its position on resume."""
-        if self.busy:
-            self._control.operator_stop.set()
-        self.devices.arm.stop()
+        """Stop the arm at once; a run in progress pauses and re-takes its position on resume.
+
+        The run's pause is set before the arm is told to stop, so that the run thread takes no
+        further step; the run is ``paused`` in the catalog when this returns (``last_error``
+        saying where it stopped, unless it was paused already), or it was ending anyway.
+        """
+        control = self._control
+        in_progress = self.busy
+        if in_progress:
+            control.stop = next(self._stop_serial)
+            control.pause.set()
+        try:
+            self.devices.arm.stop()
+        finally:
+            if in_progress:
+                self._pause_for_stop(control)
 
     def wait(self, timeout: float | None = None) -> None:
         """Wait for the current run's thread to finish (tests, shutdown)."""
@@ -364,10 +388,11 @@ class RunEngine:
             thread.join(timeout)
 
     def shutdown(self) -> None:
-        if self.busy:
+        thread = self._thread
+        if thread is not None and thread.is_alive():
             self._control.abort.set()
             self._notify()
-            self._thread.join(timeout=30)
+            thread.join(timeout=30)
 
     def step(self, run_id: str) -> str | None:
         """What run ``run_id`` is doing now (``RunStatus.step``); None unless it is in progress."""
@@ -382,18 +407,53 @@ class RunEngine:
         return self._preview_cache[1]
 
     # --- internals -------------------------------------------------------------------------
-    def _require_current(self, run_id: str) -> None:
+    def _require_current(self, run_id: str) -> RunRecord:
+        """The run, if its thread is at work and not yet ending (under ``_lock``)."""
         record = self.catalog.get_run(run_id)
         if not (self.busy and self._current == run_id):
             raise RunConflictError(f"run {run_id} is {record.state}, not in progress")
+        if self._finishing:
+            raise RunConflictError(f"run {run_id} is ending: it takes no more frames")
+        return record
+
+    def _require_idle(self, run_id: str | None = None) -> None:
+        """Refuse unless no run other than ``run_id`` is active and no run thread is at work
+        (under ``_lock``). A thread whose run the catalog shows ended is only exiting: it is
+        waited for, briefly."""
+        active = self.catalog.active_run()
+        if active is not None and active.id != run_id:
+            raise RunConflictError(f"run {active.id} is already active on this rig")
+        thread = self._thread
+        if thread is not None and thread.is_alive() and active is None:
+            thread.join(timeout=5.0)
+        if self.busy:
+            raise RunConflictError(f"run {self._current or 'the previous run'} is still ending on this rig")
+
+    def _pause_for_stop(self, control: Control) -> None:
+        """After a stop of the arm: the run of ``control`` is paused in the catalog, unless it
+        is ending (the stop does not concern it), was paused already, or was resumed since the
+        stop set its pause (the later request stands)."""
+        with self._lock:
+            run_id = self._current
+            current = control is self._control and self.busy and not self._finishing
+            if not current or run_id is None or not control.pause.is_set():
+                return
+            if self.catalog.get_run(run_id).state == "running":
+                where = " before the first move" if self._position is None else f" at position {self._position}"
+                self.catalog.transition_run(run_id, "paused", error=f"arm stopped by the operator{where}")
+                log.warning("arm stopped by the operator%s; run %s paused", where, run_id)
+            self._notify()
+            self.events.publish()
 
     def _notify(self) -> None:
         with self._control.wake:
             self._control.wake.notify_all()
 
     def _launch(self, plan: RunPlan, resume: bool) -> None:
-        self._control = _Control()
+        self._control = Control()
         self._current = plan.run_id
+        self._finishing = False
+        self._position = None
         self._thread = threading.Thread(
             target=self._execute, args=(plan, resume), name=f"run-{plan.run_id}", daemon=True
         )
@@ -402,31 +462,39 @@ class RunEngine:
     def _checkpoint(self) -> None:
         """Between frames: honour abort, and wait while paused."""
         control = self._control
-        if control.abort.is_set():
-            raise _Aborted()
-        if control.operator_stop.is_set():
-            # The arm was stopped while not moving (during a capture): still a pause.
-            raise _OperatorStop()
         with control.wake:
             while control.pause.is_set() and not control.abort.is_set():
                 control.wake.wait(timeout=0.5)
         if control.abort.is_set():
-            raise _Aborted()
+            raise Aborted()
+
+    def _finish(self) -> None:
+        """After the last frame: honour a pause or an abort that came in meanwhile, then mark
+        the run ending, so that from here on a pause, a resume or an abort is refused (409)
+        and a stop of the arm leaves it alone."""
+        while True:
+            self._checkpoint()
+            with self._lock:
+                if not self._control.pause.is_set():
+                    self._finishing = True
+                    return
 
     def _device(self, what: str, action: Callable, *args, **kwargs):
         """Run a device action, retrying transient errors."""
+        control = self._control
         attempts = self.settings.device_retries + 1
         for attempt in range(attempts):
+            stop = control.stop
             try:
                 return action(*args, **kwargs)
             except MoveInterruptedError:
-                if self._control.operator_stop.is_set():
-                    raise _OperatorStop() from None
-                if self._control.abort.is_set():
-                    raise _Aborted() from None
+                if control.abort.is_set():
+                    raise Aborted() from None
+                if control.stop != stop:
+                    raise OperatorStop() from None
                 raise
             except (CommunicationError, DeviceTimeoutError) as exc:
-                if attempt == attempts - 1 or self._control.abort.is_set():
+                if attempt == attempts - 1 or control.abort.is_set():
                     raise
                 log.warning("%s failed (%s); retry %d of %d", what, exc, attempt + 1, attempts - 1)
                 self._sleep(0.2 * (attempt + 1))
@@ -508,7 +576,7 @@ class RunEngine:
             )
             behind.thread.start()
             self._take_positions(plan, writer, behind)
-        except _Aborted:
+        except Aborted:
             outcome, message = "aborted", "aborted by the operator"
         except DeviceError as exc:
             outcome, message = "failed", str(exc)
@@ -520,13 +588,12 @@ class RunEngine:
             self._end_run(plan.run_id, outcome, message, writer, behind)
 
     def _open_run_file(self, plan: RunPlan, resume: bool) -> RunFileWriter:
-        """The run file, created or reopened, with the run marked running in it and in the catalog."""
+        """The run file, created or reopened, with the run marked running in it (the catalog
+        says so already: :meth:`start_run`, :meth:`resume`)."""
         if resume and plan.path.exists():  # a run that failed creating it resumes by creating it
             writer = RunFileWriter.reopen(plan.path)
         else:
             writer = RunFileWriter.create(plan.path, self._header(plan))
-        if self.catalog.get_run(plan.run_id).state != "running":
-            self.catalog.transition_run(plan.run_id, "running")
         writer.set_status("running")
         self.events.publish()
         return writer
@@ -550,9 +617,8 @@ class RunEngine:
                 arrival = self._take_position(
                     plan, index, behind, arrival if arrival and arrival.index == index else None
                 )
-            except _OperatorStop:
+            except OperatorStop:
                 arrival = None
-                self._pause_after_stop(plan.run_id, index)
                 continue  # re-take this position once resumed
             if behind.errors:
                 raise behind.errors[0]
@@ -562,9 +628,12 @@ class RunEngine:
             raise behind.errors[0]
         last = len(plan.tool_poses) - 1
         self._calibrate(plan, writer, "after", last, arrival if arrival and arrival.index == last else None)
+        self._finish()
 
     def _move(self, plan: RunPlan, index: int) -> _Arrival:
-        """Move the arm to position ``index``."""
+        """Move the arm to position ``index`` (unless paused or aborted just now)."""
+        self._position = index
+        self._checkpoint()
         move_started = self._wall()
         measured = self._device(
             "move", self.devices.arm.move_to, plan.tool_poses[index], timeout=self.settings.arm.move_timeout_s
@@ -596,9 +665,8 @@ class RunEngine:
                         arrival = self._move(plan, index)
                     frames = self._calibration_frames(plan.run_id, (role, when), lighting, exposures)
                     break
-                except _OperatorStop:
-                    arrival = None
-                    self._pause_after_stop(plan.run_id, index)  # taken again once resumed
+                except OperatorStop:
+                    arrival = None  # taken again once resumed
             writer.write_calibration(role, when, frames)
             for frame in frames:
                 self._discard_raw(frame)
@@ -697,6 +765,8 @@ class RunEngine:
     ) -> None:
         """However the run ended: stop the arm unless it completed, write the frames already
         taken, and record the outcome in the run file and the catalog."""
+        with self._lock:
+            self._finishing = True  # a pause, resume or abort no longer applies (409)
         if outcome != "complete":
             try:
                 self.devices.arm.stop()
@@ -737,6 +807,7 @@ class RunEngine:
         and hand it to the writer thread."""
         started = self._mono()
         self._checkpoint()
+        self._position = index
         self.catalog.update_progress(plan.run_id, positions_done=self._done(plan), current_position=index)
         self._set_step(f"sweep, position {index}")
         if arrival is None:
@@ -756,13 +827,6 @@ class RunEngine:
 
     def _done(self, plan: RunPlan) -> int:
         return self.catalog.get_run(plan.run_id).positions_done
-
-    def _pause_after_stop(self, run_id: str, index: int) -> None:
-        log.warning("arm stopped by the operator at position %d; run %s paused", index, run_id)
-        self.catalog.transition_run(run_id, "paused", error=f"arm stopped by the operator at position {index}")
-        self._control.pause.set()
-        self._control.operator_stop.clear()
-        self.events.publish()
 
 
 def _calibration_sets(calibration: dict) -> list[tuple[str, str]]:

@@ -15,6 +15,7 @@ from typing import Annotated, Literal
 from pydantic import ConfigDict, Field, PositiveFloat, SecretStr, field_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
+from drivers.camera import LONGEST_EXPOSURE_S, SHORTEST_EXPOSURE_S
 from drivers.config_files import ConfigModel, read_toml, validate_model
 from drivers.contracts.rig import DEFAULT_RIG_PATH
 from drivers.modbus_profile import SIM_STAGE_PROFILE
@@ -38,6 +39,10 @@ class _Section(ConfigModel):
 #: The longest wait or exposure: a day (threading refuses waits past ~9e9 s).
 DAY_S = 86400.0
 Seconds = Annotated[float, Field(gt=0, le=DAY_S)]
+#: An exposure time, s: one a camera can take and a raw file can hold (``drivers.camera``).
+Exposure = Annotated[float, Field(ge=SHORTEST_EXPOSURE_S, le=LONGEST_EXPOSURE_S, allow_inf_nan=False)]
+#: A bracket: 1 to 16 exposures.
+BRACKET_LENGTH = {"min_length": 1, "max_length": 16}
 #: A simulated stage's speed or acceleration: ``inf`` makes that part of a move instantaneous.
 StageRate = Annotated[float, Field(gt=0, allow_inf_nan=True)]
 
@@ -160,23 +165,23 @@ class LightSettings(_Section):
 
     kind: Literal["simulated", "manual", "none"] | None = None
     room_can_be_dark: bool = True
-    dark_exposure_s: Seconds = 1e-4
-    ambient_exposures_s: list[Annotated[float, Field(gt=0.0, le=3600.0)]] = Field(
-        default_factory=lambda: list(DEFAULT_AMBIENT_EXPOSURES_S), min_length=1, max_length=16
+    dark_exposure_s: Exposure = 1e-4
+    ambient_exposures_s: list[Exposure] = Field(
+        default_factory=lambda: list(DEFAULT_AMBIENT_EXPOSURES_S), **BRACKET_LENGTH
     )
 
 
 class AutoBracketSettings(_Section):
     """The ``auto`` bracket rule (``docs/daemon.md``, "Auto bracketing")."""
 
-    metering_exposure_s: Seconds = 0.001
+    metering_exposure_s: Exposure = 0.001
     saturation_fraction: float = Field(default=0.8, gt=0.0, le=1.0)
     useful_fraction: float = Field(default=1e-3, gt=0.0, lt=1.0)
     target_snr: PositiveFloat = 20.0
     step_ratio: float = Field(default=4.0, gt=1.0)
     max_exposures: int = Field(default=7, ge=1, le=16)
-    min_exposure_s: Seconds = 1e-5
-    max_exposure_s: Seconds = 30.0
+    min_exposure_s: Exposure = SHORTEST_EXPOSURE_S
+    max_exposure_s: Exposure = 30.0
 
 
 class StorageSettings(_Section):
@@ -225,7 +230,7 @@ class DaemonSettings(BaseSettings):
     light: LightSettings = Field(default_factory=LightSettings)
     auto_bracket: AutoBracketSettings = Field(default_factory=AutoBracketSettings)
     storage: StorageSettings = Field(default_factory=StorageSettings)
-    default_exposures_s: list[Seconds] = Field(default_factory=lambda: [0.0002, 0.001, 0.005])
+    default_exposures_s: list[Exposure] = Field(default_factory=lambda: [0.0002, 0.001, 0.005], **BRACKET_LENGTH)
 
     @field_validator("token", mode="before")
     @classmethod

@@ -11,6 +11,15 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+#: The exposures a run may ask for, in seconds. The shortest, 1/100000 s, is below any
+#: camera's shortest shutter (1/32000 s electronic, 1/8000 s mechanical) and far above the
+#: shortest time a raw file holds (a DNG's ExposureTime is a TIFF rational of 32-bit terms,
+#: 1/4294967295 s at the least; ``sim_devices.dng``); the longest, an hour, is beyond any
+#: timed shutter (30 s) and any bulb exposure a run needs. A camera rounds a time inside
+#: these to its own steps (:class:`RawFrame` keeps the time it took).
+SHORTEST_EXPOSURE_S = 1e-5
+LONGEST_EXPOSURE_S = 3600.0
+
 
 @dataclass
 class RawFrame:

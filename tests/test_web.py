@@ -150,7 +150,10 @@ def test_a_run_started_from_the_page_completes_with_preview_and_download(tmp_pat
     page.click("#stop-arm")
     expect(page.locator("#message")).to_contain_text("Arm stopped")
     expect(page.locator("#state")).to_have_text("paused")  # a stopped arm pauses the run
-    expect(page.locator("#resume")).to_be_enabled()
+    expect(page.locator("#last-error")).to_contain_text("arm stopped by the operator at position")
+    page.click("#resume")  # a resume clears the last error
+    expect(page.locator("#state")).to_have_text("running")
+    expect(page.locator("#last-error")).to_have_text("none")
     page.once("dialog", lambda dialog: dialog.accept())
     page.click("#abort")
     expect(page.locator("#state")).to_have_text("aborted")

@@ -11,7 +11,7 @@ router = APIRouter(prefix="/arm", tags=["arm"])
 
 @router.post("/stop", status_code=status.HTTP_202_ACCEPTED, dependencies=[TokenDep], responses=WRITE_ERRORS)
 def stop_arm(engine: EngineDep) -> dict:
-    """Stop the arm at once, also mid-move. A run in progress pauses and re-takes the
-    interrupted position when resumed."""
+    """Stop the arm at once, also mid-move. A run in progress is paused when this answers
+    (``last_error`` says where the arm stopped) and re-takes a move cut short when resumed."""
     engine.stop_arm()
     return {"stopped": True}

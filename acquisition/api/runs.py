@@ -104,7 +104,7 @@ def get_run(run_id: str, catalog: CatalogDep, engine: EngineDep) -> RunStatus:
 
 @router.post("/{run_id}/pause", response_model=RunStatus, dependencies=[TokenDep], responses=GUARDED_ERRORS)
 def pause(run_id: str, engine: EngineDep) -> RunStatus:
-    """Pause between frames."""
+    """Pause between frames; 409 unless the run is running."""
     return run_status(engine.pause(run_id), engine)
 
 
@@ -118,7 +118,8 @@ def resume(run_id: str, engine: EngineDep, body: ResumeRequest | None = None) ->
     """Resume a paused run (one paused for the operator to switch the lights, once that is
     done), or continue an interrupted (daemon crash) or failed (device fault or full disk, now
     cleared) run from its first incomplete position or calibration set. What it has left must
-    fit in the free space (else 507), unless the body says ``"force": true``."""
+    fit in the free space (else 507), unless the body says ``"force": true``. A resume clears
+    ``last_error``."""
     return run_status(engine.resume(run_id, force=body is not None and body.force), engine)
 
 

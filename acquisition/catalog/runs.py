@@ -120,7 +120,8 @@ class RunCatalog(CatalogDatabase):
 
         The check and the change are one statement (``UPDATE ... WHERE state IN ...``): of
         two callers racing from the same state, exactly one wins. Entering ``running``
-        sets ``started_utc`` the first time and clears ``finished_utc``; entering
+        sets ``started_utc`` the first time and clears ``finished_utc`` and ``last_error``
+        (a resumed run shows an error again only if a new one happens); entering
         ``complete``, ``aborted`` or ``failed`` sets ``finished_utc``.
 
         Parameters
@@ -130,8 +131,8 @@ class RunCatalog(CatalogDatabase):
         new_state : str
             One of :data:`RUN_STATES`.
         error : str, optional
-            Stored as the run's ``last_error`` (kept otherwise, so that a resumed run still
-            shows what stopped it).
+            Stored as the run's ``last_error`` (kept otherwise, so that a paused or ended
+            run still shows what stopped it; cleared on entering ``running``).
 
         Returns
         -------
@@ -165,9 +166,10 @@ class RunCatalog(CatalogDatabase):
             else:
                 finished = "finished_utc"
             started = "COALESCE(started_utc, :now)" if new_state == "running" else "started_utc"
+            kept_error = "NULL" if new_state == "running" else "last_error"
             changed = conn.execute(
                 f"UPDATE runs SET state = :new, updated_utc = :now, started_utc = {started}, "
-                f"finished_utc = {finished}, last_error = COALESCE(:error, last_error) "
+                f"finished_utc = {finished}, last_error = COALESCE(:error, {kept_error}) "
                 f"WHERE id = :id AND state IN ({sql_list(sources) or 'NULL'})",
                 {"new": new_state, "now": stamp, "error": error, "id": run_id},
             ).rowcount
