@@ -19,14 +19,11 @@ position i + 1, so the software's time hides behind the hardware's.
 from __future__ import annotations
 
 import itertools
-import json
 import logging
 import os
-import queue
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
 
@@ -40,6 +37,15 @@ from acquisition.devices import Devices
 from acquisition.models import AutoBracket, FixedBracket, RunRequest
 from acquisition.preview import preview_png
 from acquisition.run_control import Aborted, Control, OperatorStop, ProgressEvents
+from acquisition.run_plan import (
+    DARK_IN_LIT_ROOM,
+    Arrival,
+    RunPlan,
+    WriteBehind,
+    calibration_sets,
+    calibration_shot,
+    light_model_record,
+)
 from acquisition.settings import DaemonSettings
 from acquisition.storage import check_room, failure_message, run_bytes
 from drivers.camera import RawFrame
@@ -55,15 +61,11 @@ from drivers.contracts.runfile import (
 )
 from drivers.contracts.version import __version__
 from drivers.errors import CommunicationError, DeviceError, DeviceTimeoutError, MoveInterruptedError
-from drivers.light import AMBIENT, DARK, SWEEP, Lighting
-from drivers.pose import Pose
+from drivers.light import SWEEP, Lighting
 
 log = logging.getLogger("mirrorgonio.runner")
 
 ACTIVE_STATES = ("queued", "running", "paused")
-
-#: How a run whose room cannot be darkened takes its dark frames (``RunHeader.calibration``).
-DARK_IN_LIT_ROOM = "shortest exposure, room lit"
 
 
 class RunEngineError(Exception):
@@ -72,49 +74,6 @@ class RunEngineError(Exception):
 
 class RunConflictError(RunEngineError):
     """Another run is active, or the run is not in a state that allows the request."""
-
-
-@dataclass
-class RunPlan:
-    run_id: str
-    rig: Rig
-    tool_poses: list[Pose]
-    light_poses: list[Pose]
-    request: RunRequest
-    path: Path
-    #: The files the run belongs with, read once when the run is asked for (``references``).
-    references: dict | None = None
-
-
-def _light_model(text: str) -> dict:
-    """A light-model file's text as its record; ``ValueError`` if it is not one."""
-    model = json.loads(text)
-    if not isinstance(model, dict) or model.get("format") != "mirrorgonio-light-model":
-        raise ValueError("not a mirrorgonio light model file")
-    return model
-
-
-@dataclass
-class _WriteBehind:
-    """What the run thread shares with the thread that writes each position while the arm
-    moves to the next: the hand-over queue (one position deep), the writer's errors, and the
-    time each position took (for the ETA)."""
-
-    queue: queue.Queue = field(default_factory=lambda: queue.Queue(maxsize=1))
-    errors: list[BaseException] = field(default_factory=list)
-    durations: list[float] = field(default_factory=list)
-    thread: threading.Thread | None = None
-
-
-@dataclass
-class _Arrival:
-    """The arm arrived at position ``index``: the pose it read back, and when the move started
-    and ended (unix s)."""
-
-    index: int
-    measured: Pose
-    move_started: float
-    in_position: float
 
 
 class RunEngine:
@@ -194,7 +153,7 @@ class RunEngine:
                 "pose": rig.object.pose.model_dump(mode="json"),
             }
         if request.light_results is not None:
-            model, sha256 = load_client_file(request.light_results, "light_results", "light model", _light_model)
+            model, sha256 = load_client_file(request.light_results, "light_results", "light model", light_model_record)
             provenance = model.get("provenance") if isinstance(model.get("provenance"), dict) else {}
             refs["light_model"] = {
                 "path": str(Path(request.light_results).expanduser().resolve()),
@@ -222,7 +181,7 @@ class RunEngine:
             return
         calibration = self._calibration_plan(request)
         frames = positions * self._max_exposures(request)
-        frames += sum(len(_calibration_shot(calibration, role)[1]) for role, _ in _calibration_sets(calibration))
+        frames += sum(len(calibration_shot(calibration, role)[1]) for role, _ in calibration_sets(calibration))
         shape = (self.rig.camera.height, self.rig.camera.width)
         needed = run_bytes(frames, shape, self.settings.storage.compression_ratio) + extra_bytes
         what = f"the run ({positions} positions, {frames} frames of {shape[1]} x {shape[0]})"
@@ -567,7 +526,7 @@ class RunEngine:
     def _execute(self, plan: RunPlan, resume: bool) -> None:
         """The run thread: open the run file, take every incomplete position, record how it ended."""
         writer: RunFileWriter | None = None
-        behind = _WriteBehind()
+        behind = WriteBehind()
         outcome, message = "complete", ""
         try:
             writer = self._open_run_file(plan, resume)
@@ -598,7 +557,7 @@ class RunEngine:
         self.events.publish()
         return writer
 
-    def _take_positions(self, plan: RunPlan, writer: RunFileWriter, behind: _WriteBehind) -> None:
+    def _take_positions(self, plan: RunPlan, writer: RunFileWriter, behind: WriteBehind) -> None:
         """The calibration frames before the sweep, every position the run file does not hold
         complete, in order, until the last is written, then the calibration frames after it.
 
@@ -608,7 +567,7 @@ class RunEngine:
         index = writer.first_incomplete()
         arrival = self._calibrate(plan, writer, "before", 0 if index is None else index)
         if index is not None:
-            self._ready_for_sweep(plan.run_id, bool(_calibration_sets(writer.header.calibration)))
+            self._ready_for_sweep(plan.run_id, bool(calibration_sets(writer.header.calibration)))
         while index is not None and index < len(plan.tool_poses):
             if writer.complete[index]:
                 index += 1
@@ -630,7 +589,7 @@ class RunEngine:
         self._calibrate(plan, writer, "after", last, arrival if arrival and arrival.index == last else None)
         self._finish()
 
-    def _move(self, plan: RunPlan, index: int) -> _Arrival:
+    def _move(self, plan: RunPlan, index: int) -> Arrival:
         """Move the arm to position ``index`` (unless paused or aborted just now)."""
         self._position = index
         self._checkpoint()
@@ -638,17 +597,17 @@ class RunEngine:
         measured = self._device(
             "move", self.devices.arm.move_to, plan.tool_poses[index], timeout=self.settings.arm.move_timeout_s
         )
-        return _Arrival(index, measured, move_started, self._wall())
+        return Arrival(index, measured, move_started, self._wall())
 
     # --- calibration frames ----------------------------------------------------------------
     def _calibrate(
-        self, plan: RunPlan, writer: RunFileWriter, when: str, index: int, arrival: _Arrival | None = None
-    ) -> _Arrival | None:
+        self, plan: RunPlan, writer: RunFileWriter, when: str, index: int, arrival: Arrival | None = None
+    ) -> Arrival | None:
         """Take the run's calibration sets of ``when`` (``before`` or ``after`` the sweep) that the
         run file does not hold complete, with the arm at position ``index`` (moved there unless
         ``arrival`` says it is). Returns the arm's arrival there, if it moved or was there."""
         calibration = writer.header.calibration
-        pending = [role for role, at in _calibration_sets(calibration) if at == when]
+        pending = [role for role, at in calibration_sets(calibration) if at == when]
         pending = [role for role in pending if not writer.calibration_complete(role, when)]
         if not pending:
             return arrival
@@ -656,7 +615,7 @@ class RunEngine:
             log.warning("run %s: no light switch: the calibration frames %s the sweep are not taken", plan.run_id, when)
             return arrival
         for role in pending:
-            lighting, exposures = _calibration_shot(calibration, role)
+            lighting, exposures = calibration_shot(calibration, role)
             while True:
                 try:
                     self._checkpoint()
@@ -727,7 +686,7 @@ class RunEngine:
         self.latest_frame, self.latest_frame_run = frame, run_id
         self._frame_serial += 1
 
-    def _write_loop(self, run_id: str, writer: RunFileWriter, behind: _WriteBehind) -> None:
+    def _write_loop(self, run_id: str, writer: RunFileWriter, behind: WriteBehind) -> None:
         """The writer thread: write each position handed over, and record the run's progress.
 
         A failed write is kept for the run thread to raise; the positions queued after it are
@@ -761,7 +720,7 @@ class RunEngine:
                 behind.queue.task_done()
 
     def _end_run(
-        self, run_id: str, outcome: str, message: str, writer: RunFileWriter | None, behind: _WriteBehind
+        self, run_id: str, outcome: str, message: str, writer: RunFileWriter | None, behind: WriteBehind
     ) -> None:
         """However the run ended: stop the arm unless it completed, write the frames already
         taken, and record the outcome in the run file and the catalog."""
@@ -800,9 +759,7 @@ class RunEngine:
             return "failed", str(writer.failed)
         return outcome, message
 
-    def _take_position(
-        self, plan: RunPlan, index: int, behind: _WriteBehind, arrival: _Arrival | None = None
-    ) -> _Arrival:
+    def _take_position(self, plan: RunPlan, index: int, behind: WriteBehind, arrival: Arrival | None = None) -> Arrival:
         """Move to position ``index`` (unless ``arrival`` says the arm is there), take its bracket
         and hand it to the writer thread."""
         started = self._mono()
@@ -827,17 +784,3 @@ class RunEngine:
 
     def _done(self, plan: RunPlan) -> int:
         return self.catalog.get_run(plan.run_id).positions_done
-
-
-def _calibration_sets(calibration: dict) -> list[tuple[str, str]]:
-    """The ``(role, when)`` sets a run's calibration plan (``RunHeader.calibration``) names."""
-    sets = calibration.get("sets", []) if isinstance(calibration, dict) else []
-    return [(str(entry[0]), str(entry[1])) for entry in sets if isinstance(entry, list | tuple) and len(entry) == 2]
-
-
-def _calibration_shot(calibration: dict, role: str) -> tuple[Lighting, list[float]]:
-    """The lights and the exposures of a calibration set of ``role``, as the run's plan says."""
-    if role == "ambient":
-        return AMBIENT, [float(t) for t in calibration["ambient_exposures_s"]]
-    lighting = AMBIENT if calibration.get("dark") == DARK_IN_LIT_ROOM else DARK
-    return lighting, [float(t) for t in calibration["dark_exposures_s"]]

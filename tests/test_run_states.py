@@ -49,7 +49,9 @@ def http(tmp_path_factory):
     config = load_settings(None, data_dir=folder / "data", rig=rig)
     config.arm.simulated.speed_m_s = 1.0  # the first move (about 14 cm) takes 0.2 s, the next ones 30 ms
     config.arm.simulated.accel_m_s2 = 10.0
-    with TestClient(create_app(config)) as client:
+    with TestClient(
+        create_app(config), base_url="http://127.0.0.1", headers={"Content-Type": "application/json"}
+    ) as client:
         yield client
 
 
