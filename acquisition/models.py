@@ -9,7 +9,7 @@ from pydantic import BaseModel, ConfigDict, Field, PositiveFloat, StrictBool, fi
 
 from acquisition.settings import BRACKET_LENGTH, DEFAULT_AMBIENT_EXPOSURES_S, Exposure
 from drivers.contracts.rig import MAX_POSITIONS, PoseSpec
-from processing.options import Estimator, FitChoice, FitMethod, NoiseSource
+from processing.options import Estimator, Extrapolation, FitChoice, FitMethod, NoiseSource
 from processing.steps import StepsError, resolve_steps
 
 # --- requests ------------------------------------------------------------------------------
@@ -167,6 +167,11 @@ class JobRequest(BaseModel):
         description="fit the rig's geometry to the data with the sources (self-calibration, docs/self-calibration.md):"
         " auto (the default) where the sources are searched for; always (with a layout too, its places held); never. "
         "It fits the aperture and the sensor distance with the rest: their own fits then stay off",
+    )
+    extrapolation: Extrapolation | None = Field(
+        default=None,
+        description="what the IES and LDT files hold beyond the θ the sweep measured: fitted (the fits' "
+        "extrapolation, the default) or none (zero: the measured range only); the files say which",
     )
 
     @field_validator("steps")

@@ -60,6 +60,7 @@ JOB_OPTIONS = {
     "(the default)",
     "calibrate_rig": "fit the rig's geometry to the data with the sources (self-calibration): auto (where the sources "
     "are searched for), always, or never",
+    "extrapolation": "what the IES and LDT files hold beyond the measured θ: fitted (the default) or none (zero)",
 }
 #: The result files a job records, by kind: the daemon serves exactly these.
 ARTIFACT_KINDS = ("report", "ies", "ldt", "tm25", "light_model", "results")
@@ -333,6 +334,7 @@ class JobWorker:
             fit_aperture=options.get("fit_aperture"),
             fit_sensor_distance=options.get("fit_sensor_distance"),
             calibrate_rig=options.get("calibrate_rig"),
+            extrapolation=options.get("extrapolation", "fitted"),
         )
         artifacts = {"results": report.results_file}
         if report.light_model is not None:

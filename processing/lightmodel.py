@@ -239,6 +239,10 @@ class LightModel:
         Whether the model can be trusted (:mod:`processing.light_run.quality`): ``status``
         ``ok`` or ``suspect``, the ``reason`` where suspect, and the figures it was judged on;
         empty for a model made without that judgement.
+    photometry : dict
+        The photometric summary of the whole light (:mod:`processing.photometry`,
+        :meth:`~processing.photometry.Photometry.record`) as the processing wrote it with the
+        light files; empty for a model made without one. Kept as read, never recomputed.
 
     Notes
     -----
@@ -250,6 +254,7 @@ class LightModel:
     units: str = "relative"
     provenance: dict[str, Any] = field(default_factory=dict)
     quality: dict[str, Any] = field(default_factory=dict)
+    photometry: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         self.sources = list(self.sources)
@@ -268,6 +273,8 @@ class LightModel:
             raise LightModelError("provenance: expected a table (dict)")
         if not isinstance(self.quality, dict):
             raise LightModelError("quality: expected a table (dict)")
+        if not isinstance(self.photometry, dict):
+            raise LightModelError("photometry: expected a table (dict)")
 
     # ----------------------------------------------------------------- lookups
 
@@ -388,6 +395,7 @@ class LightModel:
             "units": self.units,
             "provenance": json_ready(self.provenance),
             **({"quality": json_ready(self.quality)} if self.quality else {}),
+            **({"photometry": json_ready(self.photometry)} if self.photometry else {}),
             "sources": [s.to_dict() for s in self.sources],
         }
 
@@ -446,7 +454,7 @@ class LightModel:
             except (LightModelError, TypeError, ValueError) as e:
                 raise LightModelError(f"{where}: {e}") from None
         try:
-            return cls(sources, d["units"], d.get("provenance", {}), d.get("quality", {}))
+            return cls(sources, d["units"], d.get("provenance", {}), d.get("quality", {}), d.get("photometry", {}))
         except LightModelError as e:
             raise LightModelError(f"{origin}: {e}") from None
 

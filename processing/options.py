@@ -71,6 +71,13 @@ class FitChoice(StrEnum):
     NEVER = "never"  # the rig's number
 
 
+class Extrapolation(StrEnum):
+    """What the light files (IES, LDT) hold beyond the θ the sweep measured (:mod:`processing.photometry`)."""
+
+    FITTED = "fitted"  # the fits' extrapolation
+    NONE = "none"  # zero: the measured range only
+
+
 @dataclass(frozen=True)
 class ProcessingOptions:
     """Everything a run's processing is asked, checked.
@@ -104,6 +111,10 @@ class ProcessingOptions:
     overwrite : bool
         Write over outputs already in the folder that another run's processing wrote (or whose
         run is unknown); without it they stop the processing before any work.
+    extrapolation : Extrapolation
+        What the IES and LDT files hold beyond the θ the sweep measured: the fits'
+        extrapolation (``fitted``) or zero (``none``); the files, the light model's
+        ``photometry`` and the report say which.
 
     Examples
     --------
@@ -130,6 +141,7 @@ class ProcessingOptions:
     calibrate_rig: FitChoice = FitChoice.AUTO
     ignore_corrupt: bool = False
     overwrite: bool = False
+    extrapolation: Extrapolation = Extrapolation.FITTED
 
     @classmethod
     def checked(cls, **values: Any) -> ProcessingOptions:
@@ -215,4 +227,5 @@ _CHECKS: dict[str, Callable[[str, Any], Any]] = {
     "calibrate_rig": _member(FitChoice),
     "ignore_corrupt": _flag,
     "overwrite": _flag,
+    "extrapolation": _member(Extrapolation),
 }

@@ -12,6 +12,7 @@ import typer
 from acquisition.cli.app import SchedulerOption, WorkersOption, app, fail
 from processing.options import (
     Estimator,
+    Extrapolation,
     FitChoice,
     FitMethod,
     HDRMethod,
@@ -173,6 +174,13 @@ def process(
             show_default=False,
         ),
     ] = None,
+    extrapolation: Annotated[
+        Extrapolation,
+        typer.Option(
+            help="What the IES and LDT files hold beyond the θ the sweep measured: the fits' extrapolation "
+            "(fitted) or zero (none, the measured range only); the files say which (docs/light-model.md).",
+        ),
+    ] = Extrapolation.FITTED,
     ignore_corrupt: IgnoreCorruptOption = False,
     overwrite: OverwriteOption = False,
     scheduler: SchedulerOption = "local",
@@ -202,6 +210,7 @@ def process(
             calibrate_rig=CHOICE[calibrate_rig],
             ignore_corrupt=ignore_corrupt,
             overwrite=overwrite,
+            extrapolation=extrapolation,
         )
         check_scheduler(scheduler, workers)
     except (OptionsError, ComputeError) as exc:

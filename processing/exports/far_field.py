@@ -10,6 +10,8 @@ from pathlib import Path
 import numpy as np
 
 from processing.lightmodel import LightModel
+from processing.options import Extrapolation
+from processing.photometry import Photometry, far_field
 
 
 class ExportError(ValueError):
@@ -33,22 +35,49 @@ def angle_grid(path: Path, name: str, step: float, stop: float) -> np.ndarray:
     return np.linspace(0.0, stop, int(round(n)) + 1)
 
 
-def far_field_table(model: LightModel, gamma_deg: np.ndarray, c_deg: np.ndarray) -> np.ndarray:
-    """``Σ_s I_s`` on a (C, γ) grid, shape ``(len(c), len(gamma))``, in model units."""
+def far_field_table(
+    model: LightModel, gamma_deg: np.ndarray, c_deg: np.ndarray, extrapolation: str = Extrapolation.FITTED
+) -> np.ndarray:
+    """``Σ_s I_s`` on a (C, γ) grid, shape ``(len(c), len(gamma))``, in model units; beyond each
+    source's measured θ the fits' extrapolation, or zero (``extrapolation="none"``)."""
     theta = np.radians(np.asarray(gamma_deg, dtype=float))[None, :]
     phi = np.radians(np.mod(-np.asarray(c_deg, dtype=float), 360.0))[:, None]
-    return model.far_field(theta, phi)
+    return far_field(model, theta, phi, extrapolation)
+
+
+def checked_extrapolation(path: Path, extrapolation: str) -> str:
+    """``"fitted"`` or ``"none"`` (:class:`~processing.options.Extrapolation`), or one line naming the file."""
+    try:
+        return Extrapolation(extrapolation).value
+    except ValueError:
+        choices = ", ".join(e.value for e in Extrapolation)
+        raise ExportError(f"{path}: extrapolation: {extrapolation!r} is not one of {choices}") from None
+
+
+def measured_range_text(summary: Photometry) -> str:
+    """What the table holds beyond the measured θ, in a sentence (the files' free text)."""
+    every, some = summary.light_theta_max_deg
+    reach = f"{every:.1f} degrees" if some - every < 0.05 else f"{every:.1f} degrees (every source; {some:.1f} some)"
+    if summary.extrapolation == Extrapolation.NONE:
+        return (
+            f"Measured range only: the sweep measured vertical angles up to {reach}; beyond, the table is zero "
+            f"(the fits would put {100 * summary.fitted_beyond_fraction:.1f} % of the flux there)."
+        )
+    return (
+        f"The sweep measured vertical angles up to {reach}; beyond, the table holds the fits' extrapolation, "
+        f"{100 * summary.beyond_fraction:.1f} % of its flux."
+    )
 
 
 def far_field_scaling(
-    path: Path, model: LightModel, table: np.ndarray, calibration: float | None, lamp_lumens: float | None
+    path: Path, flux: float, table: np.ndarray, calibration: float | None, lamp_lumens: float | None
 ) -> tuple[float, float, bool]:
-    """``(factor, lamp_flux, absolute)``: what multiplies the model's intensities, and the lamp flux."""
+    """``(factor, lamp_flux, absolute)``: what multiplies the model's intensities, and the lamp
+    flux; ``flux`` is the table's light's, in model units × sr."""
     if calibration is not None and lamp_lumens is not None:
         raise ExportError(
             f"{path}: give calibration (absolute candela) or lamp_lumens (relative, lumen scaled), not both"
         )
-    flux = model.total_flux()
     if not (flux > 0) or not np.any(table > 0):
         raise ExportError(f"{path}: the light model emits no flux in front of its plane")
     if calibration is not None:

@@ -10,6 +10,7 @@ from drivers.contracts.version import __version__
 from processing.exports.far_field import (
     angle_grid,
     ascii_only,
+    checked_extrapolation,
     describe_light,
     far_field_scaling,
     far_field_table,
@@ -18,9 +19,19 @@ from processing.exports.far_field import (
     write_text,
 )
 from processing.lightmodel import LightModel
+from processing.options import Extrapolation
+from processing.photometry import Photometry, summarize
 
 
-def _ldt_description(model: LightModel, file_name: str, absolute: bool, grid: tuple, names: tuple) -> list[str]:
+def _ldt_report_line(run: str, summary: Photometry) -> str:
+    """Line 8, the measurement report: the run, the θ it measured and what lies beyond (78 characters)."""
+    beyond = "zero" if summary.extrapolation == Extrapolation.NONE else "fits extrapolated"
+    return f"mirrorgonio run {run}; measured to gamma {summary.light_theta_max_deg[0]:.1f} deg, {beyond} beyond"
+
+
+def _ldt_description(
+    model: LightModel, file_name: str, absolute: bool, grid: tuple, names: tuple, summary: Photometry
+) -> list[str]:
     """EULUMDAT lines 1-12: the company and the units, the type and symmetry indicators, the angle grid
     ``(Mc, Dc, Ng, Dg)``, the report, the luminaire's name and number, the file name and the date.
 
@@ -42,7 +53,7 @@ def _ldt_description(model: LightModel, file_name: str, absolute: bool, grid: tu
         plain_number(c_step_deg),  # Dc
         str(n_gamma),  # Ng
         plain_number(gamma_step_deg),  # Dg
-        line(f"mirrorgonio run {run}", 78),  # measurement report
+        line(_ldt_report_line(run, summary), 78),  # measurement report
         line(luminaire or f"near-field light model, {len(model.sources)} sources ({methods})", 78),
         line(luminaire_number or run, 78),
         line(file_name, 8 + 4 + 66),
@@ -50,7 +61,7 @@ def _ldt_description(model: LightModel, file_name: str, absolute: bool, grid: tu
     ]
 
 
-def _ldt_luminaire_and_lamps(model: LightModel, absolute: bool, lamp_flux: float) -> list[str]:
+def _ldt_luminaire_and_lamps(model: LightModel, absolute: bool, lamp_flux: float, summary: Photometry) -> list[str]:
     """EULUMDAT lines 13-26f: the luminaire's and luminous area's sizes, the ratios, and the lamps."""
     length, width = (1000.0 * x for x in luminous_opening(model))
     lines = [plain_number(length), plain_number(width), "0"]  # the luminaire's length, width and height (mm)
@@ -62,7 +73,8 @@ def _ldt_luminaire_and_lamps(model: LightModel, absolute: bool, lamp_flux: float
         "0",
         "0",
     ]  # the luminous area's, its heights at C0, C90, C180, C270
-    lines += ["100", "100", "1", "0"]  # DFF, LORL (%), conversion factor of the intensities, tilt in the measurement
+    dff = plain_number(summary.record()["downward_flux_percent"], 4)
+    lines += [dff, "100", "1", "0"]  # DFF, LORL (%), conversion factor of the intensities, tilt in the measurement
     lamp_type = "mirrorgonio (candela)" if absolute else "mirrorgonio (relative)"  # 24 characters at most
     # One standard set of one lamp: its type, total luminous flux (relative units unless calibrated), colour
     # appearance, colour rendering, wattage including ballast.
@@ -80,6 +92,7 @@ def write_ldt(
     company: str = "mirrorgonio",
     luminaire: str | None = None,
     luminaire_number: str | None = None,
+    extrapolation: str = Extrapolation.FITTED,
 ) -> Path:
     """Write the light's far field as an EULUMDAT (``.ldt``) file.
 
@@ -98,6 +111,9 @@ def write_ldt(
         The angle grid, degrees.
     company, luminaire, luminaire_number : str, optional
         Identification lines 1, 9 and 10.
+    extrapolation : {"fitted", "none"}
+        Beyond each source's measured θ: the fits' extrapolation (the default), or zero.
+        Line 8 (the measurement report) says which, with the measured θ.
 
     Returns
     -------
@@ -116,11 +132,13 @@ def write_ldt(
     path = Path(path)
     c_all = angle_grid(path, "c_step_deg", c_step_deg, 360.0)[:-1]
     gamma = angle_grid(path, "gamma_step_deg", gamma_step_deg, 180.0)
-    table = far_field_table(model, gamma, c_all)
-    factor, lamp_flux, absolute = far_field_scaling(path, model, table, calibration, lamp_lumens)
+    extrapolation = checked_extrapolation(path, extrapolation)
+    summary = summarize(model, extrapolation, near_field_m=None)
+    table = far_field_table(model, gamma, c_all, extrapolation)
+    factor, lamp_flux, absolute = far_field_scaling(path, summary.total_flux, table, calibration, lamp_lumens)
     grid = (len(c_all), c_step_deg, len(gamma), gamma_step_deg)
-    lines = _ldt_description(model, path.name, absolute, grid, (company, luminaire, luminaire_number))
-    lines += _ldt_luminaire_and_lamps(model, absolute, lamp_flux)
+    lines = _ldt_description(model, path.name, absolute, grid, (company, luminaire, luminaire_number), summary)
+    lines += _ldt_luminaire_and_lamps(model, absolute, lamp_flux, summary)
     lines += ["0"] * 10  # direct ratios, not computed
     lines += [plain_number(v) for v in c_all]
     lines += [plain_number(v) for v in gamma]

@@ -26,6 +26,7 @@ from processing.light_run.samples import assemble_samples
 from processing.lightmodel import LightModel
 from processing.options import ProcessingOptions
 from processing.parallel import Compute
+from processing.photometry import summarize
 from processing.report.context import Truth
 from processing.report.page import write_report
 from processing.results import run_name
@@ -62,14 +63,17 @@ def finish_sources(
     timings["fit"] = time.perf_counter() - clock
     name = run_name(run_path)
     record_provenance(model, report, plan, options, out / name, positions, rows)
+    clock = time.perf_counter()
+    model.photometry = summarize(model, options.extrapolation).record()
+    timings["photometry"] = time.perf_counter() - clock
     report.light_model = model.save(output_path(run_path, out, ".light.json"))
-    luminaire = f"mirrorgonio run {name}"
+    far = {"luminaire": f"mirrorgonio run {name}", "extrapolation": options.extrapolation}
 
     def light_files() -> dict[str, list[Path]]:
         started = time.perf_counter()
         files = {
-            "ies": [write_ies(model, output_path(run_path, out, ".ies"), luminaire=luminaire)],
-            "ldt": [write_ldt(model, output_path(run_path, out, ".ldt"), luminaire=luminaire)],
+            "ies": [write_ies(model, output_path(run_path, out, ".ies"), **far)],
+            "ldt": [write_ldt(model, output_path(run_path, out, ".ldt"), **far)],
             "tm25": [write_tm25(model, output_path(run_path, out, ".tm25ray"), n_rays=100_000, seed=0)],
         }
         timings["exports"] = time.perf_counter() - started
