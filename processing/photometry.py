@@ -36,6 +36,7 @@ from processing.options import Extrapolation
 
 __all__ = [
     "NEAR_FIELD_DISTANCE_M",
+    "PLANES",
     "NearField",
     "PlaneAngles",
     "Photometry",

@@ -28,6 +28,7 @@ from processing.report.context import (
     trace_middle,
 )
 from processing.report.markup import FigureEncoder, html_note, write_page
+from processing.report.photometry import PHOTOMETRY_TITLE, photometry_section
 from processing.report.sections import (
     SECTIONS,
     angles_section,
@@ -224,6 +225,7 @@ def _write_report(
             ctx.geometry = traced(lambda: trace_middle(position, model))
         for name in (angles, layout):
             elsewhere.start(name, ctx)
+        photometry = guarded(PHOTOMETRY_TITLE, lambda: photometry_section(model, ctx.encoder))
         for name in (intensity, residuals, coverage, angles, layout):  # drawn here if not by a worker
             built[name] = elsewhere.result(name, ctx)
         run_id = model.provenance.get("run_id") or (run.header.run_id if run is not None else "")
@@ -232,6 +234,7 @@ def _write_report(
             f"<h1>{html.escape(title)}</h1>",
             quality_banner(model),
             skipped_note(model),
+            f"<h2>{html.escape(PHOTOMETRY_TITLE)}</h2>\n{ctx.encoder.fill(photometry)}",
             header_table(model, run, report, samples, resolution),
         ]
         for name in SECTIONS:
