@@ -23,8 +23,9 @@ is zero beyond its measured range, as the light files written that way are; with
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
-from functools import lru_cache
+from functools import lru_cache, partial
 from typing import Any
 
 import numpy as np
@@ -263,7 +264,7 @@ def _plane_illuminance(
     and from one point at ``centre`` with the whole far field."""
     measured_only = Extrapolation(extrapolation) is Extrapolation.NONE
 
-    def from_point(u: float, v: float, intensity) -> np.ndarray:
+    def from_point(u: float, v: float, intensity: Callable[[np.ndarray, np.ndarray], np.ndarray]) -> np.ndarray:
         d = points - np.array([u, v, 0.0])
         r2 = np.einsum("ij,ij->i", d, d)
         cos_t = d[:, 2] / np.sqrt(r2)
@@ -272,7 +273,7 @@ def _plane_illuminance(
 
     array = np.zeros(len(points))
     for s in model.sources:
-        array += from_point(*s.centre_m, lambda t, p, s=s: _source_intensity(s, t, p, measured_only))
+        array += from_point(*s.centre_m, partial(_source_intensity, s, measured_only=measured_only))
     point = from_point(*centre, lambda t, p: far_field(model, t, p, extrapolation))
     return array, point
 

@@ -15,6 +15,7 @@ import pytest
 
 from processing.fit import Samples, fit_intensity
 from processing.lightmodel import LightModel, SourceModel, samples_table
+from processing.photometry import summarize
 from processing.report.figures import polar_figure
 from processing.report.page import write_report
 from processing.report.sections import NO_CALIBRATION
@@ -103,7 +104,7 @@ def test_without_run_samples_or_report_it_renders_with_notes(tmp_path):
     assert "no HDR previews found" in text
     assert "noise model" in text and "not given to the report" in text
     assert "could not be drawn" not in text
-    assert len(images(text)) == 4
+    assert len(images(text)) == 2 + 4  # the whole light's diagrams and illuminance, then the sources' figures
 
 
 def test_a_model_read_back_from_its_file_reports_the_same(tmp_path):
@@ -245,6 +246,24 @@ def test_the_pipeline_writes_the_report_after_the_light_model(processed):
     pngs = images(text)
     previews = re.findall(r'alt="position (\d+)"', text)
     assert 1 < len(previews) <= 6
-    assert len(pngs) == 5 + len(previews)  # polar, layout, coverage, angles, residuals + the strip
+    # the whole light's diagrams and illuminance; polar, layout, coverage, angles, residuals; the strip
+    assert len(pngs) == 2 + 5 + len(previews)
     for png in pngs:
         decode(png)
+
+
+def test_the_pipeline_writes_the_photometry_in_the_model_the_files_and_first_in_the_report(processed):
+    _, report = processed
+    model = LightModel.load(report.light_model)
+    photometry = model.photometry
+    assert photometry["extrapolation"] == "fitted" and photometry["intensity_units"] == "W/sr"
+    assert photometry == summarize(model).record()  # the figures of the light the file holds
+    assert 0 < photometry["flux_beyond_measured_percent"] < 100
+    text = report.outputs["ies"][0].read_text()
+    assert f"[_BEAMANGLE_C0_C180] {photometry['beam_angle_deg']['C0-C180']:.1f}\n" in text
+    assert f"[_MEASURED_THETA_MAX] {photometry['measured_theta_max_deg']:.1f}\n" in text
+    assert "[_EXTRAPOLATION] fitted\n" in text
+    page = report.outputs["report"][0].read_text(encoding="utf-8")
+    top = page.index("<h2>Photometry of the whole light</h2>")
+    assert top < page.index("<h2>The light source, source by source</h2>")
+    assert f"{photometry['field_angle_deg']['C90-C270']:.1f}°" in page[top : page.index("<h2>", top + 10)]

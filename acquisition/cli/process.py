@@ -118,6 +118,17 @@ OverwriteOption = Annotated[
         "Without it they stop the processing before any work.",
     ),
 ]
+ExtrapolationOption = Annotated[
+    Extrapolation,
+    typer.Option(
+        help="What the IES and LDT files hold beyond the θ the sweep measured: the fits' extrapolation "
+        "(fitted) or zero (none, the measured range only); the files say which (docs/light-model.md).",
+    ),
+]
+BallCentreOption = Annotated[
+    str | None,
+    typer.Option("--ball-centre", help="Measured ball centre X,Y,Z in metres (rig frame; from `calibrate`)."),
+]
 
 #: A tri-state flag's choice: neither flag given (the default), the flag, or its --no- form.
 CHOICE = {None: FitChoice.AUTO, True: FitChoice.ALWAYS, False: FitChoice.NEVER}
@@ -141,10 +152,7 @@ def process(
         Estimator, typer.Option(help="auto (from the footprint), templates, or cell-sums.")
     ] = Estimator.AUTO,
     fit: Annotated[FitMethod, typer.Option(help="The model every source's I(θ) is fitted to.")] = FitMethod.GAUSSIAN,
-    ball_centre: Annotated[
-        str | None,
-        typer.Option("--ball-centre", help="Measured ball centre X,Y,Z in metres (rig frame; from `calibrate`)."),
-    ] = None,
+    ball_centre: BallCentreOption = None,
     images: Annotated[
         bool, typer.Option(help="Write an OpenEXR and a PNG preview of every position (hdr step).")
     ] = True,
@@ -174,13 +182,7 @@ def process(
             show_default=False,
         ),
     ] = None,
-    extrapolation: Annotated[
-        Extrapolation,
-        typer.Option(
-            help="What the IES and LDT files hold beyond the θ the sweep measured: the fits' extrapolation "
-            "(fitted) or zero (none, the measured range only); the files say which (docs/light-model.md).",
-        ),
-    ] = Extrapolation.FITTED,
+    extrapolation: ExtrapolationOption = Extrapolation.FITTED,
     ignore_corrupt: IgnoreCorruptOption = False,
     overwrite: OverwriteOption = False,
     scheduler: SchedulerOption = "local",

@@ -67,13 +67,21 @@ def finish_sources(
     model.photometry = summarize(model, options.extrapolation).record()
     timings["photometry"] = time.perf_counter() - clock
     report.light_model = model.save(output_path(run_path, out, ".light.json"))
-    far = {"luminaire": f"mirrorgonio run {name}", "extrapolation": options.extrapolation}
+    luminaire = f"mirrorgonio run {name}"
 
     def light_files() -> dict[str, list[Path]]:
         started = time.perf_counter()
         files = {
-            "ies": [write_ies(model, output_path(run_path, out, ".ies"), **far)],
-            "ldt": [write_ldt(model, output_path(run_path, out, ".ldt"), **far)],
+            "ies": [
+                write_ies(
+                    model, output_path(run_path, out, ".ies"), luminaire=luminaire, extrapolation=options.extrapolation
+                )
+            ],
+            "ldt": [
+                write_ldt(
+                    model, output_path(run_path, out, ".ldt"), luminaire=luminaire, extrapolation=options.extrapolation
+                )
+            ],
             "tm25": [write_tm25(model, output_path(run_path, out, ".tm25ray"), n_rays=100_000, seed=0)],
         }
         timings["exports"] = time.perf_counter() - started

@@ -20,18 +20,20 @@ from matplotlib.ticker import MaxNLocator
 from processing.lightmodel import LightModel
 from processing.options import Extrapolation
 from processing.photometry import PLANES, Photometry, far_field, summarize
-from processing.report.drawing import new_figure
+from processing.report.drawing import new_figure, settle_axes
 from processing.report.markup import FigureEncoder, figure_html, html_table
 
 PHOTOMETRY_TITLE = "Photometry of the whole light"
 _PLANE_STYLE = {"C0-C180": ("#d62728", "-"), "C90-C270": ("#1f77b4", "--")}
-_EXTRAPOLATED = {"color": "#e6e6e6", "linewidth": 0, "zorder": 0}
+_GREY = "#e6e6e6"  # beyond the measured γ
 
 
 def _shade_beyond(ax: PolarAxes, start_deg: float, stop_deg: float, rmax: float, label: str | None) -> None:
     """Grey over the angles ``start..stop`` (degrees on the axes' own angle), out to ``rmax``."""
     arc = np.radians(np.linspace(start_deg, stop_deg, 90))
-    ax.fill(np.r_[0.0, arc, 0.0], np.r_[0.0, np.full(arc.size, rmax), 0.0], label=label, **_EXTRAPOLATED)
+    ax.fill(
+        np.r_[0.0, arc, 0.0], np.r_[0.0, np.full(arc.size, rmax), 0.0], label=label, color=_GREY, linewidth=0, zorder=0
+    )
 
 
 def _deg(value: float | None) -> str:
@@ -81,7 +83,7 @@ def _isocandela_axes(ax: PolarAxes, model: LightModel, summary: Photometry) -> N
     table = far_field(model, np.radians(gamma)[None, :], np.radians(-c)[:, None], summary.extrapolation)
     relative = table / summary.peak[0]
     every = summary.light_theta_max_deg[0]
-    ax.bar(math.pi, 90.0 - every, width=2.0 * math.pi, bottom=every, **_EXTRAPOLATED)
+    ax.bar(math.pi, 90.0 - every, width=2.0 * math.pi, bottom=every, color=_GREY, linewidth=0, zorder=0)
     lines = ax.contour(np.radians(c), gamma, relative.T, levels=[0.2, 0.3, 0.4, 0.6, 0.7, 0.8, 0.9], colors="0.25")
     bold = ax.contour(np.radians(c), gamma, relative.T, levels=[0.1, 0.5], colors=["#1f77b4", "#d62728"])
     for contour, width in ((lines, 0.7), (bold, 1.8)):
@@ -126,14 +128,19 @@ def illuminance_figure(model: LightModel, summary: Photometry) -> Figure:
     )
     for k, (title, data, cmap, (lo, hi), label) in enumerate(panels):
         ax: Axes = fig.add_axes((0.045 + k * 0.33, 0.13, 0.22, 0.72))
-        image = ax.imshow(data, origin="lower", extent=extent, cmap=cmap, vmin=lo, vmax=hi, aspect="equal")
-        ax.set_title(title, fontsize=9)
+        image = ax.imshow(
+            data, origin="lower", extent=extent, cmap=cmap, vmin=lo, vmax=hi, aspect="equal", interpolation="nearest"
+        )
+        ax.set_title(title, fontsize=9, y=1.0)  # y: no search for what the title overlaps
         ax.set_xlabel("x [cm]", fontsize=8)
         if k == 0:
             ax.set_ylabel("y [cm]", fontsize=8)
         ax.tick_params(labelsize=7)
+        settle_axes(ax, xlabel_pad=0.3, ylabel_pad=0.4)
         cax = fig.add_axes((0.27 + k * 0.33, 0.13, 0.012, 0.72))
-        fig.colorbar(image, cax=cax).set_label(label, fontsize=8)
+        bar = fig.colorbar(image, cax=cax)
+        bar.set_ticks([t for t in MaxNLocator(5).tick_values(lo, hi) if lo <= t <= hi])
+        bar.set_label(label, fontsize=8)
         cax.tick_params(labelsize=7)
     fig.text(
         0.5,
