@@ -25,14 +25,22 @@ from processing.report.markup import FigureEncoder, figure_html, html_table
 
 PHOTOMETRY_TITLE = "Photometry of the whole light"
 _PLANE_STYLE = {"C0-C180": ("#d62728", "-"), "C90-C270": ("#1f77b4", "--")}
-_GREY = "#e6e6e6"  # beyond the measured γ
+#: Beyond the measured γ: hatched grey (the sources' own polar plots shade what was covered in plain grey).
+_BEYOND_FACE, _BEYOND_HATCH = "#f0f0f0", "#b8b8b8"
 
 
 def _shade_beyond(ax: PolarAxes, start_deg: float, stop_deg: float, rmax: float, label: str | None) -> None:
     """Grey over the angles ``start..stop`` (degrees on the axes' own angle), out to ``rmax``."""
     arc = np.radians(np.linspace(start_deg, stop_deg, 90))
     ax.fill(
-        np.r_[0.0, arc, 0.0], np.r_[0.0, np.full(arc.size, rmax), 0.0], label=label, color=_GREY, linewidth=0, zorder=0
+        np.r_[0.0, arc, 0.0],
+        np.r_[0.0, np.full(arc.size, rmax), 0.0],
+        label=label,
+        facecolor=_BEYOND_FACE,
+        edgecolor=_BEYOND_HATCH,
+        hatch="///",
+        linewidth=0.0,
+        zorder=0,
     )
 
 
@@ -83,7 +91,17 @@ def _isocandela_axes(ax: PolarAxes, model: LightModel, summary: Photometry) -> N
     table = far_field(model, np.radians(gamma)[None, :], np.radians(-c)[:, None], summary.extrapolation)
     relative = table / summary.peak[0]
     every = summary.light_theta_max_deg[0]
-    ax.bar(math.pi, 90.0 - every, width=2.0 * math.pi, bottom=every, color=_GREY, linewidth=0, zorder=0)
+    ax.bar(
+        math.pi,
+        90.0 - every,
+        width=2.0 * math.pi,
+        bottom=every,
+        facecolor=_BEYOND_FACE,
+        edgecolor=_BEYOND_HATCH,
+        hatch="///",
+        lw=0.0,
+        zorder=0,
+    )
     lines = ax.contour(np.radians(c), gamma, relative.T, levels=[0.2, 0.3, 0.4, 0.6, 0.7, 0.8, 0.9], colors="0.25")
     bold = ax.contour(np.radians(c), gamma, relative.T, levels=[0.1, 0.5], colors=["#1f77b4", "#d62728"])
     for contour, width in ((lines, 0.7), (bold, 1.8)):
