@@ -173,7 +173,7 @@ def test_the_measured_only_files_are_zero_beyond_and_say_so(tmp_path):
     ldt = read(photompy.LDTFile, ldt_path)
     assert np.all(ldt.photometry.values[:, ldt.photometry.thetas > 42.3] == 0)
     assert ldt_path.read_text().split("\n")[7].strip() == (
-        "mirrorgonio run run-photometry; measured to gamma 42.3 deg, zero beyond"
+        "measured to gamma 42.3 deg, zero beyond; mirrorgonio run run-photometry"
     )
     assert ldt.header.dff == 100 and ldt.header.lorl == 100
     fitted = read(photompy.LDTFile, write_ldt(model, tmp_path / "fitted.ldt"))

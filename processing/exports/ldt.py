@@ -24,9 +24,10 @@ from processing.photometry import Photometry, summarize
 
 
 def _ldt_report_line(run: str, summary: Photometry) -> str:
-    """Line 8, the measurement report: the run, the θ it measured and what lies beyond (78 characters)."""
-    beyond = "zero" if summary.extrapolation == Extrapolation.NONE else "fits extrapolated"
-    return f"mirrorgonio run {run}; measured to gamma {summary.light_theta_max_deg[0]:.1f} deg, {beyond} beyond"
+    """Line 8, the measurement report: the γ measured, what lies beyond, and the run (78 characters: a
+    long run id is cut, not the range)."""
+    beyond = "zero" if summary.extrapolation == Extrapolation.NONE else "fitted"
+    return f"measured to gamma {summary.light_theta_max_deg[0]:.1f} deg, {beyond} beyond; mirrorgonio run {run}"
 
 
 def _ldt_description(

@@ -30,7 +30,7 @@ _BEYOND_FACE, _BEYOND_HATCH = "#f0f0f0", "#b8b8b8"
 
 
 def _shade_beyond(ax: PolarAxes, start_deg: float, stop_deg: float, rmax: float, label: str | None) -> None:
-    """Grey over the angles ``start..stop`` (degrees on the axes' own angle), out to ``rmax``."""
+    """Hatched grey over the angles ``start..stop`` (degrees on the axes' own angle), out to ``rmax``."""
     arc = np.radians(np.linspace(start_deg, stop_deg, 90))
     ax.fill(
         np.r_[0.0, arc, 0.0],
@@ -50,7 +50,7 @@ def _deg(value: float | None) -> str:
 
 def _cplane_axes(ax: PolarAxes, model: LightModel, summary: Photometry) -> None:
     """The C-plane polar diagram on ``ax``: the far field in the C0–C180 and C90–C270 planes on
-    one half disc, γ from nadir (down), C0 and C90 to the right; grey where the measurement ends."""
+    one half disc, γ from nadir (down), C0 and C90 to the right; hatched where the measurement ends."""
     ax.set_theta_zero_location("S")
     ax.set_thetamin(-90.0)
     ax.set_thetamax(90.0)
@@ -85,7 +85,7 @@ def _cplane_axes(ax: PolarAxes, model: LightModel, summary: Photometry) -> None:
 def _isocandela_axes(ax: PolarAxes, model: LightModel, summary: Photometry) -> None:
     """The isocandela diagram on ``ax``: lines of equal intensity (10 % … 90 % of the peak) over
     the directions in front of the light, C as the angle (C0 right, C90 up) and γ as the radius;
-    the beam (50 %) and field (10 %) lines bold; grey beyond the measured γ."""
+    the beam (50 %) and field (10 %) lines bold; hatched beyond the measured γ."""
     gamma = np.linspace(0.0, 90.0, 181)
     c = np.linspace(0.0, 360.0, 145)
     table = far_field(model, np.radians(gamma)[None, :], np.radians(-c)[:, None], summary.extrapolation)
@@ -119,7 +119,7 @@ def diagrams_figure(model: LightModel, summary: Photometry) -> Figure:
     """The C-plane polar diagram and the isocandela diagram of the whole light, side by side."""
     fig = new_figure(11.4, 4.8, layout=None)
     left = fig.add_axes((0.02, 0.14, 0.46, 0.88), projection="polar")
-    right = fig.add_axes((0.6, 0.04, 0.36, 0.84), projection="polar")
+    right = fig.add_axes((0.6, 0.06, 0.36, 0.8), projection="polar")
     assert isinstance(left, PolarAxes) and isinstance(right, PolarAxes)
     _cplane_axes(left, model, summary)
     _isocandela_axes(right, model, summary)
@@ -241,16 +241,17 @@ def photometry_section(model: LightModel, encoder: FigureEncoder | None = None) 
     summary = summarize(model, model.photometry.get("extrapolation", Extrapolation.FITTED))
     every = summary.light_theta_max_deg[0]
     written = "zero" if summary.extrapolation == Extrapolation.NONE else "the fits' extrapolation"
+    units = "in W/sr" if model.units == "W/sr" else "relative (not calibrated)"
     parts = [
         f"<p>The whole light, as its IES and LDT files describe it: beyond the measured γ ({every:.1f}°) they "
-        f"hold {html.escape(written)} (<code>--extrapolation</code>). Intensities in {html.escape(model.units)}; "
+        f"hold {html.escape(written)} (<code>--extrapolation</code>). Intensities {units}; "
         "γ from the light's axis, C counter-clockwise from the light's +x seen from the lit side.</p>",
         _figures_table(model, summary),
         figure_html(
             diagrams_figure(model, summary),
             "C-plane polar diagram and isocandela diagram",
             "Left: the C-plane polar diagram, the intensity in the C0–C180 (solid) and C90–C270 (dashed) planes, γ "
-            "from the light's axis (down). Right: the isocandela diagram, C as the angle and γ as the radius. Grey: "
+            "from the light's axis (down). Right: the isocandela diagram, C as the angle and γ as the radius. Hatched: "
             "beyond the γ the sweep measured.",
             encoder,
         ),
