@@ -312,6 +312,7 @@ def test_process_refuses_a_bad_method_in_one_line_at_once(tmp_path):
         ("--estimator", "sums", "Invalid value for '--estimator': 'sums' is not one of 'auto', 'templates',"),
         ("--steps", "hdr,dance", "--steps: unknown step 'dance'"),
         ("--ball-centre", "1,2", "--ball-centre: expected X,Y,Z in metres, got '1,2'"),
+        ("--extrapolation", "zero", "Invalid value for '--extrapolation': 'zero' is not one of 'fitted', 'none'."),
         ("--scheduler", "my-cluster", "--scheduler: 'my-cluster' is not 'local', 'none', 'synchronous'"),
     ],
 )
