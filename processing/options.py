@@ -18,6 +18,15 @@ from typing import Any
 
 from processing.steps import Step, StepsError, resolve_steps
 
+#: The TM-25 ray count: the default, and the bounds a request may ask for (vendors ship
+#: 0.1 to 20 million rays; the file takes 28 bytes a ray).
+DEFAULT_RAYS = 100_000
+MIN_RAYS, MAX_RAYS = 1_000, 50_000_000
+#: The most lumens a lamp flux may be, and candela per model unit (no light comes close).
+MAX_LUMENS = 1e9
+#: The longest name the light files take (manufacturer, luminaire, lamp).
+MAX_NAME = 200
+
 
 class OptionsError(ValueError):
     """An option the processing does not know, or a value it does not take (one line naming the option)."""
@@ -104,6 +113,18 @@ class ProcessingOptions:
     overwrite : bool
         Write over outputs already in the folder that another run's processing wrote (or whose
         run is unknown); without it they stop the processing before any work.
+    lamp_lumens : float or None
+        The lamp's flux (lm): the IES and LDT files' relative intensities are scaled to it.
+    candela_per_unit : float or None
+        Absolute photometry: candela per unit of the light model's intensity (a calibration
+        against a reference); the IES and LDT files are then in candela. Not with
+        ``lamp_lumens``.
+    manufacturer, luminaire, lamp : str or None
+        Names the light files carry (IES ``[MANUFAC]``, ``[LUMINAIRE]``, ``[LAMP]``; the LDT's
+        company, luminaire and lamp type; the TM-25 manufacturer and name fields).
+    rays : int
+        The TM-25 ray file's number of rays (:data:`MAX_RAYS` at most; written in blocks, so
+        memory stays bounded).
 
     Examples
     --------
@@ -130,6 +151,12 @@ class ProcessingOptions:
     calibrate_rig: FitChoice = FitChoice.AUTO
     ignore_corrupt: bool = False
     overwrite: bool = False
+    lamp_lumens: float | None = None
+    candela_per_unit: float | None = None
+    manufacturer: str | None = None
+    luminaire: str | None = None
+    lamp: str | None = None
+    rays: int = DEFAULT_RAYS
 
     @classmethod
     def checked(cls, **values: Any) -> ProcessingOptions:
@@ -149,6 +176,11 @@ class ProcessingOptions:
             if f.name not in values or values[f.name] is None and f.name not in ("layout", "ball_centre"):
                 continue
             out[f.name] = _CHECKS.get(f.name, _as_is)(f.name, values[f.name])
+        if out.get("lamp_lumens") is not None and out.get("candela_per_unit") is not None:
+            raise OptionsError(
+                "--lamp-lumens, --candela-per-unit: give one (relative intensities scaled to a lamp flux, or "
+                "absolute candela), not both"
+            )
         return cls(**out)
 
 
@@ -196,6 +228,43 @@ def _flag(name: str, value: Any) -> bool:
     return value
 
 
+def _positive(name: str, value: Any) -> float:
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        number = math.nan
+    if isinstance(value, bool) or not (0 < number <= MAX_LUMENS):
+        raise OptionsError(f"{_option(name)}: expected a positive number up to {MAX_LUMENS:g}, got {value!r}")
+    return number
+
+
+def _rays(name: str, value: Any) -> int:
+    try:
+        count = int(value) if not isinstance(value, bool) and float(value) == int(value) else None
+    except (TypeError, ValueError, OverflowError):
+        count = None
+    if count is None or not MIN_RAYS <= count <= MAX_RAYS:
+        raise OptionsError(
+            f"{_option(name)}: expected a whole number of rays from {MIN_RAYS} to {MAX_RAYS}, got {value!r}"
+        )
+    return count
+
+
+def _name(name: str, value: Any) -> str:
+    """A name the light files carry: on one line (no control characters), not blank."""
+    if (
+        not isinstance(value, str)
+        or not value.strip()
+        or len(value) > MAX_NAME
+        or any(ord(c) < 32 or ord(c) == 127 for c in value)
+    ):
+        raise OptionsError(
+            f"{_option(name)}: expected a name of 1 to {MAX_NAME} characters on one line (no control characters), "
+            f"got {value!r}"
+        )
+    return value.strip()
+
+
 def _as_is(name: str, value: Any) -> Any:
     return value
 
@@ -215,4 +284,10 @@ _CHECKS: dict[str, Callable[[str, Any], Any]] = {
     "calibrate_rig": _member(FitChoice),
     "ignore_corrupt": _flag,
     "overwrite": _flag,
+    "lamp_lumens": _positive,
+    "candela_per_unit": _positive,
+    "manufacturer": _name,
+    "luminaire": _name,
+    "lamp": _name,
+    "rays": _rays,
 }

@@ -50,7 +50,7 @@ def _ldt_description(model: LightModel, file_name: str, absolute: bool, grid: tu
     ]
 
 
-def _ldt_luminaire_and_lamps(model: LightModel, absolute: bool, lamp_flux: float) -> list[str]:
+def _ldt_luminaire_and_lamps(model: LightModel, absolute: bool, lamp_flux: float, lamp: str | None) -> list[str]:
     """EULUMDAT lines 13-26f: the luminaire's and luminous area's sizes, the ratios, and the lamps."""
     length, width = (1000.0 * x for x in luminous_opening(model))
     lines = [plain_number(length), plain_number(width), "0"]  # the luminaire's length, width and height (mm)
@@ -64,6 +64,8 @@ def _ldt_luminaire_and_lamps(model: LightModel, absolute: bool, lamp_flux: float
     ]  # the luminous area's, its heights at C0, C90, C180, C270
     lines += ["100", "100", "1", "0"]  # DFF, LORL (%), conversion factor of the intensities, tilt in the measurement
     lamp_type = "mirrorgonio (candela)" if absolute else "mirrorgonio (relative)"  # 24 characters at most
+    if lamp:
+        lamp_type = ascii_only(lamp)[:24]
     # One standard set of one lamp: its type, total luminous flux (relative units unless calibrated), colour
     # appearance, colour rendering, wattage including ballast.
     return lines + ["1", "1", lamp_type, plain_number(lamp_flux), "", "", "0"]
@@ -80,6 +82,7 @@ def write_ldt(
     company: str = "mirrorgonio",
     luminaire: str | None = None,
     luminaire_number: str | None = None,
+    lamp: str | None = None,
 ) -> Path:
     """Write the light's far field as an EULUMDAT (``.ldt``) file.
 
@@ -98,6 +101,9 @@ def write_ldt(
         The angle grid, degrees.
     company, luminaire, luminaire_number : str, optional
         Identification lines 1, 9 and 10.
+    lamp : str, optional
+        The lamp type (line 26b, its first 24 characters); default ``mirrorgonio (relative)``
+        or ``mirrorgonio (candela)``.
 
     Returns
     -------
@@ -120,7 +126,7 @@ def write_ldt(
     factor, lamp_flux, absolute = far_field_scaling(path, model, table, calibration, lamp_lumens)
     grid = (len(c_all), c_step_deg, len(gamma), gamma_step_deg)
     lines = _ldt_description(model, path.name, absolute, grid, (company, luminaire, luminaire_number))
-    lines += _ldt_luminaire_and_lamps(model, absolute, lamp_flux)
+    lines += _ldt_luminaire_and_lamps(model, absolute, lamp_flux, lamp)
     lines += ["0"] * 10  # direct ratios, not computed
     lines += [plain_number(v) for v in c_all]
     lines += [plain_number(v) for v in gamma]
