@@ -160,6 +160,7 @@ class JobWorker:
         self._progress: float | None = None
         self._note: str | None = None
         self._step: str | None = None
+        self._steps_seen: set[str] = set()
         self._lost = threading.Event()
 
     # --- the loop ------------------------------------------------------------------------
@@ -250,6 +251,7 @@ class JobWorker:
                 job, f"waiting: run {run.id} is being acquired ({acquiring}) and has no complete position yet"
             )
         self._progress, self._note, self._step = 0.0, None, None
+        self._steps_seen.clear()
         self._lost.clear()
         stop = threading.Event()
         beat = threading.Thread(target=self._heartbeats, args=(job, stop), name=f"heartbeat-{job.id}", daemon=True)
@@ -310,14 +312,18 @@ class JobWorker:
             return self.catalog.get_job(job.id)
 
     def _report_progress(self, step: str, done: int, total: int) -> None:
-        """``process_run``'s progress: the step and how far it is, kept for the next heartbeat
-        (the job's ``step``, its ``message`` in words and its share of the whole processing,
-        which never goes back: the light files and the report run side by side); raises if
-        the job was lost."""
+        """``process_run``'s progress, kept for the next heartbeat: the job's ``step`` (the one
+        started last: the light files end while the report, started after them, runs), its
+        ``message`` in words and its share of the whole processing (which never goes back).
+        Raises if the job was lost."""
         if self._lost.is_set():
             raise JobLostError("the job was requeued and claimed by another worker")
         self._progress = max(self._progress or 0.0, min(0.99, overall_fraction(step, done, total)))
-        self._step, self._note = step, describe(step, done, total)
+        if done == 0 or step not in self._steps_seen:
+            self._step = step
+            self._steps_seen.add(step)
+        if step == self._step:
+            self._note = describe(step, done, total)
 
     def _heartbeats(self, job: JobRecord, stop: threading.Event) -> None:
         while not stop.wait(self.heartbeat_s):

@@ -259,7 +259,7 @@ def write_tm25(
         with open(tmp, "wb") as f:
             f.write(head + text)  # no spectral tables, column labels or additional text
             for block in _ray_blocks(model, fluxes, int(n_rays), np.random.default_rng(seed)):
-                f.write(memoryview(block).cast("B"))
+                f.write(block.tobytes())  # a block at a time: 7 MB
         os.replace(tmp, path)
     except BaseException:
         tmp.unlink(missing_ok=True)

@@ -113,11 +113,12 @@ def write_light_files(
     """The IES, LDT and TM-25 files of ``model``, with the names, the lamp flux or calibration
     and the ray count of ``options`` (the luminaire named after the run where none is given)."""
     luminaire = options.luminaire or f"mirrorgonio run {run_name(run_path)}"
-    photometry = {"lamp_lumens": options.lamp_lumens, "calibration": options.candela_per_unit}
+    lumens, calibration = options.lamp_lumens, options.candela_per_unit
     ies = write_ies(
         model,
         output_path(run_path, out, ".ies"),
-        **photometry,
+        lamp_lumens=lumens,
+        calibration=calibration,
         manufacturer=options.manufacturer or "unknown",
         luminaire=luminaire,
         lamp=options.lamp,
@@ -125,7 +126,8 @@ def write_light_files(
     ldt = write_ldt(
         model,
         output_path(run_path, out, ".ldt"),
-        **photometry,
+        lamp_lumens=lumens,
+        calibration=calibration,
         company=options.manufacturer or "mirrorgonio",
         luminaire=luminaire,
         lamp=options.lamp,
