@@ -103,6 +103,18 @@ def test_process_bad_input_is_one_line(simulated_run, tmp_path):
     assert forced.output.strip() == f"error: {path}: the noise model cannot be estimated from these brackets"
     step = runner.invoke(app, ["process", str(path), "--steps", "hdr,dance", "--out", str(tmp_path)])
     assert step.exit_code == 2 and "--steps: unknown step 'dance'" in step.output
+    for option, value, said in (
+        ("--rays", "10", "--rays: expected a whole number of rays from 1000 to 50000000"),
+        ("--lamp-lumens", "-5", "--lamp-lumens: expected a positive number"),
+        ("--manufacturer", "Acme\nInc", "--manufacturer: expected a name of 1 to 200 characters on one line"),
+    ):
+        refused = runner.invoke(app, ["process", str(path), option, value, "--out", str(tmp_path / "x")])
+        assert refused.exit_code == 2 and refused.output.startswith(f"error: {said}"), refused.output
+        assert len(refused.output.strip().splitlines()) == 1
+    both = ["--lamp-lumens", "800", "--candela-per-unit", "2"]
+    refused = runner.invoke(app, ["process", str(path), *both, "--out", str(tmp_path / "x")])
+    assert refused.exit_code == 2 and "--lamp-lumens, --candela-per-unit: give one" in refused.output
+    assert not (tmp_path / "x").exists()  # refused before any work
 
 
 def test_a_run_without_any_complete_position_is_refused(simulated_run, tmp_path):

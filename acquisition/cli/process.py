@@ -121,6 +121,32 @@ OverwriteOption = Annotated[
     ),
 ]
 
+FitApertureOption = Annotated[
+    bool | None,
+    typer.Option(
+        "--fit-aperture/--no-fit-aperture",
+        help="Fit the pinhole's diameter alone to the data (docs/light-model.md), or keep the rig's. Default: "
+        "fitted where the sources are searched for and the rig is not self-calibrated.",
+        show_default=False,
+    ),
+]
+FitSensorDistanceOption = Annotated[
+    bool,
+    typer.Option(
+        "--fit-sensor-distance",
+        help="Fit the sensor distance to the data too, before the aperture (docs/light-model.md).",
+    ),
+]
+CalibrateRigOption = Annotated[
+    bool | None,
+    typer.Option(
+        "--calibrate-rig/--no-calibrate-rig",
+        help="Fit the rig's geometry to the data with the sources (self-calibration, docs/self-calibration.md): "
+        "the camera's pose, sensor distance and pinhole, the arm's base frame. Default: where the sources are "
+        "searched for (no --layout); with --layout and --calibrate-rig the layout's places are held.",
+        show_default=False,
+    ),
+]
 LampLumensOption = Annotated[
     float | None,
     typer.Option(
@@ -191,32 +217,9 @@ def process(
     images: Annotated[
         bool, typer.Option(help="Write an OpenEXR and a PNG preview of every position (hdr step).")
     ] = True,
-    fit_aperture: Annotated[
-        bool | None,
-        typer.Option(
-            "--fit-aperture/--no-fit-aperture",
-            help="Fit the pinhole's diameter alone to the data (docs/light-model.md), or keep the rig's. Default: "
-            "fitted where the sources are searched for and the rig is not self-calibrated.",
-            show_default=False,
-        ),
-    ] = None,
-    fit_sensor_distance: Annotated[
-        bool,
-        typer.Option(
-            "--fit-sensor-distance",
-            help="Fit the sensor distance to the data too, before the aperture (docs/light-model.md).",
-        ),
-    ] = False,
-    calibrate_rig: Annotated[
-        bool | None,
-        typer.Option(
-            "--calibrate-rig/--no-calibrate-rig",
-            help="Fit the rig's geometry to the data with the sources (self-calibration, docs/self-calibration.md): "
-            "the camera's pose, sensor distance and pinhole, the arm's base frame. Default: where the sources are "
-            "searched for (no --layout); with --layout and --calibrate-rig the layout's places are held.",
-            show_default=False,
-        ),
-    ] = None,
+    fit_aperture: FitApertureOption = None,
+    fit_sensor_distance: FitSensorDistanceOption = False,
+    calibrate_rig: CalibrateRigOption = None,
     ignore_corrupt: IgnoreCorruptOption = False,
     overwrite: OverwriteOption = False,
     lamp_lumens: LampLumensOption = None,
@@ -374,14 +377,15 @@ class StepBars:
     def __call__(self, step: str, done: int, total: int) -> None:
         from processing.light_run.progress import BY_NAME  # noqa: PLC0415 - the processing is loaded by now
 
-        counted = bool(BY_NAME[step].unit)  # the positions; the other steps pulse until they end
-        shown = total if counted or done >= total else None
+        unit = BY_NAME[step].unit  # the positions, counted; the other steps pulse until they end
+        shown = total if unit or done >= total else None
+        note = f"{done}/{total} {unit}" if unit else ""
         task = self.tasks.get(step)
         if task is None:
             self.seen.append(step)
             label = f"{self.run_label} {len(self.seen)}. {BY_NAME[step].label}"
-            task = self.tasks[step] = self.bar.add_task(label, total=shown, note=BY_NAME[step].unit)
-        self.bar.update(task, completed=done, total=shown)
+            task = self.tasks[step] = self.bar.add_task(label, total=shown, note=note)
+        self.bar.update(task, completed=done, total=shown, note=note)
         if total and done >= total:
             self.bar.stop_task(task)
 
