@@ -14,6 +14,7 @@ from processing.options import (
     MAX_NAME,
     MAX_RAYS,
     MIN_RAYS,
+    NAME_PATTERN,
     Estimator,
     FitChoice,
     FitMethod,
@@ -134,10 +135,8 @@ class RunRequest(BaseModel):
         return self
 
 
-#: A name the light files carry: printable, on one line (no control characters).
-LightFileName = Annotated[
-    str, Field(min_length=1, max_length=MAX_NAME, pattern=r"^[^\x00-\x1f\x7f]*\S[^\x00-\x1f\x7f]*$")
-]
+#: A name the light files carry (``processing.options.NAME_PATTERN``): on one line, not starting with a space.
+LightFileName = Annotated[str, Field(min_length=1, max_length=MAX_NAME, pattern=NAME_PATTERN)]
 
 
 class JobRequest(BaseModel):

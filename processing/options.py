@@ -10,6 +10,7 @@ daemon can check a request without loading the processing.
 from __future__ import annotations
 
 import math
+import re
 from collections.abc import Callable
 from dataclasses import dataclass, fields
 from enum import StrEnum
@@ -24,8 +25,11 @@ DEFAULT_RAYS = 100_000
 MIN_RAYS, MAX_RAYS = 1_000, 50_000_000
 #: The most lumens a lamp flux may be, and candela per model unit (no light comes close).
 MAX_LUMENS = 1e9
-#: The longest name the light files take (manufacturer, luminaire, lamp).
+#: The longest name the light files take (manufacturer, luminaire, lamp), and what one is:
+#: on one line (no control characters), starting with neither a space nor a control character.
+#: The daemon's job request carries the same pattern in its schema.
 MAX_NAME = 200
+NAME_PATTERN = r"^[^\x00-\x20\x7f][^\x00-\x1f\x7f]*$"
 
 
 class OptionsError(ValueError):
@@ -251,18 +255,13 @@ def _rays(name: str, value: Any) -> int:
 
 
 def _name(name: str, value: Any) -> str:
-    """A name the light files carry: on one line (no control characters), not blank."""
-    if (
-        not isinstance(value, str)
-        or not value.strip()
-        or len(value) > MAX_NAME
-        or any(ord(c) < 32 or ord(c) == 127 for c in value)
-    ):
+    """A name the light files carry (:data:`NAME_PATTERN`, :data:`MAX_NAME` characters at most)."""
+    if not isinstance(value, str) or len(value) > MAX_NAME or not re.fullmatch(NAME_PATTERN, value):
         raise OptionsError(
-            f"{_option(name)}: expected a name of 1 to {MAX_NAME} characters on one line (no control characters), "
-            f"got {value!r}"
+            f"{_option(name)}: expected a name of 1 to {MAX_NAME} characters on one line, not starting with a "
+            f"space, got {value!r}"
         )
-    return value.strip()
+    return value
 
 
 def _as_is(name: str, value: Any) -> Any:
