@@ -9,7 +9,18 @@ from pydantic import BaseModel, ConfigDict, Field, PositiveFloat, StrictBool, fi
 
 from acquisition.settings import BRACKET_LENGTH, DEFAULT_AMBIENT_EXPOSURES_S, Exposure
 from drivers.contracts.rig import MAX_POSITIONS, PoseSpec
-from processing.options import Estimator, Extrapolation, FitChoice, FitMethod, NoiseSource
+from processing.options import (
+    MAX_LUMENS,
+    MAX_NAME,
+    MAX_RAYS,
+    MIN_RAYS,
+    NAME_PATTERN,
+    Estimator,
+    Extrapolation,
+    FitChoice,
+    FitMethod,
+    NoiseSource,
+)
 from processing.steps import StepsError, resolve_steps
 
 # --- requests ------------------------------------------------------------------------------
@@ -125,6 +136,10 @@ class RunRequest(BaseModel):
         return self
 
 
+#: A name the light files carry (``processing.options.NAME_PATTERN``): on one line, not starting with a space.
+LightFileName = Annotated[str, Field(min_length=1, max_length=MAX_NAME, pattern=NAME_PATTERN)]
+
+
 class JobRequest(BaseModel):
     """Process a run: which steps, and how (``docs/daemon.md``, "Worker")."""
 
@@ -173,6 +188,35 @@ class JobRequest(BaseModel):
         description="what the IES and LDT files hold beyond the θ the sweep measured: fitted (the fits' "
         "extrapolation, the default) or none (zero: the measured range only); the files say which",
     )
+    lamp_lumens: float | None = Field(
+        default=None,
+        gt=0.0,
+        le=MAX_LUMENS,
+        allow_inf_nan=False,
+        description="the lamp's flux (lm): the IES and LDT relative intensities are scaled to it; not with "
+        "candela_per_unit",
+    )
+    candela_per_unit: float | None = Field(
+        default=None,
+        gt=0.0,
+        le=MAX_LUMENS,
+        allow_inf_nan=False,
+        description="absolute photometry: candela per unit of the light model's intensity (a calibration against "
+        "a reference); the IES and LDT files are then in candela",
+    )
+    manufacturer: LightFileName | None = Field(
+        default=None, description="the manufacturer the light files name (IES [MANUFAC], LDT company, TM-25)"
+    )
+    luminaire: LightFileName | None = Field(
+        default=None, description="the luminaire's name in the light files (default: after the run)"
+    )
+    lamp: LightFileName | None = Field(default=None, description="the lamp's name (IES [LAMP], LDT lamp type)")
+    rays: int | None = Field(
+        default=None,
+        ge=MIN_RAYS,
+        le=MAX_RAYS,
+        description="rays in the TM-25 ray file (default 100000; written in blocks, memory stays bounded)",
+    )
 
     @field_validator("steps")
     @classmethod
@@ -185,6 +229,12 @@ class JobRequest(BaseModel):
         except StepsError as exc:
             raise ValueError(str(exc)) from None
         return steps
+
+    @model_validator(mode="after")
+    def _one_photometric_scale(self):
+        if self.lamp_lumens is not None and self.candela_per_unit is not None:
+            raise ValueError("lamp_lumens, candela_per_unit: give one (relative scaled to a lamp flux, or candela)")
+        return self
 
     def options(self) -> dict:
         """The job's options as the catalog stores them (only those given)."""
@@ -261,6 +311,7 @@ class JobStatus(BaseModel):
                     "steps": "hdr,sources",
                     "options": {},
                     "progress": 1.0,
+                    "step": None,
                     "error": None,
                     "message": "66 of 66 positions in 21.4 s on local Dask cluster: 2 worker processes x 1 thread",
                     "result_dir": "/srv/mirrorgonio/runs",
@@ -283,8 +334,16 @@ class JobStatus(BaseModel):
     steps: str
     options: dict = Field(default_factory=dict)
     progress: float
+    step: str | None = Field(
+        default=None,
+        description="the processing step a running job is in, one of checksums, noise, hdr, calibration, layout, "
+        "camera, estimate, fits, exports, report (in that order; message says how far it is); a failed job keeps "
+        "the step it failed in; None before the first heartbeat and once complete",
+    )
     error: str | None
-    message: str | None = Field(default=None, description="why a queued job waits, what a finished job did")
+    message: str | None = Field(
+        default=None, description="why a queued job waits, how far a running job's step is, what a finished job did"
+    )
     result_dir: str | None
     claimed_by: str | None = None
     heartbeat_utc: datetime | None = None

@@ -38,6 +38,7 @@ from acquisition.client_files import ClientFileError, load_client_file
 from drivers.contracts.runfile import RunFile, RunFileError
 from processing.hdr.model import HDRError
 from processing.light_run import ProcessingError, process_run
+from processing.light_run.progress import describe, overall_fraction
 from processing.parallel import Compute, ComputeError
 from processing.results import ResultsError
 from processing.steps import StepsError, resolve_steps
@@ -61,7 +62,15 @@ JOB_OPTIONS = {
     "calibrate_rig": "fit the rig's geometry to the data with the sources (self-calibration): auto (where the sources "
     "are searched for), always, or never",
     "extrapolation": "what the IES and LDT files hold beyond the measured θ: fitted (the default) or none (zero)",
+    "lamp_lumens": "the lamp's flux (lm) the IES and LDT relative intensities are scaled to",
+    "candela_per_unit": "absolute photometry: candela per unit of the light model's intensity",
+    "manufacturer": "the manufacturer the light files name",
+    "luminaire": "the luminaire's name in the light files",
+    "lamp": "the lamp's name in the light files",
+    "rays": "rays in the TM-25 ray file",
 }
+#: The job options handed to the processing as they are (``ProcessingOptions`` checks them).
+_LIGHT_FILE_OPTIONS = ("lamp_lumens", "candela_per_unit", "manufacturer", "luminaire", "lamp", "rays")
 #: The result files a job records, by kind: the daemon serves exactly these.
 ARTIFACT_KINDS = ("report", "ies", "ldt", "tm25", "light_model", "results")
 
@@ -124,8 +133,9 @@ class JobWorker:
     wait_s : float
         How long a job whose run is still being acquired waits before it is tried again.
     process : callable, optional
-        ``process(job, run_path, steps, progress) -> (result_dir, artifacts, message)``;
-        the default runs ``processing.light_run.run.process_run`` (tests substitute their own).
+        ``process(job, run_path, steps, progress) -> (result_dir, artifacts, message)``, where
+        ``progress(step, done, total)`` as ``process_run`` calls it; the default runs
+        ``processing.light_run.run.process_run`` (tests substitute their own).
     """
 
     def __init__(
@@ -150,6 +160,8 @@ class JobWorker:
         self._process = process or self._process_run
         self._progress: float | None = None
         self._note: str | None = None
+        self._step: str | None = None
+        self._steps_seen: set[str] = set()
         self._lost = threading.Event()
 
     # --- the loop ------------------------------------------------------------------------
@@ -239,7 +251,8 @@ class JobWorker:
             return self._wait(
                 job, f"waiting: run {run.id} is being acquired ({acquiring}) and has no complete position yet"
             )
-        self._progress, self._note = 0.0, None
+        self._progress, self._note, self._step = 0.0, None, None
+        self._steps_seen.clear()
         self._lost.clear()
         stop = threading.Event()
         beat = threading.Thread(target=self._heartbeats, args=(job, stop), name=f"heartbeat-{job.id}", daemon=True)
@@ -299,17 +312,26 @@ class JobWorker:
             log.warning("%s: %s", self.worker_id, exc)
             return self.catalog.get_job(job.id)
 
-    def _report_progress(self, done: int, total: int) -> None:
-        """``process_run``'s progress: kept for the next heartbeat; raises if the job was lost."""
+    def _report_progress(self, step: str, done: int, total: int) -> None:
+        """``process_run``'s progress, kept for the next heartbeat: the job's ``step`` (the one
+        started last: the light files end while the report, started after them, runs), its
+        ``message`` in words and its share of the whole processing (which never goes back).
+        Raises if the job was lost."""
         if self._lost.is_set():
             raise JobLostError("the job was requeued and claimed by another worker")
-        self._progress = min(0.95, 0.95 * done / max(total, 1))  # the fits and files take the rest
-        self._note = f"positions {done} of {total}"
+        self._progress = max(self._progress or 0.0, min(0.99, overall_fraction(step, done, total)))
+        if done == 0 or step not in self._steps_seen:
+            self._step = step
+            self._steps_seen.add(step)
+        if step == self._step:
+            self._note = describe(step, done, total)
 
     def _heartbeats(self, job: JobRecord, stop: threading.Event) -> None:
         while not stop.wait(self.heartbeat_s):
             try:
-                self.catalog.heartbeat(job.id, self.worker_id, progress=self._progress, message=self._note)
+                self.catalog.heartbeat(
+                    job.id, self.worker_id, progress=self._progress, message=self._note, step=self._step
+                )
             except JobClaimError as exc:
                 log.warning("%s: %s", self.worker_id, exc)
                 self._lost.set()
@@ -335,6 +357,7 @@ class JobWorker:
             fit_sensor_distance=options.get("fit_sensor_distance"),
             calibrate_rig=options.get("calibrate_rig"),
             extrapolation=options.get("extrapolation", "fitted"),
+            **{name: options[name] for name in _LIGHT_FILE_OPTIONS if options.get(name) is not None},
         )
         artifacts = {"results": report.results_file}
         if report.light_model is not None:

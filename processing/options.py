@@ -10,6 +10,7 @@ daemon can check a request without loading the processing.
 from __future__ import annotations
 
 import math
+import re
 from collections.abc import Callable
 from dataclasses import dataclass, fields
 from enum import StrEnum
@@ -17,6 +18,18 @@ from pathlib import Path
 from typing import Any
 
 from processing.steps import Step, StepsError, resolve_steps
+
+#: The TM-25 ray count: the default, and the bounds a request may ask for (vendors ship
+#: 0.1 to 20 million rays; the file takes 28 bytes a ray).
+DEFAULT_RAYS = 100_000
+MIN_RAYS, MAX_RAYS = 1_000, 50_000_000
+#: The most lumens a lamp flux may be, and candela per model unit (no light comes close).
+MAX_LUMENS = 1e9
+#: The longest name the light files take (manufacturer, luminaire, lamp), and what one is:
+#: on one line (no control characters), starting with neither a space nor a control character.
+#: The daemon's job request carries the same pattern in its schema.
+MAX_NAME = 200
+NAME_PATTERN = r"^[^\x00-\x20\x7f][^\x00-\x1f\x7f]*$"
 
 
 class OptionsError(ValueError):
@@ -115,6 +128,18 @@ class ProcessingOptions:
         What the IES and LDT files hold beyond the θ the sweep measured: the fits'
         extrapolation (``fitted``) or zero (``none``); the files, the light model's
         ``photometry`` and the report say which.
+    lamp_lumens : float or None
+        The lamp's flux (lm): the IES and LDT files' relative intensities are scaled to it.
+    candela_per_unit : float or None
+        Absolute photometry: candela per unit of the light model's intensity (a calibration
+        against a reference); the IES and LDT files are then in candela. Not with
+        ``lamp_lumens``.
+    manufacturer, luminaire, lamp : str or None
+        Names the light files carry (IES ``[MANUFAC]``, ``[LUMINAIRE]``, ``[LAMP]``; the LDT's
+        company, luminaire and lamp type; the TM-25 manufacturer and name fields).
+    rays : int
+        The TM-25 ray file's number of rays (:data:`MAX_RAYS` at most; written in blocks, so
+        memory stays bounded).
 
     Examples
     --------
@@ -142,6 +167,12 @@ class ProcessingOptions:
     ignore_corrupt: bool = False
     overwrite: bool = False
     extrapolation: Extrapolation = Extrapolation.FITTED
+    lamp_lumens: float | None = None
+    candela_per_unit: float | None = None
+    manufacturer: str | None = None
+    luminaire: str | None = None
+    lamp: str | None = None
+    rays: int = DEFAULT_RAYS
 
     @classmethod
     def checked(cls, **values: Any) -> ProcessingOptions:
@@ -161,6 +192,11 @@ class ProcessingOptions:
             if f.name not in values or values[f.name] is None and f.name not in ("layout", "ball_centre"):
                 continue
             out[f.name] = _CHECKS.get(f.name, _as_is)(f.name, values[f.name])
+        if out.get("lamp_lumens") is not None and out.get("candela_per_unit") is not None:
+            raise OptionsError(
+                "--lamp-lumens, --candela-per-unit: give one (relative intensities scaled to a lamp flux, or "
+                "absolute candela), not both"
+            )
         return cls(**out)
 
 
@@ -208,6 +244,38 @@ def _flag(name: str, value: Any) -> bool:
     return value
 
 
+def _positive(name: str, value: Any) -> float:
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        number = math.nan
+    if isinstance(value, bool) or not (0 < number <= MAX_LUMENS):
+        raise OptionsError(f"{_option(name)}: expected a positive number up to {MAX_LUMENS:g}, got {value!r}")
+    return number
+
+
+def _rays(name: str, value: Any) -> int:
+    try:
+        count = int(value) if not isinstance(value, bool) and float(value) == int(value) else None
+    except (TypeError, ValueError, OverflowError):
+        count = None
+    if count is None or not MIN_RAYS <= count <= MAX_RAYS:
+        raise OptionsError(
+            f"{_option(name)}: expected a whole number of rays from {MIN_RAYS} to {MAX_RAYS}, got {value!r}"
+        )
+    return count
+
+
+def _name(name: str, value: Any) -> str:
+    """A name the light files carry (:data:`NAME_PATTERN`, :data:`MAX_NAME` characters at most)."""
+    if not isinstance(value, str) or len(value) > MAX_NAME or not re.fullmatch(NAME_PATTERN, value):
+        raise OptionsError(
+            f"{_option(name)}: expected a name of 1 to {MAX_NAME} characters on one line, not starting with a "
+            f"space, got {value!r}"
+        )
+    return value
+
+
 def _as_is(name: str, value: Any) -> Any:
     return value
 
@@ -228,4 +296,10 @@ _CHECKS: dict[str, Callable[[str, Any], Any]] = {
     "ignore_corrupt": _flag,
     "overwrite": _flag,
     "extrapolation": _member(Extrapolation),
+    "lamp_lumens": _positive,
+    "candela_per_unit": _positive,
+    "manufacturer": _name,
+    "luminaire": _name,
+    "lamp": _name,
+    "rays": _rays,
 }

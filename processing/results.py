@@ -36,6 +36,12 @@ RESULTS_FORMAT = "mirrorgonio-results"
 RESULTS_VERSION = 2
 POSITION_FORMAT = "mirrorgonio-results-position"
 _FILL = {"radiance": np.nan, "variance": np.nan, "count": 0, "saturated": 0}
+#: How to read the data with plain h5py, in the files themselves (``/hdr`` and each position
+#: file carry it as their ``reading`` attribute): Blosc is not one of HDF5's built-in filters.
+READING = (
+    "the datasets are compressed with Blosc LZ4 (HDF5 filter 32001): `import hdf5plugin` before h5py reads them, "
+    "or set HDF5_PLUGIN_PATH to hdf5plugin.PLUGIN_PATH for any HDF5 program (docs/results-file.md)"
+)
 
 
 class ResultsError(ValueError):
@@ -237,7 +243,7 @@ def write_position_file(path: str | Path, encoded: EncodedHDR) -> Path:
     h, w = encoded.shape
     try:
         with h5py.File(tmp, "w") as f:
-            f.attrs.update(format=POSITION_FORMAT, format_version=RESULTS_VERSION)
+            f.attrs.update(format=POSITION_FORMAT, format_version=RESULTS_VERSION, reading=READING)
             for name, (dtype, options) in _position_datasets().items():
                 dset = f.create_dataset(name, (h, w), dtype, chunks=(h, w), **options)
                 mask, data = encoded.chunks[name]
@@ -294,6 +300,7 @@ class ResultsWriter:
                 method=hdr.method,
                 cfa_pattern=hdr.cfa_pattern,
                 units="DN/s above black, per Bayer site",
+                reading=READING,
                 gain_e_per_dn=hdr.noise.gain_e_per_dn,
                 read_noise_dn=hdr.noise.read_noise_dn,
                 noise_source=hdr.noise.source,

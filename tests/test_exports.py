@@ -280,6 +280,31 @@ def test_tm25_write_read_round_trip(tmp_path, symmetric_model):
     np.testing.assert_array_equal(again, rays)
 
 
+def test_tm25_millions_of_rays_are_written_in_bounded_memory(tmp_path, asymmetric_model):
+    import tracemalloc
+
+    from processing.exports.tm25 import RAY_BLOCK
+
+    def peak_writing(n: int) -> tuple[Path, int]:
+        tracemalloc.start()
+        try:
+            path = write_tm25(asymmetric_model, tmp_path / f"{n}.tm25ray", n, seed=3)
+            return path, tracemalloc.get_traced_memory()[1]
+        finally:
+            tracemalloc.stop()
+
+    _, few = peak_writing(2 * RAY_BLOCK)
+    n = 8 * RAY_BLOCK + 12_345  # blocks of both sources, and a part block
+    path, peak = peak_writing(n)
+    whole = n * 7 * 4  # the rays as written: 29 MB
+    assert peak < 1.05 * few + 1e6 and peak < whole, f"{peak / 1e6:.1f} MB ({few / 1e6:.1f} MB for a quarter)"
+    h, rays = read_tm25(path)
+    assert h["n_rays"] == len(rays) == n and path.stat().st_size == 36288 + whole
+    assert h["radiant_flux"] == pytest.approx(rays[:, 6].astype(np.float64).sum(), rel=1e-7)  # float32
+    assert h["radiant_flux"] == pytest.approx(asymmetric_model.total_flux(), rel=1e-6)
+    np.testing.assert_allclose(np.linalg.norm(rays[:, 3:6], axis=1), 1.0, atol=1e-6)
+
+
 def test_tm25_samples_azimuth_of_an_elliptical_lobe(tmp_path, asymmetric_model):
     only = LightModel([asymmetric_model.sources[1]], "relative", PROVENANCE)
     h, rays = read_tm25(write_tm25(only, tmp_path / "e.tm25ray", 100_000, seed=1))

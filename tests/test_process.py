@@ -103,6 +103,18 @@ def test_process_bad_input_is_one_line(simulated_run, tmp_path):
     assert forced.output.strip() == f"error: {path}: the noise model cannot be estimated from these brackets"
     step = runner.invoke(app, ["process", str(path), "--steps", "hdr,dance", "--out", str(tmp_path)])
     assert step.exit_code == 2 and "--steps: unknown step 'dance'" in step.output
+    for option, value, said in (
+        ("--rays", "10", "--rays: expected a whole number of rays from 1000 to 50000000"),
+        ("--lamp-lumens", "-5", "--lamp-lumens: expected a positive number"),
+        ("--manufacturer", "Acme\nInc", "--manufacturer: expected a name of 1 to 200 characters on one line"),
+    ):
+        refused = runner.invoke(app, ["process", str(path), option, value, "--out", str(tmp_path / "x")])
+        assert refused.exit_code == 2 and refused.output.startswith(f"error: {said}"), refused.output
+        assert len(refused.output.strip().splitlines()) == 1
+    both = ["--lamp-lumens", "800", "--candela-per-unit", "2"]
+    refused = runner.invoke(app, ["process", str(path), *both, "--out", str(tmp_path / "x")])
+    assert refused.exit_code == 2 and "--lamp-lumens, --candela-per-unit: give one" in refused.output
+    assert not (tmp_path / "x").exists()  # refused before any work
 
 
 def test_a_run_without_any_complete_position_is_refused(simulated_run, tmp_path):
@@ -132,9 +144,11 @@ def test_process_with_a_layout_writes_the_light_model_and_the_light_files(simula
     from processing.lightmodel import LightModel
     from sim_devices.lights import LIGHTS_DIR
 
-    path, _, _ = simulated_run
+    path, _, rig = simulated_run
+    names = ["--manufacturer", "Acme Lighting", "--luminaire", "Spot 5 narrow", "--lamp", "LED 3000 K"]
+    layout = ["--layout", str(LIGHTS_DIR / "five-gaussians.toml")]
     result = runner.invoke(
-        app, ["process", str(path), "--out", str(tmp_path), "--layout", str(LIGHTS_DIR / "five-gaussians.toml")]
+        app, ["process", str(path), "--out", str(tmp_path), *layout, *names, "--lamp-lumens", "850", "--rays", "5000"]
     )
     assert result.exit_code == 0, result.output
     assert "unmixing with templates" in result.output
@@ -142,10 +156,79 @@ def test_process_with_a_layout_writes_the_light_model_and_the_light_files(simula
     assert [s.name for s in model.sources] == ["centre", "+u", "-u", "+v", "-v"]
     assert model.provenance["method"] == "templates"
     assert len(model.sources[0].samples["theta"]) == 3
-    assert (tmp_path / "run-test.ies").read_text().startswith("IES:LM-63-2019")
-    assert (tmp_path / "run-test.ldt").stat().st_size > 500
+    # The light files say what they are: the names, the lamp flux, the rays asked for.
+    ies = (tmp_path / "run-test.ies").read_text().splitlines()
+    assert ies[0] == "IES:LM-63-2019"
+    assert {"[MANUFAC] Acme Lighting", "[LUMINAIRE] Spot 5 narrow", "[LAMP] LED 3000 K"} <= set(ies)
+    assert ies[ies.index("TILT=NONE") + 1].split()[:2] == ["1", "850"]  # one lamp of 850 lm
+    ldt = (tmp_path / "run-test.ldt").read_text().splitlines()
+    assert ldt[0].startswith("Acme Lighting") and ldt[8] == "Spot 5 narrow"
+    assert ldt[27:29] == ["LED 3000 K", "850"]  # the lamp's type and flux (lines 26b, 26c)
     header, rays = read_tm25(tmp_path / "run-test.tm25ray")
-    assert len(rays) == 100_000
+    assert len(rays) == header["n_rays"] == 5000
+    assert header["texts"]["manufacturer"] == "Acme Lighting" and header["texts"]["name"] == "Spot 5 narrow"
+    assert_exr_says_what_it_is(tmp_path / "run-test.hdr" / "position-033.exr", rig, 33)
+    assert_plain_h5py_reads(tmp_path / "run-test.results.h5", 33)
+
+
+def assert_exr_says_what_it_is(path, rig, index):
+    """An EXR's header: what its pixels are, how they were merged, from which run, position and pose."""
+    import OpenEXR
+
+    from drivers.contracts.rig import PoseSpec
+
+    with OpenEXR.File(str(path)) as exr:
+        header = dict(exr.header())  # the file's header is gone once it is closed
+    assert header["units"].startswith("relative radiance: DN per second above black")
+    assert header["colourSpace"].startswith("camera RGB") and "chromaticities" not in header  # primaries unknown
+    assert header["gainElectronsPerDN"] == pytest.approx(rig.camera.gain_e_per_dn)
+    np.testing.assert_allclose(header["bracketExposures_s"], EXPOSURES, rtol=1e-6)
+    assert (header["runId"], header["position"], header["positionsInRun"]) == ("run-test", index, 66)
+    light = PoseSpec.of(rig.light_poses()[index])
+    np.testing.assert_allclose(header["lightPosition_m"], light.position_m, atol=1e-7)
+    np.testing.assert_allclose(header["lightRotation_deg"], light.rotation_deg, atol=1e-4)
+    tool = PoseSpec.of(rig.tool_poses()[index])  # the run file holds the commanded pose as the measured one
+    np.testing.assert_allclose(header["toolPositionMeasured_m"], tool.position_m, atol=1e-7)
+    assert header["software"].startswith("mirrorgonio ")
+
+
+def assert_plain_h5py_reads(results_path, index):
+    """A fresh Python reads the results as docs/results-file.md says: without hdf5plugin the data
+    do not read and the file says why; with its import, or HDF5_PLUGIN_PATH, they read."""
+    import os
+    import subprocess
+    import sys
+
+    import hdf5plugin
+
+    with Results.open(results_path) as results:
+        expected = float(np.nansum(results.radiance(index)))
+    script = (
+        "import sys, h5py, numpy as np\n"
+        "f = h5py.File(sys.argv[1], 'r')\n"
+        "if sys.argv[3] == 'import':\n"
+        "    try:\n"
+        "        f['hdr/radiance'][int(sys.argv[2])]\n"
+        "    except OSError:\n"
+        "        print('unreadable:', f['hdr'].attrs['reading'])\n"
+        "    import hdf5plugin\n"
+        "print(repr(float(np.nansum(f['hdr/radiance'][int(sys.argv[2])]))))\n"
+    )
+    env = {k: v for k, v in os.environ.items() if k != "HDF5_PLUGIN_PATH"}
+    first = subprocess.run(
+        [sys.executable, "-c", script, str(results_path), str(index), "import"], env=env, capture_output=True, text=True
+    )
+    assert first.returncode == 0, first.stderr
+    lines = first.stdout.splitlines()
+    assert lines[0].startswith("unreadable: the datasets are compressed with Blosc LZ4")
+    assert "import hdf5plugin" in lines[0]
+    assert float(lines[1]) == pytest.approx(expected, rel=1e-6)
+    env["HDF5_PLUGIN_PATH"] = hdf5plugin.PLUGIN_PATH
+    plugin_path = subprocess.run(
+        [sys.executable, "-c", script, str(results_path), str(index), "path"], env=env, capture_output=True, text=True
+    )
+    assert plugin_path.returncode == 0, plugin_path.stderr
+    assert float(plugin_path.stdout) == pytest.approx(expected, rel=1e-6)
 
 
 def test_without_a_layout_the_sources_are_found_in_the_data(tmp_path):
@@ -565,3 +648,47 @@ def test_process_fits_the_sensor_distance_when_asked(simulated_run, tmp_path):
     assert said in (out / "run-long.report.html").read_text()
     # The aperture fitted after the distance (the default where the sources are searched for).
     assert provenance["aperture_m"]["how"] == "fitted to the data (--fit-aperture)", provenance["aperture_m"]
+
+
+def test_processing_says_each_step_in_order_with_its_own_count(simulated_run, tmp_path):
+    from processing.light_run import process_run
+    from processing.light_run.progress import STEPS
+    from sim_devices.lights import LIGHTS_DIR
+
+    path, _, _ = simulated_run
+    seen: list[tuple[str, int, int]] = []
+
+    def progress(step: str, done: int, total: int) -> None:
+        seen.append((step, done, total))
+
+    process_run(path, tmp_path, steps="hdr", images=False, progress=progress)
+    layout = LIGHTS_DIR / "five-gaussians.toml"
+    process_run(path, tmp_path, steps="sources", layout=layout, progress=progress)
+    started = [step for step, done, _ in seen if done == 0]
+    # The hdr step's call, then the sources' (the layout given, no camera fit: nothing to settle).
+    assert started == ["checksums", "noise", "hdr", "checksums", "estimate", "fits", "exports", "report"]
+    order = [s.name for s in STEPS]
+    assert started[3:] == sorted(started[3:], key=order.index)
+    for step in ("hdr", "estimate"):  # the positions, one by one
+        assert [(d, t) for s, d, t in seen if s == step] == [(0, 3), (1, 3), (2, 3), (3, 3)]
+    for step in ("noise", "fits", "exports", "report"):  # started, and ended
+        assert [(d, t) for s, d, t in seen if s == step] == [(0, 1), (1, 1)]
+
+
+def test_a_progress_of_two_parameters_counts_the_position_tasks():
+    from processing.light_run.progress import Steps, describe, overall_fraction
+
+    calls: list[tuple[int, int]] = []
+    steps = Steps(lambda done, total: calls.append((done, total)))
+    steps.positions_total = 4  # two passes over two positions
+    for step in ("hdr", "estimate"):
+        steps.start(step, 2)
+        steps.advance(step, 1, 2)
+        steps.advance(step, 2, 2)
+    steps.start("fits")
+    steps.end("fits")
+    assert calls == [(1, 4), (2, 4), (3, 4), (4, 4)]
+    assert steps.order == ["hdr", "estimate", "fits"]
+    assert describe("hdr", 12, 66) == "HDR merge: 12 of 66 positions" and describe("fits", 1, 1) == "fits: done"
+    fractions = [overall_fraction(s, d, 2) for s in ("checksums", "noise", "hdr", "layout", "estimate") for d in (0, 2)]
+    assert fractions == sorted(fractions) and fractions[0] == 0.0 and overall_fraction("report", 1, 1) == 1.0

@@ -26,6 +26,8 @@ from acquisition.catalog import Catalog
 from acquisition.worker import ARTIFACT_KINDS, JobLostError, JobWorker, one_line, writer_alive
 from drivers.contracts.rig import load_rig
 from drivers.contracts.runfile import PositionTimes, RunFile, RunFileWriter, RunHeader
+from processing.exports.tm25 import read_tm25
+from processing.light_run.errors import ProcessingError
 from processing.results import Results, position_file_for
 from sim_devices.camera import SimulatedCamera
 from sim_devices.lights import LIGHTS_DIR
@@ -253,15 +255,27 @@ def test_heartbeats_carry_the_progress_and_a_lost_job_is_abandoned(data, tmp_pat
     def slow(job, path, steps, progress):
         for step in range(1, 6):
             time.sleep(0.12)
-            progress(step, 10)
+            progress("hdr", step, 10)
         seen.append(data.catalog.get_job(job.id))
         return tmp_path, {}, "slow work done"
 
     done = data.worker(heartbeat_s=0.05, process=slow).run_once()
-    assert done.state == "complete" and done.message == "slow work done"
+    assert done.state == "complete" and done.message == "slow work done" and done.step is None
     beating = seen[0]
-    assert beating.state == "running" and 0.3 <= beating.progress <= 0.5 and beating.message.startswith("positions ")
+    assert beating.state == "running" and beating.step == "hdr" and beating.message.startswith("HDR merge: ")
+    assert 0.05 + 0.4 * 0.3 <= beating.progress <= 0.05 + 0.4 * 0.5  # the merge's share of the whole, in part
     assert beating.heartbeat_utc > beating.created_utc
+
+    # A job that fails keeps the step it failed in.
+    data.catalog.create_job(run.id)
+
+    def failing(job, path, steps, progress):
+        progress("fits", 0, 1)
+        time.sleep(0.15)
+        raise ProcessingError("run.h5: the fit diverged")
+
+    failed = data.worker(heartbeat_s=0.05, process=failing).run_once()
+    assert (failed.state, failed.step, failed.error) == ("failed", "fits", "run.h5: the fit diverged")
 
     # Another worker takes the job over (this one was taken for dead): this one stops.
     stolen = data.catalog.create_job(run.id)
@@ -272,7 +286,7 @@ def test_heartbeats_carry_the_progress_and_a_lost_job_is_abandoned(data, tmp_pat
             assert other.claim_job("thief").id == job.id
         for step in range(1, 50):
             time.sleep(0.05)
-            progress(step, 50)  # raises JobLostError once a heartbeat found the job gone
+            progress("estimate", step, 50)  # raises JobLostError once a heartbeat found the job gone
         raise AssertionError("the worker did not notice")
 
     after = data.worker(heartbeat_s=0.05, process=robbed).run_once()
@@ -343,8 +357,18 @@ def test_the_worker_command_once_and_its_errors(captured, data, tmp_path):
     assert len(bad.output.strip().splitlines()) == 1
 
 
+def wait_for_step(http, job_id: str, step: str, timeout_s: float = 5.0) -> str:
+    """The job's ``step`` from ``GET /jobs/{id}`` once a heartbeat has recorded ``step`` (or the
+    last one seen when the time is up)."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        seen = http.get(f"/jobs/{job_id}").json()["step"]
+        if seen == step or time.monotonic() > deadline:
+            return seen
+        time.sleep(0.01)
+
+
 def test_one_line_reasons():
-    from processing.light_run.errors import ProcessingError
 
     assert one_line(ProcessingError("run.h5: position 3:\n  bad")) == "run.h5: position 3: bad"
     assert one_line(KeyError("x")) == "KeyError: 'x'"
@@ -372,18 +396,48 @@ def test_the_daemon_serves_a_jobs_state_and_exactly_its_result_files(captured, d
             http.post(f"/runs/{run.id}/process", json={"fit_aperture": "yes"}).status_code == 422
         )  # auto, always or never
         assert http.post(f"/runs/{run.id}/process", json={"fit_sensor_distance": 1}).status_code == 422
-        queued = http.post(f"/runs/{run.id}/process", json={"steps": "hdr,sources"})
+        for field, value in (("rays", 10**9), ("rays", 10), ("lamp_lumens", -1), ("manufacturer", "Acme\nInc")):
+            refused = http.post(f"/runs/{run.id}/process", json={field: value})
+            assert refused.status_code == 422 and refused.json()["detail"][0]["loc"][-1] == field, (field, value)
+        both = http.post(f"/runs/{run.id}/process", json={"lamp_lumens": 800, "candela_per_unit": 2.0})
+        assert both.status_code == 422 and "give one" in str(both.json()["detail"])
+        names = {"manufacturer": "Acme", "luminaire": "Spot 5", "lamp": "LED", "lamp_lumens": 850.0, "rays": 2000}
+        queued = http.post(f"/runs/{run.id}/process", json={"steps": "hdr,sources", **names})
         assert queued.status_code == 201
         job = queued.json()
-        assert (job["state"], job["steps"], job["options"], job["artifacts"]) == ("queued", "hdr,sources", {}, {})
+        assert (job["state"], job["steps"], job["options"], job["artifacts"]) == ("queued", "hdr,sources", names, {})
+        assert job["step"] is None
         partial = http.post(f"/runs/{live.id}/process", json={"partial": True, "estimator": "templates"}).json()
         assert partial["options"] == {"partial": True, "estimator": "templates"} and partial["steps"] == "hdr,sources"
         assert http.get(f"/jobs/{job['id']}/artifacts/report").status_code == 404  # nothing yet
 
-        done = data.worker().run_once()  # the oldest job first
+        # The job's step, as GET /jobs/{id} says it while the worker processes (each step seen
+        # by the next heartbeat), in the processing's order.
+        said: list[str] = []
+
+        def watched(progress):
+            def step_by_step(step, done, total):
+                progress(step, done, total)
+                if done == 0:
+                    said.append(wait_for_step(http, job["id"], step))
+
+            return step_by_step
+
+        worker = data.worker(  # the worker's own processing, its progress watched on the way
+            heartbeat_s=0.02,
+            process=lambda job_, path, steps, progress: JobWorker._process_run(
+                worker, job_, path, steps, watched(progress)
+            ),
+        )
+        done = worker.run_once()  # the oldest job first
         assert done.id == job["id"] and done.state == "complete", done
+        assert said == ["checksums", "noise", "hdr", "layout", "estimate", "fits", "exports", "report"]
+        ies = Path(done.artifacts["ies"]).read_text()
+        assert "[MANUFAC] Acme" in ies and "[LUMINAIRE] Spot 5" in ies and "[LAMP] LED" in ies
+        assert read_tm25(done.artifacts["tm25"])[0]["n_rays"] == 2000
         status = http.get(f"/jobs/{job['id']}").json()
         assert status["state"] == "complete" and status["progress"] == 1.0 and status["claimed_by"] == "w-test"
+        assert status["step"] is None  # complete: no step runs
         assert status["artifacts"] == {kind: f"/jobs/{job['id']}/artifacts/{kind}" for kind in ARTIFACT_KINDS}
         report = http.get(status["artifacts"]["report"])
         assert report.status_code == 200 and report.headers["content-type"].startswith("text/html")

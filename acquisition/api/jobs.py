@@ -46,6 +46,7 @@ def job_status(job: JobRecord) -> JobStatus:
         steps=job.steps,
         options=job.options,
         progress=job.progress,
+        step=job.step,
         error=job.error,
         message=job.message,
         result_dir=job.result_dir,

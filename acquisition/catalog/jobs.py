@@ -144,7 +144,7 @@ class JobCatalog(CatalogDatabase):
                 return None
             conn.execute(
                 "UPDATE jobs SET state = 'running', claimed_by = ?, heartbeat_utc = ?, updated_utc = ?, "
-                "progress = 0, error = NULL, not_before_utc = NULL WHERE id = ? AND state = 'queued'",
+                "progress = 0, error = NULL, not_before_utc = NULL, step = NULL WHERE id = ? AND state = 'queued'",
                 (worker_id, stamp, stamp, row["id"]),
             )
             return self._fetch_job(conn, row["id"])
@@ -171,7 +171,7 @@ class JobCatalog(CatalogDatabase):
         with self._write() as conn:
             now = self._now()
             changed = conn.execute(
-                "UPDATE jobs SET state = 'queued', claimed_by = NULL, heartbeat_utc = NULL, progress = 0, "
+                "UPDATE jobs SET state = 'queued', claimed_by = NULL, heartbeat_utc = NULL, progress = 0, step = NULL, "
                 "message = ?, not_before_utc = ?, updated_utc = ? WHERE id = ? AND state = 'running' AND "
                 "claimed_by = ?",
                 (message, format_time(now + timedelta(seconds=retry_after_s)), format_time(now), job_id, worker_id),
@@ -183,8 +183,16 @@ class JobCatalog(CatalogDatabase):
                 raise JobClaimError(job_id, worker_id, job.state, job.claimed_by)
             return self._fetch_job(conn, job_id)
 
-    def heartbeat(self, job_id: str, worker_id: str, progress: float | None = None, message: str | None = None) -> None:
-        """A worker's proof of life on its running job, with its progress (0..1) and a note if given.
+    def heartbeat(
+        self,
+        job_id: str,
+        worker_id: str,
+        progress: float | None = None,
+        message: str | None = None,
+        step: str | None = None,
+    ) -> None:
+        """A worker's proof of life on its running job, with its progress (0..1), a note and the
+        processing's step (a name of ``processing.light_run.progress.STEPS``) if given.
 
         Raises
         ------
@@ -199,12 +207,15 @@ class JobCatalog(CatalogDatabase):
             progress = check_real("progress", progress, 0.0, 1.0)
         if message is not None:
             check_text("message", message)
+        if step is not None and not _STEP_NAME.match(step):
+            raise CatalogError(f"step {step!r} is not a step name (lowercase letters, digits, _)")
         with self._write() as conn:
             stamp = format_time(self._now())
             changed = conn.execute(
                 "UPDATE jobs SET heartbeat_utc = ?, updated_utc = ?, progress = COALESCE(?, progress), "
-                "message = COALESCE(?, message) WHERE id = ? AND state = 'running' AND claimed_by = ?",
-                (stamp, stamp, progress, message, job_id, worker_id),
+                "message = COALESCE(?, message), step = COALESCE(?, step) "
+                "WHERE id = ? AND state = 'running' AND claimed_by = ?",
+                (stamp, stamp, progress, message, step, job_id, worker_id),
             ).rowcount
             if changed == 0:
                 job = self._fetch_job(conn, job_id)
@@ -265,6 +276,7 @@ class JobCatalog(CatalogDatabase):
             changed = conn.execute(
                 "UPDATE jobs SET state = ?, error = ?, result_dir = COALESCE(?, result_dir), updated_utc = ?, "
                 "progress = CASE WHEN ? = 'complete' THEN 1.0 ELSE progress END, "
+                "step = CASE WHEN ? = 'complete' THEN NULL ELSE step END, "
                 "artifacts_json = COALESCE(?, artifacts_json), message = COALESCE(?, message) "
                 "WHERE id = ? AND state = 'running' AND (? IS NULL OR claimed_by = ?)",
                 (
@@ -272,6 +284,7 @@ class JobCatalog(CatalogDatabase):
                     error,
                     None if result_dir is None else str(result_dir),
                     format_time(self._now()),
+                    new_state,
                     new_state,
                     files,
                     message,
@@ -305,8 +318,8 @@ class JobCatalog(CatalogDatabase):
             stale = "state = 'running' AND (heartbeat_utc IS NULL OR heartbeat_utc < ?)"
             ids = [row["id"] for row in conn.execute(f"SELECT id FROM jobs WHERE {stale} ORDER BY seq", (cutoff,))]
             conn.execute(
-                f"UPDATE jobs SET state = 'queued', claimed_by = NULL, heartbeat_utc = NULL, updated_utc = ?, "
-                f"message = 'requeued: its worker stopped sending heartbeats' WHERE {stale}",
+                "UPDATE jobs SET state = 'queued', claimed_by = NULL, heartbeat_utc = NULL, updated_utc = ?, "
+                f"step = NULL, message = 'requeued: its worker stopped sending heartbeats' WHERE {stale}",
                 (format_time(now), cutoff),
             )
             return ids

@@ -95,6 +95,7 @@ class JobRecord(_Record):
     artifacts: dict[str, str] = {}
     message: str | None = None
     not_before_utc: datetime | None = None
+    step: str | None = None
 
 
 # --- times and rows ----------------------------------------------------------------------
@@ -147,4 +148,5 @@ def job_from_row(row: sqlite3.Row) -> JobRecord:
         artifacts=json.loads(row["artifacts_json"]),
         message=row["message"],
         not_before_utc=parse_time(row["not_before_utc"]),
+        step=row["step"],
     )

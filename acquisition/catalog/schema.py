@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from acquisition.catalog.records import JOB_STATES, RUN_STATES
 
-SCHEMA_VERSION = 2
+SCHEMA_VERSION = 3
 
 
 def sql_list(states) -> str:
@@ -62,6 +62,9 @@ MIGRATIONS: tuple[tuple[str, ...], ...] = (
         "ALTER TABLE jobs ADD COLUMN message TEXT",
         "ALTER TABLE jobs ADD COLUMN not_before_utc TEXT",
     ),
+    # 3: the step a running job's processing is in (processing.light_run.progress.STEPS),
+    # kept when it fails (the step it failed in).
+    ("ALTER TABLE jobs ADD COLUMN step TEXT",),
 )
 assert len(MIGRATIONS) == SCHEMA_VERSION
 
@@ -72,5 +75,5 @@ RUN_COLUMNS = (
 )
 JOB_COLUMNS = (
     "id, run_id, created_utc, updated_utc, state, steps, options_json, progress, claimed_by, heartbeat_utc, "
-    "error, result_dir, artifacts_json, message, not_before_utc"
+    "error, result_dir, artifacts_json, message, not_before_utc, step"
 )

@@ -11,6 +11,9 @@ import typer
 
 from acquisition.cli.app import SchedulerOption, WorkersOption, app, fail
 from processing.options import (
+    DEFAULT_RAYS,
+    MAX_RAYS,
+    MIN_RAYS,
     Estimator,
     Extrapolation,
     FitChoice,
@@ -130,6 +133,73 @@ BallCentreOption = Annotated[
     typer.Option("--ball-centre", help="Measured ball centre X,Y,Z in metres (rig frame; from `calibrate`)."),
 ]
 
+FitApertureOption = Annotated[
+    bool | None,
+    typer.Option(
+        "--fit-aperture/--no-fit-aperture",
+        help="Fit the pinhole's diameter alone to the data (docs/light-model.md), or keep the rig's. Default: "
+        "fitted where the sources are searched for and the rig is not self-calibrated.",
+        show_default=False,
+    ),
+]
+FitSensorDistanceOption = Annotated[
+    bool,
+    typer.Option(
+        "--fit-sensor-distance",
+        help="Fit the sensor distance to the data too, before the aperture (docs/light-model.md).",
+    ),
+]
+CalibrateRigOption = Annotated[
+    bool | None,
+    typer.Option(
+        "--calibrate-rig/--no-calibrate-rig",
+        help="Fit the rig's geometry to the data with the sources (self-calibration, docs/self-calibration.md): "
+        "the camera's pose, sensor distance and pinhole, the arm's base frame. Default: where the sources are "
+        "searched for (no --layout); with --layout and --calibrate-rig the layout's places are held.",
+        show_default=False,
+    ),
+]
+LampLumensOption = Annotated[
+    float | None,
+    typer.Option(
+        "--lamp-lumens",
+        help="The lamp's flux in lumens: the IES and LDT files' relative intensities are scaled to it "
+        "(lumen-scaled photometry). Default: the IES table scaled to a peak of 1000.",
+        show_default=False,
+    ),
+]
+CandelaOption = Annotated[
+    float | None,
+    typer.Option(
+        "--candela-per-unit",
+        help="Absolute photometry: candela per unit of the light model's intensity (from a calibration against a "
+        "reference); the IES and LDT files are then in candela. Not with --lamp-lumens.",
+        show_default=False,
+    ),
+]
+ManufacturerOption = Annotated[
+    str | None,
+    typer.Option(help="The manufacturer the light files name (IES [MANUFAC], LDT company, TM-25).", show_default=False),
+]
+LuminaireOption = Annotated[
+    str | None,
+    typer.Option(
+        help="The luminaire's name in the light files (IES [LUMINAIRE], LDT, TM-25 name). Default: after the run.",
+        show_default=False,
+    ),
+]
+LampOption = Annotated[
+    str | None, typer.Option(help="The lamp's name (IES [LAMP], LDT lamp type).", show_default=False)
+]
+RaysOption = Annotated[
+    int,
+    typer.Option(
+        "--rays",
+        help=f"Rays in the TM-25 ray file, {MIN_RAYS:,} to {MAX_RAYS:,} (written in blocks: memory stays bounded; "
+        "28 bytes a ray on disk).",
+    ),
+]
+
 #: A tri-state flag's choice: neither flag given (the default), the flag, or its --no- form.
 CHOICE = {None: FitChoice.AUTO, True: FitChoice.ALWAYS, False: FitChoice.NEVER}
 
@@ -156,35 +226,18 @@ def process(
     images: Annotated[
         bool, typer.Option(help="Write an OpenEXR and a PNG preview of every position (hdr step).")
     ] = True,
-    fit_aperture: Annotated[
-        bool | None,
-        typer.Option(
-            "--fit-aperture/--no-fit-aperture",
-            help="Fit the pinhole's diameter alone to the data (docs/light-model.md), or keep the rig's. Default: "
-            "fitted where the sources are searched for and the rig is not self-calibrated.",
-            show_default=False,
-        ),
-    ] = None,
-    fit_sensor_distance: Annotated[
-        bool,
-        typer.Option(
-            "--fit-sensor-distance",
-            help="Fit the sensor distance to the data too, before the aperture (docs/light-model.md).",
-        ),
-    ] = False,
-    calibrate_rig: Annotated[
-        bool | None,
-        typer.Option(
-            "--calibrate-rig/--no-calibrate-rig",
-            help="Fit the rig's geometry to the data with the sources (self-calibration, docs/self-calibration.md): "
-            "the camera's pose, sensor distance and pinhole, the arm's base frame. Default: where the sources are "
-            "searched for (no --layout); with --layout and --calibrate-rig the layout's places are held.",
-            show_default=False,
-        ),
-    ] = None,
+    fit_aperture: FitApertureOption = None,
+    fit_sensor_distance: FitSensorDistanceOption = False,
+    calibrate_rig: CalibrateRigOption = None,
     extrapolation: ExtrapolationOption = Extrapolation.FITTED,
     ignore_corrupt: IgnoreCorruptOption = False,
     overwrite: OverwriteOption = False,
+    lamp_lumens: LampLumensOption = None,
+    candela_per_unit: CandelaOption = None,
+    manufacturer: ManufacturerOption = None,
+    luminaire: LuminaireOption = None,
+    lamp: LampOption = None,
+    rays: RaysOption = DEFAULT_RAYS,
     scheduler: SchedulerOption = "local",
     workers: WorkersOption = None,
 ) -> None:
@@ -213,6 +266,12 @@ def process(
             ignore_corrupt=ignore_corrupt,
             overwrite=overwrite,
             extrapolation=extrapolation,
+            lamp_lumens=lamp_lumens,
+            candela_per_unit=candela_per_unit,
+            manufacturer=manufacturer,
+            luminaire=luminaire,
+            lamp=lamp,
+            rays=rays,
         )
         check_scheduler(scheduler, workers)
     except (OptionsError, ComputeError) as exc:
@@ -272,7 +331,11 @@ def _check_outputs(folders: dict[Path, Path | None], overwrite: bool) -> None:
 
 def _process_all(runs: list[Path], folders: dict, options: ProcessingOptions, scheduler: str, workers) -> list:
     """Every run processed in turn on one cluster: (run, report or None, seconds, error) each."""
-    from rich.progress import Progress, TextColumn  # noqa: PLC0415 - rich's progress, once options are checked
+    from rich.progress import (  # noqa: PLC0415 - rich's progress, once options are checked
+        Progress,
+        TextColumn,
+        TimeElapsedColumn,
+    )
 
     from processing.light_run import ProcessingError, process_run, warm_up_worker  # noqa: PLC0415 - heavy
     from processing.parallel import open_compute  # noqa: PLC0415 - heavy (dask)
@@ -283,21 +346,15 @@ def _process_all(runs: list[Path], folders: dict, options: ProcessingOptions, sc
         compute = open_compute(scheduler, workers=workers, warm_up=warm_up_worker)
     except ComputeError as exc:
         raise fail(str(exc)) from None
-    columns = (*Progress.get_default_columns(), TextColumn("{task.fields[note]}"))
+    columns = (*Progress.get_default_columns(), TextColumn("{task.fields[note]}"), TimeElapsedColumn())
     with compute, Progress(*columns, transient=True) as bar:
         overall = bar.add_task("runs", total=len(runs), note="") if batch else None
         for number, run in enumerate(runs, 1):
             label = f"[{number}/{len(runs)}] {run.name}" if batch else run.name
-            task = bar.add_task(label, total=None, note="positions")
+            steps = StepBars(bar, label)
             started = time.perf_counter()
             try:
-                report = process_run(
-                    run,
-                    folders[run],
-                    compute=compute,
-                    progress=lambda done, total, task=task: bar.update(task, completed=done, total=total),
-                    **vars(options),
-                )
+                report = process_run(run, folders[run], compute=compute, progress=steps, **vars(options))
             except (ProcessingError, ValueError, OSError) as exc:
                 if not batch:
                     raise fail(str(exc)) from None
@@ -310,12 +367,42 @@ def _process_all(runs: list[Path], folders: dict, options: ProcessingOptions, sc
                 outcomes.append((run, None, time.perf_counter() - started, unexpected))
                 continue
             finally:
-                bar.remove_task(task)
+                steps.close()
                 if overall is not None:
                     bar.advance(overall)
             outcomes.append((run, report, time.perf_counter() - started, ""))
             _say_processed(run, report)
     return outcomes
+
+
+class StepBars:
+    """``process_run``'s ``progress(step, done, total)`` as one rich bar per step: the run and
+    the step's name, its positions (or done / to do) and its time; the steps stay listed as
+    they end, until the run is done (:meth:`close`)."""
+
+    def __init__(self, bar, run_label: str) -> None:
+        self.bar, self.run_label = bar, run_label
+        self.tasks: dict[str, object] = {}
+        self.seen: list[str] = []  # the steps in the order they started
+
+    def __call__(self, step: str, done: int, total: int) -> None:
+        from processing.light_run.progress import BY_NAME  # noqa: PLC0415 - the processing is loaded by now
+
+        unit = BY_NAME[step].unit  # the positions, counted; the other steps pulse until they end
+        shown = total if unit or done >= total else None
+        note = f"{done}/{total} {unit}" if unit else ""
+        task = self.tasks.get(step)
+        if task is None:
+            self.seen.append(step)
+            label = f"{self.run_label} {len(self.seen)}. {BY_NAME[step].label}"
+            task = self.tasks[step] = self.bar.add_task(label, total=shown, note=note)
+        self.bar.update(task, completed=done, total=shown, note=note)
+        if total and done >= total:
+            self.bar.stop_task(task)
+
+    def close(self) -> None:
+        for task in self.tasks.values():
+            self.bar.remove_task(task)
 
 
 def _say_processed(run: Path, report) -> None:

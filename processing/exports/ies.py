@@ -116,6 +116,8 @@ def _ies_keywords(
     lines += keyword_lines(
         "LUMINAIRE", given["LUMINAIRE"] or f"near-field light model of {len(model.sources)} point sources"
     )
+    if given.get("LAMP"):
+        lines += keyword_lines("LAMP", given["LAMP"])
     lines += keyword_lines(
         "FILEGENINFO",
         f"Far field (sum of the sources' intensities) of a light model fitted ({methods}) to a mirror-ball "
@@ -165,6 +167,7 @@ def write_ies(
     horizontal_step_deg: float = 5.0,
     manufacturer: str = "unknown",
     luminaire: str | None = None,
+    lamp: str | None = None,
     lumcat: str | None = None,
     test: str | None = None,
     testlab: str | None = None,
@@ -192,9 +195,10 @@ def write_ies(
         intensities are scaled to a peak of 1000 and lumens/lamp is the table's own flux.
     vertical_step_deg, vertical_max_deg, horizontal_step_deg : float
         The angle grid, degrees; each step must divide its range.
-    manufacturer, luminaire, lumcat, test, testlab, issue_date : str, optional
-        Keywords ``[MANUFAC]``, ``[LUMINAIRE]``, ``[LUMCAT]``, ``[TEST]``, ``[TESTLAB]``,
-        ``[ISSUEDATE]``; the defaults come from the model's provenance and today's date.
+    manufacturer, luminaire, lamp, lumcat, test, testlab, issue_date : str, optional
+        Keywords ``[MANUFAC]``, ``[LUMINAIRE]``, ``[LAMP]`` (only when given), ``[LUMCAT]``,
+        ``[TEST]``, ``[TESTLAB]``, ``[ISSUEDATE]``; the defaults come from the model's
+        provenance and today's date.
     file_generation_type : str, optional
         A token of LM-63-2019 Table 2 (:data:`FILE_GENERATION_TYPES`). Default ``"1.01000"``
         (test at an unaccredited lab, interpolated angle set: the table is the fitted model
@@ -235,7 +239,14 @@ def write_ies(
     table = far_field_table(model, gamma, c, extrapolation)
     factor, lamp_flux, absolute = far_field_scaling(path, summary.total_flux, table, calibration, lamp_lumens)
     file_generation_type = _ies_file_generation_type(path, file_generation_type, lamp_lumens)
-    given = {"TEST": test, "TESTLAB": testlab, "ISSUEDATE": issue_date, "LUMCAT": lumcat, "LUMINAIRE": luminaire}
+    given = {
+        "TEST": test,
+        "TESTLAB": testlab,
+        "ISSUEDATE": issue_date,
+        "LUMCAT": lumcat,
+        "LUMINAIRE": luminaire,
+        "LAMP": lamp,
+    }
     grid = f"{vertical_step_deg:g} x {horizontal_step_deg:g} degree grid"
     units = _ies_units(model, absolute, calibration, lamp_lumens)
     lines = ["IES:LM-63-2019", *_ies_keywords(model, given, manufacturer, grid, units, summary)]

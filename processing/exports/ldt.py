@@ -62,7 +62,9 @@ def _ldt_description(
     ]
 
 
-def _ldt_luminaire_and_lamps(model: LightModel, absolute: bool, lamp_flux: float, summary: Photometry) -> list[str]:
+def _ldt_luminaire_and_lamps(
+    model: LightModel, absolute: bool, lamp_flux: float, summary: Photometry, lamp: str | None
+) -> list[str]:
     """EULUMDAT lines 13-26f: the luminaire's and luminous area's sizes, the ratios, and the lamps."""
     length, width = (1000.0 * x for x in luminous_opening(model))
     lines = [plain_number(length), plain_number(width), "0"]  # the luminaire's length, width and height (mm)
@@ -77,6 +79,8 @@ def _ldt_luminaire_and_lamps(model: LightModel, absolute: bool, lamp_flux: float
     dff = plain_number(summary.record()["downward_flux_percent"], 4)
     lines += [dff, "100", "1", "0"]  # DFF, LORL (%), conversion factor of the intensities, tilt in the measurement
     lamp_type = "mirrorgonio (candela)" if absolute else "mirrorgonio (relative)"  # 24 characters at most
+    if lamp:
+        lamp_type = ascii_only(lamp)[:24]
     # One standard set of one lamp: its type, total luminous flux (relative units unless calibrated), colour
     # appearance, colour rendering, wattage including ballast.
     return lines + ["1", "1", lamp_type, plain_number(lamp_flux), "", "", "0"]
@@ -94,6 +98,7 @@ def write_ldt(
     luminaire: str | None = None,
     luminaire_number: str | None = None,
     extrapolation: str = Extrapolation.FITTED,
+    lamp: str | None = None,
 ) -> Path:
     """Write the light's far field as an EULUMDAT (``.ldt``) file.
 
@@ -115,6 +120,9 @@ def write_ldt(
     extrapolation : {"fitted", "none"}
         Beyond each source's measured θ: the fits' extrapolation (the default), or zero.
         Line 8 (the measurement report) says which, with the measured θ.
+    lamp : str, optional
+        The lamp type (line 26b, its first 24 characters); default ``mirrorgonio (relative)``
+        or ``mirrorgonio (candela)``.
 
     Returns
     -------
@@ -139,7 +147,7 @@ def write_ldt(
     factor, lamp_flux, absolute = far_field_scaling(path, summary.total_flux, table, calibration, lamp_lumens)
     grid = (len(c_all), c_step_deg, len(gamma), gamma_step_deg)
     lines = _ldt_description(model, path.name, absolute, grid, (company, luminaire, luminaire_number), summary)
-    lines += _ldt_luminaire_and_lamps(model, absolute, lamp_flux, summary)
+    lines += _ldt_luminaire_and_lamps(model, absolute, lamp_flux, summary, lamp)
     lines += ["0"] * 10  # direct ratios, not computed
     lines += [plain_number(v) for v in c_all]
     lines += [plain_number(v) for v in gamma]

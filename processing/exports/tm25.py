@@ -6,6 +6,7 @@ import datetime as _dt
 import math
 import os
 import struct
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any, BinaryIO
 
@@ -66,30 +67,34 @@ def _from_utf32(raw: bytes) -> str:
     return text.split("\0", 1)[0]
 
 
-def _sample_directions(
-    source: SourceModel, n: int, rng: np.random.Generator, n_theta: int = 2048, n_phi: int = 256
-) -> np.ndarray:
-    """``n`` unit vectors drawn with density ∝ ``I_s(θ, φ)`` over the hemisphere.
+class _DirectionTable:
+    """A source's intensity tabulated for drawing directions with density ∝ ``I_s(θ, φ)`` over
+    the hemisphere.
 
     The intensity is tabulated on cells of equal Δθ (and Δφ for 2-D fits); a cell is drawn with probability ∝ its
     flux ``I(θ_mid, φ_mid)·Δcosθ·Δφ``, then a direction uniformly in solid angle within it (uniform in cos θ and φ):
-    the exact sampling of the piecewise-constant intensity."""
-    edges = np.linspace(0.0, 0.5 * math.pi, n_theta + 1)
-    mids = 0.5 * (edges[:-1] + edges[1:])
-    dcos = np.cos(edges[:-1]) - np.cos(edges[1:])
-    n_p = n_phi if source.fit.method == "gaussian-2d" else 1
-    phi_edges = np.linspace(0.0, 2.0 * math.pi, n_p + 1)
-    phi_mids = 0.5 * (phi_edges[:-1] + phi_edges[1:])
-    weight = source.intensity(mids[:, None], phi_mids[None, :]) * dcos[:, None]
-    cdf = np.cumsum(weight.ravel())
-    if not cdf[-1] > 0:
-        raise ExportError(f"source {source.name!r}: emits nothing to sample")
-    cell = np.minimum(np.searchsorted(cdf, rng.random(n) * cdf[-1], side="right"), cdf.size - 1)
-    i, j = np.divmod(cell, n_p)
-    cos_t = np.cos(edges[i]) - rng.random(n) * dcos[i]
-    phi = phi_edges[j] + rng.random(n) * (phi_edges[j + 1] - phi_edges[j])
-    sin_t = np.sqrt(np.maximum(0.0, 1.0 - cos_t**2))
-    return np.column_stack([sin_t * np.cos(phi), sin_t * np.sin(phi), cos_t])
+    the exact sampling of the piecewise-constant intensity. Made once per source, drawn from block after block."""
+
+    def __init__(self, source: SourceModel, n_theta: int = 2048, n_phi: int = 256) -> None:
+        self.edges = np.linspace(0.0, 0.5 * math.pi, n_theta + 1)
+        mids = 0.5 * (self.edges[:-1] + self.edges[1:])
+        self.dcos = np.cos(self.edges[:-1]) - np.cos(self.edges[1:])
+        self.n_p = n_phi if source.fit.method == "gaussian-2d" else 1
+        self.phi_edges = np.linspace(0.0, 2.0 * math.pi, self.n_p + 1)
+        phi_mids = 0.5 * (self.phi_edges[:-1] + self.phi_edges[1:])
+        weight = source.intensity(mids[:, None], phi_mids[None, :]) * self.dcos[:, None]
+        self.cdf = np.cumsum(weight.ravel())
+        if not self.cdf[-1] > 0:
+            raise ExportError(f"source {source.name!r}: emits nothing to sample")
+
+    def draw(self, n: int, rng: np.random.Generator) -> np.ndarray:
+        """``n`` unit vectors, ``(n, 3)``."""
+        cell = np.minimum(np.searchsorted(self.cdf, rng.random(n) * self.cdf[-1], side="right"), self.cdf.size - 1)
+        i, j = np.divmod(cell, self.n_p)
+        cos_t = np.cos(self.edges[i]) - rng.random(n) * self.dcos[i]
+        phi = self.phi_edges[j] + rng.random(n) * (self.phi_edges[j + 1] - self.phi_edges[j])
+        sin_t = np.sqrt(np.maximum(0.0, 1.0 - cos_t**2))
+        return np.column_stack([sin_t * np.cos(phi), sin_t * np.sin(phi), cos_t])
 
 
 def _allocate(fluxes: np.ndarray, n_rays: int) -> np.ndarray:
@@ -118,25 +123,40 @@ def _emitting_fluxes(path: Path, model: LightModel, n_rays: int) -> np.ndarray:
     return fluxes
 
 
-def _sample_rays(model: LightModel, fluxes: np.ndarray, n_rays: int, rng: np.random.Generator) -> np.ndarray:
-    """``(n_rays, 7)`` rays ``x y z kx ky kz phi``, source after source: a share of the rays ∝ the source's
-    flux, starting uniformly on its disc (mm, z = 0), directions drawn from its intensity, each carrying
-    ``Φ_s / n_s``."""
+#: Rays drawn and written at a time, whatever the file's number of rays: 2¹⁷, 7 MB of float64
+#: rays, 3.7 MB as written, and some 12 MB of the draws' temporaries.
+RAY_BLOCK = 1 << 17
+
+
+def _ray_blocks(
+    model: LightModel, fluxes: np.ndarray, n_rays: int, rng: np.random.Generator, block: int = RAY_BLOCK
+) -> Iterator[np.ndarray]:
+    """The rays, ``(k, 7)`` float32 ``x y z kx ky kz phi`` at most ``block`` at a time, source after
+    source: a share of the rays ∝ the source's flux, starting uniformly on its disc (mm, z = 0),
+    directions drawn from its intensity, each carrying ``Φ_s / n_s``."""
     counts = _allocate(fluxes, n_rays)
-    rays = np.empty((n_rays, 7), dtype=np.float64)
-    row = 0
     for s, flux, k in zip(model.sources, fluxes, counts, strict=True):
         if k == 0:
             continue
-        r = s.radius_m * np.sqrt(rng.random(k))
-        a = rng.random(k) * 2.0 * math.pi
-        rays[row : row + k, 0] = 1000.0 * (s.centre_m[0] + r * np.cos(a))
-        rays[row : row + k, 1] = 1000.0 * (s.centre_m[1] + r * np.sin(a))
-        rays[row : row + k, 2] = 0.0
-        rays[row : row + k, 3:6] = _sample_directions(s, int(k), rng)
-        rays[row : row + k, 6] = flux / k
-        row += k
-    return rays
+        table = _DirectionTable(s)
+        for start in range(0, int(k), block):
+            m = min(block, int(k) - start)
+            rays = np.empty((m, 7), dtype=np.float64)
+            r = s.radius_m * np.sqrt(rng.random(m))
+            a = rng.random(m) * 2.0 * math.pi
+            rays[:, 0] = 1000.0 * (s.centre_m[0] + r * np.cos(a))
+            rays[:, 1] = 1000.0 * (s.centre_m[1] + r * np.sin(a))
+            rays[:, 2] = 0.0
+            rays[:, 3:6] = table.draw(m, rng)
+            rays[:, 6] = flux / k
+            yield rays.astype("<f4")
+
+
+def _rays_flux(fluxes: np.ndarray, n_rays: int) -> float:
+    """The sum of the rays' float32 fluxes, known before they are drawn: ``n_s`` rays of
+    ``float32(Φ_s / n_s)`` each."""
+    counts = _allocate(fluxes, n_rays)
+    return float(sum(int(k) * float(np.float32(f / k)) for f, k in zip(fluxes, counts, strict=True) if k > 0))
 
 
 def _tm25_texts(model: LightModel, name: str | None, manufacturer: str, seed: int) -> dict[str, str]:
@@ -216,6 +236,10 @@ def write_tm25(
     the flux column is radiant flux (``phi``, flag 4.7.2.3) in the model's units × sr: W
     when the model is W/sr, relative otherwise (text field 4.7.3.8 says which). The header's
     luminous flux is NaN (not given), the spectrum type 0 (none).
+
+    The rays are drawn and written :data:`RAY_BLOCK` at a time, so the memory in use does
+    not grow with ``n_rays`` (about 20 MB for any count); the header's flux, the sum of the
+    rays' float32 fluxes, is known before they are drawn. The same seed writes the same file.
     """
     path = Path(path)
     if isinstance(n_rays, bool) or not isinstance(n_rays, (int, np.integer)) or n_rays < 1:
@@ -225,17 +249,21 @@ def write_tm25(
             f"{path}: creation_method: must be 0 (simulation) or 1 (measurement), got {creation_method!r}"
         )
     fluxes = _emitting_fluxes(path, model, n_rays)
-    rays32 = _sample_rays(model, fluxes, int(n_rays), np.random.default_rng(seed)).astype("<f4")
-    total = float(np.sum(rays32[:, 6], dtype=np.float64))
+    total = _rays_flux(fluxes, int(n_rays))
     texts = _tm25_texts(model, name, manufacturer, seed)
     head = _tm25_header_and_flags(int(creation_method), total, int(n_rays))
     text = b"".join(_utf32(texts[k], _TEXT_BYTES) for k in _TEXT_FIELDS)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as f:
-        f.write(head + text)  # no spectral tables, column labels or additional text
-        f.write(rays32.tobytes())
-    os.replace(tmp, path)
+    try:
+        with open(tmp, "wb") as f:
+            f.write(head + text)  # no spectral tables, column labels or additional text
+            for block in _ray_blocks(model, fluxes, int(n_rays), np.random.default_rng(seed)):
+                f.write(block.data)
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
     return path
 
 

@@ -20,6 +20,7 @@ from processing.light_run.from_data import FIT_FRACTIONS, spread_over
 from processing.light_run.light_fit import fit_light_model
 from processing.light_run.output_guard import output_path
 from processing.light_run.position import SourceRow, SourcesPlan
+from processing.light_run.progress import Steps
 from processing.light_run.quality import judge
 from processing.light_run.records import ProcessReport, RigCalibration, camera_provenance
 from processing.light_run.samples import assemble_samples
@@ -46,9 +47,13 @@ def finish_sources(
     truth: Truth | None,
     timings: dict[str, float],
     compute: Compute | None = None,
+    steps: Steps | None = None,
 ) -> None:
-    """Assemble the samples, fit, and write the light model, the light files and the report."""
+    """Assemble the samples, fit, and write the light model, the light files and the report
+    (the steps ``fits``, ``exports`` and ``report`` said to ``steps`` as they start and end)."""
+    steps = steps or Steps(None)
     samples = assemble_samples(positions, rows, plan)
+    steps.start("fits")
     clock = time.perf_counter()
     with open_run(run_path) as run:
         model = fit_light_model(
@@ -61,30 +66,19 @@ def finish_sources(
             footprint=plan.footprint,
         )
     timings["fit"] = time.perf_counter() - clock
+    steps.end("fits")
     name = run_name(run_path)
     record_provenance(model, report, plan, options, out / name, positions, rows)
     clock = time.perf_counter()
     model.photometry = summarize(model, options.extrapolation).record()
     timings["photometry"] = time.perf_counter() - clock
     report.light_model = model.save(output_path(run_path, out, ".light.json"))
-    luminaire = f"mirrorgonio run {name}"
 
     def light_files() -> dict[str, list[Path]]:
         started = time.perf_counter()
-        files = {
-            "ies": [
-                write_ies(
-                    model, output_path(run_path, out, ".ies"), luminaire=luminaire, extrapolation=options.extrapolation
-                )
-            ],
-            "ldt": [
-                write_ldt(
-                    model, output_path(run_path, out, ".ldt"), luminaire=luminaire, extrapolation=options.extrapolation
-                )
-            ],
-            "tm25": [write_tm25(model, output_path(run_path, out, ".tm25ray"), n_rays=100_000, seed=0)],
-        }
+        files = write_light_files(model, run_path, out, options)
         timings["exports"] = time.perf_counter() - started
+        steps.end("exports")
         return files
 
     report.estimator, report.estimator_reason, report.spatial_resolution_m = (
@@ -97,7 +91,9 @@ def finish_sources(
     # The light files are written on a thread while the report is drawn (both only read the
     # model): with a cluster this process mostly waits for the workers' sections meanwhile.
     with ThreadPoolExecutor(max_workers=1, thread_name_prefix="mirrorgonio-exports") as pool:
+        steps.start("exports")
         exports = pool.submit(light_files)
+        steps.start("report")
         clock = time.perf_counter()
         with open_run(run_path) as run:  # the report draws the rig's chief rays at the middle position
             drawn = write_report(
@@ -110,8 +106,47 @@ def finish_sources(
                 compute=compute,
             )
         timings["report"] = time.perf_counter() - clock
+        steps.end("report")
         report.outputs.update(exports.result())
     report.outputs["report"] = [drawn]
+
+
+def write_light_files(
+    model: LightModel, run_path: Path, out: Path, options: ProcessingOptions
+) -> dict[str, list[Path]]:
+    """The IES, LDT and TM-25 files of ``model``, with the names, the lamp flux or calibration
+    and the ray count of ``options`` (the luminaire named after the run where none is given)."""
+    luminaire = options.luminaire or f"mirrorgonio run {run_name(run_path)}"
+    lumens, calibration = options.lamp_lumens, options.candela_per_unit
+    ies = write_ies(
+        model,
+        output_path(run_path, out, ".ies"),
+        lamp_lumens=lumens,
+        calibration=calibration,
+        manufacturer=options.manufacturer or "unknown",
+        luminaire=luminaire,
+        lamp=options.lamp,
+        extrapolation=options.extrapolation,
+    )
+    ldt = write_ldt(
+        model,
+        output_path(run_path, out, ".ldt"),
+        lamp_lumens=lumens,
+        calibration=calibration,
+        company=options.manufacturer or "mirrorgonio",
+        luminaire=luminaire,
+        lamp=options.lamp,
+        extrapolation=options.extrapolation,
+    )
+    tm25 = write_tm25(
+        model,
+        output_path(run_path, out, ".tm25ray"),
+        n_rays=options.rays,
+        seed=0,
+        name=options.luminaire,
+        manufacturer=options.manufacturer or "unknown",
+    )
+    return {"ies": [ies], "ldt": [ldt], "tm25": [tm25]}
 
 
 def record_provenance(

@@ -6,11 +6,14 @@ import logging
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numba
 import numpy as np
 
+from drivers.contracts.rig import PoseSpec
 from drivers.contracts.runfile import RunFile, RunFileError
+from drivers.contracts.version import __version__
 from processing.hdr.brackets import merge_raw
 from processing.hdr.model import HDRError, NoiseModel
 from processing.hdr.mosaic import superpixels
@@ -178,7 +181,8 @@ def process_position(index: int, work: PositionWork) -> PositionResult:
                 del encoded
                 clock.lap("write")
                 if h.images_dir is not None:
-                    out.images = _write_images(Path(h.images_dir), index, merged.radiance, h.cfa)
+                    header = exr_header(run, index, exposures, h)
+                    out.images = _write_images(Path(h.images_dir), index, merged.radiance, h.cfa, header)
                     clock.lap("images")
                 radiance, variance, count, saturated = merged.radiance, merged.variance, merged.count, merged.saturated
                 cfa = h.cfa
@@ -208,11 +212,53 @@ def process_position(index: int, work: PositionWork) -> PositionResult:
     return out
 
 
-def _write_images(folder: Path, index: int, radiance: np.ndarray, cfa: str) -> dict[str, Path]:
+#: What an EXR's pixels are (its ``units`` and ``colourSpace`` attributes).
+EXR_UNITS = (
+    "relative radiance: DN per second above black (raw sensor counts a second, linear in the light); "
+    "x gainElectronsPerDN for electrons per second; 0 where no exposure gave a usable sample"
+)
+EXR_COLOUR_SPACE = (
+    "camera RGB: the sensor's raw R, G, B (a 2x2 Bayer superpixel, the two greens averaged), not white-balanced. "
+    "Its primaries are not known, so the file has no chromaticities attribute: a reader that assumes Rec. 709 "
+    "primaries without one shows camera RGB as if it were Rec. 709"
+)
 
+
+def exr_header(run: RunFile, index: int, exposures: np.ndarray, hdr: HDRWork) -> dict[str, Any]:
+    """The header attributes of position ``index``'s OpenEXR: what the pixels are (units,
+    colour space), how they were merged (the bracket's exposures, the method, the noise
+    model), and where they come from (the run, the position, the light's and the arm's
+    poses, the software)."""
+    light = PoseSpec.of(run.header.light_poses[index])
+    measured = run.measured_pose(index)
+    attributes: dict[str, Any] = {
+        "units": EXR_UNITS,
+        "colourSpace": EXR_COLOUR_SPACE,
+        "gainElectronsPerDN": float(hdr.noise.gain_e_per_dn),
+        "bracketExposures_s": np.asarray(exposures, np.float32),
+        "hdrMethod": f"{hdr.method}: the bracket's {len(exposures)} exposures merged into one rate (per second)",
+        "runId": run.header.run_id,
+        "position": int(index),
+        "positionsInRun": int(run.n_positions),
+        "lightPosition_m": np.asarray(light.position_m, np.float32),
+        "lightRotation_deg": np.asarray(light.rotation_deg, np.float32),
+        "software": f"mirrorgonio {__version__}",
+        "comments": f"Position {index} (0-based) of {run.n_positions} of run {run.header.run_id}, merged by "
+        f"mirrorgonio {__version__}; pixels: {EXR_UNITS.split(':')[0]}, camera RGB",
+    }
+    if measured is not None:
+        arm = PoseSpec.of(measured)
+        attributes["toolPositionMeasured_m"] = np.asarray(arm.position_m, np.float32)
+        attributes["toolRotationMeasured_deg"] = np.asarray(arm.rotation_deg, np.float32)
+    return attributes
+
+
+def _write_images(
+    folder: Path, index: int, radiance: np.ndarray, cfa: str, header: dict[str, Any] | None = None
+) -> dict[str, Path]:
     rgb = superpixels(radiance, cfa, nonfinite=0.0)
     return {
-        "exr": write_exr(folder / f"position-{index:03d}.exr", rgb),
+        "exr": write_exr(folder / f"position-{index:03d}.exr", rgb, attributes=header),
         "png": write_png(folder / f"position-{index:03d}.png", rgb),
     }
 

@@ -11,14 +11,17 @@ makes the plan (:func:`~processing.light_run.plan.plan_processing`) and hands bo
    and the camera's numbers fitted there as the plan says;
 3. the estimate: every merged position unmixed with the settled sources and camera;
 4. the fits, the light model, the light files and the report.
+
+Each step says how far it is through ``progress`` (:mod:`processing.light_run.progress`).
 """
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -41,6 +44,7 @@ from processing.light_run.position import (
     SourcesPlan,
     process_position,
 )
+from processing.light_run.progress import Steps
 from processing.light_run.records import ProcessReport
 from processing.light_run.samples import plan_sources
 from processing.light_run.self_calibration import layout_and_rig, rig_at_layout
@@ -61,7 +65,7 @@ def process_run(
     out_dir: str | os.PathLike[str] | None = None,
     *,
     compute: Compute | None = None,
-    progress: Callable[[int, int], None] | None = None,
+    progress: Callable[..., None] | None = None,
     truth: Truth | None = None,
     **options: Any,
 ) -> ProcessReport:
@@ -78,7 +82,11 @@ def process_run(
         Where the position tasks run (:func:`processing.parallel.open_compute`); default:
         in this process, one after the other.
     progress : callable, optional
-        ``progress(done, total)`` after every position task.
+        ``progress(step, done, total)`` as each step starts (``done = 0``), after every
+        position of the steps over the positions (``hdr``, ``estimate``) and as the others
+        end; ``step`` is a name of :data:`processing.light_run.progress.STEPS`, in their
+        order. A callable of two parameters is called ``progress(done, total)`` after every
+        position task, counted over the passes.
     truth : callable, optional
         Simulated runs only, given by the caller: ``truth(source, theta) -> intensity``,
         drawn beside the fits in the report (:mod:`processing.report`).
@@ -115,19 +123,19 @@ class LightRun:
         out_dir: str | os.PathLike[str] | None,
         plan: ProcessingPlan,
         compute: Compute,
-        progress: Callable[[int, int], None] | None,
+        progress: Callable[..., None] | None,
         truth: Truth | None,
     ) -> None:
         self.run_path, self.plan, self.compute, self.truth = run_path, plan, compute, truth
         self.options = plan.options
         self.out = Path(out_dir) if out_dir is not None else run_path.parent
         self.results_file = results_path_for(run_path, self.out)
-        self.progress = progress
+        self.steps = Steps(progress)
         self.timings: dict[str, float] = {}
         self.rows: dict[int, SourceRow] = {}
         self.saturated_all: dict[int, bool] = {}
         self.point_spread: dict[str, Any] | None = None  # the measured point spread's record, where there is one
-        self.done = 0
+        self.step, self.step_done = "hdr", 0  # the pass over the positions under way, and its positions done
 
     def process(self) -> ProcessReport:
         started = time.perf_counter()
@@ -142,12 +150,14 @@ class LightRun:
                 )
             if self.plan.merge:
                 with self._timed("positions"):
+                    self._positions_step("hdr")
                     self._merge_pass(run, sources)
         if self.plan.estimate:
             if not self.plan.fused:
                 with open_run(self.run_path) as run:
                     sources = self._settle_sources(run)
                 with self._timed("sources"):
+                    self._positions_step("estimate")
                     self._estimate_pass(sources)
             if all(self.saturated_all.get(int(i), False) for i in self.positions):
                 raise ProcessingError(
@@ -165,6 +175,7 @@ class LightRun:
                 truth=self.truth,
                 timings=self.timings,
                 compute=self.compute,
+                steps=self.steps,
             )
         self.timings["total"] = time.perf_counter() - started
         self.report.timings = {k: round(v, 3) for k, v in self.timings.items()}
@@ -182,12 +193,12 @@ class LightRun:
             raise ProcessingError(f"{self.run_path}: the run has no complete position (no frames to process)")
         if self.plan.estimate:
             self._point_spread(run)
-        with self._timed("checksums"):  # the frames to merge; merged before, only the ambient ones
+        with self._step("checksums"):  # the frames to merge; merged before, only the ambient ones
             sound, skipped = self._sound_positions(run, positions if self.plan.merge else positions[:0])
         self.out.mkdir(parents=True, exist_ok=True)
         if self.plan.merge:
             positions = sound
-            with self._timed("noise"):
+            with self._step("noise"):
                 noise = choose_noise(run, positions, self.options.noise, self.compute)
             self.report = ProcessReport(
                 self.run_path, self.results_file, int(positions.size), noise, {"exr": [], "png": []}
@@ -211,7 +222,7 @@ class LightRun:
         self.report.point_spread = self.point_spread
         self.report.partial = positions.size < run.n_positions
         self.report.compute = self.compute.description
-        self.total = self.plan.passes * int(positions.size)
+        self.steps.positions_total = self.plan.passes * int(positions.size)
 
     def _point_spread(self, run: RunFile) -> None:
         """The measured point spread the rig names, read and checked before any work, and the
@@ -334,7 +345,7 @@ class LightRun:
         if plan.calibrate_rig:
             return self._calibrated_sources(run)
         if plan.search:
-            with self._timed("layout"):
+            with self._step("layout"):
                 found, aperture, distance = layout_and_camera(*args, options.ball_centre, self.compute, plan)
             layout: Sequence[Source] = found.sources
             how = (
@@ -346,8 +357,10 @@ class LightRun:
         else:
             assert plan.layout is not None  # given, where the plan does not search for it
             layout = plan.layout
-            with self._timed("camera"):
-                aperture, distance = camera_at_layout(*args, layout, options.ball_centre, self.compute, plan)
+            aperture = distance = None
+            if plan.fit_aperture or plan.fit_sensor_distance:
+                with self._step("camera"):
+                    aperture, distance = camera_at_layout(*args, layout, options.ball_centre, self.compute, plan)
         self.report.aperture_fit, self.report.sensor_distance_fit = aperture, distance
         camera = fitted_camera(aperture, distance)
         return plan_sources(run, layout, options.estimator, options.ball_centre, self.positions, camera)
@@ -355,7 +368,7 @@ class LightRun:
     def _calibrated_sources(self, run: RunFile) -> SourcesPlan:
         """The sources (searched for, or given) with the rig fitted to the data with them."""
         plan, options, args = self.plan, self.options, (run, self.results_file, self.positions)
-        with self._timed("layout"):
+        with self._step("calibration", timing="layout"):
             if plan.search:
                 found, calibration = layout_and_rig(*args, options.ball_centre, self.compute)
                 self.report.layout_search = f"candidate grid (NNLS), then positions and radius fitted: {found.message}"
@@ -379,15 +392,28 @@ class LightRun:
         self.saturated_all[index] = result.all_saturated
         if result.sources is not None:
             self.rows[index] = result.sources
-        self.done += 1
-        if self.progress:
-            self.progress(self.done, self.total)
+        self.step_done += 1
+        self.steps.advance(self.step, self.step_done, int(self.positions.size))
+
+    def _positions_step(self, step: str) -> None:
+        """A pass over the positions begins: ``step`` counts them."""
+        self.step, self.step_done = step, 0
+        self.steps.start(step, int(self.positions.size))
 
     def _indices(self) -> list[int]:
         return [int(i) for i in self.positions]
 
     def _timed(self, stage: str) -> _Stage:
         return _Stage(self.timings, stage)
+
+    @contextlib.contextmanager
+    def _step(self, step: str, timing: str | None = None) -> Iterator[None]:
+        """A step done in one go: reported as it starts and ends, its time in ``timings``
+        (under ``timing``, default the step's name)."""
+        self.steps.start(step)
+        with self._timed(timing or step):
+            yield
+        self.steps.end(step)
 
 
 def skipped_line(corrupt: Sequence[CorruptFrame]) -> str:
