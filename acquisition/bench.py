@@ -127,7 +127,10 @@ def home(engine: RunEngine) -> tuple[Pose, str]:
 
 def _describe(pose: Pose) -> str:
     p = pose_record(pose)
-    return (
-        f"x {1e3 * p['x']:.2f} y {1e3 * p['y']:.2f} z {1e3 * p['z']:.2f} mm, "
-        f"rx {p['rx']:.2f} ry {p['ry']:.2f} rz {p['rz']:.2f} deg"
-    )
+
+    def two(value: float) -> str:
+        return f"{round(value, 2) + 0.0:.2f}"  # + 0.0: no "-0.00"
+
+    mm = " ".join(f"{axis} {two(1e3 * p[axis])}" for axis in ("x", "y", "z"))
+    deg = " ".join(f"{axis} {two(p[axis])}" for axis in ("rx", "ry", "rz"))
+    return f"{mm} mm, {deg} deg"

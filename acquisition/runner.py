@@ -716,7 +716,7 @@ class RunEngine:
                     self.catalog.update_progress(
                         run_id,
                         positions_done=int(writer.complete.sum()),
-                        current_position=index,
+                        current_position=index if self._position is None else self._position,  # where the arm is
                         seconds_per_position=sum(recent) / len(recent) if behind.durations else None,
                         exposures_per_position=len(frames),
                     )

@@ -55,7 +55,11 @@ def frame_summary(request: Request) -> FrameSummary:
     "/preview/shot",
     response_model=ShotResult,
     dependencies=[TokenDep],
-    responses={409: {"model": Problem, "description": "a run is active, or the devices are busy"}, **WRITE_ERRORS},
+    responses={
+        409: {"model": Problem, "description": "a run is active, or the devices are busy"},
+        503: {"model": Problem, "description": "the camera failed"},
+        **WRITE_ERRORS,
+    },
 )
 def test_shot(engine: EngineDep, settings: SettingsDep, body: ShotRequest | None = None) -> ShotResult:
     """One bracket at the arm's current pose (the request's exposures, or the daemon's default

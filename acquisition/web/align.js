@@ -247,8 +247,9 @@ async function armMove(path, body, what) {
   try {
     const moved = await api("POST", path, body);
     const p = moved.position;
-    showMessage(`${moved.moved}: the arm is at x ${(p.x * 1000).toFixed(2)} y ${(p.y * 1000).toFixed(2)} z ${(p.z * 1000).toFixed(2)} mm, `
-      + `rx ${p.rx.toFixed(2)} ry ${p.ry.toFixed(2)} rz ${p.rz.toFixed(2)} °.`, "info", "arm");
+    const two = (v) => (Math.round(v * 100) / 100 + 0).toFixed(2);  // + 0: no "-0.00"
+    showMessage(`${moved.moved}: the arm is at x ${two(p.x * 1000)} y ${two(p.y * 1000)} z ${two(p.z * 1000)} mm, `
+      + `rx ${two(p.rx)} ry ${two(p.ry)} rz ${two(p.rz)} °.`, "info", "arm");
   } catch (err) {
     showMessage(`${what} refused: ${err.message}`, "error", "arm");
   } finally {
