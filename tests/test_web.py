@@ -263,7 +263,7 @@ def test_the_page_shows_what_the_daemon_refuses_and_polls_without_events(tmp_pat
     page.fill("#token", TOKEN)
     page.fill("#exposures", "-1")
     page.click("#start")
-    expect(message).to_contain_text("bracket.fixed.exposures_s.0: Input should be greater than 0")
+    expect(message).to_contain_text("bracket.fixed.exposures_s.0: Input should be greater than or equal to 0.00001")
     expect(message).to_contain_text("HTTP 422")
     expect(message).to_have_class("message error")
 
