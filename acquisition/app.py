@@ -16,8 +16,10 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse, HTMLResponse, JSONResponse
 
 from acquisition.api import arm, health, jobs, presets, preview, runs, session
+from acquisition.api import log as log_api
 from acquisition.api.deps import GUARD_ERRORS
 from acquisition.api.guard import RequestGuard
+from acquisition.bench import MoveRefusedError
 from acquisition.catalog import (
     ActiveRunError,
     Catalog,
@@ -28,6 +30,8 @@ from acquisition.catalog import (
 )
 from acquisition.client_files import ClientFileError
 from acquisition.devices import open_devices
+from acquisition.log_buffer import LogBuffer
+from acquisition.preview import Previews
 from acquisition.runner import RunConflictError, RunEngine, RunEngineError
 from acquisition.settings import DaemonSettings
 from acquisition.storage import InsufficientStorageError, StorageUnavailableError
@@ -38,6 +42,8 @@ from drivers.errors import DeviceError
 log = logging.getLogger("mirrorgonio.daemon")
 WEB_DIR = Path(__file__).resolve().parent / "web"
 WEB_PAGE = WEB_DIR / "index.html"
+#: The loggers whose lines the page's log panel shows (``GET /log``): the daemon's and the server's.
+LOGGED = ("mirrorgonio", "uvicorn.error")
 
 # Domain errors and the HTTP status each one means (the first that matches). A storage that
 # refuses a write (the catalog's or a run's) comes before the catalog's other errors.
@@ -50,6 +56,7 @@ ERROR_STATUS: list[tuple[type[Exception], int]] = [
     (ActiveRunError, status.HTTP_409_CONFLICT),
     (RunConflictError, status.HTTP_409_CONFLICT),
     (RigError, status.HTTP_422_UNPROCESSABLE_CONTENT),
+    (MoveRefusedError, status.HTTP_422_UNPROCESSABLE_CONTENT),
     (ClientFileError, status.HTTP_422_UNPROCESSABLE_CONTENT),
     (CatalogError, status.HTTP_400_BAD_REQUEST),
     (RunEngineError, status.HTTP_400_BAD_REQUEST),
@@ -85,6 +92,10 @@ def _public_detail(exc: Exception, settings: DaemonSettings) -> str:
 def create_app(settings: DaemonSettings) -> FastAPI:
     @asynccontextmanager
     async def lifespan(app: FastAPI):
+        log_buffer = LogBuffer()
+        for name in LOGGED:
+            log_buffer.attach(name)
+        app.state.log_buffer = log_buffer
         rig = load_rig(settings.rig)
         Path(settings.data_dir).mkdir(parents=True, exist_ok=True)
         catalog = Catalog(settings.catalog_path)
@@ -94,12 +105,15 @@ def create_app(settings: DaemonSettings) -> FastAPI:
         devices = open_devices(settings, rig)
         engine = RunEngine(settings, rig, devices, catalog)
         app.state.settings, app.state.catalog, app.state.engine = settings, catalog, engine
+        app.state.previews = Previews(lambda: (engine.frame_serial, engine.latest_frame, engine.latest_frame_run), rig)
         try:
             yield
         finally:
             engine.shutdown()
             devices.close()
             catalog.close()
+            for name in LOGGED:
+                log_buffer.detach(name)
 
     app = FastAPI(
         title="mirrorgonio daemon",
@@ -108,8 +122,9 @@ def create_app(settings: DaemonSettings) -> FastAPI:
         lifespan=lifespan,
         responses=GUARD_ERRORS,
     )
-    for router in (health.router, presets.router, runs.router, preview.router, arm.router, jobs.router, session.router):
-        app.include_router(router)
+    routers = (health, presets, runs, preview, arm, jobs, session, log_api)
+    for module in routers:
+        app.include_router(module.router)
     # Host, Origin, content type and body size, before routing, the token and the body's parsing.
     app.add_middleware(RequestGuard, settings=settings)
 
@@ -138,6 +153,10 @@ def create_app(settings: DaemonSettings) -> FastAPI:
     @app.get("/app.js", include_in_schema=False)
     def web_script() -> FileResponse:
         return FileResponse(WEB_DIR / "app.js", media_type="text/javascript", headers={"Cache-Control": "no-cache"})
+
+    @app.get("/align.js", include_in_schema=False)
+    def align_script() -> FileResponse:
+        return FileResponse(WEB_DIR / "align.js", media_type="text/javascript", headers={"Cache-Control": "no-cache"})
 
     @app.get("/app.css", include_in_schema=False)
     def web_style() -> FileResponse:

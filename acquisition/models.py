@@ -404,3 +404,98 @@ class Problem(BaseModel):
 
     model_config = ConfigDict(json_schema_extra={"examples": [{"detail": "run run-1 is already active on this rig"}]})
     detail: str | list
+
+
+# --- the bench: the alignment preview, test shots, jog and home -------------------------------
+class ChannelHistogram(BaseModel):
+    below: int = Field(description="photosites less than 1 DN above black")
+    counts: list[int] = Field(description="photosites in each bin of `edges_dn`")
+
+
+class Histogram(BaseModel):
+    edges_dn: list[float] = Field(description="bin edges, DN above black, log-spaced from 1 to the white level")
+    channels: dict[str, ChannelHistogram] = Field(description="by CFA colour: R, G, B")
+
+
+class FrameSummary(BaseModel):
+    """The latest frame beside its alignment view (``GET /preview/frame.png``)."""
+
+    serial: int = Field(description="counts the frames shown: a new one means a new view")
+    run_id: str | None = Field(description="the run that took it; None: a test shot")
+    width: int
+    height: int
+    exposure_s: float
+    captured_utc: str
+    camera_id: str
+    black_level_dn: float
+    white_level_dn: int
+    peak_dn: float = Field(description="the brightest photosite, DN above black")
+    saturated_pixels: int = Field(description="photosites at 98 % of the range above black or more")
+    saturated_share: float
+    scale: dict[str, str | float] = Field(description="the view's grey scale: log10 of DN above black")
+    histogram: Histogram
+    ball_outline_px: list[list[float]] | None = Field(
+        description="the ball's expected outline, (col, row) pixel centres, from the rig's camera and ball"
+    )
+
+
+class ShotRequest(BaseModel):
+    """One bracket at the arm's current pose; nothing is stored in a run."""
+
+    model_config = ConfigDict(
+        extra="forbid", allow_inf_nan=False, json_schema_extra={"examples": [{"exposures_s": [0.001, 0.01]}]}
+    )
+    exposures_s: list[Exposure] | None = Field(
+        default=None, **BRACKET_LENGTH, description=f"{_EXPOSURES_DOC}; default: the daemon's default bracket"
+    )
+
+
+class ShotFrame(BaseModel):
+    exposure_s: float
+    peak_dn: float
+    saturated_pixels: int
+    saturated_share: float
+
+
+class ShotResult(BaseModel):
+    frames: list[ShotFrame]
+    serial: int = Field(description="the preview's serial of the last frame (it shows that one)")
+
+
+JOG_LIMIT = 100.0
+
+
+class JogRequest(BaseModel):
+    """A relative move of one axis of the arm's tool pose (the arm's own frame)."""
+
+    model_config = ConfigDict(
+        extra="forbid", allow_inf_nan=False, json_schema_extra={"examples": [{"axis": "z", "step": -5.0}]}
+    )
+    axis: Literal["x", "y", "z", "rx", "ry", "rz"]
+    step: float = Field(
+        ge=-JOG_LIMIT, le=JOG_LIMIT, description="millimetres for x, y, z; degrees for rx, ry, rz (at most 100)"
+    )
+
+
+class ArmMove(BaseModel):
+    """Where the arm is after a jog or homing."""
+
+    position: dict[str, float] = Field(description="read-back pose: x, y, z in m; rx, ry, rz in degrees")
+    moved: str = Field(description="what was done, in one line")
+
+
+class LogLine(BaseModel):
+    seq: int = Field(description="increasing; ask for lines `after` the last one seen")
+    time_utc: str
+    level: str
+    logger: str
+    message: str
+
+
+class ReportFigure(BaseModel):
+    """A figure of a job's report."""
+
+    index: int
+    alt: str
+    caption: str
+    url: str = Field(description="the figure as PNG")

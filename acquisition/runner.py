@@ -23,7 +23,8 @@ import logging
 import os
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from datetime import UTC, datetime
 from pathlib import Path
 
@@ -35,7 +36,6 @@ from acquisition.catalog.pending import PendingEnds
 from acquisition.client_files import load_client_file
 from acquisition.devices import Devices
 from acquisition.models import AutoBracket, FixedBracket, RunRequest
-from acquisition.preview import preview_png
 from acquisition.run_control import Aborted, Control, OperatorStop, ProgressEvents
 from acquisition.run_plan import (
     DARK_IN_LIT_ROOM,
@@ -104,12 +104,12 @@ class RunEngine:
         self._current: str | None = None
         self.latest_frame: RawFrame | None = None
         self.latest_frame_run: str | None = None
-        self._preview_cache: tuple[int, bytes] | None = None
-        self._frame_serial = 0
+        self.frame_serial = 0  # counts the frames shown: what the previews are cached by
         self._step: str | None = None
         self.pending = PendingEnds(catalog)  # runs' ends the catalog could not record yet
         self._finishing = False  # the run thread has taken its last frame (or failed): it is ending
         self._position: int | None = None  # the position the run thread is at, or moving to
+        self._manual: str | None = None  # what holds the devices outside a run (a test shot, a jog)
         self._stop_serial = itertools.count(1)
         Path(settings.runs_dir).mkdir(parents=True, exist_ok=True)
 
@@ -227,6 +227,7 @@ class RunEngine:
             # Running before the thread starts: a pause right after the start applies to it.
             record = self.catalog.transition_run(record.id, "running")
             self._launch(plan, resume=False)
+        log.info("run %s started: %s, %d positions", record.id, request.preset, len(tool))
         self.events.publish()
         return record
 
@@ -340,6 +341,19 @@ class RunEngine:
             if in_progress:
                 self._pause_for_stop(control)
 
+    @contextmanager
+    def manual(self, what: str) -> Iterator[None]:
+        """Hold the devices for ``what`` (a test shot, a jog, homing) outside a run: refused
+        (RunConflictError) while a run is active or another such action lasts; a run is refused
+        while it lasts."""
+        with self._lock:
+            self._require_idle()
+            self._manual = what
+        try:
+            yield
+        finally:
+            self._manual = None
+
     def wait(self, timeout: float | None = None) -> None:
         """Wait for the current run's thread to finish (tests, shutdown)."""
         thread = self._thread
@@ -357,14 +371,6 @@ class RunEngine:
         """What run ``run_id`` is doing now (``RunStatus.step``); None unless it is in progress."""
         return self._step if run_id == self._current and self.busy else None
 
-    def preview(self) -> bytes | None:
-        frame, serial = self.latest_frame, self._frame_serial
-        if frame is None:
-            return None
-        if self._preview_cache is None or self._preview_cache[0] != serial:
-            self._preview_cache = (serial, preview_png(frame))
-        return self._preview_cache[1]
-
     # --- internals -------------------------------------------------------------------------
     def _require_current(self, run_id: str) -> RunRecord:
         """The run, if its thread is at work and not yet ending (under ``_lock``)."""
@@ -379,6 +385,8 @@ class RunEngine:
         """Refuse unless no run other than ``run_id`` is active and no run thread is at work
         (under ``_lock``). A thread whose run the catalog shows ended is only exiting: it is
         waited for, briefly."""
+        if self._manual is not None:
+            raise RunConflictError(f"the devices are busy: {self._manual}")
         active = self.catalog.active_run()
         if active is not None and active.id != run_id:
             raise RunConflictError(f"run {active.id} is already active on this rig")
@@ -468,7 +476,7 @@ class RunEngine:
         for _ in range(8):
             self._checkpoint()
             meter = self._device("metering capture", self.devices.camera.capture, exposure)
-            self._discard_raw(meter)
+            self.discard_raw(meter)
             if not is_saturated(meter) or exposure <= rule.min_exposure_s:
                 return exposures_from_metering(meter, rule, noise)
             exposure = max(exposure / 8.0, rule.min_exposure_s)
@@ -516,7 +524,7 @@ class RunEngine:
             plan.update(dark=DARK_IN_LIT_ROOM, dark_exposures_s=[self.settings.light.dark_exposure_s])
         return plan
 
-    def _discard_raw(self, frame: RawFrame) -> None:
+    def discard_raw(self, frame: RawFrame) -> None:
         if not self.settings.camera.keep_raw_files and frame.source:
             try:
                 os.unlink(frame.source)
@@ -620,7 +628,7 @@ class RunEngine:
                 try:
                     self._checkpoint()
                     if arrival is None:
-                        self._set_step(f"calibration: moving to position {index} for the frames {when} the sweep")
+                        self._set_step(f"calibration: moving to position {index + 1} for the frames {when} the sweep")
                         arrival = self._move(plan, index)
                     frames = self._calibration_frames(plan.run_id, (role, when), lighting, exposures)
                     break
@@ -628,7 +636,7 @@ class RunEngine:
                     arrival = None  # taken again once resumed
             writer.write_calibration(role, when, frames)
             for frame in frames:
-                self._discard_raw(frame)
+                self.discard_raw(frame)
         return arrival
 
     def _calibration_frames(
@@ -646,7 +654,7 @@ class RunEngine:
             )
             frame = self._device("calibration capture", self.devices.camera.capture, exposure)
             frames.append(frame)
-            self._show(run_id, frame)
+            self.show_frame(run_id, frame)
         return frames
 
     def _ready_for_sweep(self, run_id: str, calibrates: bool) -> None:
@@ -681,10 +689,10 @@ class RunEngine:
         self._step = step
         self.events.publish()
 
-    def _show(self, run_id: str, frame: RawFrame) -> None:
-        """The frame the preview shows."""
+    def show_frame(self, run_id: str | None, frame: RawFrame) -> None:
+        """The frame the preview shows (of run ``run_id``; None: a test shot)."""
         self.latest_frame, self.latest_frame_run = frame, run_id
-        self._frame_serial += 1
+        self.frame_serial += 1
 
     def _write_loop(self, run_id: str, writer: RunFileWriter, behind: WriteBehind) -> None:
         """The writer thread: write each position handed over, and record the run's progress.
@@ -703,12 +711,12 @@ class RunEngine:
                 try:
                     writer.write_position(index, measured, times, frames)
                     for frame in frames:
-                        self._discard_raw(frame)
+                        self.discard_raw(frame)
                     recent = behind.durations[-10:]
                     self.catalog.update_progress(
                         run_id,
                         positions_done=int(writer.complete.sum()),
-                        current_position=index,
+                        current_position=index if self._position is None else self._position,  # where the arm is
                         seconds_per_position=sum(recent) / len(recent) if behind.durations else None,
                         exposures_per_position=len(frames),
                     )
@@ -739,6 +747,8 @@ class RunEngine:
         if writer is not None:
             outcome, message = self._close_run_file(writer, outcome, message)
         self.pending.record(run_id, outcome, message)
+        level = logging.INFO if outcome == "complete" else logging.WARNING
+        log.log(level, "run %s %s%s", run_id, outcome, f": {message}" if message else "")
         self._current = None if outcome != "paused" else run_id
         self._step = None
         self.events.publish()
@@ -766,7 +776,7 @@ class RunEngine:
         self._checkpoint()
         self._position = index
         self.catalog.update_progress(plan.run_id, positions_done=self._done(plan), current_position=index)
-        self._set_step(f"sweep, position {index}")
+        self._set_step(f"sweep, position {index + 1} of {len(plan.tool_poses)}")
         if arrival is None:
             arrival = self._move(plan, index)
         exposures = self._bracket(plan.request.bracket)
@@ -775,7 +785,7 @@ class RunEngine:
             self._checkpoint()
             frame = self._device("capture", self.devices.camera.capture, exposure)
             frames.append(frame)
-            self._show(plan.run_id, frame)
+            self.show_frame(plan.run_id, frame)
         times = PositionTimes(arrival.move_started, arrival.in_position, self._wall())
         behind.durations.append(self._mono() - started)
         # Blocks only while the previous position is still being written.

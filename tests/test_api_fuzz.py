@@ -59,6 +59,7 @@ def make_app(data_dir):
     settings = load_settings(None, data_dir=data_dir, rig=REDUCED_RIG, token=TOKEN, allowed_hosts=["testserver"])
     settings.arm.simulated.speed_m_s = 0.5
     settings.arm.simulated.accel_m_s2 = 5.0
+    settings.arm.simulated.angular_speed_rad_s = 10.0  # a fuzzed jog of up to 100° takes a fraction of a second
     return create_app(settings)
 
 

@@ -14,7 +14,7 @@ from acquisition.runner import RunEngine
 from drivers.contracts.runfile import RunFile
 from drivers.errors import DeviceError
 from drivers.light import ManualLightSwitch, NoLightSwitch
-from processing.calibration import calibrate_ball, mosaic_luminance
+from processing.calibration import calibrate_ball, detect_silhouette, mosaic_luminance
 
 AMBIENT_S = [0.01, 0.04, 0.16]  # the daemon's default ambient bracket
 SWEEP_S = [0.0002, 0.001, 0.005]
@@ -94,12 +94,17 @@ def test_the_simulated_rig_takes_ambient_and_dark_frames_before_and_after_the_sw
             np.testing.assert_array_equal(ambient.black_level, np.full((2, 2), cam.black_level_dn))
             for frame in ambient.frames:
                 assert silhouette_error_px(rig, frame, ambient.black_level) < 0.5  # measured: 0.01-0.04 px
+            # The outline the page draws (the rig's) lies on the silhouette the processing measures.
+            measured = detect_silhouette(mosaic_luminance(ambient.frames[-1], ambient.black_level)).points
+            outline = rig.ball_outline_px(3600)
+            off = np.min(np.linalg.norm(measured[:, None, :] - outline[None, :, :], axis=2), axis=1)
+            assert len(measured) > 300 and off.max() < 1.0, off.max()  # measured: 0.56 px mean, 0.82 max
         # The sweep in the dark room: the frames are black but for the light's emitters.
         assert np.median(f.frames(0)[-1]) <= cam.black_level_dn + 1
-    assert steps[0] == "calibration: moving to position 0 for the frames before the sweep"
+    assert steps[0] == "calibration: moving to position 1 for the frames before the sweep"
     assert "calibration: ambient frames before the sweep (the light off, the room lit), frame 3 of 3" in steps
     assert "calibration: dark frames before the sweep (the light off, the room dark), frame 1 of 3" in steps
-    assert steps.index("sweep, position 0") > steps.index(
+    assert steps.index(f"sweep, position 1 of {run['n_positions']}") > steps.index(
         "calibration: dark frames before the sweep (the light off, the room dark), frame 3 of 3"
     )
     assert steps[-1] == "calibration: dark frames after the sweep (the light off, the room dark), frame 3 of 3"

@@ -146,13 +146,14 @@ def test_the_token_guards_reads_too(daemons):
     _, daemon, _ = daemons
     bearer = {"Authorization": f"Bearer {TOKEN}"}
     guarded = ["/runs", "/runs/nope", "/runs/nope/file", "/runs/nope/events", "/jobs", "/jobs/nope/artifacts/ies"]
-    guarded += ["/devices", "/presets", "/preview.png"]
+    guarded += ["/devices", "/presets", "/preview.png", "/preview/frame", "/preview/frame.png", "/log"]
+    guarded += ["/jobs/nope/figures", "/jobs/nope/figures/0.png"]
     for path in guarded:
         assert send(daemon, "GET", path)[0] == 401, path
         assert send(daemon, "GET", path, {"Authorization": "Bearer wrong-token-0123456789"})[0] == 403, path
         assert send(daemon, "GET", path, bearer)[0] in (200, 404), path
     # The health, and the page's shell (the page then asks for the token), are open.
-    for path in ("/health", "/", "/app.js", "/app.css"):
+    for path in ("/health", "/", "/app.js", "/align.js", "/app.css"):
         assert send(daemon, "GET", path)[0] == 200, path
     # The page's session: a cookie for the browser's own reads, never for a change.
     conn = http.client.HTTPConnection("127.0.0.1", daemon.port, timeout=30)
@@ -164,6 +165,13 @@ def test_the_token_guards_reads_too(daemons):
     session = {"Cookie": cookie.split(";")[0]}
     assert send(daemon, "GET", "/runs", session)[0] == 200
     assert send(daemon, "POST", "/arm/stop", {**session, **JSON})[0] == 401
+    # The bench's moves and test shot: the token itself, and JSON.
+    jog = json.dumps({"axis": "z", "step": -1.0}).encode()
+    for path, body in (("/arm/jog", jog), ("/arm/home", None), ("/preview/shot", None)):
+        assert send(daemon, "POST", path, JSON, body)[0] == 401, path
+        assert send(daemon, "POST", path, {**session, **JSON}, body)[0] == 401, path
+        assert send(daemon, "POST", path, {**bearer, "Content-Type": "text/plain"}, body)[0] == 415, path
+    assert send(daemon, "POST", "/arm/jog", {**bearer, **JSON}, jog)[0] == 200
     assert send(daemon, "GET", "/runs", {"Cookie": "mirrorgonio_session=forged"})[0] == 401
     assert send(daemon, "POST", "/session", {**JSON, "Authorization": "Bearer wrong-token-0123456789"})[0] == 403
 

@@ -6,10 +6,12 @@ against a real daemon process with the simulated devices.
 
 from __future__ import annotations
 
+import re
 import shutil
 from pathlib import Path
 
 import httpx
+import numpy as np
 import pytest
 from conftest import write_config
 from playwright.sync_api import expect, sync_playwright
@@ -74,7 +76,83 @@ def open_page(page, daemon) -> None:
     expect(page.locator("#exposures")).to_have_value("0.0002, 0.001, 0.005")
 
 
-def test_a_run_started_from_the_page_completes_with_preview_and_download(tmp_path, daemon_factory, page):
+def align_from_the_page(page, daemon) -> None:
+    """The alignment view of a test shot (zoom, the ball's outline, saturation, the histogram,
+    the exposure), jog and home within the soft limits, the token refusing them, the log."""
+    message = page.locator("#message")
+    expect(page.locator("#frame-caption")).to_contain_text("no frame yet")
+    page.fill("#shot-exposures", "0.001, 0.1")
+    page.click("#test-shot")
+    expect(message).to_contain_text("Test shot: 2 frames; the preview shows the last (1/10 s (0.1 s))")
+    expect(page.locator("#shot-frames tr")).to_have_count(3)
+    expect(page.locator("#shot-frames tr").nth(2).locator("td.bad")).to_have_count(1)  # saturated at 0.1 s
+    expect(page.locator("#frame-caption")).to_contain_text("test shot, 500 × 328, exposure 1/10 s (0.1 s)")
+    expect(page.locator("#frame-exposure")).to_have_text("1/10 s (0.1 s)")
+    expect(page.locator("#frame-saturated")).to_contain_text("photosites")
+    with daemon.client() as http:
+        summary = http.get("/preview/frame").json()
+        assert http.get("/runs").json() == []  # a test shot is no run
+    assert page.locator("#frame-saturated").inner_text().startswith(f"{summary['saturated_pixels']} photosites")
+
+    # The outline is drawn where the rig puts the ball: the cyan pixels of the canvas span it
+    # (the middle and the size of their extent), and none are left once it is hidden.
+    cyan = (
+        "() => { const c = document.getElementById('viewer'), d = c.getContext('2d')"
+        ".getImageData(0, 0, c.width, c.height).data; const xs = [], ys = [];"
+        " for (let i = 0; i < d.length; i += 4) if (d[i] < 90 && d[i + 1] > 150 && d[i + 2] > 200)"
+        " { xs.push((i / 4) % c.width); ys.push(Math.floor(i / 4 / c.width)); }"
+        " if (!xs.length) return [0];"
+        " const ext = (a) => [Math.min(...a) + 0.5, Math.max(...a) + 0.5];"
+        " return [xs.length, ...ext(xs), ...ext(ys), view.ox, view.oy, view.scale]; }"
+    )
+    count, x0, x1, y0, y1, ox, oy, scale = page.evaluate(cyan)
+    outline = np.array(summary["ball_outline_px"]) + 0.5  # pixel centres on the canvas
+    assert count > 300
+    for low, high, values, origin in ((x0, x1, outline[:, 0], ox), (y0, y1, outline[:, 1], oy)):
+        middle = ((low + high) / 2 - origin) / scale
+        assert middle == pytest.approx((values.min() + values.max()) / 2, abs=1.0)
+        assert (high - low) / scale == pytest.approx(np.ptp(values), abs=3.0)  # the line's width
+    page.uncheck("#show-outline")
+    assert page.evaluate(cyan)[0] == 0
+    page.check("#show-outline")
+    fitted = page.evaluate("view.scale")
+    box = page.locator("#viewer").bounding_box()
+    page.mouse.move(box["x"] + box["width"] / 2, box["y"] + box["height"] / 2)
+    page.mouse.wheel(0, -100)
+    assert page.evaluate("view.scale") == pytest.approx(1.25 * fitted)
+    page.click("#zoom-1")
+    expect(page.locator("#zoom-level")).to_have_text("zoom 1.0×")
+    drawn = (
+        "() => { const h = document.getElementById('histogram'), d = h.getContext('2d')"
+        ".getImageData(0, 0, h.width, h.height).data; let n = 0;"
+        " for (let i = 0; i < d.length; i += 4) if (d[i] > 150 && d[i + 1] < 90 && d[i + 2] < 90) n++; return n; }"
+    )
+    assert page.evaluate(drawn) > 20  # the red channel's line
+
+    # Jog within the soft limits; beyond them, without the token, or during a run: refused.
+    page.click("#jog button[data-axis=z][data-sign='-1']")
+    expect(message).to_contain_text("jog z -1 mm: the arm is at")
+    expect(message).to_contain_text(re.compile(r" z (198\.9\d|199\.0\d) mm"))  # read back
+    page.fill("#jog-mm", "100")
+    for z in (299, 399):
+        page.click("#jog button[data-axis=z][data-sign='1']")
+        expect(message).to_contain_text(re.compile(rf"jog z \+100 mm: .* z ({z - 1}\.9\d|{z}\.0\d) mm"))
+    page.click("#jog button[data-axis=z][data-sign='1']")
+    expect(message).to_contain_text("Jog z refused: jog z +100 mm: z=0.499")
+    expect(message).to_contain_text(
+        "outside the soft limits [0.000000, 0.450000] m (the rig's arm.soft_limits) (HTTP 422)"
+    )
+    page.fill("#token", "")
+    page.click("#home")
+    expect(message).to_contain_text("Home refused: a bearer token is required (HTTP 401)")
+    page.fill("#token", TOKEN)
+    page.click("#home")
+    expect(message).to_contain_text(re.compile(r"homed: the arm is at .* z (199\.9\d|200\.0\d) mm"))
+    expect(page.locator("#log")).to_contain_text("jog z -1 mm: at x")
+    expect(page.locator("#log")).to_contain_text("homed: at x")
+
+
+def test_a_run_started_from_the_page_completes_with_the_alignment_view_and_download(tmp_path, daemon_factory, page):
     daemon = daemon_factory(write_config(tmp_path / "daemon.toml", tmp_path / "data"), token=TOKEN)
     open_page(page, daemon)
     expect(page.locator("#arm-connected")).to_have_text("connected")
@@ -82,10 +160,14 @@ def test_a_run_started_from_the_page_completes_with_preview_and_download(tmp_pat
     expect(page.locator("#arm-alarm")).to_have_text("none")
     expect(page.locator("#camera-identity")).to_contain_text("SIM-0001")
     expect(page.locator("#stop-arm")).to_be_enabled()
+    align_from_the_page(page, daemon)
 
     page.select_option("#preset", "light-sweep")
     page.fill("#exposures", "0.001, 0.005")
     page.fill("#count", "8")
+    # The preset says what was asked: 8 positions, not the schedule's 66.
+    expect(page.locator("#preset-info")).to_have_text("light-sweep: 8 of its 66 positions")
+    expect(page.locator("#preset option[value=light-sweep]")).to_have_text("light-sweep (8 of its 66 positions)")
     page.fill("#operator", "page test")
     page.click("#start")
 
@@ -99,18 +181,14 @@ def test_a_run_started_from_the_page_completes_with_preview_and_download(tmp_pat
     assert status["state"] == "complete" and status["n_positions"] == 8, status
     assert status["exposures_per_position"] == 2
     assert page.eval_on_selector("#progress", "e => e.value") == 100
-    expect(page.locator("#positions")).to_contain_text("8 / 8")
+    expect(page.locator("#positions")).to_contain_text("8 of 8 positions")
+    expect(page.locator("#current")).to_have_text("position 8 of 8")  # counted from 1, as the done count
     expect(page.locator("#last-error")).to_have_text("none")
     for finished in ("#pause", "#resume", "#abort"):
         expect(page.locator(finished)).to_be_disabled()
 
-    # The latest frame of this run has loaded.
-    preview = page.locator("#preview")
-    expect(preview).to_be_visible()
-    assert page.eval_on_selector("#preview", "e => e.getAttribute('src')").startswith(f"/runs/{run_id}/preview.png?t=")
-    page.wait_for_function(
-        "() => { const i = document.getElementById('preview'); return i.complete && i.naturalWidth > 0; }"
-    )
+    # The latest frame of this run is in the alignment view.
+    expect(page.locator("#frame-caption")).to_contain_text(f"run {run_id}, 500 × 328, exposure 1/200 s")
 
     # The run is listed, with its download link and a process button that queues a job.
     row = page.locator(f'#runs tr[data-run-id="{run_id}"]')
@@ -142,6 +220,11 @@ def test_a_run_started_from_the_page_completes_with_preview_and_download(tmp_pat
     expect(page.locator("#pause")).to_be_enabled()
     expect(page.locator("#resume")).to_be_disabled()
     expect(page.locator("#eta")).to_contain_text("ETA")
+    expect(page.locator("#current")).to_contain_text(re.compile(r"^position \d+ of 66$"))  # counted from 1
+    expect(page.locator("#step")).to_contain_text(re.compile(r"sweep, position \d+ of 66"))
+    for refused in ("#test-shot", "#jog button[data-axis=x][data-sign='1']"):  # not during a run
+        page.click(refused)
+        expect(page.locator("#message")).to_contain_text(f"run {second} is already active on this rig (HTTP 409)")
     page.click("#pause")
     expect(page.locator("#state")).to_have_text("paused")
     expect(page.locator("#pause")).to_be_disabled()
@@ -197,9 +280,7 @@ def test_the_page_shows_what_the_daemon_refuses_and_polls_without_events(tmp_pat
     expect(page.locator("#percent")).to_have_text("100 %", timeout=60_000)
     expect(page.locator("#state")).to_have_text("complete")
     assert page.evaluate("typeof window.EventSource") == "undefined"
-    page.wait_for_function(
-        "() => { const i = document.getElementById('preview'); return i.complete && i.naturalWidth > 0; }"
-    )
+    expect(page.locator("#frame-caption")).to_contain_text("exposure 1/1000 s")
     assert page.script_errors == []
 
 
@@ -229,6 +310,19 @@ def test_the_page_shows_each_job_and_links_its_report_ies_and_ray_file(tmp_path,
     expect(job_row.locator(".job-badge")).to_have_text("complete", timeout=20_000)
     expect(job_row).to_contain_text("3 of 66 positions")
     expect(job_row.locator("progress")).to_have_attribute("value", "100")
+    # The report's figures on the page: the light's polar plot among them, each image loaded.
+    expect(page.locator("#results-of")).to_contain_text(f"of run {run.id}, job {job['id']}")
+    expect(page.locator('#figures img[alt*="polar"]')).to_have_count(1)
+    page.wait_for_function(
+        "() => { const imgs = [...document.querySelectorAll('#figures img')];"
+        " return imgs.length >= 5 && imgs.every(i => i.complete && i.naturalWidth > 0); }"
+    )
+    figures = httpx.get(f"{daemon.url}/jobs/{job['id']}/figures", headers=AUTH, timeout=30).json()
+    polar = next(f for f in figures if "polar" in f["alt"])
+    assert polar["caption"].startswith("Radiant intensity of each source")
+    png = httpx.get(daemon.url + polar["url"], headers=AUTH, timeout=30)
+    assert png.headers["content-type"] == "image/png" and png.content[:8] == b"\x89PNG\r\n\x1a\n"
+    assert httpx.get(daemon.url + polar["url"], timeout=30).status_code == 401  # the token guards it
     links = {
         kind: job_row.locator(f"a.artifact-{kind}")
         for kind in ("report", "ies", "tm25", "ldt", "light_model", "results")

@@ -9,6 +9,10 @@ archive, streamed, that unpacks to a results file that opens.
 
 from __future__ import annotations
 
+import base64
+import binascii
+import html
+import re
 import zipfile
 from collections.abc import Iterator
 from pathlib import Path
@@ -18,7 +22,7 @@ from fastapi.responses import FileResponse, Response, StreamingResponse
 
 from acquisition.api.deps import TOKEN_ERRORS, CatalogDep, ReadTokenDep
 from acquisition.catalog import JobRecord
-from acquisition.models import JobStatus, Problem
+from acquisition.models import JobStatus, Problem, ReportFigure
 from processing.results import Results, ResultsError
 
 router = APIRouter(prefix="/jobs", tags=["jobs"], dependencies=[ReadTokenDep], responses=TOKEN_ERRORS)
@@ -101,6 +105,59 @@ def download_artifact(job_id: str, kind: str, catalog: CatalogDep) -> Response:
     return FileResponse(
         path, media_type=media, filename=path.name, content_disposition_type="inline" if inline else "attachment"
     )
+
+
+#: A figure of the report (``processing.report.markup``): an embedded PNG, its alt text, its caption.
+_FIGURE = re.compile(
+    r'<figure>\s*<img src="data:image/png;base64,([A-Za-z0-9+/=]+)" alt="([^"]*)"[^>]*>\s*'
+    r"<figcaption>(.*?)</figcaption>\s*</figure>",
+    re.S,
+)
+_TAG = re.compile(r"<[^>]+>")
+
+
+def _report_figures(job: JobRecord) -> list[tuple[str, str, str]]:
+    """The figures of the job's report, in its order: (base64 PNG, alt text, caption as text)."""
+    recorded = job.artifacts.get("report")
+    if recorded is None:
+        raise HTTPException(status.HTTP_404_NOT_FOUND, f"job {job.id} has no report (yet)")
+    folder = Path(job.result_dir).resolve() if job.result_dir is not None else None
+    text = _served_file(job, Path(recorded), folder, "its report").read_text(encoding="utf-8", errors="replace")
+    return [
+        (data, html.unescape(alt), " ".join(html.unescape(_TAG.sub("", caption)).split()))
+        for data, alt, caption in _FIGURE.findall(text)
+    ]
+
+
+@router.get(
+    "/{job_id}/figures",
+    response_model=list[ReportFigure],
+    responses={404: {"model": Problem, "description": "unknown job, or it has no report"}},
+)
+def report_figures(job_id: str, catalog: CatalogDep) -> list[ReportFigure]:
+    """The figures of a job's report (the polar plots of the light, its photometric figures, …),
+    each an image the page shows without opening the report."""
+    figures = _report_figures(catalog.get_job(job_id))
+    return [
+        ReportFigure(index=k, alt=alt, caption=caption, url=f"/jobs/{job_id}/figures/{k}.png")
+        for k, (_, alt, caption) in enumerate(figures)
+    ]
+
+
+@router.get(
+    "/{job_id}/figures/{index}.png",
+    responses={200: {"content": {"image/png": {}}}, 404: {"model": Problem, "description": "no such figure"}},
+)
+def report_figure(job_id: str, index: int, catalog: CatalogDep) -> Response:
+    """One figure of a job's report, as the PNG the report embeds."""
+    figures = _report_figures(catalog.get_job(job_id))
+    if not 0 <= index < len(figures):
+        raise HTTPException(status.HTTP_404_NOT_FOUND, f"job {job_id}: its report has {len(figures)} figures")
+    try:
+        png = base64.b64decode(figures[index][0], validate=True)
+    except binascii.Error:
+        raise HTTPException(status.HTTP_404_NOT_FOUND, f"job {job_id}: figure {index} cannot be read") from None
+    return Response(png, media_type="image/png")
 
 
 def _served_file(job: JobRecord, recorded: Path, folder: Path | None, what: str) -> Path:

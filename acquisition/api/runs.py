@@ -152,13 +152,13 @@ async def events(run_id: str, request: Request, catalog: CatalogDep, engine: Eng
 
 
 @router.get("/{run_id}/preview.png", responses={200: {"content": {"image/png": {}}}, **ERRORS})
-def run_preview(run_id: str, engine: EngineDep, catalog: CatalogDep) -> Response:
+def run_preview(run_id: str, request: Request, catalog: CatalogDep) -> Response:
     """The latest frame of this run, tone-mapped and downscaled."""
     catalog.get_run(run_id)
-    png = engine.preview() if engine.latest_frame_run == run_id else None
-    if png is None:
+    made = request.app.state.previews.quick_look()
+    if made is None or made[1] != run_id:
         raise HTTPException(status.HTTP_404_NOT_FOUND, f"run {run_id} has no frame in memory to preview")
-    return Response(png, media_type="image/png", headers={"Cache-Control": "no-store"})
+    return Response(made[0], media_type="image/png", headers={"Cache-Control": "no-store"})
 
 
 @router.get("/{run_id}/file", responses={200: {"content": {"application/x-hdf5": {}}}, **ERRORS})

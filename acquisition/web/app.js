@@ -186,8 +186,10 @@ async function loadPresets() {
     const data = await api("GET", "/presets");
     presets = data.presets;
     const select = $("preset");
+    const chosen = select.value;
     select.replaceChildren(...Object.entries(presets).map(([name, p]) =>
-      el("option", { value: name, textContent: p.valid ? `${name} (${p.positions} positions)` : `${name} (invalid)`, disabled: !p.valid })));
+      el("option", { value: name, textContent: presetLabel(name, p), disabled: !p.valid })));
+    if (chosen && presets[chosen]) select.value = chosen;
     if (!$("exposures").value && data.default_bracket && data.default_bracket.exposures_s) {
       $("exposures").value = data.default_bracket.exposures_s.join(", ");
     }
@@ -198,9 +200,22 @@ async function loadPresets() {
   }
 }
 
+// The positions a run of the preset takes: all of them, or the first N the form asks for.
+function presetPositions(p) {
+  const count = Number($("count").value.trim());
+  return Number.isInteger(count) && count > 0 && count < p.positions
+    ? `${count} of its ${p.positions} positions` : `${p.positions} positions`;
+}
+
+function presetLabel(name, p) { return p.valid ? `${name} (${presetPositions(p)})` : `${name} (invalid)`; }
+
 function showPresetInfo() {
+  for (const option of $("preset").options) {
+    const p = presets[option.value];
+    if (p) option.textContent = presetLabel(option.value, p);
+  }
   const p = presets[$("preset").value];
-  $("preset-info").textContent = !p ? "" : p.valid ? `${p.schedule.kind}: ${p.positions} positions` : p.error;
+  $("preset-info").textContent = !p ? "" : p.valid ? `${p.schedule.kind}: ${presetPositions(p)}` : p.error;
 }
 
 function bracketMode() { return $("bracket-auto").checked ? "auto" : "fixed"; }
@@ -259,7 +274,7 @@ let followed = null;   // id of the run shown
 let current = null;    // its last RunStatus
 let source = null;     // its EventSource
 let pollTimer = null;
-let previewKey = null;
+let resultsKey = null; // the job whose figures the results card shows
 
 function stopFollowing() {
   if (source) { source.close(); source = null; }
@@ -270,10 +285,7 @@ async function follow(id, initial) {
   stopFollowing();
   followed = id;
   current = null;
-  previewKey = null;
-  $("preview").hidden = true;
-  $("preview").removeAttribute("src");
-  $("preview-caption").textContent = "no frame yet";
+  resultsKey = null;
   if (initial) render(initial);
   markSelected();
   const run = await fetchFollowed();
@@ -333,8 +345,8 @@ function render(run) {
   $("progress").textContent = fmtPercent(run.percent_done);
   $("percent").textContent = fmtPercent(run.percent_done);
   setBadge($("state"), run.state, `state-${run.state}`);
-  $("positions").textContent = `${run.positions_done} / ${run.n_positions} done · preset ${run.preset || "—"}`;
-  $("current").textContent = run.current_position === null ? "—" : `#${run.current_position}`;
+  $("positions").textContent = `${run.positions_done} of ${run.n_positions} positions · preset ${run.preset || "—"}`;
+  $("current").textContent = run.current_position === null ? "—" : fmtPosition(run.current_position, run.n_positions);
   if (run.state === "running" && run.eta_s !== null) {
     const end = new Date(Date.now() + run.eta_s * 1000);
     $("eta").textContent = `ETA ${fmtDuration(run.eta_s)} (about ${end.toLocaleTimeString()})`;
@@ -352,31 +364,14 @@ function render(run) {
   $("pause").disabled = run.state !== "running";
   $("resume").disabled = !["paused", "interrupted", "failed"].includes(run.state);
   $("abort").disabled = !["queued", "running", "paused", "interrupted"].includes(run.state);
-  refreshPreview(run);
   if (!previous || previous.state !== run.state || (FINAL.includes(run.state) && previous.percent_done !== run.percent_done)) {
     refreshRuns();
   }
 }
 
-function refreshPreview(run) {
-  const key = `${run.id}:${run.positions_done}:${run.state}:${run.current_position}:${run.step}`;
-  if (key === previewKey || (run.positions_done === 0 && run.current_position === null && !run.step)) return;
-  previewKey = key;
-  $("preview").src = `/runs/${encodeURIComponent(run.id)}/preview.png?t=${Date.now()}`;
-}
-
-function previewLoaded() {
-  $("preview").hidden = false;
-  const run = current;
-  $("preview-caption").textContent = run
-    ? `latest frame of ${run.id} (${run.positions_done} of ${run.n_positions} positions), ${new Date().toLocaleTimeString()}`
-    : "latest frame";
-}
-
-function previewMissing() {
-  $("preview").hidden = true;
-  $("preview-caption").textContent = "no frame of this run in memory to preview";
-}
+// Positions are counted from 1 on the page, as "position 12 of 12" (the API's
+// current_position is the 0-based index in the schedule).
+function fmtPosition(index, count) { return `position ${index + 1} of ${count}`; }
 
 async function control(action) {
   const id = followed;
@@ -415,6 +410,7 @@ async function refreshRuns() {
     }
     renderRuns(runs, latestJob);
     renderJobs(jobs);
+    showResults(jobs);
     if (!followed && runs.length) follow(runs[0].id);
   } catch (err) {
     $("runs").replaceChildren(el("tr", {}, el("td", { colSpan: 7, className: "bad", textContent: err.message })));
@@ -444,7 +440,7 @@ function renderRuns(runs, latestJob) {
       el("td", {}, view),
       el("td", { textContent: run.preset || "—" }),
       el("td", {}, state),
-      el("td", { className: "num percent-cell", textContent: `${fmtPercent(run.percent_done)} (${run.positions_done}/${run.n_positions})` }),
+      el("td", { className: "num percent-cell", textContent: `${fmtPercent(run.percent_done)} (${run.positions_done} of ${run.n_positions})` }),
       el("td", { className: "small", textContent: fmtTime(run.created_utc) }),
       el("td", {}, file),
       el("td", {}, process, el("span", { className: "small job-state", textContent: jobText, title: job ? job.id : "" }),
@@ -472,6 +468,33 @@ function resultLinks(job, kinds = Object.keys(ARTIFACT_LABELS)) {
     span.append(link);
   }
   return span;
+}
+
+// The figures of the report of the followed run's latest completed job: the light's polar
+// plots and the other figures the report draws, without opening it.
+async function showResults(jobs) {
+  const job = jobs.filter((j) => j.run_id === followed && j.state === "complete" && (j.artifacts || {}).report)
+    .sort((a, b) => (a.created_utc < b.created_utc ? 1 : -1))[0];
+  const key = job ? job.id : `none:${followed}`;
+  if (key === resultsKey) return;
+  resultsKey = key;
+  $("results-of").textContent = job ? `of run ${job.run_id}, job ${job.id}` : "of the run shown, once a job completes";
+  if (!job) {
+    $("figures").replaceChildren(el("p", { className: "muted small", textContent: "no completed job for this run yet" }));
+    return;
+  }
+  try {
+    const figures = await api("GET", `/jobs/${encodeURIComponent(job.id)}/figures`);
+    if (resultsKey !== key) return;
+    await session;  // the images read with the session cookie
+    $("figures").replaceChildren(...figures.map((f) => el("figure", { className: "result-figure" },
+      el("a", { href: f.url, target: "_blank", title: "open the figure alone" }, el("img", { src: f.url, alt: f.alt, loading: "lazy" })),
+      el("figcaption", { className: "small", textContent: f.caption }))),
+    el("p", { className: "small" }, resultLinks(job)));
+  } catch (err) {
+    resultsKey = null;
+    $("figures").replaceChildren(el("p", { className: "bad small", textContent: `cannot read the report's figures: ${err.message}` }));
+  }
 }
 
 function renderJobs(jobs) {
@@ -546,8 +569,8 @@ function init() {
   $("resume").addEventListener("click", () => control("resume"));
   $("abort").addEventListener("click", () => control("abort"));
   $("stop-arm").addEventListener("click", stopArm);
-  $("preview").addEventListener("load", previewLoaded);
-  $("preview").addEventListener("error", previewMissing);
+  $("count").addEventListener("input", showPresetInfo);
+  initAlign();
   showBracketFields();
   refreshStatus();
   if (token.value) openSession(); else { loadPresets(); refreshRuns(); }

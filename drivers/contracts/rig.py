@@ -589,6 +589,32 @@ class Rig(ConfigModel):
     def soft_limits(self) -> SoftLimits:
         return self.arm.soft_limits.to_soft_limits()
 
+    def ball_outline_px(self, points: int = 180) -> np.ndarray:
+        """The ball's expected outline on the sensor: ``points`` (col, row) pixel positions.
+
+        The rays from the camera's centre that graze the ball touch it on a circle; that circle
+        through the pinhole (OpenCV's K, R, t, no distortion) is the outline, an ellipse off the
+        axis. What the technician aligns the rig with: the ball's image should fill it.
+        """
+        rot, t = self.camera.pose.extrinsics()
+        eye = -rot.T @ t
+        centre = np.asarray(self.ball.centre_m, dtype=float)
+        axis = centre - eye
+        distance = float(np.linalg.norm(axis))
+        axis /= distance
+        radius = self.ball.radius_m
+        # The tangent circle: centre at eye + axis * (d - r²/d), radius r·√(d² - r²)/d.
+        ring_centre = eye + axis * (distance - radius * radius / distance)
+        ring_radius = radius * math.sqrt(distance * distance - radius * radius) / distance
+        helper = np.array([1.0, 0.0, 0.0]) if abs(axis[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+        u = np.cross(axis, helper)
+        u /= np.linalg.norm(u)
+        v = np.cross(axis, u)
+        angles = np.linspace(0.0, 2.0 * math.pi, points, endpoint=False)
+        ring = ring_centre + ring_radius * (np.outer(np.cos(angles), u) + np.outer(np.sin(angles), v))
+        uvw = (ring @ rot.T + t) @ self.camera.camera_matrix().T
+        return np.asarray(uvw[:, :2] / uvw[:, 2:3], dtype=float)
+
     # Physical checks --------------------------------------------------------------------
     @model_validator(mode="after")
     def _physically_possible(self) -> Self:
