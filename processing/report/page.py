@@ -28,6 +28,8 @@ from processing.report.context import (
     trace_middle,
 )
 from processing.report.markup import FigureEncoder, html_note, write_page
+from processing.report.colour import TITLE as COLOUR_TITLE
+from processing.report.colour import colour_section
 from processing.report.sections import (
     SECTIONS,
     angles_section,
@@ -234,8 +236,11 @@ def _write_report(
             skipped_note(model),
             header_table(model, run, report, samples, resolution),
         ]
+        colour = guarded(COLOUR_TITLE, lambda: colour_section(model, ctx.encoder))
         for name in SECTIONS:
             entry = built[name]
             content = entry.result() if isinstance(entry, Future) else entry
             body.append(f"<h2>{html.escape(name)}</h2>\n{ctx.encoder.fill(content)}")
+            if name == intensity:
+                body.append(f"<h2>{html.escape(COLOUR_TITLE)}</h2>\n{ctx.encoder.fill(colour)}")
     return write_page(path, title, body)
