@@ -30,6 +30,7 @@ __all__ = [
     "camera_to_xyz",
     "chromaticity",
     "colour_section",
+    "describe",
     "over_theta",
 ]
 
@@ -199,3 +200,27 @@ def over_theta(
         out["max_delta_uv"] = max(distances, default=0.0)
         out["varies"] = bool(out["max_delta_uv"] > VARIES_UV)
     return out
+
+
+def describe(section: dict[str, Any]) -> str:
+    """A colour record in one line of ASCII, as the light files carry it: "x 0.4369, y 0.4041
+    (CIE 1931 2 deg), u' 0.2560, v' 0.5242, CCT 3000 K, Duv +0.0000"; the camera RGB where the
+    run had no colour matrices; "" for no record.
+
+    Examples
+    --------
+    >>> describe({"camera_rgb": [1.2, 1.0, 0.8], "basis": "camera RGB only"})
+    'camera RGB only (no colour matrices): R/G/B 1.200/1.000/0.800 of their mean'
+    """
+    if not section:
+        return ""
+    if section.get("x") is None:
+        rgb = section.get("camera_rgb") or []
+        return "camera RGB only (no colour matrices): R/G/B " + "/".join(f"{v:.3f}" for v in rgb) + " of their mean"
+    cct = section.get("cct_k")
+    return (
+        f"x {section['x']:.4f}, y {section['y']:.4f} (CIE 1931 2 deg), u' {section['u_prime']:.4f}, "
+        f"v' {section['v_prime']:.4f}, "
+        + (f"CCT {cct:.0f} K" if cct is not None else "no CCT (|Duv| > 0.05)")
+        + (f", Duv {section['duv']:+.4f}" if section.get("duv") is not None else "")
+    )

@@ -95,9 +95,7 @@ def colour_section(model: LightModel, encoder: FigureEncoder | None = None) -> s
             "chromaticity, CCT or Duv): the camera's raw files carried none, or the run file predates them."
         )
     parts.append(f"<p>{html.escape(text)}</p>")
-    varying = [
-        s.name for s in model.sources if (s.chromaticity.get("over_theta") or {}).get("varies", False)
-    ]
+    varying = [s.name for s in model.sources if (s.chromaticity.get("over_theta") or {}).get("varies", False)]
     if varying:
         caption = (
             f"CCT and Duv of each source against θ, the samples' channels summed in bins of "

@@ -17,6 +17,8 @@ from drivers.contracts.runfile import RunFile
 from processing.calibration import BallFit
 from processing.lightmodel import LightModel
 from processing.parallel import Compute
+from processing.report.colour import TITLE as COLOUR_TITLE
+from processing.report.colour import colour_section
 from processing.report.context import (
     MiddlePosition,
     ReportContext,
@@ -28,8 +30,6 @@ from processing.report.context import (
     trace_middle,
 )
 from processing.report.markup import FigureEncoder, html_note, write_page
-from processing.report.colour import TITLE as COLOUR_TITLE
-from processing.report.colour import colour_section
 from processing.report.sections import (
     SECTIONS,
     angles_section,

@@ -9,6 +9,7 @@ import json
 import os
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import h5py
 import numpy as np
@@ -17,8 +18,8 @@ from drivers.contracts.camera_colour import CameraColourError, checked_camera_co
 from drivers.contracts.rig import Rig, rig_from_dict
 from drivers.contracts.runfile.layout import (
     CALIBRATION_DATASETS,
-    CAMERA_COLOUR,
     CALIBRATION_SETS,
+    CAMERA_COLOUR,
     DATASETS,
     FRAME_RECORDS,
     RunFileError,
@@ -159,7 +160,7 @@ def read_header(f: h5py.File, path: str | os.PathLike[str]) -> RunHeader:
     )
 
 
-def read_camera_colour(f: h5py.File, path: str | os.PathLike[str]) -> dict:
+def read_camera_colour(f: h5py.File, path: str | os.PathLike[str]) -> dict[str, Any]:
     """The camera's colour matrices the file holds (``/header/camera_colour_json``), checked;
     empty for a file without them.
 
