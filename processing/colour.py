@@ -41,6 +41,10 @@ THETA_BIN_DEG = 5.0
 #: The largest distance in u'v' between the bins' colours for which a colour is taken as one
 #: for all angles (a just noticeable difference is about 0.001–0.004).
 VARIES_UV = 0.002
+#: The weakest bin, as a fraction of the strongest bin's signal, that the judgement of
+#: whether a colour varies takes: the weak bins far out in a lobe's tail are mostly noise and
+#: the neighbours' light (they are kept in the record all the same).
+JUDGED_SIGNAL = 0.1
 
 
 def _interpolated_matrix(description: dict[str, Any], cct_k: float) -> np.ndarray:
@@ -106,8 +110,8 @@ def chromaticity(xyz: Sequence[float] | np.ndarray) -> dict[str, Any]:
     Examples
     --------
     >>> c = chromaticity([0.95047, 1.0, 1.08883])  # D65's white
-    >>> round(c["x"], 4), round(c["y"], 4), round(c["cct_k"])
-    (0.3127, 0.329, 6504)
+    >>> round(c["x"], 4), round(c["y"], 4), round(c["cct_k"], -1)
+    (0.3127, 0.329, 6500.0)
     """
     import colour  # noqa: PLC0415 - heavy
 
@@ -167,8 +171,9 @@ def over_theta(
     dict
         ``theta_deg`` (the bins' mean θ, weighted as their colour), ``samples`` per bin,
         ``camera_rgb`` per bin and, with matrices, ``x``, ``y``, ``u_prime``, ``v_prime``,
-        ``cct_k``, ``duv`` per bin, and ``max_delta_uv``: the largest u'v' distance of a bin
-        from the light's mean colour; ``varies``: whether it exceeds :data:`VARIES_UV`.
+        ``cct_k``, ``duv`` per bin, and ``max_delta_uv``: the largest u'v' distance from the
+        light's mean colour of a bin with at least :data:`JUDGED_SIGNAL` of the strongest bin's
+        signal; ``varies``: whether it exceeds :data:`VARIES_UV`.
     """
     theta = np.asarray(theta, dtype=float).reshape(-1)
     rgb = np.asarray(rgb, dtype=float).reshape(-1, 3)
@@ -179,6 +184,7 @@ def over_theta(
         out.update({k: [] for k in keys})
     degrees = np.degrees(np.abs(theta[ok]))
     bins = np.floor(degrees / bin_deg).astype(int)
+    signal = []
     for b in np.unique(bins):
         members = bins == b
         total = rgb[ok][members].sum(axis=0)
@@ -186,16 +192,18 @@ def over_theta(
         out["theta_deg"].append(float(np.sum(degrees[members] * weight) / weight.sum()))
         out["samples"].append(int(members.sum()))
         out["camera_rgb"].append([float(v) for v in total / total.mean()])
+        signal.append(float(total.sum()))
         if description:
             c = chromaticity(camera_to_xyz(total, description))
             for k in keys:
                 out[k].append(c[k])
     if description and out["u_prime"]:
         mean = chromaticity(camera_to_xyz(rgb[ok].sum(axis=0), description))
+        strongest = max(signal)
         distances = [
             math.hypot(u - mean["u_prime"], v - mean["v_prime"])
-            for u, v in zip(out["u_prime"], out["v_prime"], strict=True)
-            if u is not None and v is not None
+            for u, v, s in zip(out["u_prime"], out["v_prime"], signal, strict=True)
+            if u is not None and v is not None and s >= JUDGED_SIGNAL * strongest
         ]
         out["max_delta_uv"] = max(distances, default=0.0)
         out["varies"] = bool(out["max_delta_uv"] > VARIES_UV)

@@ -181,16 +181,18 @@ def test_colour_over_theta_bins_the_samples_and_says_whether_it_varies():
     assert same["varies"] is False and same["max_delta_uv"] < 1e-9
 
 
-def _model_with_colour(matrices):
+def _model_with_colour(matrices, far=(2700.0, 5000.0)):
+    """Two sources of 2700 and 5000 K seen at 0° and 10°; at 10° of the colour ``far`` gives."""
     camera = Camera()
     sources = []
-    for k, cct_k in enumerate((2700.0, 5000.0)):
+    for k, (cct_k, far_k) in enumerate(zip((2700.0, 5000.0), far, strict=True)):
         theta = np.linspace(0.0, 0.8, 20)
         values = np.exp(-(theta**2) / (2 * 0.4**2))
         fit = fit_intensity(Samples(theta, np.zeros(20), values, np.full(20, 1e-3), f"s{k}"), "gaussian")
         rgb = camera_rgb(planck(cct_k), camera)
         chroma = colour_section(rgb, matrices)
-        chroma["over_theta"] = over_theta(np.radians([0.0, 10.0]), np.array([rgb, rgb]), matrices)
+        rgb_far = camera_rgb(planck(far_k), camera)
+        chroma["over_theta"] = over_theta(np.radians([0.0, 10.0]), np.array([rgb, rgb_far]), matrices)
         sources.append(SourceModel(f"s{k}", (0.004 * k, 0.0), 5e-4, fit, {}, tuple(rgb), chroma))
     mixed = sum(s.flux() * np.asarray(s.colour) for s in sources)
     return LightModel(sources, provenance={"run_id": "run-colour"}, chromaticity=colour_section(mixed, matrices))
@@ -214,6 +216,12 @@ def test_the_light_model_file_and_the_light_files_carry_the_colour(tmp_path):
     assert header["spectrum_type"] == 0  # no spectrum: a three-channel camera measures none
     html = report_colour_section(model)
     assert "whole light" in html and f"{cct:.0f} K" in html and "no plot over θ" in html
+
+
+def test_the_report_plots_the_colour_over_theta_where_it_varies():
+    model = _model_with_colour(colour_matrices(Camera()), far=(3000.0, 5000.0))
+    html = report_colour_section(model)
+    assert "<img " in html and "Varying by more than 0.002 in u′v′: s0." in html
 
 
 def test_a_model_without_matrices_writes_no_cct():

@@ -245,6 +245,8 @@ def test_the_pipeline_writes_the_report_after_the_light_model(processed):
     pngs = images(text)
     previews = re.findall(r'alt="position (\d+)"', text)
     assert 1 < len(previews) <= 6
-    assert len(pngs) == 5 + len(previews)  # polar, layout, coverage, angles, residuals + the strip
+    # polar, layout, coverage, angles, residuals + the strip, and the colour over θ where it varies
+    varies = any(s.chromaticity["over_theta"]["varies"] for s in report.model.sources)
+    assert len(pngs) == 5 + len(previews) + varies
     for png in pngs:
         decode(png)
