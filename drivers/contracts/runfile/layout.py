@@ -32,7 +32,7 @@ MESSAGE_BYTES = 1024
 #: in size, as the status is, so that the writer fills it in SWMR mode; optional in a file
 #: (files without it read as "no colour matrices").
 CAMERA_COLOUR = "header/camera_colour_json"
-CAMERA_COLOUR_BYTES = 4096
+CAMERA_COLOUR_BYTES = 2048
 
 #: The per-frame records stored beside each raw mosaic, under ``/frames``.
 FRAME_RECORDS = ("exposure_s", "black_level", "white_level", "timestamp", "cfa_pattern")
