@@ -22,6 +22,7 @@ import rawpy
 import tifffile
 
 from drivers.camera import RawFrame
+from drivers.contracts.camera_colour import CameraColourError, checked_camera_colour
 from drivers.errors import RawFileError
 
 RAW_EXTENSIONS: frozenset[str] = frozenset(
@@ -64,6 +65,16 @@ _BAYER_TILES = frozenset({"RGGB", "BGGR", "GRBG", "GBRG"})
 # TIFF tag codes read from IFD0 and from the EXIF sub-IFD.
 _MAKE, _MODEL, _UNIQUE_CAMERA_MODEL, _CAMERA_SERIAL = 271, 272, 50708, 50735
 _EXIF_IFD = 34665
+# The DNG colour tags (DNG 1.4 specification, "Camera Profile Tags").
+_COLOUR_TAGS = {
+    50721: "color_matrix_1",
+    50722: "color_matrix_2",
+    50778: "calibration_illuminant_1",
+    50779: "calibration_illuminant_2",
+    50728: "as_shot_neutral",
+    50964: "forward_matrix_1",
+    50965: "forward_matrix_2",
+}
 _EXPOSURE_TIME, _DATETIME_ORIGINAL = 33434, 36867
 _OFFSET_TIME_ORIGINAL, _SUBSEC_TIME_ORIGINAL, _BODY_SERIAL = 36881, 37521, 42033
 _EXIF_NAMES = {
@@ -98,7 +109,10 @@ def decode_raw(path: str | os.PathLike, camera_id: str | None = None, exposure_s
         laid out like the 2x2 CFA tile at the mosaic's origin; ``exposure_s`` and
         ``timestamp`` come from the file. ``extra`` records where the exposure and the
         time were read (``exposure_source``, ``timestamp_source``), and make, model,
-        serial number, ISO and aperture where the file has them.
+        serial number, ISO and aperture where the file has them; ``extra["colour"]`` the
+        camera's colour matrices (:mod:`drivers.contracts.camera_colour`): a DNG's
+        ColorMatrix1/2 tags, else LibRaw's matrix for the model (D65), absent where neither
+        is known.
 
     Raises
     ------
@@ -119,6 +133,7 @@ def decode_raw(path: str | os.PathLike, camera_id: str | None = None, exposure_s
             mosaic, black_level, cfa_pattern = _read_mosaic(raw, source)
             white_level = int(raw.white_level)
             libraw_other = raw.other
+            libraw_xyz_to_camera = np.array(raw.rgb_xyz_matrix, dtype=float)[:3]
     except rawpy.LibRawError as exc:
         raise RawFileError(source, "decode", _libraw_failure(exc, path, size, tiff)) from None
 
@@ -136,6 +151,9 @@ def decode_raw(path: str | os.PathLike, camera_id: str | None = None, exposure_s
     if exposure_source == "given" and file_exposure_s is not None:
         sources["file_exposure_s"] = file_exposure_s
     extra = _frame_extra(sources, (make, model, serial, unique_model), libraw_other)
+    colour = _camera_colour(tiff, libraw_xyz_to_camera)
+    if colour:
+        extra["colour"] = colour
 
     return RawFrame(
         mosaic=mosaic,
@@ -230,7 +248,7 @@ def _read_tiff_metadata(path: Path) -> _TiffMetadata:
     try:
         with tifffile.TiffFile(path) as tif:
             page = cast(tifffile.TiffPage, tif.pages[0])  # tifffile loads the first page as a TiffPage
-            for code in (_MAKE, _MODEL, _UNIQUE_CAMERA_MODEL, _CAMERA_SERIAL, *_EXIF_NAMES):
+            for code in (_MAKE, _MODEL, _UNIQUE_CAMERA_MODEL, _CAMERA_SERIAL, *_EXIF_NAMES, *_COLOUR_TAGS):
                 tag = page.tags.get(code)
                 if tag is not None:
                     metadata.ifd0[code] = tag.value
@@ -377,6 +395,40 @@ def _frame_extra(sources: dict[str, Any], camera: tuple[str, str, str, str], lib
     if libraw_other.aperture > 0:
         extra["f_number"] = _float32_to_decimal(libraw_other.aperture)
     return extra
+
+
+def _rationals(value: Any) -> list[float]:
+    """A TIFF (S)RATIONAL tag's values as floats: tifffile gives them flat, numerator then denominator."""
+    flat = [float(v) for v in np.ravel(np.asarray(value, dtype=float))]
+    return [n / d for n, d in zip(flat[0::2], flat[1::2], strict=True) if d != 0]
+
+
+def _camera_colour(tiff: _TiffMetadata, libraw_xyz_to_camera: np.ndarray) -> dict[str, Any]:
+    """The camera's colour description: the DNG colour tags, else LibRaw's XYZ → camera matrix
+    for the model (Adobe's, under D65), else nothing. A tag that is not what the DNG
+    specification says (a matrix of other than nine numbers, say) leaves the colour unknown."""
+    tags = {name: tiff.ifd0[code] for code, name in _COLOUR_TAGS.items() if code in tiff.ifd0}
+    description: dict[str, Any] = {}
+    try:
+        if "color_matrix_1" in tags:
+            description["source"] = "DNG tags"
+            for name, value in tags.items():
+                if name.startswith("calibration_illuminant"):
+                    description[name] = int(value)
+                elif name == "as_shot_neutral":
+                    description[name] = _rationals(value)
+                else:
+                    values = _rationals(value)
+                    description[name] = [values[0:3], values[3:6], values[6:9]] if len(values) == 9 else None
+        elif libraw_xyz_to_camera.shape == (3, 3) and np.any(libraw_xyz_to_camera):
+            description = {
+                "source": "LibRaw",
+                "color_matrix_1": libraw_xyz_to_camera.tolist(),
+                "calibration_illuminant_1": 21,
+            }
+        return checked_camera_colour(description)
+    except (CameraColourError, TypeError, ValueError):
+        return {}
 
 
 def _camera_tags(tiff: _TiffMetadata) -> tuple[str, str, str, str]:

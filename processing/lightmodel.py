@@ -129,6 +129,12 @@ class SourceModel:
         (which is the channel mean), scaled to a mean of 1; ``(1, 1, 1)`` for a grey
         source. Measured through the camera's own channels, as the object is: so the
         reflectance step's albedo does not take on the light's tint.
+    chromaticity : dict
+        The source's colour as a person sees it (:mod:`processing.colour`): ``basis`` (what
+        the numbers are), ``camera_rgb``, and where the run's camera has colour matrices
+        ``XYZ``, ``x``, ``y``, ``u_prime``, ``v_prime``, ``cct_k``, ``duv``, and
+        ``over_theta`` (the same in bins of θ); empty where not measured (cell sums, a model
+        from before colour was kept).
     """
 
     name: str
@@ -137,6 +143,7 @@ class SourceModel:
     fit: IntensityFit
     samples: dict[str, Any] = field(default_factory=dict)
     colour: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    chromaticity: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self):
         self.name = str(self.name)
@@ -167,6 +174,8 @@ class SourceModel:
         mean = colour.mean()
         # Scaled to a mean of 1, unless it is so already (to rounding): a saved model reads back bit for bit.
         self.colour = tuple(float(c) for c in (colour if abs(mean - 1.0) < 1e-12 else colour / mean))
+        if not isinstance(self.chromaticity, dict):
+            raise LightModelError(f"source {self.name!r}: chromaticity must be a table (dict)")
 
     def intensity(self, theta: ArrayLike, phi: ArrayLike = 0.0) -> np.ndarray:
         """``I_s(θ, φ)``: the fit, clipped at zero, and zero behind the plane (θ > 90°)."""
@@ -190,6 +199,7 @@ class SourceModel:
             "centre_m": list(self.centre_m),
             "radius_m": self.radius_m,
             "colour": list(self.colour),
+            **({"chromaticity": json_ready(self.chromaticity)} if self.chromaticity else {}),
             "fit": self.fit.to_dict(),
             "samples": json_ready(self.samples),
         }
@@ -243,6 +253,9 @@ class LightModel:
         The photometric summary of the whole light (:mod:`processing.photometry`,
         :meth:`~processing.photometry.Photometry.record`) as the processing wrote it with the
         light files; empty for a model made without one. Kept as read, never recomputed.
+    chromaticity : dict
+        The whole light's colour (:attr:`SourceModel.chromaticity`, the sources weighed by
+        their flux); empty where the sources have none.
 
     Notes
     -----
@@ -255,6 +268,7 @@ class LightModel:
     provenance: dict[str, Any] = field(default_factory=dict)
     quality: dict[str, Any] = field(default_factory=dict)
     photometry: dict[str, Any] = field(default_factory=dict)
+    chromaticity: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         self.sources = list(self.sources)
@@ -275,6 +289,8 @@ class LightModel:
             raise LightModelError("quality: expected a table (dict)")
         if not isinstance(self.photometry, dict):
             raise LightModelError("photometry: expected a table (dict)")
+        if not isinstance(self.chromaticity, dict):
+            raise LightModelError("chromaticity: expected a table (dict)")
 
     # ----------------------------------------------------------------- lookups
 
@@ -396,6 +412,7 @@ class LightModel:
             "provenance": json_ready(self.provenance),
             **({"quality": json_ready(self.quality)} if self.quality else {}),
             **({"photometry": json_ready(self.photometry)} if self.photometry else {}),
+            **({"chromaticity": json_ready(self.chromaticity)} if self.chromaticity else {}),
             "sources": [s.to_dict() for s in self.sources],
         }
 
@@ -449,12 +466,20 @@ class LightModel:
                         fit,
                         s.get("samples", {}),
                         s.get("colour", (1.0, 1.0, 1.0)),
+                        s.get("chromaticity", {}),
                     )
                 )  # files without colours: grey
             except (LightModelError, TypeError, ValueError) as e:
                 raise LightModelError(f"{where}: {e}") from None
         try:
-            return cls(sources, d["units"], d.get("provenance", {}), d.get("quality", {}), d.get("photometry", {}))
+            return cls(
+                sources,
+                d["units"],
+                d.get("provenance", {}),
+                d.get("quality", {}),
+                d.get("photometry", {}),
+                d.get("chromaticity", {}),
+            )
         except LightModelError as e:
             raise LightModelError(f"{origin}: {e}") from None
 

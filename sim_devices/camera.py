@@ -23,6 +23,7 @@ from drivers.config_files import require_memory
 from drivers.contracts.rig import Rig, RigError
 from drivers.errors import DeviceError
 from drivers.raw_decode import decode_raw
+from sim_devices.colour import colour_matrices
 from sim_devices.dng import write_dng
 from sim_devices.lights import TruthLight, load_truth
 from sim_devices.optics import MirrorBallRenderer, Rendering
@@ -111,7 +112,8 @@ class SimulatedCamera(Camera):
         self.world = world
         self.out_dir = Path(out_dir)
         self.out_dir.mkdir(parents=True, exist_ok=True)
-        self.truth = truth or load_truth(sim.truth)
+        # Emitters given by a colour temperature are seen through this camera's channels.
+        self.truth = (truth or load_truth(sim.truth)).seen_by(rig.camera)
         seed = sim.seed if seed is None else seed
         # The rig's object, when it has one, is photographed instead of the ball.
         options = dict(renderer_options or {})
@@ -142,6 +144,7 @@ class SimulatedCamera(Camera):
         # frames (the light off) between sweeps do not throw away the sweep's rendering.
         self._cached: dict[tuple[bool, bool], tuple[tuple, Rendering]] = {}
         self._room = self.renderer.environment.copy()
+        self._colour: dict | None = None
 
     @property
     def environment_radiance(self):
@@ -205,5 +208,14 @@ class SimulatedCamera(Camera):
             camera_model=self.name,
             serial=self.serial,
             timestamp=timestamp,
+            colour=self.colour_matrices,
         )
         return decode_raw(path)
+
+    @property
+    def colour_matrices(self) -> dict:
+        """The DNG colour matrices of this camera's channels (:func:`sim_devices.colour.colour_matrices`),
+        derived on the first capture (colour-science takes a second to import)."""
+        if self._colour is None:
+            self._colour = colour_matrices(self.rig.camera)
+        return self._colour

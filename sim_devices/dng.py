@@ -63,6 +63,7 @@ def write_dng(
     camera_model: str = "simulated pinhole camera",
     serial: str = "SIM-0001",
     timestamp: float | None = None,
+    colour: dict | None = None,
 ) -> Path:
     """Write ``mosaic`` as a CFA DNG, atomically, and return its path.
 
@@ -94,6 +95,11 @@ def write_dng(
         Capture time, seconds since the epoch (default: now). Written as
         DateTimeOriginal in local time with SubsecTimeOriginal (milliseconds) and
         OffsetTimeOriginal, so it reads back to the millisecond.
+    colour : dict, optional
+        The camera's colour description (:mod:`drivers.contracts.camera_colour`):
+        ColorMatrix1/2 with CalibrationIlluminant1/2 and AsShotNeutral, written as signed
+        rationals over 10 000 as camera makers write them. Without it, ColorMatrix1 is the
+        identity under D65 (camera RGB taken as XYZ) and the neutral (1, 1, 1).
 
     Returns
     -------
@@ -118,6 +124,7 @@ def write_dng(
         strip = mosaic.astype("<u2").tobytes()
     camera = (camera_make, camera_model, serial)
     tags = _image_tags(shape, bits_per_sample, len(strip), cfa_code, levels, camera, local)
+    _colour_tags(tags, colour)
     exif = _exif_tags(exposure, local, serial)
     return _write_atomically(path, _assemble(tags, strip, _SubIFDTag(Tag.EXIF_IFD, [exif])))
 
@@ -161,14 +168,36 @@ def _image_tags(
     tags.set(Tag.BlackLevelRepeatDim, [2, 2])
     tags.set(Tag.BlackLevel, black_sites)
     tags.set(Tag.WhiteLevel, white_level)
-    # The simulated sensor's primaries are XYZ itself: an identity matrix, neutral WB.
-    identity = [[int(row == col), 1] for row in range(3) for col in range(3)]
-    tags.set(Tag.ColorMatrix1, identity)
-    tags.set(Tag.CalibrationIlluminant1, CalibrationIlluminant.D65)
-    tags.set(Tag.AsShotNeutral, [[1, 1], [1, 1], [1, 1]])
     if serial:
         tags.set(Tag.CameraSerialNumber, serial)
     return tags
+
+
+_RATIONAL_DENOMINATOR = 10_000
+
+
+def _rationals(values) -> list[list[int]]:
+    return [[round(float(v) * _RATIONAL_DENOMINATOR), _RATIONAL_DENOMINATOR] for v in np.ravel(values)]
+
+
+def _colour_tags(tags: DNGTags, colour: dict | None) -> None:
+    """ColorMatrix1/2, CalibrationIlluminant1/2, ForwardMatrix1/2 and AsShotNeutral from ``colour``;
+    without one, the identity under D65 and a neutral of (1, 1, 1)."""
+    if not colour:
+        tags.set(Tag.ColorMatrix1, _rationals(np.eye(3)))
+        tags.set(Tag.CalibrationIlluminant1, CalibrationIlluminant.D65)
+        tags.set(Tag.AsShotNeutral, _rationals([1.0, 1.0, 1.0]))
+        return
+    for k, matrix_tag, illuminant_tag, forward_tag in (
+        (1, Tag.ColorMatrix1, Tag.CalibrationIlluminant1, Tag.ForwardMatrix1),
+        (2, Tag.ColorMatrix2, Tag.CalibrationIlluminant2, Tag.ForwardMatrix2),
+    ):
+        if colour.get(f"color_matrix_{k}") is not None:
+            tags.set(matrix_tag, _rationals(colour[f"color_matrix_{k}"]))
+            tags.set(illuminant_tag, int(colour.get(f"calibration_illuminant_{k}", CalibrationIlluminant.D65)))
+        if colour.get(f"forward_matrix_{k}") is not None:
+            tags.set(forward_tag, _rationals(colour[f"forward_matrix_{k}"]))
+    tags.set(Tag.AsShotNeutral, _rationals(colour.get("as_shot_neutral", [1.0, 1.0, 1.0])))
 
 
 def _exif_tags(exposure: list[int], local: datetime, serial: str) -> dngIFD:

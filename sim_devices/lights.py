@@ -6,18 +6,24 @@ dependence follows its radiant intensity model: ``L(θ, φ) = I(θ, φ) / (cos �
 so the disc seen from afar is a point source of intensity ``I(θ, φ)``. A Lambertian disc
 is given by its radiance directly. Shipped truths live in ``sim_devices/lights/``; any
 other file path works too, so new truths need no code.
+
+An emitter's colour is its ``spectrum``: its camera RGB relative to an equal-energy
+spectrum (``(1, 1, 1)`` is flat), or ``cct_k``: a blackbody of that temperature, whose
+camera RGB the camera's channel sensitivities give (:meth:`TruthLight.seen_by`), so that a
+measurement's chromaticity and CCT can be checked against a known one.
 """
 
 from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import Annotated, Literal, Self
 
 import numpy as np
-from pydantic import Field, PositiveFloat
+from pydantic import Field, PositiveFloat, model_validator
 
 from drivers.config_files import ConfigModel, load_model
+from drivers.contracts.rig import Camera
 
 LIGHTS_DIR = Path(__file__).resolve().parent / "lights"
 
@@ -84,7 +90,14 @@ class Emitter(ConfigModel):
     centre_m: tuple[float, float] = (0.0, 0.0)
     radius_m: PositiveFloat = 0.5e-3
     spectrum: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    cct_k: Annotated[float, Field(ge=1000.0, le=25000.0)] | None = None
     intensity: Intensity = GaussianIntensity()
+
+    @model_validator(mode="after")
+    def _one_colour(self) -> Self:
+        if self.cct_k is not None and "spectrum" in self.model_fields_set:
+            raise ValueError("give spectrum (camera RGB) or cct_k (a blackbody), not both")
+        return self
 
     @property
     def area_m2(self) -> float:
@@ -114,6 +127,20 @@ class TruthLight(ConfigModel):
     name: str = "truth"
     description: str = ""
     emitters: list[Emitter] = Field(min_length=1)
+
+    def seen_by(self, camera: Camera) -> TruthLight:
+        """The light with every ``cct_k`` emitter's ``spectrum`` set to the blackbody's camera RGB
+        (mean 1) through ``camera``'s channels (:func:`sim_devices.colour.blackbody_rgb`); the
+        light itself where no emitter gives a temperature."""
+        if all(e.cct_k is None for e in self.emitters):
+            return self
+        from sim_devices.colour import blackbody_rgb  # noqa: PLC0415 - colour-science is heavy
+
+        emitters = [
+            e if e.cct_k is None else e.model_copy(update={"spectrum": blackbody_rgb(e.cct_k, camera)})
+            for e in self.emitters
+        ]
+        return self.model_copy(update={"emitters": emitters})
 
 
 def load_truth(name_or_path: str | Path) -> TruthLight:

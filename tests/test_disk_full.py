@@ -161,6 +161,11 @@ def wait_end(http: TestClient, run_id: str, timeout: float = 60.0) -> dict:
 
 def test_a_disk_that_fills_mid_run_fails_it_cleanly_and_the_run_resumes_once_space_is_freed(small_fs, tmp_path, daemon):
     disk = small_fs(tmp_path / "disk", 4 * 1024)
+    # The camera's spool on another disk: the simulated camera's DNGs (62 kB, each deleted once
+    # decoded) would otherwise race the run file's writes for the last kilobytes.
+    (tmp_path / "spool").mkdir()
+    (disk / "data").mkdir()
+    (disk / "data" / "spool").symlink_to(tmp_path / "spool")
     http, engine = daemon(disk / "data")
     assert http.get("/health").json()["status"] == "ok"
     filler = fill(disk / "filler", leave=250_000)

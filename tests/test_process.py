@@ -473,9 +473,11 @@ def test_intensities_use_the_rigs_calibrated_gain_whatever_weights_the_merge(
 
 
 def test_a_tinted_lights_colours_are_measured_through_the_camera(tmp_path):
-    """Each emitter of a tinted light (the five Gaussians, warm white with one cool bin) is
-    measured through the camera's channels: the model's colour of each source is its
-    emitter's spectrum."""
+    """Each emitter of a tinted light (the five Gaussians as blackbodies of 2700-5000 K: warm
+    white with one cool bin) is measured through the camera's channels: the model's colour of
+    each source is its emitter's camera RGB, and through the colour matrices the simulated
+    camera writes in its DNGs, the run file keeps and the processing reads, its CCT is the
+    emitter's temperature."""
     import tomllib
 
     from drivers.contracts.rig import rig_from_dict
@@ -483,12 +485,14 @@ def test_a_tinted_lights_colours_are_measured_through_the_camera(tmp_path):
     from processing.lightmodel import LightModel
     from sim_devices.lights import LIGHTS_DIR, load_truth
 
-    # The shipped tinted truth: the five Gaussians, warm white with one cool bin.
-    spectra = {e.name: e.spectrum for e in load_truth("tinted-five-gaussians").emitters}
-    assert len(set(spectra.values())) == 4
     data = tomllib.loads(REDUCED_RIG.read_text())
-    data.setdefault("simulation", {})["truth"] = "tinted-five-gaussians"
+    data.setdefault("simulation", {})["truth"] = "cct-five-gaussians"
     rig = rig_from_dict(data)
+    # The shipped truth of colour temperatures, as the camera's channels see it.
+    truth = load_truth("cct-five-gaussians")
+    spectra = {e.name: e.spectrum for e in truth.seen_by(rig.camera).emitters}
+    temperatures = {e.name: e.cct_k for e in truth.emitters}
+    assert len(set(spectra.values())) == 4
     tools = rig.tool_poses()
     here = {"pose": tools[0]}
     camera = SimulatedCamera(rig, SimWorld(lambda: here["pose"]), tmp_path / "spool", seed=5)
@@ -518,13 +522,26 @@ def test_a_tinted_lights_colours_are_measured_through_the_camera(tmp_path):
     got = {s.name: np.array(s.colour) for s in report.model.sources}
     want = {name: np.array(spectra[name]) / np.mean(spectra[name]) for name in got}
     # Three positions of the reduced rig: the centre takes 1-3 % of its cool neighbour's
-    # colour, 4 mm away (measured: blue 0.637 for 0.621); every other channel of every source
-    # within 1 % (measured: 0.5 % at most). On the full rig's 66 positions (bench reflectance): within 0.1 %.
+    # colour, 4 mm away (measured: blue 0.441 for 0.433); every other channel of every source
+    # within 1 % (measured: 0.4 % at most). On the full rig's 66 positions (bench reflectance): within 0.1 %.
     for name in got:
         np.testing.assert_allclose(got[name], want[name], atol=0.03 if name == "centre" else 0.01, err_msg=name)
-    assert got["centre"][0] / got["centre"][2] > 2.0  # warm, as its emitter (2.17): far from grey
+    assert got["centre"][0] / got["centre"][2] > 3.0  # warm, as its emitter (3.70): far from grey
+    # CCT through the DNG's matrices: measured 2743 K for the centre's 2700 K (its cool neighbour's
+    # light again), the others within 0.5 % (2995, 2692, 5015, 4003 K for 3000, 2700, 5000, 4000 K).
+    for source in report.model.sources:
+        chroma = source.chromaticity
+        assert chroma["basis"].endswith("colour matrices (DNG tags)")  # read back from the DNGs
+        rel = 0.025 if source.name == "centre" else 0.01
+        assert chroma["cct_k"] == pytest.approx(temperatures[source.name], rel=rel), source.name
+        assert abs(chroma["duv"]) < 0.002, source.name  # blackbodies: on the Planckian locus
+    whole = report.model.chromaticity["cct_k"]
+    assert 2700.0 < whole < 5000.0
     light = LightModel.load(tmp_path / "out" / "run-tinted.light.json")
     assert [s.colour for s in light.sources] == [s.colour for s in report.model.sources]
+    assert light.chromaticity == report.model.chromaticity
+    assert f"[_CCT] {whole:.0f}" in (tmp_path / "out" / "run-tinted.ies").read_text()
+    assert "The light&#x27;s colour" in (tmp_path / "out" / "run-tinted.report.html").read_text()
 
 
 def test_process_fits_the_aperture_where_the_layout_is_known(simulated_run, tmp_path):

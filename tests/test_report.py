@@ -246,8 +246,10 @@ def test_the_pipeline_writes_the_report_after_the_light_model(processed):
     pngs = images(text)
     previews = re.findall(r'alt="position (\d+)"', text)
     assert 1 < len(previews) <= 6
-    # the whole light's diagrams and illuminance; polar, layout, coverage, angles, residuals; the strip
-    assert len(pngs) == 2 + 5 + len(previews)
+    # the whole light's diagrams and illuminance; polar, layout, coverage, angles, residuals; the
+    # strip; and the colour over θ where it varies
+    varies = any(s.chromaticity["over_theta"]["varies"] for s in report.model.sources)
+    assert len(pngs) == 2 + 5 + len(previews) + varies
     for png in pngs:
         decode(png)
 

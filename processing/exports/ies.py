@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from drivers.contracts.version import __version__
+from processing.colour import describe
 from processing.exports.far_field import (
     ExportError,
     angle_grid,
@@ -133,7 +134,24 @@ def _ies_keywords(
     lines += keyword_lines("OTHER", f"{other} {measured_range_text(summary)}")
     lines += keyword_lines("_UNITS", units_word)
     lines += _ies_photometry_keywords(summary)
+    lines += _ies_colour(model)
     return lines + keyword_lines("_SOFTWARE", f"mirrorgonio {__version__}")
+
+
+def _ies_colour(model: LightModel) -> list[str]:
+    """The light's colour as user keywords (LM-63-2019 has none for it): ``[_CCT]`` in kelvin,
+    ``[_DUV]``, ``[_CHROMATICITY]`` and ``[_CRI]`` (not measured: it needs the spectrum); none
+    where the model has no colour."""
+    colour = model.chromaticity
+    if not colour:
+        return []
+    lines = []
+    if colour.get("cct_k") is not None:
+        lines += keyword_lines("_CCT", f"{colour['cct_k']:.0f}")
+    if colour.get("duv") is not None:
+        lines += keyword_lines("_DUV", f"{colour['duv']:+.4f}")
+    lines += keyword_lines("_CHROMATICITY", describe(colour))
+    return lines + keyword_lines("_CRI", "not measured (a three-channel camera does not give the spectrum)")
 
 
 def _ies_photometry(

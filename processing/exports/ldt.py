@@ -82,8 +82,12 @@ def _ldt_luminaire_and_lamps(
     if lamp:
         lamp_type = ascii_only(lamp)[:24]
     # One standard set of one lamp: its type, total luminous flux (relative units unless calibrated), colour
-    # appearance, colour rendering, wattage including ballast.
-    return lines + ["1", "1", lamp_type, plain_number(lamp_flux), "", "", "0"]
+    # appearance (the CCT, 16 characters at most), colour rendering (6 at most: not measured), wattage
+    # including ballast.
+    cct = model.chromaticity.get("cct_k")
+    appearance = f"{cct:.0f}K" if cct is not None else ""
+    rendering = "n/a" if model.chromaticity else ""
+    return lines + ["1", "1", lamp_type, plain_number(lamp_flux), appearance, rendering, "0"]
 
 
 def write_ldt(

@@ -13,6 +13,7 @@ from typing import Any, BinaryIO
 import numpy as np
 
 from drivers.contracts.version import __version__
+from processing.colour import describe
 from processing.exports.far_field import ExportError
 from processing.lightmodel import LightModel, SourceModel
 
@@ -175,10 +176,20 @@ def _tm25_texts(model: LightModel, name: str | None, manufacturer: str, seed: in
         "additional_info": (
             f"Rays sampled (seed {seed}) from a near-field model of {len(model.sources)} point sources "
             f"on emitting discs; ray flux column phi in {unit_note}; positions in mm in the light "
-            f"frame (emission towards +z)."
+            f"frame (emission towards +z)." + _colour_note(model)
         ),
         "data_reference": f"run {run}, file {prov.get('run_file') or 'unknown'}",
     }
+
+
+def _colour_note(model: LightModel) -> str:
+    """The light's and each source's colour, for the additional information (4.7.3.8): TM-25-13's header has
+    no colour field, its tristimulus columns need luminous flux per ray and its spectral tables a spectrum,
+    neither of which a three-channel camera measures."""
+    if not model.chromaticity:
+        return ""
+    sources = "; ".join(f"{s.name}: {describe(s.chromaticity)}" for s in model.sources if s.chromaticity)
+    return f" Colour of the whole light: {describe(model.chromaticity)}. Per source: {sources}."
 
 
 def _tm25_header_and_flags(creation_method: int, radiant_flux: float, n_rays: int) -> bytes:

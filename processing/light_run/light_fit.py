@@ -9,6 +9,7 @@ import numpy as np
 
 from drivers.contracts.runfile import RunFile
 from drivers.contracts.version import __version__
+from processing.colour import colour_section, over_theta
 from processing.fit import FitError, Samples, fit_with_model_error
 from processing.light_run.errors import ProcessingError
 from processing.light_run.samples import SourceSamples
@@ -38,6 +39,31 @@ def source_colour(intensity_rgb: np.ndarray) -> tuple[float, float, float]:
     return (float(red), float(green), float(blue))
 
 
+def source_chromaticity(theta: np.ndarray, intensity_rgb: np.ndarray, camera_colour: dict) -> dict:
+    """A source's colour record (:func:`processing.colour.colour_section`) from its samples'
+    per-channel intensities, with its colour over θ (:func:`processing.colour.over_theta`);
+    empty where the channels were not measured apart (cell sums)."""
+    rgb = np.asarray(intensity_rgb, dtype=float).reshape(-1, 3)
+    both = np.all(np.isfinite(rgb), axis=1) & np.isfinite(theta)
+    sums = rgb[both].sum(axis=0)
+    if not both.any() or not np.all(sums > 0):
+        return {}
+    section = colour_section(sums, camera_colour)
+    section["over_theta"] = over_theta(theta[both], rgb[both], camera_colour)
+    return section
+
+
+def light_chromaticity(sources: Sequence[SourceModel], camera_colour: dict) -> dict:
+    """The whole light's colour record: the sources' camera RGB weighed by their flux; empty
+    where no source has a colour measured through the channels."""
+    if not any(s.chromaticity for s in sources):
+        return {}
+    mixed = sum((s.flux() * np.asarray(s.colour) for s in sources), np.zeros(3))
+    section = colour_section(mixed, camera_colour)
+    section["weighting"] = "the sources' camera RGB weighed by their flux"
+    return section
+
+
 def fit_light_model(
     run: RunFile,
     layout: Sequence[Source],
@@ -65,7 +91,13 @@ def fit_light_model(
         table = samples_table(data, samples.positions[ok], samples.cell_sum[:, k][ok])
         sources.append(
             SourceModel(
-                source.name, source.centre, source.radius, fit, table, source_colour(samples.intensity_rgb[:, k])
+                source.name,
+                source.centre,
+                source.radius,
+                fit,
+                table,
+                source_colour(samples.intensity_rgb[:, k]),
+                source_chromaticity(samples.theta[:, k], samples.intensity_rgb[:, k], run.header.camera_colour),
             )
         )
     provenance = {
@@ -81,4 +113,6 @@ def fit_light_model(
         # the whole rig, so an object run can check it is lit in the same light frame
         "rig_description": run.header.rig.model_dump(mode="json", exclude_none=True),
     }
-    return LightModel(sources, units=units, provenance=provenance)
+    return LightModel(
+        sources, units=units, provenance=provenance, chromaticity=light_chromaticity(sources, run.header.camera_colour)
+    )

@@ -17,6 +17,8 @@ from drivers.contracts.runfile import RunFile
 from processing.calibration import BallFit
 from processing.lightmodel import LightModel
 from processing.parallel import Compute
+from processing.report.colour import TITLE as COLOUR_TITLE
+from processing.report.colour import colour_section
 from processing.report.context import (
     MiddlePosition,
     ReportContext,
@@ -237,8 +239,11 @@ def _write_report(
             f"<h2>{html.escape(PHOTOMETRY_TITLE)}</h2>\n{ctx.encoder.fill(photometry)}",
             header_table(model, run, report, samples, resolution),
         ]
+        colour = guarded(COLOUR_TITLE, lambda: colour_section(model, ctx.encoder))
         for name in SECTIONS:
             entry = built[name]
             content = entry.result() if isinstance(entry, Future) else entry
             body.append(f"<h2>{html.escape(name)}</h2>\n{ctx.encoder.fill(content)}")
+            if name == intensity:
+                body.append(f"<h2>{html.escape(COLOUR_TITLE)}</h2>\n{ctx.encoder.fill(colour)}")
     return write_page(path, title, body)

@@ -9,14 +9,17 @@ import json
 import os
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import h5py
 import numpy as np
 
+from drivers.contracts.camera_colour import CameraColourError, checked_camera_colour
 from drivers.contracts.rig import Rig, rig_from_dict
 from drivers.contracts.runfile.layout import (
     CALIBRATION_DATASETS,
     CALIBRATION_SETS,
+    CAMERA_COLOUR,
     DATASETS,
     FRAME_RECORDS,
     RunFileError,
@@ -81,6 +84,7 @@ def read_header_once(f: h5py.File, path: Path) -> RunHeader:
         devices=copy.deepcopy(header.devices),
         references=copy.deepcopy(header.references),
         calibration=copy.deepcopy(header.calibration),
+        camera_colour=copy.deepcopy(header.camera_colour),
     )
 
 
@@ -152,7 +156,33 @@ def read_header(f: h5py.File, path: str | os.PathLike[str]) -> RunHeader:
         preset=str(run.get("preset", "")),
         references=run.get("references", {}) if isinstance(run.get("references", {}), dict) else {},
         calibration=run.get("calibration", {}) if isinstance(run.get("calibration", {}), dict) else {},
+        camera_colour=read_camera_colour(f, path),
     )
+
+
+def read_camera_colour(f: h5py.File, path: str | os.PathLike[str]) -> dict[str, Any]:
+    """The camera's colour matrices the file holds (``/header/camera_colour_json``), checked;
+    empty for a file without them.
+
+    Raises
+    ------
+    RunFileError
+        The dataset holds something that is not a colour description.
+    """
+    if CAMERA_COLOUR not in f:
+        return {}
+    try:
+        text = as_text(f[CAMERA_COLOUR][()])
+    except (OSError, RuntimeError) as exc:
+        raise RunFileError(f"{path}: corrupt run file: {h5_cause(exc)}") from None
+    if not text:
+        return {}
+    try:
+        return checked_camera_colour(json.loads(text), f"{path}: /{CAMERA_COLOUR}")
+    except json.JSONDecodeError as exc:
+        raise RunFileError(f"{path}: corrupt run file: /{CAMERA_COLOUR} is not valid JSON ({exc})") from None
+    except CameraColourError as exc:
+        raise RunFileError(str(exc)) from None
 
 
 def _check_calibration_layout(f: h5py.File, path: str | os.PathLike[str], frame_shape: tuple[int, int]) -> None:

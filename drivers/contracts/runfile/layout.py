@@ -27,6 +27,12 @@ RUN_FILE_VERSION = 2
 STATES = ("created", "running", "paused", "complete", "aborted", "failed", "interrupted")
 STATE_BYTES = 16
 MESSAGE_BYTES = 1024
+#: ``/header/camera_colour_json``: the camera's colour matrices as JSON, filled from the first
+#: frame that carries them (empty until then, and for a camera whose files carry none). Fixed
+#: in size, as the status is, so that the writer fills it in SWMR mode; optional in a file
+#: (files without it read as "no colour matrices").
+CAMERA_COLOUR = "header/camera_colour_json"
+CAMERA_COLOUR_BYTES = 2048
 
 #: The per-frame records stored beside each raw mosaic, under ``/frames``.
 FRAME_RECORDS = ("exposure_s", "black_level", "white_level", "timestamp", "cfa_pattern")
@@ -183,6 +189,11 @@ class RunHeader:
         of ``[role, when]``), ``switch`` (the light switch), the ``ambient_exposures_s`` and the
         way dark frames are taken; ``sets`` empty, with a ``reason``, for a run that takes none.
         Empty for a file of format version 1.
+    camera_colour : dict
+        The camera's colour matrices as its raw files carry them
+        (:mod:`drivers.contracts.camera_colour`), read from the run's first frame that has
+        them; empty where none is known (a file written before the run file kept them, a
+        camera whose files carry none): the run's colour is then camera RGB only.
     """
 
     run_id: str
@@ -199,6 +210,7 @@ class RunHeader:
     preset: str = ""
     references: dict[str, Any] = field(default_factory=dict)
     calibration: dict[str, Any] = field(default_factory=dict)
+    camera_colour: dict[str, Any] = field(default_factory=dict)
 
     @property
     def n_positions(self) -> int:
@@ -243,6 +255,7 @@ def build_layout(
     status = f.create_group("status")
     status.create_dataset("state", data=np.bytes_(b"created"), dtype=f"S{STATE_BYTES}")
     status.create_dataset("message", data=np.bytes_(b""), dtype=f"S{MESSAGE_BYTES}")
+    header.create_dataset("camera_colour_json", data=np.bytes_(b""), dtype=f"S{CAMERA_COLOUR_BYTES}")
 
 
 def build_calibration_layout(f: h5py.File, max_frames: int, frame_shape: tuple[int, int]) -> None:

@@ -24,6 +24,7 @@ from drivers.contracts.runfile.header import read_header
 from drivers.contracts.runfile.layout import (
     CALIBRATION_MAX_FRAMES,
     CALIBRATION_SETS,
+    CAMERA_COLOUR,
     FRAME_RECORDS,
     RunFileError,
     as_text,
@@ -91,6 +92,8 @@ def salvage_run(path: Path) -> None:
                 )
             if sets_kept:
                 message += f"; calibration sets complete: {', '.join(sets_kept)}"
+            if CAMERA_COLOUR in src:
+                dst[CAMERA_COLOUR][()] = src[CAMERA_COLOUR][()]
             dst["status/state"][()] = np.bytes_(b"interrupted")
             dst["status/message"][()] = np.bytes_(encode_message(message))
     except (OSError, RuntimeError) as exc:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import json
 import logging
 import math
 import os
@@ -15,6 +16,7 @@ import h5py
 import numpy as np
 
 from drivers.camera import RawFrame
+from drivers.contracts.camera_colour import CameraColourError, checked_camera_colour
 from drivers.contracts.runfile.check import frame_fault
 from drivers.contracts.runfile.disk import (
     drop_unwritten,
@@ -27,6 +29,8 @@ from drivers.contracts.runfile.disk import (
 from drivers.contracts.runfile.header import encode_header, read_header
 from drivers.contracts.runfile.layout import (
     CALIBRATION_SETS,
+    CAMERA_COLOUR,
+    CAMERA_COLOUR_BYTES,
     FRAME_RECORDS,
     STATES,
     PositionTimes,
@@ -289,6 +293,7 @@ class RunFileWriter:
             records = self._validate(index, measured, times, frames)
             with self._writing(f"position {index}"):
                 self._write(index, records, frames)
+                self._keep_camera_colour(frames)
 
     def _validate(
         self, index: int, measured: Pose, times: PositionTimes, frames: list[RawFrame]
@@ -433,6 +438,33 @@ class RunFileWriter:
                 raise RunFileError(f"{where}: the frames mix CFA patterns ({', '.join(patterns)})")
             with self._writing(f"calibration {role} {when}"):
                 self._commit("calibration", "calibration", slot, records, frames, {})
+                self._keep_camera_colour(frames)
+
+    def _keep_camera_colour(self, frames: list[RawFrame]) -> None:
+        """Fill ``/header/camera_colour_json`` from the first frame whose raw file carried colour
+        matrices (``frame.extra["colour"]``), once: a run's camera is one camera. A file without
+        the dataset (written by an older version, resumed) or a frame without matrices is left as
+        it is; a description that is not one, or too long for the dataset, is not kept."""
+        if self.header.camera_colour or CAMERA_COLOUR not in self._f:
+            return
+        for frame in frames:
+            extra = getattr(frame, "extra", None)
+            description = extra.get("colour") if isinstance(extra, dict) else None
+            if not description:
+                continue
+            try:
+                colour = checked_camera_colour(description, "frame colour")
+            except CameraColourError as exc:
+                log.warning("%s: the camera's colour matrices are not kept: %s", self.path, exc)
+                return
+            text = json.dumps(colour, allow_nan=False).encode("utf-8")
+            if len(text) > CAMERA_COLOUR_BYTES:
+                log.warning("%s: the camera's colour matrices are not kept: %d bytes of JSON", self.path, len(text))
+                return
+            self._f[CAMERA_COLOUR][()] = np.bytes_(text)
+            self._flush(self._f[CAMERA_COLOUR])
+            self.header.camera_colour = colour
+            return
 
     def calibration_complete(self, role: str, when: str) -> bool:
         """Whether the calibration set ``(role, when)`` is complete (False in a version-1 file)."""
