@@ -266,7 +266,7 @@ class Camera(ConfigModel):
     ] = (80e-9, 80e-9, 80e-9)
     spectral_response: SpectralResponse | None = None
     aperture: Aperture = Aperture()
-    point_spread: Literal["geometric-airy", "fresnel"] = "geometric-airy"
+    point_spread: Literal["geometric-airy", "fresnel"] = "fresnel"
     measured_point_spread: MeasuredPointSpread | None = None
     sensitivity_e_per_s: PositiveFloat = 1000.0
 
@@ -614,6 +614,18 @@ class Rig(ConfigModel):
         ring = ring_centre + ring_radius * (np.outer(np.cos(angles), u) + np.outer(np.sin(angles), v))
         uvw = (ring @ rot.T + t) @ self.camera.camera_matrix().T
         return np.asarray(uvw[:, :2] / uvw[:, 2:3], dtype=float)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _object_scene_blur(cls, data: Any) -> Any:
+        """An object scene is rendered with the geometric⊗Airy blur: where the rig does not
+        name a point spread, that one (a rig that names ``fresnel`` with an object is refused)."""
+        if isinstance(data, dict) and data.get("object") is not None:
+            camera = data.get("camera")
+            camera = dict(camera) if isinstance(camera, dict) else {} if camera is None else camera
+            if isinstance(camera, dict) and "point_spread" not in camera:
+                data = {**data, "camera": {**camera, "point_spread": "geometric-airy"}}
+        return data
 
     # Physical checks --------------------------------------------------------------------
     @model_validator(mode="after")
