@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 from typing import Annotated
 
@@ -47,6 +48,9 @@ def serve(
 
     from acquisition.app import create_app
 
+    # The daemon's own lines (a run's start and end, why a client's file was refused) on stderr
+    # beside uvicorn's; the page's log panel keeps its own copy.
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
     try:
         uvicorn.run(create_app(settings), host=settings.host, port=settings.port, log_level="info")
     except domain_errors() as exc:
@@ -93,7 +97,6 @@ def worker_command(
     reason and the worker goes on; a job whose worker died is requeued by the next worker
     that looks at the queue. Stops on Ctrl-C or SIGTERM, after the job at hand.
     """
-    import logging
     import signal
     import threading
 
