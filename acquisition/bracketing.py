@@ -4,9 +4,10 @@ The ``auto`` rule (documented in ``docs/daemon.md``):
 
 1. Meter at ``metering_exposure_s``; while the brightest pixel is saturated, meter again
    at an eighth of the time.
-2. The brightest useful pixel is the 99.99th percentile of the black-subtracted signal
-   rate (so one hot pixel does not decide); the shortest exposure puts it at
-   ``saturation_fraction`` of the sensor's range.
+2. The brightest useful pixel is the :data:`PEAK_RANK`-th brightest of the black-subtracted
+   signal rate (so a few hot pixels do not decide, while a pinhole's Fresnel peak, a few
+   pixels across, does); the shortest exposure puts it at ``saturation_fraction`` of the
+   sensor's range.
 3. The darkest useful pixel is ``useful_fraction`` of that peak: fainter signal is
    treated as background. The longest exposure gives it ``target_snr`` under the
    shot-plus-read noise model (electrons ``e`` with ``e / sqrt(e + σ_read²) = SNR``).
@@ -23,6 +24,10 @@ import numpy as np
 
 from acquisition.settings import AutoBracketSettings
 from drivers.camera import RawFrame
+
+#: The brightest pixel that meters the bracket is this one in order of brightness: hot
+#: pixels come alone or in pairs, a lit spot covers tens of pixels.
+PEAK_RANK = 5
 
 
 @dataclass(frozen=True)
@@ -51,7 +56,8 @@ def is_saturated(frame: RawFrame, fraction: float = 0.98) -> bool:
 def exposures_from_metering(frame: RawFrame, rule: AutoBracketSettings, noise: NoiseModel) -> list[float]:
     """The bracket for a scene metered by one unsaturated ``frame``."""
     rate = signal_rate(frame)
-    peak = float(np.percentile(rate, 99.99))
+    flat = rate.ravel()
+    peak = float(np.partition(flat, flat.size - PEAK_RANK)[flat.size - PEAK_RANK]) if flat.size >= PEAK_RANK else 0.0
     span = frame.white_level - float(frame.black_level.max())
     if peak <= 0.0:
         # Nothing above the noise: expose as long as allowed, one frame.
