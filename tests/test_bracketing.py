@@ -45,7 +45,7 @@ def test_bracket_spans_from_unsaturated_peak_to_the_target_snr_of_the_faintest_u
 def test_count_is_capped_and_empty_scenes_and_saturation_are_handled():
     rule = AutoBracketSettings(max_exposures=3, useful_fraction=1e-6)
     signal = np.zeros((64, 64))
-    signal[10, 10] = 3000.0
+    signal[9:12, 9:12] = 3000.0  # a lit spot (a lone bright pixel is taken for a hot one)
     assert len(exposures_from_metering(frame(signal, 0.001), rule, NOISE)) == 3
     assert exposures_from_metering(frame(np.zeros((64, 64)), 0.001), rule, NOISE) == [rule.max_exposure_s]
     assert is_saturated(frame(np.full((8, 8), 5000.0), 0.001))
