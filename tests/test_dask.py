@@ -290,7 +290,7 @@ def test_the_default_local_cluster_is_sized_to_the_machine_and_streams(captured,
     _assert_same(_results(tmp_path / "dask", run.stem), _results(tmp_path / "here", run.stem))
     # The report's sections drawn by the workers are the ones drawn here, figures and all.
     remote, local = ((tmp_path / where / f"{run.stem}.report.html").read_text() for where in ("dask", "here"))
-    assert _sections(remote) == _sections(local) and len(_sections(local)) == 7
+    assert _sections(remote) == _sections(local) and len(_sections(local)) == 9
     # The EXR and PNG previews were written by the workers, one per position.
     assert sorted(p.name for p in (tmp_path / "dask" / f"{run.stem}.hdr").iterdir()) == sorted(
         p.name for p in (tmp_path / "here" / f"{run.stem}.hdr").iterdir()

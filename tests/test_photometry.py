@@ -193,7 +193,7 @@ def test_the_light_model_keeps_its_photometry_and_the_report_shows_it_first(tmp_
 
     text = write_report(tmp_path / "report.html", again).read_text(encoding="utf-8")
     top = text.index("<h2>Photometry of the whole light</h2>")
-    assert top < text.index("<table>") and top < text.index("<h2>The light source, source by source</h2>")
+    assert top == text.index("<h2>") and top < text.index("<h2>The light source, source by source</h2>")
     section = text[top : text.index("<h2>", top + 10)]
     measured = summarize(again, "none")
     assert f"<td>beam angle (50 % of peak), C0-C180</td><td>{measured.angle('beam', 'C0-C180'):.1f}°" in section

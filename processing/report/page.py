@@ -236,8 +236,8 @@ def _write_report(
             f"<h1>{html.escape(title)}</h1>",
             quality_banner(model),
             skipped_note(model),
+            header_table(model, run, report, samples, resolution),  # the run, the time: above the sections
             f"<h2>{html.escape(PHOTOMETRY_TITLE)}</h2>\n{ctx.encoder.fill(photometry)}",
-            header_table(model, run, report, samples, resolution),
         ]
         colour = guarded(COLOUR_TITLE, lambda: colour_section(model, ctx.encoder))
         for name in SECTIONS:
