@@ -375,7 +375,7 @@ def point_source_frames():
         "rig": rig,
         "fresnel": fresnel.render(pose),
         "renderer": fresnel,
-        "airy": MirrorBallRenderer(rig, tiny, seed=4).render(pose).rate,
+        "airy": MirrorBallRenderer(rig, tiny, point_spread="geometric-airy", seed=4).render(pose).rate,
         "geometric": MirrorBallRenderer(rig, tiny, diffraction=False, seed=4).render(pose).rate,
     }
 
