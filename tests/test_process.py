@@ -361,9 +361,6 @@ def test_runs_the_estimate_cannot_use_get_one_line_errors(tmp_path, case, messag
     data = {**tomllib.loads((REDUCED_RIG.parent.parent.parent / "rigs" / "default.toml").read_text()), **data}
     if case == "saturated":
         data["camera"]["sensitivity_e_per_s"] = 1e9  # a uniform glare far above full well
-        # Every pixel saturated needs a blur with no dark ring: the Fresnel pattern's leave a few
-        # pixels below full well, and the run then fails on the fits' samples instead.
-        data["camera"]["point_spread"] = "geometric-airy"
     rig = rig_from_dict(data)
     frames = _frames_at(rig, tmp_path, [0.01, 0.02])
     if case == "no-ball":
