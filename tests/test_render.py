@@ -148,8 +148,10 @@ def test_uniform_plane_capture_is_within_the_noise(lambertian_camera):
 
 # --- (2) linear in intensity, inverse square in distance -------------------------------------
 def _crop_rig(size=320, diffraction=False):
-    # A crop of the full-pitch sensor around the middle position's sources.
+    # A crop of the full-pitch sensor around the middle position's sources, its camera the
+    # geometric⊗Airy one the renderer's and the unmixing's figures here were measured with.
     return rig_with(
+        camera__point_spread="geometric-airy",
         camera__width=size,
         camera__height=size,
         camera__principal_point_px=[999.5 - 840, 655.5 - 400],
