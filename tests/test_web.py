@@ -310,16 +310,17 @@ def test_the_page_shows_each_job_and_links_its_report_ies_and_ray_file(tmp_path,
     expect(job_row.locator(".job-badge")).to_have_text("complete", timeout=20_000)
     expect(job_row).to_contain_text("3 of 66 positions")
     expect(job_row.locator("progress")).to_have_attribute("value", "100")
-    # The report's figures on the page: the light's polar plot among them, each image loaded.
+    # The report's figures on the page: the whole light's C-plane polar diagram and each source's
+    # polar plot among them, each image loaded.
     expect(page.locator("#results-of")).to_contain_text(f"of run {run.id}, job {job['id']}")
-    expect(page.locator('#figures img[alt*="polar"]')).to_have_count(1)
+    expect(page.locator('#figures img[alt*="polar"]')).to_have_count(2)
     page.wait_for_function(
         "() => { const imgs = [...document.querySelectorAll('#figures img')];"
         " return imgs.length >= 5 && imgs.every(i => i.complete && i.naturalWidth > 0); }"
     )
     figures = httpx.get(f"{daemon.url}/jobs/{job['id']}/figures", headers=AUTH, timeout=30).json()
-    polar = next(f for f in figures if "polar" in f["alt"])
-    assert polar["caption"].startswith("Radiant intensity of each source")
+    polar = next(f for f in figures if f["caption"].startswith("Radiant intensity of each source"))
+    assert "polar" in polar["alt"]
     png = httpx.get(daemon.url + polar["url"], headers=AUTH, timeout=30)
     assert png.headers["content-type"] == "image/png" and png.content[:8] == b"\x89PNG\r\n\x1a\n"
     assert httpx.get(daemon.url + polar["url"], timeout=30).status_code == 401  # the token guards it
