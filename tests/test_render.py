@@ -302,7 +302,9 @@ def test_diffraction_spreads_the_spot_as_the_airy_pattern_predicts():
     pose = rig.light_poses()[33]
     tiny = _single_source(radius=0.02e-3)
     geometric = MirrorBallRenderer(rig, tiny, diffraction=False, seed=4).render(pose).rate[GREEN]
-    diffracted = MirrorBallRenderer(rig, tiny, diffraction=True, point_spread="geometric-airy", seed=4).render(pose).rate[GREEN]
+    diffracted = (
+        MirrorBallRenderer(rig, tiny, diffraction=True, point_spread="geometric-airy", seed=4).render(pose).rate[GREEN]
+    )
     cam = rig.camera
     kernel = airy_kernel(
         cam.channel_wavelengths_m[GREEN], cam.pinhole_diameter_m, cam.sensor_distance_m, cam.pixel_pitch_m, 120
