@@ -2,11 +2,10 @@
 
 from __future__ import annotations
 
-import math
-
 from fastapi import APIRouter, Response, status
 
 from acquisition.api.deps import TOKEN_ERRORS, CatalogDep, EngineDep, ReadTokenDep, SettingsDep
+from acquisition.bench import pose_record
 from acquisition.models import ArmState, CameraState, DevicesStatus, Health
 from acquisition.storage import StorageError, directory_problems, min_free_bytes
 from drivers.contracts.version import __version__
@@ -22,14 +21,7 @@ def arm_state(engine) -> ArmState:
         pose = arm.position()
     except DeviceError as exc:
         return ArmState(connected=False, identity=arm.identity, error=str(exc))
-    position = {
-        "x": pose.x,
-        "y": pose.y,
-        "z": pose.z,
-        "rx": math.degrees(pose.rx),
-        "ry": math.degrees(pose.ry),
-        "rz": math.degrees(pose.rz),
-    }
+    position = pose_record(pose)
     return ArmState(
         connected=True,
         identity=arm.identity,
