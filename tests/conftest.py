@@ -33,6 +33,42 @@ def rig_with(**edits):
     return rig_from_dict(data)
 
 
+def write_simulated_run(path, rig, run_id, positions, exposures, seed, on_capture=None):
+    """A run file at ``path`` holding ``positions`` of ``rig``'s sweep, ``exposures`` each, as the
+    simulated camera (``seed``) takes them, ended "aborted"; ``on_capture(index, camera)`` is
+    called after each position's frames (to keep what the camera rendered)."""
+    from drivers.contracts.runfile import PositionTimes, RunFileWriter, RunHeader
+    from sim_devices.camera import SimulatedCamera
+    from sim_devices.world import SimWorld
+
+    tools = rig.tool_poses()
+    here = {"pose": tools[0]}
+    camera = SimulatedCamera(rig, SimWorld(lambda: here["pose"]), path.parent / f"{path.stem}-spool", seed=seed)
+    header = RunHeader(
+        run_id=run_id,
+        rig=rig,
+        tool_poses=tools,
+        light_poses=rig.light_poses(),
+        max_exposures=len(exposures),
+        frame_shape=(rig.camera.height, rig.camera.width),
+        bracket={"mode": "fixed", "exposures_s": list(exposures)},
+        metadata={},
+        devices={"arm": "test", "camera": camera.identity},
+        software_version="test",
+        created_utc="2026-11-21T00:00:00+00:00",
+        preset="light-sweep",
+    )
+    with RunFileWriter.create(path, header) as writer:
+        for index in positions:
+            here["pose"] = tools[index]
+            frames = [camera.capture(t) for t in exposures]
+            if on_capture is not None:
+                on_capture(index, camera)
+            writer.write_position(index, tools[index], PositionTimes(0.0, 0.0, 0.0), frames)
+        writer.set_status("aborted", f"{len(positions)} positions only")
+    return path
+
+
 def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))

@@ -15,19 +15,17 @@ from types import SimpleNamespace
 import h5py
 import numpy as np
 import pytest
-from conftest import REDUCED_RIG
+from conftest import REDUCED_RIG, write_simulated_run
 from test_runfile import TESTS_DIR, frame_count, write_run
 from typer.testing import CliRunner
 
 from acquisition.cli import app
 from drivers.contracts.rig import load_rig
-from drivers.contracts.runfile import FrameCorruptError, PositionTimes, RunFile, RunFileWriter, RunHeader
+from drivers.contracts.runfile import FrameCorruptError, RunFile, RunFileWriter
 from processing.light_run.output_guard import outputs_of
 from processing.light_run.outputs import skipped_record
 from processing.report.trust import skipped_note
 from processing.results import Results, results_path_for
-from sim_devices.camera import SimulatedCamera
-from sim_devices.world import SimWorld
 
 runner = CliRunner()
 EXPOSURES = [0.0002, 0.001, 0.005]
@@ -44,33 +42,7 @@ def _no_dask(monkeypatch):
 def clean_run(tmp_path_factory):
     """A simulated run file named with a dot (``yaw-0.05.h5``): three positions of three exposures."""
     folder = tmp_path_factory.mktemp("run")
-    rig = load_rig(REDUCED_RIG)
-    tools = rig.tool_poses()
-    here = {"pose": tools[0]}
-    camera = SimulatedCamera(rig, SimWorld(lambda: here["pose"]), folder / "spool", seed=3)
-    header = RunHeader(
-        run_id="run-yaw",
-        rig=rig,
-        tool_poses=tools,
-        light_poses=rig.light_poses(),
-        max_exposures=len(EXPOSURES),
-        frame_shape=(rig.camera.height, rig.camera.width),
-        bracket={"mode": "fixed", "exposures_s": EXPOSURES},
-        metadata={},
-        devices={"arm": "test", "camera": camera.identity},
-        software_version="test",
-        created_utc="2026-11-21T00:00:00+00:00",
-        preset="light-sweep",
-    )
-    path = folder / "yaw-0.05.h5"
-    with RunFileWriter.create(path, header) as writer:
-        for index in POSITIONS:
-            here["pose"] = tools[index]
-            writer.write_position(
-                index, tools[index], PositionTimes(0.0, 0.0, 0.0), [camera.capture(t) for t in EXPOSURES]
-            )
-        writer.set_status("aborted", "three positions only")
-    return path
+    return write_simulated_run(folder / "yaw-0.05.h5", load_rig(REDUCED_RIG), "run-yaw", POSITIONS, EXPOSURES, seed=3)
 
 
 def flip_bit(path, position: int, frame: int, bit: int, group: str = "frames") -> None:

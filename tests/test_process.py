@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import REDUCED_RIG
+from conftest import REDUCED_RIG, write_simulated_run
 from typer.testing import CliRunner
 
 from acquisition.cli import app
@@ -34,32 +34,14 @@ def simulated_run(tmp_path_factory):
     """A run file of three positions with four exposures, and the rates that made it."""
     folder = tmp_path_factory.mktemp("run")
     rig = load_rig(REDUCED_RIG)
-    tools, lights = rig.tool_poses(), rig.light_poses()
-    here = {"pose": tools[0]}
-    camera = SimulatedCamera(rig, SimWorld(lambda: here["pose"]), folder / "spool", seed=3)
-    header = RunHeader(
-        run_id="run-test",
-        rig=rig,
-        tool_poses=tools,
-        light_poses=lights,
-        max_exposures=len(EXPOSURES),
-        frame_shape=(rig.camera.height, rig.camera.width),
-        bracket={"mode": "fixed", "exposures_s": EXPOSURES},
-        metadata={},
-        devices={"arm": "test", "camera": camera.identity},
-        software_version="test",
-        created_utc="2026-11-21T00:00:00+00:00",
-        preset="light-sweep",
-    )
     rates = {}
-    path = folder / "run-test.h5"
-    with RunFileWriter.create(path, header) as writer:
-        for index in POSITIONS:
-            here["pose"] = tools[index]
-            frames = [camera.capture(t) for t in EXPOSURES]
-            rates[index] = camera.rendering().rate
-            writer.write_position(index, tools[index], PositionTimes(0.0, 0.0, 0.0), frames)
-        writer.set_status("aborted", "three positions only")
+
+    def keep_rate(index, camera):
+        rates[index] = camera.rendering().rate
+
+    path = write_simulated_run(
+        folder / "run-test.h5", rig, "run-test", POSITIONS, EXPOSURES, seed=3, on_capture=keep_rate
+    )
     return path, rates, rig
 
 
@@ -493,31 +475,7 @@ def test_a_tinted_lights_colours_are_measured_through_the_camera(tmp_path):
     spectra = {e.name: e.spectrum for e in truth.seen_by(rig.camera).emitters}
     temperatures = {e.name: e.cct_k for e in truth.emitters}
     assert len(set(spectra.values())) == 4
-    tools = rig.tool_poses()
-    here = {"pose": tools[0]}
-    camera = SimulatedCamera(rig, SimWorld(lambda: here["pose"]), tmp_path / "spool", seed=5)
-    header = RunHeader(
-        run_id="run-tinted",
-        rig=rig,
-        tool_poses=tools,
-        light_poses=rig.light_poses(),
-        max_exposures=len(EXPOSURES),
-        frame_shape=(rig.camera.height, rig.camera.width),
-        bracket={"mode": "fixed", "exposures_s": EXPOSURES},
-        metadata={},
-        devices={"arm": "test", "camera": camera.identity},
-        software_version="test",
-        created_utc="2026-11-21T00:00:00+00:00",
-        preset="light-sweep",
-    )
-    path = tmp_path / "run-tinted.h5"
-    with RunFileWriter.create(path, header) as writer:
-        for index in POSITIONS:
-            here["pose"] = tools[index]
-            writer.write_position(
-                index, tools[index], PositionTimes(0.0, 0.0, 0.0), [camera.capture(t) for t in EXPOSURES]
-            )
-        writer.set_status("aborted", "three positions only")
+    path = write_simulated_run(tmp_path / "run-tinted.h5", rig, "run-tinted", POSITIONS, EXPOSURES, seed=5)
     report = process_run(path, tmp_path / "out", steps="hdr,sources", layout=LIGHTS_DIR / "five-gaussians.toml")
     got = {s.name: np.array(s.colour) for s in report.model.sources}
     want = {name: np.array(spectra[name]) / np.mean(spectra[name]) for name in got}
