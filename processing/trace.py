@@ -19,7 +19,7 @@ import numba
 import numpy as np
 from numpy.typing import ArrayLike
 
-from drivers.contracts.rig import PoseSpec, Rig
+from drivers.contracts.rig import Camera, PoseSpec, Rig
 from drivers.contracts.runfile import RunFile
 from drivers.pose import Pose
 
@@ -48,6 +48,9 @@ class RigGeometry:
     height: int
     inverse_focal: float = 0.0  # 1/F of a thin lens; 0 for a pinhole
     arm_base: Pose | None = None  # the arm's base frame in the rig frame; None: the rig frame
+    # The aperture's shape as a symmetric matrix (xx, xy, yy) over the circle of aperture_radius,
+    # camera frame: (1, 0, 1) a circle; an ellipse's axes are its eigenvalues (the Fresnel pupil).
+    aperture_shape: tuple[float, float, float] = (1.0, 0.0, 1.0)
 
     def with_sensor_distance(self, sensor_distance: float) -> RigGeometry:
         """The same rig with the sensor ``sensor_distance`` behind the pinhole (or lens): the
@@ -90,6 +93,7 @@ class RigGeometry:
             if cam.thin_lens
             else 0.0,
             arm_base=None if rig.arm.base == PoseSpec() else rig.arm.base.to_pose(),
+            aperture_shape=_aperture_shape(cam),
         )
 
     def pixel_directions(self, cols: np.ndarray, rows: np.ndarray) -> np.ndarray:
@@ -383,3 +387,15 @@ def light_pose_at_position(run: RunFile, geometry: RigGeometry, index: int) -> P
 
     measured = run.measured_pose(index)
     return light_pose_at(geometry, measured if measured is not None else run.header.tool_poses[index])
+
+
+def _aperture_shape(camera: Camera) -> tuple[float, float, float]:
+    """The rig camera's ``[camera.aperture]`` as a shape matrix over the circle of its pinhole's
+    diameter: an ellipse's axes and angle (the matrix is the same seen from the sensor or from
+    the scene, a half turn apart); a circle or a mask, the identity."""
+    aperture = camera.aperture
+    if aperture.axes_m is None:
+        return (1.0, 0.0, 1.0)
+    c, s = math.cos(math.radians(aperture.angle_deg)), math.sin(math.radians(aperture.angle_deg))
+    a, b = (axis / camera.pinhole_diameter_m for axis in aperture.axes_m)
+    return (a * c * c + b * s * s, (a - b) * c * s, a * s * s + b * c * c)

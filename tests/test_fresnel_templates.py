@@ -40,7 +40,7 @@ def test_the_kernel_is_the_simulators_on_the_axis(channel):
     q = 1 / z1 + 1 / z2
     reach = 80
     ours = fresnel_kernel(
-        pupil.shape(camera.pinhole_diameter_m / 2), (q, 0.0, q), z2, pitch, pupil.bands[channel], reach
+        pupil.shape(camera.pinhole_diameter_m / 2, (1.0, 0.0, 1.0)), (q, 0.0, q), z2, pitch, pupil.bands[channel], reach
     )
     psf = channel_psf(
         camera, ApertureShape.from_rig(camera), channel, PathCurvature.on_axis(z1, z2, pitch), pixel_integrated=False

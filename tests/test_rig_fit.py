@@ -33,6 +33,21 @@ def _correction(axis=(0.0, 0.0, 1.0), **values: float) -> RigCorrection:
     return RigCorrection.of(vector, np.asarray(axis))
 
 
+def test_the_pinholes_shape_correction_is_an_ellipse_the_fitted_rig_file_keeps():
+    """The two ellipticity numbers make the round pinhole an ellipse: 5 % at 30° (axes 1.025 and
+    0.975 of the diameter) is 5·cos 60° % along x and y and 5·sin 60° % along the diagonals; the
+    rig as fitted says that ellipse, and loads back to the same shape."""
+    rig = load_rig(REDUCED_RIG)
+    geometry = RigGeometry.from_rig(rig)
+    e, angle = 5.0, math.radians(30.0)
+    shaped = _correction(pinhole_shape_plus=e * math.cos(2 * angle), pinhole_shape_cross=e * math.sin(2 * angle))
+    fitted = fitted_rig(rig, shaped)
+    aperture = fitted.camera.aperture
+    assert aperture.shape == "ellipse" and aperture.angle_deg == pytest.approx(30.0, abs=1e-9)
+    np.testing.assert_allclose(aperture.axes_m, [1.025e-4 * 2, 0.975e-4 * 2], rtol=1e-12)
+    np.testing.assert_allclose(RigGeometry.from_rig(fitted).aperture_shape, shaped.apply(geometry).aperture_shape)
+
+
 def test_a_correction_moves_the_rig_as_its_numbers_say():
     """Each number of a correction against the geometry it changes: the camera's yaw moves the
     ball's image by f·tan(yaw) across, its distance moves the pinhole away from the ball, the

@@ -415,6 +415,7 @@ class Tolerances(ConfigModel):
     light_rotation_deg: PositiveFloat = 2.0
     light_position_m: PositiveFloat = 0.002
     ball_radius_m: PositiveFloat = 5e-5
+    pinhole_ellipticity: Annotated[float, Field(gt=0.0, lt=0.5)] = 0.1
 
 
 # --- schedules ---------------------------------------------------------------------------

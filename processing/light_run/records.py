@@ -113,6 +113,7 @@ class RigCalibration:
         lines = [
             f"{n.name} {v:+.4g} ± {s:.2g} {n.unit}"
             for n, v, s in zip(FITTED, self.fit.correction.values, self.fit.sigma, strict=True)
+            if n.name not in self.fit.held
         ]
         lines.append(
             f"χ²/pixel {self.fit.chi2_described / self.fit.pixels:.4f} as described, "

@@ -124,8 +124,8 @@ def _start(run: RunFile, ball_centre: BallCentre) -> tuple[SilhouetteTerm | None
     """The silhouette on the run's ambient frames (None without them, or where they show no
     ball), the coarse correction it gives (none without it), the fit's bounds, and which frames
     the silhouette came from or why there is none."""
-    geometry, _ = geometry_and_builder(run, ball_centre)
-    limit = bounds(run.header.rig.tolerances, geometry)
+    geometry, builder = geometry_and_builder(run, ball_centre)
+    limit = bounds(run.header.rig.tolerances, geometry, shape=builder.pupil is not None)
     try:
         silhouette = silhouette_term(run, geometry)
     # A light or its housing before the ball, a dark room, or (--ignore-corrupt; refused before any

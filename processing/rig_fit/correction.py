@@ -31,6 +31,7 @@ from scipy.spatial.transform import Rotation
 from drivers.contracts.rig import PoseSpec, Rig, Tolerances
 from drivers.pose import Pose, rotation_from_angles
 from processing.trace import RigGeometry
+from processing.unmixing.fresnel import FresnelPupil
 
 
 @dataclass(frozen=True)
@@ -54,7 +55,13 @@ FITTED: tuple[RigNumber, ...] = (
     RigNumber("arm_pitch", "deg", "the arm's base frame turned about the rig's x axis through the ball"),
     RigNumber("arm_roll", "deg", "the arm's base frame turned about the rig's z axis through the ball"),
     RigNumber("arm_along", "mm", "the arm's base frame moved along the light's axis"),
+    RigNumber("pinhole_shape_plus", "%", "the pinhole's ellipticity along the camera's x and y (Fresnel templates)"),
+    RigNumber("pinhole_shape_cross", "%", "the pinhole's ellipticity along the diagonals (Fresnel templates)"),
 )
+
+#: The numbers only the Fresnel templates see (the geometric-Airy ones draw a round aperture):
+#: held elsewhere.
+APERTURE_SHAPE = ("pinhole_shape_plus", "pinhole_shape_cross")
 
 #: The numbers held as described, and why: the data cannot tell them from fitted ones.
 HELD: dict[str, str] = {
@@ -73,9 +80,10 @@ HELD: dict[str, str] = {
 }
 
 
-def bounds(tolerances: Tolerances, camera: RigGeometry) -> np.ndarray:
+def bounds(tolerances: Tolerances, camera: RigGeometry, shape: bool = False) -> np.ndarray:
     """How far each fitted number may move (in its fit unit), from the rig's tolerances: the
-    camera's yaw and pitch take the principal point's tolerance too."""
+    camera's yaw and pitch take the principal point's tolerance too; the aperture's shape only
+    with ``shape`` (Fresnel templates), else 0 (held)."""
     f_px = camera.K[0, 0]
     turn = tolerances.camera_rotation_deg + math.degrees(tolerances.principal_point_px / f_px)
     return np.array(
@@ -89,6 +97,8 @@ def bounds(tolerances: Tolerances, camera: RigGeometry) -> np.ndarray:
             tolerances.arm_base_rotation_deg,
             tolerances.arm_base_rotation_deg,
             1e3 * (tolerances.arm_base_position_m + tolerances.light_position_m),
+            100.0 * tolerances.pinhole_ellipticity if shape else 0.0,
+            100.0 * tolerances.pinhole_ellipticity if shape else 0.0,
         ]
     )
 
@@ -125,7 +135,7 @@ class RigCorrection:
         """``geometry`` corrected: the camera, the sensor, the pinhole and the arm's base frame."""
         if self.is_null():
             return geometry
-        yaw, pitch, distance, sensor, pinhole, arm_yaw, arm_pitch, arm_roll, along = self.values
+        yaw, pitch, distance, sensor, pinhole, arm_yaw, arm_pitch, arm_roll, along, plus, cross = self.values
         g = geometry.with_sensor_distance(geometry.sensor_distance * (1.0 + sensor / 100.0))
         turn = rotation_from_angles(math.radians(pitch), math.radians(yaw), 0.0)  # about the camera's own axes
         away = g.camera_centre - g.ball_centre
@@ -137,6 +147,7 @@ class RigCorrection:
             t=-rotation @ centre,
             camera_centre=centre,
             aperture_radius=geometry.aperture_radius * (1.0 + pinhole / 100.0),
+            aperture_shape=_reshaped(geometry.aperture_shape, plus, cross),
         )
         arm = _about(
             g.ball_centre,
@@ -145,6 +156,13 @@ class RigCorrection:
         )
         base = arm if g.arm_base is None else arm.compose(g.arm_base)
         return replace(g, arm_base=base)
+
+
+def _reshaped(shape: tuple[float, float, float], plus: float, cross: float) -> tuple[float, float, float]:
+    """The aperture's shape matrix with an ellipticity of ``plus`` % along x and y and ``cross`` %
+    along the diagonals added (axes 1 ± e/2 for an ellipticity e)."""
+    xx, xy, yy = shape
+    return (xx + plus / 200.0, xy + cross / 200.0, yy - plus / 200.0)
 
 
 def _about(centre: np.ndarray, rotation: np.ndarray, shift: np.ndarray) -> Pose:
@@ -168,6 +186,8 @@ def fitted_rig(rig: Rig, correction: RigCorrection, ball_centre: np.ndarray | No
     diameter = 2.0 * fitted.aperture_radius
     if rig.camera.thin_lens is None:
         camera["pinhole_diameter_m"] = diameter
+        if fitted.aperture_shape != geometry.aperture_shape and rig.camera.aperture.shape != "mask":
+            camera["aperture"] = _ellipse(fitted.aperture_shape, diameter)
     else:  # the lens's aperture is its focal length over its f-number
         camera["thin_lens"]["f_number"] = 1.0 / (fitted.inverse_focal * diameter)
     arm = rig.arm.model_dump()
@@ -175,3 +195,9 @@ def fitted_rig(rig: Rig, correction: RigCorrection, ball_centre: np.ndarray | No
     ball = rig.ball.model_dump()
     ball["centre_m"] = fitted.ball_centre.tolist()
     return Rig.model_validate({**rig.model_dump(), "camera": camera, "arm": arm, "ball": ball})
+
+
+def _ellipse(shape: tuple[float, float, float], diameter: float) -> dict:
+    """``[camera.aperture]`` for the shape matrix ``shape`` over a circle of ``diameter``."""
+    ellipse = FresnelPupil.shape(diameter / 2.0, shape)
+    return {"shape": "ellipse", "axes_m": list(ellipse.axes_m), "angle_deg": math.degrees(ellipse.angle_rad) % 180.0}

@@ -19,6 +19,9 @@ from processing.unmixing.problem import LayoutData, LayoutProblem
 from processing.unmixing.sources import Source, SourcesError
 from processing.unmixing.templates import TemplateBuilder
 
+#: Why the aperture's shape is held where the templates are geometric-Airy.
+ROUND_TEMPLATES = "the geometric-Airy templates draw a round aperture: its shape is the Fresnel templates' to fit"
+
 
 @dataclass(frozen=True)
 class RigFit:
@@ -61,6 +64,7 @@ class RigFit:
             "fitted": {
                 n.name: {"value": round(v, 6), "sigma": round(s, 6), "unit": n.unit, "what": n.what}
                 for n, v, s in zip(FITTED, self.correction.values, self.sigma, strict=True)
+                if n.name not in self.held
             },
             "held": dict(self.held),
             "chi2_per_pixel_described": round(self.chi2_described / self.pixels, 5),
@@ -124,15 +128,16 @@ def fit_rig(
         )
         if not problem.windows or problem.pixels < 16:
             raise SourcesError("no position has a window where every template is whole")
-        limit = bounds(tolerances, builder.geometry)
-        rig = RigProblem(problem, builder.geometry, tools, light_axis, silhouette, limit)
+        limit = bounds(tolerances, builder.geometry, shape=builder.pupil is not None)
+        held = limit == 0.0  # a number the templates cannot see (the aperture's shape, round templates)
+        rig = RigProblem(problem, builder.geometry, tools, light_axis, silhouette, np.where(held, np.inf, limit))
         centres = np.array([s.centre for s in layout], float)
         radius = min(float(np.median([s.radius for s in layout])), max_radius)
         rig.set_correction(RigCorrection.of(np.zeros(len(FITTED)), light_axis))
         chi2_described = (
             problem.chi2(centres, radius) if hold_sources else problem.fit(centres, radius, max_radius, 8)[2]
         )
-        vector = _Vector(len(FITTED), limit, centres, radius, max_radius, hold_sources)
+        vector = _Vector(limit, centres, radius, max_radius, hold_sources)
         x0 = vector.pack(start.vector, centres, radius)
         result = least_squares(
             lambda x: rig.residuals(*vector.unpack(x, light_axis)),
@@ -153,11 +158,13 @@ def fit_rig(
     at_bound = tuple(
         number.name
         for number, value, bound in zip(FITTED, correction.values, limit, strict=True)
-        if abs(value) >= bound * (1.0 - 1e-3)
+        if bound > 0 and abs(value) >= bound * (1.0 - 1e-3)
     )
+    sigma = np.zeros(len(FITTED))
+    sigma[~held] = _sigma(result.jac, result.fun, int(np.count_nonzero(~held)))
     return RigFit(
         correction,
-        tuple(float(s) for s in _sigma(result.jac, result.fun, len(FITTED))),
+        tuple(float(s) for s in sigma),
         sources,
         chi2_described,
         chi2,
@@ -165,6 +172,7 @@ def fit_rig(
         int(result.nfev),
         at_bound,
         silhouette.record(geometry) if silhouette is not None else {},
+        HELD | {name: ROUND_TEMPLATES for name, hold in zip((n.name for n in FITTED), held, strict=True) if hold},
     )
 
 
@@ -173,24 +181,27 @@ class _Vector:
     and their common radius in millimetres (least_squares' relative step of 0.01 is then
     10-40 µm, a small fraction of a pixel on the sensor)."""
 
-    def __init__(
-        self, n: int, limit: np.ndarray, centres: np.ndarray, radius: float, max_radius: float, hold: bool
-    ) -> None:
-        self.n, self.centres, self.radius, self.hold = n, centres, radius, hold
+    def __init__(self, limit: np.ndarray, centres: np.ndarray, radius: float, max_radius: float, hold: bool) -> None:
+        self.centres, self.radius, self.hold = centres, radius, hold
+        self.fitted = limit > 0  # the correction's numbers in the vector (the others held at 0)
+        self.n = int(np.count_nonzero(self.fitted))
         free = 0 if hold else centres.size + 1
-        lower = np.concatenate([-limit, np.full(free, -np.inf)])
-        upper = np.concatenate([limit, np.full(free, np.inf)])
+        lower = np.concatenate([-limit[self.fitted], np.full(free, -np.inf)])
+        upper = np.concatenate([limit[self.fitted], np.full(free, np.inf)])
         if not hold:
             lower[-1], upper[-1] = 0.02, max_radius * 1e3
         self.bounds = (lower, upper)
 
     def pack(self, correction: np.ndarray, centres: np.ndarray, radius: float) -> np.ndarray:
-        x = correction if self.hold else np.concatenate([correction, centres.ravel() * 1e3, [radius * 1e3]])
+        numbers = correction[self.fitted]
+        x = numbers if self.hold else np.concatenate([numbers, centres.ravel() * 1e3, [radius * 1e3]])
         lower, upper = self.bounds
         return np.clip(x, lower + 1e-9, upper - 1e-9)
 
     def unpack(self, x: np.ndarray, light_axis: np.ndarray) -> tuple[RigCorrection, np.ndarray, float]:
-        correction = RigCorrection.of(x[: self.n], light_axis)
+        values = np.zeros(self.fitted.size)
+        values[self.fitted] = x[: self.n]
+        correction = RigCorrection.of(values, light_axis)
         if self.hold:
             return correction, self.centres, self.radius
         return correction, x[self.n : -1].reshape(-1, 2) * 1e-3, float(x[-1]) * 1e-3

@@ -70,37 +70,33 @@ Band = tuple[tuple[float, ...], tuple[float, ...]]
 
 @dataclass(frozen=True)
 class FresnelPupil:
-    """The camera's aperture and bands as the Fresnel templates take them: the ellipse's full
-    diameters as fractions of the pinhole's diameter (``(1, 1)``: a circle), its angle, and each
-    channel's band as (wavelengths, weights). Hashable: the templates' kernels are cached on it.
-    """
+    """Each channel's band as (wavelengths, weights), for the Fresnel templates; the aperture's
+    size and shape are the geometry's (``RigGeometry.aperture_radius``, ``aperture_shape``), which
+    the rig's fit corrects. Hashable: the templates' kernels are cached on it."""
 
     bands: tuple[Band, Band, Band]
-    ratios: tuple[float, float] = (1.0, 1.0)
-    angle_rad: float = 0.0
 
-    @property
-    def area_ratio(self) -> float:
-        """The aperture's area over the circle of the pinhole's diameter."""
-        return self.ratios[0] * self.ratios[1]
+    @staticmethod
+    def shape(aperture_radius: float, aperture_shape: tuple[float, float, float]) -> PupilShape:
+        """The aperture: the circle of ``aperture_radius`` deformed by the symmetric matrix
+        ``aperture_shape`` (xx, xy, yy), its eigenvalues the axes' ratios.
 
-    def shape(self, aperture_radius: float) -> PupilShape:
-        """The aperture for a pinhole of ``aperture_radius`` (the rig's, or as fitted)."""
-        return PupilShape(
-            (2.0 * aperture_radius * self.ratios[0], 2.0 * aperture_radius * self.ratios[1]), self.angle_rad
-        )
+        Examples
+        --------
+        >>> shape = FresnelPupil.shape(1e-4, (1.0, 0.025, 1.0))  # 5 % elliptical, along the diagonal
+        >>> [round(axis * 1e6, 2) for axis in shape.axes_m], round(math.degrees(shape.angle_rad), 1)
+        ([205.0, 195.0], 45.0)
+        """
+        xx, xy, yy = aperture_shape
+        values, vectors = np.linalg.eigh(np.array([[xx, xy], [xy, yy]]))
+        angle = math.atan2(vectors[1, 1], vectors[0, 1])  # the larger axis's direction
+        diameter = 2.0 * aperture_radius
+        return PupilShape((diameter * float(values[1]), diameter * float(values[0])), angle)
 
     @classmethod
     def from_camera(cls, camera: Camera) -> FresnelPupil:
-        """The rig camera's aperture (``[camera.aperture]``: a circle or an ellipse; a mask image,
-        the simulator's, is taken as the circle of ``pinhole_diameter_m``) and bands
-        (``channel_bandwidths_m`` about ``channel_wavelengths_m``, or ``spectral_response``). A
-        thin lens's stop is a circle too: its power is in the curvature the templates trace.
-        """
-        aperture = camera.aperture
-        ratios = (1.0, 1.0)
-        if aperture.axes_m is not None:
-            ratios = (aperture.axes_m[0] / camera.pinhole_diameter_m, aperture.axes_m[1] / camera.pinhole_diameter_m)
+        """The rig camera's bands (``channel_bandwidths_m`` about ``channel_wavelengths_m``, or
+        ``spectral_response``)."""
         if camera.spectral_response is not None:
             bands = tuple(tabulated_band(*camera.spectral_response.curve(c)) for c in range(3))
         else:
@@ -108,7 +104,7 @@ class FresnelPupil:
                 band_samples(centre, width)
                 for centre, width in zip(camera.channel_wavelengths_m, camera.channel_bandwidths_m, strict=True)
             )
-        return cls(bands, ratios, math.radians(aperture.angle_deg))  # type: ignore[arg-type]
+        return cls(bands)  # type: ignore[arg-type]
 
 
 def tabulated_band(wavelengths: np.ndarray, response: np.ndarray, samples: int = 15) -> Band:

@@ -164,12 +164,13 @@ class TemplateBuilder:
         # The kernels are not renormalised: a hard edge's far tails (a few per cent of the light
         # beyond the reach) land outside the template, as in the frames.
         curvature = rounded_curvature(shadow_curvature(rim_cam[:, :2], outline, g.pitch, g.sensor_distance))
-        shape = self.pupil.shape(g.aperture_radius)
+        shape = self.pupil.shape(g.aperture_radius, g.aperture_shape)
         kernels = [
             fresnel_kernel(shape, curvature, float(g.sensor_distance), float(g.pitch), self.pupil.bands[c], reach)
             for c in range(3)
         ]
-        return (*self._convolved(kernels, disc, centre), self.pupil.area_ratio)
+        xx, xy, yy = g.aperture_shape  # the aperture's area over the round rim's
+        return (*self._convolved(kernels, disc, centre), xx * yy - xy * xy)
 
     def _convolved(
         self, kernels: list[np.ndarray], disc: np.ndarray, centre: np.ndarray
