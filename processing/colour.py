@@ -32,6 +32,7 @@ __all__ = [
     "colour_section",
     "describe",
     "over_theta",
+    "relative_luminance",
 ]
 
 #: The largest |Duv| a CCT is given for (CIE 015:2018).
@@ -208,6 +209,44 @@ def over_theta(
         out["max_delta_uv"] = max(distances, default=0.0)
         out["varies"] = bool(out["max_delta_uv"] > VARIES_UV)
     return out
+
+
+def relative_luminance(
+    rgb: Sequence[Sequence[float]] | np.ndarray, weights: Sequence[float] | np.ndarray, description: dict[str, Any]
+) -> list[float]:
+    """Each light's luminance Y per unit of camera signal (its channel mean), over their mean
+    weighed by ``weights``, all through one matrix: the one for the lights mixed by ``weights``.
+
+    A light model's intensity is the camera's channel mean; two sources of equal intensity and
+    different colours differ in luminance. One matrix for all (the DNG matrices interpolated at
+    the mix's CCT) keeps their scales comparable: the two calibration matrices are scaled
+    apart. The weighed mean is 1, so the weights' total luminous share is unchanged.
+
+    Parameters
+    ----------
+    rgb : array_like, shape (n, 3)
+        Each light's camera RGB (any scale; each is taken at a channel mean of 1).
+    weights : array_like, shape (n,)
+        Each light's share of the mix (its flux).
+    description : dict
+        The camera's colour matrices (empty: all 1, the camera signal only).
+
+    Returns
+    -------
+    list of float
+    """
+    channels = np.asarray(rgb, dtype=float).reshape(-1, 3)
+    channels = channels / channels.mean(axis=1, keepdims=True)
+    weights = np.asarray(weights, dtype=float).reshape(-1)
+    mixed = weights @ channels
+    if not description or not (np.all(np.isfinite(mixed)) and mixed.sum() > 0):
+        return [1.0] * len(channels)
+    matrix = _interpolated_matrix(description, _cct_duv(camera_to_xyz(mixed, description))[0])
+    luminance = np.linalg.solve(matrix, channels.T)[1]
+    mean = float(weights @ luminance) / float(weights.sum())
+    if not (np.all(np.isfinite(luminance)) and mean > 0):
+        return [1.0] * len(channels)
+    return [float(v) for v in luminance / mean]
 
 
 def describe(section: dict[str, Any]) -> str:

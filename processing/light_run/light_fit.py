@@ -9,7 +9,7 @@ import numpy as np
 
 from drivers.contracts.runfile import RunFile
 from drivers.contracts.version import __version__
-from processing.colour import colour_section, over_theta
+from processing.colour import colour_section, over_theta, relative_luminance
 from processing.fit import FitError, Samples, fit_with_model_error
 from processing.light_run.errors import ProcessingError
 from processing.light_run.samples import SourceSamples
@@ -55,12 +55,20 @@ def source_chromaticity(theta: np.ndarray, intensity_rgb: np.ndarray, camera_col
 
 def light_chromaticity(sources: Sequence[SourceModel], camera_colour: dict) -> dict:
     """The whole light's colour record: the sources' camera RGB weighed by their flux; empty
-    where no source has a colour measured through the channels."""
+    where no source has a colour measured through the channels. Each source's record gets its
+    ``relative_luminance`` (:func:`processing.colour.relative_luminance`: its luminance per unit of
+    intensity over the light's), which the TM-25 rays' luminous flux is shared by."""
     if not any(s.chromaticity for s in sources):
         return {}
-    mixed = sum((s.flux() * np.asarray(s.colour) for s in sources), np.zeros(3))
+    fluxes = [s.flux() for s in sources]
+    mixed = sum((f * np.asarray(s.colour) for s, f in zip(sources, fluxes, strict=True)), np.zeros(3))
     section = colour_section(mixed, camera_colour)
     section["weighting"] = "the sources' camera RGB weighed by their flux"
+    if "XYZ" in section:
+        shares = relative_luminance([s.colour for s in sources], fluxes, camera_colour)
+        for s, share in zip(sources, shares, strict=True):
+            if s.chromaticity:
+                s.chromaticity["relative_luminance"] = share
     return section
 
 
