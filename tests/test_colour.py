@@ -14,6 +14,7 @@ import h5py
 import numpy as np
 import pytest
 from conftest import REDUCED_RIG
+from scipy.integrate import trapezoid
 
 from drivers.camera import RawFrame
 from drivers.contracts.camera_colour import CameraColourError, checked_camera_colour
@@ -184,13 +185,14 @@ def test_colour_over_theta_bins_the_samples_and_says_whether_it_varies():
     assert same["varies"] is False and same["max_delta_uv"] < 1e-9
 
 
-def _model_with_colour(matrices, far=(2700.0, 5000.0)):
-    """Two sources of 2700 and 5000 K seen at 0° and 10°; at 10° of the colour ``far`` gives."""
+def _model_with_colour(matrices, far=(2700.0, 5000.0), sigmas=(0.4, 0.4)):
+    """Two sources of 2700 and 5000 K seen at 0° and 10°; at 10° of the colour ``far`` gives; lobes
+    of ``sigmas`` (radians)."""
     camera = Camera()
     sources = []
     for k, (cct_k, far_k) in enumerate(zip((2700.0, 5000.0), far, strict=True)):
         theta = np.linspace(0.0, 0.8, 20)
-        values = np.exp(-(theta**2) / (2 * 0.4**2))
+        values = np.exp(-(theta**2) / (2 * sigmas[k] ** 2))
         fit = fit_intensity(Samples(theta, np.zeros(20), values, np.full(20, 1e-3), f"s{k}"), "gaussian")
         rgb = camera_rgb(planck(cct_k), camera)
         chroma = colour_section(rgb, matrices)
@@ -223,7 +225,7 @@ def test_the_light_model_file_and_the_light_files_carry_the_colour(tmp_path):
 def test_the_report_plots_the_colour_over_theta_where_it_varies():
     model = _model_with_colour(colour_matrices(Camera()), far=(3000.0, 5000.0))
     html = report_colour_section(model)
-    assert "<img " in html and "Varying by more than 0.002 in u′v′: s0." in html
+    assert "<img " in html and "Varying by more than 0.002 in u′v′: s0, the whole light." in html
 
 
 def test_a_model_without_matrices_writes_no_cct():
@@ -308,3 +310,33 @@ def test_the_tm25_rays_carry_their_sources_colour(tmp_path):
     grey = LightModel([replace(s, chromaticity={}) for s in model.sources], provenance=model.provenance)
     head, rays = _read_tm25_independently(write_tm25(grey, tmp_path / "grey.tm25ray", 2000, seed=2))
     assert head["flags"] == (1, 1, 1, 0, 0, 0, 0, 0) and "Tri_Y" not in rays
+
+
+def test_the_whole_lights_colour_over_theta_weighs_the_sources_by_their_flux(tmp_path):
+    """A narrow warm lobe and a wide cool one, each of one colour: the light cools with θ. Each
+    bin's colour is the sources' camera RGB weighed by their flux in the bin (checked against the
+    trapezoid rule), and the TM-25 rays leaving in that band carry the same colour."""
+    matrices = colour_matrices(Camera())
+    model = _model_with_colour(matrices, sigmas=(0.2, 0.6))
+    over = model.chromaticity["over_theta"]
+    assert over["varies"] is True and over["bin_deg"] == 5.0 and over["theta_max_deg"] == pytest.approx(45.8, abs=0.1)
+    assert len(over["cct_k"]) == 10 and np.all(np.diff(over["cct_k"]) > 0)  # cooler outwards
+    assert over["cct_k"][0] < 3600.0 and over["cct_k"][-1] > 4700.0
+    k = 4  # 20°-25°
+    t = np.radians(np.linspace(20.0, 25.0, 2001))
+    flux = [2 * np.pi * trapezoid(s.intensity(t) * np.sin(t), t) for s in model.sources]
+    rgb = sum(f * np.asarray(s.colour) for f, s in zip(flux, model.sources, strict=True))
+    expected = chromaticity(camera_to_xyz(rgb, matrices))
+    assert (over["x"][k], over["y"][k]) == pytest.approx((expected["x"], expected["y"]), abs=1e-6)
+    assert over["flux"][k] == pytest.approx(sum(flux), rel=1e-6)
+    back = LightModel.load(model.save(tmp_path / "light.json"))
+    assert back.chromaticity["over_theta"] == over  # in the light model JSON
+
+    _, rays = read_tm25(write_tm25(model, tmp_path / "light.tm25ray", 60_000, seed=3))
+    theta = np.degrees(np.arccos(np.clip(rays[:, 5].astype(np.float64), -1, 1)))
+    band = (theta >= 20.0) & (theta < 25.0)
+    total = rays[band][:, [8, 7, 9]].astype(np.float64).sum(axis=0)  # Tri_X, Tri_Y, Tri_Z
+    assert (total[0] / total.sum(), total[1] / total.sum()) == pytest.approx((expected["x"], expected["y"]), abs=3e-3)
+
+    html = report_colour_section(model)
+    assert "<img " in html and "Varying by more than 0.002 in u′v′: the whole light." in html
