@@ -336,7 +336,8 @@ def test_the_whole_lights_colour_over_theta_weighs_the_sources_by_their_flux(tmp
     theta = np.degrees(np.arccos(np.clip(rays[:, 5].astype(np.float64), -1, 1)))
     band = (theta >= 20.0) & (theta < 25.0)
     total = rays[band][:, [8, 7, 9]].astype(np.float64).sum(axis=0)  # Tri_X, Tri_Y, Tri_Z
-    assert (total[0] / total.sum(), total[1] / total.sum()) == pytest.approx((expected["x"], expected["y"]), abs=3e-3)
+    xy = (total[0] / total.sum(), total[1] / total.sum())
+    assert xy == pytest.approx((expected["x"], expected["y"]), abs=1.5e-3)  # measured: 4e-4 (5344 rays)
 
     html = report_colour_section(model)
     assert "<img " in html and "Varying by more than 0.002 in u′v′: the whole light." in html

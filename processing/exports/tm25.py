@@ -245,7 +245,9 @@ def _colour_note(model: LightModel, colour: RayColour | None) -> str:
     sources = "; ".join(f"{s.name}: {describe(s.chromaticity)}" for s in model.sources if s.chromaticity)
     note = f" Colour of the whole light: {describe(model.chromaticity)}. Per source: {sources}."
     if colour is not None:
-        units = "lm" if colour.absolute else "relative units (the ray's flux phi; no lumen calibration given)"
+        units = "lm"
+        if not colour.absolute:
+            units = "relative units (phi times the source's relative luminance; no lumens given)"
         note += (
             f" Columns Tri_Y, Tri_X, Tri_Z: each ray's CIE 1931 2 deg tristimulus values, its source's "
             f"chromaticity at the ray's luminous flux Tri_Y in {units}."
