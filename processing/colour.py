@@ -27,11 +27,13 @@ from drivers.contracts.camera_colour import ILLUMINANT_CCT_K
 
 __all__ = [
     "DUV_LIMIT",
+    "binned_colour",
     "camera_to_xyz",
     "chromaticity",
     "colour_section",
     "describe",
     "over_theta",
+    "relative_luminance",
 ]
 
 #: The largest |Duv| a CCT is given for (CIE 015:2018).
@@ -178,36 +180,85 @@ def over_theta(
     theta = np.asarray(theta, dtype=float).reshape(-1)
     rgb = np.asarray(rgb, dtype=float).reshape(-1, 3)
     ok = np.isfinite(theta) & np.all(np.isfinite(rgb), axis=1) & (rgb.sum(axis=1) > 0)
-    out: dict[str, Any] = {"bin_deg": bin_deg, "theta_deg": [], "samples": [], "camera_rgb": []}
-    keys = ("x", "y", "u_prime", "v_prime", "cct_k", "duv")
-    if description:
-        out.update({k: [] for k in keys})
     degrees = np.degrees(np.abs(theta[ok]))
     bins = np.floor(degrees / bin_deg).astype(int)
-    signal = []
+    centres, samples, totals = [], [], []
     for b in np.unique(bins):
         members = bins == b
-        total = rgb[ok][members].sum(axis=0)
         weight = rgb[ok][members].sum(axis=1)
-        out["theta_deg"].append(float(np.sum(degrees[members] * weight) / weight.sum()))
-        out["samples"].append(int(members.sum()))
+        centres.append(float(np.sum(degrees[members] * weight) / weight.sum()))
+        samples.append(int(members.sum()))
+        totals.append(rgb[ok][members].sum(axis=0))
+    out: dict[str, Any] = {"bin_deg": bin_deg}
+    out.update(binned_colour(centres, np.reshape(totals, (-1, 3)), description))
+    out["samples"] = samples
+    return out
+
+
+def binned_colour(theta_deg: Sequence[float], rgb: np.ndarray, description: dict[str, Any]) -> dict[str, Any]:
+    """The colour record of bins of θ from each bin's camera RGB (summed, any scale): the fields
+    of :func:`over_theta` but ``bin_deg`` and ``samples``; the light's mean colour, that
+    ``max_delta_uv`` is measured from, is the bins' sum."""
+    rgb = np.asarray(rgb, dtype=float).reshape(-1, 3)
+    keys = ("x", "y", "u_prime", "v_prime", "cct_k", "duv")
+    out: dict[str, Any] = {"theta_deg": [float(t) for t in theta_deg], "camera_rgb": []}
+    if description:
+        out.update({k: [] for k in keys})
+    for total in rgb:
         out["camera_rgb"].append([float(v) for v in total / total.mean()])
-        signal.append(float(total.sum()))
         if description:
             c = chromaticity(camera_to_xyz(total, description))
             for k in keys:
                 out[k].append(c[k])
     if description and out["u_prime"]:
-        mean = chromaticity(camera_to_xyz(rgb[ok].sum(axis=0), description))
-        strongest = max(signal)
+        mean = chromaticity(camera_to_xyz(rgb.sum(axis=0), description))
+        signal = rgb.sum(axis=1)
         distances = [
             math.hypot(u - mean["u_prime"], v - mean["v_prime"])
             for u, v, s in zip(out["u_prime"], out["v_prime"], signal, strict=True)
-            if u is not None and v is not None and s >= JUDGED_SIGNAL * strongest
+            if u is not None and v is not None and s >= JUDGED_SIGNAL * signal.max()
         ]
         out["max_delta_uv"] = max(distances, default=0.0)
         out["varies"] = bool(out["max_delta_uv"] > VARIES_UV)
     return out
+
+
+def relative_luminance(
+    rgb: Sequence[Sequence[float]] | np.ndarray, weights: Sequence[float] | np.ndarray, description: dict[str, Any]
+) -> list[float]:
+    """Each light's luminance Y per unit of camera signal (its channel mean), over their mean
+    weighed by ``weights``, all through one matrix: the one for the lights mixed by ``weights``.
+
+    A light model's intensity is the camera's channel mean; two sources of equal intensity and
+    different colours differ in luminance. One matrix for all (the DNG matrices interpolated at
+    the mix's CCT) keeps their scales comparable: the two calibration matrices are scaled
+    apart. The weighed mean is 1, so the weights' total luminous share is unchanged.
+
+    Parameters
+    ----------
+    rgb : array_like, shape (n, 3)
+        Each light's camera RGB (any scale; each is taken at a channel mean of 1).
+    weights : array_like, shape (n,)
+        Each light's share of the mix (its flux).
+    description : dict
+        The camera's colour matrices (empty: all 1, the camera signal only).
+
+    Returns
+    -------
+    list of float
+    """
+    channels = np.asarray(rgb, dtype=float).reshape(-1, 3)
+    channels = channels / channels.mean(axis=1, keepdims=True)
+    weights = np.asarray(weights, dtype=float).reshape(-1)
+    mixed = weights @ channels
+    if not description or not (np.all(np.isfinite(mixed)) and mixed.sum() > 0):
+        return [1.0] * len(channels)
+    matrix = _interpolated_matrix(description, _cct_duv(camera_to_xyz(mixed, description))[0])
+    luminance = np.linalg.solve(matrix, channels.T)[1]
+    mean = float(weights @ luminance) / float(weights.sum())
+    if not (np.all(np.isfinite(luminance)) and mean > 0):
+        return [1.0] * len(channels)
+    return [float(v) for v in luminance / mean]
 
 
 def describe(section: dict[str, Any]) -> str:

@@ -42,6 +42,8 @@ __all__ = [
     "PlaneAngles",
     "Photometry",
     "far_field",
+    "ROOM_INDICES",
+    "direct_ratios",
     "measured_theta_max",
     "summarize",
 ]
@@ -56,6 +58,9 @@ _THRESHOLDS = {"beam": 0.5, "field": 0.1}
 _NODES = 32  # Gauss–Legendre nodes per θ segment: exact to rounding for the fits' smooth lobes
 _N_PHI_2D = 72  # the periodic trapezoid rule in φ for the 2-D fits
 _STEP_DEG = 0.05  # the γ step the beam and field angles are found on (then interpolated)
+#: The room indices ``k`` of EULUMDAT's direct ratios (line 24), in its order.
+ROOM_INDICES = (0.6, 0.8, 1.0, 1.25, 1.5, 2.0, 2.5, 3.0, 4.0, 5.0)
+_ROOM_NODES = 64  # Gauss–Legendre nodes per half axis of the direct ratios' offset plane
 
 
 def measured_theta_max(source: SourceModel) -> float:
@@ -210,6 +215,60 @@ def _peak(model: LightModel, extrapolation: str) -> tuple[float, float, float, b
     return float(table[i, j]), float(gamma[j]), float(c[i]), symmetric
 
 
+def direct_ratios(
+    model: LightModel, extrapolation: str = Extrapolation.FITTED, room_indices: tuple[float, ...] = ROOM_INDICES
+) -> tuple[float, ...]:
+    """The direct ratio for each room index: the share of the light's flux that falls directly on
+    the work plane of a square room of index ``k``, the luminaires spread evenly over its ceiling.
+
+    The room: side ``a``, the luminaires at height ``h`` above the work plane, ``k = a² / (2ah) =
+    a / 2h``, walls and ceiling taking whatever misses the work plane; the light hangs axis down,
+    its C0 along one wall. Luminaires spread evenly over the ceiling (the limit of a dense
+    regular array) make the share of a light at ``p`` landing on the work plane, averaged over
+    ``p``, a single integral over the offset ``d`` from a luminaire to the point lit::
+
+        DR(k) = (1/Φ) ∫∫ (1 − |dx|/a)(1 − |dy|/a) · I(θ, φ) cos³θ / h² d(dx) d(dy)
+
+    over ``|dx|, |dy| < a`` (the two squares' overlap when shifted by ``d``), ``tan θ = |d|/h``,
+    ``φ = atan2(dy, dx)``; ``Φ`` the flux in front of the light. Computed by Gauss–Legendre in
+    ``atan(dx/h)`` and ``atan(dy/h)``, 64 nodes each side of the nadir.
+
+    Parameters
+    ----------
+    model : LightModel
+    extrapolation : {"fitted", "none"}
+        The light the files hold beyond the measured θ (:func:`far_field`).
+    room_indices : tuple of float
+        The ``k`` (EULUMDAT's ten by default).
+
+    Returns
+    -------
+    tuple of float
+        The direct ratios, fractions of 1.
+    """
+    x, w = _unit_nodes(_ROOM_NODES)
+    flux = float(sum(_segment_flux_of(model, s, extrapolation) for s in model.sources))
+    out = []
+    for k in room_indices:
+        a = 2.0 * float(k)  # h = 1
+        top = math.atan(a)
+        t = np.concatenate([0.5 * top * (x - 1.0), 0.5 * top * (x + 1.0)])  # atan(d) over (-a, 0) and (0, a)
+        d = np.tan(t)
+        weight = np.concatenate([0.5 * top * w, 0.5 * top * w]) / np.cos(t) ** 2 * (1.0 - np.abs(d) / a)
+        dx, dy = np.meshgrid(d, d, indexing="ij")
+        r2 = dx * dx + dy * dy
+        cos_t = 1.0 / np.sqrt(1.0 + r2)
+        values = far_field(model, np.arccos(cos_t), np.arctan2(dy, dx), extrapolation) * cos_t**3
+        out.append(float(weight @ values @ weight) / flux)
+    return tuple(out)
+
+
+def _segment_flux_of(model: LightModel, source: SourceModel, extrapolation: str) -> float:
+    """A source's flux in front of the light, up to its measured θ only with ``extrapolation="none"``."""
+    top = measured_theta_max(source) if Extrapolation(extrapolation) is Extrapolation.NONE else 0.5 * math.pi
+    return _segment_flux(source, 0.0, min(top, 0.5 * math.pi))
+
+
 @dataclass(frozen=True)
 class NearField:
     """The illuminance on a plane facing the light at ``distance_m``, on a square grid.
@@ -335,6 +394,8 @@ class Photometry:
         ``{"beam": {plane: PlaneAngles}, "field": {…}}``.
     near : NearField or None
         The illuminance at :data:`NEAR_FIELD_DISTANCE_M`, when asked for.
+    direct_ratios : tuple of float
+        :func:`direct_ratios` for :data:`ROOM_INDICES`.
     """
 
     extrapolation: str
@@ -347,6 +408,7 @@ class Photometry:
     peak: tuple[float, float, float, bool]
     angles: dict[str, dict[str, PlaneAngles]]
     near: NearField | None
+    direct_ratios: tuple[float, ...] = ()
 
     @property
     def total_flux(self) -> float:
@@ -404,6 +466,11 @@ class Photometry:
             "downward_flux_percent": 100.0,
             "zones": zones,
             "peak": {"intensity": intensity, "gamma_deg": gamma, "c_deg": c, "rotationally_symmetric": symmetric},
+            "direct_ratios": {
+                "room_index": list(ROOM_INDICES),
+                "ratio": list(self.direct_ratios),
+                "room": "square, the luminaires spread evenly over the ceiling, the work plane its floor",
+            },
         }
         for kind in ("beam", "field"):
             out[f"{kind}_angle_deg"] = {plane: a.angle_deg for plane, a in self.angles[kind].items()}
@@ -454,7 +521,7 @@ def summarize(
     (Gauss–Legendre, 32 nodes a segment, exact to rounding for smooth lobes); the peak is
     the largest value of the far field on a 0.1° × 2.5° grid; the beam and field angles are
     the crossings of 50 % and 10 % of that peak outward from each plane's maximum, on a
-    0.05° grid interpolated linearly.
+    0.05° grid interpolated linearly. The direct ratios are :func:`direct_ratios`.
     """
     extrapolation = Extrapolation(extrapolation).value
     measured, beyond = _zone_fluxes(model, ZONE_EDGES_DEG)
@@ -475,5 +542,15 @@ def summarize(
         half_width = near_field_m * math.tan(math.radians(half_angle))
         near = near_field(model, near_field_m, half_width, extrapolation=extrapolation)
     return Photometry(
-        extrapolation, model.units, theta_max, ZONE_EDGES_DEG, measured, beyond, fitted_beyond, peak, angles, near
+        extrapolation,
+        model.units,
+        theta_max,
+        ZONE_EDGES_DEG,
+        measured,
+        beyond,
+        fitted_beyond,
+        peak,
+        angles,
+        near,
+        direct_ratios(model, extrapolation),
     )

@@ -6,12 +6,15 @@ from __future__ import annotations
 
 import json
 import math
+import struct
+from dataclasses import replace
 
 import colour
 import h5py
 import numpy as np
 import pytest
 from conftest import REDUCED_RIG
+from scipy.integrate import trapezoid
 
 from drivers.camera import RawFrame
 from drivers.contracts.camera_colour import CameraColourError, checked_camera_colour
@@ -21,6 +24,7 @@ from drivers.raw_decode import decode_raw
 from processing.colour import camera_to_xyz, chromaticity, colour_section, over_theta
 from processing.exports import read_tm25, write_ies, write_ldt, write_tm25
 from processing.fit import Samples, fit_intensity
+from processing.light_run.light_fit import light_chromaticity
 from processing.lightmodel import LightModel, SourceModel
 from processing.report.colour import colour_section as report_colour_section
 from sim_devices.colour import WAVELENGTHS_NM, camera_rgb, colour_matrices, planck, spectrum_xyz
@@ -181,21 +185,21 @@ def test_colour_over_theta_bins_the_samples_and_says_whether_it_varies():
     assert same["varies"] is False and same["max_delta_uv"] < 1e-9
 
 
-def _model_with_colour(matrices, far=(2700.0, 5000.0)):
-    """Two sources of 2700 and 5000 K seen at 0° and 10°; at 10° of the colour ``far`` gives."""
+def _model_with_colour(matrices, far=(2700.0, 5000.0), sigmas=(0.4, 0.4)):
+    """Two sources of 2700 and 5000 K seen at 0° and 10°; at 10° of the colour ``far`` gives; lobes
+    of ``sigmas`` (radians)."""
     camera = Camera()
     sources = []
     for k, (cct_k, far_k) in enumerate(zip((2700.0, 5000.0), far, strict=True)):
         theta = np.linspace(0.0, 0.8, 20)
-        values = np.exp(-(theta**2) / (2 * 0.4**2))
+        values = np.exp(-(theta**2) / (2 * sigmas[k] ** 2))
         fit = fit_intensity(Samples(theta, np.zeros(20), values, np.full(20, 1e-3), f"s{k}"), "gaussian")
         rgb = camera_rgb(planck(cct_k), camera)
         chroma = colour_section(rgb, matrices)
         rgb_far = camera_rgb(planck(far_k), camera)
         chroma["over_theta"] = over_theta(np.radians([0.0, 10.0]), np.array([rgb, rgb_far]), matrices)
         sources.append(SourceModel(f"s{k}", (0.004 * k, 0.0), 5e-4, fit, {}, tuple(rgb), chroma))
-    mixed = sum(s.flux() * np.asarray(s.colour) for s in sources)
-    return LightModel(sources, provenance={"run_id": "run-colour"}, chromaticity=colour_section(mixed, matrices))
+    return LightModel(sources, provenance={"run_id": "run-colour"}, chromaticity=light_chromaticity(sources, matrices))
 
 
 def test_the_light_model_file_and_the_light_files_carry_the_colour(tmp_path):
@@ -221,7 +225,7 @@ def test_the_light_model_file_and_the_light_files_carry_the_colour(tmp_path):
 def test_the_report_plots_the_colour_over_theta_where_it_varies():
     model = _model_with_colour(colour_matrices(Camera()), far=(3000.0, 5000.0))
     html = report_colour_section(model)
-    assert "<img " in html and "Varying by more than 0.002 in u′v′: s0." in html
+    assert "<img " in html and "Varying by more than 0.002 in u′v′: s0, the whole light." in html
 
 
 def test_a_model_without_matrices_writes_no_cct():
@@ -244,3 +248,96 @@ def test_a_truth_emitter_of_a_colour_temperature_is_seen_through_the_cameras_cha
     with pytest.raises(ValueError, match="cct_k"):
         TruthLight(emitters=[Emitter(cct_k=100.0)])
     assert issubclass(TruthError, ValueError) and math.isfinite(seen.emitters[0].spectrum[1])
+
+
+def _read_tm25_independently(path):
+    """The TM-25-13 file read from its bytes without processing.exports: the flags (4.7.2), the
+    fluxes and spectrum type (4.7.1), and the rays, whose columns follow the flags in the order
+    x y z kx ky kz phi lambda Tri_Y S1..PolEllipseZ Tri_X Tri_Z spectrumIdx (TM-25-13 4.7.6)."""
+    data = path.read_bytes()
+    assert data[:4] == b"TM25" and struct.unpack_from("<i", data, 4)[0] == 2013
+    luminous, radiant = struct.unpack_from("<ff", data, 12)
+    (n_rays,) = struct.unpack_from("<Q", data, 20)
+    (spectrum_type,) = struct.unpack_from("<i", data, 60)
+    n_spectra, n_additional, text_bytes = struct.unpack_from("<3i", data, 76)
+    flags = struct.unpack_from("<8i", data, 256)
+    assert (n_spectra, n_additional, text_bytes) == (0, 0, 0)
+    names = [["x", "y", "z", "kx", "ky", "kz"], ["phi"], ["lambda"], ["Tri_Y"], ["S1", "S2", "S3", "Px", "Py", "Pz"]]
+    names += [["Tri_X", "Tri_Z"], ["spectrumIdx"]]
+    columns = names[0] + [c for flag, group in zip(flags[2:], names[1:], strict=True) if flag for c in group]
+    rays = np.frombuffer(data, "<f4", offset=36288).reshape(n_rays, len(columns))
+    return {"luminous": luminous, "radiant": radiant, "spectrum_type": spectrum_type, "flags": flags}, {
+        c: rays[:, k].astype(np.float64) for k, c in enumerate(columns)
+    }
+
+
+def test_the_tm25_rays_carry_their_sources_colour(tmp_path):
+    """Each ray carries its source's CIE XYZ at its luminous flux (its flux weighed by the source's
+    luminance per unit of intensity); the rays' sum is the whole light's colour (mixed in camera
+    RGB through one matrix, the rays' sources each through its own: within 1e-3 in xy)."""
+    model = _model_with_colour(colour_matrices(Camera()))
+    path = write_tm25(model, tmp_path / "light.tm25ray", 20_000, seed=2)
+    head, rays = _read_tm25_independently(path)
+    assert head["flags"] == (1, 1, 1, 0, 1, 0, 1, 0) and head["spectrum_type"] == 0
+    assert math.isnan(head["luminous"])  # relative: no lumens given
+    assert rays["Tri_Y"].sum() == pytest.approx(rays["phi"].sum(), rel=1e-5)  # relative: the light's flux
+    header, same = read_tm25(path)
+    assert header["columns"] == ["x", "y", "z", "kx", "ky", "kz", "phi", "Tri_Y", "Tri_X", "Tri_Z"]
+    assert "Tri_Y in relative units" in header["texts"]["additional_info"]
+    np.testing.assert_array_equal(same[:, 8], rays["Tri_X"])
+    which = np.round(rays["x"] / 4.0).astype(int)  # the sources sit at x = 0 and 4 mm
+    luminance = [s.chromaticity["relative_luminance"] for s in model.sources]
+    assert sum(s.flux() * w for s, w in zip(model.sources, luminance, strict=True)) == pytest.approx(model.total_flux())
+    assert luminance[0] != pytest.approx(1.0, abs=0.01)  # a warm and a cool source of equal intensity
+    for k, source in enumerate(model.sources):
+        xyz = np.array(source.chromaticity["XYZ"])
+        mine = which == k
+        assert mine.sum() > 5000
+        np.testing.assert_allclose(rays["Tri_X"][mine] / rays["Tri_Y"][mine], xyz[0] / xyz[1], rtol=1e-6)
+        np.testing.assert_allclose(rays["Tri_Z"][mine] / rays["Tri_Y"][mine], xyz[2] / xyz[1], rtol=1e-6)
+        np.testing.assert_allclose(rays["Tri_Y"][mine] / rays["phi"][mine], luminance[k], rtol=1e-6)
+    total = np.array([rays["Tri_X"].sum(), rays["Tri_Y"].sum(), rays["Tri_Z"].sum()])
+    x, y = total[:2] / total.sum()
+    assert (x, y) == pytest.approx((model.chromaticity["x"], model.chromaticity["y"]), abs=1e-3)  # measured 8e-4
+
+    lumens = write_tm25(model, tmp_path / "lm.tm25ray", 2000, seed=2, lamp_lumens=800.0)
+    head, rays = _read_tm25_independently(lumens)
+    assert head["luminous"] == pytest.approx(800.0, rel=1e-6) and rays["Tri_Y"].sum() == pytest.approx(800.0, rel=1e-5)
+    calibrated = write_tm25(model, tmp_path / "cd.tm25ray", 2000, seed=2, calibration=50.0)
+    head, rays = _read_tm25_independently(calibrated)
+    assert head["luminous"] == pytest.approx(50.0 * model.total_flux(), rel=1e-5)
+    assert "Tri_Y in lm" in read_tm25(calibrated)[0]["texts"]["additional_info"]
+    grey = LightModel([replace(s, chromaticity={}) for s in model.sources], provenance=model.provenance)
+    head, rays = _read_tm25_independently(write_tm25(grey, tmp_path / "grey.tm25ray", 2000, seed=2))
+    assert head["flags"] == (1, 1, 1, 0, 0, 0, 0, 0) and "Tri_Y" not in rays
+
+
+def test_the_whole_lights_colour_over_theta_weighs_the_sources_by_their_flux(tmp_path):
+    """A narrow warm lobe and a wide cool one, each of one colour: the light cools with θ. Each
+    bin's colour is the sources' camera RGB weighed by their flux in the bin (checked against the
+    trapezoid rule), and the TM-25 rays leaving in that band carry the same colour."""
+    matrices = colour_matrices(Camera())
+    model = _model_with_colour(matrices, sigmas=(0.2, 0.6))
+    over = model.chromaticity["over_theta"]
+    assert over["varies"] is True and over["bin_deg"] == 5.0 and over["theta_max_deg"] == pytest.approx(45.8, abs=0.1)
+    assert len(over["cct_k"]) == 10 and np.all(np.diff(over["cct_k"]) > 0)  # cooler outwards
+    assert over["cct_k"][0] < 3600.0 and over["cct_k"][-1] > 4700.0
+    k = 4  # 20°-25°
+    t = np.radians(np.linspace(20.0, 25.0, 2001))
+    flux = [2 * np.pi * trapezoid(s.intensity(t) * np.sin(t), t) for s in model.sources]
+    rgb = sum(f * np.asarray(s.colour) for f, s in zip(flux, model.sources, strict=True))
+    expected = chromaticity(camera_to_xyz(rgb, matrices))
+    assert (over["x"][k], over["y"][k]) == pytest.approx((expected["x"], expected["y"]), abs=1e-6)
+    assert over["flux"][k] == pytest.approx(sum(flux), rel=1e-6)
+    back = LightModel.load(model.save(tmp_path / "light.json"))
+    assert back.chromaticity["over_theta"] == over  # in the light model JSON
+
+    _, rays = read_tm25(write_tm25(model, tmp_path / "light.tm25ray", 60_000, seed=3))
+    theta = np.degrees(np.arccos(np.clip(rays[:, 5].astype(np.float64), -1, 1)))
+    band = (theta >= 20.0) & (theta < 25.0)
+    total = rays[band][:, [8, 7, 9]].astype(np.float64).sum(axis=0)  # Tri_X, Tri_Y, Tri_Z
+    xy = (total[0] / total.sum(), total[1] / total.sum())
+    assert xy == pytest.approx((expected["x"], expected["y"]), abs=1.5e-3)  # measured: 4e-4 (5344 rays)
+
+    html = report_colour_section(model)
+    assert "<img " in html and "Varying by more than 0.002 in u′v′: the whole light." in html

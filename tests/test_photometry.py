@@ -201,3 +201,44 @@ def test_the_light_model_keeps_its_photometry_and_the_report_shows_it_first(tmp_
     assert 'alt="C-plane polar diagram and isocandela diagram"' in section and 'alt="illuminance at 30 cm"' in section
     assert "<th>zone γ</th>" in section and "<td>40–50°</td>" in section
     assert "could not be drawn" not in text
+
+
+# --------------------------------------------------------------------------- the LDT's direct ratios
+
+
+def _direct_ratio_by_brute_force(model: LightModel, k: float, lights: int = 12, floor: int = 150) -> float:
+    """The share of the light's flux that falls directly on the floor of a square room of index k
+    (height 1 above the work plane, side 2k), averaged over luminaires all over its ceiling (at
+    lights × lights Gauss–Legendre nodes): for each, the illuminance I·cos³θ/h² summed over the
+    centres of a floor × floor grid."""
+    a = 2.0 * k
+    cells = (np.arange(floor) + 0.5) * a / floor
+    fx, fy = np.meshgrid(cells, cells, indexing="ij")
+    nodes, weights = np.polynomial.legendre.leggauss(lights)
+    at, weights = 0.5 * a * (nodes + 1.0), 0.5 * weights
+    landed = 0.0
+    for px, wx in zip(at, weights, strict=True):
+        for py, wy in zip(at, weights, strict=True):
+            dx, dy = fx - px, fy - py
+            cos_t = 1.0 / np.sqrt(1.0 + dx * dx + dy * dy)
+            on_floor = np.sum(model.far_field(np.arccos(cos_t), np.arctan2(dy, dx)) * cos_t**3) * (a / floor) ** 2
+            landed += wx * wy * on_floor
+    theta, phi = np.radians(np.linspace(0, 90, 721)), np.radians(np.linspace(0, 360, 145))
+    grid = model.far_field(theta[:, None], phi[None, :]) * np.sin(theta)[:, None]
+    flux = np.trapezoid(np.trapezoid(grid, phi, axis=1), theta)
+    return float(landed / flux)
+
+
+def test_the_ldt_direct_ratios_are_the_share_of_flux_on_a_rooms_floor(tmp_path):
+    """EULUMDAT line 24, the direct ratios for the room indices 0.6 … 5, against a brute-force sum of
+    the illuminance over a room's floor from luminaires all over its ceiling (within 0.1 %)."""
+    model = five_lobes()
+    lines = write_ldt(model, tmp_path / "light.ldt").read_bytes().decode("ascii").split("\r\n")
+    ratios = [float(v) for v in lines[32:42]]
+    assert lines[31] == "0" and float(lines[42]) == 0.0  # 26f (wattage) before, the first C angle after
+    assert all(0 < r < 1 for r in ratios) and np.all(np.diff(ratios) > 0)
+    for k, ratio in zip((0.6, 1.25, 5.0), (ratios[0], ratios[3], ratios[9]), strict=True):
+        assert ratio == pytest.approx(_direct_ratio_by_brute_force(model, k), rel=1e-3), k  # measured: 1.3e-4
+    assert summarize(model, near_field_m=None).record()["direct_ratios"]["ratio"] == pytest.approx(ratios, abs=5e-5)
+    lambertian = [float(v) for v in write_ldt(cos_power(1.0), tmp_path / "l.ldt").read_text().split("\n")[32:42]]
+    assert lambertian[0] < ratios[0] and lambertian[-1] < ratios[-1]  # a wide light loses more to the walls

@@ -139,8 +139,10 @@ def write_ldt(
     lists, and a full table reads the same everywhere. The type indicator says whether the
     far field is rotationally symmetric (Ityp 1: every source has a 1-D fit) or not
     (Ityp 3). The downward flux fraction and the light output ratio are 100 % (everything
-    leaves the front of the plane, the model is the light itself); the direct ratios
-    (utilisation factors for standard rooms) are not computed and are written as zero.
+    leaves the front of the plane, the model is the light itself). The direct ratios (line 24,
+    room indices 0.6 … 5) are :func:`processing.photometry.direct_ratios`: the share of the
+    flux falling directly on the work plane of a square room with the luminaires spread evenly
+    over its ceiling.
     """
     path = Path(path)
     c_all = angle_grid(path, "c_step_deg", c_step_deg, 360.0)[:-1]
@@ -152,7 +154,7 @@ def write_ldt(
     grid = (len(c_all), c_step_deg, len(gamma), gamma_step_deg)
     lines = _ldt_description(model, path.name, absolute, grid, (company, luminaire, luminaire_number), summary)
     lines += _ldt_luminaire_and_lamps(model, absolute, lamp_flux, summary, lamp)
-    lines += ["0"] * 10  # direct ratios, not computed
+    lines += [f"{v:.4f}" for v in summary.direct_ratios]  # direct ratios for the room indices 0.6 … 5
     lines += [plain_number(v) for v in c_all]
     lines += [plain_number(v) for v in gamma]
     cd_per_klm = table * factor * 1000.0 / lamp_flux

@@ -6,7 +6,8 @@ import datetime as _dt
 import math
 import os
 import struct
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, BinaryIO
 
@@ -14,7 +15,7 @@ import numpy as np
 
 from drivers.contracts.version import __version__
 from processing.colour import describe
-from processing.exports.far_field import ExportError
+from processing.exports.far_field import ExportError, far_field_scaling
 from processing.lightmodel import LightModel, SourceModel
 
 
@@ -130,19 +131,25 @@ RAY_BLOCK = 1 << 17
 
 
 def _ray_blocks(
-    model: LightModel, fluxes: np.ndarray, n_rays: int, rng: np.random.Generator, block: int = RAY_BLOCK
+    model: LightModel,
+    fluxes: np.ndarray,
+    n_rays: int,
+    rng: np.random.Generator,
+    colour: RayColour | None = None,
+    block: int = RAY_BLOCK,
 ) -> Iterator[np.ndarray]:
     """The rays, ``(k, 7)`` float32 ``x y z kx ky kz phi`` at most ``block`` at a time, source after
     source: a share of the rays ∝ the source's flux, starting uniformly on its disc (mm, z = 0),
-    directions drawn from its intensity, each carrying ``Φ_s / n_s``."""
+    directions drawn from its intensity, each carrying ``Φ_s / n_s``. With ``colour``, ``(k, 10)``:
+    then ``Tri_Y Tri_X Tri_Z``, the ray's luminous flux and its source's colour at that luminance."""
     counts = _allocate(fluxes, n_rays)
-    for s, flux, k in zip(model.sources, fluxes, counts, strict=True):
+    for i, (s, flux, k) in enumerate(zip(model.sources, fluxes, counts, strict=True)):
         if k == 0:
             continue
         table = _DirectionTable(s)
         for start in range(0, int(k), block):
             m = min(block, int(k) - start)
-            rays = np.empty((m, 7), dtype=np.float64)
+            rays = np.empty((m, 7 if colour is None else 10), dtype=np.float64)
             r = s.radius_m * np.sqrt(rng.random(m))
             a = rng.random(m) * 2.0 * math.pi
             rays[:, 0] = 1000.0 * (s.centre_m[0] + r * np.cos(a))
@@ -150,17 +157,64 @@ def _ray_blocks(
             rays[:, 2] = 0.0
             rays[:, 3:6] = table.draw(m, rng)
             rays[:, 6] = flux / k
+            if colour is not None:
+                rays[:, 7] = flux / k * colour.lumens_per_unit[i]
+                rays[:, 8] = rays[:, 7] * colour.x_over_y[i]
+                rays[:, 9] = rays[:, 7] * colour.z_over_y[i]
             yield rays.astype("<f4")
 
 
-def _rays_flux(fluxes: np.ndarray, n_rays: int) -> float:
+def _rays_flux(fluxes: np.ndarray, n_rays: int, factors: Sequence[float] | None = None) -> float:
     """The sum of the rays' float32 fluxes, known before they are drawn: ``n_s`` rays of
-    ``float32(Φ_s / n_s)`` each."""
+    ``float32(Φ_s / n_s · factor_s)`` each (``factors``: each source's lm per model unit × sr for the
+    luminous flux; 1 for the radiant)."""
     counts = _allocate(fluxes, n_rays)
-    return float(sum(int(k) * float(np.float32(f / k)) for f, k in zip(fluxes, counts, strict=True) if k > 0))
+    factors = [1.0] * len(fluxes) if factors is None else factors
+    return float(
+        sum(int(k) * float(np.float32(f / k * w)) for f, k, w in zip(fluxes, counts, factors, strict=True) if k > 0)
+    )
 
 
-def _tm25_texts(model: LightModel, name: str | None, manufacturer: str, seed: int) -> dict[str, str]:
+@dataclass(frozen=True)
+class RayColour:
+    """What the tristimulus columns carry: every ray its source's colour (CIE 1931 XYZ of the
+    source's chromaticity) at the ray's luminous flux ``Tri_Y = phi · lumens_per_unit[s]``.
+
+    ``lumens_per_unit[s]`` is the files' one scale (the calibration, the lamp flux over the
+    light's flux, or 1 for relative) times the source's luminance per unit of intensity over the
+    light's (``relative_luminance`` of its colour, flux-weighed mean 1): the luminous flux adds
+    up to the far-field files' and is shared among the sources by their luminance.
+    ``absolute``: whether ``Tri_Y`` is lumens (a calibration or a lamp flux was given)."""
+
+    x_over_y: tuple[float, ...]
+    z_over_y: tuple[float, ...]
+    lumens_per_unit: tuple[float, ...]
+    absolute: bool
+
+
+def ray_colour(model: LightModel, fluxes: np.ndarray, factor: float, absolute: bool) -> RayColour | None:
+    """The tristimulus columns' colours and scales, or None where a source has no XYZ (the run had no
+    colour matrices, or the channels were not measured apart): then the file has no colour columns."""
+    rows = []
+    for s in model.sources:
+        v = s.chromaticity.get("XYZ")
+        if not (isinstance(v, (list, tuple)) and len(v) == 3 and all(isinstance(c, (int, float)) for c in v)):
+            return None
+        if not (all(math.isfinite(c) for c in v) and v[1] > 0):
+            return None
+        rows.append((float(v[0]) / float(v[1]), float(v[2]) / float(v[1])))
+    luminance = np.array([s.chromaticity.get("relative_luminance", math.nan) for s in model.sources], dtype=float)
+    if not np.all(np.isfinite(luminance) & (luminance > 0)):
+        luminance = np.ones(len(rows))  # a model without it: by the camera signal
+    luminance /= float(np.sum(fluxes * luminance) / np.sum(fluxes))
+    return RayColour(
+        tuple(r[0] for r in rows), tuple(r[1] for r in rows), tuple(float(factor * w) for w in luminance), absolute
+    )
+
+
+def _tm25_texts(
+    model: LightModel, name: str | None, manufacturer: str, seed: int, colour: RayColour | None
+) -> dict[str, str]:
     """The nine text fields (4.7.3) by name: the light, who made the model and the file, and how."""
     prov = model.provenance
     run = str(prov.get("run_id") or "unknown run")
@@ -176,31 +230,47 @@ def _tm25_texts(model: LightModel, name: str | None, manufacturer: str, seed: in
         "additional_info": (
             f"Rays sampled (seed {seed}) from a near-field model of {len(model.sources)} point sources "
             f"on emitting discs; ray flux column phi in {unit_note}; positions in mm in the light "
-            f"frame (emission towards +z)." + _colour_note(model)
+            f"frame (emission towards +z)." + _colour_note(model, colour)
         ),
         "data_reference": f"run {run}, file {prov.get('run_file') or 'unknown'}",
     }
 
 
-def _colour_note(model: LightModel) -> str:
-    """The light's and each source's colour, for the additional information (4.7.3.8): TM-25-13's header has
-    no colour field, its tristimulus columns need luminous flux per ray and its spectral tables a spectrum,
-    neither of which a three-channel camera measures."""
+def _colour_note(model: LightModel, colour: RayColour | None) -> str:
+    """The light's and each source's colour, for the additional information (4.7.3.8), and what the
+    tristimulus columns hold: TM-25-13's header has no colour field, and its spectral tables need a
+    spectrum, which a three-channel camera does not measure."""
     if not model.chromaticity:
         return ""
     sources = "; ".join(f"{s.name}: {describe(s.chromaticity)}" for s in model.sources if s.chromaticity)
-    return f" Colour of the whole light: {describe(model.chromaticity)}. Per source: {sources}."
+    note = f" Colour of the whole light: {describe(model.chromaticity)}. Per source: {sources}."
+    if colour is not None:
+        units = "lm"
+        if not colour.absolute:
+            units = "relative units (phi times the source's relative luminance; no lumens given)"
+        note += (
+            f" Columns Tri_Y, Tri_X, Tri_Z: each ray's CIE 1931 2 deg tristimulus values, its source's "
+            f"chromaticity at the ray's luminous flux Tri_Y in {units}."
+        )
+    return note
 
 
-def _tm25_header_and_flags(creation_method: int, radiant_flux: float, n_rays: int) -> bytes:
-    """The header (4.7.1) with the current date and time, no luminous flux (NaN) and no spectrum, then the column
-    flags (4.7.2): position, direction and radiant flux."""
+def _tm25_header_and_flags(
+    creation_method: int, radiant_flux: float, luminous_flux: float, n_rays: int, colour: bool
+) -> bytes:
+    """The header (4.7.1) with the current date and time and no spectrum, then the column flags (4.7.2):
+    position, direction and radiant flux, and with ``colour`` the luminous flux and the tristimulus
+    columns (TM-25-13 allows them with spectrum type 0 only, and the tristimulus flag only with the
+    luminous flux's)."""
     now = _dt.datetime.now(_dt.UTC).replace(microsecond=0).isoformat().encode("ascii")[:28]
     nan = float("nan")
     # File type, version, creation method, luminous and radiant flux, rays, date and time, start position,
     # spectrum type, wavelength and its range, spectral tables, additional columns, additional text (bytes).
-    header = _HEADER.pack(b"TM25", 2013, creation_method, nan, radiant_flux, n_rays, now, 0, 0, nan, nan, nan, 0, 0, 0)
-    return header + struct.pack("<8i", 1, 1, 1, 0, 0, 0, 0, 0)
+    header = _HEADER.pack(
+        b"TM25", 2013, creation_method, luminous_flux, radiant_flux, n_rays, now, 0, 0, nan, nan, nan, 0, 0, 0
+    )
+    c = int(colour)
+    return header + struct.pack("<8i", 1, 1, 1, 0, c, 0, c, 0)
 
 
 def write_tm25(
@@ -212,6 +282,8 @@ def write_tm25(
     name: str | None = None,
     manufacturer: str = "unknown",
     creation_method: int = 1,
+    calibration: float | None = None,
+    lamp_lumens: float | None = None,
 ) -> Path:
     """Write the light's near field as an IES TM-25-13 binary ray file.
 
@@ -235,6 +307,10 @@ def write_tm25(
         Text fields 4.7.3.1 and 4.7.3.2.
     creation_method : int
         4.7.1.3: 1 measurement (default: the model is measured), 0 simulation.
+    calibration, lamp_lumens : float, optional
+        As in :func:`~processing.exports.write_ies`: candela per model unit, or the lamp flux
+        the rays' luminous flux adds up to. They scale the luminous flux column ``Tri_Y`` (lm);
+        without either it is relative (the ray's ``phi``) and the header's luminous flux NaN.
 
     Returns
     -------
@@ -246,7 +322,14 @@ def write_tm25(
     Positions are millimetres in the light frame (the plane at z = 0, emission towards +z);
     the flux column is radiant flux (``phi``, flag 4.7.2.3) in the model's units × sr: W
     when the model is W/sr, relative otherwise (text field 4.7.3.8 says which). The header's
-    luminous flux is NaN (not given), the spectrum type 0 (none).
+    luminous flux is NaN (not given) unless ``calibration`` or ``lamp_lumens`` is, the spectrum
+    type 0 (none).
+
+    Where every source has a colour in CIE XYZ (``chromaticity["XYZ"]``), the rays also carry
+    the luminous flux and tristimulus columns (flags 4.7.2.5 and 4.7.2.7): ``Tri_Y`` the ray's
+    luminous flux (``phi`` times the calibration, or relative), ``Tri_X``, ``Tri_Z`` its source's
+    ``X/Y``, ``Z/Y`` times ``Tri_Y``. The sum of the rays' tristimulus values is the whole
+    light's colour, each source weighed by its flux, in any direction or region of the rays.
 
     The rays are drawn and written :data:`RAY_BLOCK` at a time, so the memory in use does
     not grow with ``n_rays`` (about 20 MB for any count); the header's flux, the sum of the
@@ -260,16 +343,23 @@ def write_tm25(
             f"{path}: creation_method: must be 0 (simulation) or 1 (measurement), got {creation_method!r}"
         )
     fluxes = _emitting_fluxes(path, model, n_rays)
+    factor, _, absolute = far_field_scaling(path, float(fluxes.sum()), np.ones(1), calibration, lamp_lumens)
+    if calibration is None and lamp_lumens is None:
+        factor = 1.0  # relative: the luminous flux column is the ray's flux in the model's units
+    colour = ray_colour(model, fluxes, factor, absolute or lamp_lumens is not None)
     total = _rays_flux(fluxes, int(n_rays))
-    texts = _tm25_texts(model, name, manufacturer, seed)
-    head = _tm25_header_and_flags(int(creation_method), total, int(n_rays))
+    luminous = math.nan
+    if colour is not None and colour.absolute:
+        luminous = _rays_flux(fluxes, int(n_rays), colour.lumens_per_unit)
+    texts = _tm25_texts(model, name, manufacturer, seed, colour)
+    head = _tm25_header_and_flags(int(creation_method), total, luminous, int(n_rays), colour is not None)
     text = b"".join(_utf32(texts[k], _TEXT_BYTES) for k in _TEXT_FIELDS)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + ".tmp")
     try:
         with open(tmp, "wb") as f:
             f.write(head + text)  # no spectral tables, column labels or additional text
-            for block in _ray_blocks(model, fluxes, int(n_rays), np.random.default_rng(seed)):
+            for block in _ray_blocks(model, fluxes, int(n_rays), np.random.default_rng(seed), colour):
                 f.write(block.data)
         os.replace(tmp, path)
     except BaseException:

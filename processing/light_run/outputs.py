@@ -145,6 +145,8 @@ def write_light_files(
         seed=0,
         name=options.luminaire,
         manufacturer=options.manufacturer or "unknown",
+        calibration=calibration,
+        lamp_lumens=lumens,
     )
     return {"ies": [ies], "ldt": [ldt], "tm25": [tm25]}
 

@@ -42,30 +42,43 @@ def _row(name: str, section: dict[str, Any]) -> list[str]:
 
 
 def colour_figure(model: LightModel) -> Figure:
-    """CCT (top) and Duv (bottom) of each source against θ, one point per bin of θ."""
+    """CCT (top) and Duv (bottom) of each source and of the whole light against θ, one point per
+    bin of θ."""
     fig = new_figure(7.6, 4.6, layout=None)
     top = axes_in(fig, 0.85, 2.55, 0.1, 0.1)
     bottom = axes_in(fig, 0.85, 0.5, 0.1, 2.35, sharex=top)
-    for k, source in enumerate(model.sources):
-        over = source.chromaticity.get("over_theta") or {}
+    lines = [
+        (s.name, s.chromaticity.get("over_theta") or {}, COLOURS[k % len(COLOURS)], "o-", 0.8)
+        for k, s in enumerate(model.sources)
+    ]
+    lines.append(("whole light", model.chromaticity.get("over_theta") or {}, "black", "s-", 1.6))
+    for name, over, colour, style, width in lines:
         theta, cct, duv = over.get("theta_deg", []), over.get("cct_k", []), over.get("duv", [])
-        colour = COLOURS[k % len(COLOURS)]
         points = [(t, c) for t, c in zip(theta, cct, strict=False) if c is not None]
         if points:
-            top.plot(*zip(*points, strict=True), "o-", color=colour, ms=3.5, lw=0.8, label=source.name)
+            top.plot(*zip(*points, strict=True), style, color=colour, ms=3.5, lw=width, label=name)
         points = [(t, d) for t, d in zip(theta, duv, strict=False) if d is not None]
         if points:
-            bottom.plot(*zip(*points, strict=True), "o-", color=colour, ms=3.5, lw=0.8)
+            bottom.plot(*zip(*points, strict=True), style, color=colour, ms=3.5, lw=width)
     top.set_ylabel("CCT [K]")
     bottom.set_ylabel("Duv")
     bottom.set_xlabel("θ from the light's axis [°]")
     for ax in (top, bottom):
         ax.grid(True, color="0.9", lw=0.6)
     top.tick_params(labelbottom=False)
-    top.legend(fontsize=8, ncols=min(len(model.sources), 5), loc="best", frameon=False)
+    top.legend(fontsize=8, ncols=min(len(model.sources) + 1, 6), loc="best", frameon=False)
     settle_axes(top, xlabel_pad=None, ylabel_pad=0.7)
     settle_axes(bottom, xlabel_pad=0.3, ylabel_pad=0.7)
     return fig
+
+
+def _bin_deg(model: LightModel) -> float:
+    for over in [s.chromaticity.get("over_theta") or {} for s in model.sources] + [
+        model.chromaticity.get("over_theta") or {}
+    ]:
+        if "bin_deg" in over:
+            return float(over["bin_deg"])
+    return 5.0
 
 
 def colour_section(model: LightModel, encoder: FigureEncoder | None = None) -> str:
@@ -96,18 +109,23 @@ def colour_section(model: LightModel, encoder: FigureEncoder | None = None) -> s
         )
     parts.append(f"<p>{html.escape(text)}</p>")
     varying = [s.name for s in model.sources if (s.chromaticity.get("over_theta") or {}).get("varies", False)]
+    if (model.chromaticity.get("over_theta") or {}).get("varies", False):
+        varying.append("the whole light")
     if varying:
         caption = (
-            f"CCT and Duv of each source against θ, the samples' channels summed in bins of "
-            f"{model.sources[0].chromaticity['over_theta'].get('bin_deg', 5):g}° (so the strong samples count "
-            f"most). Varying by more than {VARIES_UV} in u′v′: {', '.join(varying)}."
+            f"CCT and Duv of each source and of the whole light (black squares) against θ, in bins of "
+            f"{_bin_deg(model):g}°: a source's samples' channels summed in the bin (so the strong samples "
+            "count most), the whole light's the sources' colours in the bin weighed by their flux in it "
+            f"(their fits, up to the largest θ measured). Varying by more than {VARIES_UV} in u′v′: "
+            f"{', '.join(varying)}."
         )
         parts.append(figure_html(colour_figure(model), "colour over θ", html.escape(caption), encoder))
     elif any("max_delta_uv" in (s.chromaticity.get("over_theta") or {}) for s in model.sources):
+        light = " and the whole light's" if "max_delta_uv" in (model.chromaticity.get("over_theta") or {}) else ""
         parts.append(
             "<p>"
             + html.escape(
-                f"Each source's colour is the same over the θ measured to within {VARIES_UV} in u′v′ "
+                f"Each source's colour{light} is the same over the θ measured to within {VARIES_UV} in u′v′ "
                 "(max Δu′v′ over θ above): no plot over θ."
             )
             + "</p>"

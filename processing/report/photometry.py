@@ -19,7 +19,7 @@ from matplotlib.ticker import MaxNLocator
 
 from processing.lightmodel import LightModel
 from processing.options import Extrapolation
-from processing.photometry import PLANES, Photometry, far_field, summarize
+from processing.photometry import PLANES, ROOM_INDICES, Photometry, far_field, summarize
 from processing.report.drawing import new_figure, settle_axes
 from processing.report.markup import FigureEncoder, figure_html, html_table
 
@@ -202,6 +202,15 @@ def _figures_table(model: LightModel, summary: Photometry) -> str:
             halves = ", ".join(f"{half} {_deg(v)}" for half, v in angles.half_angles_deg.items())
             note = " — rests on the extrapolation beyond the measured γ" if angles.beyond_measured else ""
             rows.append([f"{kind} angle ({share} of peak), {plane}", f"{_deg(angles.angle_deg)} ({halves}){note}"])
+    if summary.direct_ratios:
+        rows.append(
+            [
+                "direct ratios (LDT), room index k " + " / ".join(f"{k:g}" for k in ROOM_INDICES),
+                " / ".join(f"{r:.3f}" for r in summary.direct_ratios)
+                + " (share of the flux falling directly on the work plane; square room, luminaires spread "
+                "evenly over the ceiling)",
+            ]
+        )
     near = record.get("near_field")
     if near is not None:
         rows.append(
