@@ -133,7 +133,7 @@ class PositionResult:
     saturation_level: np.ndarray | None = None
     images: dict[str, Path] = field(default_factory=dict)
     saturated: int = 0
-    all_saturated: bool = False
+    saturated_share: float = 0.0  # of the position's pixels
     sources: SourceRow | None = None
     seconds: float = 0.0
     stages: dict[str, float] = field(default_factory=dict)  # seconds per stage of this task
@@ -201,7 +201,7 @@ def process_position(index: int, work: PositionWork) -> PositionResult:
             raise ProcessingError(str(exc)) from None
         usable, lit, n_saturated = position_masks(radiance, variance, count, np.asarray(saturated, bool))
         out.saturated = n_saturated
-        out.all_saturated = n_saturated == saturated.size
+        out.saturated_share = n_saturated / max(saturated.size, 1)
         if work.sources is not None:
             # The estimates read windows and a few hundred pixels: convert only those to e⁻/s.
             rate, var = ElectronRates(radiance, gain), ElectronRates(variance, gain, gain)

@@ -59,6 +59,9 @@ from processing.unmixing.sources import Source
 
 log = logging.getLogger("mirrorgonio.processing")
 
+#: The share of a position's pixels saturated in every exposure above which the run is refused.
+SATURATED_RUN_SHARE = 0.99
+
 
 def process_run(
     run_path: str | os.PathLike[str],
@@ -133,7 +136,7 @@ class LightRun:
         self.steps = Steps(progress)
         self.timings: dict[str, float] = {}
         self.rows: dict[int, SourceRow] = {}
-        self.saturated_all: dict[int, bool] = {}
+        self.saturated_share: dict[int, float] = {}
         self.point_spread: dict[str, Any] | None = None  # the measured point spread's record, where there is one
         self.step, self.step_done = "hdr", 0  # the pass over the positions under way, and its positions done
 
@@ -152,6 +155,8 @@ class LightRun:
                 with self._timed("positions"):
                     self._positions_step("hdr")
                     self._merge_pass(run, sources)
+                if not self.plan.fused:
+                    self._refuse_if_saturated()
         if self.plan.estimate:
             if not self.plan.fused:
                 with open_run(self.run_path) as run:
@@ -159,10 +164,7 @@ class LightRun:
                 with self._timed("sources"):
                     self._positions_step("estimate")
                     self._estimate_pass(sources)
-            if all(self.saturated_all.get(int(i), False) for i in self.positions):
-                raise ProcessingError(
-                    f"{self.run_path}: every pixel is saturated even in the shortest exposure: take shorter exposures"
-                )
+            self._refuse_if_saturated()
             assert sources is not None  # made for the fused merge, or settled above
             finish_sources(
                 self.run_path,
@@ -183,6 +185,18 @@ class LightRun:
         return self.report
 
     # --- the passes -------------------------------------------------------------------------------
+    def _refuse_if_saturated(self) -> None:
+        """One line where every position's frames are saturated even in the shortest exposure:
+        nearly every pixel, since the rings of a Fresnel point spread leave a few of the light's
+        image below full well however bright it is."""
+        if self.saturated_share and all(
+            self.saturated_share.get(int(i), 0.0) >= SATURATED_RUN_SHARE for i in self.positions
+        ):
+            raise ProcessingError(
+                f"{self.run_path}: the frames are saturated even in the shortest exposure "
+                f"({100 * SATURATED_RUN_SHARE:.0f} % of the pixels or more at every position): take shorter exposures"
+            )
+
     def _start(self, run: RunFile) -> None:
         """The positions to process and the report, with the merge's noise model."""
         try:
@@ -389,7 +403,7 @@ class LightRun:
     # --- bookkeeping ------------------------------------------------------------------------------
     def _collect(self, index: int, result: PositionResult) -> None:
         self.report.add_task(result)
-        self.saturated_all[index] = result.all_saturated
+        self.saturated_share[index] = result.saturated_share
         if result.sources is not None:
             self.rows[index] = result.sources
         self.step_done += 1
