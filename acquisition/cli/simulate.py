@@ -136,8 +136,8 @@ def simulate_point_spread(
     seed: Annotated[int, typer.Option(help="Random seed of the noise.")] = 0,
 ) -> None:
     """Image a small LED through the rig's simulated pinhole (its Fresnel point spread, each
-    channel's band), as a lab measures its camera's point spread for
-    ``[camera.measured_point_spread]``."""
+    channel's band), as a lab measures its camera's point spread for the rig's
+    camera.measured_point_spread table."""
     import numpy as np
 
     from drivers.contracts.rig import load_rig
