@@ -519,7 +519,8 @@ def test_a_version_1_catalog_is_migrated_and_keeps_its_jobs(db, clock):
         )
         conn.execute(  # a run left queued: it keeps its turn in the queue
             "INSERT INTO runs (id, seq, created_utc, updated_utc, state, n_positions, positions_done, request_json) "
-            "VALUES ('run-waits', 2, '2026-11-20T00:00:00.000000Z', '2026-11-20T00:00:00.000000Z', 'queued', 3, 0, '{}')"
+            "VALUES ('run-waits', 2, '2026-11-20T00:00:00.000000Z', '2026-11-20T00:00:00.000000Z', 'queued', 3, 0, "
+            "'{}')"
         )
         conn.execute(
             "INSERT INTO jobs (id, seq, run_id, created_utc, updated_utc, state, steps, options_json, progress) "
