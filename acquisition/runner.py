@@ -304,7 +304,8 @@ class RunEngine(RunQueue):
 
     def shutdown(self) -> None:
         """Abort the run in progress (the queue is held: no queued run starts) and wait for it."""
-        self._closing = True
+        with self._lock:  # a run ending now has started the next one already, or starts none
+            self._closing = True
         thread = self._thread
         if thread is not None and thread.is_alive():
             self._control.abort.set()
