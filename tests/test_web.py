@@ -251,60 +251,49 @@ def test_a_run_started_from_the_page_completes_with_the_alignment_view_and_downl
     assert page.script_errors == []
 
 
-def queue_from_the_page(page, active: str) -> str:
-    """Two runs started while ``active`` runs wait in the queue: the second moved up, the first
-    removed. Returns the one left."""
+def queue_from_the_page(page, active: str) -> list[str]:
+    """Three runs started while ``active`` runs wait in the queue: the second moved up, the first
+    removed. Returns the two left, in their order."""
     message, queue = page.locator("#message"), page.locator("#queue li")
     page.fill("#count", "1")
-    page.click("#start")
-    expect(message).to_contain_text("queued: position 1, 1 positions; it starts when the runs ahead")
-    first = re.search(r"Run (run-\S+) ", message.inner_text()).group(1)
-    page.click("#start")
-    expect(message).to_contain_text("queued: position 2, 1 positions")
-    second = re.search(r"Run (run-\S+) ", message.inner_text()).group(1)
+    queued = []
+    for k in range(3):
+        page.click("#start")
+        expect(message).to_contain_text(f"queued: position {k + 1}, 1 position; it starts when the runs ahead")
+        queued.append(re.search(r"Run (run-\S+) ", message.inner_text()).group(1))
+    first, second, third = queued
     expect(page.locator("#run-id")).to_have_text(active)  # the page stays with the run in progress
-    expect(page.locator("#queue-summary")).to_have_text("2 runs waiting")
-    expect(queue).to_have_count(2)
-    expect(run_badge(page, second)).to_have_text("queued #2")
+    expect(page.locator("#queue-summary")).to_have_text("3 runs waiting")
+    expect(queue).to_have_count(3)
+    expect(run_badge(page, third)).to_have_text("queued #3")
     expect(queue.nth(0).locator("button.up")).to_be_disabled()
+    expect(queue.nth(2).locator("button.down")).to_be_disabled()
     queue.nth(1).locator("button.up").click()  # the second first
     expect(queue.nth(0)).to_have_attribute("data-run-id", second)
     expect(run_badge(page, first)).to_have_text("queued #2")
     queue.nth(1).locator("button.remove").click()
     expect(message).to_have_text(f"Run {first} removed from the queue.")
-    expect(queue).to_have_count(1)
+    expect(queue).to_have_count(2)
     expect(run_badge(page, first)).to_have_text("aborted")
-    return second
+    expect(run_badge(page, third)).to_have_text("queued #2")
+    return [second, third]
 
 
-def queue_runs_on_from_the_page(page, daemon, aborted: str, waiting: str) -> None:
-    """The aborted run holds the queue, and the page says why; started again, its run goes. A run
-    queued behind one that completes starts by itself."""
-    message = page.locator("#message")
+def queue_runs_on_from_the_page(page, daemon, aborted: str, queued: list[str]) -> None:
+    """The aborted run holds the queue, and the page says why; started again, its first run goes,
+    and the one behind it starts by itself once that one has completed."""
     expect(page.locator("#queue-held")).to_have_text(f"Held: run {aborted} was aborted")
-    expect(page.locator("#health-summary")).to_contain_text("1 queued (the queue is held)")
-    expect(run_badge(page, waiting)).to_have_text("queued #1")
+    expect(run_badge(page, queued[0])).to_have_text("queued #1")
+    page.screenshot(path=str(daemon.log_path.parent / "queue.png"), full_page=True)
     page.click("#queue-start")
-    expect(run_badge(page, waiting)).to_have_text("complete", timeout=30_000)
     expect(page.locator("#queue-held")).to_be_hidden()
     expect(page.locator("#queue-start")).to_be_hidden()
-    page.fill("#count", "3")
-    page.click("#start")
-    expect(message).to_contain_text("started: 3 positions")
-    active = re.search(r"Run (run-\S+) ", message.inner_text()).group(1)
-    page.click("#pause")
-    expect(page.locator("#state")).to_have_text("paused")
-    page.fill("#count", "1")
-    page.click("#start")
-    expect(message).to_contain_text("queued: position 1")
-    behind = re.search(r"Run (run-\S+) ", message.inner_text()).group(1)
-    page.screenshot(path=str(daemon.log_path.parent / "queue.png"), full_page=True)
-    page.click("#resume")
-    expect(run_badge(page, behind)).to_have_text("complete", timeout=30_000)
+    for run_id in queued:
+        expect(run_badge(page, run_id)).to_have_text("complete", timeout=30_000)
     expect(page.locator("#queue-summary")).to_have_text("no run waiting")
     with daemon.client() as http:
-        ran = {run_id: http.get(f"/runs/{run_id}").json() for run_id in (active, behind)}
-    assert ran[active]["state"] == "complete" and ran[active]["finished_utc"] <= ran[behind]["started_utc"]
+        ran = [http.get(f"/runs/{run_id}").json() for run_id in queued]
+    assert ran[0]["finished_utc"] <= ran[1]["started_utc"]
 
 
 def run_badge(page, run_id: str):

@@ -90,6 +90,8 @@ function openSession() {
 }
 
 // --- formatting --------------------------------------------------------------------------
+function plural(n, noun) { return `${n} ${noun}${n === 1 ? "" : "s"}`; }
+
 function fmtPercent(p) { return `${Math.round((p || 0) * 10) / 10} %`; }
 
 function fmtDuration(s) {
@@ -262,7 +264,7 @@ async function startRun(event) {
     const run = await api("POST", "/runs", runRequest());
     if (run.state === "queued") {
       // It waits its turn: the page goes on showing the run in progress.
-      showMessage(`Run ${run.id} queued: position ${run.queue_position}, ${run.n_positions} positions; `
+      showMessage(`Run ${run.id} queued: position ${run.queue_position}, ${plural(run.n_positions, "position")}; `
         + "it starts when the runs ahead of it have completed.", "info");
     } else {
       showMessage(`Run ${run.id} started: ${run.n_positions} positions.`, "info");
@@ -472,7 +474,7 @@ let queued = [];
 function renderQueue(queue) {
   queued = queue.runs.map((run) => run.id);
   const n = queue.runs.length;
-  $("queue-summary").textContent = n ? `${n} run${n > 1 ? "s" : ""} waiting` : "no run waiting";
+  $("queue-summary").textContent = n ? `${plural(n, "run")} waiting` : "no run waiting";
   $("queue-held").hidden = !queue.held;
   $("queue-held").textContent = queue.held ? `Held: ${queue.held}` : "";
   $("queue-start").hidden = !(queue.held && n);
@@ -485,7 +487,7 @@ function renderQueue(queue) {
     remove.addEventListener("click", () => removeQueued(run.id));
     const item = el("li", {}, el("span", { className: "queue-run" },
       el("span", { className: "mono small", textContent: run.id }),
-      el("span", { className: "small", textContent: `${run.preset || "—"}, ${run.n_positions} positions` }),
+      el("span", { className: "small", textContent: `${run.preset || "—"}, ${plural(run.n_positions, "position")}` }),
       up, down, remove));
     item.dataset.runId = run.id;
     return item;
