@@ -66,16 +66,16 @@ class RunQueue:
         Raises
         ------
         RunConflictError
-            The devices are held by a test shot, a jog or homing (the queue is released).
+            The devices are held by a test shot, a jog or homing (the queue stays as it was).
         RigError, ClientFileError, InsufficientStorageError, StorageUnavailableError
             The next run cannot start (its preflight): the queue is held again with the reason.
         """
         with self._lock:
             self.pending.save()
-            self.catalog.release_queue()
-            self.events.publish()
             if self._manual is not None:
                 raise RunConflictError(f"the devices are busy: {self._manual}")
+            self.catalog.release_queue()
+            self.events.publish()
             if self._rig_taken():
                 return None
             return self._start_next(explicit=True)
