@@ -15,7 +15,7 @@ from fastapi.encoders import jsonable_encoder
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse, HTMLResponse, JSONResponse
 
-from acquisition.api import arm, health, jobs, presets, preview, runs, session
+from acquisition.api import arm, health, jobs, presets, preview, queue, runs, session
 from acquisition.api import log as log_api
 from acquisition.api.deps import GUARD_ERRORS
 from acquisition.api.guard import RequestGuard
@@ -25,6 +25,7 @@ from acquisition.catalog import (
     Catalog,
     CatalogError,
     InvalidTransitionError,
+    NotQueuedError,
     UnknownJobError,
     UnknownRunError,
 )
@@ -54,6 +55,7 @@ ERROR_STATUS: list[tuple[type[Exception], int]] = [
     (UnknownJobError, status.HTTP_404_NOT_FOUND),
     (InvalidTransitionError, status.HTTP_409_CONFLICT),
     (ActiveRunError, status.HTTP_409_CONFLICT),
+    (NotQueuedError, status.HTTP_409_CONFLICT),
     (RunConflictError, status.HTTP_409_CONFLICT),
     (RigError, status.HTTP_422_UNPROCESSABLE_CONTENT),
     (MoveRefusedError, status.HTTP_422_UNPROCESSABLE_CONTENT),
@@ -104,6 +106,7 @@ def create_app(settings: DaemonSettings) -> FastAPI:
             log.warning("runs interrupted by the last shutdown: %s", ", ".join(interrupted))
         devices = open_devices(settings, rig)
         engine = RunEngine(settings, rig, devices, catalog)
+        engine.after_restart(interrupted)  # the queued runs wait for the operator
         app.state.settings, app.state.catalog, app.state.engine = settings, catalog, engine
         app.state.previews = Previews(lambda: (engine.frame_serial, engine.latest_frame, engine.latest_frame_run), rig)
         try:
@@ -122,7 +125,7 @@ def create_app(settings: DaemonSettings) -> FastAPI:
         lifespan=lifespan,
         responses=GUARD_ERRORS,
     )
-    routers = (health, presets, runs, preview, arm, jobs, session, log_api)
+    routers = (health, presets, runs, queue, preview, arm, jobs, session, log_api)
     for module in routers:
         app.include_router(module.router)
     # Host, Origin, content type and body size, before routing, the token and the body's parsing.

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections import Counter
 from datetime import UTC, datetime, timedelta
 from typing import Annotated, Literal
 
@@ -296,6 +297,53 @@ class RunStatus(BaseModel):
         description="what the run is doing now (the calibration frames, the sweep), or what the operator must "
         "do before resuming it; None when the run is not in progress",
     )
+    queue_position: int | None = Field(
+        default=None,
+        description="a queued run's place in the queue, from 1 (the next to start); None once it has left it",
+    )
+
+
+class QueueStatus(BaseModel):
+    """The queue of runs: the runs waiting, the next to start first, and whether it is held."""
+
+    model_config = ConfigDict(
+        json_schema_extra={
+            "examples": [
+                {
+                    "held": "run run-20261121-134501-3f2a failed: arm: move_to: alarm 0x0010: overtravel",
+                    "held_utc": _example_time(600),
+                    "runs": [],
+                }
+            ]
+        }
+    )
+    held: str | None = Field(
+        description="why no queued run starts by itself until the queue is started again (a run failed or "
+        "was aborted, a queued run cannot start, the daemon restarted); None while the queue runs on"
+    )
+    held_utc: datetime | None = Field(default=None, description="since when it is held")
+    runs: list[RunStatus] = Field(description="the queued runs, in the order they start")
+
+
+class QueueOrder(BaseModel):
+    """A new order of the queue (``PUT /queue``)."""
+
+    model_config = ConfigDict(
+        extra="forbid", json_schema_extra={"examples": [{"run_ids": ["run-20261121-140210-77c1"]}]}
+    )
+    run_ids: list[Annotated[str, Field(min_length=1, max_length=100)]] = Field(
+        max_length=10_000,
+        description="queued runs, in the order they are to start; the queued runs not named follow them, in "
+        "their order. Each once; a run that is not queued (it has started, or was removed) is a 409",
+    )
+
+    @field_validator("run_ids")
+    @classmethod
+    def _each_once(cls, run_ids: list[str]) -> list[str]:
+        twice = sorted(run_id for run_id, n in Counter(run_ids).items() if n > 1)
+        if twice:
+            raise ValueError(f"named more than once: {', '.join(twice)}")
+        return run_ids
 
 
 class JobStatus(BaseModel):
@@ -397,6 +445,8 @@ class Health(BaseModel):
     reasons: list[str]
     version: str
     active_run: str | None
+    queued_runs: int = Field(default=0, description="runs waiting in the queue")
+    queue_held: str | None = Field(default=None, description="why the queue is held (GET /queue); None if it is not")
 
 
 class Problem(BaseModel):

@@ -1,11 +1,19 @@
 """What the daemon's requests and a run's thread share (``acquisition.runner``): the control
-flags the requests set and the thread obeys, the signals that end a run's steps, and the
-progress counter that event streams wait on."""
+flags the requests set and the thread obeys, the signals that end a run's steps, the
+progress counter that event streams wait on, and the errors of a request the engine refuses."""
 
 from __future__ import annotations
 
 import threading
 from dataclasses import dataclass, field
+
+
+class RunEngineError(Exception):
+    """A request the engine cannot honour (mapped to an HTTP status by the API)."""
+
+
+class RunConflictError(RunEngineError):
+    """The devices are busy, or the run is not in a state that allows the request."""
 
 
 class Aborted(Exception):

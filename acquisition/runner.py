@@ -1,10 +1,13 @@
 """The run engine: moves the arm through a schedule and takes a bracket at each position.
 
-One run at a time per rig. States: queued → running ⇄ paused → complete | aborted |
-failed, and interrupted for a run whose daemon died (resumable, as is a failed run once
-its fault is cleared). Pause takes effect between frames; abort stops the arm and keeps
-every frame taken; a transient device error is retried, a persistent one fails the run
-with the device's own message.
+One run in progress at a time per rig; the runs asked for meanwhile wait in a queue, in an
+order the operator may change (``docs/daemon.md``, "The queue of runs"). States: queued →
+running ⇄ paused → complete | aborted | failed, and interrupted for a run whose daemon died
+(resumable, as is a failed run once its fault is cleared). Pause takes effect between frames;
+abort stops the arm and keeps every frame taken; a transient device error is retried, a
+persistent one fails the run with the device's own message. A run that completes starts the
+next queued one; one that fails or is aborted holds the queue, with the reason, until a run
+is resumed or the queue is started again.
 
 A run takes calibration frames with the measured light off (``docs/daemon.md``): with the arm
 at the first position, ambient frames (the room lit) and dark frames (the room dark), then the
@@ -25,7 +28,6 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from datetime import UTC, datetime
 from pathlib import Path
 
 from pydantic import ValidationError
@@ -33,50 +35,39 @@ from pydantic import ValidationError
 from acquisition.bracketing import NoiseModel, exposures_from_metering, is_saturated
 from acquisition.catalog import Catalog, RunRecord
 from acquisition.catalog.pending import PendingEnds
-from acquisition.client_files import load_client_file
 from acquisition.devices import Devices
 from acquisition.models import AutoBracket, FixedBracket, RunRequest
-from acquisition.run_control import Aborted, Control, OperatorStop, ProgressEvents
-from acquisition.run_plan import (
-    DARK_IN_LIT_ROOM,
-    Arrival,
-    RunPlan,
-    WriteBehind,
-    calibration_sets,
-    calibration_shot,
-    light_model_record,
+from acquisition.run_control import (
+    Aborted,
+    Control,
+    OperatorStop,
+    ProgressEvents,
+    RunConflictError,
+    RunEngineError,
 )
+from acquisition.run_plan import Arrival, RunPlan, WriteBehind, calibration_sets, calibration_shot
+from acquisition.run_preflight import RunPreflight
+from acquisition.run_queue import REMOVED, RunQueue
 from acquisition.settings import DaemonSettings
-from acquisition.storage import check_room, failure_message, run_bytes
+from acquisition.storage import failure_message
 from drivers.camera import RawFrame
-from drivers.contracts.rig import LightSweep, ObjectArc, Raster, Rig, RigError, rig_from_dict
+from drivers.contracts.rig import Rig
 from drivers.contracts.runfile import (
     PositionTimes,
     RunFileError,
     RunFileWriter,
-    RunHeader,
-    file_sha256,
     marked_open_for_write,
     storage_errno,
 )
-from drivers.contracts.version import __version__
 from drivers.errors import CommunicationError, DeviceError, DeviceTimeoutError, MoveInterruptedError
 from drivers.light import SWEEP, Lighting
 
 log = logging.getLogger("mirrorgonio.runner")
 
-ACTIVE_STATES = ("queued", "running", "paused")
+__all__ = ["RunConflictError", "RunEngine", "RunEngineError"]
 
 
-class RunEngineError(Exception):
-    """A request the engine cannot honour (mapped to an HTTP status by the API)."""
-
-
-class RunConflictError(RunEngineError):
-    """Another run is active, or the run is not in a state that allows the request."""
-
-
-class RunEngine:
+class RunEngine(RunQueue):
     """Runs acquisitions on one rig's devices, recording them in the catalog."""
 
     def __init__(
@@ -111,81 +102,10 @@ class RunEngine:
         self._position: int | None = None  # the position the run thread is at, or moving to
         self._manual: str | None = None  # what holds the devices outside a run (a test shot, a jog)
         self._stop_serial = itertools.count(1)
+        self._exiting = False  # the run thread has recorded its run's end: it no longer holds the rig
+        self._closing = False  # the daemon shuts down: no queued run starts
+        self.preflight = RunPreflight(settings, rig, devices)
         Path(settings.runs_dir).mkdir(parents=True, exist_ok=True)
-
-    # --- presets ---------------------------------------------------------------------------
-    def presets(self) -> dict[str, dict]:
-        """Schedules a run can use: the rig's own, and the other kinds' defaults."""
-        base = {"light-sweep": LightSweep(), "object-arc": ObjectArc(), "raster": Raster()}
-        base[self.rig.schedule.kind] = self.rig.schedule
-        return {name: schedule.model_dump(mode="json") for name, schedule in base.items()}
-
-    def plan_schedule(self, request: RunRequest) -> Rig:
-        """The rig with the request's schedule, validated (limits, collisions)."""
-        if request.preset == "poses":
-            schedule = {"kind": "poses", "poses": [p.model_dump(mode="json") for p in request.poses or []]}
-        else:
-            schedule = self.presets()[request.preset]
-        if request.preset == "object-arc" and self.rig.object is None:
-            raise RigError(
-                f"preset {request.preset}: the rig has no [object] (the mesh and pose of what is photographed)"
-            )
-        data = self.rig.model_dump(mode="json", exclude_none=True)
-        data["schedule"] = schedule
-        return rig_from_dict(data, f"preset {request.preset}")
-
-    def references(self, rig: Rig, request: RunRequest) -> dict:
-        """The files an object run belongs with (``RunHeader.references``), checked now.
-
-        A light model that cannot be read is refused before the run starts, so an
-        hour of captures is never recorded against the wrong file: a
-        :class:`~acquisition.client_files.ClientFileError` (the path is the client's).
-        """
-        refs: dict = {}
-        if rig.object is not None:
-            mesh = Path(rig.object.mesh)
-            if not mesh.is_file():
-                raise RigError(f"object.mesh: {mesh}: no such file")
-            refs["object_mesh"] = {
-                "path": str(mesh.resolve()),
-                "sha256": file_sha256(mesh),
-                "units_m": rig.object.units_m,
-                "pose": rig.object.pose.model_dump(mode="json"),
-            }
-        if request.light_results is not None:
-            model, sha256 = load_client_file(request.light_results, "light_results", "light model", light_model_record)
-            provenance = model.get("provenance") if isinstance(model.get("provenance"), dict) else {}
-            refs["light_model"] = {
-                "path": str(Path(request.light_results).expanduser().resolve()),
-                "sha256": sha256,
-                "run_id": str(provenance.get("run_id", "")),
-            }
-        return refs
-
-    # --- storage ---------------------------------------------------------------------------
-    def check_room(self, request: RunRequest, positions: int, extra_bytes: int = 0) -> None:
-        """Refuse a run (or what a resumed one has left: ``positions``, and ``extra_bytes`` for
-        the salvaged copy of its file) whose estimated size does not fit in the free space.
-
-        The estimate is every frame (the longest bracket at each position, and the calibration
-        sets) at ``storage.compression_ratio`` of its raw size, plus the run file's records.
-
-        Raises
-        ------
-        InsufficientStorageError
-            It does not fit (HTTP 507; the request's ``force`` starts it anyway).
-        StorageUnavailableError
-            The runs' directory cannot be written (HTTP 503).
-        """
-        if not self.settings.storage.check_before_run:
-            return
-        calibration = self._calibration_plan(request)
-        frames = positions * self._max_exposures(request)
-        frames += sum(len(calibration_shot(calibration, role)[1]) for role, _ in calibration_sets(calibration))
-        shape = (self.rig.camera.height, self.rig.camera.width)
-        needed = run_bytes(frames, shape, self.settings.storage.compression_ratio) + extra_bytes
-        what = f"the run ({positions} positions, {frames} frames of {shape[1]} x {shape[0]})"
-        check_room(Path(self.settings.runs_dir), needed, what)
 
     # --- control ---------------------------------------------------------------------------
     # Every request that changes a run's state takes ``_lock``, and so does the run thread where
@@ -197,25 +117,33 @@ class RunEngine:
         return self._thread is not None and self._thread.is_alive()
 
     def start_run(self, request: RunRequest) -> RunRecord:
-        """Start a run of ``request``; it is ``running`` when this returns.
+        """Start a run of ``request``, or queue it behind the run in progress.
+
+        It is ``running`` when this returns if the rig is free and no run waits in the queue;
+        otherwise it is ``queued`` at the end of the queue, and starts by itself in its turn
+        (:meth:`_start_next`). Either way its schedule, its references and (unless ``force``)
+        its estimated size against the free space are checked now.
 
         Raises
         ------
         RunConflictError
-            Another run is active on this rig.
-        RigError, RunEngineError
-            The request's schedule or references cannot be used (nothing is started).
+            The devices are held by a test shot, a jog or homing.
+        RigError, RunEngineError, ClientFileError
+            The request's schedule or references cannot be used (nothing is started or queued).
+        InsufficientStorageError, StorageUnavailableError
+            The run would not fit in the free space, or its directory cannot be written.
         """
-        rig = self.plan_schedule(request)
-        references = self.references(rig, request)  # refuse unreadable references before anything starts
+        rig, tool, light = self.preflight.poses(request)
+        references = self.preflight.references(rig, request)  # refuse unreadable references before anything starts
         with self._lock:
             self.pending.save()
-            self._require_idle()
-            tool, light = rig.tool_poses(), rig.light_poses()
-            if request.count is not None:
-                tool, light = tool[: request.count], light[: request.count]
+            if self._manual is not None:
+                raise RunConflictError(f"the devices are busy: {self._manual}")
             if not request.force:
-                self.check_room(request, len(tool))
+                self.preflight.check_room(request, len(tool))
+            waits = self._rig_taken() or bool(self.catalog.queued_runs())
+            if not waits:
+                self._require_idle()  # a previous run's thread is only exiting: waited for, briefly
             runs_dir = Path(self.settings.runs_dir)
             record = self.catalog.create_run(
                 preset=request.preset,
@@ -223,6 +151,11 @@ class RunEngine:
                 n_positions=len(tool),
                 request=request.model_dump(mode="json"),
             )
+            if waits:
+                log.info("run %s queued (position %s): %s", record.id, record.queue_position, request.preset)
+                self.events.publish()
+                return record
+            self.catalog.release_queue()  # the operator started the rig again
             plan = RunPlan(record.id, rig, tool, light, request, Path(record.path), references)
             # Running before the thread starts: a pause right after the start applies to it.
             record = self.catalog.transition_run(record.id, "running")
@@ -236,6 +169,8 @@ class RunEngine:
         (refused when what it has left to take does not fit in the free space, unless ``force``).
 
         A resumed run's ``last_error`` is cleared: it shows an error again only if one happens.
+        Restarting an interrupted or failed run releases a held queue: the operator has dealt
+        with the rig, and the queue goes on once this run completes.
         """
         with self._lock:
             self.pending.save()
@@ -260,13 +195,10 @@ class RunEngine:
                 raise RunConflictError(
                     f"run {run_id} cannot resume: its request's {where}: {exc.errors()[0]['msg']}"
                 ) from None
-            rig = self.plan_schedule(request)
-            tool, light = rig.tool_poses(), rig.light_poses()
-            if request.count is not None:
-                tool, light = tool[: request.count], light[: request.count]
+            rig, tool, light = self.preflight.poses(request)
             if not force:
                 salvage = Path(record.path).stat().st_size if marked_open_for_write(record.path) else 0
-                self.check_room(request, record.n_positions - record.positions_done, salvage)
+                self.preflight.check_room(request, record.n_positions - record.positions_done, salvage)
             if record.state == "failed":
                 # The technician has cleared the fault: acknowledge the controller's alarm.
                 self.devices.arm.reset_alarm()
@@ -274,9 +206,14 @@ class RunEngine:
             # Running as soon as the request returns: a client polling right after must
             # not see the old failed or interrupted state.
             record = self.catalog.transition_run(run_id, "running")
+            self.catalog.release_queue()
             self.events.publish()
             self._launch(plan, resume=True)
             return record
+
+    def _rig_taken(self) -> bool:
+        """A run is in progress, or its thread has not yet recorded how it ended (under ``_lock``)."""
+        return self.catalog.active_run() is not None or (self.busy and not self._exiting)
 
     def pause(self, run_id: str) -> RunRecord:
         """Pause a running run between frames.
@@ -297,16 +234,21 @@ class RunEngine:
             return record
 
     def abort(self, run_id: str) -> RunRecord:
-        """End a run in progress (or an interrupted one) as ``aborted``, keeping every frame taken.
+        """End a run in progress (or an interrupted one) as ``aborted``, keeping every frame taken;
+        a queued run is taken out of the queue (:meth:`remove_queued`).
 
         Raises
         ------
         RunConflictError
-            The run is neither in progress nor interrupted, or is already ending.
+            The run is neither in progress, queued nor interrupted, or is already ending.
         """
         with self._lock:
             self.pending.save()
             record = self.catalog.get_run(run_id)
+            if record.state == "queued":
+                record = self.catalog.remove_from_queue(run_id, REMOVED)
+                self.events.publish()
+                return record
             if record.state == "interrupted" and not (self.busy and self._current == run_id):
                 record = self.catalog.transition_run(run_id, "aborted", error="aborted by the operator")
                 self.events.publish()
@@ -361,6 +303,9 @@ class RunEngine:
             thread.join(timeout)
 
     def shutdown(self) -> None:
+        """Abort the run in progress (the queue is held: no queued run starts) and wait for it."""
+        with self._lock:  # a run ending now has started the next one already, or starts none
+            self._closing = True
         thread = self._thread
         if thread is not None and thread.is_alive():
             self._control.abort.set()
@@ -420,6 +365,7 @@ class RunEngine:
         self._control = Control()
         self._current = plan.run_id
         self._finishing = False
+        self._exiting = False
         self._position = None
         self._thread = threading.Thread(
             target=self._execute, args=(plan, resume), name=f"run-{plan.run_id}", daemon=True
@@ -482,48 +428,6 @@ class RunEngine:
             exposure = max(exposure / 8.0, rule.min_exposure_s)
         return exposures_from_metering(meter, rule, noise)
 
-    def _max_exposures(self, request: RunRequest) -> int:
-        if isinstance(request.bracket, FixedBracket):
-            return len(request.bracket.exposures_s)
-        return self.settings.auto_bracket.model_copy(update=request.bracket.overrides()).max_exposures
-
-    def _header(self, plan: RunPlan) -> RunHeader:
-        request = plan.request
-        return RunHeader(
-            run_id=plan.run_id,
-            rig=plan.rig,
-            tool_poses=plan.tool_poses,
-            light_poses=plan.light_poses,
-            max_exposures=self._max_exposures(request),
-            frame_shape=(plan.rig.camera.height, plan.rig.camera.width),
-            bracket=request.bracket.model_dump(mode="json"),
-            metadata={"operator": request.operator, "light_source": request.light_source, "notes": request.notes},
-            devices={"arm": self.devices.arm.identity, "camera": self.devices.camera.identity},
-            software_version=__version__,
-            created_utc=datetime.now(UTC).isoformat(timespec="seconds"),
-            preset=request.preset,
-            references=plan.references if plan.references is not None else self.references(plan.rig, request),
-            calibration=self._calibration_plan(request),
-        )
-
-    def _calibration_plan(self, request: RunRequest) -> dict:
-        """The calibration sets a new run takes, and how (``RunHeader.calibration``)."""
-        options, switch = request.calibration, self.devices.light
-        plan: dict = {"switch": switch.identity, "sets": []}
-        if not switch.takes_calibration:
-            return {**plan, "reason": "the daemon has no light switch (light.kind = none)"}
-        roles = ["ambient", "dark"] if options.dark else ["ambient"]
-        for when, asked in (("before", options.before), ("after", options.after)):
-            plan["sets"] += [[role, when] for role in roles] if asked else []
-        if not plan["sets"]:
-            return {**plan, "reason": "the run request asked for none"}
-        plan["ambient_exposures_s"] = list(options.ambient_exposures_s)
-        if options.dark and self.settings.light.room_can_be_dark:
-            plan.update(dark="room dark", dark_exposures_s=list(options.ambient_exposures_s))
-        elif options.dark:
-            plan.update(dark=DARK_IN_LIT_ROOM, dark_exposures_s=[self.settings.light.dark_exposure_s])
-        return plan
-
     def discard_raw(self, frame: RawFrame) -> None:
         if not self.settings.camera.keep_raw_files and frame.source:
             try:
@@ -560,7 +464,7 @@ class RunEngine:
         if resume and plan.path.exists():  # a run that failed creating it resumes by creating it
             writer = RunFileWriter.reopen(plan.path)
         else:
-            writer = RunFileWriter.create(plan.path, self._header(plan))
+            writer = RunFileWriter.create(plan.path, self.preflight.header(plan))
         writer.set_status("running")
         self.events.publish()
         return writer
@@ -746,11 +650,14 @@ class RunEngine:
             outcome, message = "failed", failure_message(behind.errors[0], None)
         if writer is not None:
             outcome, message = self._close_run_file(writer, outcome, message)
-        self.pending.record(run_id, outcome, message)
-        level = logging.INFO if outcome == "complete" else logging.WARNING
-        log.log(level, "run %s %s%s", run_id, outcome, f": {message}" if message else "")
-        self._current = None if outcome != "paused" else run_id
-        self._step = None
+        with self._lock:  # a request sees the run in progress, or ended with the queue moved on
+            self.pending.record(run_id, outcome, message)
+            level = logging.INFO if outcome == "complete" else logging.WARNING
+            log.log(level, "run %s %s%s", run_id, outcome, f": {message}" if message else "")
+            self._current = None if outcome != "paused" else run_id
+            self._step = None
+            self._exiting = True
+            self._queue_after(run_id, outcome, message)
         self.events.publish()
 
     def _close_run_file(self, writer: RunFileWriter, outcome: str, message: str) -> tuple[str, str]:

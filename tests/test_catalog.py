@@ -21,6 +21,7 @@ from acquisition.catalog import (
     CatalogError,
     InvalidTransitionError,
     JobClaimError,
+    NotQueuedError,
     UnknownJobError,
     UnknownRunError,
 )
@@ -108,20 +109,60 @@ def test_create_get_list_runs_newest_first(cat, clock):
         cat.list_runs(state="done")
 
 
-def test_create_run_refuses_bad_input_and_a_second_active_run(cat):
+def test_create_run_refuses_bad_input_and_queues_runs_behind_the_one_in_progress(cat):
     with pytest.raises(CatalogError, match="n_positions"):
         cat.create_run(preset="p", path_for=None, n_positions=0, request={})
     with pytest.raises(CatalogError, match="not plain JSON"):
         cat.create_run(preset="p", path_for=None, n_positions=3, request={"x": float("nan")})
     run = cat.create_run(preset=None, path_for=None, n_positions=3, request={})
-    assert run.path is None and run.preset is None
-    with pytest.raises(ActiveRunError, match=f"run {run.id} is queued"):
-        _new_run(cat)
-    cat.transition_run(run.id, "running")
-    with pytest.raises(ActiveRunError, match="running"):
-        _new_run(cat)
+    assert run.path is None and run.preset is None and run.queue_position == 1
+    second = _new_run(cat)
+    assert second.state == "queued" and second.queue_position == 2
+    cat.transition_run(run.id, "running")  # it leaves the queue
+    assert cat.get_run(run.id).queue_position is None and cat.get_run(second.id).queue_position == 1
+    with pytest.raises(ActiveRunError, match=f"run {run.id} is running"):
+        cat.transition_run(second.id, "running")  # one run in progress at a time
     cat.transition_run(run.id, "complete")
-    _new_run(cat)
+    assert cat.transition_run(second.id, "running").state == "running"
+
+
+def test_the_queue_keeps_its_order_and_its_hold_across_a_reopen(db, clock):
+    cat = Catalog(db, clock=clock)
+    first, second, third = (_new_run(cat) for _ in range(3))
+    assert [r.id for r in cat.reorder_queue([third.id])] == [third.id, first.id, second.id]
+    with pytest.raises(CatalogError, match=f"run '{first.id}' is named twice"):
+        cat.reorder_queue([first.id, first.id])
+    with pytest.raises(UnknownRunError):
+        cat.reorder_queue(["run-nope"])
+    assert cat.queue_hold() is None
+    cat.hold_queue("run run-x failed: alarm")
+    cat.close()
+    clock.advance(60)
+    cat = Catalog(db, clock=clock)  # the daemon restarts
+    try:
+        assert cat.mark_interrupted() == []
+        assert [(r.id, r.queue_position) for r in cat.queued_runs()] == [(third.id, 1), (first.id, 2), (second.id, 3)]
+        assert cat.queue_hold() == ("run run-x failed: alarm", clock.now - timedelta(seconds=60))
+        removed = cat.remove_from_queue(first.id, "removed from the queue by the operator")
+        assert (removed.state, removed.last_error, removed.queue_position) == (
+            "aborted",
+            "removed from the queue by the operator",
+            None,
+        )
+        assert removed.finished_utc == clock.now and removed.started_utc is None
+        with pytest.raises(NotQueuedError, match=f"cannot remove it from the queue: run {first.id} is aborted"):
+            cat.remove_from_queue(first.id, "again")
+        with pytest.raises(NotQueuedError, match="cannot reorder the queue"):
+            cat.reorder_queue([first.id])
+        assert cat.queue_hold() is not None  # runs still wait
+        cat.remove_from_queue(third.id, "gone")
+        cat.remove_from_queue(second.id, "gone")
+        assert cat.queue_hold() is None  # the hold goes with the queue's last run
+        cat.hold_queue("held")
+        cat.release_queue()
+        assert cat.queue_hold() is None
+    finally:
+        cat.close()
 
 
 def test_every_transition_follows_the_table(cat):
@@ -245,14 +286,16 @@ def test_active_run_and_mark_interrupted_after_restart(db, clock):
         cat.close()
 
 
-def test_mark_interrupted_also_catches_queued_and_paused(cat):
+def test_mark_interrupted_catches_paused_and_keeps_the_queue(cat):
     queued = _run_in(cat, "queued")
-    assert cat.active_run().id == queued.id
-    assert cat.mark_interrupted() == [queued.id]
+    assert cat.active_run() is None  # a queued run waits: it is not in progress
     paused = _run_in(cat, "paused")
+    later = _new_run(cat)
     assert cat.active_run().id == paused.id
     assert cat.mark_interrupted() == [paused.id]
-    assert {r.state for r in cat.list_runs()} == {"interrupted"}
+    assert [r.id for r in cat.queued_runs()] == [queued.id, later.id]
+    states = {r.id: r.state for r in cat.list_runs()}
+    assert states == {queued.id: "queued", paused.id: "interrupted", later.id: "queued"}
 
 
 def test_progress_and_eta(cat, clock):
@@ -474,6 +517,11 @@ def test_a_version_1_catalog_is_migrated_and_keeps_its_jobs(db, clock):
             "INSERT INTO runs (id, seq, created_utc, updated_utc, state, n_positions, positions_done, request_json) "
             "VALUES ('run-old', 1, 't', 't', 'complete', 3, 3, '{}')"
         )
+        conn.execute(  # a run left queued: it keeps its turn in the queue
+            "INSERT INTO runs (id, seq, created_utc, updated_utc, state, n_positions, positions_done, request_json) "
+            "VALUES ('run-waits', 2, '2026-11-20T00:00:00.000000Z', '2026-11-20T00:00:00.000000Z', 'queued', 3, 0, "
+            "'{}')"
+        )
         conn.execute(
             "INSERT INTO jobs (id, seq, run_id, created_utc, updated_utc, state, steps, options_json, progress) "
             "VALUES ('job-old', 1, 'run-old', '2026-11-20T00:00:00.000000Z', '2026-11-20T00:00:00.000000Z', "
@@ -485,6 +533,8 @@ def test_a_version_1_catalog_is_migrated_and_keeps_its_jobs(db, clock):
         job = cat.get_job("job-old")
         assert (job.steps, job.artifacts, job.message, job.not_before_utc) == ("hdr,trace,fit", {}, None, None)
         assert cat.claim_job("w1").id == "job-old"
+        assert [(r.id, r.queue_position) for r in cat.queued_runs()] == [("run-waits", 1)]
+        assert cat.queue_hold() is None
     finally:
         cat.close()
 

@@ -1,5 +1,5 @@
-"""The run engine's states under any order and timing of pause, resume, stop-arm and abort, and
-the run request's values checked when the request is made.
+"""The run engine's states under any order and timing of pause, resume, stop-arm, abort and the
+queue's controls, and the run request's values checked when the request is made.
 
 Hypothesis's stateful testing drives the real engine through its API, in process: the
 simulated stage served over Modbus TCP on loopback and driven by the real ``ModbusArm``, the
@@ -12,6 +12,7 @@ while the camera captures, while the run is paused, right after the start and af
 from __future__ import annotations
 
 import json
+import os
 import time
 
 import pytest
@@ -92,38 +93,72 @@ def check_run_file(http, status: dict, calibrated: bool = True) -> None:
 
 
 class RunControl(RuleBasedStateMachine):
-    """Random sequences of start, pause, resume, stop-arm, abort and short waits.
+    """Random sequences of start (or queue), pause, resume, stop-arm, abort, the queue's reorder,
+    remove and start, and short waits.
 
     Each request's answer is checked against the state seen just before it (a request that
     cannot apply gets 409 with a one-line reason, never a 500); the invariants hold whatever
-    the timing.
+    the timing. A run started while another is in progress waits in the queue (202) and
+    starts by itself only once the run ahead has completed, or after the queue was started.
     """
 
     http: TestClient
 
     def __init__(self):
         super().__init__()
-        self.run_id: str | None = None
+        self.run_id: str | None = None  # the run started last (at once or from the queue)
         self.done = 0
         self.ended: list[str] = []
+        self.queued: list[str] = []  # the runs waiting, in the queue's order
+        self.removed: list[str] = []
+        self.released = False  # the queue was started by hand since the last run left it
 
     def state(self) -> str | None:
         return None if self.run_id is None else get(self.http, self.run_id)["state"]
 
+    def sync(self) -> None:
+        """Follow the queue: a run that has left it started in its turn, the run before it ended
+        (complete, unless the queue was started by hand)."""
+        while self.queued:
+            status = get(self.http, self.queued[0])
+            if status["state"] == "queued":
+                return
+            self.queued.pop(0)
+            assert self.run_id is not None, status
+            before = get(self.http, self.run_id)
+            assert before["state"] in FINAL, (before, status)
+            assert before["state"] == "complete" or self.released, (before, status)  # a held queue stays held
+            self.released = False
+            self.ended.append(self.run_id)
+            self.run_id, self.done = status["id"], 0
+
     @initialize()
     def idle_rig(self):
         assert self.http.app.state.engine.catalog.active_run() is None
+        assert self.http.get("/queue").json() == {"held": None, "held_utc": None, "runs": []}
 
-    @rule(count=st.integers(1, 3))
-    def start(self, count):
-        before = self.state()
+    @rule(count=st.integers(1, 3), behind=st.integers(0, 2))
+    def start(self, count, behind):
+        """A run, and ``behind`` more at once (they queue behind it), the queue kept short."""
+        for _ in range(1 + behind):
+            self.sync()
+            if len(self.queued) >= 2:
+                return
+            self.start_one(count)
+
+    def start_one(self, count):
         answer = self.http.post("/runs", json={"count": count, "bracket": BRACKET, "calibration": CALIBRATION})
-        if before is not None and before not in FINAL:
-            if answer.status_code == 409:
-                return assert_refused(answer)
-        assert answer.status_code == 201, answer.text  # the rig was idle (or its run just ended)
+        if answer.status_code == 202:  # the rig taken, or runs waiting: queued
+            assert answer.json()["state"] == "queued" and answer.json()["queue_position"] >= 1, answer.text
+            assert self.run_id is not None, answer.text
+            self.queued.append(answer.json()["id"])
+            return
+        assert answer.status_code == 201, answer.text  # the rig was free, the queue empty
         assert answer.json()["state"] == "running" and answer.json()["last_error"] is None
+        self.sync()
+        assert self.queued == [], self.queued
         if self.run_id is not None:
+            assert self.state() in FINAL
             self.ended.append(self.run_id)
         self.run_id, self.done = answer.json()["id"], 0
 
@@ -161,6 +196,7 @@ class RunControl(RuleBasedStateMachine):
 
     @rule()
     def abort(self):
+        self.sync()
         if self.run_id is None:
             return
         before = self.state()
@@ -170,12 +206,41 @@ class RunControl(RuleBasedStateMachine):
         assert answer.status_code == 200, answer.text
         assert answer.json()["state"] == "aborted", answer.json()
 
+    @rule()
+    def reorder(self):
+        """The queue reversed; 409 if its head started meanwhile."""
+        answer = self.http.put("/queue", json={"run_ids": self.queued[::-1]})
+        if answer.status_code == 409:
+            assert_refused(answer)
+            return self.sync()
+        assert answer.status_code == 200, answer.text
+        self.queued = [run["id"] for run in answer.json()["runs"]]
+
+    @rule()
+    def remove(self):
+        """The last queued run taken out of the queue (409 if it started meanwhile)."""
+        if not self.queued:
+            return
+        answer = self.http.delete(f"/queue/{self.queued[-1]}")
+        if answer.status_code == 409:
+            assert_refused(answer)
+            return self.sync()
+        assert answer.status_code == 200 and answer.json()["state"] == "aborted", answer.text
+        self.removed.append(self.queued.pop())
+
+    @rule()
+    def start_queue(self):
+        answer = self.http.post("/queue/start")
+        assert answer.status_code == 200 and answer.json()["held"] is None, answer.text
+        self.released = True
+
     @rule(seconds=st.sampled_from([0.0, 0.005, 0.02, 0.06, 0.15]))
     def wait(self, seconds):
         time.sleep(seconds)
 
     @invariant()
     def defined_state(self):
+        self.sync()
         if self.run_id is None:
             return
         status = get(self.http, self.run_id)
@@ -191,20 +256,34 @@ class RunControl(RuleBasedStateMachine):
             assert error is None, status
         if status["state"] in FINAL:
             assert status["step"] is None, status
+        waiting = [run["id"] for run in self.http.get("/queue").json()["runs"]]
+        assert waiting == self.queued[len(self.queued) - len(waiting) :], (waiting, self.queued)  # its head may start
 
     def teardown(self):
-        """Every run ends: one in progress is resumed until complete; every file is readable."""
+        """Every run ends: one in progress is resumed until complete, a held queue is started;
+        every run file is readable, and a removed run has none."""
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline:
+            self.sync()
+            state = self.state()
+            if state == "paused":
+                self.http.post(f"/runs/{self.run_id}/resume")
+            elif state in FINAL and self.queued:
+                self.start_queue()
+            elif state in FINAL or state is None:
+                break
+            time.sleep(0.01)
         if self.run_id is not None:
-            deadline = time.monotonic() + 30
-            while (status := get(self.http, self.run_id))["state"] not in FINAL and time.monotonic() < deadline:
-                if status["state"] == "paused":
-                    self.http.post(f"/runs/{self.run_id}/resume")
-                time.sleep(0.01)
-            assert status["state"] in ("complete", "aborted"), status
+            assert self.state() in ("complete", "aborted"), get(self.http, self.run_id)
             self.ended.append(self.run_id)
+        assert self.queued == []
         self.http.app.state.engine.wait(10)
         for run_id in self.ended:
             check_run_file(self.http, get(self.http, run_id))
+        for run_id in self.removed:
+            removed = get(self.http, run_id)
+            assert removed["state"] == "aborted" and removed["started_utc"] is None, removed
+            assert not os.path.exists(self.http.app.state.engine.catalog.get_run(run_id).path)
 
 
 def test_every_sequence_of_run_controls_ends_in_a_defined_state(http):

@@ -238,6 +238,7 @@ def test_a_run_started_from_the_page_completes_with_the_alignment_view_and_downl
     page.click("#resume")  # a resume clears the last error
     expect(page.locator("#state")).to_have_text("running")
     expect(page.locator("#last-error")).to_have_text("none")
+    queued = queue_from_the_page(page, second)
     page.once("dialog", lambda dialog: dialog.accept())
     page.click("#abort")
     expect(page.locator("#state")).to_have_text("aborted")
@@ -246,7 +247,57 @@ def test_a_run_started_from_the_page_completes_with_the_alignment_view_and_downl
     expect(page.locator(f'#runs tr[data-run-id="{second}"]')).to_contain_text("aborted")
     with daemon.client() as http:
         assert http.get(f"/runs/{second}").json()["state"] == "aborted"
+    queue_runs_on_from_the_page(page, daemon, second, queued)
     assert page.script_errors == []
+
+
+def queue_from_the_page(page, active: str) -> list[str]:
+    """Three runs started while ``active`` runs wait in the queue: the second moved up, the first
+    removed. Returns the two left, in their order."""
+    message, queue = page.locator("#message"), page.locator("#queue li")
+    page.fill("#count", "1")
+    queued = []
+    for k in range(3):
+        page.click("#start")
+        expect(message).to_contain_text(f"queued: position {k + 1}, 1 position; it starts when the runs ahead")
+        queued.append(re.search(r"Run (run-\S+) ", message.inner_text()).group(1))
+    first, second, third = queued
+    expect(page.locator("#run-id")).to_have_text(active)  # the page stays with the run in progress
+    expect(page.locator("#queue-summary")).to_have_text("3 runs waiting")
+    expect(queue).to_have_count(3)
+    expect(run_badge(page, third)).to_have_text("queued #3")
+    expect(queue.nth(0).locator("button.up")).to_be_disabled()
+    expect(queue.nth(2).locator("button.down")).to_be_disabled()
+    queue.nth(1).locator("button.up").click()  # the second first
+    expect(queue.nth(0)).to_have_attribute("data-run-id", second)
+    expect(run_badge(page, first)).to_have_text("queued #2")
+    queue.nth(1).locator("button.remove").click()
+    expect(message).to_have_text(f"Run {first} removed from the queue.")
+    expect(queue).to_have_count(2)
+    expect(run_badge(page, first)).to_have_text("aborted")
+    expect(run_badge(page, third)).to_have_text("queued #2")
+    return [second, third]
+
+
+def queue_runs_on_from_the_page(page, daemon, aborted: str, queued: list[str]) -> None:
+    """The aborted run holds the queue, and the page says why; started again, its first run goes,
+    and the one behind it starts by itself once that one has completed."""
+    expect(page.locator("#queue-held")).to_have_text(f"Held: run {aborted} was aborted")
+    expect(run_badge(page, queued[0])).to_have_text("queued #1")
+    page.screenshot(path=str(daemon.log_path.parent / "queue.png"), full_page=True)
+    page.click("#queue-start")
+    expect(page.locator("#queue-held")).to_be_hidden()
+    expect(page.locator("#queue-start")).to_be_hidden()
+    for run_id in queued:
+        expect(run_badge(page, run_id)).to_have_text("complete", timeout=30_000)
+    expect(page.locator("#queue-summary")).to_have_text("no run waiting")
+    with daemon.client() as http:
+        ran = [http.get(f"/runs/{run_id}").json() for run_id in queued]
+    assert ran[0]["finished_utc"] <= ran[1]["started_utc"]
+
+
+def run_badge(page, run_id: str):
+    return page.locator(f'#runs tr[data-run-id="{run_id}"] .badge')
 
 
 def test_the_page_shows_what_the_daemon_refuses_and_polls_without_events(tmp_path, daemon_factory, page):
@@ -357,8 +408,9 @@ def test_the_page_shows_each_job_and_links_its_report_ies_and_ray_file(tmp_path,
 
 def test_the_next_job_takes_the_options_set_on_the_page(tmp_path, daemon_factory, page, captured):
     """The processing options on the page (the pinhole's diameter fitted or not, the intensity
-    model) go with the next `process` click as the job's options, as `POST /runs/{id}/process`
-    takes them; only those that differ from the worker's defaults."""
+    model, what the light files hold beyond the measured θ) go with the next `process` click as
+    the job's options, as `POST /runs/{id}/process` takes them; only those that differ from the
+    worker's defaults."""
     from test_worker import Data
 
     data = Data(tmp_path / "data")
@@ -370,22 +422,30 @@ def test_the_next_job_takes_the_options_set_on_the_page(tmp_path, daemon_factory
     expect(page.locator("#fit-aperture")).to_have_value("auto")  # the worker's default
     expect(page.locator("#fit-model")).to_have_value("gaussian")
     message = page.locator("#message")
+    expect(page.locator("#extrapolation")).to_have_value("fitted")
     choices = [
-        ("always", True, "polynomial", "steps hdr,sources, aperture fitted, sensor distance fitted, polynomial fits"),
-        ("never", False, "gaussian", "steps hdr,sources, aperture as described"),
-        ("auto", False, "gaussian", "steps hdr,sources"),
+        (
+            "always",
+            True,
+            "polynomial",
+            "none",
+            "steps hdr,sources, aperture fitted, sensor distance fitted, polynomial fits, measured range only",
+        ),
+        ("never", False, "gaussian", "fitted", "steps hdr,sources, aperture as described"),
+        ("auto", False, "gaussian", "fitted", "steps hdr,sources"),
     ]
-    for aperture, distance, model, said in choices:
+    for aperture, distance, model, extrapolation, said in choices:
         page.select_option("#fit-aperture", aperture)
         page.set_checked("#fit-sensor-distance", distance)
         page.select_option("#fit-model", model)
+        page.select_option("#extrapolation", extrapolation)
         row.locator("button.process").click()
         expect(message).to_contain_text(f"queued for run {run.id} ({said}).")
     page.screenshot(path=str(tmp_path / "options.png"), full_page=True)
     with daemon.client() as http:
         jobs = sorted(http.get("/jobs", params={"run_id": run.id}).json(), key=lambda job: job["created_utc"])
     options = [
-        {"fit_aperture": "always", "fit_sensor_distance": "always", "fit": "polynomial"},
+        {"fit_aperture": "always", "fit_sensor_distance": "always", "fit": "polynomial", "extrapolation": "none"},
         {"fit_aperture": "never"},
         {},
     ]

@@ -42,7 +42,9 @@ def camera_state(engine) -> CameraState:
 @router.get("/health", response_model=Health, responses={503: {"model": Health, "description": "degraded"}})
 def health(engine: EngineDep, catalog: CatalogDep, settings: SettingsDep, response: Response) -> Health:
     """``ok`` only when the arm answers without an alarm, the camera is there, and the data
-    directory can be written with room for a position; else 503 with the reasons."""
+    directory can be written with room for a position; else 503 with the reasons. Also the run
+    in progress, the runs queued, and why the queue is held (a held queue is not a fault of
+    the daemon: it waits for the operator)."""
     reasons = storage_problems(engine, settings)
     arm = arm_state(engine)
     if not arm.connected:
@@ -57,11 +59,14 @@ def health(engine: EngineDep, catalog: CatalogDep, settings: SettingsDep, respon
         active = None  # it has ended; the catalog does not know yet
     if reasons:
         response.status_code = status.HTTP_503_SERVICE_UNAVAILABLE
+    hold = catalog.queue_hold()
     return Health(
         status="degraded" if reasons else "ok",
         reasons=reasons,
         version=__version__,
         active_run=active.id if active else None,
+        queued_runs=len(catalog.queued_runs()),
+        queue_held=hold[0] if hold else None,
     )
 
 

@@ -14,9 +14,10 @@ router = APIRouter(tags=["presets"], dependencies=[ReadTokenDep], responses=TOKE
 def presets(engine: EngineDep, settings: SettingsDep) -> dict:
     """The presets with their schedules, position counts and the default bracket."""
     out = {}
-    for name in engine.presets():
+    schedules = engine.preflight.presets()
+    for name in schedules:
         try:
-            rig = engine.plan_schedule(RunRequest(preset=name))
+            rig = engine.preflight.plan_schedule(RunRequest(preset=name))
             out[name] = {
                 "schedule": rig.schedule.model_dump(mode="json"),
                 "positions": len(rig.light_poses()),
@@ -24,5 +25,5 @@ def presets(engine: EngineDep, settings: SettingsDep) -> dict:
                 "error": None,
             }
         except ValueError as exc:
-            out[name] = {"schedule": engine.presets()[name], "positions": None, "valid": False, "error": str(exc)}
+            out[name] = {"schedule": schedules[name], "positions": None, "valid": False, "error": str(exc)}
     return {"presets": out, "default_bracket": {"mode": "fixed", "exposures_s": settings.default_exposures_s}}

@@ -60,6 +60,7 @@ def run_status(record: RunRecord, engine: RunEngine | None = None) -> RunStatus:
         exposures_per_position=record.exposures_per_position,
         file_url=f"/runs/{record.id}/file",
         step=engine.step(record.id) if engine is not None else None,
+        queue_position=record.queue_position,
     )
 
 
@@ -69,23 +70,29 @@ def run_status(record: RunRecord, engine: RunEngine | None = None) -> RunStatus:
     response_model=RunStatus,
     dependencies=[TokenDep],
     responses={
-        409: {"model": Problem, "description": "another run is active"},
+        201: {"model": RunStatus, "description": "started: the rig was free and no run waited"},
+        202: {"model": RunStatus, "description": "queued behind the run in progress (its `queue_position`)"},
+        409: {"model": Problem, "description": "the devices are held by a test shot, a jog or homing"},
         422: {"model": Problem},
         **BODY_ERRORS,
         **WRITE_ERRORS,
         **STORAGE_ERRORS,
     },
 )
-def start_run(body: RunRequest, engine: EngineDep, settings: SettingsDep) -> RunStatus:
-    """Start a run. Only one run at a time per rig: a second one gets 409. A run whose
-    estimated size exceeds the free space gets 507 with both, unless it says ``"force": true``."""
+def start_run(body: RunRequest, engine: EngineDep, settings: SettingsDep, response: Response) -> RunStatus:
+    """Start a run (201), or queue it (202) while another is in progress or runs wait: it starts
+    by itself in its turn (``GET /queue``). A run whose estimated size exceeds the free space
+    gets 507 with both, unless it says ``"force": true``."""
     if "ambient_exposures_s" not in body.calibration.model_fields_set:
         options = {**body.calibration.model_dump(), "ambient_exposures_s": settings.light.ambient_exposures_s}
         body = body.model_copy(update={"calibration": CalibrationOptions.model_validate(options)})
     if "bracket" not in body.model_fields_set:
         default = {"mode": "fixed", "exposures_s": settings.default_exposures_s}
         body = RunRequest.model_validate({**body.model_dump(exclude={"bracket"}), "bracket": default})
-    return run_status(engine.start_run(body), engine)
+    record = engine.start_run(body)
+    if record.state == "queued":
+        response.status_code = status.HTTP_202_ACCEPTED
+    return run_status(record, engine)
 
 
 @router.get("", response_model=list[RunStatus])
@@ -125,7 +132,8 @@ def resume(run_id: str, engine: EngineDep, body: ResumeRequest | None = None) ->
 
 @router.post("/{run_id}/abort", response_model=RunStatus, dependencies=[TokenDep], responses=GUARDED_ERRORS)
 def abort(run_id: str, engine: EngineDep) -> RunStatus:
-    """Stop the arm and end the run; every frame taken is kept."""
+    """Stop the arm and end the run; every frame taken is kept. A queued run is taken out of
+    the queue (as ``DELETE /queue/{run_id}``)."""
     return run_status(engine.abort(run_id), engine)
 
 

@@ -1,7 +1,7 @@
 """The catalog: every run and every processing job, in one SQLite file next to the data.
 
 The catalog lives at ``DATA_DIR/catalog.sqlite`` and outlives the daemon: after a restart
-:meth:`Catalog.mark_interrupted` turns the runs the previous daemon left behind into
+:meth:`Catalog.mark_interrupted` turns the runs the previous daemon left in progress into
 ``interrupted`` ones, which can be resumed. It is shared by the daemon's threads (HTTP
 handlers, the run engine) and by separate processing worker processes, which claim jobs
 with :meth:`Catalog.claim_job` and prove they are alive with :meth:`Catalog.heartbeat`.
@@ -26,7 +26,8 @@ The package's modules: :mod:`~acquisition.catalog.records` (the states, their tr
 the records handed out), :mod:`~acquisition.catalog.errors`, :mod:`~acquisition.catalog.schema`
 (the tables and their migrations), :mod:`~acquisition.catalog.database` (the connection, its
 transactions and the checks of the values given), :mod:`~acquisition.catalog.runs` and
-:mod:`~acquisition.catalog.jobs` (the operations on each), joined here in :class:`Catalog`.
+:mod:`~acquisition.catalog.jobs` (the operations on each), :mod:`~acquisition.catalog.queue`
+(the runs waiting their turn), joined here in :class:`Catalog`.
 """
 
 from acquisition.catalog.errors import (
@@ -36,14 +37,17 @@ from acquisition.catalog.errors import (
     CatalogUnavailableError,
     InvalidTransitionError,
     JobClaimError,
+    NotQueuedError,
     UnknownJobError,
     UnknownRunError,
 )
 from acquisition.catalog.jobs import JobCatalog
+from acquisition.catalog.queue import QueueCatalog
 from acquisition.catalog.records import (
     ACTIVE_RUN_STATES,
     ALLOWED_JOB_TRANSITIONS,
     ALLOWED_RUN_TRANSITIONS,
+    IN_PROGRESS_RUN_STATES,
     JOB_STATES,
     RUN_STATES,
     JobRecord,
@@ -51,11 +55,10 @@ from acquisition.catalog.records import (
     RunRecord,
     RunState,
 )
-from acquisition.catalog.runs import RunCatalog
 from acquisition.catalog.schema import SCHEMA_VERSION
 
 
-class Catalog(RunCatalog, JobCatalog):
+class Catalog(QueueCatalog, JobCatalog):
     """The catalog of runs and processing jobs in one SQLite file.
 
     Parameters
@@ -94,6 +97,7 @@ __all__ = [
     "ACTIVE_RUN_STATES",
     "ALLOWED_JOB_TRANSITIONS",
     "ALLOWED_RUN_TRANSITIONS",
+    "IN_PROGRESS_RUN_STATES",
     "JOB_STATES",
     "RUN_STATES",
     "SCHEMA_VERSION",
@@ -106,6 +110,7 @@ __all__ = [
     "JobClaimError",
     "JobRecord",
     "JobState",
+    "NotQueuedError",
     "RunRecord",
     "RunState",
     "UnknownJobError",

@@ -60,16 +60,29 @@ class InvalidTransitionError(CatalogError):
 
 
 class ActiveRunError(CatalogError):
-    """Another run is already queued, running or paused: one run at a time per rig."""
+    """Another run is already running or paused: one run in progress at a time per rig."""
 
     def __init__(self, active_id: str, active_state: str, wanted: str):
         self.active_id = active_id
         self.active_state = active_state
         self.wanted = wanted
-        super().__init__(f"cannot {wanted}: run {active_id} is {active_state} (one run at a time)")
+        super().__init__(f"cannot {wanted}: run {active_id} is {active_state} (one run in progress at a time)")
 
     def __reduce__(self):
         return (type(self), (self.active_id, self.active_state, self.wanted))
+
+
+class NotQueuedError(CatalogError):
+    """A queue operation on a run that is not queued (it has started, ended or was removed)."""
+
+    def __init__(self, run_id: str, state: str, wanted: str):
+        self.run_id = run_id
+        self.state = state
+        self.wanted = wanted
+        super().__init__(f"cannot {wanted}: run {run_id} is {state}, not queued")
+
+    def __reduce__(self):
+        return (type(self), (self.run_id, self.state, self.wanted))
 
 
 class JobClaimError(CatalogError):

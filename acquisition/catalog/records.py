@@ -18,8 +18,7 @@ JOB_STATES: tuple[str, ...] = ("queued", "running", "complete", "failed")
 
 #: Which state a run may go to from each state. ``failed -> running`` resumes a run after
 #: a persistent device fault has been cleared; ``aborted`` and ``complete`` are final.
-#: :meth:`Catalog.mark_interrupted` is the one path outside this table: at daemon start a
-#: run left ``queued`` also becomes ``interrupted``.
+#: ``queued -> aborted`` is a run taken out of the queue before it started.
 ALLOWED_RUN_TRANSITIONS: dict[str, frozenset[str]] = {
     "queued": frozenset({"running", "aborted", "failed"}),
     "running": frozenset({"paused", "complete", "aborted", "failed", "interrupted"}),
@@ -38,8 +37,10 @@ ALLOWED_JOB_TRANSITIONS: dict[str, frozenset[str]] = {
     "failed": frozenset(),
 }
 
-#: The states of the one run a rig may have at a time (see :meth:`Catalog.active_run`).
+#: The states of a run not yet ended: waiting in the queue, or in progress.
 ACTIVE_RUN_STATES: tuple[str, ...] = ("queued", "running", "paused")
+#: The states of the one run a rig may have in progress at a time (see :meth:`Catalog.active_run`).
+IN_PROGRESS_RUN_STATES: tuple[str, ...] = ("running", "paused")
 
 #: Times are stored as fixed-width UTC text: compared as strings, they compare as times.
 _TIME_FORMAT = "%Y-%m-%dT%H:%M:%S.%fZ"
@@ -67,6 +68,8 @@ class RunRecord(_Record):
     last_error: str | None
     request: dict[str, Any]
     seconds_per_position: float | None
+    #: A queued run's place in the queue, from 1 (the next to start); None once it has left it.
+    queue_position: int | None = None
 
     @computed_field  # type: ignore[prop-decorator]
     @property
@@ -127,6 +130,7 @@ def run_from_row(row: sqlite3.Row) -> RunRecord:
         last_error=row["last_error"],
         request=json.loads(row["request_json"]),
         seconds_per_position=row["seconds_per_position"],
+        queue_position=row["queue_position"],
     )
 
 

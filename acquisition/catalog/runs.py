@@ -9,8 +9,8 @@ from pathlib import Path
 from acquisition.catalog.database import CatalogDatabase, check_int, check_real, check_text, to_json
 from acquisition.catalog.errors import ActiveRunError, CatalogError, InvalidTransitionError, UnknownRunError
 from acquisition.catalog.records import (
-    ACTIVE_RUN_STATES,
     ALLOWED_RUN_TRANSITIONS,
+    IN_PROGRESS_RUN_STATES,
     RUN_STATES,
     RunRecord,
     format_time,
@@ -27,9 +27,9 @@ class RunCatalog(CatalogDatabase):
 
     @staticmethod
     def _other_active(conn: sqlite3.Connection, run_id: str | None) -> sqlite3.Row | None:
-        """The active run other than ``run_id`` (any active run if None)."""
+        """The run in progress other than ``run_id`` (any run in progress if None)."""
         return conn.execute(
-            f"SELECT id, state FROM runs WHERE state IN ({sql_list(ACTIVE_RUN_STATES)}) AND id <> ? "
+            f"SELECT id, state FROM runs WHERE state IN ({sql_list(IN_PROGRESS_RUN_STATES)}) AND id <> ? "
             "ORDER BY seq DESC LIMIT 1",
             ("" if run_id is None else run_id,),
         ).fetchone()
@@ -49,7 +49,8 @@ class RunCatalog(CatalogDatabase):
         n_positions: int,
         request: dict,
     ) -> RunRecord:
-        """Add a new run in state ``queued``.
+        """Add a new run in state ``queued``, at the end of the queue (whether it starts at once
+        or waits for the runs ahead of it is the daemon's decision).
 
         Parameters
         ----------
@@ -70,8 +71,6 @@ class RunCatalog(CatalogDatabase):
 
         Raises
         ------
-        ActiveRunError
-            Another run is queued, running or paused.
         CatalogError
             A bad argument.
         """
@@ -80,17 +79,15 @@ class RunCatalog(CatalogDatabase):
         n_positions = check_int("n_positions", n_positions, 1)
         request_json = to_json(request, "the run request")
         with self._write() as conn:
-            active = self._other_active(conn, None)
-            if active is not None:
-                raise ActiveRunError(active["id"], active["state"], "create a run")
             now = self._now()
             run_id = self._new_id(conn, "runs", "run", now)
             path = None if path_for is None else str(path_for(run_id))
             stamp = format_time(now)
+            order = conn.execute("SELECT COALESCE(MAX(queue_order), 0) + 1 FROM runs").fetchone()[0]
             conn.execute(
                 "INSERT INTO runs (id, seq, created_utc, updated_utc, state, preset, path, n_positions, "
-                "positions_done, request_json) VALUES (?, ?, ?, ?, 'queued', ?, ?, ?, 0, ?)",
-                (run_id, self._next_seq(conn, "runs"), stamp, stamp, preset, path, n_positions, request_json),
+                "positions_done, request_json, queue_order) VALUES (?, ?, ?, ?, 'queued', ?, ?, ?, 0, ?, ?)",
+                (run_id, self._next_seq(conn, "runs"), stamp, stamp, preset, path, n_positions, request_json, order),
             )
             return self._fetch_run(conn, run_id)
 
@@ -146,7 +143,7 @@ class RunCatalog(CatalogDatabase):
         InvalidTransitionError
             The run's current state does not allow ``new_state``.
         ActiveRunError
-            Resuming this run while another one is queued, running or paused.
+            Starting or resuming this run while another one is running or paused.
         """
         if new_state not in RUN_STATES:
             raise CatalogError(f"{run_id}: unknown run state {new_state!r} (one of: {', '.join(RUN_STATES)})")
@@ -154,7 +151,7 @@ class RunCatalog(CatalogDatabase):
             check_text("error", error)
         sources = [s for s, targets in ALLOWED_RUN_TRANSITIONS.items() if new_state in targets]
         with self._write() as conn:
-            if new_state in ACTIVE_RUN_STATES:
+            if new_state in IN_PROGRESS_RUN_STATES:
                 active = self._other_active(conn, run_id)
                 if active is not None:
                     raise ActiveRunError(active["id"], active["state"], f"make {run_id} {new_state}")
@@ -168,7 +165,7 @@ class RunCatalog(CatalogDatabase):
             started = "COALESCE(started_utc, :now)" if new_state == "running" else "started_utc"
             kept_error = "NULL" if new_state == "running" else "last_error"
             changed = conn.execute(
-                f"UPDATE runs SET state = :new, updated_utc = :now, started_utc = {started}, "
+                f"UPDATE runs SET state = :new, queue_order = NULL, updated_utc = :now, started_utc = {started}, "
                 f"finished_utc = {finished}, last_error = COALESCE(:error, {kept_error}) "
                 f"WHERE id = :id AND state IN ({sql_list(sources) or 'NULL'})",
                 {"new": new_state, "now": stamp, "error": error, "id": run_id},
@@ -242,16 +239,18 @@ class RunCatalog(CatalogDatabase):
             )
 
     def active_run(self) -> RunRecord | None:
-        """The run that is queued, running or paused, if any (one run at a time per rig)."""
+        """The run that is running or paused, if any (one run in progress at a time per rig;
+        the queued runs wait: :meth:`~acquisition.catalog.queue.QueueCatalog.queued_runs`)."""
         with self._read() as conn:
             row = conn.execute(
-                f"SELECT {RUN_COLUMNS} FROM runs WHERE state IN ({sql_list(ACTIVE_RUN_STATES)}) "
+                f"SELECT {RUN_COLUMNS} FROM runs WHERE state IN ({sql_list(IN_PROGRESS_RUN_STATES)}) "
                 "ORDER BY seq DESC LIMIT 1"
             ).fetchone()
             return None if row is None else run_from_row(row)
 
     def mark_interrupted(self) -> list[str]:
-        """At daemon start: every run left queued, running or paused becomes ``interrupted``.
+        """At daemon start: every run left running or paused becomes ``interrupted`` (the queued
+        runs stay queued, in their order).
 
         Returns
         -------
@@ -262,12 +261,12 @@ class RunCatalog(CatalogDatabase):
             ids = [
                 row["id"]
                 for row in conn.execute(
-                    f"SELECT id FROM runs WHERE state IN ({sql_list(ACTIVE_RUN_STATES)}) ORDER BY seq"
+                    f"SELECT id FROM runs WHERE state IN ({sql_list(IN_PROGRESS_RUN_STATES)}) ORDER BY seq"
                 )
             ]
             conn.execute(
                 f"UPDATE runs SET state = 'interrupted', updated_utc = ? "
-                f"WHERE state IN ({sql_list(ACTIVE_RUN_STATES)})",
+                f"WHERE state IN ({sql_list(IN_PROGRESS_RUN_STATES)})",
                 (format_time(self._now()),),
             )
             return ids

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from acquisition.catalog.records import JOB_STATES, RUN_STATES
 
-SCHEMA_VERSION = 3
+SCHEMA_VERSION = 4
 
 
 def sql_list(states) -> str:
@@ -65,13 +65,24 @@ MIGRATIONS: tuple[tuple[str, ...], ...] = (
     # 3: the step a running job's processing is in (processing.light_run.progress.STEPS),
     # kept when it fails (the step it failed in).
     ("ALTER TABLE jobs ADD COLUMN step TEXT",),
+    # 4: the queue of runs: a queued run's place (ascending; the rank is its position), and
+    # the queue's one row: why it is held (NULL: it runs on), and since when.
+    (
+        "ALTER TABLE runs ADD COLUMN queue_order INTEGER",
+        "UPDATE runs SET queue_order = seq WHERE state = 'queued'",
+        "CREATE TABLE run_queue (id INTEGER PRIMARY KEY CHECK (id = 1), held TEXT, held_utc TEXT)",
+        "INSERT INTO run_queue (id) VALUES (1)",
+    ),
 )
 assert len(MIGRATIONS) == SCHEMA_VERSION
 
-#: The columns a run's record is built from, and a job's.
+#: The columns a run's record is built from (selected ``FROM runs``, unaliased: a queued run's
+#: place in the queue is its rank among the queued runs), and a job's.
 RUN_COLUMNS = (
     "id, created_utc, updated_utc, state, preset, path, n_positions, positions_done, current_position, "
-    "exposures_per_position, started_utc, finished_utc, last_error, request_json, seconds_per_position"
+    "exposures_per_position, started_utc, finished_utc, last_error, request_json, seconds_per_position, "
+    "CASE WHEN state = 'queued' THEN (SELECT COUNT(*) FROM runs AS ahead WHERE ahead.state = 'queued' "
+    "AND ahead.queue_order <= runs.queue_order) END AS queue_position"
 )
 JOB_COLUMNS = (
     "id, run_id, created_utc, updated_utc, state, steps, options_json, progress, claimed_by, heartbeat_utc, "

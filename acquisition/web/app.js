@@ -90,6 +90,8 @@ function openSession() {
 }
 
 // --- formatting --------------------------------------------------------------------------
+function plural(n, noun) { return `${n} ${noun}${n === 1 ? "" : "s"}`; }
+
 function fmtPercent(p) { return `${Math.round((p || 0) * 10) / 10} %`; }
 
 function fmtDuration(s) {
@@ -148,7 +150,8 @@ async function showStatus() {
 
 function renderHealth(h) {
   setBadge($("health-status"), h.status, `badge-${h.status}`);
-  const active = h.active_run ? `active run ${h.active_run}` : "no active run";
+  let active = h.active_run ? `active run ${h.active_run}` : "no active run";
+  if (h.queued_runs) active += `, ${h.queued_runs} queued${h.queue_held ? " (the queue is held)" : ""}`;
   $("health-summary").textContent = `${h.reasons.length ? h.reasons.join("; ") : "devices ready"} · ${active} · v${h.version}`;
   $("health-reasons").replaceChildren(...h.reasons.map((r) => el("li", { textContent: r })));
 }
@@ -259,8 +262,14 @@ async function startRun(event) {
   button.disabled = true;
   try {
     const run = await api("POST", "/runs", runRequest());
-    showMessage(`Run ${run.id} started: ${run.n_positions} positions.`, "info");
-    follow(run.id, run);
+    if (run.state === "queued") {
+      // It waits its turn: the page goes on showing the run in progress.
+      showMessage(`Run ${run.id} queued: position ${run.queue_position}, ${plural(run.n_positions, "position")}; `
+        + "it starts when the runs ahead of it have completed.", "info");
+    } else {
+      showMessage(`Run ${run.id} started: ${run.n_positions} positions.`, "info");
+      follow(run.id, run);
+    }
     refreshRuns();
   } catch (err) {
     showMessage(`Start refused: ${err.message}`);
@@ -403,7 +412,9 @@ async function refreshRuns() {
   if (runsLoading) return;
   runsLoading = true;
   try {
-    const [runs, jobs] = await Promise.all([api("GET", "/runs?limit=50"), api("GET", "/jobs?limit=200")]);
+    const [runs, jobs, queue] = await Promise.all(
+      [api("GET", "/runs?limit=50"), api("GET", "/jobs?limit=200"), api("GET", "/queue")]);
+    renderQueue(queue);
     const latestJob = {};
     for (const job of jobs) {
       if (!latestJob[job.run_id] || job.created_utc > latestJob[job.run_id].created_utc) latestJob[job.run_id] = job;
@@ -411,7 +422,9 @@ async function refreshRuns() {
     renderRuns(runs, latestJob);
     renderJobs(jobs);
     showResults(jobs);
-    if (!followed && runs.length) follow(runs[0].id);
+    // At first the run in progress, else the newest that is not waiting in the queue.
+    const first = runs.find((r) => r.state === "running" || r.state === "paused") || runs.find((r) => r.state !== "queued") || runs[0];
+    if (!followed && first) follow(first.id);
   } catch (err) {
     $("runs").replaceChildren(el("tr", {}, el("td", { colSpan: 7, className: "bad", textContent: err.message })));
     $("jobs").replaceChildren(el("tr", {}, el("td", { colSpan: 6, className: "bad", textContent: err.message })));
@@ -428,7 +441,8 @@ function renderRuns(runs, latestJob) {
   $("runs").replaceChildren(...runs.map((run) => {
     const view = el("a", { href: `#${run.id}`, className: "run-link", textContent: run.id, title: "show this run" });
     view.addEventListener("click", (e) => { e.preventDefault(); follow(run.id); });
-    const state = el("span", { className: `badge state-${run.state}`, textContent: run.state });
+    const state = el("span", { className: `badge state-${run.state}`,
+      textContent: run.state === "queued" ? `queued #${run.queue_position}` : run.state });
     const file = FINAL.includes(run.state)
       ? el("a", { href: run.file_url, className: "download", textContent: "download .h5", download: "" })
       : el("span", { className: "muted", textContent: "being written" });
@@ -450,6 +464,61 @@ function renderRuns(runs, latestJob) {
     return row;
   }));
   markSelected();
+}
+
+// --- the queue of runs -----------------------------------------------------------------------
+// The runs waiting, the next first: each moves up or down (PUT /queue with the new order) or
+// leaves the queue (DELETE /queue/{id}); a held queue says why, and starts again on request.
+let queued = [];
+
+function renderQueue(queue) {
+  queued = queue.runs.map((run) => run.id);
+  const n = queue.runs.length;
+  $("queue-summary").textContent = n ? `${plural(n, "run")} waiting` : "no run waiting";
+  $("queue-held").hidden = !queue.held;
+  $("queue-held").textContent = queue.held ? `Held: ${queue.held}` : "";
+  $("queue-start").hidden = !(queue.held && n);
+  $("queue").replaceChildren(...queue.runs.map((run, k) => {
+    const up = el("button", { type: "button", className: "small up", textContent: "↑", title: "start it earlier", disabled: k === 0 });
+    const down = el("button", { type: "button", className: "small down", textContent: "↓", title: "start it later", disabled: k === n - 1 });
+    const remove = el("button", { type: "button", className: "small remove danger", textContent: "remove", title: "take it out of the queue" });
+    up.addEventListener("click", () => moveQueued(run.id, -1));
+    down.addEventListener("click", () => moveQueued(run.id, 1));
+    remove.addEventListener("click", () => removeQueued(run.id));
+    const item = el("li", {}, el("span", { className: "queue-run" },
+      el("span", { className: "mono small", textContent: run.id }),
+      el("span", { className: "small", textContent: `${run.preset || "—"}, ${plural(run.n_positions, "position")}` }),
+      up, down, remove));
+    item.dataset.runId = run.id;
+    return item;
+  }));
+}
+
+async function queueAction(method, path, body, said) {
+  try {
+    const answer = await api(method, path, body);
+    showMessage(said(answer), "info");
+  } catch (err) {
+    showMessage(`Queue: ${err.message}`);
+  }
+  refreshRuns();
+}
+
+function moveQueued(id, step) {
+  const order = queued.slice();
+  const k = order.indexOf(id);
+  if (k < 0 || k + step < 0 || k + step >= order.length) return;
+  [order[k], order[k + step]] = [order[k + step], order[k]];
+  queueAction("PUT", "/queue", { run_ids: order }, (q) => `Queue: ${q.runs.map((r) => r.id).join(", ")}.`);
+}
+
+function removeQueued(id) {
+  queueAction("DELETE", `/queue/${encodeURIComponent(id)}`, undefined, (run) => `Run ${run.id} removed from the queue.`);
+}
+
+function startQueue() {
+  queueAction("POST", "/queue/start", undefined, (q) =>
+    q.held ? `The queue is held again: ${q.held}` : "The queue runs on: its next run starts when the rig is free.");
 }
 
 // --- processing jobs ------------------------------------------------------------------------
@@ -532,6 +601,7 @@ function jobRequest() {
   if ($("fit-aperture").value !== "auto") body.fit_aperture = $("fit-aperture").value;
   if ($("fit-sensor-distance").checked) body.fit_sensor_distance = "always";
   if ($("fit-model").value !== "gaussian") body.fit = $("fit-model").value;
+  if ($("extrapolation").value !== "fitted") body.extrapolation = $("extrapolation").value;
   return body;
 }
 
@@ -541,6 +611,9 @@ function describeOptions(options) {
   if (options && options.fit_aperture) parts.push(said[options.fit_aperture] || `aperture ${options.fit_aperture}`);
   if (options && options.fit_sensor_distance && options.fit_sensor_distance !== "never") parts.push("sensor distance fitted");
   if (options && options.fit) parts.push(`${options.fit} fits`);
+  if (options && options.extrapolation) {
+    parts.push(options.extrapolation === "none" ? "measured range only" : "fitted extrapolation");
+  }
   return parts.length ? `, ${parts.join(", ")}` : "";
 }
 
@@ -569,6 +642,7 @@ function init() {
   $("resume").addEventListener("click", () => control("resume"));
   $("abort").addEventListener("click", () => control("abort"));
   $("stop-arm").addEventListener("click", stopArm);
+  $("queue-start").addEventListener("click", startQueue);
   $("count").addEventListener("input", showPresetInfo);
   initAlign();
   showBracketFields();
