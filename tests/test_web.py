@@ -275,6 +275,10 @@ def queue_from_the_page(page, active: str) -> list[str]:
     expect(message).to_have_text(f"Run {first} removed from the queue.")
     expect(queue).to_have_count(2)
     expect(run_badge(page, first)).to_have_text("aborted")
+    removed = page.locator(f'#runs tr[data-run-id="{first}"]')
+    expect(removed).to_contain_text("none: never started")  # no file to download, nothing to process
+    expect(removed.locator("button.process")).to_be_disabled()
+    expect(page.locator(f'#runs tr[data-run-id="{third}"]')).to_contain_text("not yet taken")
     expect(run_badge(page, third)).to_have_text("queued #2")
     return [second, third]
 

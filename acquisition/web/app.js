@@ -443,11 +443,14 @@ function renderRuns(runs, latestJob) {
     view.addEventListener("click", (e) => { e.preventDefault(); follow(run.id); });
     const state = el("span", { className: `badge state-${run.state}`,
       textContent: run.state === "queued" ? `queued #${run.queue_position}` : run.state });
-    const file = FINAL.includes(run.state)
+    // A run removed from the queue ended without starting: it has no file.
+    const hasFile = FINAL.includes(run.state) && run.started_utc;
+    const file = hasFile
       ? el("a", { href: run.file_url, className: "download", textContent: "download .h5", download: "" })
-      : el("span", { className: "muted", textContent: "being written" });
+      : el("span", { className: "muted", textContent:
+          run.state === "queued" ? "not yet taken" : FINAL.includes(run.state) ? "none: never started" : "being written" });
     const job = latestJob[run.id];
-    const process = el("button", { type: "button", className: "small process", textContent: "process", disabled: !FINAL.includes(run.state) });
+    const process = el("button", { type: "button", className: "small process", textContent: "process", disabled: !hasFile });
     process.addEventListener("click", () => processRun(run.id));
     const jobText = job ? ` ${job.state}${job.state === "running" ? ` ${Math.round(job.progress * 100)} %` : ""}${job.error ? `: ${job.error}` : ""}` : "";
     const row = el("tr", {},
