@@ -542,6 +542,29 @@ class LogLine(BaseModel):
     message: str
 
 
+class PhotometrySummary(BaseModel):
+    """The whole light's photometric summary, as the job's light model holds it
+    (``photometry``; docs/light-model.md): what a lighting engineer reads first."""
+
+    extrapolation: str = Field(description="what the light files hold beyond the measured θ: fitted, or none")
+    intensity_units: str
+    flux_units: str
+    total_flux: float
+    flux_beyond_measured_percent: float = Field(description="the share of the flux beyond the θ the sweep measured")
+    measured_theta_max_deg: float
+    peak_intensity: float
+    peak_gamma_deg: float
+    peak_c_deg: float
+    beam_angle_deg: dict[str, float] = Field(description="where I ≥ 50 % of the peak, per C-plane pair")
+    field_angle_deg: dict[str, float] = Field(description="where I ≥ 10 % of the peak, per C-plane pair")
+    beam_angle_beyond_measured: bool
+    field_angle_beyond_measured: bool
+    near_field_distance_m: float | None = None
+    near_field_difference_percent: float | None = Field(
+        None, description="the array of sources against one point source: largest illuminance difference, % of peak"
+    )
+
+
 class ReportFigure(BaseModel):
     """A figure of a job's report."""
 

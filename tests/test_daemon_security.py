@@ -147,7 +147,7 @@ def test_the_token_guards_reads_too(daemons):
     bearer = {"Authorization": f"Bearer {TOKEN}"}
     guarded = ["/runs", "/runs/nope", "/runs/nope/file", "/runs/nope/events", "/jobs", "/jobs/nope/artifacts/ies"]
     guarded += ["/devices", "/presets", "/preview.png", "/preview/frame", "/preview/frame.png", "/log"]
-    guarded += ["/jobs/nope/figures", "/jobs/nope/figures/0.png"]
+    guarded += ["/jobs/nope/figures", "/jobs/nope/figures/0.png", "/jobs/nope/photometry"]
     for path in guarded:
         assert send(daemon, "GET", path)[0] == 401, path
         assert send(daemon, "GET", path, {"Authorization": "Bearer wrong-token-0123456789"})[0] == 403, path

@@ -6,6 +6,7 @@ against a real daemon process with the simulated devices.
 
 from __future__ import annotations
 
+import json
 import re
 import shutil
 from pathlib import Path
@@ -374,6 +375,15 @@ def test_the_page_shows_each_job_and_links_its_report_ies_and_ray_file(tmp_path,
         "() => { const imgs = [...document.querySelectorAll('#figures img')];"
         " return imgs.length >= 5 && imgs.every(i => i.complete && i.naturalWidth > 0); }"
     )
+    # The whole light's photometric summary above them, as the light model has it.
+    summary = httpx.get(f"{daemon.url}/jobs/{job['id']}/photometry", headers=AUTH, timeout=30).json()
+    model = json.loads(Path(done.artifacts["light_model"]).read_text())["photometry"]
+    assert summary["total_flux"] == model["total_flux"] and summary["beam_angle_deg"] == model["beam_angle_deg"]
+    table = page.locator("#photometry")
+    expect(table).to_contain_text(f"{summary['total_flux']:.4g} {model['flux_units']}")
+    beam = summary["beam_angle_deg"]["C0-C180"]
+    expect(table.locator("tr", has_text="beam angle (50 %)")).to_contain_text(f"{beam:.3g}° (C0-C180)")
+    expect(table).to_contain_text("% of the flux (θ measured to")
     figures = httpx.get(f"{daemon.url}/jobs/{job['id']}/figures", headers=AUTH, timeout=30).json()
     polar = next(f for f in figures if f["caption"].startswith("Radiant intensity of each source"))
     assert "polar" in polar["alt"]

@@ -12,6 +12,7 @@ from __future__ import annotations
 import base64
 import binascii
 import html
+import json
 import re
 import zipfile
 from collections.abc import Iterator
@@ -22,7 +23,7 @@ from fastapi.responses import FileResponse, Response, StreamingResponse
 
 from acquisition.api.deps import TOKEN_ERRORS, CatalogDep, ReadTokenDep
 from acquisition.catalog import JobRecord
-from acquisition.models import JobStatus, Problem, ReportFigure
+from acquisition.models import JobStatus, PhotometrySummary, Problem, ReportFigure
 from processing.results import Results, ResultsError
 
 router = APIRouter(prefix="/jobs", tags=["jobs"], dependencies=[ReadTokenDep], responses=TOKEN_ERRORS)
@@ -142,6 +143,37 @@ def report_figures(job_id: str, catalog: CatalogDep) -> list[ReportFigure]:
         ReportFigure(index=k, alt=alt, caption=caption, url=f"/jobs/{job_id}/figures/{k}.png")
         for k, (_, alt, caption) in enumerate(figures)
     ]
+
+
+@router.get(
+    "/{job_id}/photometry",
+    response_model=PhotometrySummary,
+    responses={404: {"model": Problem, "description": "unknown job, or its light model has no photometry"}},
+)
+def photometry(job_id: str, catalog: CatalogDep) -> PhotometrySummary:
+    """The whole light's photometric summary from the job's light model (flux, beam and field
+    angles, peak, the share beyond the measured θ), for the page's results."""
+    job = catalog.get_job(job_id)
+    recorded = job.artifacts.get("light_model")
+    if recorded is None:
+        raise HTTPException(status.HTTP_404_NOT_FOUND, f"job {job.id} has no light model (yet)")
+    folder = Path(job.result_dir).resolve() if job.result_dir is not None else None
+    path = _served_file(job, Path(recorded), folder, "its light model")
+    try:
+        p = json.loads(path.read_text(encoding="utf-8"))["photometry"]
+        near = p.get("near_field") or {}
+        return PhotometrySummary(
+            **{key: p[key] for key in PhotometrySummary.model_fields if key in p},
+            peak_intensity=p["peak"]["intensity"],
+            peak_gamma_deg=p["peak"]["gamma_deg"],
+            peak_c_deg=p["peak"]["c_deg"],
+            near_field_distance_m=near.get("distance_m"),
+            near_field_difference_percent=near.get("max_difference_percent_of_peak"),
+        )
+    except (ValueError, KeyError, TypeError) as exc:
+        raise HTTPException(
+            status.HTTP_404_NOT_FOUND, f"job {job.id}: its light model holds no photometric summary ({exc})"
+        ) from None
 
 
 @router.get(

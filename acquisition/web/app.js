@@ -556,10 +556,14 @@ async function showResults(jobs) {
     return;
   }
   try {
-    const figures = await api("GET", `/jobs/${encodeURIComponent(job.id)}/figures`);
+    const [figures, photometry] = await Promise.all([
+      api("GET", `/jobs/${encodeURIComponent(job.id)}/figures`),
+      api("GET", `/jobs/${encodeURIComponent(job.id)}/photometry`).catch(() => null),  // an older light model: none
+    ]);
     if (resultsKey !== key) return;
     await session;  // the images read with the session cookie
-    $("figures").replaceChildren(...figures.map((f) => el("figure", { className: "result-figure" },
+    $("figures").replaceChildren(...(photometry ? [photometryTable(photometry)] : []),
+      ...figures.map((f) => el("figure", { className: "result-figure" },
       el("a", { href: f.url, target: "_blank", title: "open the figure alone" }, el("img", { src: f.url, alt: f.alt, loading: "lazy" })),
       el("figcaption", { className: "small", textContent: f.caption }))),
     el("p", { className: "small" }, resultLinks(job)));
@@ -567,6 +571,26 @@ async function showResults(jobs) {
     resultsKey = null;
     $("figures").replaceChildren(el("p", { className: "bad small", textContent: `cannot read the report's figures: ${err.message}` }));
   }
+}
+
+// The whole light's photometric summary, as a lighting engineer reads it first.
+function photometryTable(p) {
+  const num = (x, digits = 3) => Number(x).toPrecision(digits);
+  const planes = (angles) => Object.entries(angles).map(([plane, deg]) => `${num(deg)}° (${plane})`).join(", ");
+  const beyond = (flag) => (flag ? " (beyond the measured θ: extrapolated)" : "");
+  const rows = [
+    ["total flux", `${num(p.total_flux, 4)} ${p.flux_units}`],
+    ["beyond the measured θ", `${num(p.flux_beyond_measured_percent)} % of the flux (θ measured to ${num(p.measured_theta_max_deg)}°; the files hold ${p.extrapolation === "none" ? "the measured range only" : "the fits' extrapolation"})`],
+    ["peak intensity", `${num(p.peak_intensity, 4)} ${p.intensity_units} at γ ${num(p.peak_gamma_deg)}°, C ${num(p.peak_c_deg)}°`],
+    ["beam angle (50 %)", planes(p.beam_angle_deg) + beyond(p.beam_angle_beyond_measured)],
+    ["field angle (10 %)", planes(p.field_angle_deg) + beyond(p.field_angle_beyond_measured)],
+  ];
+  if (p.near_field_difference_percent != null) {
+    rows.push([`at ${num(p.near_field_distance_m * 100)} cm`, `the sources against one point source: ${num(p.near_field_difference_percent)} % of the peak illuminance at most`]);
+  }
+  return el("table", { id: "photometry", className: "photometry small" },
+    el("caption", { textContent: "The whole light" }),
+    ...rows.map(([name, value]) => el("tr", {}, el("th", { textContent: name }), el("td", { textContent: value }))));
 }
 
 function renderJobs(jobs) {
