@@ -45,6 +45,22 @@ def reflectance(
     ] = 0.05,
     edge_margin: Annotated[int, typer.Option(help="Superpixels excluded around silhouettes and depth steps.")] = 2,
     texture_size: Annotated[int, typer.Option(min=16, help="UV texture size in texels (meshes with UVs).")] = 1024,
+    ignore_corrupt: Annotated[
+        bool,
+        typer.Option(
+            "--ignore-corrupt",
+            help="Leave out the light positions with a frame that fails its checksum (said on stderr and in "
+            "reflectance.json). Without it such a frame stops the reflectance before any work.",
+        ),
+    ] = False,
+    overwrite: Annotated[
+        bool,
+        typer.Option(
+            "--overwrite",
+            help="Write over outputs in --out that another run's reflectance wrote (or whose run is unknown). "
+            "Without it they stop the reflectance before any work.",
+        ),
+    ] = False,
 ) -> None:
     """The object's diffuse albedo under three light models (collimated, isotropic point, measured),
     with maps, a UV texture, profiles along its vertical axis and an HTML report (docs/reflectance.md)."""
@@ -72,7 +88,15 @@ def reflectance(
                 bar.update(tasks[stage], completed=done, total=total)
 
             result = reflectance_from_run(
-                object_run, light, mesh, out, progress=progress, settings=settings, texture_size=texture_size
+                object_run,
+                light,
+                mesh,
+                out,
+                progress=progress,
+                settings=settings,
+                texture_size=texture_size,
+                ignore_corrupt=ignore_corrupt,
+                overwrite=overwrite,
             )
     except (ReflectanceError, ValueError, OSError) as exc:  # every input error is a one-line ValueError
         raise fail(" ".join(str(exc).split())) from None

@@ -16,6 +16,7 @@ import OpenEXR
 from processing.lightmodel import json_ready
 from processing.reflectance.codes import PIXEL_CODES, PIXEL_COLOURS, PIXEL_SHORT, SAMPLE_CODES, SAMPLE_SHORT
 from processing.reflectance.estimate import ReflectanceResult
+from processing.reflectance.lights import LIGHT_MODELS
 from processing.reflectance.maps import reflectance_profiles, uv_texture
 from processing.reflectance.page import reflectance_profiles_figure, write_reflectance_report
 
@@ -54,6 +55,19 @@ def _reason_png(path: Path, reason: np.ndarray) -> Path:
     for code, colour in PIXEL_COLOURS.items():
         rgba[reason == code, :3] = colour
     return _write_rgba_png(path, rgba)
+
+
+#: The files a reflectance writes into its folder whatever the mesh, and those per light model.
+FIXED_OUTPUTS = ("reflectance.json", "reflectance.h5", "report.html", "reasons.png", "profiles.png")
+PER_MODEL_OUTPUTS = ("albedo-{}.exr", "albedo-{}.png", "texture-{}.exr", "texture-{}.png")
+
+
+def outputs_in(out_dir: str | os.PathLike[str]) -> list[Path]:
+    """Every file :func:`write_outputs` may write into ``out_dir`` (the textures only for a mesh
+    with UVs): what must not hold another run's reflectance before it is written."""
+    out = Path(out_dir)
+    per_model = [out / name.format(m) for m in LIGHT_MODELS for name in PER_MODEL_OUTPUTS]
+    return [out / name for name in FIXED_OUTPUTS] + per_model
 
 
 def write_outputs(
@@ -103,6 +117,8 @@ def write_outputs(
             sample_codes=json.dumps(SAMPLE_CODES),
             methods=json.dumps(list(result.methods)),
         )
+        if (metadata or {}).get("run_id"):  # whose reflectance this is (the overwrite guard reads it)
+            f.attrs["run_id"] = str((metadata or {})["run_id"])
         f["reason"] = result.reason
         f["rows"], f["cols"] = result.rows, result.cols
         f["points"], f["normals"], f["faces"] = result.points, result.normals, result.faces
