@@ -159,6 +159,12 @@ class JobRequest(BaseModel):
         description="process the positions complete now even while the run is "
         "being acquired (otherwise the job waits for the run to end)",
     )
+    ignore_corrupt: StrictBool = Field(
+        default=False,
+        description="process the rest of a run with frames that fail their checksums: a position with a corrupt "
+        "frame is skipped whole (said in the job's message and the light model's provenance, skipped_corrupt); "
+        "without it such a frame fails the job before any work, naming the run, the position and the frame",
+    )
     estimator: Estimator | None = Field(default=None, description="default: auto")
     fit: FitMethod | None = Field(default=None, description="default: gaussian")
     layout: str | None = Field(

@@ -38,7 +38,9 @@ from acquisition.client_files import ClientFileError, load_client_file
 from drivers.contracts.runfile import RunFile, RunFileError
 from processing.hdr.model import HDRError
 from processing.light_run import ProcessingError, process_run
+from processing.light_run.checksums import CorruptRunError, skipped_line
 from processing.light_run.progress import describe, overall_fraction
+from processing.light_run.records import ProcessReport
 from processing.parallel import Compute, ComputeError
 from processing.results import ResultsError
 from processing.steps import StepsError, resolve_steps
@@ -51,6 +53,7 @@ ACQUIRING_FILE_STATES = ("created", "running", "paused")
 #: Job options a request may set, and what they mean (``JobRequest`` in ``acquisition.models``).
 JOB_OPTIONS = {
     "partial": "process the positions complete now, even while the run is being acquired",
+    "ignore_corrupt": "skip the positions with a frame that fails its checksum (without it such a frame fails the job)",
     "layout": "the sources' layout (TOML on the worker's machine); found in the data without it",
     "estimator": "auto, templates or cell-sums",
     "fit": "gaussian, polynomial, cos-power or gaussian-2d",
@@ -343,7 +346,31 @@ class JobWorker:
     def _process_run(self, job: JobRecord, run_path: Path, steps, progress):
         """Process the job's run beside its run file: (result folder, artifacts, message)."""
         options = job.options
-        report = process_run(
+        try:
+            report = self._processed(run_path, steps, progress, options)
+        except CorruptRunError as exc:  # the job's own name for the choice that processes the rest
+            raise ProcessingError(exc.line("the job option ignore_corrupt")) from None
+        artifacts = {"results": report.results_file}
+        if report.light_model is not None:
+            artifacts["light_model"] = report.light_model
+        for kind in ("report", "ies", "ldt", "tm25"):
+            if report.outputs.get(kind):
+                artifacts[kind] = report.outputs[kind][0]
+        seconds = report.timings.get("total", 0.0)
+        message = (
+            f"{report.positions} of {report.n_positions} positions"
+            f"{' (partial: the run was still being acquired)' if report.partial and job.options.get('partial') else ''}"
+            f" in {seconds:.1f} s on {report.compute}"
+        )
+        if report.skipped_corrupt:  # ignore_corrupt: what the run file failed to give back
+            message += f"; {skipped_line(report.skipped_corrupt, 'ignore_corrupt')}"
+        if report.quality is not None:  # the verdict first: a job's note is where the lab looks
+            message = f"{report.quality.line()}; {message}"
+        return run_path.parent, {k: str(v) for k, v in artifacts.items()}, message
+
+    def _processed(self, run_path: Path, steps, progress, options: dict) -> ProcessReport:
+        """``process_run`` with the job's options, its results beside the run file."""
+        return process_run(
             run_path,
             run_path.parent,
             steps=steps,
@@ -357,23 +384,9 @@ class JobWorker:
             fit_sensor_distance=options.get("fit_sensor_distance"),
             calibrate_rig=options.get("calibrate_rig"),
             extrapolation=options.get("extrapolation", "fitted"),
+            ignore_corrupt=bool(options.get("ignore_corrupt", False)),
             **{name: options[name] for name in _LIGHT_FILE_OPTIONS if options.get(name) is not None},
         )
-        artifacts = {"results": report.results_file}
-        if report.light_model is not None:
-            artifacts["light_model"] = report.light_model
-        for kind in ("report", "ies", "ldt", "tm25"):
-            if report.outputs.get(kind):
-                artifacts[kind] = report.outputs[kind][0]
-        seconds = report.timings.get("total", 0.0)
-        message = (
-            f"{report.positions} of {report.n_positions} positions"
-            f"{' (partial: the run was still being acquired)' if report.partial and job.options.get('partial') else ''}"
-            f" in {seconds:.1f} s on {report.compute}"
-        )
-        if report.quality is not None:  # the verdict first: a job's note is where the lab looks
-            message = f"{report.quality.line()}; {message}"
-        return run_path.parent, {k: str(v) for k, v in artifacts.items()}, message
 
 
 def _layout(text: str) -> list:

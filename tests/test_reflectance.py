@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 
 import h5py
 import numpy as np
@@ -780,6 +781,77 @@ def test_cli_reflectance(object_run, tmp_path):
     assert bad.exit_code == 2
     assert bad.output.strip().startswith("error: ") and len(bad.output.strip().splitlines()) == 1
     assert "none.light.json: light model not found" in bad.output
+
+
+def test_a_corrupt_object_run_is_refused_in_one_line_before_any_output(object_run, tmp_path):
+    """A bit flipped in one light position's frame after its HDR merge: one line naming the run,
+    the position and the frame before any output; with --ignore-corrupt that light is left out,
+    and the warnings and the summary say so."""
+    import shutil
+
+    from test_checksums import flip_bit
+
+    from processing.light_run.run import process_run
+
+    run, light_dir, _, truth = object_run
+    corrupt = tmp_path / run.name
+    shutil.copy(run, corrupt)
+    process_run(corrupt, steps=("hdr",), images=False)  # HDR results beside the run, merged before the flip
+    flip_bit(corrupt, 2, 0, bit=8 * 200 + 5)
+    out = tmp_path / "out"
+    refused = runner.invoke(app, ["reflectance", str(corrupt), "--light", str(light_dir), "--out", str(out)])
+    assert refused.exit_code == 2
+    assert re.fullmatch(
+        rf"error: {re.escape(str(corrupt))}: position 2 frame 0 \(exposure index 0, [0-9.]+ s\) fails its checksum "
+        r"\(corrupt data: the stored bytes differ from those written\); --ignore-corrupt processes the rest\n",
+        refused.stderr,
+    ), refused.stderr
+    assert not out.exists()  # the results beside the run are sound: the frames are checked all the same
+    result = reflectance_from_run(corrupt, light_dir, None, out, ignore_corrupt=True)
+    skipped = [w for w in result.warnings if "skipped positions 2 (--ignore-corrupt)" in w]
+    assert len(skipped) == 1 and skipped[0].startswith(f"{corrupt}: ")
+    summary = json.loads((out / "reflectance.json").read_text())
+    assert summary["positions"] == [0, 1, 3, 4]
+    assert summary["skipped_corrupt"]["positions"] == [2]
+    assert [(f["position"], f["frame"]) for f in summary["skipped_corrupt"]["frames"]] == [(2, 0)]
+    valid = (at_truth(result, truth, result.reason) == PIXEL_VALID) & same_face(result, truth)
+    rel = at_truth(result, truth, result.rho["measured"])[valid] / truth["rho"][valid] - 1
+    assert valid.sum() > 1000 and np.median(np.abs(rel)) < 1e-3  # four lights measure it as well as five
+
+
+def test_another_runs_reflectance_is_not_overwritten_without_overwrite(object_run, directional, tmp_path):
+    """An --out holding another run's reflectance: refused in one line, its files untouched;
+    replaced with --overwrite; and the same run's own outputs are replaced without it."""
+    from drivers.contracts.runfile import RunFile
+
+    run, light_dir, _, _ = object_run
+    with RunFile.open(run) as opened:
+        rig = opened.header.rig
+    other = write_run(tmp_path / "other-run.h5", rig, directional[1])
+    out = tmp_path / "shared"
+    reflectance_from_run(other, light_dir, None, out)
+    theirs = (out / "reflectance.json").read_bytes()
+    with h5py.File(out / "reflectance.h5") as f:
+        assert f.attrs["run_id"] == "other-run"
+    args = ["reflectance", str(run), "--light", str(light_dir), "--out", str(out)]
+    refused = runner.invoke(app, args)
+    assert refused.exit_code == 2
+    assert refused.stderr.strip() == (
+        f"error: {out / 'reflectance.json'}: holds the outputs of another run (other-run), not of run object-run "
+        f"({run}): pass --overwrite to replace it, or choose another --out"
+    )
+    assert (out / "reflectance.json").read_bytes() == theirs and not (out / "object-run.results.h5").exists()
+    (out / "reflectance.json").unlink()
+    (out / "reflectance.h5").unlink()  # what is left says nothing of whose it is: refused too
+    unknown = runner.invoke(app, args)
+    assert unknown.exit_code == 2 and "report.html: already there and not known to be written for run object-run" in (
+        unknown.stderr
+    )
+    replaced = runner.invoke(app, [*args, "--overwrite"])
+    assert replaced.exit_code == 0, replaced.output
+    assert json.loads((out / "reflectance.json").read_text())["run_id"] == "object-run"
+    again = runner.invoke(app, args)  # its own outputs: replaced without --overwrite
+    assert again.exit_code == 0, again.output
 
 
 def test_aperture_mean_cos4_matches_monte_carlo_over_the_disc():

@@ -443,23 +443,32 @@ def test_the_next_job_takes_the_options_set_on_the_page(tmp_path, daemon_factory
             True,
             "polynomial",
             "none",
-            "steps hdr,sources, aperture fitted, sensor distance fitted, polynomial fits, measured range only",
+            True,
+            "steps hdr,sources, aperture fitted, sensor distance fitted, polynomial fits, measured range only, "
+            "positions with a corrupt frame skipped",
         ),
-        ("never", False, "gaussian", "fitted", "steps hdr,sources, aperture as described"),
-        ("auto", False, "gaussian", "fitted", "steps hdr,sources"),
+        ("never", False, "gaussian", "fitted", False, "steps hdr,sources, aperture as described"),
+        ("auto", False, "gaussian", "fitted", False, "steps hdr,sources"),
     ]
-    for aperture, distance, model, extrapolation, said in choices:
+    for aperture, distance, model, extrapolation, skip, said in choices:
         page.select_option("#fit-aperture", aperture)
         page.set_checked("#fit-sensor-distance", distance)
         page.select_option("#fit-model", model)
         page.select_option("#extrapolation", extrapolation)
+        page.set_checked("#ignore-corrupt", skip)
         row.locator("button.process").click()
         expect(message).to_contain_text(f"queued for run {run.id} ({said}).")
     page.screenshot(path=str(tmp_path / "options.png"), full_page=True)
     with daemon.client() as http:
         jobs = sorted(http.get("/jobs", params={"run_id": run.id}).json(), key=lambda job: job["created_utc"])
     options = [
-        {"fit_aperture": "always", "fit_sensor_distance": "always", "fit": "polynomial", "extrapolation": "none"},
+        {
+            "fit_aperture": "always",
+            "fit_sensor_distance": "always",
+            "fit": "polynomial",
+            "extrapolation": "none",
+            "ignore_corrupt": True,
+        },
         {"fit_aperture": "never"},
         {},
     ]

@@ -506,3 +506,51 @@ def test_the_results_archive_streams_a_block_at_a_time(tmp_path):
         assert archive.testzip() is None and archive.namelist() == [name for _, name in members]
         for path, name in members:
             assert archive.read(name) == path.read_bytes()
+
+
+def test_a_job_on_a_run_with_a_corrupt_frame_fails_in_one_line_or_skips_it_with_ignore_corrupt(captured, data):
+    """Over REST: without ``ignore_corrupt`` the job fails at the checksum pass, naming the run,
+    the position and the frame; with it the job completes without that position, says so, and
+    its light model's provenance lists the frame."""
+    import json
+
+    from fastapi.testclient import TestClient
+    from test_checksums import flip_bit
+
+    from acquisition.app import create_app
+    from acquisition.settings import load_settings
+
+    rig, frames, _ = captured
+    run = data.run(state="complete")
+    with write_run(run.path, rig, frames, (*POSITIONS, LATE)) as writer:  # four positions: three left to fit
+        writer.set_status("complete", "")
+    flip_bit(run.path, 33, 2, bit=8 * 1000 + 3)
+    settings = load_settings(None, data_dir=data.root, rig=REDUCED_RIG)
+    with TestClient(create_app(settings), base_url="http://127.0.0.1") as http:
+        strict = http.post(f"/runs/{run.id}/process", json={"steps": "hdr", "layout": LAYOUT}).json()
+        lenient = http.post(
+            f"/runs/{run.id}/process", json={"steps": "hdr,sources", "layout": LAYOUT, "ignore_corrupt": True}
+        ).json()
+        assert lenient["options"] == {"ignore_corrupt": True, "layout": LAYOUT}
+        assert http.post(f"/runs/{run.id}/process", json={"ignore_corrupt": "yes"}).status_code == 422
+        failed = data.worker().run_once()
+        assert failed.id == strict["id"] and failed.state == "failed"
+        assert failed.error == (
+            f"{run.path}: position 33 frame 2 (exposure index 2, 0.005 s) fails its checksum (corrupt data: the "
+            "stored bytes differ from those written); the job option ignore_corrupt processes the rest"
+        )
+        assert not Path(run.path).with_name(f"{run.id}.results.h5").exists()  # before any work
+        done = data.worker().run_once()
+        assert done.id == lenient["id"] and done.state == "complete", done
+        status = http.get(f"/jobs/{done.id}").json()
+        assert status["options"]["ignore_corrupt"] is True
+        assert "; 3 of 66 positions in " in status["message"]
+        assert status["message"].endswith(
+            "; skipped positions 33 (ignore_corrupt): 1 corrupt frames: position 33 frame 2 (exposure index 2, "
+            "0.005 s) fails its checksum (corrupt data: the stored bytes differ from those written)"
+        )
+    provenance = json.loads(Path(done.artifacts["light_model"]).read_text())["provenance"]
+    assert provenance["skipped_corrupt"]["positions"] == [33]
+    assert [(f["position"], f["frame"]) for f in provenance["skipped_corrupt"]["frames"]] == [(33, 2)]
+    with Results.open(done.artifacts["results"]) as results:
+        assert np.flatnonzero(results.hdr_done).tolist() == sorted((20, 45, LATE))

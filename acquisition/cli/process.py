@@ -407,7 +407,7 @@ class StepBars:
 
 def _say_processed(run: Path, report) -> None:
     """What one run's processing wrote, and the camera's numbers it fitted."""
-    from processing.light_run.run import skipped_line  # noqa: PLC0415 - the processing, once a run is done
+    from processing.light_run.checksums import skipped_line  # noqa: PLC0415 - the processing, once a run is done
     from processing.results import run_name  # noqa: PLC0415
 
     if report.skipped_corrupt:

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 
@@ -11,6 +11,26 @@ from acquisition.cli.app import (
     app,
     fail,
 )
+
+if TYPE_CHECKING:
+    from processing.reflectance.estimate import ReflectanceResult
+
+IgnoreCorruptOption = Annotated[
+    bool,
+    typer.Option(
+        "--ignore-corrupt",
+        help="Leave out the light positions with a frame that fails its checksum (said on stderr and in "
+        "reflectance.json). Without it such a frame stops the reflectance before any work.",
+    ),
+]
+OverwriteOption = Annotated[
+    bool,
+    typer.Option(
+        "--overwrite",
+        help="Write over outputs in --out that another run's reflectance wrote (or whose run is unknown). "
+        "Without it they stop the reflectance before any work.",
+    ),
+]
 
 
 # --- reflectance ----------------------------------------------------------------------------
@@ -45,12 +65,12 @@ def reflectance(
     ] = 0.05,
     edge_margin: Annotated[int, typer.Option(help="Superpixels excluded around silhouettes and depth steps.")] = 2,
     texture_size: Annotated[int, typer.Option(min=16, help="UV texture size in texels (meshes with UVs).")] = 1024,
+    ignore_corrupt: IgnoreCorruptOption = False,
+    overwrite: OverwriteOption = False,
 ) -> None:
     """The object's diffuse albedo under three light models (collimated, isotropic point, measured),
     with maps, a UV texture, profiles along its vertical axis and an HTML report (docs/reflectance.md)."""
-    from rich.console import Console
     from rich.progress import Progress
-    from rich.table import Table
 
     from processing.reflectance.codes import ReflectanceError, ReflectanceSettings
     from processing.reflectance.run import reflectance_from_run
@@ -72,10 +92,27 @@ def reflectance(
                 bar.update(tasks[stage], completed=done, total=total)
 
             result = reflectance_from_run(
-                object_run, light, mesh, out, progress=progress, settings=settings, texture_size=texture_size
+                object_run,
+                light,
+                mesh,
+                out,
+                progress=progress,
+                settings=settings,
+                texture_size=texture_size,
+                ignore_corrupt=ignore_corrupt,
+                overwrite=overwrite,
             )
     except (ReflectanceError, ValueError, OSError) as exc:  # every input error is a one-line ValueError
         raise fail(" ".join(str(exc).split())) from None
+    _print_summary(result)
+
+
+def _print_summary(result: ReflectanceResult) -> None:
+    """The albedo per light model as a table, what was left out, the warnings (on stderr) and
+    where the files are."""
+    from rich.console import Console
+    from rich.table import Table
+
     summary = result.summary()
     table = Table(
         title=f"albedo of {summary['valid']} of {summary['on_object']} superpixels on the object", title_justify="left"

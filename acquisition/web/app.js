@@ -629,6 +629,7 @@ function jobRequest() {
   if ($("fit-sensor-distance").checked) body.fit_sensor_distance = "always";
   if ($("fit-model").value !== "gaussian") body.fit = $("fit-model").value;
   if ($("extrapolation").value !== "fitted") body.extrapolation = $("extrapolation").value;
+  if ($("ignore-corrupt").checked) body.ignore_corrupt = true;
   return body;
 }
 
@@ -641,6 +642,7 @@ function describeOptions(options) {
   if (options && options.extrapolation) {
     parts.push(options.extrapolation === "none" ? "measured range only" : "fitted extrapolation");
   }
+  if (options && options.ignore_corrupt) parts.push("positions with a corrupt frame skipped");
   return parts.length ? `, ${parts.join(", ")}` : "";
 }
 

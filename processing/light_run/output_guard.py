@@ -1,9 +1,11 @@
 """No processing overwrites another run's outputs: the files a run's processing writes, and whose
-run the ones already there belong to."""
+run the ones already there belong to (the light run's here; the reflectance's in
+:mod:`processing.reflectance.outputs`)."""
 
 from __future__ import annotations
 
 import json
+from collections.abc import Sequence
 from pathlib import Path
 
 import h5py
@@ -37,17 +39,26 @@ def outputs_of(run_path: str | Path, out: str | Path) -> list[Path]:
     return [output_path(run_path, out, suffix) for suffix in OUTPUT_SUFFIXES]
 
 
+#: Outputs that say which run they were written for (:func:`written_for` reads them): a light
+#: run's results file and light model, a reflectance's per-point file and summary.
+OWNED_OUTPUTS = (".results.h5", ".light.json", "reflectance.h5", "reflectance.json")
+
+
 def written_for(path: Path) -> str | None:
-    """The run id an existing output says it was written for (the results file's ``run_id``
-    attribute, the light model's provenance); None where the file does not say or cannot be read."""
+    """The run id an existing output says it was written for (the ``run_id`` attribute of a
+    results file or ``reflectance.h5``, the light model's provenance, the reflectance summary's
+    ``run_id``); None where the file does not say or cannot be read."""
     try:
-        if path.name.endswith(".results.h5"):
+        if path.name.endswith((".results.h5", "reflectance.h5")):
             with h5py.File(path, "r") as f:
                 value = f.attrs.get("run_id")
             return value.decode() if isinstance(value, bytes) else None if value is None else str(value)
-        if path.name.endswith(".light.json"):
+        if path.name.endswith(".json"):
             with path.open(encoding="utf-8") as stream:
-                value = json.load(stream).get("provenance", {}).get("run_id")
+                document = json.load(stream)
+            if path.name.endswith(".light.json"):
+                document = document.get("provenance", {})
+            value = document.get("run_id")
             return None if value is None else str(value)
     except (OSError, ValueError, AttributeError):
         return None
@@ -66,13 +77,28 @@ def check_outputs(run_path: str | Path, run_id: str, out: str | Path, overwrite:
     ProcessingError
         One line naming the file in the way and the run it belongs to, unless ``overwrite``.
     """
+    check_paths(outputs_of(run_path, out), run_path, run_id, overwrite)
+
+
+def check_paths(paths: Sequence[Path], run_path: str | Path, run_id: str, overwrite: bool = False) -> None:
+    """Refuse to write ``paths`` (the outputs of one processing of ``run_path``) where those
+    already there are another run's, or nothing says whose they are: before any work.
+
+    Of the files in :data:`OWNED_OUTPUTS` that are there, each must say it was written for
+    ``run_id``; where none of them is there but other paths are, those are refused too.
+
+    Raises
+    ------
+    ProcessingError
+        One line naming the file in the way and the run it belongs to, unless ``overwrite``.
+    """
     if overwrite:
         return
-    present = [path for path in outputs_of(run_path, out) if path.exists()]
+    present = [path for path in paths if path.exists()]
     if not present:
         return
     advice = "pass --overwrite to replace it, or choose another --out"
-    owned = [path for path in present if path.name.endswith((".results.h5", ".light.json"))]
+    owned = [path for path in present if path.name.endswith(OWNED_OUTPUTS)]
     for path in owned:
         owner = written_for(path)
         if owner is None:

@@ -29,6 +29,7 @@ import numpy as np
 
 from drivers.contracts.runfile import CorruptFrame, RunFile, RunFileError
 from drivers.contracts.version import __version__
+from processing.light_run.checksums import sound_positions
 from processing.light_run.errors import ProcessingError, open_run
 from processing.light_run.from_data import camera_at_layout, fitted_camera, layout_and_camera
 from processing.light_run.geometry import CameraFit, measured_point_spread
@@ -272,33 +273,11 @@ class LightRun:
 
     def _sound_positions(self, run: RunFile, positions: np.ndarray) -> tuple[np.ndarray, list[CorruptFrame]]:
         """Every frame the processing will read (the positions', the ambient calibration sets')
-        read through its checksum, before any work: the positions to process and the frames
-        skipped.
-
-        A position with a corrupt frame is skipped whole (its bracket merged without one exposure
-        would hold saturated or noisier pixels than its neighbours'), and a corrupt ambient set is
-        left out of the self-calibration; only with ``ignore_corrupt``: without it the first
-        corrupt frame is a one-line :class:`ProcessingError`.
-        """
+        read through its checksum, before any work (:func:`~processing.light_run.checksums.sound_positions`):
+        the positions to process and the frames skipped. A corrupt ambient set is left out of the
+        self-calibration."""
         ambient = [pair for pair in run.calibration_sets() if pair[0] == "ambient"]
-        try:
-            corrupt = run.corrupt_frames(positions, ambient)
-        except RunFileError as exc:
-            raise ProcessingError(str(exc)) from None
-        if not corrupt:
-            return positions, []
-        if not self.options.ignore_corrupt:
-            more = f", and {len(corrupt) - 1} more corrupt frames (`mirrorgonio verify` lists them)"
-            raise ProcessingError(
-                f"{self.run_path}: {corrupt[0].describe()}{more if len(corrupt) > 1 else ''}; "
-                "--ignore-corrupt processes the rest"
-            )
-        bad = {frame.position for frame in corrupt if frame.position is not None}
-        kept = np.array([i for i in positions if int(i) not in bad], dtype=positions.dtype)
-        log.warning("%s: %s", self.run_path, skipped_line(corrupt))
-        if kept.size == 0 and positions.size:
-            raise ProcessingError(f"{self.run_path}: every complete position has a corrupt frame: nothing to process")
-        return kept, corrupt
+        return sound_positions(run, self.run_path, positions, ambient, self.options.ignore_corrupt)
 
     def _merged_before(self, run: RunFile) -> np.ndarray:
         """The positions an earlier ``hdr`` step merged (the report made from its results)."""
@@ -428,16 +407,6 @@ class LightRun:
         with self._timed(timing or step):
             yield
         self.steps.end(step)
-
-
-def skipped_line(corrupt: Sequence[CorruptFrame]) -> str:
-    """What ``--ignore-corrupt`` skipped, on one line."""
-    positions = sorted({frame.position for frame in corrupt if frame.position is not None})
-    sets = sorted({frame.slot for frame in corrupt if frame.position is None})
-    parts = [f"positions {', '.join(map(str, positions))}"] if positions else []
-    parts += [f"the {name} frames" for name in sets]
-    frames = "; ".join(frame.describe() for frame in corrupt[:3]) + ("; …" if len(corrupt) > 3 else "")
-    return f"skipped {' and '.join(parts)} (--ignore-corrupt): {len(corrupt)} corrupt frames: {frames}"
 
 
 class _Stage:

@@ -16,6 +16,7 @@ import OpenEXR
 from processing.lightmodel import json_ready
 from processing.reflectance.codes import PIXEL_CODES, PIXEL_COLOURS, PIXEL_SHORT, SAMPLE_CODES, SAMPLE_SHORT
 from processing.reflectance.estimate import ReflectanceResult
+from processing.reflectance.lights import LIGHT_MODELS
 from processing.reflectance.maps import reflectance_profiles, uv_texture
 from processing.reflectance.page import reflectance_profiles_figure, write_reflectance_report
 
@@ -56,6 +57,47 @@ def _reason_png(path: Path, reason: np.ndarray) -> Path:
     return _write_rgba_png(path, rgba)
 
 
+def _write_points(path: Path, result: ReflectanceResult, run_id: str | None) -> Path:
+    """``reflectance.h5``: the per-point data, the code tables and the object run's id."""
+    with h5py.File(path, "w") as f:
+        f.attrs.update(
+            format="mirrorgonio-reflectance",
+            format_version=1,
+            pixel_codes=json.dumps(PIXEL_CODES),
+            sample_codes=json.dumps(SAMPLE_CODES),
+            methods=json.dumps(list(result.methods)),
+        )
+        if run_id:  # whose reflectance this is (the overwrite guard reads it)
+            f.attrs["run_id"] = str(run_id)
+        f["reason"] = result.reason
+        f["rows"], f["cols"] = result.rows, result.cols
+        f["points"], f["normals"], f["faces"] = result.points, result.normals, result.faces
+        f["heights"] = result.heights
+        f["valid"] = result.valid
+        f["sample_code"] = result.sample_code
+        f["radiance"] = result.radiance
+        if result.uv is not None:
+            f["uv"] = result.uv
+        for m in result.methods:
+            f[f"rho/{m}"] = result.rho_points[m]
+            f[f"irradiance/{m}"] = result.irradiance[m]
+            f[f"irradiance_rgb/{m}"] = result.irradiance_rgb(m)
+    return path
+
+
+#: The files a reflectance writes into its folder whatever the mesh, and those per light model.
+FIXED_OUTPUTS = ("reflectance.json", "reflectance.h5", "report.html", "reasons.png", "profiles.png")
+PER_MODEL_OUTPUTS = ("albedo-{}.exr", "albedo-{}.png", "texture-{}.exr", "texture-{}.png")
+
+
+def outputs_in(out_dir: str | os.PathLike[str]) -> list[Path]:
+    """Every file :func:`write_outputs` may write into ``out_dir`` (the textures only for a mesh
+    with UVs): what must not hold another run's reflectance before it is written."""
+    out = Path(out_dir)
+    per_model = [out / name.format(m) for m in LIGHT_MODELS for name in PER_MODEL_OUTPUTS]
+    return [out / name for name in FIXED_OUTPUTS] + per_model
+
+
 def write_outputs(
     result: ReflectanceResult,
     out_dir: str | os.PathLike[str],
@@ -94,29 +136,7 @@ def write_outputs(
     fig.savefig(out / "profiles.png", dpi=100)
     files["profiles.png"] = out / "profiles.png"
 
-    h5 = out / "reflectance.h5"
-    with h5py.File(h5, "w") as f:
-        f.attrs.update(
-            format="mirrorgonio-reflectance",
-            format_version=1,
-            pixel_codes=json.dumps(PIXEL_CODES),
-            sample_codes=json.dumps(SAMPLE_CODES),
-            methods=json.dumps(list(result.methods)),
-        )
-        f["reason"] = result.reason
-        f["rows"], f["cols"] = result.rows, result.cols
-        f["points"], f["normals"], f["faces"] = result.points, result.normals, result.faces
-        f["heights"] = result.heights
-        f["valid"] = result.valid
-        f["sample_code"] = result.sample_code
-        f["radiance"] = result.radiance
-        if result.uv is not None:
-            f["uv"] = result.uv
-        for m in result.methods:
-            f[f"rho/{m}"] = result.rho_points[m]
-            f[f"irradiance/{m}"] = result.irradiance[m]
-            f[f"irradiance_rgb/{m}"] = result.irradiance_rgb(m)
-    files["reflectance.h5"] = h5
+    files["reflectance.h5"] = _write_points(out / "reflectance.h5", result, (metadata or {}).get("run_id"))
 
     summary = {
         **(metadata or {}),

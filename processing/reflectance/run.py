@@ -14,17 +14,20 @@ import trimesh
 
 from drivers.config_files import MAX_BINARY_BYTES, check_input_file
 from drivers.contracts.rig import Light, Rig
-from drivers.contracts.runfile import RunFile, RunFileError, file_sha256
+from drivers.contracts.runfile import CorruptFrame, RunFile, RunFileError, file_sha256
 from drivers.pose import Pose
 from processing.hdr.mosaic import superpixels
+from processing.light_run.checksums import skipped_line, sound_positions
 from processing.light_run.errors import ProcessingError
+from processing.light_run.output_guard import check_paths, output_path, written_for
+from processing.light_run.outputs import skipped_record
 from processing.light_run.run import process_run
 from processing.lightmodel import LightModel, LightModelError
 from processing.radiometry import gain_mismatch, radiometric_gain
 from processing.reflectance.camera import superpixel_any
 from processing.reflectance.codes import ReflectanceError, ReflectanceSettings
 from processing.reflectance.estimate import ReflectanceResult, estimate_reflectance
-from processing.reflectance.outputs import write_outputs
+from processing.reflectance.outputs import outputs_in, write_outputs
 from processing.results import Results, ResultsError, results_path_for, run_name
 from processing.trace import RigGeometry, light_pose_at_position
 
@@ -165,21 +168,60 @@ def check_light_frame(
     return None
 
 
-def _results_for(run_path: Path, out: Path, progress: Progress | None) -> Path:
-    """The run's HDR results: beside the run, in ``out``, or made now (in ``out``)."""
+def _results_for(run_path: Path, run_id: str, out: Path, progress: Progress | None, checks: _Checks) -> Path:
+    """The run's HDR results: beside the run, in ``out`` (either written for this run), or made
+    now (in ``out``, positions with a corrupt frame skipped as ``checks`` say)."""
 
     for folder in (run_path.parent, out):
         candidate = results_path_for(run_path, folder)
-        if candidate.is_file():
+        if candidate.is_file() and written_for(candidate) == run_id:
             return candidate
     log.info("%s: no HDR results yet: merging the brackets into %s", run_path, out)
     try:
         report = process_run(
-            run_path, out, steps=("hdr",), progress=(lambda d, t: progress("hdr", d, t)) if progress else None
+            run_path,
+            out,
+            steps=("hdr",),
+            progress=(lambda d, t: progress("hdr", d, t)) if progress else None,
+            ignore_corrupt=checks.ignore_corrupt,
+            overwrite=checks.overwrite,
         )
     except ProcessingError as exc:
         raise ReflectanceError(str(exc)) from None
     return report.results_file
+
+
+@dataclass(frozen=True)
+class _Checks:
+    """What the reflectance is told to skip and to replace: positions with a corrupt frame
+    (``--ignore-corrupt``), outputs of another run or of unknown origin (``--overwrite``)."""
+
+    ignore_corrupt: bool = False
+    overwrite: bool = False
+
+
+def _check_outputs(run_path: Path, run_id: str, out: Path, checks: _Checks) -> None:
+    """No other run's reflectance, nor its HDR results, in ``out``: refused before any work
+    unless ``--overwrite`` (:func:`processing.light_run.output_guard.check_paths`)."""
+    paths = [*outputs_in(out), output_path(run_path, out, ".results.h5"), output_path(run_path, out, ".hdr")]
+    try:
+        check_paths(paths, run_path, run_id, checks.overwrite)
+    except ProcessingError as exc:
+        raise ReflectanceError(str(exc)) from None
+
+
+def _sound(run: RunFile, run_path: Path, checks: _Checks) -> tuple[np.ndarray, list[CorruptFrame]]:
+    """Every frame the reflectance may read (the complete positions', the ambient calibration
+    sets' the merge takes) read through its checksum before any work: the positions to use and
+    the frames skipped (``--ignore-corrupt``; without it a corrupt frame is one line)."""
+    try:
+        positions = run.completed_positions()
+        ambient = [pair for pair in run.calibration_sets() if pair[0] == "ambient"]
+        return sound_positions(run, run_path, positions, ambient, checks.ignore_corrupt)
+    except RunFileError as exc:
+        raise ReflectanceError(str(exc)) from None
+    except ProcessingError as exc:
+        raise ReflectanceError(str(exc)) from None
 
 
 def reflectance_from_run(
@@ -192,6 +234,8 @@ def reflectance_from_run(
     settings: ReflectanceSettings | None = None,
     texture_size: int = 1024,
     bins: int = 24,
+    ignore_corrupt: bool = False,
+    overwrite: bool = False,
 ) -> ReflectanceResult:
     """Estimate an object's albedo from its run file and write every output.
 
@@ -214,19 +258,27 @@ def reflectance_from_run(
     settings : ReflectanceSettings, optional
     texture_size, bins : int
         UV texture size (texels) and the number of height bins of the profiles.
+    ignore_corrupt : bool
+        Leave out the light positions with a frame that fails its checksum (said in the
+        warnings and the summary's ``skipped_corrupt``); without it such a frame is a one-line
+        error before any work.
+    overwrite : bool
+        Write over outputs in ``out_dir`` that another run's reflectance wrote, or whose run
+        is unknown; without it they are a one-line error before any work.
 
     Raises
     ------
     ReflectanceError
         One line: an unreadable run, mesh or light model, an object run without
-        ``[object]`` and no mesh, light results from a different rig, a mesh out of the
-        camera's view, no valid point.
+        ``[object]`` and no mesh, light results from a different rig, a frame that fails its
+        checksum, outputs of another run in ``out_dir``, a mesh out of the camera's view, no
+        valid point.
     """
 
     run_path = Path(object_run)
     out = Path(out_dir) if out_dir is not None else run_path.with_name(f"{run_name(run_path)}.reflectance")
     warnings: list[str] = []
-    inputs = _gathered(run_path, light, mesh, out, progress, warnings)
+    inputs = _gathered(run_path, light, mesh, out, progress, warnings, _Checks(ignore_corrupt, overwrite))
     rig, measured, obj = inputs.rig, inputs.measured, inputs.rig.object
     for text in warnings:
         log.warning("%s", text)
@@ -245,6 +297,8 @@ def reflectance_from_run(
         progress=progress,
     )
     result.warnings[:0] = warnings
+    if inputs.skipped:  # logged by the checksum pass itself
+        result.warnings.append(f"{run_path}: {skipped_line(inputs.skipped)}")
     result.metadata = {
         "object_run": str(run_path),
         "run_id": inputs.run_id,
@@ -255,6 +309,7 @@ def reflectance_from_run(
         "camera_sensitivity_e_per_s": rig.camera.sensitivity_e_per_s,
         "gain_e_per_dn": measured.gain,
         "gain_source": "rig",
+        **({"skipped_corrupt": skipped_record(inputs.skipped)} if inputs.skipped else {}),
     }
     write_outputs(result, out, texture_size=texture_size, bins=bins, metadata=result.metadata)
     return result
@@ -264,7 +319,7 @@ def reflectance_from_run(
 class _ObjectInputs:
     """What the estimate takes from an object run: its rig and id, the mesh in the rig frame
     (with its file and the object's pose), the light model (with its file), the HDR results
-    file and the measured rates."""
+    file, the measured rates and the frames skipped as corrupt."""
 
     rig: Rig
     run_id: str
@@ -275,6 +330,7 @@ class _ObjectInputs:
     light_model: LightModel
     results_file: Path
     measured: _MeasuredRates
+    skipped: list[CorruptFrame]
 
 
 def _gathered(
@@ -284,22 +340,26 @@ def _gathered(
     out: Path,
     progress: Progress | None,
     warnings: list[str],
+    checks: _Checks,
 ) -> _ObjectInputs:
     """Everything the estimate needs from the object run, its mesh, its light model and its
-    HDR results (merged now where missing), with what is worth a warning added to ``warnings``."""
+    HDR results (merged now where missing), with what is worth a warning added to ``warnings``.
+    The outputs in ``out`` and the run's frames are checked before any of it is written."""
     try:
         run = RunFile.open(run_path)
     except RunFileError as exc:
         raise ReflectanceError(str(exc)) from None
     with run:
-        rig, references = run.header.rig, run.header.references or {}
+        rig, references, run_id = run.header.rig, run.header.references or {}, run.header.run_id
+        _check_outputs(run_path, run_id, out, checks)
         mesh_path, object_pose, mesh_rig = _object_mesh(run_path, rig, references, mesh, warnings)
         light_path, light_model = _light_model(run_path, rig, references, light, warnings)
+        sound, skipped = _sound(run, run_path, checks)
         out.mkdir(parents=True, exist_ok=True)
-        results_file = _results_for(run_path, out, progress)
-        measured = _measured_rates(run, run_path, results_file, warnings)
+        results_file = _results_for(run_path, run_id, out, progress, checks)
+        measured = _measured_rates(run, run_path, results_file, sound, warnings)
         return _ObjectInputs(
-            rig, run.header.run_id, mesh_path, object_pose, mesh_rig, light_path, light_model, results_file, measured
+            rig, run_id, mesh_path, object_pose, mesh_rig, light_path, light_model, results_file, measured, skipped
         )
 
 
@@ -369,14 +429,18 @@ class _MeasuredRates:
     gain: float
 
 
-def _measured_rates(run: RunFile, run_path: Path, results_file: Path, warnings: list[str]) -> _MeasuredRates:
-    """The merged positions with frames, converted with the rig's calibrated gain, as the light
-    step converts them: k (e⁻/s per unit radiance) is calibrated with it; the HDR's own estimate
-    only weights the merge (a gain far from the rig's is said)."""
+def _measured_rates(
+    run: RunFile, run_path: Path, results_file: Path, sound: np.ndarray, warnings: list[str]
+) -> _MeasuredRates:
+    """The merged positions with frames (of ``sound``: none with a corrupt frame), converted
+    with the rig's calibrated gain, as the light step converts them: k (e⁻/s per unit radiance)
+    is calibrated with it; the HDR's own estimate only weights the merge (a gain far from the
+    rig's is said)."""
     geometry = RigGeometry.from_rig(run.header.rig)
     try:
         with Results.open(results_file) as results:
-            positions = np.flatnonzero(results.hdr_done & run.complete)
+            merged = np.flatnonzero(results.hdr_done & run.complete)
+            positions = merged[np.isin(merged, sound)]
             if positions.size < 2:
                 raise ReflectanceError(
                     f"{run_path}: {positions.size} position(s) with frames and an HDR result: "
