@@ -32,8 +32,9 @@ def _crop_rig(**edits):
 
 @pytest.mark.parametrize("channel", [0, 1, 2])
 def test_the_kernel_is_the_simulators_on_the_axis(channel):
-    """A point 186 mm in front of the reference pinhole, each channel's band: the two kernels
-    agree to 1e-3 of the peak in every pixel (measured: 1.5-3.6e-4)."""
+    """A point 186 mm in front of the reference pinhole, each channel's band, each pixel's share
+    integrated over its area: the two kernels agree to 1e-3 of the peak in every pixel
+    (measured: 1.8-6.7e-4; a pixel's centre alone is 2.4-3.6e-3 off)."""
     camera = rig_with().camera
     z1, z2, pitch = 0.186, camera.sensor_distance_m, camera.pixel_pitch_m
     pupil = FresnelPupil.from_camera(camera)
@@ -43,7 +44,7 @@ def test_the_kernel_is_the_simulators_on_the_axis(channel):
         pupil.shape(camera.pinhole_diameter_m / 2, (1.0, 0.0, 1.0)), (q, 0.0, q), z2, pitch, pupil.bands[channel], reach
     )
     psf = channel_psf(
-        camera, ApertureShape.from_rig(camera), channel, PathCurvature.on_axis(z1, z2, pitch), pixel_integrated=False
+        camera, ApertureShape.from_rig(camera), channel, PathCurvature.on_axis(z1, z2, pitch), pixel_integrated=True
     )
     middle = psf.shape[0] // 2
     theirs = psf[middle - reach : middle + reach + 1, middle - reach : middle + reach + 1]
@@ -88,7 +89,7 @@ def test_a_small_sources_template_is_the_simulated_fresnel_frame(shape):
     """The reference rig (its sensor cropped): the template is the simulator's Fresnel frame to
     within 1 % of its peak in every pixel and channel, and 1 % of its flux over the template's
     window (beyond it lie the hard edge's far tails, 3 % of the light); an elliptical pinhole
-    (0.205 × 0.195 mm at 30°) likewise (measured: 0.2-0.5 %)."""
+    (0.205 × 0.195 mm at 30°) likewise (measured: 0.16-0.31 %)."""
     rig, _ = _frame(shape)
     builder = TemplateBuilder(
         RigGeometry.from_rig(rig), rig.camera.sensitivity_e_per_s, pupil=FresnelPupil.from_camera(rig.camera)

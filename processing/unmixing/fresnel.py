@@ -35,6 +35,12 @@ from drivers.contracts.rig import Camera
 #: edge is anti-aliased, so 96 resolve both (the pattern moves by < 1e-4 of its peak at 192).
 APERTURE_SAMPLES = 96
 
+#: Samples a pixel's side over which its share of the pattern is averaged: a pixel integrates
+#: the pattern over its area, and its centre's value alone is up to 1.7 % of the peak off that
+#: (the demo rig's 11.8 µm pixels, blue band; 0.4 % at 5.9 µm). At 3 the mean is within 1.2e-3
+#: of the peak of one over 5 × 5 points (3e-4 at 5.9 µm), for a third of the cost.
+PIXEL_SAMPLES = 3
+
 #: Wavelengths a channel's band is sampled at (a Gaussian band over ±2.5σ).
 BAND_SAMPLES = 9
 
@@ -193,18 +199,22 @@ def _kernel(
     x, y = np.meshgrid(rho, rho)
     transmission = pupil.transmission(x, y, step)
     quadratic = qxx * x * x + 2.0 * qxy * x * y + qyy * y * y
-    s = -pitch * np.arange(-reach, reach + 1)  # the sensor's offsets (m), in the camera's frame
-    total = np.zeros((2 * reach + 1, 2 * reach + 1))
+    # The sensor's offsets (m), in the camera's frame: PIXEL_SAMPLES² points evenly over each pixel.
+    within = (np.arange(PIXEL_SAMPLES) + 0.5) / PIXEL_SAMPLES - 0.5
+    s = -pitch * (np.arange(-reach, reach + 1)[:, None] + within[None, :]).ravel()
+    n = 2 * reach + 1
+    total = np.zeros((n, n))
     for wavelength, weight in zip(*band, strict=True):
         field = transmission * np.exp(1j * math.pi * quadratic / wavelength)
         # exp(−2πi s·ρ/(λ z2)), separable: U = E · field · Eᵀ (rows y, columns x).
         transform = np.exp(-2j * math.pi * np.outer(s, rho) / (wavelength * sensor_distance))
         u = transform @ field @ transform.T
         # |U|² d⁴ρ / (λ z2)² is the irradiance for unit incident amplitude, and a pixel receives
-        # it times its area; the flux through the hole is its area (the cells' transmission
+        # its mean over the pixel times its area; the flux through the hole is its area (the cells' transmission
         # stands for the share of each cell inside: Σ A² would undercount the edge's cells).
         irradiance = np.abs(u) ** 2 * step**4 / (wavelength * sensor_distance) ** 2
-        total += weight * irradiance * pitch**2 / (np.sum(transmission) * step**2)
+        per_pixel = irradiance.reshape(n, PIXEL_SAMPLES, n, PIXEL_SAMPLES).mean(axis=(1, 3))
+        total += weight * per_pixel * pitch**2 / (np.sum(transmission) * step**2)
     total.flags.writeable = False
     return total
 
