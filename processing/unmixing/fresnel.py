@@ -158,9 +158,9 @@ def fresnel_kernel(
     band: Band,
     reach: int,
 ) -> np.ndarray:
-    """The point spread on the pixel grid, offsets ``-reach..reach`` (rows, columns), sampled
-    at the pixels' centres, as the fraction of the flux through the aperture each pixel's
-    area receives.
+    """The point spread on the pixel grid, offsets ``-reach..reach`` (rows, columns), as the
+    fraction of the flux through the aperture each pixel's area receives (the pattern's mean
+    over :data:`PIXEL_SAMPLES` ² points of the pixel, times its area).
 
     ``curvature`` is ``Q`` (1/m): its xx, xy and yy elements, in the camera's frame, where
     the sensor's columns and rows run against the camera's x and y (a half turn, which
@@ -171,14 +171,15 @@ def fresnel_kernel(
     --------
     On the axis of a circular hole of radius ``a`` the irradiance is ``4 sin²(π N_F / 2)`` times
     the incident wave's, ``N_F = a²/λ · (1/z1 + 1/z2)`` (Born & Wolf, *Principles of Optics*,
-    §8.8.4): the reference pinhole at 540 nm, ``N_F`` = 0.84.
+    §8.8.4): the reference pinhole at 540 nm, ``N_F`` = 0.84. The middle pixel's mean over its
+    area lies 0.3 % under that peak.
 
     >>> a, z1, z2, pitch, wavelength = 1e-4, 0.186, 0.025, 5.9e-6, 540e-9
     >>> q = 1 / z1 + 1 / z2
     >>> kernel = fresnel_kernel(PupilShape((2 * a, 2 * a)), (q, 0.0, q), z2, pitch, ((wavelength,), (1.0,)), 40)
     >>> analytic = 4 * math.sin(math.pi * a * a * q / wavelength / 2) ** 2 * (z1 / (z1 + z2)) ** 2
     >>> round(float(kernel[40, 40] / (pitch**2 / (math.pi * a * a)) / analytic), 3)
-    1.0
+    0.997
     """
     return _kernel(pupil, tuple(float(c) for c in curvature), sensor_distance, pitch, band, reach).copy()
 
