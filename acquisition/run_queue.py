@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import logging
 import threading
+from abc import ABC, abstractmethod
 from pathlib import Path
 
 from pydantic import ValidationError
@@ -37,7 +38,7 @@ log = logging.getLogger("mirrorgonio.runner")
 REMOVED = "removed from the queue by the operator"
 
 
-class RunQueue:
+class RunQueue(ABC):
     """The run engine's queue operations (mixed into :class:`acquisition.runner.RunEngine`,
     whose lock, catalog and run threads they use)."""
 
@@ -49,11 +50,20 @@ class RunQueue:
     _manual: str | None
     _closing: bool
 
+    @abstractmethod
     def _launch(self, plan: RunPlan, resume: bool) -> None:
-        raise NotImplementedError
+        """Start ``plan``'s run thread (the engine's)."""
 
+    @abstractmethod
     def _rig_taken(self) -> bool:
-        raise NotImplementedError
+        """Whether a run holds the rig (the engine's)."""
+
+    def _run_now(self, record: RunRecord, plan: RunPlan) -> RunRecord:
+        """``record`` running, then its thread started with ``plan`` (running first: a pause
+        right after the start applies to it). Under the engine's lock."""
+        record = self.catalog.transition_run(record.id, "running")
+        self._launch(plan, resume=False)
+        return record
 
     def start_queue(self) -> RunRecord | None:
         """Release the queue's hold; start its next run now if the rig is free.
@@ -133,9 +143,7 @@ class RunQueue:
             if explicit:
                 raise
             return None
-        plan = RunPlan(record.id, rig, tool, light, request, Path(record.path), references)
-        record = self.catalog.transition_run(record.id, "running")
-        self._launch(plan, resume=False)
+        record = self._run_now(record, RunPlan(record.id, rig, tool, light, request, Path(record.path), references))
         log.info("run %s started from the queue: %s, %d positions", record.id, request.preset, len(tool))
         self.events.publish()
         return record

@@ -156,10 +156,7 @@ class RunEngine(RunQueue):
                 self.events.publish()
                 return record
             self.catalog.release_queue()  # the operator started the rig again
-            plan = RunPlan(record.id, rig, tool, light, request, Path(record.path), references)
-            # Running before the thread starts: a pause right after the start applies to it.
-            record = self.catalog.transition_run(record.id, "running")
-            self._launch(plan, resume=False)
+            record = self._run_now(record, RunPlan(record.id, rig, tool, light, request, Path(record.path), references))
         log.info("run %s started: %s, %d positions", record.id, request.preset, len(tool))
         self.events.publish()
         return record

@@ -6,6 +6,7 @@ import logging
 import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -117,26 +118,18 @@ def write_light_files(
     """The IES, LDT and TM-25 files of ``model``, with the names, the lamp flux or calibration
     and the ray count of ``options`` (the luminaire named after the run where none is given)."""
     luminaire = options.luminaire or f"mirrorgonio run {run_name(run_path)}"
-    lumens, calibration = options.lamp_lumens, options.candela_per_unit
+    photometric: dict[str, Any] = {  # what the IES and the LDT say alike
+        "lamp_lumens": options.lamp_lumens,
+        "calibration": options.candela_per_unit,
+        "luminaire": luminaire,
+        "lamp": options.lamp,
+        "extrapolation": options.extrapolation,
+    }
     ies = write_ies(
-        model,
-        output_path(run_path, out, ".ies"),
-        lamp_lumens=lumens,
-        calibration=calibration,
-        manufacturer=options.manufacturer or "unknown",
-        luminaire=luminaire,
-        lamp=options.lamp,
-        extrapolation=options.extrapolation,
+        model, output_path(run_path, out, ".ies"), manufacturer=options.manufacturer or "unknown", **photometric
     )
     ldt = write_ldt(
-        model,
-        output_path(run_path, out, ".ldt"),
-        lamp_lumens=lumens,
-        calibration=calibration,
-        company=options.manufacturer or "mirrorgonio",
-        luminaire=luminaire,
-        lamp=options.lamp,
-        extrapolation=options.extrapolation,
+        model, output_path(run_path, out, ".ldt"), company=options.manufacturer or "mirrorgonio", **photometric
     )
     tm25 = write_tm25(
         model,
@@ -145,8 +138,8 @@ def write_light_files(
         seed=0,
         name=options.luminaire,
         manufacturer=options.manufacturer or "unknown",
-        calibration=calibration,
-        lamp_lumens=lumens,
+        calibration=options.candela_per_unit,
+        lamp_lumens=options.lamp_lumens,
     )
     return {"ies": [ies], "ldt": [ldt], "tm25": [tm25]}
 

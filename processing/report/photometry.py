@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import html
 import math
+from typing import Any
 
 import numpy as np
 from matplotlib.axes import Axes
@@ -26,7 +27,13 @@ from processing.report.markup import FigureEncoder, figure_html, html_table
 PHOTOMETRY_TITLE = "Photometry of the whole light"
 _PLANE_STYLE = {"C0-C180": ("#d62728", "-"), "C90-C270": ("#1f77b4", "--")}
 #: Beyond the measured γ: hatched grey (the sources' own polar plots shade what was covered in plain grey).
-_BEYOND_FACE, _BEYOND_HATCH = "#f0f0f0", "#b8b8b8"
+_BEYOND: dict[str, Any] = {
+    "facecolor": "#f0f0f0",
+    "edgecolor": "#b8b8b8",
+    "hatch": "///",
+    "linewidth": 0.0,
+    "zorder": 0,  # under everything
+}
 
 
 def _shade_beyond(ax: PolarAxes, start_deg: float, stop_deg: float, rmax: float, label: str | None) -> None:
@@ -36,11 +43,7 @@ def _shade_beyond(ax: PolarAxes, start_deg: float, stop_deg: float, rmax: float,
         np.r_[0.0, arc, 0.0],
         np.r_[0.0, np.full(arc.size, rmax), 0.0],
         label=label,
-        facecolor=_BEYOND_FACE,
-        edgecolor=_BEYOND_HATCH,
-        hatch="///",
-        linewidth=0.0,
-        zorder=0,
+        **_BEYOND,
     )
 
 
@@ -96,11 +99,7 @@ def _isocandela_axes(ax: PolarAxes, model: LightModel, summary: Photometry) -> N
         90.0 - every,
         width=2.0 * math.pi,
         bottom=every,
-        facecolor=_BEYOND_FACE,
-        edgecolor=_BEYOND_HATCH,
-        hatch="///",
-        lw=0.0,
-        zorder=0,
+        **_BEYOND,
     )
     lines = ax.contour(np.radians(c), gamma, relative.T, levels=[0.2, 0.3, 0.4, 0.6, 0.7, 0.8, 0.9], colors="0.25")
     bold = ax.contour(np.radians(c), gamma, relative.T, levels=[0.1, 0.5], colors=["#1f77b4", "#d62728"])
