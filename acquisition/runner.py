@@ -679,7 +679,9 @@ class RunEngine(RunQueue):
         started = self._mono()
         self._checkpoint()
         self._position = index
-        self.catalog.update_progress(plan.run_id, positions_done=self._done(plan), current_position=index)
+        # The position count is the writer thread's alone: a count read here could be stale by the
+        # time it is written, and put a position it just wrote back to undone.
+        self.catalog.update_progress(plan.run_id, current_position=index)
         self._set_step(f"sweep, position {index + 1} of {len(plan.tool_poses)}")
         if arrival is None:
             arrival = self._move(plan, index)
@@ -695,6 +697,3 @@ class RunEngine(RunQueue):
         # Blocks only while the previous position is still being written.
         behind.queue.put((index, arrival.measured, times, frames))
         return arrival
-
-    def _done(self, plan: RunPlan) -> int:
-        return self.catalog.get_run(plan.run_id).positions_done

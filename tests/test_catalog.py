@@ -315,6 +315,10 @@ def test_progress_and_eta(cat, clock):
     run = cat.get_run(run.id)
     assert run.current_position is None and run.seconds_per_position == 2.5 and run.exposures_per_position == 5
     assert run.eta_s == pytest.approx(12.5)
+    # The arm's place alone (the run thread's report): the writer's count stays.
+    cat.update_progress(run.id, current_position=6)
+    run = cat.get_run(run.id)
+    assert (run.positions_done, run.current_position) == (5, 6)
     assert cat.transition_run(run.id, "paused").eta_s is None  # no ETA unless running
     with pytest.raises(CatalogError, match="positions_done 11 > n_positions 10"):
         cat.update_progress(run.id, positions_done=11, current_position=None)

@@ -179,7 +179,7 @@ class RunCatalog(CatalogDatabase):
         self,
         run_id: str,
         *,
-        positions_done: int,
+        positions_done: int | None = None,
         current_position: int | None,
         seconds_per_position: float | None = None,
         exposures_per_position: int | None = None,
@@ -190,8 +190,10 @@ class RunCatalog(CatalogDatabase):
         ----------
         run_id : str
             The run.
-        positions_done : int
-            Positions finished so far, in ``[0, n_positions]``.
+        positions_done : int, optional
+            Positions finished so far, in ``[0, n_positions]``; None leaves the stored value
+            unchanged (the run file's writer counts them: another caller that read the count
+            first would put back a stale one).
         current_position : int or None
             Index of the position being worked on, in ``[0, n_positions)``; None between
             positions or at the end.
@@ -208,7 +210,8 @@ class RunCatalog(CatalogDatabase):
         CatalogError
             A value out of range for this run.
         """
-        check_int("positions_done", positions_done, 0)
+        if positions_done is not None:
+            check_int("positions_done", positions_done, 0)
         if current_position is not None:
             check_int("current_position", current_position, 0)
         if seconds_per_position is not None:
@@ -220,12 +223,12 @@ class RunCatalog(CatalogDatabase):
             if row is None:
                 raise UnknownRunError(run_id)
             n = row["n_positions"]
-            if positions_done > n:
+            if positions_done is not None and positions_done > n:
                 raise CatalogError(f"{run_id}: positions_done {positions_done} > n_positions {n}")
             if current_position is not None and current_position >= n:
                 raise CatalogError(f"{run_id}: current_position {current_position} >= n_positions {n}")
             conn.execute(
-                "UPDATE runs SET positions_done = ?, current_position = ?, "
+                "UPDATE runs SET positions_done = COALESCE(?, positions_done), current_position = ?, "
                 "seconds_per_position = COALESCE(?, seconds_per_position), "
                 "exposures_per_position = COALESCE(?, exposures_per_position), updated_utc = ? WHERE id = ?",
                 (
