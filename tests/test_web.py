@@ -145,6 +145,9 @@ def align_from_the_page(page, daemon) -> None:
         "outside the soft limits [0.000000, 0.450000] m (the rig's arm.soft_limits) (HTTP 422)"
     )
     page.fill("#token", "")
+    # The page reads its presets again without the token and says they need one; only then the
+    # click, whose refusal would otherwise race that message for the one message box.
+    expect(message).to_contain_text("Cannot read the presets — a bearer token is required (HTTP 401)")
     page.click("#home")
     expect(message).to_contain_text("Home refused: a bearer token is required (HTTP 401)")
     page.fill("#token", TOKEN)
