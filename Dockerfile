@@ -32,7 +32,7 @@ RUN python -c "import tomllib; p = tomllib.load(open('pyproject.toml', 'rb'))['p
     && rm /tmp/requirements.txt
 
 # The project itself, installed as a package: the rigs, the device profiles and the web
-# page are package data (drivers/contracts/rigs, drivers/profiles, acquisition/web).
+# page are package data (drivers/contracts/rigs, drivers/profiles, acquisition/daemon/web).
 COPY acquisition ./acquisition
 COPY processing ./processing
 COPY drivers ./drivers

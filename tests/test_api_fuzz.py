@@ -33,10 +33,10 @@ from schemathesis.specs.openapi.checks import (
     status_code_conformance,
 )
 
-from acquisition.app import create_app
-from acquisition.catalog import CatalogError
-from acquisition.runner import RunConflictError
-from acquisition.settings import load_settings
+from acquisition.daemon.app import create_app
+from acquisition.daemon.catalog import CatalogError
+from acquisition.daemon.engine import RunConflictError
+from acquisition.daemon.settings import load_settings
 
 TOKEN = "fuzz-token-0123456789"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}

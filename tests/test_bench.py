@@ -14,9 +14,9 @@ import pytest
 from conftest import REDUCED_RIG, rig_with
 from fastapi.testclient import TestClient
 
-from acquisition.app import create_app
-from acquisition.preview import SATURATED_RGB
-from acquisition.settings import load_settings
+from acquisition.daemon.app import create_app
+from acquisition.daemon.preview import SATURATED_RGB
+from acquisition.daemon.settings import load_settings
 from drivers.contracts.rig import load_rig
 
 JSON = {"Content-Type": "application/json"}

@@ -307,7 +307,7 @@ def test_the_ways_are_named_or_chosen_by_the_flags():
     """``--ways`` takes the ways' names (a name's own comma kept); without it the flags choose
     among the ways that hold the rig as described. An unknown way is refused in one line."""
     from acquisition.benchmarks.tolerance import _cases, _ways
-    from acquisition.cli.bench import _way_names
+    from acquisition.cli.benchmarks import _way_names
 
     assert _way_names("found,found, self-calibrated,given, aperture fitted") == [
         "found",

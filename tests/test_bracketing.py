@@ -5,8 +5,8 @@ import math
 import numpy as np
 import pytest
 
-from acquisition.bracketing import NoiseModel, electrons_for_snr, exposures_from_metering, is_saturated
-from acquisition.settings import AutoBracketSettings
+from acquisition.daemon.bracketing import NoiseModel, electrons_for_snr, exposures_from_metering, is_saturated
+from acquisition.daemon.settings import AutoBracketSettings
 from drivers.camera import RawFrame
 
 NOISE = NoiseModel(gain_e_per_dn=4.96, read_noise_e=3.0)

@@ -11,7 +11,7 @@ from datetime import UTC, datetime, timedelta, timezone
 
 import pytest
 
-from acquisition.catalog import (
+from acquisition.daemon.catalog import (
     ALLOWED_RUN_TRANSITIONS,
     JOB_STATES,
     RUN_STATES,
@@ -510,7 +510,7 @@ def test_finish_job(cat):
 
 def test_a_version_1_catalog_is_migrated_and_keeps_its_jobs(db, clock):
     # The version-1 schema, as the first release wrote it, with one job in it.
-    from acquisition.catalog.schema import MIGRATIONS
+    from acquisition.daemon.catalog.schema import MIGRATIONS
 
     with sqlite3.connect(db) as conn:
         conn.execute("CREATE TABLE schema_version (version INTEGER PRIMARY KEY, applied_utc TEXT NOT NULL)")

@@ -1,6 +1,6 @@
 """Files a client names in a request (a run's ``light_results``, a job's ``layout``): regular
 files only, a size limit, read with a time limit off the event loop, and answers that tell a
-client without the token nothing of the machine's filesystem (``acquisition.client_files``)."""
+client without the token nothing of the machine's filesystem (``acquisition.daemon.client_files``)."""
 
 from __future__ import annotations
 
@@ -14,8 +14,8 @@ from conftest import REDUCED_RIG, write_config
 from fastapi.testclient import TestClient
 from test_worker import Data
 
-from acquisition.app import create_app
-from acquisition.settings import load_settings
+from acquisition.daemon.app import create_app
+from acquisition.daemon.settings import load_settings
 from drivers.config_files import MAX_TEXT_BYTES
 
 PUBLIC = "{field}: the {what} cannot be used (the daemon's or worker's log says why)"

@@ -13,8 +13,8 @@ import pytest
 from conftest import REDUCED_RIG
 from fastapi.testclient import TestClient
 
-from acquisition.app import create_app
-from acquisition.settings import load_settings
+from acquisition.daemon.app import create_app
+from acquisition.daemon.settings import load_settings
 from drivers.contracts.runfile import RunFile
 
 EXPOSURES = [0.0002, 0.001, 0.005]
@@ -217,7 +217,7 @@ def test_an_impossible_preset_schedule_is_a_422_naming_the_pose(daemon):
 
 
 def test_the_next_move_overlaps_the_writing_of_the_frames_just_taken(daemon, monkeypatch):
-    from acquisition import runner
+    from acquisition.daemon import engine as runner
 
     spans = {}
     original = runner.RunFileWriter.write_position
@@ -293,7 +293,7 @@ def test_object_arc_run_records_its_object_and_light(daemon, tmp_path):
 def test_a_setting_that_is_not_a_finite_number_is_refused_naming_it(tmp_path, monkeypatch):
     """inf and nan are TOML literals (and strings an environment variable can hold): a capture
     timeout of inf was accepted before, and a capture that hangs then waited for ever."""
-    from acquisition.settings import SettingsError
+    from acquisition.daemon.settings import SettingsError
 
     config = tmp_path / "daemon.toml"
     config.write_text("[camera]\ncapture_timeout_s = inf\n")

@@ -10,7 +10,7 @@ import pytest
 from conftest import ROOT
 from test_daemon_api import daemon, wait_state  # noqa: F401 - the fixture
 
-from acquisition.runner import RunEngine
+from acquisition.daemon.engine import RunEngine
 from drivers.contracts.runfile import RunFile
 from drivers.errors import DeviceError
 from drivers.light import ManualLightSwitch, NoLightSwitch

@@ -15,8 +15,8 @@ from concurrent.futures import ThreadPoolExecutor
 import pytest
 from conftest import DaemonProcess, free_port, wait_for, write_config
 
-from acquisition.api.guard import RequestGuard
-from acquisition.settings import DEFAULT_MAX_BODY_BYTES, SettingsError, load_settings
+from acquisition.daemon.api.guard import RequestGuard
+from acquisition.daemon.settings import DEFAULT_MAX_BODY_BYTES, SettingsError, load_settings
 
 TOKEN = "security-test-token-0123"
 JSON = {"Content-Type": "application/json"}

@@ -317,7 +317,7 @@ def compose_problems(
 def daemon_settings(service: dict, args: list[str]):
     """The settings ``mirrorgonio serve`` builds in the container from the service's
     environment and command line (``SettingsError`` if it refuses them)."""
-    from acquisition.settings import load_settings
+    from acquisition.daemon.settings import load_settings
 
     env = {k: str(v) for k, v in (service.get("environment") or {}).items()}
     saved = {k: v for k, v in os.environ.items() if k.startswith("MG_")}
@@ -357,7 +357,7 @@ def published_ports(service: dict) -> list[tuple[str, str, str]]:
 def _daemon_problems(services: dict, argv: dict) -> tuple[list[str], str | None]:
     """The daemon's environment and options are a valid configuration that reaches the arm;
     and its data folder (the catalog and the runs)."""
-    from acquisition.settings import SettingsError
+    from acquisition.daemon.settings import SettingsError
 
     if "daemon" not in services:
         return [], None
@@ -368,7 +368,7 @@ def _daemon_problems(services: dict, argv: dict) -> tuple[list[str], str | None]
     except (SettingsError, ValueError) as exc:
         return [f"daemon: its configuration is refused: {exc}"], None
     problems = []
-    from acquisition.api.guard import RequestGuard
+    from acquisition.daemon.api.guard import RequestGuard
 
     for netloc in re.findall(r"https?://([^/'\"]+)", _healthcheck_code(services["daemon"]) or ""):
         if not RequestGuard(None, settings).allowed(netloc):  # the Host check would refuse it: 400
@@ -618,7 +618,7 @@ def rig_problems(path: Path = RIG_COMPOSE, env: dict[str, str] | None = None, to
     """What is wrong with the real rig's compose file: the daemon's settings name real
     drivers, and the devices they open are passed to the container, to a user of the groups
     that own them on the host."""
-    from acquisition.settings import SettingsError
+    from acquisition.daemon.settings import SettingsError
 
     env = (
         {"MG_TOKEN": "test-token-0123456789", "MG_RIG_FILE": str(ROOT / "rigs" / "default.toml")}
@@ -860,7 +860,7 @@ def test_the_dockerfile_copies_what_exists_and_is_not_ignored():
     needed = [
         "drivers/contracts/rigs/default.toml",
         "drivers/profiles/sim_stage.toml",
-        "acquisition/web/index.html",
+        "acquisition/daemon/web/index.html",
         "README.md",
     ]
     for relative in needed:
@@ -907,7 +907,7 @@ def test_the_wheel_carries_the_rigs_and_a_plain_install_finds_the_default_rig(tm
         p.relative_to(ROOT).as_posix() for p in (ROOT / "drivers" / "contracts" / "rigs").rglob("*") if p.is_file()
     }
     assert shipped and shipped <= names
-    assert "acquisition/web/index.html" in names and "drivers/profiles/sim_stage.toml" in names
+    assert "acquisition/daemon/web/index.html" in names and "drivers/profiles/sim_stage.toml" in names
     site = tmp_path / "site"
     zipfile.ZipFile(wheel).extractall(site)  # what a plain install puts in site-packages
     probe = (

@@ -18,9 +18,9 @@ import pytest
 from fastapi.testclient import TestClient
 from test_runfile import SEED, make_header, position_data
 
-from acquisition.app import create_app
-from acquisition.runner import RunEngine
-from acquisition.settings import load_settings
+from acquisition.daemon.app import create_app
+from acquisition.daemon.engine import RunEngine
+from acquisition.daemon.settings import load_settings
 from drivers.contracts.runfile import RunFile, RunFileWriteError, RunFileWriter, storage_errno
 
 N_POSITIONS = 20

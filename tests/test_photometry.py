@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
-from acquisition.models import JobRequest
+from acquisition.daemon.models import JobRequest
 from processing.exports.ies import write_ies
 from processing.exports.ldt import write_ldt
 from processing.fit import IntensityFit

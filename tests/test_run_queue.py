@@ -17,11 +17,11 @@ import pytest
 from fastapi.testclient import TestClient
 from test_disk_full import TINY_RIG, daemon, fill, small_fs  # noqa: F401 - fixtures
 
-from acquisition.app import create_app
-from acquisition.catalog import Catalog
-from acquisition.models import RunRequest
-from acquisition.runner import REMOVED
-from acquisition.settings import load_settings
+from acquisition.daemon.app import create_app
+from acquisition.daemon.catalog import Catalog
+from acquisition.daemon.engine import REMOVED
+from acquisition.daemon.models import RunRequest
+from acquisition.daemon.settings import load_settings
 from drivers.contracts.runfile import RunFile
 
 FINAL = ("complete", "aborted", "failed", "interrupted")

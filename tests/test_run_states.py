@@ -21,9 +21,9 @@ from hypothesis import HealthCheck, Phase, settings
 from hypothesis import strategies as st
 from hypothesis.stateful import RuleBasedStateMachine, initialize, invariant, rule, run_state_machine_as_test
 
-from acquisition.app import create_app
-from acquisition.catalog.records import RUN_STATES
-from acquisition.settings import SettingsError, load_settings
+from acquisition.daemon.app import create_app
+from acquisition.daemon.catalog.records import RUN_STATES
+from acquisition.daemon.settings import SettingsError, load_settings
 from drivers.contracts.rig import DEFAULT_RIG_PATH
 from drivers.contracts.runfile import RunFile
 

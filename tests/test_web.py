@@ -347,7 +347,7 @@ def test_the_page_shows_what_the_daemon_refuses_and_polls_without_events(tmp_pat
 def test_the_page_shows_each_job_and_links_its_report_ies_and_ray_file(tmp_path, daemon_factory, page, captured):
     from test_worker import Data
 
-    from acquisition.worker import JobWorker
+    from acquisition.daemon.worker import JobWorker
 
     data = Data(tmp_path / "data")  # a finished run in the daemon's catalog, as a run the daemon took
     _, _, source = captured

@@ -22,8 +22,8 @@ import numpy as np
 import pytest
 from conftest import REDUCED_RIG
 
-from acquisition.catalog import Catalog
-from acquisition.worker import ARTIFACT_KINDS, JobLostError, JobWorker, one_line, writer_alive
+from acquisition.daemon.catalog import Catalog
+from acquisition.daemon.worker import ARTIFACT_KINDS, JobLostError, JobWorker, one_line, writer_alive
 from drivers.contracts.rig import load_rig
 from drivers.contracts.runfile import PositionTimes, RunFile, RunFileWriter, RunHeader
 from processing.exports.tm25 import read_tm25
@@ -381,8 +381,8 @@ def test_one_line_reasons():
 def test_the_daemon_serves_a_jobs_state_and_exactly_its_result_files(captured, data, tmp_path):
     from fastapi.testclient import TestClient
 
-    from acquisition.app import create_app
-    from acquisition.settings import load_settings
+    from acquisition.daemon.app import create_app
+    from acquisition.daemon.settings import load_settings
 
     _, _, source = captured
     run = data.run(source)
@@ -491,7 +491,7 @@ def test_the_daemon_serves_a_jobs_state_and_exactly_its_result_files(captured, d
 def test_the_results_archive_streams_a_block_at_a_time(tmp_path):
     """The ZIP stream never holds more than one block (plus a header) of a member, and is a
     valid archive of every member, byte for byte, under its name."""
-    from acquisition.api.jobs import zip_stream
+    from acquisition.daemon.api.jobs import zip_stream
 
     rng = np.random.default_rng(7)
     members = []
@@ -517,8 +517,8 @@ def test_a_job_on_a_run_with_a_corrupt_frame_fails_in_one_line_or_skips_it_with_
     from fastapi.testclient import TestClient
     from test_checksums import flip_bit
 
-    from acquisition.app import create_app
-    from acquisition.settings import load_settings
+    from acquisition.daemon.app import create_app
+    from acquisition.daemon.settings import load_settings
 
     rig, frames, _ = captured
     run = data.run(state="complete")

@@ -18,11 +18,11 @@ from pathlib import Path
 import h5py
 
 from acquisition.benchmarks.scoring import score_sources
-from acquisition.catalog import Catalog
-from acquisition.devices import open_devices
-from acquisition.models import FixedBracket, RunRequest
-from acquisition.runner import RunEngine
-from acquisition.settings import load_settings
+from acquisition.daemon.catalog import Catalog
+from acquisition.daemon.devices import open_devices
+from acquisition.daemon.engine import RunEngine
+from acquisition.daemon.models import FixedBracket, RunRequest
+from acquisition.daemon.settings import load_settings
 from drivers.contracts.rig import load_rig
 from processing.light_run.run import process_run
 from sim_devices.lights import LIGHTS_DIR, load_truth

@@ -12,11 +12,11 @@ from pathlib import Path
 import h5py
 import hdf5plugin
 
-from acquisition.catalog import Catalog
-from acquisition.devices import Devices
-from acquisition.models import FixedBracket, RunRequest
-from acquisition.runner import RunEngine
-from acquisition.settings import load_settings
+from acquisition.daemon.catalog import Catalog
+from acquisition.daemon.devices import Devices
+from acquisition.daemon.engine import RunEngine
+from acquisition.daemon.models import FixedBracket, RunRequest
+from acquisition.daemon.settings import load_settings
 from drivers.contracts.rig import load_rig
 from drivers.modbus_arm import ModbusArm
 from drivers.modbus_profile import SIM_STAGE_PROFILE

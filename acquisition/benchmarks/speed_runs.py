@@ -20,8 +20,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from acquisition.benchmarks.accuracy import REFERENCE_EXPOSURES_S, take_run
-from acquisition.models import FixedBracket, RunRequest
-from acquisition.settings import load_settings
+from acquisition.daemon.models import FixedBracket, RunRequest
+from acquisition.daemon.settings import load_settings
 from drivers.contracts.rig import rig_to_toml_dict
 
 #: The reference bracket (``bench accuracy``'s): 2e-5 s to 12.5 ms, steps of 5.

@@ -36,9 +36,9 @@ from acquisition.benchmarks.hdr_methods import (
     ours_method,
 )
 from acquisition.benchmarks.speed_runs import SpeedBenchError
-from acquisition.devices import Devices
-from acquisition.models import FixedBracket, RunRequest
-from acquisition.settings import load_settings
+from acquisition.daemon.devices import Devices
+from acquisition.daemon.models import FixedBracket, RunRequest
+from acquisition.daemon.settings import load_settings
 from drivers.contracts.runfile import RunFile
 from processing.trace import RigGeometry, light_pose_at, trace_pixels
 from sim_devices.replay_camera import ReplayCamera
@@ -284,9 +284,9 @@ def measure_acquire(run_path: Path, repeat: int, distinct_positions: int = 4) ->
         "plain_h5py_mb_per_s": round(megabytes / plain_s, 1),
         "engine_over_plain_throughput": round(plain_s / engine_s, 3),
         "run_file_bytes": file_bytes,
-        "how": "the daemon's run engine (acquisition.runner.RunEngine: catalog, run file, writer thread) takes a full "
-        "run with the simulated arm at infinite speed over Modbus on loopback and a zero-latency camera that "
-        f"hands back {len(frames)} frames of the cached run in turn (acquisition/benchmarks/acquire.py's "
+        "how": "the daemon's run engine (acquisition.daemon.engine.RunEngine: catalog, run file, writer thread) "
+        "takes a full run with the simulated arm at infinite speed over Modbus on loopback and a zero-latency "
+        f"camera that hands back {len(frames)} frames of the cached run in turn (acquisition/benchmarks/acquire.py's "
         "set-up); camera_capture_ms_per_frame is the camera's capture calls alone, timed inside the run; "
         "overhead_ms_per_frame = (run time - capture time) / frames: what the daemon adds per frame (moves, "
         "checks, LZ4 compression and the HDF5 write, catalog updates). plain_h5py: the same frames written "

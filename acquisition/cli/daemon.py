@@ -30,14 +30,14 @@ def serve(
     data_dir: Annotated[Path | None, typer.Option("--data-dir", help="Where run files and the catalog live.")] = None,
 ) -> None:
     """Run the acquisition daemon (REST API and web page) under uvicorn."""
-    from acquisition.settings import SettingsError, load_settings
+    from acquisition.daemon.settings import SettingsError, load_settings
 
     try:
         settings = load_settings(config, host=host, port=port, data_dir=data_dir)
         settings.require_token_off_loopback()
     except (SettingsError, OSError) as exc:
         raise fail(str(exc)) from None
-    from acquisition.devices import check_configured_files
+    from acquisition.daemon.devices import check_configured_files
     from drivers.modbus_profile import ProfileError
 
     try:
@@ -46,7 +46,7 @@ def serve(
         raise fail(str(exc)) from None
     import uvicorn
 
-    from acquisition.app import create_app
+    from acquisition.daemon.app import create_app
 
     # The daemon's own lines (a run's start and end, why a client's file was refused) on stderr
     # beside uvicorn's; the page's log panel keeps its own copy.
@@ -100,8 +100,8 @@ def worker_command(
     import signal
     import threading
 
-    from acquisition.settings import SettingsError, load_settings
-    from acquisition.worker import serve_jobs
+    from acquisition.daemon.settings import SettingsError, load_settings
+    from acquisition.daemon.worker import serve_jobs
     from processing.parallel import ComputeError, open_compute
 
     try:
@@ -121,7 +121,7 @@ def worker_command(
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
     typer.echo(f"worker: jobs from {settings.catalog_path}, positions on {compute.description}")
-    from acquisition.catalog import CatalogError
+    from acquisition.daemon.catalog import CatalogError
 
     try:
         with compute:

@@ -24,7 +24,7 @@ from rich.progress import (
     TimeRemainingColumn,
 )
 
-from acquisition.catalog import Catalog
+from acquisition.daemon.catalog import Catalog
 from acquisition.demo.folder import new_data_dir, shown, write_config
 from acquisition.demo.processes import Child, DemoError, child_env, free_port
 from acquisition.demo.summary import DemoResult

@@ -1,0 +1,422 @@
+"""The processing worker: takes queued jobs from the catalog and processes their runs.
+
+``mirrorgonio worker`` runs :class:`JobWorker` in a loop (``docs/daemon.md``, "Worker"):
+
+1. put back in the queue the running jobs whose worker stopped sending heartbeats (it
+   died: :meth:`~acquisition.daemon.catalog.Catalog.requeue_stale_jobs`);
+2. claim the oldest queued job (atomic: two workers never get the same job);
+3. if its run is still being acquired, put it back to wait (it is not failed), unless the
+   job asked for ``partial``: then only the positions complete now are processed;
+4. process the run (``processing.light_run.run.process_run``, positions in parallel on the
+   worker's Dask cluster) while a thread sends a heartbeat with the progress every few
+   seconds; the results go beside the run file;
+5. record the job ``complete`` with its result files (report, IES, LDT, TM-25 ray file,
+   light model, results file), or ``failed`` with the reason in one line, and go on with
+   the next job.
+
+A worker that finds its job was taken from it (its heartbeats stopped long enough for
+another worker to requeue and claim it) abandons the job without recording anything.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import errno
+import fcntl
+import logging
+import os
+import socket
+import sqlite3
+import threading
+import time
+import tomllib
+from collections.abc import Callable
+from pathlib import Path
+
+from acquisition.daemon.catalog import ACTIVE_RUN_STATES, Catalog, CatalogError, JobClaimError, JobRecord, RunRecord
+from acquisition.daemon.client_files import ClientFileError, load_client_file
+from drivers.contracts.runfile import RunFile, RunFileError
+from processing.hdr.model import HDRError
+from processing.light_run import ProcessingError, process_run
+from processing.light_run.checksums import CorruptRunError, skipped_line
+from processing.light_run.progress import describe, overall_fraction
+from processing.light_run.records import ProcessReport
+from processing.parallel import Compute, ComputeError
+from processing.results import ResultsError
+from processing.steps import StepsError, resolve_steps
+from processing.unmixing.sources import layout_from_dict
+
+log = logging.getLogger("mirrorgonio.worker")
+
+#: The run file states of a run whose writer may still be adding positions.
+ACQUIRING_FILE_STATES = ("created", "running", "paused")
+#: Job options a request may set, and what they mean (``JobRequest`` in ``acquisition.daemon.models``).
+JOB_OPTIONS = {
+    "partial": "process the positions complete now, even while the run is being acquired",
+    "ignore_corrupt": "skip the positions with a frame that fails its checksum (without it such a frame fails the job)",
+    "layout": "the sources' layout (TOML on the worker's machine); found in the data without it",
+    "estimator": "auto, templates or cell-sums",
+    "fit": "gaussian, polynomial, cos-power or gaussian-2d",
+    "noise": "auto, estimated or rig",
+    "fit_aperture": "fit the camera's aperture (pinhole) diameter to the data: auto (where the sources are searched "
+    "for), always, or never",
+    "fit_sensor_distance": "fit the sensor distance (pinhole to sensor) to the data too: auto, always, or never "
+    "(the default)",
+    "calibrate_rig": "fit the rig's geometry to the data with the sources (self-calibration): auto (where the sources "
+    "are searched for), always, or never",
+    "extrapolation": "what the IES and LDT files hold beyond the measured θ: fitted (the default) or none (zero)",
+    "lamp_lumens": "the lamp's flux (lm) the IES and LDT relative intensities are scaled to",
+    "candela_per_unit": "absolute photometry: candela per unit of the light model's intensity",
+    "manufacturer": "the manufacturer the light files name",
+    "luminaire": "the luminaire's name in the light files",
+    "lamp": "the lamp's name in the light files",
+    "rays": "rays in the TM-25 ray file",
+}
+#: The job options handed to the processing as they are (``ProcessingOptions`` checks them).
+_LIGHT_FILE_OPTIONS = ("lamp_lumens", "candela_per_unit", "manufacturer", "luminaire", "lamp", "rays")
+#: The result files a job records, by kind: the daemon serves exactly these.
+ARTIFACT_KINDS = ("report", "ies", "ldt", "tm25", "light_model", "results")
+
+
+class JobLostError(RuntimeError):
+    """This worker no longer holds the job it is processing."""
+
+
+def one_line(exc: BaseException, limit: int = 1000) -> str:
+    """An exception as the one-line reason a failed job records."""
+    domain = (ProcessingError, RunFileError, ResultsError, HDRError, StepsError, ComputeError, CatalogError, OSError)
+    text = " ".join(str(exc).split())
+    if not isinstance(exc, domain) or not text:
+        text = f"{type(exc).__name__}: {text}" if text else type(exc).__name__
+    return text if len(text) <= limit else text[: limit - 1] + "…"
+
+
+def writer_alive(run_path: str | Path) -> bool:
+    """Whether a process holds the run file's writer lock (``RUN.h5.lock``) now.
+
+    Probed with a non-blocking shared ``flock``, released at once; only called for a run
+    the catalog no longer counts as being acquired (so no writer should be starting).
+    """
+    lock = Path(str(run_path) + ".lock")
+    try:
+        fd = os.open(lock, os.O_RDONLY)
+    except OSError:
+        return False
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except OSError as exc:
+        return exc.errno in (errno.EWOULDBLOCK, errno.EACCES)
+    else:
+        fcntl.flock(fd, fcntl.LOCK_UN)
+        return False
+    finally:
+        os.close(fd)
+
+
+def default_worker_id() -> str:
+    return f"{socket.gethostname()}-{os.getpid()}"
+
+
+class JobWorker:
+    """Claims and processes jobs, one at a time, with a heartbeat while each runs.
+
+    Parameters
+    ----------
+    catalog : Catalog
+        The catalog (``DATA_DIR/catalog.sqlite``), opened in this process.
+    compute : processing.parallel.Compute, optional
+        Where the position tasks run (a Dask cluster); default: in this process.
+    worker_id : str, optional
+        How the catalog names this worker (default ``HOST-PID``).
+    heartbeat_s : float
+        Seconds between heartbeats while a job runs.
+    stale_after_s : float
+        A running job without a heartbeat for this long is taken for orphaned (its worker
+        died) and requeued; keep it several heartbeats long.
+    wait_s : float
+        How long a job whose run is still being acquired waits before it is tried again.
+    process : callable, optional
+        ``process(job, run_path, steps, progress) -> (result_dir, artifacts, message)``, where
+        ``progress(step, done, total)`` as ``process_run`` calls it; the default runs
+        ``processing.light_run.run.process_run`` (tests substitute their own).
+    """
+
+    def __init__(
+        self,
+        catalog: Catalog,
+        compute=None,
+        *,
+        worker_id: str | None = None,
+        heartbeat_s: float = 5.0,
+        stale_after_s: float = 60.0,
+        wait_s: float = 10.0,
+        process: Callable | None = None,
+    ):
+        if heartbeat_s <= 0 or stale_after_s <= 0 or wait_s < 0:
+            raise ValueError("heartbeat_s and stale_after_s must be > 0, wait_s >= 0")
+        self.catalog = catalog
+        self.compute = compute if compute is not None else Compute()
+        self.worker_id = worker_id or default_worker_id()
+        self.heartbeat_s = float(heartbeat_s)
+        self.stale_after_s = float(stale_after_s)
+        self.wait_s = float(wait_s)
+        self._process = process or self._process_run
+        self._progress: float | None = None
+        self._note: str | None = None
+        self._step: str | None = None
+        self._steps_seen: set[str] = set()
+        self._lost = threading.Event()
+
+    # --- the loop ------------------------------------------------------------------------
+    def run(
+        self,
+        stop: threading.Event | None = None,
+        *,
+        once: bool = False,
+        poll_s: float = 2.0,
+        on_job: Callable[[JobRecord], None] | None = None,
+    ) -> int:
+        """Process jobs until ``stop`` is set (or, with ``once``, until none can be claimed).
+
+        Returns
+        -------
+        int
+            The number of jobs this worker ended (complete or failed).
+        """
+        stop = stop or threading.Event()
+        ended = 0
+        waiting: set[str] = set()
+        repeats = 0  # waiting jobs claimed again in a row, with nothing else to do in between
+        while not stop.is_set():
+            job = self.run_once()
+            if job is not None and on_job is not None:
+                on_job(job)
+            if job is not None and job.state in ("complete", "failed"):
+                ended += 1
+                repeats = 0
+                continue
+            if job is None:
+                if once:
+                    break  # nothing left that can run now
+            elif job.state == "queued":  # it waits for its run
+                repeats = repeats + 1 if job.id in waiting else 0
+                waiting.add(job.id)
+                if once:
+                    if repeats > len(waiting):
+                        break  # only waiting jobs are left
+                    continue
+            stop.wait(poll_s)
+        return ended
+
+    def run_once(self) -> JobRecord | None:
+        """Requeue orphaned jobs, claim one and handle it.
+
+        Returns
+        -------
+        JobRecord or None
+            The job after handling (``complete``, ``failed``, or ``queued`` again when it
+            waits for its run), or None when no job could be claimed.
+        """
+        requeued = self.catalog.requeue_stale_jobs(self.stale_after_s)
+        if requeued:
+            log.warning("requeued jobs whose worker stopped sending heartbeats: %s", ", ".join(requeued))
+        job = self.catalog.claim_job(self.worker_id)
+        if job is None:
+            return None
+        log.info("%s: claimed job %s (run %s, steps %s)", self.worker_id, job.id, job.run_id, job.steps)
+        return self.handle(job)
+
+    # --- one job ---------------------------------------------------------------------------
+    def handle(self, job: JobRecord) -> JobRecord:
+        """Process one claimed job and record how it ended."""
+        try:
+            steps = resolve_steps(job.steps)
+            run = self.catalog.get_run(job.run_id)
+        except (StepsError, CatalogError) as exc:
+            return self._fail(job, one_line(exc))
+        if job.options.get("layout") is not None:
+            try:  # the client's path: read here, with a time limit, before the job is started
+                load_client_file(str(job.options["layout"]), "layout", "layout file", _layout)
+            except ClientFileError as exc:
+                return self._fail(job, str(exc))
+        partial = bool(job.options.get("partial", False))
+        acquiring = self._acquiring(run)
+        if acquiring and not partial:
+            return self._wait(
+                job,
+                f"waiting: run {run.id} is still being acquired ({acquiring}); "
+                "ask for partial to process the positions complete so far",
+            )
+        if not run.path:
+            return self._fail(job, f"run {run.id} has no run file")
+        path = Path(run.path)
+        if acquiring and not _has_complete_position(path):
+            return self._wait(
+                job, f"waiting: run {run.id} is being acquired ({acquiring}) and has no complete position yet"
+            )
+        self._progress, self._note, self._step = 0.0, None, None
+        self._steps_seen.clear()
+        self._lost.clear()
+        stop = threading.Event()
+        beat = threading.Thread(target=self._heartbeats, args=(job, stop), name=f"heartbeat-{job.id}", daemon=True)
+        beat.start()
+        try:
+            result_dir, artifacts, message = self._process(job, path, steps, self._report_progress)
+        except JobLostError:
+            log.warning("%s: job %s was taken from this worker: abandoned", self.worker_id, job.id)
+            return self.catalog.get_job(job.id)
+        except Exception as exc:  # noqa: BLE001 - any failure is the job's, never the worker's
+            reason = one_line(exc)
+            if not isinstance(exc, ValueError | OSError):  # not a domain error: keep the traceback
+                log.error("job %s: unexpected error", job.id, exc_info=True)
+            if self._lost.is_set():
+                return self.catalog.get_job(job.id)
+            return self._fail(job, reason)
+        finally:
+            stop.set()
+            beat.join()
+        if self._lost.is_set():
+            log.warning("%s: job %s was taken from this worker: its results are not recorded", self.worker_id, job.id)
+            return self.catalog.get_job(job.id)
+        try:
+            done = self.catalog.finish_job(
+                job.id, worker_id=self.worker_id, result_dir=result_dir, artifacts=artifacts, message=message
+            )
+        except JobClaimError as exc:
+            log.warning("%s: %s", self.worker_id, exc)
+            return self.catalog.get_job(job.id)
+        log.info("job %s complete: %s; %s", job.id, message, ", ".join(f"{k} {v}" for k, v in artifacts.items()))
+        return done
+
+    def _acquiring(self, run: RunRecord) -> str:
+        """Why the run is still being acquired ("" if it is not)."""
+        if run.state in ACTIVE_RUN_STATES:
+            return f"its state is {run.state}"
+        if not run.path:
+            return ""
+        try:
+            with RunFile.open(run.path) as f:
+                status = f.status
+        except (RunFileError, OSError):
+            return ""  # the processing says what is wrong with the file
+        if status in ACQUIRING_FILE_STATES and writer_alive(run.path):
+            return f"its run file says {status} and a writer holds it"
+        return ""
+
+    def _wait(self, job: JobRecord, message: str) -> JobRecord:
+        log.info("job %s: %s", job.id, message)
+        return self.catalog.release_job(job.id, self.worker_id, message=message, retry_after_s=self.wait_s)
+
+    def _fail(self, job: JobRecord, reason: str) -> JobRecord:
+        log.warning("job %s failed: %s", job.id, reason)
+        try:
+            return self.catalog.finish_job(job.id, worker_id=self.worker_id, error=reason)
+        except JobClaimError as exc:
+            log.warning("%s: %s", self.worker_id, exc)
+            return self.catalog.get_job(job.id)
+
+    def _report_progress(self, step: str, done: int, total: int) -> None:
+        """``process_run``'s progress, kept for the next heartbeat: the job's ``step`` (the one
+        started last: the light files end while the report, started after them, runs), its
+        ``message`` in words and its share of the whole processing (which never goes back).
+        Raises if the job was lost."""
+        if self._lost.is_set():
+            raise JobLostError("the job was requeued and claimed by another worker")
+        self._progress = max(self._progress or 0.0, min(0.99, overall_fraction(step, done, total)))
+        if done == 0 or step not in self._steps_seen:
+            self._step = step
+            self._steps_seen.add(step)
+        if step == self._step:
+            self._note = describe(step, done, total)
+
+    def _heartbeats(self, job: JobRecord, stop: threading.Event) -> None:
+        while not stop.wait(self.heartbeat_s):
+            try:
+                self.catalog.heartbeat(
+                    job.id, self.worker_id, progress=self._progress, message=self._note, step=self._step
+                )
+            except JobClaimError as exc:
+                log.warning("%s: %s", self.worker_id, exc)
+                self._lost.set()
+                return
+            except (CatalogError, sqlite3.Error) as exc:  # a busy catalog: the next beat may pass
+                log.warning("job %s: heartbeat failed: %s", job.id, exc)
+
+    # --- the processing --------------------------------------------------------------------
+    def _process_run(self, job: JobRecord, run_path: Path, steps, progress):
+        """Process the job's run beside its run file: (result folder, artifacts, message)."""
+        options = job.options
+        try:
+            report = self._processed(run_path, steps, progress, options)
+        except CorruptRunError as exc:  # the job's own name for the choice that processes the rest
+            raise ProcessingError(exc.line("the job option ignore_corrupt")) from None
+        artifacts = {"results": report.results_file}
+        if report.light_model is not None:
+            artifacts["light_model"] = report.light_model
+        for kind in ("report", "ies", "ldt", "tm25"):
+            if report.outputs.get(kind):
+                artifacts[kind] = report.outputs[kind][0]
+        seconds = report.timings.get("total", 0.0)
+        message = (
+            f"{report.positions} of {report.n_positions} positions"
+            f"{' (partial: the run was still being acquired)' if report.partial and job.options.get('partial') else ''}"
+            f" in {seconds:.1f} s on {report.compute}"
+        )
+        if report.skipped_corrupt:  # ignore_corrupt: what the run file failed to give back
+            message += f"; {skipped_line(report.skipped_corrupt, 'ignore_corrupt')}"
+        if report.quality is not None:  # the verdict first: a job's note is where the lab looks
+            message = f"{report.quality.line()}; {message}"
+        return run_path.parent, {k: str(v) for k, v in artifacts.items()}, message
+
+    def _processed(self, run_path: Path, steps, progress, options: dict) -> ProcessReport:
+        """``process_run`` with the job's options, its results beside the run file."""
+        return process_run(
+            run_path,
+            run_path.parent,
+            steps=steps,
+            progress=progress,
+            compute=self.compute,
+            layout=options.get("layout"),
+            estimator=options.get("estimator", "auto"),
+            fit_method=options.get("fit", "gaussian"),
+            noise=options.get("noise", "auto"),
+            fit_aperture=options.get("fit_aperture"),
+            fit_sensor_distance=options.get("fit_sensor_distance"),
+            calibrate_rig=options.get("calibrate_rig"),
+            extrapolation=options.get("extrapolation", "fitted"),
+            ignore_corrupt=bool(options.get("ignore_corrupt", False)),
+            **{name: options[name] for name in _LIGHT_FILE_OPTIONS if options.get(name) is not None},
+        )
+
+
+def _layout(text: str) -> list:
+    """A layout file's text as its sources; ``ValueError`` if it is not one."""
+    return layout_from_dict(tomllib.loads(text), "layout")
+
+
+def _has_complete_position(path: Path) -> bool:
+    try:
+        with RunFile.open(path) as f:
+            return bool(f.complete.any())
+    except (RunFileError, OSError):
+        return True  # let the processing report what is wrong with the file
+
+
+def serve_jobs(
+    catalog_path: str | Path,
+    compute,
+    *,
+    stop: threading.Event | None = None,
+    once: bool = False,
+    poll_s: float = 2.0,
+    on_job=None,
+    **options,
+) -> int:
+    """Open the catalog and run a :class:`JobWorker` on it (``mirrorgonio worker``)."""
+    with contextlib.closing(Catalog(catalog_path)) as catalog:
+        worker = JobWorker(catalog, compute, **options)
+        log.info("worker %s: jobs from %s, compute on %s", worker.worker_id, catalog_path, worker.compute.description)
+        started = time.monotonic()
+        ended = worker.run(stop, once=once, poll_s=poll_s, on_job=on_job)
+        log.info("worker %s: %d jobs in %.0f s", worker.worker_id, ended, time.monotonic() - started)
+        return ended
