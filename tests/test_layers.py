@@ -75,6 +75,36 @@ def test_an_upward_import_breaks_the_layers(tmp_path):
     assert "drivers.contracts.leak -> processing.trace" in broken, result.stdout
 
 
+def _front_door_contract() -> dict:
+    import tomllib
+
+    config = tomllib.loads((ROOT / "pyproject.toml").read_text(encoding="utf-8"))["tool"]["importlinter"]
+    (contract,) = [c for c in config["contracts"] if "front door" in c["name"]]
+    return contract
+
+
+def test_the_front_door_contract_names_every_module_behind_it():
+    """Every sub-package and module of ``processing`` is behind the door: one added later
+    cannot be reached from the daemon or the command line by being left off the list."""
+    behind = {
+        f"processing.{path.stem if path.is_file() else path.name}"
+        for path in (ROOT / "processing").iterdir()
+        if (path.suffix == ".py" and path.stem != "__init__") or (path / "__init__.py").is_file()
+    }
+    contract = _front_door_contract()
+    assert set(contract["forbidden_modules"]) == behind
+    assert {"acquisition.daemon", "acquisition.cli"} <= set(contract["source_modules"])
+
+
+def test_a_reach_behind_the_front_door_breaks_its_contract(tmp_path):
+    """The worker's package importing a processing module directly fails the front door's contract."""
+    result = _planted(tmp_path, "acquisition/daemon/leak.py", "from processing.light_run.run import process_run\n")
+    assert result.returncode != 0
+    broken = result.stdout[result.stdout.index("Broken contracts") :]
+    assert _front_door_contract()["name"] in " ".join(broken.split()), result.stdout
+    assert "acquisition.daemon.leak -> processing.light_run.run" in broken, result.stdout
+
+
 # --- declared dependencies ---------------------------------------------------------------------
 
 

@@ -18,7 +18,7 @@ from acquisition.cli.app import (
     fail,
     print_result,
 )
-from processing.options import FitMethod
+from processing import FitMethod
 
 RecordOption = Annotated[
     Path | None,
@@ -139,7 +139,7 @@ def bench_hdr_command(
 ) -> None:
     """This project's raw HDR merge next to HDRutils, colour-hdri and OpenCV on the same brackets: time and error."""
     from acquisition.benchmarks.hdr import BenchmarkError, bench_hdr
-    from processing.hdr.model import HDRError
+    from processing import HDRError
 
     recording = _start_recording(ctx, record)
     try:
@@ -178,7 +178,7 @@ def bench_accuracy_command(
 ) -> None:
     """The reference simulation through the whole chain, scored against the truth."""
     from acquisition.benchmarks.accuracy import bench_accuracy
-    from processing.light_run.errors import ProcessingError
+    from processing import ProcessingError
 
     if templates not in (None, "geometric-airy", "fresnel"):
         raise fail(f"--templates: {templates!r} is not geometric-airy or fresnel")
@@ -216,8 +216,7 @@ def bench_reflectance_command(
 ) -> None:
     """Measure the light, photograph an object, score ρ under three light models."""
     from acquisition.benchmarks.reflectance import bench_reflectance
-    from processing.light_run.errors import ProcessingError
-    from processing.reflectance.codes import ReflectanceError
+    from processing import ProcessingError, ReflectanceError
 
     recording = _start_recording(ctx, record)
     try:
@@ -295,8 +294,7 @@ def bench_tolerance_command(
     Progress goes to standard error; the JSON, then (without --json) the markdown table, to
     standard output."""
     from acquisition.benchmarks.tolerance import bench_tolerance
-    from processing.light_run.errors import ProcessingError
-    from processing.parallel import ComputeError
+    from processing import ComputeError, ProcessingError
 
     chosen = None if errors is None else [e.strip() for e in errors.split(",") if e.strip()]
     recording = _start_recording(ctx, record)
@@ -384,9 +382,7 @@ def bench_speed_command(
     Progress goes to standard error; the JSON, then (without --json) the markdown table, to standard output."""
     from acquisition.benchmarks.speed import bench_speed, parse_size
     from acquisition.benchmarks.speed_runs import DEFAULT_CACHE, SpeedBenchError
-    from processing.hdr.model import HDRError
-    from processing.light_run.errors import ProcessingError
-    from processing.parallel import ComputeError
+    from processing import ComputeError, HDRError, ProcessingError
 
     recording = _start_recording(ctx, record)
     try:

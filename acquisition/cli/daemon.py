@@ -102,7 +102,7 @@ def worker_command(
 
     from acquisition.daemon.settings import SettingsError, load_settings
     from acquisition.daemon.worker import serve_jobs
-    from processing.parallel import ComputeError, open_compute
+    from processing import ComputeError, open_compute
 
     try:
         settings = load_settings(config, data_dir=data_dir) if data_dir is not None else load_settings(config)
@@ -111,7 +111,7 @@ def worker_command(
     if not Path(settings.data_dir).is_dir():
         raise fail(f"--data-dir: {settings.data_dir} is not a folder (the daemon's data folder, with catalog.sqlite)")
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
-    from processing.light_run.position import warm_up_worker
+    from processing import warm_up_worker
 
     try:
         compute = open_compute(scheduler, workers=workers, warm_up=warm_up_worker)

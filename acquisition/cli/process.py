@@ -10,10 +10,11 @@ from typing import Annotated
 import typer
 
 from acquisition.cli.app import SchedulerOption, WorkersOption, app, fail
-from processing.options import (
+from processing import (
     DEFAULT_RAYS,
     MAX_RAYS,
     MIN_RAYS,
+    ComputeError,
     Estimator,
     Extrapolation,
     FitChoice,
@@ -22,8 +23,8 @@ from processing.options import (
     NoiseSource,
     OptionsError,
     ProcessingOptions,
+    check_scheduler,
 )
-from processing.parallel import ComputeError, check_scheduler
 
 
 def _distinct_runs(runs: list[Path]) -> list[Path]:
@@ -48,7 +49,7 @@ def _output_folders(runs: list[Path], out: Path | None) -> dict[Path, Path | Non
     """
     if out is None:
         return {run: None for run in runs}
-    from processing.results import run_name  # noqa: PLC0415 - the processing, once the options are checked
+    from processing import run_name  # noqa: PLC0415 - the processing, once the options are checked
 
     by_stem: dict[str, list[Path]] = {}
     for run in runs:
@@ -300,7 +301,7 @@ def _check_files(runs: list[Path], options: ProcessingOptions) -> None:
     if missing:
         raise fail(f"{missing[0]}: no such run file")
     if options.layout is not None:
-        from processing.unmixing.sources import SourcesError, load_layout
+        from processing import SourcesError, load_layout
 
         try:
             load_layout(options.layout, field="--layout")
@@ -314,8 +315,10 @@ def _check_outputs(folders: dict[Path, Path | None], overwrite: bool) -> None:
     if overwrite:
         return
     from drivers.contracts.runfile import RunFile, RunFileError  # noqa: PLC0415 - h5py, once the options are checked
-    from processing.light_run import ProcessingError  # noqa: PLC0415 - heavy
-    from processing.light_run.output_guard import check_outputs  # noqa: PLC0415 - heavy
+    from processing import (
+        ProcessingError,  # noqa: PLC0415 - heavy
+        check_outputs,  # noqa: PLC0415 - heavy
+    )
 
     for run, folder in folders.items():
         try:
@@ -337,8 +340,12 @@ def _process_all(runs: list[Path], folders: dict, options: ProcessingOptions, sc
         TimeElapsedColumn,
     )
 
-    from processing.light_run import ProcessingError, process_run, warm_up_worker  # noqa: PLC0415 - heavy
-    from processing.parallel import open_compute  # noqa: PLC0415 - heavy (dask)
+    from processing import (  # noqa: PLC0415 - heavy
+        ProcessingError,
+        open_compute,  # noqa: PLC0415 - heavy (dask)
+        process_run,
+        warm_up_worker,
+    )
 
     batch = len(runs) > 1
     outcomes: list[tuple[Path, object, float, str]] = []
@@ -386,7 +393,7 @@ class StepBars:
         self.seen: list[str] = []  # the steps in the order they started
 
     def __call__(self, step: str, done: int, total: int) -> None:
-        from processing.light_run.progress import BY_NAME  # noqa: PLC0415 - the processing is loaded by now
+        from processing import STEP_BY_NAME as BY_NAME  # noqa: PLC0415 - the processing is loaded by now
 
         unit = BY_NAME[step].unit  # the positions, counted; the other steps pulse until they end
         shown = total if unit or done >= total else None
@@ -407,8 +414,10 @@ class StepBars:
 
 def _say_processed(run: Path, report) -> None:
     """What one run's processing wrote, and the camera's numbers it fitted."""
-    from processing.light_run.checksums import skipped_line  # noqa: PLC0415 - the processing, once a run is done
-    from processing.results import run_name  # noqa: PLC0415
+    from processing import (
+        run_name,  # noqa: PLC0415
+        skipped_line,  # noqa: PLC0415 - the processing, once a run is done
+    )
 
     if report.skipped_corrupt:
         typer.echo(f"warning: {run}: {skipped_line(report.skipped_corrupt)}", err=True)

@@ -97,13 +97,7 @@ def calibrate(
     """
     from drivers.contracts.rig import load_rig
     from drivers.raw_decode import decode_raw
-    from processing.calibration import (
-        CalibrationError,
-        angle_sensitivity,
-        calibrate_ball,
-        compare_with_rig,
-        mosaic_luminance,
-    )
+    from processing import CalibrationError, angle_sensitivity, calibrate_ball, compare_with_rig, mosaic_luminance
 
     try:
         rig_model = load_rig(rig or default_rig())

@@ -13,7 +13,7 @@ from acquisition.cli.app import (
 )
 
 if TYPE_CHECKING:
-    from processing.reflectance.estimate import ReflectanceResult
+    from processing import ReflectanceResult
 
 IgnoreCorruptOption = Annotated[
     bool,
@@ -72,8 +72,7 @@ def reflectance(
     with maps, a UV texture, profiles along its vertical axis and an HTML report (docs/reflectance.md)."""
     from rich.progress import Progress
 
-    from processing.reflectance.codes import ReflectanceError, ReflectanceSettings
-    from processing.reflectance.run import reflectance_from_run
+    from processing import ReflectanceError, ReflectanceSettings, reflectance_from_run
 
     try:
         settings = ReflectanceSettings(

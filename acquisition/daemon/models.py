@@ -10,7 +10,7 @@ from pydantic import BaseModel, ConfigDict, Field, PositiveFloat, StrictBool, fi
 
 from acquisition.daemon.settings import BRACKET_LENGTH, DEFAULT_AMBIENT_EXPOSURES_S, Exposure
 from drivers.contracts.rig import MAX_POSITIONS, PoseSpec
-from processing.options import (
+from processing import (
     MAX_LUMENS,
     MAX_NAME,
     MAX_RAYS,
@@ -21,8 +21,9 @@ from processing.options import (
     FitChoice,
     FitMethod,
     NoiseSource,
+    StepsError,
+    resolve_steps,
 )
-from processing.steps import StepsError, resolve_steps
 
 # --- requests ------------------------------------------------------------------------------
 # A request's bracket must name its ``mode``: it is the discriminator of ``Bracket``. The

@@ -36,15 +36,22 @@ from pathlib import Path
 from acquisition.daemon.catalog import ACTIVE_RUN_STATES, Catalog, CatalogError, JobClaimError, JobRecord, RunRecord
 from acquisition.daemon.client_files import ClientFileError, load_client_file
 from drivers.contracts.runfile import RunFile, RunFileError
-from processing.hdr.model import HDRError
-from processing.light_run import ProcessingError, process_run
-from processing.light_run.checksums import CorruptRunError, skipped_line
-from processing.light_run.progress import describe, overall_fraction
-from processing.light_run.records import ProcessReport
-from processing.parallel import Compute, ComputeError
-from processing.results import ResultsError
-from processing.steps import StepsError, resolve_steps
-from processing.unmixing.sources import layout_from_dict
+from processing import (
+    Compute,
+    ComputeError,
+    CorruptRunError,
+    HDRError,
+    ProcessingError,
+    ProcessReport,
+    ResultsError,
+    StepsError,
+    layout_from_dict,
+    overall_fraction,
+    process_run,
+    resolve_steps,
+    skipped_line,
+)
+from processing import describe_progress as describe
 
 log = logging.getLogger("mirrorgonio.worker")
 

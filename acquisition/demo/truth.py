@@ -15,7 +15,7 @@ import numpy as np
 
 from acquisition.benchmarks.scoring import score_fit
 from drivers.contracts.rig import load_rig
-from processing.lightmodel import LightModel
+from processing import LightModel
 from sim_devices.lights import LIGHTS_DIR, load_truth
 
 

@@ -24,7 +24,7 @@ from fastapi.responses import FileResponse, Response, StreamingResponse
 from acquisition.daemon.api.deps import TOKEN_ERRORS, CatalogDep, ReadTokenDep
 from acquisition.daemon.catalog import JobRecord
 from acquisition.daemon.models import JobStatus, PhotometrySummary, Problem, ReportFigure
-from processing.results import Results, ResultsError
+from processing import Results, ResultsError
 
 router = APIRouter(prefix="/jobs", tags=["jobs"], dependencies=[ReadTokenDep], responses=TOKEN_ERRORS)
 
