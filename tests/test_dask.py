@@ -22,6 +22,7 @@ from test_worker import LAYOUT, Data, captured  # noqa: F401 - the module fixtur
 from typer.testing import CliRunner
 
 from acquisition.cli import app
+from processing.options import ProcessingOptions
 from processing.parallel import ComputeError, default_workers, open_compute
 
 runner = CliRunner()
@@ -258,7 +259,8 @@ def test_the_default_local_cluster_is_sized_to_the_machine_and_streams(captured,
         )
         assert len(held) == 12 and max(held) <= compute.max_in_flight() == 4 * default_workers()
         with caplog.at_level(logging.INFO, logger="mirrorgonio.processing"):
-            report = process_run(run, tmp_path / "dask", steps="hdr,sources", layout=LAYOUT, compute=compute)
+            options = ProcessingOptions.checked(steps="hdr,sources", layout=LAYOUT)
+            report = process_run(run, tmp_path / "dask", options, compute=compute)
         assert not [r.message for r in caplog.records if "drawn" in r.message]  # the workers drew their sections
         # A truth that cannot travel to the workers: its sections are drawn here, the page the same.
         from processing.report.page import write_report
@@ -286,7 +288,7 @@ def test_the_default_local_cluster_is_sized_to_the_machine_and_streams(captured,
         assert report.compute == compute.description and report.timings["positions"] > 0
         peaks = compute.worker_peak_rss()
         assert len(peaks) == default_workers() and all(0 < p < 4 << 30 for p in peaks.values())
-    process_run(run, tmp_path / "here", steps="hdr,sources", layout=LAYOUT)
+    process_run(run, tmp_path / "here", ProcessingOptions.checked(steps="hdr,sources", layout=LAYOUT))
     _assert_same(_results(tmp_path / "dask", run.stem), _results(tmp_path / "here", run.stem))
     # The report's sections drawn by the workers are the ones drawn here, figures and all.
     remote, local = ((tmp_path / where / f"{run.stem}.report.html").read_text() for where in ("dask", "here"))

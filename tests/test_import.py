@@ -20,6 +20,7 @@ from acquisition.cli import app
 from acquisition.importer import RunImportError, format_ranges, import_run
 from drivers.contracts.rig import load_rig
 from drivers.contracts.runfile import RunFile
+from processing.options import ProcessingOptions
 from sim_devices.dng import write_dng
 
 runner = CliRunner()
@@ -443,7 +444,7 @@ def test_an_imported_simulated_capture_processes(tmp_path):
     with RunFile.open(run_path) as run:
         for k, name in enumerate(n for n in written if n.startswith("pos33")):
             np.testing.assert_array_equal(run.frame(33, k).mosaic, written[name])
-    report = process_run(run_path, tmp_path / "results", steps=("hdr",))
+    report = process_run(run_path, tmp_path / "results", ProcessingOptions.checked(steps=("hdr",)))
     assert report.positions == 2
     with Results.open(report.results_file) as results:
         assert results.hdr_done.nonzero()[0].tolist() == [30, 33]

@@ -84,8 +84,8 @@ def test_a_measured_point_spread_leaves_no_aperture_to_fit():
     measured point spread no aperture changes the templates, so it is not, and asking for it
     always is refused in one line."""
     options = ProcessingOptions.checked(steps="hdr,sources", calibrate_rig="never")
-    assert plan_processing(options).fit_aperture
-    assert not plan_processing(options, point_spread_measured=True).fit_aperture
+    assert plan_processing(options).long_sweep.fit_aperture
+    assert not plan_processing(options, point_spread_measured=True).long_sweep.fit_aperture
     always = ProcessingOptions.checked(steps="hdr,sources", calibrate_rig="never", fit_aperture="always")
     with pytest.raises(ProcessingError, match=r"^--fit-aperture always: the rig's camera has a measured point spread"):
         plan_processing(always, point_spread_measured=True)

@@ -12,6 +12,7 @@ from drivers.contracts.rig import load_rig
 from drivers.contracts.runfile import PositionTimes, RunFileWriter, RunHeader
 from processing.hdr.mosaic import superpixels
 from processing.images import read_exr
+from processing.options import ProcessingOptions
 from processing.results import Results
 from sim_devices.camera import SimulatedCamera
 from sim_devices.world import SimWorld
@@ -432,12 +433,15 @@ def test_intensities_use_the_rigs_calibrated_gain_whatever_weights_the_merge(
 
     path, _, rig = simulated_run
     layout = LIGHTS_DIR / "five-gaussians.toml"
-    as_rig = light_run.process_run(path, tmp_path / "rig", steps="hdr,sources", layout=layout, noise="rig")
+    as_rig = light_run.process_run(
+        path, tmp_path / "rig", ProcessingOptions.checked(steps="hdr,sources", layout=layout, noise="rig")
+    )
     rig_model = as_rig.noise
     off = NoiseModel(rig_model.gain_e_per_dn * 1.1, rig_model.read_noise_dn, source="estimated")
     monkeypatch.setattr(light_run, "choose_noise", lambda *args, **kwargs: off)
     with caplog.at_level(logging.WARNING, logger="mirrorgonio.processing"):
-        skewed = light_run.process_run(path, tmp_path / "off", steps="hdr,sources", layout=layout)
+        options = ProcessingOptions.checked(steps="hdr,sources", layout=layout)
+        skewed = light_run.process_run(path, tmp_path / "off", options)
     assert skewed.noise is off
     # The model and its report say which gain the intensities used.
     assert skewed.model.provenance["gain_e_per_dn"] == rig.camera.gain_e_per_dn
@@ -456,7 +460,8 @@ def test_intensities_use_the_rigs_calibrated_gain_whatever_weights_the_merge(
         near = NoiseModel(rig_model.gain_e_per_dn * factor, rig_model.read_noise_dn, source="estimated")
         monkeypatch.setattr(light_run, "choose_noise", lambda *args, near=near, **kwargs: near)
         with caplog.at_level(logging.INFO, logger="mirrorgonio.processing"):
-            light_run.process_run(path, tmp_path / f"near-{factor}", steps="hdr,sources", layout=layout)
+            options = ProcessingOptions.checked(steps="hdr,sources", layout=layout)
+            light_run.process_run(path, tmp_path / f"near-{factor}", options)
         said = [r for r in caplog.records if "calibrated gain" in r.getMessage()]
         assert [r.levelno for r in said] == ([level] if level else []), factor
 
@@ -483,7 +488,8 @@ def test_a_tinted_lights_colours_are_measured_through_the_camera(tmp_path):
     temperatures = {e.name: e.cct_k for e in truth.emitters}
     assert len(set(spectra.values())) == 4
     path = write_simulated_run(tmp_path / "run-tinted.h5", rig, "run-tinted", POSITIONS, EXPOSURES, seed=5)
-    report = process_run(path, tmp_path / "out", steps="hdr,sources", layout=LIGHTS_DIR / "five-gaussians.toml")
+    options = ProcessingOptions.checked(steps="hdr,sources", layout=LIGHTS_DIR / "five-gaussians.toml")
+    report = process_run(path, tmp_path / "out", options)
     got = {s.name: np.array(s.colour) for s in report.model.sources}
     want = {name: np.array(spectra[name]) / np.mean(spectra[name]) for name in got}
     # Three positions of the reduced rig: the centre takes 1-3 % of its cool neighbour's
@@ -643,9 +649,9 @@ def test_processing_says_each_step_in_order_with_its_own_count(simulated_run, tm
     def progress(step: str, done: int, total: int) -> None:
         seen.append((step, done, total))
 
-    process_run(path, tmp_path, steps="hdr", images=False, progress=progress)
+    process_run(path, tmp_path, ProcessingOptions.checked(steps="hdr", images=False), progress=progress)
     layout = LIGHTS_DIR / "five-gaussians.toml"
-    process_run(path, tmp_path, steps="sources", layout=layout, progress=progress)
+    process_run(path, tmp_path, ProcessingOptions.checked(steps="sources", layout=layout), progress=progress)
     started = [step for step, done, _ in seen if done == 0]
     # The hdr step's call, then the sources' (the layout given, no camera fit: nothing to settle).
     assert started == ["checksums", "noise", "hdr", "checksums", "estimate", "fits", "exports", "report"]

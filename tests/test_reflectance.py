@@ -28,6 +28,7 @@ from drivers.contracts.runfile import PositionTimes, RunFileWriter, RunHeader
 from processing.fit import IntensityFit
 from processing.images import read_exr
 from processing.lightmodel import LightModel, SourceModel
+from processing.options import ProcessingOptions
 from processing.reflectance.codes import (
     PIXEL_BACKGROUND,
     PIXEL_EDGE,
@@ -796,7 +797,8 @@ def test_a_corrupt_object_run_is_refused_in_one_line_before_any_output(object_ru
     run, light_dir, _, truth = object_run
     corrupt = tmp_path / run.name
     shutil.copy(run, corrupt)
-    process_run(corrupt, steps=("hdr",), images=False)  # HDR results beside the run, merged before the flip
+    hdr_only = ProcessingOptions.checked(steps=("hdr",), images=False)
+    process_run(corrupt, None, hdr_only)  # HDR results beside the run, merged before the flip
     flip_bit(corrupt, 2, 0, bit=8 * 200 + 5)
     out = tmp_path / "out"
     refused = runner.invoke(app, ["reflectance", str(corrupt), "--light", str(light_dir), "--out", str(out)])

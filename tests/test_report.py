@@ -15,6 +15,7 @@ import pytest
 
 from processing.fit import Samples, fit_intensity
 from processing.lightmodel import LightModel, SourceModel, samples_table
+from processing.options import ProcessingOptions
 from processing.photometry import summarize
 from processing.report.figures import polar_figure
 from processing.report.page import write_report
@@ -219,10 +220,9 @@ def processed(tmp_path_factory):
     report = process_run(
         path,
         folder / "out",
-        steps=("hdr", "sources"),
-        layout=LIGHTS_DIR / "five-gaussians.toml",
-        noise="rig",
-        units="W/sr",
+        ProcessingOptions.checked(
+            steps=("hdr", "sources"), layout=LIGHTS_DIR / "five-gaussians.toml", noise="rig", units="W/sr"
+        ),
         truth=lambda k, theta: light.emitters[k].intensity_w_sr(theta),
     )
     return path, report

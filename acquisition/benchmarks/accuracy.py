@@ -25,6 +25,8 @@ from acquisition.daemon.models import FixedBracket, RunRequest
 from acquisition.daemon.settings import load_settings
 from drivers.contracts.rig import load_rig
 from processing.light_run.run import process_run
+from processing.options import FitMethod, NoiseSource, ProcessingOptions, Units
+from processing.steps import Step
 from sim_devices.lights import LIGHTS_DIR, load_truth
 
 #: The reference simulation's bracket: 20 µs to 12.5 ms in steps of 5.
@@ -114,11 +116,13 @@ def bench_accuracy(
         report = process_run(
             run_path,
             base / "out",
-            steps=("hdr", "sources"),
-            layout=layout,
-            noise="rig",
-            fit_method=fit_method,
-            units="W/sr",
+            ProcessingOptions(
+                steps=(Step.HDR, Step.SOURCES),
+                layout=layout,
+                noise=NoiseSource.RIG,
+                fit_method=FitMethod(fit_method),
+                units=Units.WATTS_PER_SR,
+            ),
         )
         processed = time.perf_counter()
     samples, model = report.samples, report.model

@@ -28,7 +28,9 @@ import numpy as np
 from acquisition.benchmarks.accuracy import REFERENCE_EXPOSURES_S, acquire_simulated
 from drivers.contracts.rig import RIGS_DIR, load_rig
 from processing.light_run.run import process_run
+from processing.options import NoiseSource, ProcessingOptions, Units
 from processing.reflectance.run import reflectance_from_run
+from processing.steps import Step
 from sim_devices.lights import LIGHTS_DIR
 from sim_devices.objects import surface_truth_at
 
@@ -121,10 +123,12 @@ def _light_then_object(object_rig_model, truth: str, noise: bool, light_position
         light = process_run(
             light_run,
             base / "light" / "out",
-            steps=("hdr", "sources"),
-            layout=LIGHTS_DIR / f"{truth}.toml",
-            noise="rig",
-            units="W/sr",
+            ProcessingOptions(
+                steps=(Step.HDR, Step.SOURCES),
+                layout=LIGHTS_DIR / f"{truth}.toml",
+                noise=NoiseSource.RIG,
+                units=Units.WATTS_PER_SR,
+            ),
         )
         times["light_process_s"] = time.perf_counter() - t0
         t0 = time.perf_counter()

@@ -21,14 +21,17 @@ from acquisition.benchmarks.speed_resources import MemorySampler, cpu_report, cp
 from drivers.contracts.runfile import RunFile
 from processing.light_run.position import warm_up_worker
 from processing.light_run.run import process_run
+from processing.options import ProcessingOptions
 from processing.parallel import open_compute
+from processing.steps import Step
 from sim_devices.lights import LIGHTS_DIR
 
 #: How ``measure_process`` measures, as its JSON says.
 PROCESS_HOW = (
-    "processing.light_run.run.process_run(run, out, steps=('hdr', 'sources'), layout=<the truth's layout>, "
-    "compute=<open_compute(scheduler)>): noise model estimated (the default), per position the merge, "
-    "an OpenEXR and a PNG, the chief rays, templates and unmixing; then the fits, the light model, IES, "
+    "processing.light_run.run.process_run(run, out, ProcessingOptions(steps=(hdr, sources), "
+    "layout=<the truth's layout>), compute=<open_compute(scheduler)>): noise model estimated (the "
+    "default), per position the merge, an OpenEXR and a PNG, the chief rays, templates and unmixing; "
+    "then the fits, the light model, IES, "
     "LDT, TM-25 and the HTML report. One cluster, started and warmed as `process` and `worker` start it "
     "(cluster_start_s, not in the times); one untimed processing first (first_process_s: this process's "
     "imports, the workers' first tasks), as the read floor is read once untimed; process_s is the median "
@@ -131,7 +134,8 @@ def _process_once(run_path: Path, layout, compute, *, images: bool = True) -> di
     try:
         before = cpu_usage(compute)
         t0 = time.perf_counter()
-        report = process_run(run_path, out_dir, steps=("hdr", "sources"), layout=layout, compute=compute, images=images)
+        options = ProcessingOptions(steps=(Step.HDR, Step.SOURCES), layout=layout, images=images)
+        report = process_run(run_path, out_dir, options, compute=compute)
         seconds = time.perf_counter() - t0
         used = {
             key: [a - b for a, b in zip(after, before[key], strict=True)]

@@ -28,8 +28,9 @@ from drivers.pose import Pose
 from processing.light_run.errors import ProcessingError
 from processing.light_run.position import warm_up_worker
 from processing.light_run.run import process_run
-from processing.options import FitChoice
+from processing.options import FitChoice, NoiseSource, ProcessingOptions, Units
 from processing.parallel import open_compute
+from processing.steps import Step
 from sim_devices.lights import LIGHTS_DIR, load_truth
 
 #: The rig taken by default: the demo's (``rigs/demo.toml``, the default geometry at half the
@@ -201,19 +202,17 @@ def _process_one_way(copy: Path, out_dir: Path, way: tuple, compute, truth: tupl
     layout, fitted, distance, calibrate = way
     t0 = time.perf_counter()
     try:
-        report = process_run(
-            copy,
-            out_dir,
-            steps=("hdr", "sources"),
+        options = ProcessingOptions(
+            steps=(Step.HDR, Step.SOURCES),
             layout=layout,
-            noise="rig",
-            units="W/sr",
-            compute=compute,
+            noise=NoiseSource.RIG,
+            units=Units.WATTS_PER_SR,
             images=False,
             fit_aperture=FitChoice.ALWAYS if fitted else FitChoice.NEVER,
             fit_sensor_distance=FitChoice.ALWAYS if distance else FitChoice.NEVER,
             calibrate_rig=FitChoice.ALWAYS if calibrate else FitChoice.NEVER,
         )
+        report = process_run(copy, out_dir, options, compute=compute)
     except ProcessingError as exc:  # e.g. an aperture fit at its bound: said, and on to the next
         row.update(failed=str(exc), process_s=round(time.perf_counter() - t0, 1))
         say(f"{row['error']}, layout {row['layout']}: failed: {exc}")

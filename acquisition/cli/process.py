@@ -361,7 +361,7 @@ def _process_all(runs: list[Path], folders: dict, options: ProcessingOptions, sc
             steps = StepBars(bar, label)
             started = time.perf_counter()
             try:
-                report = process_run(run, folders[run], compute=compute, progress=steps, **vars(options))
+                report = process_run(run, folders[run], options, compute=compute, progress=steps)
             except (ProcessingError, ValueError, OSError) as exc:
                 if not batch:
                     raise fail(str(exc)) from None

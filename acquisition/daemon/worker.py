@@ -41,7 +41,9 @@ from processing import (
     ComputeError,
     CorruptRunError,
     HDRError,
+    OptionsError,
     ProcessingError,
+    ProcessingOptions,
     ProcessReport,
     ResultsError,
     StepsError,
@@ -377,23 +379,23 @@ class JobWorker:
 
     def _processed(self, run_path: Path, steps, progress, options: dict) -> ProcessReport:
         """``process_run`` with the job's options, its results beside the run file."""
-        return process_run(
-            run_path,
-            run_path.parent,
-            steps=steps,
-            progress=progress,
-            compute=self.compute,
-            layout=options.get("layout"),
-            estimator=options.get("estimator", "auto"),
-            fit_method=options.get("fit", "gaussian"),
-            noise=options.get("noise", "auto"),
-            fit_aperture=options.get("fit_aperture"),
-            fit_sensor_distance=options.get("fit_sensor_distance"),
-            calibrate_rig=options.get("calibrate_rig"),
-            extrapolation=options.get("extrapolation", "fitted"),
-            ignore_corrupt=bool(options.get("ignore_corrupt", False)),
-            **{name: options[name] for name in _LIGHT_FILE_OPTIONS if options.get(name) is not None},
-        )
+        try:
+            checked = ProcessingOptions.checked(
+                steps=steps,
+                layout=options.get("layout"),
+                estimator=options.get("estimator", "auto"),
+                fit_method=options.get("fit", "gaussian"),
+                noise=options.get("noise", "auto"),
+                fit_aperture=options.get("fit_aperture"),
+                fit_sensor_distance=options.get("fit_sensor_distance"),
+                calibrate_rig=options.get("calibrate_rig"),
+                extrapolation=options.get("extrapolation", "fitted"),
+                ignore_corrupt=bool(options.get("ignore_corrupt", False)),
+                **{name: options[name] for name in _LIGHT_FILE_OPTIONS if options.get(name) is not None},
+            )
+        except OptionsError as exc:  # a bad option fails the job in one line, as the processing's own errors do
+            raise ProcessingError(str(exc)) from None
+        return process_run(run_path, run_path.parent, checked, progress=progress, compute=self.compute)
 
 
 def _layout(text: str) -> list:

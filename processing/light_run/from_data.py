@@ -15,7 +15,7 @@ from numpy.typing import ArrayLike
 from drivers.contracts.runfile import RunFile
 from processing.light_run.errors import ProcessingError, open_run
 from processing.light_run.geometry import CameraFit, geometry_and_builder
-from processing.light_run.plan import ProcessingPlan
+from processing.light_run.plan import CameraFits
 from processing.light_run.position import prepare_task
 from processing.light_run.records import FittedNumber
 from processing.parallel import Compute
@@ -274,15 +274,15 @@ def camera_at_layout(
     layout: Sequence[Source],
     ball_centre: BallCentre,
     compute: Compute,
-    plan: ProcessingPlan,
+    fits: CameraFits,
 ) -> tuple[FittedNumber | None, FittedNumber | None]:
-    """The camera's numbers the plan fits, at the sources of a given ``layout`` (held at each
+    """The camera's numbers ``fits`` says, at the sources of a given ``layout`` (held at each
     trial): (aperture, sensor distance), each None where not fitted. The sensor distance
     first, the aperture at it."""
     distance = aperture = None
-    if plan.fit_sensor_distance:
+    if fits.fit_sensor_distance:
         distance = sensor_distance_from_data(run, results_file, positions, layout, ball_centre, compute, refit=False)
-    if plan.fit_aperture:
+    if fits.fit_aperture:
         aperture = aperture_from_data(
             run, results_file, positions, layout, ball_centre, compute, sensor_distance=_fitted_m(distance)
         )
@@ -296,14 +296,14 @@ def layout_and_camera(
     positions: ArrayLike,
     ball_centre: BallCentre,
     compute: Compute,
-    plan: ProcessingPlan,
+    fits: CameraFits,
     *,
     max_searches: int = 3,
     settle: float = 0.01,
     settle_distance: float = 5e-4,
 ) -> tuple[LayoutFit, FittedNumber | None, FittedNumber | None]:
-    """The sources found in the data (:func:`layout_from_data`) and the camera's numbers the
-    plan fits at them: the sensor distance (:func:`sensor_distance_from_data`, the sources
+    """The sources found in the data (:func:`layout_from_data`) and the camera's numbers
+    ``fits`` says at them: the sensor distance (:func:`sensor_distance_from_data`, the sources
     refitted at each trial), then the aperture (:func:`aperture_from_data`). Returns (layout
     fit, aperture, sensor distance), each None where not fitted; :func:`fitted_camera` makes
     the camera to estimate with from them.
@@ -314,7 +314,7 @@ def layout_and_camera(
     again at what it finds, until the aperture moves by less than ``settle`` and the distance
     by less than ``settle_distance`` (at most ``max_searches`` searches).
 
-    A fit the plan does not require that fails (its best at a bound of the search) is logged
+    A fit ``fits`` does not require that fails (its best at a bound of the search) is logged
     and the last search's sources kept, with the camera they were found with (the number's
     record then says ``failed``); a required one raises :class:`ProcessingError`.
     """
@@ -324,21 +324,21 @@ def layout_and_camera(
     moved = (0.0, 0.0)
     for search in range(1, max_searches + 1):
         found = layout_from_data(run, results_file, positions, ball_centre, compute, camera=camera)
-        if not plan.fits_camera:
+        if not fits.fits_camera:
             return found, None, None
         at = (run, results_file, positions, found.sources, ball_centre, compute)
-        if plan.fit_sensor_distance:
+        if fits.fit_sensor_distance:
             distance = _fitted_or_kept(
                 partial(sensor_distance_from_data, *at, aperture=camera.aperture_m),
                 distance,
-                plan.sensor_distance_fit_required,
+                fits.sensor_distance_fit_required,
                 search,
             )
-        if plan.fit_aperture and not (distance is not None and distance.failed):
+        if fits.fit_aperture and not (distance is not None and distance.failed):
             aperture = _fitted_or_kept(
                 partial(aperture_from_data, *at, sensor_distance=_fitted_m(distance)),
                 aperture,
-                plan.aperture_fit_required,
+                fits.aperture_fit_required,
                 search,
             )
         if any(fit is not None and fit.failed for fit in (aperture, distance)):

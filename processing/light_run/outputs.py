@@ -5,18 +5,18 @@ from __future__ import annotations
 import logging
 import time
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from drivers.contracts.rig import rig_to_toml_dict, write_rig
-from drivers.contracts.runfile import CorruptFrame
+from drivers.contracts.runfile import CorruptFrame, RunFile
 from drivers.contracts.version import __version__
 from processing.exports.ies import write_ies
 from processing.exports.ldt import write_ldt
 from processing.exports.tm25 import write_tm25
-from processing.light_run.errors import open_run
 from processing.light_run.from_data import FIT_FRACTIONS, spread_over
 from processing.light_run.light_fit import fit_light_model
 from processing.light_run.output_guard import output_path
@@ -36,40 +36,69 @@ from processing.results import run_name
 log = logging.getLogger("mirrorgonio.processing")
 
 
-def finish_sources(
-    run_path: Path,
-    out: Path,
-    report: ProcessReport,
-    plan: SourcesPlan,
-    positions: np.ndarray,
-    rows: dict[int, SourceRow],
-    options: ProcessingOptions,
-    *,
-    truth: Truth | None,
-    timings: dict[str, float],
-    compute: Compute | None = None,
-    steps: Steps | None = None,
-) -> None:
+@dataclass
+class SourcesToFinish:
+    """What :func:`finish_sources` writes from: the run, the estimate, and where and how.
+
+    Attributes
+    ----------
+    run : RunFile
+        The run, open (the light model's fit and the report read its header and poses).
+    out : Path
+        The folder the outputs go to.
+    options : ProcessingOptions
+        What the processing was asked.
+    report : ProcessReport
+        The processing's report, completed here (the model, the samples, the outputs).
+    sources : SourcesPlan
+        The sources and the camera the positions were estimated with.
+    positions : ndarray of int
+        The positions estimated, and ``rows`` each one's estimate.
+    timings : dict
+        The stages' seconds, added to here (``fit``, ``photometry``, ``exports``, ``report``).
+    steps : Steps
+        Told as ``fits``, ``exports`` and ``report`` start and end.
+    compute : Compute, optional
+        Where the report's sections are drawn (default: here).
+    truth : callable, optional
+        The simulated truth, drawn beside the fits in the report.
+    """
+
+    run: RunFile
+    out: Path
+    options: ProcessingOptions
+    report: ProcessReport
+    sources: SourcesPlan
+    positions: np.ndarray
+    rows: dict[int, SourceRow]
+    timings: dict[str, float]
+    steps: Steps
+    compute: Compute | None = None
+    truth: Truth | None = None
+
+
+def finish_sources(done: SourcesToFinish) -> None:
     """Assemble the samples, fit, and write the light model, the light files and the report
-    (the steps ``fits``, ``exports`` and ``report`` said to ``steps`` as they start and end)."""
-    steps = steps or Steps(None)
-    samples = assemble_samples(positions, rows, plan)
+    (the steps ``fits``, ``exports`` and ``report`` said to ``done.steps`` as they start and end)."""
+    run, out, options, report = done.run, done.out, done.options, done.report
+    plan, timings, steps = done.sources, done.timings, done.steps
+    run_path = run.path
+    samples = assemble_samples(done.positions, done.rows, plan)
     steps.start("fits")
     clock = time.perf_counter()
-    with open_run(run_path) as run:
-        model = fit_light_model(
-            run,
-            list(plan.layout),
-            samples,
-            method=options.fit_method,
-            units=options.units,
-            estimator=plan.estimator,
-            footprint=plan.footprint,
-        )
+    model = fit_light_model(
+        run,
+        list(plan.layout),
+        samples,
+        method=options.fit_method,
+        units=options.units,
+        estimator=plan.estimator,
+        footprint=plan.footprint,
+    )
     timings["fit"] = time.perf_counter() - clock
     steps.end("fits")
     name = run_name(run_path)
-    record_provenance(model, report, plan, options, out / name, positions, rows)
+    record_provenance(model, report, plan, options, out / name, done.positions, done.rows)
     clock = time.perf_counter()
     model.photometry = summarize(model, options.extrapolation).record()
     timings["photometry"] = time.perf_counter() - clock
@@ -96,16 +125,15 @@ def finish_sources(
         exports = pool.submit(light_files)
         steps.start("report")
         clock = time.perf_counter()
-        with open_run(run_path) as run:  # the report draws the rig's chief rays at the middle position
-            drawn = write_report(
-                output_path(run_path, out, ".report.html"),
-                model,
-                run=run,
-                samples=samples,
-                report=report,
-                truth=truth,
-                compute=compute,
-            )
+        drawn = write_report(  # the report draws the rig's chief rays at the middle position
+            output_path(run_path, out, ".report.html"),
+            model,
+            run=run,
+            samples=samples,
+            report=report,
+            truth=done.truth,
+            compute=done.compute,
+        )
         timings["report"] = time.perf_counter() - clock
         steps.end("report")
         report.outputs.update(exports.result())

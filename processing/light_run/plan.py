@@ -11,16 +11,11 @@ from processing.unmixing.sources import Source, SourcesError, load_layout
 
 
 @dataclass(frozen=True)
-class ProcessingPlan:
-    """What is given and what is fitted.
+class CameraFits:
+    """Which of the rig's numbers the sources step fits to the data.
 
     Attributes
     ----------
-    options : ProcessingOptions
-        What was asked.
-    layout : tuple of Source, or None
-        The sources, given (loaded from ``options.layout``); None where they are searched
-        for in the data.
     fit_aperture, fit_sensor_distance : bool
         The camera's aperture diameter, its sensor distance, fitted to the data.
     aperture_fit_required, sensor_distance_fit_required : bool
@@ -31,13 +26,47 @@ class ProcessingPlan:
         fits the aperture and the sensor distance with the rest, so neither is fitted alone.
     """
 
-    options: ProcessingOptions
-    layout: tuple[Source, ...] | None
     fit_aperture: bool
     fit_sensor_distance: bool
     aperture_fit_required: bool
     sensor_distance_fit_required: bool
     calibrate_rig: bool = False
+
+    @property
+    def fits_camera(self) -> bool:
+        return self.fit_aperture or self.fit_sensor_distance or self.calibrate_rig
+
+
+@dataclass(frozen=True)
+class ProcessingPlan:
+    """What is given and what is fitted.
+
+    The fits hang on one thing the plan is made before: how many positions are merged, known
+    only once the frames are read through their checksums (``AUTO`` holds the rig on a short
+    sweep). So the plan holds both answers, decided together, and :meth:`camera` picks one.
+
+    Attributes
+    ----------
+    options : ProcessingOptions
+        What was asked.
+    layout : tuple of Source, or None
+        The sources, given (loaded from ``options.layout``); None where they are searched
+        for in the data.
+    long_sweep : CameraFits
+        The fits with :data:`RIG_FIT_MIN_POSITIONS` merged positions or more.
+    short_sweep : CameraFits
+        The fits with fewer: they differ from ``long_sweep`` only where ``AUTO`` would
+        self-calibrate, that is where the sources are searched for (never in a fused pass).
+    """
+
+    options: ProcessingOptions
+    layout: tuple[Source, ...] | None
+    long_sweep: CameraFits
+    short_sweep: CameraFits
+
+    def camera(self, positions: int) -> CameraFits:
+        """The fits for ``positions`` merged positions."""
+        return self.long_sweep if positions >= RIG_FIT_MIN_POSITIONS else self.short_sweep
 
     @property
     def merge(self) -> bool:
@@ -55,14 +84,10 @@ class ProcessingPlan:
         return self.estimate and self.layout is None
 
     @property
-    def fits_camera(self) -> bool:
-        return self.fit_aperture or self.fit_sensor_distance or self.calibrate_rig
-
-    @property
     def fused(self) -> bool:
         """One task per position merges and estimates: the layout is given and nothing is fitted
-        before the estimate."""
-        return self.merge and self.estimate and self.layout is not None and not self.fits_camera
+        before the estimate (with a layout given, the long and the short sweep fit alike)."""
+        return self.merge and self.estimate and self.layout is not None and not self.long_sweep.fits_camera
 
     @property
     def passes(self) -> int:
@@ -84,17 +109,15 @@ RIG_FIT_MIN_POSITIONS = 24
 FRESNEL_MISMATCH_WARNING = 0.01
 
 
-def plan_processing(
-    options: ProcessingOptions, positions: int | None = None, point_spread_measured: bool = False
-) -> ProcessingPlan:
+def plan_processing(options: ProcessingOptions, point_spread_measured: bool = False) -> ProcessingPlan:
     """The plan for ``options``: the given layout loaded, each ``FitChoice.AUTO`` decided.
 
     ``AUTO`` fits the rig where the sources are searched for in the data: a search explains a
     wrong point spread or a misplaced ball with sources that are not there, which a given
     layout cannot do. The self-calibration fits the aperture and the sensor distance with the
-    rest of the rig, so where it runs neither is fitted alone. With ``positions`` merged
-    positions known and fewer than :data:`RIG_FIT_MIN_POSITIONS`, ``AUTO`` holds the rig (and
-    fits the aperture alone where it searches). With the camera's point spread measured
+    rest of the rig, so where it runs neither is fitted alone. With fewer merged positions than
+    :data:`RIG_FIT_MIN_POSITIONS` (the plan's ``short_sweep``), ``AUTO`` holds the rig (and fits
+    the aperture alone where it searches). With the camera's point spread measured
     (``point_spread_measured``) no aperture changes the templates, so the aperture is not fitted.
 
     Raises
@@ -106,12 +129,13 @@ def plan_processing(
     Examples
     --------
     >>> plan = plan_processing(ProcessingOptions.checked(steps="hdr,sources"))
-    >>> plan.search, plan.calibrate_rig, plan.fit_aperture, plan.fit_sensor_distance, plan.passes
+    >>> fits = plan.camera(RIG_FIT_MIN_POSITIONS)
+    >>> plan.search, fits.calibrate_rig, fits.fit_aperture, fits.fit_sensor_distance, plan.passes
     (True, True, False, False, 2)
     >>> plan = plan_processing(ProcessingOptions.checked(steps="hdr,sources", calibrate_rig="never"))
-    >>> plan.calibrate_rig, plan.fit_aperture, plan.aperture_fit_required
+    >>> plan.long_sweep.calibrate_rig, plan.long_sweep.fit_aperture, plan.long_sweep.aperture_fit_required
     (False, True, False)
-    >>> plan_processing(ProcessingOptions.checked(steps="hdr,sources"), positions=3).calibrate_rig
+    >>> plan_processing(ProcessingOptions.checked(steps="hdr,sources")).camera(3).calibrate_rig
     False
     """
     layout = None
@@ -125,8 +149,16 @@ def plan_processing(
     def wanted(choice: FitChoice) -> bool:
         return choice is FitChoice.ALWAYS or (choice is FitChoice.AUTO and searched)
 
-    enough = positions is None or positions >= RIG_FIT_MIN_POSITIONS
-    calibrate = options.calibrate_rig is FitChoice.ALWAYS or (wanted(options.calibrate_rig) and enough)
+    def fits(calibrate: bool) -> CameraFits:
+        return CameraFits(
+            fit_aperture=wanted(options.fit_aperture) and not calibrate and not point_spread_measured,
+            fit_sensor_distance=wanted(options.fit_sensor_distance) and not calibrate,
+            aperture_fit_required=options.fit_aperture is FitChoice.ALWAYS,
+            sensor_distance_fit_required=options.fit_sensor_distance is FitChoice.ALWAYS,
+            calibrate_rig=calibrate,
+        )
+
+    calibrate = wanted(options.calibrate_rig)  # on a long sweep; a short one only where asked always
     for name, choice in (
         ("--fit-aperture", options.fit_aperture),
         ("--fit-sensor-distance", options.fit_sensor_distance),
@@ -144,9 +176,6 @@ def plan_processing(
     return ProcessingPlan(
         options,
         layout,
-        fit_aperture=wanted(options.fit_aperture) and not calibrate and not point_spread_measured,
-        fit_sensor_distance=wanted(options.fit_sensor_distance) and not calibrate,
-        aperture_fit_required=options.fit_aperture is FitChoice.ALWAYS,
-        sensor_distance_fit_required=options.fit_sensor_distance is FitChoice.ALWAYS,
-        calibrate_rig=calibrate,
+        long_sweep=fits(calibrate),
+        short_sweep=fits(options.calibrate_rig is FitChoice.ALWAYS),
     )

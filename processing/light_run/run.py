@@ -23,7 +23,7 @@ import os
 import time
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, Final
 
 import numpy as np
 
@@ -35,7 +35,7 @@ from processing.light_run.from_data import camera_at_layout, fitted_camera, layo
 from processing.light_run.geometry import CameraFit, measured_point_spread
 from processing.light_run.noise import choose_noise, report_gain_mismatch
 from processing.light_run.output_guard import check_outputs, output_path
-from processing.light_run.outputs import finish_sources
+from processing.light_run.outputs import SourcesToFinish, finish_sources
 from processing.light_run.plan import FRESNEL_MISMATCH_WARNING, RIG_FIT_MIN_POSITIONS, ProcessingPlan, plan_processing
 from processing.light_run.position import (
     HDRWork,
@@ -49,11 +49,12 @@ from processing.light_run.progress import Steps
 from processing.light_run.records import ProcessReport
 from processing.light_run.samples import plan_sources
 from processing.light_run.self_calibration import layout_and_rig, rig_at_layout
-from processing.options import FitChoice, OptionsError, ProcessingOptions
+from processing.options import ProcessingOptions
 from processing.parallel import Compute
 from processing.radiometry import rig_noise
 from processing.report.context import Truth
 from processing.results import HDRInfo, Results, ResultsError, ResultsWriter, results_path_for
+from processing.steps import Step
 from processing.trace import RigGeometry
 from processing.unmixing.measured import PointSpreadError, virtual_image_distance
 from processing.unmixing.sources import Source
@@ -66,12 +67,12 @@ SATURATED_RUN_SHARE = 0.99
 
 def process_run(
     run_path: str | os.PathLike[str],
-    out_dir: str | os.PathLike[str] | None = None,
+    out_dir: str | os.PathLike[str] | None,
+    options: ProcessingOptions,
     *,
     compute: Compute | None = None,
     progress: Callable[..., None] | None = None,
     truth: Truth | None = None,
-    **options: Any,
 ) -> ProcessReport:
     """Process one run file; results go beside it, or into ``out_dir``.
 
@@ -79,9 +80,18 @@ def process_run(
     ----------
     run_path : path-like
         The run file; a run still being written is processed up to its last complete
-        position.
-    out_dir : path-like, optional
-        Folder for the results (default: the run's folder).
+        position. It is opened once here, for the whole processing (the position tasks open
+        it themselves, wherever they run).
+    out_dir : path-like or None
+        Folder for the results (None: the run's folder).
+    options : ProcessingOptions
+        What is asked (:meth:`~processing.options.ProcessingOptions.checked` makes them from
+        names): ``steps``, ``method``, ``noise``, ``layout`` (a TOML file; without one the
+        sources are searched for in the data), ``estimator``, ``fit_method``, ``units``,
+        ``ball_centre``, ``images``, ``fit_aperture`` (``auto``: fitted where the sources are
+        searched for, the rig's diameter kept if that fit fails; ``always``: fitted with a
+        layout too, a failed fit fails the processing), ``fit_sensor_distance`` (``never`` by
+        default; it takes minutes), ``calibrate_rig`` and the light files' names.
     compute : Compute, optional
         Where the position tasks run (:func:`processing.parallel.open_compute`); default:
         in this process, one after the other.
@@ -94,14 +104,6 @@ def process_run(
     truth : callable, optional
         Simulated runs only, given by the caller: ``truth(source, theta) -> intensity``,
         drawn beside the fits in the report (:mod:`processing.report`).
-    **options
-        The fields of :class:`~processing.options.ProcessingOptions`, as enum members or
-        their names: ``steps`` (default ``hdr``), ``method``, ``noise``, ``layout`` (a TOML
-        file; without one the sources are searched for in the data), ``estimator``,
-        ``fit_method``, ``units``, ``ball_centre``, ``images``, ``fit_aperture`` (default
-        ``auto``: fitted where the sources are searched for, the rig's diameter kept if that
-        fit fails; ``always``: fitted with a layout too, a failed fit fails the processing)
-        and ``fit_sensor_distance`` (default ``never``; it takes minutes).
 
     Raises
     ------
@@ -110,75 +112,81 @@ def process_run(
         unreadable, truncated or corrupt run, nothing complete, a run the estimate cannot
         work with.
     """
-    try:
-        checked = ProcessingOptions.checked(**options)
-    except OptionsError as exc:
-        raise ProcessingError(str(exc)) from None
-    plan = plan_processing(checked)
-    return LightRun(Path(run_path), out_dir, plan, compute or Compute(), progress, truth).process()
+    with open_run(run_path) as run:
+        return LightRun(run, out_dir, options, compute or Compute(), progress, truth).process()
 
 
 class LightRun:
-    """One run's processing under a plan: its state between the passes, and the passes."""
+    """One run's processing under a plan: its state between the passes, and the passes.
+
+    The run file is opened by the caller and read through ``run`` alone; the plan is made
+    here, once, from the options and the run's header (the measured point spread, read and
+    checked before any work).
+    """
 
     def __init__(
         self,
-        run_path: Path,
+        run: RunFile,
         out_dir: str | os.PathLike[str] | None,
-        plan: ProcessingPlan,
+        options: ProcessingOptions,
         compute: Compute,
         progress: Callable[..., None] | None,
         truth: Truth | None,
     ) -> None:
-        self.run_path, self.plan, self.compute, self.truth = run_path, plan, compute, truth
-        self.options = plan.options
-        self.out = Path(out_dir) if out_dir is not None else run_path.parent
-        self.results_file = results_path_for(run_path, self.out)
+        self.run, self.run_path, self.options, self.compute, self.truth = run, run.path, options, compute, truth
+        self.out = Path(out_dir) if out_dir is not None else self.run_path.parent
+        self.results_file = results_path_for(self.run_path, self.out)
         self.steps = Steps(progress)
         self.timings: dict[str, float] = {}
         self.rows: dict[int, SourceRow] = {}
         self.saturated_share: dict[int, float] = {}
-        self.point_spread: dict[str, Any] | None = None  # the measured point spread's record, where there is one
         self.step, self.step_done = "hdr", 0  # the pass over the positions under way, and its positions done
+        # The measured point spread's record, where there is one: it leaves no aperture to fit.
+        self.point_spread: dict[str, Any] | None = self._point_spread() if Step.SOURCES in options.steps else None
+        self.plan: Final[ProcessingPlan] = plan_processing(options, point_spread_measured=self.point_spread is not None)
+        # The positions to process and the report's count and noise model: _start's, before any pass.
+        self.positions: np.ndarray = np.empty(0, dtype=np.intp)
+        outputs: dict[str, list[Path]] = {"exr": [], "png": []} if self.plan.merge else {}
+        self.report = ProcessReport(self.run_path, self.results_file, 0, rig_noise(run), outputs)
 
     def process(self) -> ProcessReport:
         started = time.perf_counter()
         sources = None
-        with open_run(self.run_path) as run:
-            check_outputs(self.run_path, run.header.run_id, self.out, self.options.overwrite)
-            self._start(run)
-            if self.plan.fused:  # with the layout known, each position is merged and unmixed by one task
-                assert self.plan.layout is not None  # fused: the layout is given
-                sources = plan_sources(
-                    run, self.plan.layout, self.options.estimator, self.options.ball_centre, self.positions
-                )
-            if self.plan.merge:
-                with self._timed("positions"):
-                    self._positions_step("hdr")
-                    self._merge_pass(run, sources)
-                if not self.plan.fused:
-                    self._refuse_if_saturated()
+        check_outputs(self.run_path, self.run.header.run_id, self.out, self.options.overwrite)
+        self._start()
+        if self.plan.fused:  # with the layout known, each position is merged and unmixed by one task
+            assert self.plan.layout is not None  # fused: the layout is given
+            sources = plan_sources(
+                self.run, self.plan.layout, self.options.estimator, self.options.ball_centre, self.positions
+            )
+        if self.plan.merge:
+            with self._timed("positions"):
+                self._positions_step("hdr")
+                self._merge_pass(sources)
+            if not self.plan.fused:
+                self._refuse_if_saturated()
         if self.plan.estimate:
             if not self.plan.fused:
-                with open_run(self.run_path) as run:
-                    sources = self._settle_sources(run)
+                sources = self._settle_sources()
                 with self._timed("sources"):
                     self._positions_step("estimate")
                     self._estimate_pass(sources)
             self._refuse_if_saturated()
             assert sources is not None  # made for the fused merge, or settled above
             finish_sources(
-                self.run_path,
-                self.out,
-                self.report,
-                sources,
-                self.positions,
-                self.rows,
-                self.options,
-                truth=self.truth,
-                timings=self.timings,
-                compute=self.compute,
-                steps=self.steps,
+                SourcesToFinish(
+                    self.run,
+                    self.out,
+                    self.options,
+                    self.report,
+                    sources,
+                    self.positions,
+                    self.rows,
+                    self.timings,
+                    self.steps,
+                    compute=self.compute,
+                    truth=self.truth,
+                )
             )
         self.timings["total"] = time.perf_counter() - started
         self.report.timings = {k: round(v, 3) for k, v in self.timings.items()}
@@ -198,58 +206,52 @@ class LightRun:
                 f"({100 * SATURATED_RUN_SHARE:.0f} % of the pixels or more at every position): take shorter exposures"
             )
 
-    def _start(self, run: RunFile) -> None:
+    def _start(self) -> None:
         """The positions to process and the report, with the merge's noise model."""
+        run = self.run
         try:
             positions = run.completed_positions()
         except RunFileError as exc:
             raise ProcessingError(str(exc)) from None
         if positions.size == 0:
             raise ProcessingError(f"{self.run_path}: the run has no complete position (no frames to process)")
-        if self.plan.estimate:
-            self._point_spread(run)
         with self._step("checksums"):  # the frames to merge; merged before, only the ambient ones
-            sound, skipped = self._sound_positions(run, positions if self.plan.merge else positions[:0])
+            sound, skipped = self._sound_positions(positions if self.plan.merge else positions[:0])
         self.out.mkdir(parents=True, exist_ok=True)
         if self.plan.merge:
             positions = sound
             with self._step("noise"):
-                noise = choose_noise(run, positions, self.options.noise, self.compute)
-            self.report = ProcessReport(
-                self.run_path, self.results_file, int(positions.size), noise, {"exr": [], "png": []}
-            )
+                self.report.noise = choose_noise(run, positions, self.options.noise, self.compute)
+            self.report.positions = int(positions.size)
         else:
-            positions = self._merged_before(run)
+            positions = self._merged_before()
         self.report.skipped_corrupt = skipped
         if self.plan.estimate:
             report_gain_mismatch(run, self.report.noise)
         self.positions = positions
-        if self.plan.calibrate_rig and self.options.calibrate_rig is FitChoice.AUTO:
-            self.plan = plan_processing(self.options, int(positions.size), self.point_spread is not None)
-            if not self.plan.calibrate_rig:
-                log.info(
-                    "%s: %d merged positions: the rig is held as described (the self-calibration needs %d)",
-                    self.run_path,
-                    positions.size,
-                    RIG_FIT_MIN_POSITIONS,
-                )
+        if self.plan.long_sweep.calibrate_rig and not self.plan.camera(int(positions.size)).calibrate_rig:
+            log.info(
+                "%s: %d merged positions: the rig is held as described (the self-calibration needs %d)",
+                self.run_path,
+                positions.size,
+                RIG_FIT_MIN_POSITIONS,
+            )
         self.report.n_positions = run.n_positions
         self.report.point_spread = self.point_spread
         self.report.partial = positions.size < run.n_positions
         self.report.compute = self.compute.description
         self.steps.positions_total = self.plan.passes * int(positions.size)
 
-    def _point_spread(self, run: RunFile) -> None:
-        """The measured point spread the rig names, read and checked before any work, and the
-        plan made without the aperture fit it leaves nothing to."""
-        rig = run.header.rig
+    def _point_spread(self) -> dict[str, Any] | None:
+        """The measured point spread the rig names, read and checked before any work: its record
+        (with the Fresnel number's mismatch to this run), or None where the rig has none."""
+        rig = self.run.header.rig
         try:
             measured = measured_point_spread(rig)
         except PointSpreadError as exc:
             raise ProcessingError(str(exc)) from None
         if measured is None:
-            return
-        self.plan = plan_processing(self.options, point_spread_measured=True)
+            return None
         geometry = RigGeometry.from_rig(rig)
         poses = rig.light_poses()
         light = poses[len(poses) // 2].position
@@ -260,7 +262,6 @@ class LightRun:
         )
         z2 = float(geometry.sensor_distance)
         mismatch = (1.0 / measured.distance_m + 1.0 / z2) / (1.0 / needed + 1.0 / z2) - 1.0
-        self.point_spread = {**measured.record(), "virtual_image_m": needed, "fresnel_number_mismatch": mismatch}
         if abs(mismatch) > FRESNEL_MISMATCH_WARNING:
             log.warning(
                 "%s: the point spread was measured with the LED %.0f mm in front of the pinhole, where the "
@@ -270,31 +271,33 @@ class LightRun:
                 1e3 * needed,
                 100 * mismatch,
             )
+        return {**measured.record(), "virtual_image_m": needed, "fresnel_number_mismatch": mismatch}
 
-    def _sound_positions(self, run: RunFile, positions: np.ndarray) -> tuple[np.ndarray, list[CorruptFrame]]:
+    def _sound_positions(self, positions: np.ndarray) -> tuple[np.ndarray, list[CorruptFrame]]:
         """Every frame the processing will read (the positions', the ambient calibration sets')
         read through its checksum, before any work (:func:`~processing.light_run.checksums.sound_positions`):
         the positions to process and the frames skipped. A corrupt ambient set is left out of the
         self-calibration."""
-        ambient = [pair for pair in run.calibration_sets() if pair[0] == "ambient"]
-        return sound_positions(run, self.run_path, positions, ambient, self.options.ignore_corrupt)
+        ambient = [pair for pair in self.run.calibration_sets() if pair[0] == "ambient"]
+        return sound_positions(self.run, self.run_path, positions, ambient, self.options.ignore_corrupt)
 
-    def _merged_before(self, run: RunFile) -> np.ndarray:
-        """The positions an earlier ``hdr`` step merged (the report made from its results)."""
+    def _merged_before(self) -> np.ndarray:
+        """The positions an earlier ``hdr`` step merged (the report's count and noise model from its results)."""
         try:
             with Results.open(self.results_file) as existing:
-                done = existing.hdr_done & run.complete
-                self.report = ProcessReport(self.run_path, self.results_file, int(done.sum()), existing.noise, {})
+                done = existing.hdr_done & self.run.complete
+                self.report.positions, self.report.noise = int(done.sum()), existing.noise
         except ResultsError:
             raise ProcessingError(f"{self.results_file}: no HDR results to build on (run --steps hdr first)") from None
         positions = np.flatnonzero(done)
         if positions.size == 0:
-            raise ProcessingError(f"{run.path}: no position has both frames and an HDR result")
+            raise ProcessingError(f"{self.run_path}: no position has both frames and an HDR result")
         return positions
 
-    def _merge_pass(self, run: RunFile, sources: SourcesPlan | None) -> None:
+    def _merge_pass(self, sources: SourcesPlan | None) -> None:
         """Merge every position (and unmix it, with ``sources``) on the cluster; write the
         results as they come."""
+        run = self.run
         folder = output_path(self.run_path, self.out, ".hdr")  # the position files, and the images beside them
         folder.mkdir(exist_ok=True)
         try:
@@ -332,14 +335,15 @@ class LightRun:
                 self.report.saturated_pixels,
             )
 
-    def _settle_sources(self, run: RunFile) -> SourcesPlan:
+    def _settle_sources(self) -> SourcesPlan:
         """The sources to estimate with (given, or searched for) and the camera as the plan fits it."""
-        plan, options, args = self.plan, self.options, (run, self.results_file, self.positions)
-        if plan.calibrate_rig:
-            return self._calibrated_sources(run)
+        plan, options, args = self.plan, self.options, (self.run, self.results_file, self.positions)
+        fits = plan.camera(int(self.positions.size))
+        if fits.calibrate_rig:
+            return self._calibrated_sources()
         if plan.search:
             with self._step("layout"):
-                found, aperture, distance = layout_and_camera(*args, options.ball_centre, self.compute, plan)
+                found, aperture, distance = layout_and_camera(*args, options.ball_centre, self.compute, fits)
             layout: Sequence[Source] = found.sources
             how = (
                 "candidate grid (NNLS), then positions and radius fitted: "
@@ -351,16 +355,16 @@ class LightRun:
             assert plan.layout is not None  # given, where the plan does not search for it
             layout = plan.layout
             aperture = distance = None
-            if plan.fit_aperture or plan.fit_sensor_distance:
+            if fits.fit_aperture or fits.fit_sensor_distance:
                 with self._step("camera"):
-                    aperture, distance = camera_at_layout(*args, layout, options.ball_centre, self.compute, plan)
+                    aperture, distance = camera_at_layout(*args, layout, options.ball_centre, self.compute, fits)
         self.report.aperture_fit, self.report.sensor_distance_fit = aperture, distance
         camera = fitted_camera(aperture, distance)
-        return plan_sources(run, layout, options.estimator, options.ball_centre, self.positions, camera)
+        return plan_sources(self.run, layout, options.estimator, options.ball_centre, self.positions, camera)
 
-    def _calibrated_sources(self, run: RunFile) -> SourcesPlan:
+    def _calibrated_sources(self) -> SourcesPlan:
         """The sources (searched for, or given) with the rig fitted to the data with them."""
-        plan, options, args = self.plan, self.options, (run, self.results_file, self.positions)
+        plan, options, args = self.plan, self.options, (self.run, self.results_file, self.positions)
         with self._step("calibration", timing="layout"):
             if plan.search:
                 found, calibration = layout_and_rig(*args, options.ball_centre, self.compute)
@@ -372,7 +376,7 @@ class LightRun:
                 calibration = rig_at_layout(*args, layout, options.ball_centre, self.compute)
         self.report.rig_calibration = calibration
         camera = CameraFit(rig=calibration.correction)
-        return plan_sources(run, layout, options.estimator, options.ball_centre, self.positions, camera)
+        return plan_sources(self.run, layout, options.estimator, options.ball_centre, self.positions, camera)
 
     def _estimate_pass(self, sources: SourcesPlan) -> None:
         """Unmix every merged position with ``sources`` (read back from the results file)."""

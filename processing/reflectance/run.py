@@ -23,12 +23,14 @@ from processing.light_run.output_guard import check_paths, output_path, written_
 from processing.light_run.outputs import skipped_record
 from processing.light_run.run import process_run
 from processing.lightmodel import LightModel, LightModelError
+from processing.options import ProcessingOptions
 from processing.radiometry import gain_mismatch, radiometric_gain
 from processing.reflectance.camera import superpixel_any
 from processing.reflectance.codes import ReflectanceError, ReflectanceSettings
 from processing.reflectance.estimate import ReflectanceResult, estimate_reflectance
 from processing.reflectance.outputs import outputs_in, write_outputs
 from processing.results import Results, ResultsError, results_path_for, run_name
+from processing.steps import Step
 from processing.trace import RigGeometry, light_pose_at_position
 
 log = logging.getLogger("mirrorgonio.processing")
@@ -181,10 +183,8 @@ def _results_for(run_path: Path, run_id: str, out: Path, progress: Progress | No
         report = process_run(
             run_path,
             out,
-            steps=("hdr",),
+            ProcessingOptions(steps=(Step.HDR,), ignore_corrupt=checks.ignore_corrupt, overwrite=checks.overwrite),
             progress=(lambda d, t: progress("hdr", d, t)) if progress else None,
-            ignore_corrupt=checks.ignore_corrupt,
-            overwrite=checks.overwrite,
         )
     except ProcessingError as exc:
         raise ReflectanceError(str(exc)) from None
