@@ -85,9 +85,7 @@ class Units(StrEnum):
 
 class FitChoice(StrEnum):
     """Whether some of the rig's numbers (the camera's aperture diameter, its sensor distance,
-    the rig's geometry in the self-calibration) are fitted to the data.
-
-    On the command line such an option is a flag (:data:`FLAG_CHOICE`)."""
+    the rig's geometry in the self-calibration) are fitted to the data."""
 
     AUTO = "auto"  # fitted where the sources are searched for in the data; a failed fit keeps the rig's number
     ALWAYS = "always"  # fitted; a failed fit fails the processing
