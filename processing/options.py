@@ -539,17 +539,20 @@ class ReflectanceThresholds:
     grazing_light_deg: float = option(
         15.0,
         "Exclude a sample where the light (its isotropic point) stands less than this elevation above the "
-        "face's plane.",
+        "face's plane (degrees).",
         public="grazing_deg",
         **(_ANGLE := {"minimum": 0.0, "maximum": 90.0, "exclusive_maximum": True, "unit": "degrees"}),
     )
     grazing_view_deg: float = option(
-        15.0, "Exclude a pixel the camera sees at less than this elevation.", public="view_grazing_deg", **_ANGLE
+        15.0,
+        "Exclude a pixel the camera sees at less than this elevation (degrees).",
+        public="view_grazing_deg",
+        **_ANGLE,
     )
     specular_deg: float = option(
         15.0,
         "Exclude a sample whose half vector (of the light and view directions) lies within this angle of the "
-        "normal, where a specular lobe would peak (0: off).",
+        "normal, where a specular lobe would peak (degrees; 0: off).",
         **_ANGLE,
     )
     outlier: float = option(

@@ -106,7 +106,7 @@ def with_declared_options(command: Callable, options: Iterable[Option], after: s
                 inspect.Parameter(option.public, inspect.Parameter.KEYWORD_ONLY, default=default, annotation=annotation)
             )
     rest = [p.replace(kind=inspect.Parameter.KEYWORD_ONLY) for p in own[cut:]]
-    command.__signature__ = inspect.Signature([*own[:cut], *built, *rest])  # type: ignore[attr-defined]
+    command.__signature__ = inspect.Signature([*own[:cut], *built, *rest])
     return command
 
 
