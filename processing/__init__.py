@@ -51,6 +51,7 @@ if TYPE_CHECKING:
     from processing.lightmodel import LightModel
     from processing.options import (
         DEFAULT_RAYS,
+        FLAG_CHOICE,
         MAX_LUMENS,
         MAX_NAME,
         MAX_RAYS,
@@ -62,9 +63,12 @@ if TYPE_CHECKING:
         FitMethod,
         HDRMethod,
         NoiseSource,
+        Option,
         OptionsError,
         ProcessingOptions,
+        ReflectanceThresholds,
         Units,
+        declared_options,
     )
     from processing.parallel import Compute, ComputeError, check_scheduler, open_compute
     from processing.reflectance.codes import ReflectanceError, ReflectanceSettings
@@ -82,6 +86,7 @@ __all__ = [
     "DEFAULT_RAYS",
     "Estimator",
     "Extrapolation",
+    "FLAG_CHOICE",
     "FitChoice",
     "FitMethod",
     "HDRError",
@@ -93,6 +98,7 @@ __all__ = [
     "MIN_RAYS",
     "NAME_PATTERN",
     "NoiseSource",
+    "Option",
     "OptionsError",
     "ProcessReport",
     "ProcessingError",
@@ -100,6 +106,7 @@ __all__ = [
     "ReflectanceError",
     "ReflectanceResult",
     "ReflectanceSettings",
+    "ReflectanceThresholds",
     "Results",
     "ResultsError",
     "STEP_BY_NAME",
@@ -113,6 +120,7 @@ __all__ = [
     "check_outputs",
     "check_scheduler",
     "compare_with_rig",
+    "declared_options",
     "describe_progress",
     "layout_from_dict",
     "load_layout",

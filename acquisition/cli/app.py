@@ -8,17 +8,20 @@ message names the option, the file or the field.
 
 from __future__ import annotations
 
+import inspect
 import json
 import logging
 import sys
+from collections.abc import Callable, Iterable
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
 
 from drivers.contracts.rig import DEFAULT_RIG_PATH, RigError
 from drivers.contracts.version import __version__
 from drivers.errors import DeviceError
+from processing import FLAG_CHOICE, FitChoice, Option
 
 app = typer.Typer(
     name="mirrorgonio",
@@ -48,6 +51,73 @@ SchedulerOption = Annotated[
 WorkersOption = Annotated[
     int | None, typer.Option("--workers", min=1, help="Worker processes of the local cluster (default: the cores).")
 ]
+
+
+def cli_spelling(public: str) -> str:
+    """An option's name as the command line spells it (``lamp_lumens``: ``--lamp-lumens``)."""
+    return "--" + public.replace("_", "-")
+
+
+def cli_help(option: Option) -> str:
+    """The option's help text as the command line shows it (a :class:`FitChoice` is a flag)."""
+    text = option.help_as(cli_spelling)
+    if option.choices is FitChoice:
+        negative = f"--no-{option.flag[2:]}: never; neither" if option.default is FitChoice.AUTO else "without it"
+        text += f" {option.flag}: always; {negative}: {option.default}."
+    return text
+
+
+def typer_option(option: Option) -> tuple[Any, Any]:
+    """The annotation and the default that make ``option`` a typer option.
+
+    A :class:`FitChoice` is a flag: ``--FLAG/--no-FLAG`` (neither given: ``auto``) for an option
+    whose default is ``auto``, ``--FLAG`` alone for one whose default is ``never``
+    (:data:`processing.options.FLAG_CHOICE`); a boolean is ``--FLAG/--no-FLAG`` when it is on
+    by default, ``--FLAG`` alone otherwise.
+    """
+    default = option.given_default
+    negative = f"{option.flag}/--no-{option.flag[2:]}"
+    if option.choices is FitChoice:
+        if default not in (FitChoice.AUTO, FitChoice.NEVER):
+            raise ValueError(f"{option.name}: a flag's default is auto or never, not {default}")
+        declared, kind = (negative, bool | None) if default is FitChoice.AUTO else (option.flag, bool)
+        default = None if default is FitChoice.AUTO else False
+    elif option.kind is bool:
+        declared, kind = (negative if default else option.flag), bool
+    else:
+        declared, kind = option.flag, option.kind if default is not None else option.kind | None
+    info = typer.Option(declared, help=cli_help(option), show_default=default is not None)
+    return Annotated[kind, info], default
+
+
+def with_declared_options(command: Callable, options: Iterable[Option], after: str) -> Callable:
+    """``command`` taking the declared ``options`` the command line takes, after its parameter ``after``.
+
+    ``command`` takes them as ``**given`` (by their public names): :func:`declared_values`
+    turns them into the record's values. Typer reads the options from the signature this sets.
+    """
+    own = [p for p in inspect.signature(command, eval_str=True).parameters.values() if p.kind != p.VAR_KEYWORD]
+    cut = [p.name for p in own].index(after) + 1
+    built = []
+    for option in options:
+        if option.cli:
+            annotation, default = typer_option(option)
+            built.append(
+                inspect.Parameter(option.public, inspect.Parameter.KEYWORD_ONLY, default=default, annotation=annotation)
+            )
+    rest = [p.replace(kind=inspect.Parameter.KEYWORD_ONLY) for p in own[cut:]]
+    command.__signature__ = inspect.Signature([*own[:cut], *built, *rest])
+    return command
+
+
+def declared_values(options: Iterable[Option], given: dict[str, Any]) -> dict[str, Any]:
+    """What the command line gave for the declared options, by the record's field names."""
+    values = {}
+    for option in options:
+        if option.public in given:
+            value = given[option.public]
+            values[option.name] = FLAG_CHOICE[value] if option.choices is FitChoice else value
+    return values
 
 
 def _print_version(asked: bool) -> None:

@@ -5,26 +5,19 @@ from __future__ import annotations
 import hashlib
 import time
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
 
-from acquisition.cli.app import SchedulerOption, WorkersOption, app, fail
-from processing import (
-    DEFAULT_RAYS,
-    MAX_RAYS,
-    MIN_RAYS,
-    ComputeError,
-    Estimator,
-    Extrapolation,
-    FitChoice,
-    FitMethod,
-    HDRMethod,
-    NoiseSource,
-    OptionsError,
-    ProcessingOptions,
-    check_scheduler,
+from acquisition.cli.app import (
+    SchedulerOption,
+    WorkersOption,
+    app,
+    declared_values,
+    fail,
+    with_declared_options,
 )
+from processing import ComputeError, OptionsError, ProcessingOptions, check_scheduler, declared_options
 
 
 def _distinct_runs(runs: list[Path]) -> list[Path]:
@@ -105,142 +98,15 @@ def _print_batch_summary(outcomes: list) -> None:
     )
 
 
-IgnoreCorruptOption = Annotated[
-    bool,
-    typer.Option(
-        "--ignore-corrupt",
-        help="Process the rest of a run with frames that fail their checksums: a position with a corrupt frame "
-        "is skipped whole (said on stderr, in the light model and the report). Without it such a frame stops "
-        "the run's processing before any work.",
-    ),
-]
-OverwriteOption = Annotated[
-    bool,
-    typer.Option(
-        "--overwrite",
-        help="Write over outputs of the same name that another run's processing wrote (or whose run is unknown). "
-        "Without it they stop the processing before any work.",
-    ),
-]
-ExtrapolationOption = Annotated[
-    Extrapolation,
-    typer.Option(
-        help="What the IES and LDT files hold beyond the θ the sweep measured: the fits' extrapolation "
-        "(fitted) or zero (none, the measured range only); the files say which (docs/light-model.md).",
-    ),
-]
-BallCentreOption = Annotated[
-    str | None,
-    typer.Option("--ball-centre", help="Measured ball centre X,Y,Z in metres (rig frame; from `calibrate`)."),
-]
-
-FitApertureOption = Annotated[
-    bool | None,
-    typer.Option(
-        "--fit-aperture/--no-fit-aperture",
-        help="Fit the pinhole's diameter alone to the data (docs/light-model.md), or keep the rig's. Default: "
-        "fitted where the sources are searched for and the rig is not self-calibrated.",
-        show_default=False,
-    ),
-]
-FitSensorDistanceOption = Annotated[
-    bool,
-    typer.Option(
-        "--fit-sensor-distance",
-        help="Fit the sensor distance to the data too, before the aperture (docs/light-model.md).",
-    ),
-]
-CalibrateRigOption = Annotated[
-    bool | None,
-    typer.Option(
-        "--calibrate-rig/--no-calibrate-rig",
-        help="Fit the rig's geometry to the data with the sources (self-calibration, docs/self-calibration.md): "
-        "the camera's pose, sensor distance and pinhole, the arm's base frame. Default: where the sources are "
-        "searched for (no --layout); with --layout and --calibrate-rig the layout's places are held.",
-        show_default=False,
-    ),
-]
-LampLumensOption = Annotated[
-    float | None,
-    typer.Option(
-        "--lamp-lumens",
-        help="The lamp's flux in lumens: the IES and LDT files' relative intensities are scaled to it "
-        "(lumen-scaled photometry). Default: the IES table scaled to a peak of 1000.",
-        show_default=False,
-    ),
-]
-CandelaOption = Annotated[
-    float | None,
-    typer.Option(
-        "--candela-per-unit",
-        help="Absolute photometry: candela per unit of the light model's intensity (from a calibration against a "
-        "reference); the IES and LDT files are then in candela. Not with --lamp-lumens.",
-        show_default=False,
-    ),
-]
-ManufacturerOption = Annotated[
-    str | None,
-    typer.Option(help="The manufacturer the light files name (IES [MANUFAC], LDT company, TM-25).", show_default=False),
-]
-LuminaireOption = Annotated[
-    str | None,
-    typer.Option(
-        help="The luminaire's name in the light files (IES [LUMINAIRE], LDT, TM-25 name). Default: after the run.",
-        show_default=False,
-    ),
-]
-LampOption = Annotated[
-    str | None, typer.Option(help="The lamp's name (IES [LAMP], LDT lamp type).", show_default=False)
-]
-RaysOption = Annotated[
-    int,
-    typer.Option(
-        "--rays",
-        help=f"Rays in the TM-25 ray file, {MIN_RAYS:,} to {MAX_RAYS:,} (written in blocks: memory stays bounded; "
-        "28 bytes a ray on disk).",
-    ),
-]
-
-#: A tri-state flag's choice: neither flag given (the default), the flag, or its --no- form.
-CHOICE = {None: FitChoice.AUTO, True: FitChoice.ALWAYS, False: FitChoice.NEVER}
-
-
-@app.command("process")
 def process(
     runs: Annotated[list[Path], typer.Argument(help="Run files (HDF5) to process.")],
     out: Annotated[
         Path | None, typer.Option("--out", help="Folder for the results (default: beside each run).")
     ] = None,
-    steps: Annotated[str, typer.Option(help="Comma-separated steps: hdr, sources.")] = "hdr,sources",
-    method: Annotated[HDRMethod, typer.Option(help="HDR estimator.")] = HDRMethod.OPTIMAL,
-    noise: Annotated[
-        NoiseSource, typer.Option(help="Noise model: auto (estimated, else the rig's), estimated, or the rig's.")
-    ] = NoiseSource.AUTO,
-    layout: Annotated[
-        Path | None, typer.Option(help="The sources on the light plane (TOML); found in the data without one.")
-    ] = None,
-    estimator: Annotated[
-        Estimator, typer.Option(help="auto (from the footprint), templates, or cell-sums.")
-    ] = Estimator.AUTO,
-    fit: Annotated[FitMethod, typer.Option(help="The model every source's I(θ) is fitted to.")] = FitMethod.GAUSSIAN,
-    ball_centre: BallCentreOption = None,
-    images: Annotated[
-        bool, typer.Option(help="Write an OpenEXR and a PNG preview of every position (hdr step).")
-    ] = True,
-    fit_aperture: FitApertureOption = None,
-    fit_sensor_distance: FitSensorDistanceOption = False,
-    calibrate_rig: CalibrateRigOption = None,
-    extrapolation: ExtrapolationOption = Extrapolation.FITTED,
-    ignore_corrupt: IgnoreCorruptOption = False,
-    overwrite: OverwriteOption = False,
-    lamp_lumens: LampLumensOption = None,
-    candela_per_unit: CandelaOption = None,
-    manufacturer: ManufacturerOption = None,
-    luminaire: LuminaireOption = None,
-    lamp: LampOption = None,
-    rays: RaysOption = DEFAULT_RAYS,
+    *,
     scheduler: SchedulerOption = "local",
     workers: WorkersOption = None,
+    **given: Any,
 ) -> None:
     """Turn run files into results: HDR radiance per position (OpenEXR, PNG), the light model,
     and the IES, LDT and TM-25 files.
@@ -252,28 +118,7 @@ def process(
     (docs/import.md). Outputs of another run already at those names stop that run before any work
     (--overwrite replaces them)."""
     try:
-        options = ProcessingOptions.checked(
-            steps=steps,
-            method=method,
-            noise=noise,
-            layout=layout,
-            estimator=estimator,
-            fit_method=fit,
-            ball_centre=ball_centre,
-            images=images,
-            fit_aperture=CHOICE[fit_aperture],
-            fit_sensor_distance=CHOICE[fit_sensor_distance or False],
-            calibrate_rig=CHOICE[calibrate_rig],
-            ignore_corrupt=ignore_corrupt,
-            overwrite=overwrite,
-            extrapolation=extrapolation,
-            lamp_lumens=lamp_lumens,
-            candela_per_unit=candela_per_unit,
-            manufacturer=manufacturer,
-            luminaire=luminaire,
-            lamp=lamp,
-            rays=rays,
-        )
+        options = ProcessingOptions.checked(**declared_values(PROCESSING_OPTIONS, given))
         check_scheduler(scheduler, workers)
     except (OptionsError, ComputeError) as exc:
         raise fail(str(exc)) from None
@@ -282,6 +127,12 @@ def process(
     folders = _output_folders(distinct, out)
     _check_outputs(folders, options.overwrite)
     _finish(_process_all(distinct, folders, options, scheduler, workers))
+
+
+#: The processing's options, as ``processing.options`` declares them: the command's options between --out and
+#: --scheduler.
+PROCESSING_OPTIONS = declared_options(ProcessingOptions)
+app.command("process")(with_declared_options(process, PROCESSING_OPTIONS, after="out"))
 
 
 def _finish(outcomes: list) -> None:

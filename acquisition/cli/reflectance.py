@@ -3,14 +3,12 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated
+from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
-from acquisition.cli.app import (
-    app,
-    fail,
-)
+from acquisition.cli.app import app, declared_values, fail, with_declared_options
+from processing import ReflectanceThresholds, declared_options
 
 if TYPE_CHECKING:
     from processing import ReflectanceResult
@@ -34,7 +32,6 @@ OverwriteOption = Annotated[
 
 
 # --- reflectance ----------------------------------------------------------------------------
-@app.command("reflectance")
 def reflectance(
     object_run: Annotated[Path, typer.Argument(help="The object run (HDF5), object-arc on a rig with \\[object].")],
     light: Annotated[
@@ -53,20 +50,11 @@ def reflectance(
     out: Annotated[
         Path | None, typer.Option("--out", help="Folder for the outputs (default: RUN.reflectance beside the run).")
     ] = None,
-    grazing_deg: Annotated[
-        float, typer.Option(help="Exclude lights less than this elevation above the surface.")
-    ] = 15.0,
-    view_grazing_deg: Annotated[float, typer.Option(help="Exclude pixels seen at less than this elevation.")] = 15.0,
-    specular_deg: Annotated[
-        float, typer.Option(help="Exclude samples whose half vector is within this angle of the normal (0: off).")
-    ] = 15.0,
-    outlier: Annotated[
-        float, typer.Option(help="Drop a light whose radiance exceeds the others' fit by this fraction (3+ lights).")
-    ] = 0.05,
-    edge_margin: Annotated[int, typer.Option(help="Superpixels excluded around silhouettes and depth steps.")] = 2,
+    *,
     texture_size: Annotated[int, typer.Option(min=16, help="UV texture size in texels (meshes with UVs).")] = 1024,
     ignore_corrupt: IgnoreCorruptOption = False,
     overwrite: OverwriteOption = False,
+    **thresholds: Any,
 ) -> None:
     """The object's diffuse albedo under three light models (collimated, isotropic point, measured),
     with maps, a UV texture, profiles along its vertical axis and an HTML report (docs/reflectance.md)."""
@@ -75,13 +63,7 @@ def reflectance(
     from processing import ReflectanceError, ReflectanceSettings, reflectance_from_run
 
     try:
-        settings = ReflectanceSettings(
-            grazing_light_deg=grazing_deg,
-            grazing_view_deg=view_grazing_deg,
-            specular_deg=specular_deg,
-            outlier=outlier,
-            edge_margin=edge_margin,
-        )
+        settings = ReflectanceSettings(**declared_values(THRESHOLDS, thresholds))
         with Progress(transient=True) as bar:
             tasks: dict[str, object] = {}
 
@@ -104,6 +86,12 @@ def reflectance(
     except (ReflectanceError, ValueError, OSError) as exc:  # every input error is a one-line ValueError
         raise fail(" ".join(str(exc).split())) from None
     _print_summary(result)
+
+
+#: The thresholds of the sample selection, as ``processing.options`` declares them: the command's options
+#: between --out and --texture-size.
+THRESHOLDS = declared_options(ReflectanceThresholds)
+app.command("reflectance")(with_declared_options(reflectance, THRESHOLDS, after="out"))
 
 
 def _print_summary(result: ReflectanceResult) -> None:

@@ -4,26 +4,23 @@ from __future__ import annotations
 
 from collections import Counter
 from datetime import UTC, datetime, timedelta
-from typing import Annotated, Literal
+from pathlib import Path
+from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, PositiveFloat, StrictBool, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    PositiveFloat,
+    StrictBool,
+    create_model,
+    field_validator,
+    model_validator,
+)
 
 from acquisition.daemon.settings import BRACKET_LENGTH, DEFAULT_AMBIENT_EXPOSURES_S, Exposure
 from drivers.contracts.rig import MAX_POSITIONS, PoseSpec
-from processing import (
-    MAX_LUMENS,
-    MAX_NAME,
-    MAX_RAYS,
-    MIN_RAYS,
-    NAME_PATTERN,
-    Estimator,
-    Extrapolation,
-    FitChoice,
-    FitMethod,
-    NoiseSource,
-    StepsError,
-    resolve_steps,
-)
+from processing import Option, ProcessingOptions, StepsError, declared_options, resolve_steps
 
 # --- requests ------------------------------------------------------------------------------
 # A request's bracket must name its ``mode``: it is the discriminator of ``Bracket``. The
@@ -138,95 +135,47 @@ class RunRequest(BaseModel):
         return self
 
 
-#: A name the light files carry (``processing.options.NAME_PATTERN``): on one line, not starting with a space.
-LightFileName = Annotated[str, Field(min_length=1, max_length=MAX_NAME, pattern=NAME_PATTERN)]
+def _job_field(option: Option) -> tuple[Any, Any]:
+    """The job request's field of a declared option: its type, bounds, default and description.
+
+    A boolean is strict (``true``, ``false``); a path is the text of one on the worker's machine;
+    a number is finite; an option without a default may be null.
+    """
+    kind = {bool: StrictBool, Path: str}.get(option.kind, option.kind)
+    bounds = {
+        "gt" if option.exclusive_minimum else "ge": option.minimum,
+        "lt" if option.exclusive_maximum else "le": option.maximum,
+        "min_length": option.min_length,
+        "max_length": option.max_length,
+        "pattern": option.pattern,
+        "allow_inf_nan": False if kind is float else None,
+    }
+    bounds = {key: value for key, value in bounds.items() if value is not None}
+    if bounds:
+        kind = Annotated[kind, Field(**bounds)]
+    if option.given_default is None:
+        kind = kind | None
+    return kind, Field(default=option.given_default, description=option.help_as(lambda public: public))
 
 
-class JobRequest(BaseModel):
-    """Process a run: which steps, and how (``docs/daemon.md``, "Worker")."""
+class _JobRequest(BaseModel):
+    """Process a run: which steps, and how (``docs/daemon.md``, "Worker").
+
+    The processing's options are those of :mod:`processing.options`, as it declares them
+    (:data:`JOB_OPTIONS`); the job's own option is ``partial``.
+    """
 
     model_config = ConfigDict(
         extra="forbid",
         json_schema_extra={"examples": [{"steps": "hdr,sources"}, {"steps": "hdr,sources", "partial": True}]},
-    )
-    steps: str = Field(
-        default="hdr,sources",
-        pattern=r"^[a-z]+(,[a-z]+)*$",
-        max_length=200,
-        description="hdr, sources (trace and fit are names for parts of sources)",
     )
     partial: StrictBool = Field(
         default=False,
         description="process the positions complete now even while the run is "
         "being acquired (otherwise the job waits for the run to end)",
     )
-    ignore_corrupt: StrictBool = Field(
-        default=False,
-        description="process the rest of a run with frames that fail their checksums: a position with a corrupt "
-        "frame is skipped whole (said in the job's message and the light model's provenance, skipped_corrupt); "
-        "without it such a frame fails the job before any work, naming the run, the position and the frame",
-    )
-    estimator: Estimator | None = Field(default=None, description="default: auto")
-    fit: FitMethod | None = Field(default=None, description="default: gaussian")
-    layout: str | None = Field(
-        default=None,
-        max_length=4096,
-        description="the sources' layout, a TOML file on the worker's machine (default: found in the data)",
-    )
-    noise: NoiseSource | None = Field(default=None, description="HDR noise model; default: auto")
-    fit_aperture: FitChoice | None = Field(
-        default=None,
-        description="fit the camera's aperture (pinhole) diameter to the data on its own (docs/light-model.md), "
-        "where the self-calibration is off (calibrate_rig never): auto (the default) where the sources are searched "
-        "for in the data (no layout), the rig's diameter kept if that fit fails; always (a failed fit fails the job);"
-        " never",
-    )
-    fit_sensor_distance: FitChoice | None = Field(
-        default=None,
-        description="fit the sensor distance (pinhole to sensor) to the data too, as fit_aperture; default: never",
-    )
-    calibrate_rig: FitChoice | None = Field(
-        default=None,
-        description="fit the rig's geometry to the data with the sources (self-calibration, docs/self-calibration.md):"
-        " auto (the default) where the sources are searched for; always (with a layout too, its places held); never. "
-        "It fits the aperture and the sensor distance with the rest: their own fits then stay off",
-    )
-    extrapolation: Extrapolation | None = Field(
-        default=None,
-        description="what the IES and LDT files hold beyond the θ the sweep measured: fitted (the fits' "
-        "extrapolation, the default) or none (zero: the measured range only); the files say which",
-    )
-    lamp_lumens: float | None = Field(
-        default=None,
-        gt=0.0,
-        le=MAX_LUMENS,
-        allow_inf_nan=False,
-        description="the lamp's flux (lm): the IES and LDT relative intensities are scaled to it; not with "
-        "candela_per_unit",
-    )
-    candela_per_unit: float | None = Field(
-        default=None,
-        gt=0.0,
-        le=MAX_LUMENS,
-        allow_inf_nan=False,
-        description="absolute photometry: candela per unit of the light model's intensity (a calibration against "
-        "a reference); the IES and LDT files are then in candela",
-    )
-    manufacturer: LightFileName | None = Field(
-        default=None, description="the manufacturer the light files name (IES [MANUFAC], LDT company, TM-25)"
-    )
-    luminaire: LightFileName | None = Field(
-        default=None, description="the luminaire's name in the light files (default: after the run)"
-    )
-    lamp: LightFileName | None = Field(default=None, description="the lamp's name (IES [LAMP], LDT lamp type)")
-    rays: int | None = Field(
-        default=None,
-        ge=MIN_RAYS,
-        le=MAX_RAYS,
-        description="rays in the TM-25 ray file (default 100000; written in blocks, memory stays bounded)",
-    )
 
-    @field_validator("steps")
+    @field_validator("steps", check_fields=False)
     @classmethod
     def _each_step_once(cls, steps: str) -> str:
         names = steps.split(",")
@@ -240,13 +189,24 @@ class JobRequest(BaseModel):
 
     @model_validator(mode="after")
     def _one_photometric_scale(self):
-        if self.lamp_lumens is not None and self.candela_per_unit is not None:
+        if getattr(self, "lamp_lumens", None) is not None and getattr(self, "candela_per_unit", None) is not None:
             raise ValueError("lamp_lumens, candela_per_unit: give one (relative scaled to a lamp flux, or candela)")
         return self
 
     def options(self) -> dict:
-        """The job's options as the catalog stores them (only those given)."""
+        """The job's options as the catalog stores them (only those not at their default)."""
         return self.model_dump(mode="json", exclude={"steps"}, exclude_defaults=True)
+
+
+#: The processing's options a job takes, as ``processing.options`` declares them.
+JOB_OPTIONS = tuple(option for option in declared_options(ProcessingOptions) if option.job)
+JobRequest = create_model(
+    "JobRequest",
+    __base__=_JobRequest,
+    __doc__=_JobRequest.__doc__,
+    __module__=__name__,
+    **{option.public: _job_field(option) for option in JOB_OPTIONS},
+)
 
 
 #: The instant the API document's examples start at (its run's id says it too).

@@ -35,6 +35,7 @@ from pathlib import Path
 
 from acquisition.daemon.catalog import ACTIVE_RUN_STATES, Catalog, CatalogError, JobClaimError, JobRecord, RunRecord
 from acquisition.daemon.client_files import ClientFileError, load_client_file
+from acquisition.daemon.models import JOB_OPTIONS
 from drivers.contracts.runfile import RunFile, RunFileError
 from processing import (
     Compute,
@@ -59,30 +60,6 @@ log = logging.getLogger("mirrorgonio.worker")
 
 #: The run file states of a run whose writer may still be adding positions.
 ACQUIRING_FILE_STATES = ("created", "running", "paused")
-#: Job options a request may set, and what they mean (``JobRequest`` in ``acquisition.daemon.models``).
-JOB_OPTIONS = {
-    "partial": "process the positions complete now, even while the run is being acquired",
-    "ignore_corrupt": "skip the positions with a frame that fails its checksum (without it such a frame fails the job)",
-    "layout": "the sources' layout (TOML on the worker's machine); found in the data without it",
-    "estimator": "auto, templates or cell-sums",
-    "fit": "gaussian, polynomial, cos-power or gaussian-2d",
-    "noise": "auto, estimated or rig",
-    "fit_aperture": "fit the camera's aperture (pinhole) diameter to the data: auto (where the sources are searched "
-    "for), always, or never",
-    "fit_sensor_distance": "fit the sensor distance (pinhole to sensor) to the data too: auto, always, or never "
-    "(the default)",
-    "calibrate_rig": "fit the rig's geometry to the data with the sources (self-calibration): auto (where the sources "
-    "are searched for), always, or never",
-    "extrapolation": "what the IES and LDT files hold beyond the measured θ: fitted (the default) or none (zero)",
-    "lamp_lumens": "the lamp's flux (lm) the IES and LDT relative intensities are scaled to",
-    "candela_per_unit": "absolute photometry: candela per unit of the light model's intensity",
-    "manufacturer": "the manufacturer the light files name",
-    "luminaire": "the luminaire's name in the light files",
-    "lamp": "the lamp's name in the light files",
-    "rays": "rays in the TM-25 ray file",
-}
-#: The job options handed to the processing as they are (``ProcessingOptions`` checks them).
-_LIGHT_FILE_OPTIONS = ("lamp_lumens", "candela_per_unit", "manufacturer", "luminaire", "lamp", "rays")
 #: The result files a job records, by kind: the daemon serves exactly these.
 ARTIFACT_KINDS = ("report", "ies", "ldt", "tm25", "light_model", "results")
 
@@ -381,17 +358,8 @@ class JobWorker:
         """``process_run`` with the job's options, its results beside the run file."""
         try:
             checked = ProcessingOptions.checked(
-                steps=steps,
-                layout=options.get("layout"),
-                estimator=options.get("estimator", "auto"),
-                fit_method=options.get("fit", "gaussian"),
-                noise=options.get("noise", "auto"),
-                fit_aperture=options.get("fit_aperture"),
-                fit_sensor_distance=options.get("fit_sensor_distance"),
-                calibrate_rig=options.get("calibrate_rig"),
-                extrapolation=options.get("extrapolation", "fitted"),
-                ignore_corrupt=bool(options.get("ignore_corrupt", False)),
-                **{name: options[name] for name in _LIGHT_FILE_OPTIONS if options.get(name) is not None},
+                **{o.name: options.get(o.public) for o in JOB_OPTIONS if o.name != "steps"},  # None: the default
+                steps=steps,  # the job's steps as the worker resolved them
             )
         except OptionsError as exc:  # a bad option fails the job in one line, as the processing's own errors do
             raise ProcessingError(str(exc)) from None

@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
+from typing import ClassVar
+
+from processing.options import ReflectanceThresholds
 
 log = logging.getLogger("mirrorgonio.processing")
 
@@ -155,54 +158,17 @@ FEW_FROM_SAMPLE = {
 
 
 @dataclass(frozen=True)
-class ReflectanceSettings:
-    """The thresholds of the sample selection (``docs/reflectance.md``).
+class ReflectanceSettings(ReflectanceThresholds):
+    """The thresholds of the sample selection (``docs/reflectance.md``): each one
+    :class:`~processing.options.Option`, declared in :class:`processing.options.ReflectanceThresholds`
+    (light, for the command line); a value out of its bounds is a :class:`ReflectanceError`.
 
-    Attributes
-    ----------
-    grazing_light_deg : float
-        A sample is excluded when the light (its isotropic point) stands less than this
-        elevation above the face's plane (``n·ω < sin``).
-    grazing_view_deg : float
-        A pixel is excluded when the camera sees its face at less than this elevation.
-    specular_deg : float
-        A sample is excluded when the half vector of the light and view directions lies
-        within this angle of the normal (where a specular lobe would peak). 0 disables it.
-    outlier : float
-        Residual test: with at least 3 usable lights, the light whose radiance exceeds the
-        prediction of the other lights' fit by more than this fraction is dropped, one
-        light at a time. ``inf`` disables it.
-    edge_margin : int
-        Superpixels by which silhouettes and depth discontinuities are dilated.
-    shadow_margin : int
-        Superpixels by which each light's cast shadow is dilated (penumbra, camera blur).
-    depth_tolerance : float
-        A depth jump between neighbouring pixels larger than this many superpixel
-        footprints, that neither pixel's face plane explains, is a discontinuity.
-    min_lights : int
-        Usable lights a pixel needs (at least 2).
+    Examples
+    --------
+    >>> ReflectanceSettings(outlier=0.0)
+    Traceback (most recent call last):
+    ...
+    processing.reflectance.codes.ReflectanceError: --outlier: expected a positive number, got 0.0
     """
 
-    grazing_light_deg: float = 15.0
-    grazing_view_deg: float = 15.0
-    specular_deg: float = 15.0
-    outlier: float = 0.05
-    edge_margin: int = 2
-    shadow_margin: int = 1
-    depth_tolerance: float = 3.0
-    min_lights: int = 2
-
-    def __post_init__(self) -> None:
-        for name in ("grazing_light_deg", "grazing_view_deg", "specular_deg"):
-            value = getattr(self, name)
-            if not (0.0 <= value < 90.0):
-                raise ReflectanceError(f"{name}: must be in [0, 90) degrees, got {value}")
-        if not self.outlier > 0:
-            raise ReflectanceError(f"outlier: must be a positive fraction, got {self.outlier}")
-        for name in ("edge_margin", "shadow_margin"):
-            if int(getattr(self, name)) != getattr(self, name) or getattr(self, name) < 0:
-                raise ReflectanceError(f"{name}: must be a whole number >= 0, got {getattr(self, name)}")
-        if not self.depth_tolerance > 0:
-            raise ReflectanceError(f"depth_tolerance: must be positive, got {self.depth_tolerance}")
-        if int(self.min_lights) != self.min_lights or self.min_lights < 2:
-            raise ReflectanceError(f"min_lights: must be a whole number >= 2, got {self.min_lights}")
+    error: ClassVar[type[ValueError]] = ReflectanceError
