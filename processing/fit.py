@@ -1,4 +1,4 @@
-"""Continuous fits of one source's discrete radiant-intensity samples (``measurement.md`` step 5).
+"""Continuous fits of one source's discrete radiant-intensity samples (``docs/measurement.md``, estimator 5).
 
 The estimator of step 3 or 4 gives one sample of ``I_s(θ, φ)`` per schedule position and
 source. This module fits them to a continuous model and reports what the data support:

@@ -1,7 +1,7 @@
 """The light model: the measured light as point sources on its plane, and its file.
 
-A :class:`LightModel` is what a run's processing ends with (``measurement.md``, "Light
-source model"): sources ``s`` at ``p_s = (u_s, v_s, 0)`` on the light plane, each with a
+A :class:`LightModel` is what a run's processing ends with (``docs/measurement.md``,
+"The light-source model"): sources ``s`` at ``p_s = (u_s, v_s, 0)`` on the light plane, each with a
 continuous radiant intensity ``I_s(θ, φ)`` fitted to its samples (:mod:`processing.fit`).
 It answers the questions the rest of the project asks of a light — the intensity of one
 source, the far field of the whole light, the irradiance on a surface close by — and it is
@@ -259,7 +259,7 @@ class LightModel:
 
     Notes
     -----
-    The model of the light (``measurement.md``): ``D(r) = Σ_s I_s(θ_s, φ_s)/|r − p_s|²``
+    The model of the light (``docs/measurement.md``): ``D(r) = Σ_s I_s(θ_s, φ_s)/|r − p_s|²``
     and ``E(r, n) = Σ_s I_s(θ_s, φ_s)·max(0, n·ω_s)/|r − p_s|²``.
     """
 
@@ -355,7 +355,7 @@ class LightModel:
     def irradiance(self, points: ArrayLike, normals: ArrayLike) -> np.ndarray:
         """Irradiance on surfaces close to the light, each source an inverse-square point.
 
-        ``E(r, n) = Σ_s I_s(θ_s, φ_s)·max(0, n·ω_s)/|r − p_s|²`` (``measurement.md``), with
+        ``E(r, n) = Σ_s I_s(θ_s, φ_s)·max(0, n·ω_s)/|r − p_s|²`` (``docs/measurement.md``), with
         ``p_s = (u_s, v_s, 0)``, ``(θ_s, φ_s)`` the direction from ``p_s`` to ``r`` and
         ``ω_s`` the unit vector from ``r`` to ``p_s``.
 

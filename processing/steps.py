@@ -10,7 +10,7 @@ Two steps do the work (``processing.light_run``):
     sources with templates (or sum cells), fit every source's I(θ), write the light model,
     the IES, LDT and TM-25 files and the report.
 
-``trace`` and ``fit`` (``measurement.md``'s names for the stages after the merge, which
+``trace`` and ``fit`` (``docs/measurement.md``'s names for the stages after the merge, which
 catalog jobs may say: ``hdr,trace,fit``) are accepted as names for parts of ``sources``, and
 either one, or both, selects it. This module imports nothing heavy, so that the daemon can
 check a job request without loading the processing.

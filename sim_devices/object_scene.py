@@ -1,6 +1,6 @@
 """What the simulated camera sees of an object lit by the ground-truth light.
 
-Written from the physics of ``measurement.md`` (last section) and independent of
+Written from the physics of ``docs/measurement.md`` ("Diffuse reflectance under near light") and independent of
 :mod:`processing`. The object is the polyhedron its mesh file describes (read with trimesh,
 placed in the rig frame: :class:`~sim_devices.objects.ObjectGeometry`), with flat face
 normals oriented towards the side each camera ray comes from.

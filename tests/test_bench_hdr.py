@@ -8,7 +8,8 @@ import sys
 import pytest
 from typer.testing import CliRunner
 
-from acquisition.benchmarks.hdr import OURS, PEERS, BenchmarkError, bench_hdr
+from acquisition.benchmarks.hdr import OURS, PEERS, BenchmarkError, _speedups_and_target, bench_hdr
+from acquisition.benchmarks.hdr_methods import merge_only_s, significant
 from acquisition.cli import app
 
 METHOD_KEYS = {"time_s", "ms_per_position", "mean_abs_rel_error_pct", "rms_rel_error_pct", "bias_pct", "notes"}
@@ -123,3 +124,18 @@ def test_cli_prints_json():
     data = json.loads(result.output)
     assert data["benchmark"] == "hdr"
     assert data["methods"]["mirrorgonio_optimal"]["status"] == "ok"
+
+
+def test_a_speed_up_keeps_its_significant_digits_and_never_reads_zero():
+    """A ratio is rounded to significant digits, not decimals; a peer whose demosaic, timed
+    apart, outlasted its whole call (a busy host) is compared by its whole call."""
+    assert significant(0.004321) == 0.00432 and significant(1234.5) == 1230.0
+    assert merge_only_s(0.05, 0.02) == pytest.approx(0.03) and merge_only_s(0.05, 0.06) is None
+    ours = {"status": "ok", "time_s": 0.002, "time_s_first_call": 0.003, "mean_abs_rel_error_pct": 1.0}
+    ours["rms_rel_error_pct"] = 1.0
+    peer = {**ours, "time_s": 0.05, "time_s_first_call": 0.06, "excluded_part_s": 0.07}  # no merge-only time
+    missing = {"status": "not installed", "time_s": None}
+    result = _speedups_and_target({"mirrorgonio_optimal": ours, "hdrutils": peer, "colour_hdri": missing})
+    assert result["speedup_vs_hdrutils"] == pytest.approx(25.0)
+    assert result["target_per_peer"]["hdrutils"]["speedup_first_call"] == pytest.approx(20.0)
+    assert result["speedup_vs_colour_hdri"] is None and result["peers_measured"] == ["hdrutils"]

@@ -12,8 +12,10 @@ import pytest
 from typer.testing import CliRunner
 
 from acquisition.benchmarks.hdr import rig_at_size
+from acquisition.benchmarks.hdr_methods import UNRESOLVED_MERGE_ONLY, MergeMethod
 from acquisition.benchmarks.speed import parse_size
 from acquisition.benchmarks.speed_runs import SpeedBenchError, cache_key
+from acquisition.benchmarks.speed_steps import _hdr_entries
 from acquisition.cli import app
 from drivers.contracts.rig import load_rig
 
@@ -123,6 +125,8 @@ def test_the_json_has_every_measurement(speed):
     for peer in ("hdrutils", "colour_hdri"):
         method = hdr["methods"][peer]
         assert method["status"] == "ok", method
+        # a timing is checked for presence and sign: a busy host changes its size, never its sign
+        assert method["ms_per_position"] > 0 and hdr["speedup_vs"][peer] > 0
         assert hdr["speedup_vs"][peer] == pytest.approx(method["ms_per_position"] / ours, rel=0.02, abs=0.01)
 
     acquire = entry["acquire"]
@@ -196,3 +200,23 @@ def test_without_a_cache_the_run_is_made_in_a_temporary_folder():
         import shutil
 
         shutil.rmtree(made.temporary)
+
+
+def test_a_peer_whose_part_timed_apart_outlasts_its_call_still_has_a_positive_time():
+    """On a busy host HDRutils' demosaic, timed apart, can take longer than the whole call it
+    is part of: its merge-only time is then not resolved, and the whole call stands in for it
+    (said so), never 0 ms and a speed-up of None."""
+
+    def method(excluded):
+        return MergeMethod("m", len, len, len, "", "", "", "1", excluded=excluded, excluded_what="demosaic")
+
+    methods = {"mirrorgonio": method(None), "hdrutils": method(len)}
+    times = {"mirrorgonio": [0.010, 0.011], "hdrutils": [0.050, 0.060]}
+    excluded = {"mirrorgonio": [0.0, 0.0], "hdrutils": [0.055, 0.040]}  # the first repeat: longer than its call
+    entries = _hdr_entries(methods, times, excluded, {}, 2)
+    peer = entries["hdrutils"]
+    assert peer["merge_only"] == UNRESOLVED_MERGE_ONLY
+    assert peer["ms_per_position"] == pytest.approx(1000 * 0.055 / 2)  # the whole call's median
+    assert entries["mirrorgonio"]["ms_per_position"] == pytest.approx(1000 * 0.0105 / 2)
+    resolved = _hdr_entries(methods, times, {**excluded, "hdrutils": [0.030, 0.040]}, {}, 2)["hdrutils"]
+    assert "merge_only" not in resolved and resolved["ms_per_position"] == pytest.approx(1000 * 0.020 / 2)

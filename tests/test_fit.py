@@ -12,7 +12,7 @@ import pytest
 from processing import fit as fitmod
 from processing.fit import FIT_METHODS, FitError, IntensityFit, Samples, fit_intensity
 
-# The reference sweep: 66 positions, θ from about 3° to 41° (measurement.md).
+# The reference sweep: 66 positions, θ from about 3° to 41° (docs/measurement.md).
 THETA = np.radians(np.linspace(3.0, 41.0, 66))
 
 

@@ -25,6 +25,16 @@ KEPT_WHOLE = re.compile(r"\bkept whole\b", re.IGNORECASE)
 LAZY_PROJECT_IMPORTS = ("acquisition/cli/",)
 SAYS_WHY = "noqa: PLC0415 - "
 DATE = re.compile(r"20\d\d-[01]\d-[0-3]\d")  # as `grep "20[0-9][0-9]-[01][0-9]-[0-3][0-9]"`
+#: What points outside the repository: a path up out of it to a shared folder, an absolute
+#: path of a machine's work folder, a design note by a bare name (the repository's own page
+#: is ``docs/measurement.md``, linked from docs/ as ``measurement.md``).
+OUTSIDE = re.compile(r"\.\./+shared\b|/wor[k]/|\bshared/design\b")
+BARE_NOTE = re.compile(r"(?<![\w/.-])measurement[.]md")
+#: The text files the outside-reference rule reads (by suffix, or by whole name).
+TEXT_SUFFIXES = {".py", ".md", ".toml", ".txt", ".cfg", ".cff", ".yml", ".yaml", ".json", ".html", ".js", ".css"}
+TEXT_NAMES = {"Makefile", "Dockerfile"}
+#: A markdown link's target: ``[text](target)`` or ``![alt](target "title")``.
+MD_LINK = re.compile(r"\]\(\s*<?([^)\s>]+)>?(?:\s+\"[^\"]*\")?\s*\)")
 
 
 def _modules(root: Path = ROOT) -> list[Path]:
@@ -126,7 +136,76 @@ def dates(root: Path = ROOT) -> list[str]:
     return out
 
 
-@pytest.mark.parametrize("rule", [modules_too_long, functions_too_long, local_project_imports, private_imports, dates])
+def _text_files(root: Path) -> list[Path]:
+    """The repository's text files: every folder but hidden ones, caches and local outputs."""
+    skip = {"__pycache__", "node_modules", "build", "demo-data", "demo-output"}
+    out = []
+    for path in sorted(root.rglob("*")):
+        parts = path.relative_to(root).parts
+        if any(p.startswith(".") or p in skip or p.endswith(".egg-info") for p in parts[:-1]):
+            continue
+        if path.is_file() and (path.suffix in TEXT_SUFFIXES or path.name in TEXT_NAMES):
+            out.append(path)
+    return out
+
+
+def outside_references(root: Path = ROOT) -> list[str]:
+    """Lines that send the reader outside the repository (:data:`OUTSIDE`), or to a design
+    note by its bare name (:data:`BARE_NOTE`) outside docs/, where ``measurement.md`` is the
+    page beside the reader (its links are :func:`broken_doc_links`' to check). This file,
+    which states the rule and plants breaches of it, is not read."""
+    out = []
+    for path in _text_files(root):
+        if path == Path(__file__).resolve():
+            continue
+        in_docs = path.parent == root / "docs" and path.suffix == ".md"
+        for number, line in enumerate(path.read_text(encoding="utf-8", errors="replace").splitlines(), 1):
+            if OUTSIDE.search(line) or (not in_docs and BARE_NOTE.search(line)):
+                out.append(f"{path.relative_to(root)}:{number}: {line.strip()[:80]}")
+    return out
+
+
+def _anchors(page: Path) -> set[str]:
+    """The anchors of a markdown page's headings, as GitHub makes them: lower case, spaces
+    as hyphens, punctuation but hyphens and underscores dropped."""
+    anchors = set()
+    for line in page.read_text(encoding="utf-8").splitlines():
+        if line.startswith("#"):
+            title = line.lstrip("#").strip().lower()
+            anchors.add(re.sub(r"[^\w\- ]", "", title).replace(" ", "-"))
+    return anchors
+
+
+def broken_doc_links(root: Path = ROOT) -> list[str]:
+    """Relative links of README.md and docs/*.md that do not resolve to a file (and, for a
+    markdown page, a heading) inside the repository."""
+    out = []
+    for page in [root / "README.md", *sorted((root / "docs").glob("*.md"))]:
+        for number, line in enumerate(page.read_text(encoding="utf-8").splitlines(), 1):
+            for target in MD_LINK.findall(line):
+                if re.match(r"[a-z][a-z0-9+.-]*:", target, re.IGNORECASE):  # http:, mailto:, ...
+                    continue
+                name, _, anchor = target.partition("#")
+                dest = (page.parent / name).resolve() if name else page
+                inside = dest == root or root in dest.parents
+                no_heading = anchor and dest.suffix == ".md" and dest.is_file() and anchor not in _anchors(dest)
+                if not inside or not dest.is_file() or no_heading:
+                    out.append(f"{page.relative_to(root)}:{number}: {target}")
+    return out
+
+
+@pytest.mark.parametrize(
+    "rule",
+    [
+        modules_too_long,
+        functions_too_long,
+        local_project_imports,
+        private_imports,
+        dates,
+        outside_references,
+        broken_doc_links,
+    ],
+)
 def test_the_house_rules_hold(rule):
     assert rule() == []
 
@@ -154,3 +233,28 @@ def test_the_rules_see_what_they_forbid(tmp_path):
     assert local_project_imports(tmp_path) == ["processing/lazy.py:5: imports processing.long in f"]
     assert private_imports(tmp_path) == ["processing/lazy.py:1: processing.long._hidden"]
     assert dates(tmp_path) == ["README.md:1: Measured on 2026-11-22."]
+
+
+def test_the_reference_rules_see_what_they_forbid(tmp_path):
+    """A path out of the repository, a bare design note and a link to nowhere are found;
+    the repository's own page, by its path or linked beside it, is not."""
+    (tmp_path / "docs").mkdir()
+    (tmp_path / "docs" / "measurement.md").write_text("# The measurement\n\n## The rig and its frames\n")
+    (tmp_path / "docs" / "rig.md").write_text(
+        "See [the page](measurement.md#the-rig-and-its-frames) and [there](measurement.md#no-such-heading).\n"
+    )
+    (tmp_path / "README.md").write_text("[ok](docs/rig.md), [gone](docs/gone.md), [up](../shared/note.md)\n")
+    (tmp_path / "processing").mkdir()
+    (tmp_path / "processing" / "fit.py").write_text(
+        '"""From docs/measurement.md, step 5."""\n# the physics of measurement.md\n# see ../shared/design\n'
+    )
+    assert outside_references(tmp_path) == [
+        "README.md:1: [ok](docs/rig.md), [gone](docs/gone.md), [up](../shared/note.md)",
+        "processing/fit.py:2: # the physics of measurement.md",
+        "processing/fit.py:3: # see ../shared/design",
+    ]
+    assert broken_doc_links(tmp_path) == [
+        "README.md:1: docs/gone.md",
+        "README.md:1: ../shared/note.md",
+        "docs/rig.md:1: measurement.md#no-such-heading",
+    ]

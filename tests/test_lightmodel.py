@@ -46,7 +46,7 @@ def source(name, centre, method="gaussian", seed=0, **truth):
 
 
 def five_gaussians() -> LightModel:
-    """The reference truth: five Gaussian sources, 4 mm apart (measurement.md)."""
+    """The reference truth: five Gaussian sources, 4 mm apart (docs/measurement.md)."""
     layout = [
         ("c", (0.0, 0.0), 2.0, 0.30),
         ("+u", (0.004, 0.0), 1.5, 0.35),

@@ -1,7 +1,7 @@
 """The simulated object scene against answers computed here, not by the renderer.
 
-Each check recomputes the physics of measurement.md (last section) with its own small
-formulas: its own chief rays, its own plane intersections and shadow geometry, its own
+Each check recomputes the physics of docs/measurement.md ("Diffuse reflectance under near
+light") with its own small formulas: its own chief rays, its own plane intersections and shadow geometry, its own
 irradiance ``E = I(θ, φ)·cos/d²`` and the aperture average of ``cos⁴β`` by quadrature.
 """
 

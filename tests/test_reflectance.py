@@ -1,7 +1,7 @@
 """processing.reflectance: albedo under three light models, against scenes rendered here.
 
-The scenes are rendered in this file from the formula of measurement.md (last section)
-and docs/rig.md's radiometry, independently of the module: chief rays through the
+The scenes are rendered in this file from the formula of docs/measurement.md ("Diffuse
+reflectance under near light") and docs/rig.md's radiometry, independently of the module: chief rays through the
 superpixel centres, first hits and cast shadows by brute force (Möller–Trumbore against
 every triangle), flat face normals, ``rate = k·cos⁴β·ρ/π·Σ_s I_s(θ_s)·max(0, n·ω_s)/d_s²``
 over the sources each point sees. Tolerances are stated at each assertion.

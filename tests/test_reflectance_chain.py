@@ -2,7 +2,7 @@
 
 The light model is the simulated truth itself (fitted to noise-free samples of each
 emitter), so this checks that the simulator's object rendering (written from
-measurement.md alone) and the processing's estimator (likewise) agree, through a real run
+docs/measurement.md alone) and the processing's estimator (likewise) agree, through a real run
 file, DNG decoding and the HDR merge. The light run's own accuracy is the business of
 ``bench accuracy``; the whole chain with a measured light is ``bench reflectance``.
 """

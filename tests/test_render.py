@@ -279,7 +279,7 @@ def test_blur_spot_has_the_size_of_the_projected_aperture():
     # A uniform disc of radius r has a per-axis variance r^2/4; the pixel box adds 1/12.
     measured_radius = 2 * math.sqrt(var - 1 / 12)
     predicted = _blur_prediction(rig, pose)
-    assert predicted == pytest.approx(19.2, abs=0.5)  # measurement.md: about 38 px across
+    assert predicted == pytest.approx(19.2, abs=0.5)  # docs/measurement.md: about 38 px across
     assert measured_radius == pytest.approx(predicted, rel=0.02)
 
 

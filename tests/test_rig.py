@@ -16,7 +16,7 @@ def _default_data():
     return tomllib.loads(DEFAULT_RIG_PATH.read_text())
 
 
-def test_default_rig_matches_measurement_md():
+def test_default_rig_matches_the_measurement_page():
     rig = load_rig()
     poses = rig.light_poses()
     assert len(poses) == 66

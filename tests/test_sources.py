@@ -73,7 +73,7 @@ def test_a_template_matches_the_simulated_image_of_its_source(position):
     assert t_flux == pytest.approx(flux, rel=3e-3)  # radiometry: k f² F Ω / (A_px A_ap)
     assert math.hypot(t_cx - cx, t_cy - cy) < 0.05  # pixels
     assert t_spread == pytest.approx(spread, rel=3e-3)
-    assert template.blur_radius_px == pytest.approx(19.2, abs=0.4)  # measurement.md: ~38 px across
+    assert template.blur_radius_px == pytest.approx(19.2, abs=0.4)  # docs/measurement.md: ~38 px across
 
 
 def test_unmixing_recovers_five_sources_4_mm_apart():
@@ -90,7 +90,7 @@ def test_unmixing_recovers_five_sources_4_mm_apart():
     error = np.abs(estimate.intensity.mean(axis=1) / truth_i - 1)
     assert error.max() < 0.01, error
     assert np.all(estimate.visible)
-    # The sources image 7-12 px apart, as measurement.md says.
+    # The sources image 7-12 px apart, as docs/measurement.md says.
     centres = np.array([t.image_centre for t in estimate.templates])
     gaps = [math.dist(centres[0], c) for c in centres[1:]]
     assert 7 < min(gaps) and max(gaps) < 13
@@ -230,7 +230,7 @@ def test_the_estimator_follows_the_footprint():
         RigGeometry.from_rig(pinhole), builder, layout, pinhole.light_poses()[33], "auto"
     )
     assert chosen == "templates" and "unmixing" in reason
-    assert 12 <= 2e3 * footprint <= 23  # measurement.md: a pixel gathers rays from 12-23 mm
+    assert 12 <= 2e3 * footprint <= 23  # docs/measurement.md: a pixel gathers rays from 12-23 mm
     lens = rig_with(camera__thin_lens={"focus_distance_m": 0.186, "f_number": 8.0})
     chosen, reason, footprint = choose_estimator(
         RigGeometry.from_rig(lens),

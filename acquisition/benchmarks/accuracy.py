@@ -1,6 +1,6 @@
 """The reference simulation through the whole chain, compared with the truth.
 
-``measurement.md`` ("Ground truth for validation"): the simulated rig (arm over Modbus,
+``docs/measurement.md`` ("The ground-truth reference simulation"): the simulated rig (arm over Modbus,
 pinhole camera with diffraction and noise) takes the default sweep into a run file through
 the daemon's run engine; the processing merges the brackets, unmixes the sources with
 templates and fits each one; every fit is compared with the truth over the θ range its

@@ -34,13 +34,16 @@ import numba
 import numpy as np
 
 from acquisition.benchmarks.hdr_methods import (
+    UNRESOLVED_MERGE_ONLY,
     MergeContext,
     MergeMethod,
     Sensor,
     colour_hdri_method,
     hdrutils_method,
+    merge_only_s,
     opencv_method,
     ours_method,
+    significant,
 )
 from drivers.contracts.rig import load_rig, rig_from_dict, rig_to_toml_dict
 from sim_devices.lights import load_truth
@@ -423,13 +426,13 @@ def _method_entry(m: MergeMethod | str, state: _State | None, positions: int) ->
     total = statistics.median(state.times)
     entry = {
         "status": "ok",
-        "time_s": round(total, 4),
+        "time_s": significant(total, 4),
         "ms_per_position": round(1000.0 * total / positions, 3),
         **state.errors.report(),
         "pixels_compared": state.errors.n,
         "nonfinite_pixels": state.errors.nonfinite,
         "time_s_all": [round(t, 4) for t in state.times],
-        "time_s_first_call": round(state.first_call_s, 4),
+        "time_s_first_call": significant(state.first_call_s, 4),
         "input": m.input,
         "scale": m.scale,
         "notes": m.notes,
@@ -439,7 +442,11 @@ def _method_entry(m: MergeMethod | str, state: _State | None, positions: int) ->
         excluded = statistics.median(state.excluded_times)
         entry["excluded_part_s"] = round(excluded, 4)
         entry["excluded_part"] = m.excluded_what
-        entry["time_s_merge_only_est"] = round(max(total - excluded, 0.0), 4)
+        own = merge_only_s(total, excluded)
+        if own is not None:
+            entry["time_s_merge_only_est"] = significant(own, 4)
+        else:
+            entry["merge_only"] = UNRESOLVED_MERGE_ONLY
     return entry
 
 
@@ -480,18 +487,19 @@ def _speedups_and_target(out_methods: dict) -> dict:
             result[f"speedup_vs_{peer}"] = None
             continue
         speedup = peer_time / ours["time_s"]
-        result[f"speedup_vs_{peer}"] = round(speedup, 2)
+        result[f"speedup_vs_{peer}"] = significant(speedup)
         if "time_s_merge_only_est" in entry:
-            result[f"speedup_vs_{peer}_full_call"] = round(entry["time_s"] / ours["time_s"], 2)
+            result[f"speedup_vs_{peer}_full_call"] = significant(entry["time_s"] / ours["time_s"])
+
+        first_call = entry["time_s_first_call"]
+        first_call = merge_only_s(first_call, entry.get("excluded_part_s", 0.0)) or first_call
 
         def not_worse(key, entry=entry):
             return ours[key] is not None and entry[key] is not None and ours[key] <= entry[key] * 1.001 + 1e-3
 
         target_rows[peer] = {
-            "speedup": round(speedup, 2),
-            "speedup_first_call": round(
-                (entry["time_s_first_call"] - entry.get("excluded_part_s", 0.0)) / ours["time_s_first_call"], 2
-            ),
+            "speedup": significant(speedup),
+            "speedup_first_call": significant(first_call / ours["time_s_first_call"]),
             "at_least_3x_faster": speedup >= TARGET_SPEEDUP,
             "error_not_higher": not_worse("mean_abs_rel_error_pct") and not_worse("rms_rel_error_pct"),
         }

@@ -50,6 +50,36 @@ from sim_devices.sensor import cfa_channels
 PEER_EXTRA = "not installed (pip install 'mirrorgonio[bench]')"
 
 
+#: Significant digits of a reported speed-up: a ratio, whatever the times' scale (a ratio
+#: rounded to a fixed number of decimals reads 0.0 when the two times differ a hundredfold).
+SPEEDUP_DIGITS = 3
+#: Why a peer's merge-only time is not reported: its part timed apart took as long as the
+#: whole call (on a busy host the two timings are disturbed independently).
+UNRESOLVED_MERGE_ONLY = (
+    "not resolved: the part timed apart took as long as the whole call (a busy host); the speed-up uses the whole call"
+)
+
+
+def significant(value: float, digits: int = SPEEDUP_DIGITS) -> float:
+    """``value`` rounded to ``digits`` significant digits.
+
+    Examples
+    --------
+    >>> significant(0.0012345), significant(123.456), significant(0.0)
+    (0.00123, 123.0, 0.0)
+    """
+    return float(f"{value:.{digits}g}")
+
+
+def merge_only_s(whole_s: float, excluded_s: float) -> float | None:
+    """A peer's own merge time: its whole call less the part timed apart, or None when that
+    difference is not positive (the two timings disturbed apart, as on a busy host). The
+    caller then compares the whole call and says so: a speed-up over the whole call
+    includes the peer's excluded part, so it is the larger figure."""
+    own = whole_s - excluded_s
+    return own if own > 0 else None
+
+
 @dataclass
 class Sensor:
     """The sensor's constants the merges and the error need; its noise in DN."""
@@ -191,7 +221,8 @@ def hdrutils_method(ctx: MergeContext) -> MergeMethod | str:
         "saturation point, the shortest exposure always used. HDRutils has no in-memory API (file "
         "names only): its module's `io` reader and `tqdm` were swapped for the call to serve the "
         "frames from memory. Its time includes the bilinear demosaic it always runs; "
-        "time_s_merge_only_est subtracts that demosaic (timed apart) and is what the speed-up uses",
+        "time_s_merge_only_est subtracts that demosaic (timed apart) and is what the speed-up uses (when the "
+        "difference is positive; merge_only says why not otherwise)",
         version=version("HDRutils"),
         excluded=demosaic,
         excluded_what="colour_demosaicing.demosaicing_CFA_Bayer_bilinear + the colour matrix, as inside the call",

@@ -1,6 +1,6 @@
 """Reflectance of a simulated object under three light models, scored against the truth.
 
-``measurement.md`` ("Diffuse reflectance of an object lit from close by"): the light is
+``docs/measurement.md`` ("Diffuse reflectance under near light"): the light is
 measured first (the default sweep of the mirrored ball, processed into a light model),
 then an object of known albedo is photographed lit from 30 cm on the ``object-arc``
 schedule, and its albedo is estimated with the collimated, isotropic-point and measured
@@ -91,7 +91,7 @@ def bench_reflectance(
     summary = result.summary()
     return {
         "benchmark": "reflectance",
-        "object_rig": str(rig_path),
+        "object_rig": object_rig,  # as given: a built-in rig's name, not a path of this machine
         "surface": object_rig_model.simulation.surface,
         "truth": truth,
         "noise": noise,

@@ -1,6 +1,6 @@
 """How a fitted source is scored against the simulated truth.
 
-``measurement.md`` ("Ground truth for validation"): every fit is compared with the truth
+``docs/measurement.md`` ("The ground-truth reference simulation"): every fit is compared with the truth
 emitter it stands for over the θ range its samples cover,
 ``error = RMS(I_fit − I_true) / max(I_true)``. ``bench accuracy``, ``bench tolerance`` and
 ``mirrorgonio demo`` all score this way.

@@ -29,11 +29,14 @@ import numpy as np
 
 from acquisition.benchmarks.acquire import plain_h5py_write, timed_engine_run, zero_latency_arm
 from acquisition.benchmarks.hdr_methods import (
+    UNRESOLVED_MERGE_ONLY,
     MergeContext,
     Sensor,
     colour_hdri_method,
     hdrutils_method,
+    merge_only_s,
     ours_method,
+    significant,
 )
 from acquisition.benchmarks.speed_runs import SpeedBenchError
 from acquisition.daemon.devices import Devices
@@ -121,7 +124,7 @@ def measure_hdr(run_path: Path, positions: int, repeat: int, peers: bool = True)
     out_methods = _hdr_entries(methods, times, excluded, failed, len(picks))
     ours = out_methods["mirrorgonio"]["ms_per_position"]
     speedups = {
-        name: (round(e["ms_per_position"] / ours, 2) if e.get("ms_per_position") and ours else None)
+        name: (significant(e["ms_per_position"] / ours) if e.get("ms_per_position") is not None else None)
         for name, e in out_methods.items()
         if name != "mirrorgonio"
     }
@@ -199,15 +202,20 @@ def _hdr_entries(methods: dict, times: dict, excluded: dict, failed: dict, n: in
         if name in failed:
             out_methods[name] = {"status": failed[name], "ms_per_position": None, "version": m.version}
             continue
-        # Per repeat: the method's own time (HDRutils: its call minus the demosaic timed apart).
-        own = [max(t - x, 0.0) for t, x in zip(times[name], excluded[name], strict=True)]
+        # Per repeat: the method's own time (HDRutils: its call minus the demosaic timed apart);
+        # the whole call where that difference is not positive (a busy host), and the entry says so.
+        own = [merge_only_s(t, x) for t, x in zip(times[name], excluded[name], strict=True)]
+        resolved = all(t is not None for t in own)
+        own_s = [t for t in own if t is not None] if resolved else times[name]
         entry = {
             "status": "ok",
-            "ms_per_position": round(1000 * statistics.median(own) / n, 2),
-            "ms_per_position_all": [round(1000 * t / n, 2) for t in own],
+            "ms_per_position": significant(1000 * statistics.median(own_s) / n, 4),
+            "ms_per_position_all": [significant(1000 * t / n, 4) for t in own_s],
             "version": m.version,
             "notes": m.notes,
         }
+        if not resolved:
+            entry["merge_only"] = UNRESOLVED_MERGE_ONLY
         if m.excluded:
             entry["ms_per_position_full_call"] = round(1000 * statistics.median(times[name]) / n, 2)
             entry["excluded_part"] = m.excluded_what

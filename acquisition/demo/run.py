@@ -36,7 +36,7 @@ DEMO_RIG_PATH = RIGS_DIR / "demo.toml"
 #: The bracket of ``mirrorgonio bench accuracy`` (its reference simulation), so that the
 #: demo's accuracy can be compared with that benchmark's figures.
 DEMO_EXPOSURES_S = (2e-5, 1e-4, 5e-4, 2.5e-3, 1.25e-2)
-#: The accuracy target of ``measurement.md`` for a run with noise.
+#: The accuracy target for a run with noise (``docs/measurement.md``, "The estimators").
 TARGET_WITH_NOISE = 0.01
 FINAL_RUN_STATES = ("complete", "aborted", "failed", "interrupted")
 FINAL_JOB_STATES = ("complete", "failed")

@@ -1,6 +1,6 @@
 """Diffuse reflectance of an object lit from close by, under three light models.
 
-``measurement.md``, "Diffuse reflectance of an object lit from close by": an object of
+``docs/measurement.md``, "Diffuse reflectance under near light": an object of
 known shape (a mesh registered to the camera) is photographed lit by the measured light
 from several positions (the reference experiment: 30 cm away, 10° to 50° in 10° steps).
 For a surface point ``r`` with normal ``n`` and observed radiance ``L_o``, a Lambertian
@@ -41,7 +41,7 @@ is the least-squares solution over the usable lights ``j`` — the same samples 
 methods, so that they are compared on equal points. On an object of uniform albedo the
 measured model gives a uniform ρ where the other two show the fall-off towards the object's
 top and bottom of the reference paper's Fig. 11 (the near-field light / mirror-ball
-goniophotometer paper ``measurement.md`` calls "the reference paper").
+goniophotometer paper this project calls "the reference paper").
 
 Entry points: :func:`estimate_reflectance` (arrays in, arrays out) and
 :func:`reflectance_from_run` (a run file in, the files of ``docs/reflectance.md`` out).

@@ -244,8 +244,8 @@ def estimate_reflectance(
     Notes
     -----
     ``L_o = rate/(k·cos⁴β)`` and, for a Lambertian surface, ``ρ = π·L_o/E(r, n)``
-    (``measurement.md``, last section); with several lights ``ρ_c = π·Σ_j L_jc E_j / Σ_j E_j²``
-    over the usable lights, the same for every method.
+    (``docs/measurement.md``, "Diffuse reflectance under near light"); with several lights
+    ``ρ_c = π·Σ_j L_jc E_j / Σ_j E_j²`` over the usable lights, the same for every method.
     """
     settings = settings or ReflectanceSettings()
     camera = camera_from(camera)

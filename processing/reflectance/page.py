@@ -123,7 +123,8 @@ def _albedo_part(summary: dict[str, Any], methods: list[str], embed: Embed) -> l
     """The albedo maps under the three light models and their statistics."""
     parts = [
         "<h2>Albedo under three light models</h2>",
-        "<p>ρ = π·L / E per pixel (<code>measurement.md</code>, last section), solved in least squares "
+        "<p>ρ = π·L / E per pixel (<code>docs/measurement.md</code>, diffuse reflectance under near light), "
+        "solved in least squares "
         "over the lights that see each point, with the same samples for the three light models. "
         "<b>collimated</b>: one direction and one irradiance for the whole object; <b>isotropic point</b>: "
         "E = I₀·cos/d², I₀ the light's total on-axis intensity, from the sources' centroid weighted by "

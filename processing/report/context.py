@@ -187,7 +187,7 @@ def truth_values(truth: Truth | None, k: int, name: str, theta: np.ndarray) -> n
 
 
 def truth_error(source: SourceModel, truth: Truth | None, k: int) -> float | None:
-    """RMS(I_fit − I_true) / max(I_true) over the θ the samples cover (``measurement.md``)."""
+    """RMS(I_fit − I_true) / max(I_true) over the θ the samples cover (``docs/measurement.md``)."""
     lo, hi = source.fit.theta_range
     if not (math.isfinite(lo) and math.isfinite(hi)):
         return None

@@ -390,7 +390,7 @@ def intensity_section(ctx: ReportContext) -> str:
     if ctx.truth is not None:
         parts.append(
             "<p>Error vs truth: RMS(I<sub>fit</sub> − I<sub>true</sub>) / max(I<sub>true</sub>) over the θ "
-            "the source's samples cover (<code>measurement.md</code>).</p>"
+            "the source's samples cover (<code>docs/measurement.md</code>).</p>"
         )
     return "\n".join(parts)
 

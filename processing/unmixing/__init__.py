@@ -1,6 +1,6 @@
 """From merged radiance to per-source samples of radiant intensity I_s(θ).
 
-The camera's point spread is large (``measurement.md``: a 0.2 mm pinhole blurs a point
+The camera's point spread is large (``docs/measurement.md``: a 0.2 mm pinhole blurs a point
 into a 38 px disc while five sources 4 mm apart image 7–12 px apart), so a pixel's chief
 ray does not say which source its light came from. The estimate that counts unmixes: for
 every source and position a *template* — the image that source alone would make at unit
@@ -21,7 +21,7 @@ frequency). Its scale follows from radiometry alone::
 with ``k`` the camera's sensitivity (e⁻/s per unit radiance), ``f`` the sensor distance,
 ``F`` the ball's reflectance and ``Ω`` that solid angle.
 
-The flux-conserving chief-ray cell sums of ``measurement.md`` step 4 are here too, as the
+The flux-conserving chief-ray cell sums of ``docs/measurement.md`` (estimator 4) are here too, as the
 fast path for sources farther apart than the footprint of a pixel on the light plane.
 
 Modules, in the order the data flow through them: :mod:`~processing.unmixing.sources` (the

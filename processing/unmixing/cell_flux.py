@@ -1,4 +1,4 @@
-"""The fast path: flux-conserving chief-ray cell sums (``measurement.md`` step 4)."""
+"""The fast path: flux-conserving chief-ray cell sums (``docs/measurement.md``, estimator 4)."""
 
 from __future__ import annotations
 
@@ -24,7 +24,7 @@ def cell_sums(
     cfa_pattern: str = "RGGB",
 ) -> np.ndarray:
     """``I_c ≈ Σ L_i A_i cos θ_i`` over the pixels whose chief ray lands within ``cell_radius``
-    of each source (``measurement.md`` step 4), per channel: (n_sources, 3).
+    of each source (``docs/measurement.md``, estimator 4), per channel: (n_sources, 3).
 
     Only the lit pixels in :func:`cell_pixel_boxes` are traced (a few hundred, where every
     lit pixel of the frame is ~10⁵ and 35 ms a position): a superset of those

@@ -39,7 +39,7 @@ class Template:
 
 @dataclass
 class TemplateBuilder:
-    """Templates of sources on the light plane for a rig (``measurement.md`` step 3).
+    """Templates of sources on the light plane for a rig (``docs/measurement.md``, estimator 3).
 
     The camera's blur is the aperture's geometric shadow (traced through the mirror) convolved
     with each channel's Airy pattern; with ``pupil``, the Fresnel pattern of that aperture

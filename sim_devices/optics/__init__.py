@@ -1,6 +1,6 @@
 """What the simulated camera sees of the mirrored ball: backward ray tracing.
 
-Written from the physics of ``measurement.md`` and deliberately independent of
+Written from the physics of ``docs/measurement.md`` and deliberately independent of
 :mod:`processing` (which has its own tracer), so that the two cannot share a mistake.
 
 A pixel's value is the average, over the pixel's area and the whole aperture, of the
