@@ -114,7 +114,12 @@ class RunEngine(RunQueue):
     # writes, never while a device works, so that a stop of the arm is never held up.
     @property
     def busy(self) -> bool:
-        return self._thread is not None and self._thread.is_alive()
+        """A run's thread holds the rig: from its start until it records how its run ended.
+
+        That record and this change under ``_lock`` together: a client that sees the run ended
+        finds the engine free, and may start the next thing at once (the thread only exits).
+        """
+        return self._thread is not None and self._thread.is_alive() and not self._exiting
 
     def start_run(self, request: RunRequest) -> RunRecord:
         """Start a run of ``request``, or queue it behind the run in progress.
@@ -143,7 +148,7 @@ class RunEngine(RunQueue):
                 self.preflight.check_room(request, len(tool))
             waits = self._rig_taken() or bool(self.catalog.queued_runs())
             if not waits:
-                self._require_idle()  # a previous run's thread is only exiting: waited for, briefly
+                self._require_idle()
             runs_dir = Path(self.settings.runs_dir)
             record = self.catalog.create_run(
                 preset=request.preset,
@@ -210,7 +215,7 @@ class RunEngine(RunQueue):
 
     def _rig_taken(self) -> bool:
         """A run is in progress, or its thread has not yet recorded how it ended (under ``_lock``)."""
-        return self.catalog.active_run() is not None or (self.busy and not self._exiting)
+        return self.catalog.active_run() is not None or self.busy
 
     def pause(self, run_id: str) -> RunRecord:
         """Pause a running run between frames.
@@ -324,17 +329,13 @@ class RunEngine(RunQueue):
         return record
 
     def _require_idle(self, run_id: str | None = None) -> None:
-        """Refuse unless no run other than ``run_id`` is active and no run thread is at work
-        (under ``_lock``). A thread whose run the catalog shows ended is only exiting: it is
-        waited for, briefly."""
+        """Refuse unless no run other than ``run_id`` is active and no run thread holds the rig
+        (under ``_lock``)."""
         if self._manual is not None:
             raise RunConflictError(f"the devices are busy: {self._manual}")
         active = self.catalog.active_run()
         if active is not None and active.id != run_id:
             raise RunConflictError(f"run {active.id} is already active on this rig")
-        thread = self._thread
-        if thread is not None and thread.is_alive() and active is None:
-            thread.join(timeout=5.0)
         if self.busy:
             raise RunConflictError(f"run {self._current or 'the previous run'} is still ending on this rig")
 
