@@ -217,7 +217,7 @@ def test_an_impossible_preset_schedule_is_a_422_naming_the_pose(daemon):
 
 
 def test_the_next_move_overlaps_the_writing_of_the_frames_just_taken(daemon, monkeypatch):
-    from acquisition.daemon import engine as runner
+    from acquisition.daemon import run_thread as runner
 
     spans = {}
     original = runner.RunFileWriter.write_position
