@@ -10,7 +10,7 @@ import pytest
 from conftest import ROOT
 from test_daemon_api import daemon, wait_state  # noqa: F401 - the fixture
 
-from acquisition.daemon.engine import RunEngine
+from acquisition.daemon.run_thread import RunThread
 from drivers.contracts.runfile import RunFile
 from drivers.errors import DeviceError
 from drivers.light import ManualLightSwitch, NoLightSwitch
@@ -36,16 +36,16 @@ def silhouette_error_px(rig, frame: np.ndarray, black: np.ndarray) -> float:
 
 
 def record_steps(monkeypatch) -> list[str]:
-    """Every step the engine reports (``RunStatus.step``), in order."""
+    """Every step a run's thread reports (``RunStatus.step``), in order."""
     steps: list[str] = []
-    original = RunEngine._set_step
+    original = RunThread._set_step
 
     def recording(self, step):
         if not steps or steps[-1] != step:
             steps.append(step)
         original(self, step)
 
-    monkeypatch.setattr(RunEngine, "_set_step", recording)
+    monkeypatch.setattr(RunThread, "_set_step", recording)
     return steps
 
 

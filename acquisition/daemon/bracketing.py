@@ -22,6 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from acquisition.daemon.models import AutoBracket
 from acquisition.daemon.settings import AutoBracketSettings
 from drivers.camera import RawFrame
 
@@ -34,6 +35,11 @@ PEAK_RANK = 5
 class NoiseModel:
     gain_e_per_dn: float
     read_noise_e: float
+
+
+def auto_bracket_rule(defaults: AutoBracketSettings, bracket: AutoBracket) -> AutoBracketSettings:
+    """The rule of a run's ``auto`` bracket: the daemon's ``defaults`` with the request's overrides."""
+    return defaults.model_copy(update=bracket.overrides())
 
 
 def electrons_for_snr(snr: float, read_noise_e: float) -> float:

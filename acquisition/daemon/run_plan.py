@@ -1,6 +1,6 @@
 """What a run is made of while the engine takes it: its plan (the poses, the request, the
-files it belongs with), the hand-over to the thread that writes behind the arm, the arm's
-arrivals, and the calibration sets the plan names."""
+calibration and bracket rules, the files it belongs with), the hand-over to the thread that
+writes behind the arm, the arm's arrivals, and the calibration sets the plan names."""
 
 from __future__ import annotations
 
@@ -8,9 +8,9 @@ import json
 import queue
 import threading
 from dataclasses import dataclass, field
-from pathlib import Path
 
-from acquisition.daemon.models import RunRequest
+from acquisition.daemon.models import FixedBracket, RunRequest
+from acquisition.daemon.settings import AutoBracketSettings
 from drivers.contracts.rig import Rig
 from drivers.light import AMBIENT, DARK, Lighting
 from drivers.pose import Pose
@@ -19,16 +19,37 @@ from drivers.pose import Pose
 DARK_IN_LIT_ROOM = "shortest exposure, room lit"
 
 
-@dataclass
+@dataclass(frozen=True)
 class RunPlan:
-    run_id: str
+    """What a run request becomes when its run starts or resumes, worked out once
+    (``RunPreflight.plan``) and carried through the run: the rig with the request's schedule,
+    the poses it takes, its calibration plan, its auto-bracket rule, and the files it belongs
+    with."""
+
+    request: RunRequest
     rig: Rig
     tool_poses: list[Pose]
     light_poses: list[Pose]
-    request: RunRequest
-    path: Path
-    #: The files the run belongs with, read once when the run is asked for (``references``).
+    #: The calibration sets the run takes, and how (``RunHeader.calibration``).
+    calibration: dict
+    #: The auto-bracket rule with the request's overrides; None for a fixed bracket.
+    auto_bracket: AutoBracketSettings | None
+    #: The files the run belongs with, read once when the run is asked for (``references``);
+    #: None for a resumed run, whose file records them (read only if that file must be created).
     references: dict | None = None
+
+    def __post_init__(self) -> None:
+        if (self.auto_bracket is None) != isinstance(self.request.bracket, FixedBracket):
+            raise ValueError("a run's plan has an auto-bracket rule exactly when its request's bracket is auto")
+
+    @property
+    def max_exposures(self) -> int:
+        """The most frames a position takes: the fixed bracket's, or the auto rule's cap."""
+        bracket = self.request.bracket
+        if isinstance(bracket, FixedBracket):
+            return len(bracket.exposures_s)
+        assert self.auto_bracket is not None  # __post_init__
+        return self.auto_bracket.max_exposures
 
 
 def light_model_record(text: str) -> dict:

@@ -8,9 +8,10 @@ from __future__ import annotations
 from datetime import UTC, datetime
 from pathlib import Path
 
+from acquisition.daemon.bracketing import auto_bracket_rule
 from acquisition.daemon.client_files import load_client_file
 from acquisition.daemon.devices import Devices
-from acquisition.daemon.models import FixedBracket, RunRequest
+from acquisition.daemon.models import AutoBracket, RunRequest
 from acquisition.daemon.run_plan import (
     DARK_IN_LIT_ROOM,
     RunPlan,
@@ -75,7 +76,8 @@ class RunPreflight:
             }
         if request.light_results is not None:
             model, sha256 = load_client_file(request.light_results, "light_results", "light model", light_model_record)
-            provenance = model.get("provenance") if isinstance(model.get("provenance"), dict) else {}
+            provenance = model.get("provenance")
+            provenance = provenance if isinstance(provenance, dict) else {}
             refs["light_model"] = {
                 "path": str(Path(request.light_results).expanduser().resolve()),
                 "sha256": sha256,
@@ -92,10 +94,29 @@ class RunPreflight:
             tool, light = tool[: request.count], light[: request.count]
         return rig, tool, light
 
+    def plan(self, request: RunRequest, *, with_references: bool = True) -> RunPlan:
+        """What ``request``'s run takes, worked out once for the run: its schedule on the rig,
+        its calibration plan, its auto-bracket rule, and (``with_references``) the files it
+        belongs with, read now so that one that cannot be read refuses the run."""
+        rig, tool, light = self.poses(request)
+        bracket = request.bracket
+        return RunPlan(
+            request=request,
+            rig=rig,
+            tool_poses=tool,
+            light_poses=light,
+            calibration=self.calibration_plan(request),
+            auto_bracket=auto_bracket_rule(self.settings.auto_bracket, bracket)
+            if isinstance(bracket, AutoBracket)
+            else None,
+            references=self.references(rig, request) if with_references else None,
+        )
+
     # --- storage -------------------------------------------------------------------------
-    def check_room(self, request: RunRequest, positions: int, extra_bytes: int = 0) -> None:
-        """Refuse a run (or what a resumed one has left: ``positions``, and ``extra_bytes`` for
-        the salvaged copy of its file) whose estimated size does not fit in the free space.
+    def check_room(self, plan: RunPlan, positions: int, extra_bytes: int = 0) -> None:
+        """Refuse a run of ``plan`` (or what a resumed one has left: ``positions``, and
+        ``extra_bytes`` for the salvaged copy of its file) whose estimated size does not fit in
+        the free space.
 
         The estimate is every frame (the longest bracket at each position, and the calibration
         sets) at ``storage.compression_ratio`` of its raw size, plus the run file's records.
@@ -109,8 +130,8 @@ class RunPreflight:
         """
         if not self.settings.storage.check_before_run:
             return
-        calibration = self.calibration_plan(request)
-        frames = positions * self.max_exposures(request)
+        calibration = plan.calibration
+        frames = positions * plan.max_exposures
         frames += sum(len(calibration_shot(calibration, role)[1]) for role, _ in calibration_sets(calibration))
         shape = (self.rig.camera.height, self.rig.camera.width)
         needed = run_bytes(frames, shape, self.settings.storage.compression_ratio) + extra_bytes
@@ -118,19 +139,15 @@ class RunPreflight:
         check_room(Path(self.settings.runs_dir), needed, what)
 
     # --- the run file's header and its calibration plan -----------------------------------
-    def max_exposures(self, request: RunRequest) -> int:
-        if isinstance(request.bracket, FixedBracket):
-            return len(request.bracket.exposures_s)
-        return self.settings.auto_bracket.model_copy(update=request.bracket.overrides()).max_exposures
-
-    def header(self, plan: RunPlan) -> RunHeader:
+    def header(self, run_id: str, plan: RunPlan) -> RunHeader:
+        """The header of run ``run_id``'s file, created as the run starts."""
         request = plan.request
         return RunHeader(
-            run_id=plan.run_id,
+            run_id=run_id,
             rig=plan.rig,
             tool_poses=plan.tool_poses,
             light_poses=plan.light_poses,
-            max_exposures=self.max_exposures(request),
+            max_exposures=plan.max_exposures,
             frame_shape=(plan.rig.camera.height, plan.rig.camera.width),
             bracket=request.bracket.model_dump(mode="json"),
             metadata={"operator": request.operator, "light_source": request.light_source, "notes": request.notes},
@@ -139,11 +156,12 @@ class RunPreflight:
             created_utc=datetime.now(UTC).isoformat(timespec="seconds"),
             preset=request.preset,
             references=plan.references if plan.references is not None else self.references(plan.rig, request),
-            calibration=self.calibration_plan(request),
+            calibration=plan.calibration,
         )
 
     def calibration_plan(self, request: RunRequest) -> dict:
-        """The calibration sets a new run takes, and how (``RunHeader.calibration``)."""
+        """The calibration sets a new run takes, and how (``RunHeader.calibration``): worked
+        out once per run, into its plan (:meth:`plan`)."""
         options, switch = request.calibration, self.devices.light
         plan: dict = {"switch": switch.identity, "sets": []}
         if not switch.takes_calibration:

@@ -1,6 +1,6 @@
-"""The queue of runs, as the run engine (``acquisition.daemon.engine``) keeps it: the runs asked for
-while one is in progress wait in the catalog, in an order the operator may change, and start
-one after the other.
+"""The queue of runs, an object the run engine (``acquisition.daemon.engine``) owns: the runs
+asked for while one is in progress wait in the catalog, in an order the operator may change,
+and start one after the other.
 
 - A run that **completes** starts the next queued run by itself.
 - A run that **fails or is aborted** holds the queue, with the reason: the rig may need a
@@ -19,15 +19,14 @@ from __future__ import annotations
 
 import logging
 import threading
-from abc import ABC, abstractmethod
-from pathlib import Path
+from collections.abc import Callable
 
 from pydantic import ValidationError
 
 from acquisition.daemon.catalog import Catalog, CatalogError, RunRecord
 from acquisition.daemon.catalog.pending import PendingEnds
 from acquisition.daemon.models import RunRequest
-from acquisition.daemon.run_control import ProgressEvents, RunConflictError
+from acquisition.daemon.run_control import ProgressEvents
 from acquisition.daemon.run_plan import RunPlan
 from acquisition.daemon.run_preflight import RunPreflight
 from acquisition.daemon.storage import StorageError
@@ -38,35 +37,34 @@ log = logging.getLogger("mirrorgonio.runner")
 REMOVED = "removed from the queue by the operator"
 
 
-class RunQueue(ABC):
-    """The run engine's queue operations (mixed into :class:`acquisition.daemon.engine.RunEngine`,
-    whose lock, catalog and run threads they use)."""
+class RunQueue:
+    """One rig's queue of runs, owned by its run engine.
 
-    catalog: Catalog
-    pending: PendingEnds
-    events: ProgressEvents
-    preflight: RunPreflight
-    _lock: threading.Lock
-    _manual: str | None
-    _closing: bool
+    It uses of the engine only what it is given: the catalog that keeps the queue, the
+    preflight that plans a queued run, the engine's lock (its methods marked "under the lock"
+    are called with it held), and ``start``, which starts a planned run (the engine's: the run
+    ``running``, its thread started) and returns its record.
+    """
 
-    @abstractmethod
-    def _launch(self, plan: RunPlan, resume: bool) -> None:
-        """Start ``plan``'s run thread (the engine's)."""
+    def __init__(
+        self,
+        catalog: Catalog,
+        preflight: RunPreflight,
+        events: ProgressEvents,
+        pending: PendingEnds,
+        lock: threading.Lock,
+        start: Callable[[RunRecord, RunPlan], RunRecord],
+    ):
+        self.catalog = catalog
+        self.preflight = preflight
+        self.events = events
+        self.pending = pending
+        self._lock = lock
+        self._start = start
+        self.closing = False  # the daemon shuts down: no queued run starts
 
-    @abstractmethod
-    def _rig_taken(self) -> bool:
-        """Whether a run holds the rig (the engine's)."""
-
-    def _run_now(self, record: RunRecord, plan: RunPlan) -> RunRecord:
-        """``record`` running, then its thread started with ``plan`` (running first: a pause
-        right after the start applies to it). Under the engine's lock."""
-        record = self.catalog.transition_run(record.id, "running")
-        self._launch(plan, resume=False)
-        return record
-
-    def start_queue(self) -> RunRecord | None:
-        """Release the queue's hold; start its next run now if the rig is free.
+    def release(self, rig_taken: bool) -> RunRecord | None:
+        """Release the queue's hold; start its next run now unless ``rig_taken`` (under the lock).
 
         Returns
         -------
@@ -75,29 +73,23 @@ class RunQueue(ABC):
 
         Raises
         ------
-        RunConflictError
-            The devices are held by a test shot, a jog or homing (the queue stays as it was).
         RigError, ClientFileError, InsufficientStorageError, StorageUnavailableError
             The next run cannot start (its preflight): the queue is held again with the reason.
         """
-        with self._lock:
-            self.pending.save()
-            if self._manual is not None:
-                raise RunConflictError(f"the devices are busy: {self._manual}")
-            self.catalog.release_queue()
-            self.events.publish()
-            if self._rig_taken():
-                return None
-            return self._start_next(explicit=True)
+        self.catalog.release_queue()
+        self.events.publish()
+        if rig_taken:
+            return None
+        return self.start_next(explicit=True)
 
-    def reorder_queue(self, run_ids: list[str]) -> list[RunRecord]:
+    def reorder(self, run_ids: list[str]) -> list[RunRecord]:
         """The queued runs ``run_ids`` first, in that order (``Catalog.reorder_queue``)."""
         with self._lock:
             queued = self.catalog.reorder_queue(run_ids)
         self.events.publish()
         return queued
 
-    def remove_queued(self, run_id: str) -> RunRecord:
+    def remove(self, run_id: str) -> RunRecord:
         """Take a queued run out of the queue: it ends ``aborted`` without having started.
 
         Raises
@@ -121,20 +113,19 @@ class RunQueue(ABC):
         self.catalog.hold_queue(f"the daemon restarted{why}: start the queue once the rig is ready")
         log.warning("the queue of %d runs is held: the daemon restarted%s", len(queued), why)
 
-    def _start_next(self, explicit: bool = False) -> RunRecord | None:
-        """Start the first queued run, the rig being free (under ``_lock``). A run that cannot
+    def start_next(self, explicit: bool = False) -> RunRecord | None:
+        """Start the first queued run, the rig being free (under the lock). A run that cannot
         start (its request, its references or its size no longer pass) stays queued and holds
-        the queue with the reason; an ``explicit`` request (:meth:`start_queue`) is also told."""
+        the queue with the reason; an ``explicit`` request (:meth:`release`) is also told."""
         queued = self.catalog.queued_runs()
-        if not queued or self._closing:
+        if not queued or self.closing:
             return None
         record = queued[0]
         try:
             request = RunRequest.model_validate(record.request)
-            rig, tool, light = self.preflight.poses(request)
-            references = self.preflight.references(rig, request)
+            plan = self.preflight.plan(request)
             if not request.force:
-                self.preflight.check_room(request, len(tool))
+                self.preflight.check_room(plan, len(plan.tool_poses))
         except (ValidationError, ValueError, StorageError) as exc:
             reason = f"run {record.id} cannot start: {exc}"
             log.warning("the queue is held: %s", reason)
@@ -143,19 +134,19 @@ class RunQueue(ABC):
             if explicit:
                 raise
             return None
-        record = self._run_now(record, RunPlan(record.id, rig, tool, light, request, Path(record.path), references))
-        log.info("run %s started from the queue: %s, %d positions", record.id, request.preset, len(tool))
+        record = self._start(record, plan)
+        log.info("run %s started from the queue: %s, %d positions", record.id, request.preset, len(plan.tool_poses))
         self.events.publish()
         return record
 
-    def _queue_after(self, run_id: str, outcome: str, message: str) -> None:
-        """The queue once run ``run_id`` has ended (under ``_lock``, in the run's thread, as its
+    def after_run(self, run_id: str, outcome: str, message: str) -> None:
+        """The queue once run ``run_id`` has ended (under the lock, in the run's thread, as its
         last act): the next queued run starts if this one completed and the queue is not held;
         a run that failed or was aborted (or whose end the catalog could not record yet) holds it."""
         try:
             if not self.catalog.queued_runs() or self.catalog.queue_hold() is not None:
                 return
-            if self._closing:
+            if self.closing:
                 reason = f"the daemon shut down during run {run_id}"
             elif run_id in self.pending.held():
                 reason = f"the catalog could not record how run {run_id} ended"
@@ -164,7 +155,7 @@ class RunQueue(ABC):
             elif outcome != "complete":
                 reason = f"run {run_id} {outcome}: {message or 'no reason given'}"
             else:
-                self._start_next()
+                self.start_next()
                 return
             self.catalog.hold_queue(reason.replace("\n", " "))
             log.warning("the queue is held: %s", reason)
