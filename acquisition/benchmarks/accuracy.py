@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 import tempfile
 import time
+from collections.abc import Sequence
 from pathlib import Path
 
 import h5py
@@ -23,7 +24,7 @@ from acquisition.daemon.devices import open_devices
 from acquisition.daemon.engine import RunEngine
 from acquisition.daemon.models import FixedBracket, RunRequest
 from acquisition.daemon.settings import load_settings
-from drivers.contracts.rig import load_rig
+from drivers.contracts.rig import Rig, load_rig
 from processing.light_run.run import process_run
 from sim_devices.lights import LIGHTS_DIR, load_truth
 
@@ -32,10 +33,10 @@ REFERENCE_EXPOSURES_S = (2e-5, 1e-4, 5e-4, 2.5e-3, 1.25e-2)
 
 
 def acquire_simulated(
-    rig,
+    rig: Rig,
     truth_name: str,
     noise: bool,
-    exposures,
+    exposures: Sequence[float],
     positions: int | None,
     workdir: Path,
     *,
@@ -55,7 +56,7 @@ def acquire_simulated(
     return take_run(settings, rig, request)
 
 
-def take_run(settings, rig, request) -> Path:
+def take_run(settings, rig: Rig, request) -> Path:
     """One run of ``request`` through the daemon's run engine, on the devices ``settings``
     name (the simulated ones by default), in ``settings.data_dir``; the run file's path.
 
@@ -81,8 +82,8 @@ def bench_accuracy(
     noise: bool = True,
     truth: str = "five-gaussians",
     positions: int = 66,
-    rig_path=None,
-    exposures=REFERENCE_EXPOSURES_S,
+    rig_path: str | Path | None = None,
+    exposures: Sequence[float] = REFERENCE_EXPOSURES_S,
     fit_method: str = "gaussian",
     workdir: str | Path | None = None,
     layout_from_data: bool = False,

@@ -17,7 +17,7 @@ from acquisition.daemon.devices import Devices
 from acquisition.daemon.engine import RunEngine
 from acquisition.daemon.models import FixedBracket, RunRequest
 from acquisition.daemon.settings import load_settings
-from drivers.contracts.rig import load_rig
+from drivers.contracts.rig import Rig, load_rig
 from drivers.modbus_arm import ModbusArm
 from drivers.modbus_profile import SIM_STAGE_PROFILE
 from sim_devices.camera import SimulatedCamera
@@ -27,7 +27,7 @@ from sim_devices.stage import SimulatedStage, StageConfig
 from sim_devices.world import SimWorld
 
 
-def _frames(rig, count: int, seed: int = 0):
+def _frames(rig: Rig, count: int, seed: int = 0):
     """Realistic raw frames: rendered mirror-ball images with sensor noise."""
     poses = rig.tool_poses()
     state = {"pose": poses[len(poses) // 2]}
@@ -70,7 +70,7 @@ def plain_h5py_write(path: Path, frames, positions: int, exposures: int) -> floa
 
 
 @contextlib.contextmanager
-def zero_latency_arm(rig):
+def zero_latency_arm(rig: Rig):
     """The simulated stage at infinite speed behind a real Modbus TCP server on loopback, and
     the Modbus driver connected to it: the arm whose own time is (nearly) nothing."""
     stage = SimulatedStage(
@@ -92,7 +92,7 @@ def zero_latency_arm(rig):
             arm.close()
 
 
-def timed_engine_run(settings, rig, devices, request):
+def timed_engine_run(settings, rig: Rig, devices, request):
     """One run of ``request`` through the daemon's run engine in ``settings.data_dir``:
     (seconds from start to the run's end, the run's catalog record). RuntimeError when the
     run does not complete."""
@@ -113,7 +113,11 @@ def timed_engine_run(settings, rig, devices, request):
 
 
 def bench_acquire(
-    rig_path=None, positions: int = 20, exposures: int = 3, repeat: int = 3, distinct_frames: int = 6
+    rig_path: str | Path | None = None,
+    positions: int = 20,
+    exposures: int = 3,
+    repeat: int = 3,
+    distinct_frames: int = 6,
 ) -> dict:
     """Run the real engine on zero-latency devices and compare with a plain h5py write."""
     rig = load_rig(rig_path)

@@ -29,6 +29,7 @@ import os
 import statistics
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numba
 import numpy as np
@@ -42,7 +43,7 @@ from acquisition.benchmarks.hdr_methods import (
     opencv_method,
     ours_method,
 )
-from drivers.contracts.rig import load_rig, rig_from_dict, rig_to_toml_dict
+from drivers.contracts.rig import Rig, load_rig, rig_from_dict, rig_to_toml_dict
 from sim_devices.lights import load_truth
 from sim_devices.optics import MirrorBallRenderer
 from sim_devices.sensor import SensorModel, mosaic_of
@@ -78,7 +79,7 @@ def exposure_times(count: int) -> np.ndarray:
     return SHORTEST_S * (LONGEST_S / SHORTEST_S) ** (np.arange(count) / (count - 1))
 
 
-def rig_at_size(rig, width: int, height: int):
+def rig_at_size(rig: Rig, width: int, height: int):
     """The rig with its sensor resampled to ``width`` x ``height``, the same field of view across.
 
     Parameters
@@ -130,7 +131,7 @@ def _pixel_set(truth_dn: np.ndarray, sensor: Sensor, exposures: np.ndarray):
     return mask, x, float(np.sum(1.0 / (info * x * x)))
 
 
-def _scenes(rig, sensor: Sensor, exposures: np.ndarray, distinct: int, seed: int) -> list[_Scene]:
+def _scenes(rig: Rig, sensor: Sensor, exposures: np.ndarray, distinct: int, seed: int) -> list[_Scene]:
     """The ball rendered at ``distinct`` positions spread over the schedule, the background
     added; each scene's pixel set and truth."""
     renderer = MirrorBallRenderer(
@@ -200,7 +201,7 @@ def bench_hdr(
     repeat: int = 1,
     seed: int = 0,
     *,
-    rig_path=None,
+    rig_path: str | Path | None = None,
     peers: bool = True,
     distinct_scenes: int = DISTINCT_SCENES,
 ) -> dict:
@@ -266,7 +267,7 @@ def _check_parameters(positions: int, exposures: int, width: int, height: int, r
         raise BenchmarkError(f"repeat: must be at least 1, got {repeat}")
 
 
-def _sensor_of(rig) -> Sensor:
+def _sensor_of(rig: Rig) -> Sensor:
     """The rig's simulated sensor (with noise), and its constants in DN."""
     model = SensorModel.from_rig(rig.camera, noise=True)
     return Sensor(
@@ -348,7 +349,7 @@ ERROR_DEFINITION = (
 
 def _report(
     *,
-    rig,
+    rig: Rig,
     sensor: Sensor,
     scenes: list[_Scene],
     times_s: np.ndarray,

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import tempfile
 import time
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -63,7 +64,7 @@ def bench_reflectance(
     noise: bool = True,
     light_positions: int = 66,
     workdir: str | Path | None = None,
-    object_exposures=OBJECT_EXPOSURES_S,
+    object_exposures: Sequence[float] = OBJECT_EXPOSURES_S,
 ) -> dict:
     """Measure the light, photograph the object, estimate ρ three ways, score each."""
     rig_path = Path(object_rig)

@@ -9,6 +9,8 @@ import threading
 
 import psutil
 
+from processing.parallel import Compute
+
 
 class MemorySampler:
     """Peak resident memory of this process and of all its descendants, sampled in a thread.
@@ -91,7 +93,7 @@ def rusage() -> tuple[float, float, int]:
     return usage.ru_utime, usage.ru_stime, usage.ru_minflt
 
 
-def cpu_usage(compute) -> dict[str, tuple[float, float, int]]:
+def cpu_usage(compute: Compute) -> dict[str, tuple[float, float, int]]:
     """:func:`rusage` of this process (``"client"``) and of every Dask worker (by address)."""
     usage = {"client": rusage()}
     if compute.dask:

@@ -16,6 +16,7 @@ import math
 import shutil
 import tempfile
 import time
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import h5py
@@ -29,7 +30,7 @@ from processing.light_run.errors import ProcessingError
 from processing.light_run.position import warm_up_worker
 from processing.light_run.run import process_run
 from processing.options import FitChoice
-from processing.parallel import open_compute
+from processing.parallel import Compute, open_compute
 from sim_devices.lights import LIGHTS_DIR, load_truth
 
 #: The rig taken by default: the demo's (``rigs/demo.toml``, the default geometry at half the
@@ -87,7 +88,7 @@ WAYS = {
 
 def bench_tolerance(
     *,
-    rig_path=None,
+    rig_path: str | Path | None = None,
     truth: str = "five-gaussians",
     positions: int = 66,
     errors=None,
@@ -98,10 +99,10 @@ def bench_tolerance(
     fit_aperture: bool = False,
     fit_sensor_distance: bool = False,
     noise: bool = True,
-    exposures=REFERENCE_EXPOSURES_S,
+    exposures: Sequence[float] = REFERENCE_EXPOSURES_S,
     scheduler: str = "local",
     workdir: str | Path | None = None,
-    log=None,
+    log: Callable[[str], None] | None = None,
 ) -> dict:
     """Take one simulated run, then process it with the rig described as taken and with each
     of ``errors`` (names :func:`parse_error` reads, default :data:`DEFAULT_ERRORS`), or with
@@ -193,7 +194,9 @@ def _ways(
     return {name: (given if WAYS[name][0] else None, *WAYS[name][1:4]) for name in names}
 
 
-def _process_one_way(copy: Path, out_dir: Path, way: tuple, compute, truth: tuple, row: dict, say) -> dict:
+def _process_one_way(
+    copy: Path, out_dir: Path, way: tuple, compute: Compute, truth: tuple, row: dict, say: Callable[[str], None]
+) -> dict:
     """``row`` completed with one processing of the run file ``copy`` the ``way`` :func:`_ways`
     names, its sources scored against the truth (the rig the run was taken with and its light);
     a processing that fails is said in the row."""
