@@ -79,7 +79,7 @@ def exposure_times(count: int) -> np.ndarray:
     return SHORTEST_S * (LONGEST_S / SHORTEST_S) ** (np.arange(count) / (count - 1))
 
 
-def rig_at_size(rig: Rig, width: int, height: int):
+def rig_at_size(rig: Rig, width: int, height: int) -> Rig:
     """The rig with its sensor resampled to ``width`` x ``height``, the same field of view across.
 
     Parameters
@@ -112,7 +112,7 @@ def _background(height: int, width: int) -> np.ndarray:
     return np.broadcast_to(np.logspace(math.log10(lo), math.log10(hi), width), (height, width))
 
 
-def _pixel_set(truth_dn: np.ndarray, sensor: Sensor, exposures: np.ndarray):
+def _pixel_set(truth_dn: np.ndarray, sensor: Sensor, exposures: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
     """The compared photosites, and the variance of the ideal merge of each."""
     clip = sensor.range_dn
     short = truth_dn * exposures.min()
@@ -149,6 +149,7 @@ def _scenes(rig: Rig, sensor: Sensor, exposures: np.ndarray, distinct: int, seed
 
 
 def _bracket(sensor: Sensor, scene: _Scene, exposures: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    assert sensor.model is not None  # _sensor_of's
     rgb = np.broadcast_to(scene.rate_e, (3, *scene.rate_e.shape))  # every channel: the site's own rate
     return np.stack([sensor.model.expose(rgb, float(t), rng) for t in exposures])
 
@@ -365,6 +366,8 @@ def _report(
     wall_s: float,
 ) -> dict:
     """The benchmark's JSON: the set-up, every method's time and error, the speed-ups and the target."""
+    model = sensor.model
+    assert model is not None  # _sensor_of's
     used = [scenes[p % len(scenes)] for p in range(positions)]
     out_methods = {name: _method_entry(m, states.get(name), positions) for name, m in methods.items()}
     result: dict = {
@@ -391,8 +394,8 @@ def _report(
             "cfa_pattern": sensor.cfa_pattern,
             "black_level_dn": sensor.black,
             "white_level_dn": sensor.white,
-            "full_well_e": sensor.model.full_well_e,
-            "read_noise_e": sensor.model.read_noise_e,
+            "full_well_e": model.full_well_e,
+            "read_noise_e": model.read_noise_e,
             "gain_e_per_dn": round(sensor.gain, 5),
         },
         "pixel_set": _pixel_set_report(used, positions * width * height),
@@ -419,6 +422,7 @@ def _method_entry(m: MergeMethod | str, state: _State | None, positions: int) ->
     }
     if not isinstance(m, MergeMethod):
         return {"status": m, **unmeasured, "notes": m}
+    assert state is not None  # every method that ran has its state
     if state.failed:
         return {"status": state.failed, **unmeasured, "notes": m.notes, "version": m.version}
     total = statistics.median(state.times)

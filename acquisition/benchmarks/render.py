@@ -60,6 +60,7 @@ def bench_render(rig_path: str | Path | None = None, repeat: int = 3, position: 
         stats = renderer.render(pose).stats
         render_times.append(time.perf_counter() - t0)
     render_s, chief_s = statistics.median(render_times), statistics.median(chief_times)
+    assert stats is not None  # repeat >= 1: median() refuses no times
     return {
         "benchmark": "render",
         "width": cam.width,

@@ -141,7 +141,16 @@ def _check_options(positions: int, exposures: int, repeat: int, process_repeat: 
 
 
 def _measure(
-    runs: dict, result: dict, *, repeat, process_repeat, hdr_positions, peers, scheduler, workers, say
+    runs: dict,
+    result: dict,
+    *,
+    repeat: int,
+    process_repeat: int,
+    hdr_positions: int,
+    peers: bool,
+    scheduler: str,
+    workers: int | None,
+    say: Callable[[str], None],
 ) -> None:
     """Every measurement at every size, into ``result["sizes"]``."""
     for (width, height), (rig, made) in runs.items():

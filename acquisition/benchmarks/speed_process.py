@@ -60,7 +60,7 @@ def _quiet_dask():
 
 
 # --- the read floor -------------------------------------------------------------------------------
-def _read_all(run_path) -> tuple[int, int]:
+def _read_all(run_path: Path) -> tuple[int, int]:
     """Every complete position's frames, as the processing reads them; (frames, bytes)."""
     frames = nbytes = 0
     with RunFile.open(run_path) as run:
@@ -78,7 +78,7 @@ def read_position(index: int, run_path: str) -> int:
         return int(run.frames(index).nbytes)
 
 
-def _timed_read(run_path) -> float:
+def _timed_read(run_path: Path) -> float:
     """Seconds of one :func:`_read_all`."""
     t0 = time.perf_counter()
     _read_all(run_path)
@@ -127,7 +127,7 @@ def measure_parallel_read(run_path: Path, repeat: int, compute: Compute) -> dict
 
 
 # --- whole-run processing -------------------------------------------------------------------------
-def _process_once(run_path: Path, layout, compute: Compute, *, images: bool = True) -> dict:
+def _process_once(run_path: Path, layout: Path | None, compute: Compute, *, images: bool = True) -> dict:
     """One whole-run processing on ``compute`` into a fresh folder (deleted afterwards)."""
     out_dir = Path(tempfile.mkdtemp(prefix="mirrorgonio-speed-out-"))
     try:
