@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Annotated, Literal, Self
 
 import numpy as np
+from numpy.typing import ArrayLike
 from pydantic import Field, PositiveFloat, model_validator
 
 from drivers.config_files import ConfigModel, load_model
@@ -103,7 +104,7 @@ class Emitter(ConfigModel):
     def area_m2(self) -> float:
         return math.pi * self.radius_m**2
 
-    def radiance(self, theta, phi) -> np.ndarray:
+    def radiance(self, theta: ArrayLike, phi: ArrayLike) -> np.ndarray:
         """Radiance leaving the disc (any point on it) in direction (θ, φ)."""
         theta = np.asarray(theta, dtype=float)
         if isinstance(self.intensity, LambertianRadiance):
@@ -113,7 +114,7 @@ class Emitter(ConfigModel):
             value = self.intensity(theta, phi) / (np.maximum(cos_t, 1e-12) * self.area_m2)
         return np.where(cos_t > 0.0, value, 0.0)
 
-    def intensity_w_sr(self, theta, phi=0.0) -> np.ndarray:
+    def intensity_w_sr(self, theta: ArrayLike, phi: ArrayLike = 0.0) -> np.ndarray:
         """Radiant intensity of the whole disc: the truth a fit is compared with."""
         theta = np.asarray(theta, dtype=float)
         if isinstance(self.intensity, LambertianRadiance):

@@ -4,6 +4,7 @@ the exact trace of a batch of rays through them."""
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -120,7 +121,7 @@ class LightPlane:
         )
         return lp, lv
 
-    def blocks_segment(self, start, end) -> np.ndarray:
+    def blocks_segment(self, start: Sequence[np.ndarray], end: Sequence[np.ndarray]) -> np.ndarray:
         """True where the segment ``start → end`` (rig frame) passes through the housing."""
         if self.housing_radius <= 0.0:
             return np.zeros(np.shape(start[0]), dtype=bool)
@@ -188,7 +189,17 @@ class Trace:
     cos4: np.ndarray
 
 
-def trace(camera: CameraOptics, mirror: Mirror, plane: LightPlane, col, row, ax, ay, *, fresnel=True) -> Trace:
+def trace(
+    camera: CameraOptics,
+    mirror: Mirror,
+    plane: LightPlane,
+    col: np.ndarray,
+    row: np.ndarray,
+    ax: np.ndarray,
+    ay: np.ndarray,
+    *,
+    fresnel: bool = True,
+) -> Trace:
     """Trace rays given by sensor point (pixels) and aperture point (metres)."""
     (ox, oy, oz), (dx, dy, dz), cos4 = camera.rays(col, row, ax, ay)
     c = mirror.centre

@@ -8,6 +8,7 @@ from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
+from numpy.typing import ArrayLike
 
 from drivers.contracts.rig import Rig
 from drivers.pose import Pose
@@ -15,7 +16,7 @@ from sim_devices.lights import Emitter, TruthLight
 from sim_devices.optics.aperture import ApertureShape
 from sim_devices.optics.diffraction import apply_diffraction
 from sim_devices.optics.fresnel import BAND_SAMPLES, PathCurvature
-from sim_devices.optics.geometry import CameraOptics, LightPlane, Mirror, fresnel_conductor, trace
+from sim_devices.optics.geometry import CameraOptics, LightPlane, Mirror, Trace, fresnel_conductor, trace
 from sim_devices.optics.point_spread import FresnelBlur
 from sim_devices.optics.sampling import subpixel_pattern, unit_disc_samples
 
@@ -35,7 +36,7 @@ class RenderStats:
     per_emitter_image_distance: dict = field(default_factory=dict)
 
 
-def environment_rgb(radiance) -> np.ndarray:
+def environment_rgb(radiance: ArrayLike) -> np.ndarray:
     """A uniform environment's radiance as (R, G, B): a number or one per channel, finite, ≥ 0."""
     env = np.broadcast_to(np.asarray(radiance, dtype=float), (3,)).copy()
     if not np.all(np.isfinite(env)) or np.any(env < 0):
@@ -127,7 +128,7 @@ class MirrorBallRenderer:
         self.set_environment(environment_radiance)
         self.environment_aperture_samples = environment_aperture_samples
 
-    def set_environment(self, radiance) -> None:
+    def set_environment(self, radiance: ArrayLike) -> None:
         """The uniform environment's radiance: a number, or one per channel (R, G, B)."""
         self.environment = environment_rgb(radiance)
 
@@ -230,7 +231,7 @@ class MirrorBallRenderer:
         stats.rim_hit_fraction = rim_hits / total_hits if total_hits else 0.0
 
     # --- the uniform environment ------------------------------------------------------------
-    def _environment_blur_px(self, plane) -> float:
+    def _environment_blur_px(self, plane: LightPlane) -> float:
         """An upper bound of the radius (pixels) of any scene point's blur on the sensor.
 
         Everything the environment pass can see lies between the nearest of the ball's
@@ -283,7 +284,7 @@ class MirrorBallRenderer:
             self._fresnel_lut = (grid, fresnel_conductor(grid, self.mirror.n, self.mirror.k))
         return self._fresnel_lut
 
-    def _render_environment(self, plane, stats) -> np.ndarray:
+    def _render_environment(self, plane: LightPlane, stats: RenderStats) -> np.ndarray:
         """Unscaled rate (3, H·W) of the uniform environment reflected by the ball."""
         cam = self.camera
         out = np.zeros((3, cam.height * cam.width))
@@ -333,14 +334,16 @@ class MirrorBallRenderer:
             out[sl] = value.reshape(m, per_pixel, 3).mean(axis=1)
         return out, col.size * per_pixel
 
-    def _hidden_environment(self, plane, t, on) -> np.ndarray:
+    def _hidden_environment(self, plane: LightPlane, t: Trace, on: np.ndarray) -> np.ndarray:
         """``L_env · F · cos⁴`` (N, 3) for emitter hits outside the housing's face: light of
         the surroundings the emitter hides (already counted by the environment pass)."""
         bare = on & (t.u * t.u + t.v * t.v > plane.housing_radius**2)
         return np.where(bare[:, None], t.fresnel * t.cos4[:, None] * self.environment[None, :], 0.0)
 
     # --- the Fresnel point spread's path -----------------------------------------------------
-    def _emitter_path(self, plane, emitter: Emitter, col, row, uv0) -> PathCurvature | None:
+    def _emitter_path(
+        self, plane: LightPlane, emitter: Emitter, col: np.ndarray, row: np.ndarray, uv0: np.ndarray
+    ) -> PathCurvature | None:
         """The optical path about the chief ray onto the emitter's centre (None where it is not
         traced): Newton's method on the exact trace for the sensor point, then the rays'
         magnification ``M = ∂p/∂ρ = −J_p⁻¹ J_ρ`` by central differences (1 % of the pinhole's
@@ -405,7 +408,16 @@ class MirrorBallRenderer:
         return j, tx.valid & ty.valid
 
     # --- one emitter --------------------------------------------------------------------------
-    def _render_emitter(self, plane, emitter: Emitter, col, row, uv0, ja, jd):
+    def _render_emitter(
+        self,
+        plane: LightPlane,
+        emitter: Emitter,
+        col: np.ndarray,
+        row: np.ndarray,
+        uv0: np.ndarray,
+        ja: np.ndarray,
+        jd: np.ndarray,
+    ) -> tuple[np.ndarray, np.ndarray, int, int, int]:
         cam = self.camera
         ra = cam.aperture_radius
         q = np.asarray(emitter.centre_m, dtype=float)
