@@ -152,7 +152,7 @@ class SimulatedCamera(Camera):
         self._colour: dict | None = None
 
     @property
-    def environment_radiance(self):
+    def environment_radiance(self) -> np.ndarray:
         """The room's radiance (R, G, B) while it is lit."""
         return self._room.copy()
 

@@ -46,7 +46,7 @@ class _SubIFDTag(dngTag):
     (layout and writing through ``subIFD``) works, so only the value is set here.
     """
 
-    def setValue(self, value):  # noqa: N802 - pidng's method name
+    def setValue(self, value: list[dngIFD]) -> None:  # noqa: N802 - pidng's method name
         self.Value = b"\x00\x00\x00\x00"
         self.subIFD = value[0]
 

@@ -40,7 +40,7 @@ class GaussianIntensity(ConfigModel):
     peak_w_sr: PositiveFloat = 1.0
     sigma_deg: PositiveFloat = 20.0
 
-    def __call__(self, theta, phi):
+    def __call__(self, theta: np.ndarray, phi: ArrayLike) -> np.ndarray:
         s = math.radians(self.sigma_deg)
         return self.peak_w_sr * np.exp(-0.5 * (theta / s) ** 2)
 
@@ -52,7 +52,7 @@ class CosinePowerIntensity(ConfigModel):
     peak_w_sr: PositiveFloat = 1.0
     mu: PositiveFloat = 3.0
 
-    def __call__(self, theta, phi):
+    def __call__(self, theta: np.ndarray, phi: ArrayLike) -> np.ndarray:
         return self.peak_w_sr * np.clip(np.cos(theta), 0.0, None) ** self.mu
 
 
@@ -65,7 +65,7 @@ class AnisotropicIntensity(ConfigModel):
     sigma_minor_deg: PositiveFloat = 12.0
     azimuth_deg: float = 0.0
 
-    def __call__(self, theta, phi):
+    def __call__(self, theta: np.ndarray, phi: ArrayLike) -> np.ndarray:
         a = np.asarray(phi) - math.radians(self.azimuth_deg)
         sm, sn = math.radians(self.sigma_major_deg), math.radians(self.sigma_minor_deg)
         return self.peak_w_sr * np.exp(-0.5 * theta**2 * (np.cos(a) ** 2 / sm**2 + np.sin(a) ** 2 / sn**2))

@@ -99,13 +99,13 @@ class RayCaster:
         )
         self.backend = "embree"
 
-    def _local(self, origins):
+    def _local(self, origins: ArrayLike) -> np.ndarray:
         origins = np.asarray(origins, dtype=float)
         out = np.empty(origins.shape, dtype=np.float32)
         np.subtract(origins, self.offset, out=out, casting="same_kind")
         return out
 
-    def first_hit(self, origins, directions):
+    def first_hit(self, origins: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Face index (−1 for a miss) and barycentric coordinates (N, 3) of each ray's first hit."""
         n = len(origins)
         if self._scene is not None:

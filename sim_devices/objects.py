@@ -31,7 +31,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Self
 
 import numpy as np
 import trimesh
@@ -99,7 +99,7 @@ class SurfaceTruth(ConfigModel):
     specular: Specular | None = None
 
     @model_validator(mode="after")
-    def _energy(self):
+    def _energy(self) -> Self:
         if self.specular is not None:
             top = max([max(self.base_albedo)] + [max(p.albedo) for p in self.patches])
             if top + self.specular.k_s > 1.0:
@@ -405,7 +405,7 @@ def closest_point_on_triangles(triangles: np.ndarray, points: np.ndarray) -> tup
     p = np.asarray(points, dtype=float)
     ab, ac = b - a, c - a
 
-    def dot(x, y):
+    def dot(x: np.ndarray, y: np.ndarray) -> np.ndarray:
         return np.einsum("ij,ij->i", x, y)
 
     ap, bp, cp = p - a, p - b, p - c

@@ -167,7 +167,9 @@ class ApertureShape:
         half = 0.5 * cell / self.mask_pixel
         u, v = x / self.mask_pixel + self.mask_centre[0], y / self.mask_pixel + self.mask_centre[1]
 
-        def integral(uu, vv):  # the image's integral over [0, uu] × [0, vv], in pixels
+        def integral(
+            uu: np.ndarray, vv: np.ndarray
+        ) -> np.ndarray:  # the image's integral over [0, uu] × [0, vv], in pixels
             at = [np.ravel(vv), np.ravel(uu)]
             return ndimage.map_coordinates(self.mask, at, order=1, mode="nearest").reshape(np.shape(uu))
 

@@ -48,7 +48,9 @@ class CameraOptics:
             wavelengths=np.asarray(cam.channel_wavelengths_m, dtype=float),
         )
 
-    def rays(self, col, row, ax, ay):
+    def rays(
+        self, col: np.ndarray, row: np.ndarray, ax: np.ndarray, ay: np.ndarray
+    ) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray], np.ndarray]:
         """Rays from sensor points (pixel coordinates) through aperture points (metres).
 
         Returns origins and unit directions in the rig frame, and the ``cos⁴β`` factor of
@@ -105,7 +107,9 @@ class LightPlane:
             rig.light.housing_depth_m,
         )
 
-    def to_local(self, px, py, pz, vx, vy, vz):
+    def to_local(
+        self, px: np.ndarray, py: np.ndarray, pz: np.ndarray, vx: np.ndarray, vy: np.ndarray, vz: np.ndarray
+    ) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray]]:
         """Point and direction from the rig frame into the light frame."""
         r, o = self.rotation, self.origin
         qx, qy, qz = px - o[0], py - o[1], pz - o[2]
