@@ -6,7 +6,6 @@ import shlex
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated
 
-import click
 import typer
 
 from acquisition.cli.app import (
@@ -44,11 +43,12 @@ def _command_line(ctx: typer.Context) -> str:
         if source is None or source.name == "DEFAULT":
             continue
         value = ctx.params[param.name]
-        if not isinstance(param, click.Option):
+        is_flag = getattr(param, "is_flag", False)  # an option's (click.Option)
+        if param.param_type_name != "option":
             words.append(str(value))
-        elif param.is_flag and param.secondary_opts:
+        elif is_flag and param.secondary_opts:
             words.append(param.opts[0] if value else param.secondary_opts[0])
-        elif param.is_flag:
+        elif is_flag:
             words += [param.opts[0]] if value else []
         else:
             words += [param.opts[0], str(value)]
