@@ -34,6 +34,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from drivers.camera import RawFrame
 from drivers.config_files import read_input_text
@@ -53,6 +54,9 @@ from drivers.contracts.version import __version__
 from drivers.errors import RawFileError
 from drivers.pose import Pose
 from drivers.raw_decode import RAW_EXTENSIONS, decode_raw
+
+if TYPE_CHECKING:
+    from _csv import Reader as CsvReader  # what csv.reader returns (typeshed's name for it)
 
 #: The largest import CSV read, in bytes: a line is under 200 bytes, so some 300 000 frames.
 MAX_CSV_BYTES = 64 * 2**20
@@ -195,7 +199,7 @@ def _number(text: str, where: str, column: str) -> float:
     return value
 
 
-def read_import_csv(csv_path, folder, n_positions: int) -> list[ImportRow]:
+def read_import_csv(csv_path: str | Path, folder: str | Path, n_positions: int) -> list[ImportRow]:
     """Read and check an import CSV without decoding any raw file.
 
     Parameters
@@ -227,7 +231,7 @@ def read_import_csv(csv_path, folder, n_positions: int) -> list[ImportRow]:
         raise RunImportError(f"{csv_path}: not a valid CSV file ({exc})") from None
 
 
-def _read_rows(reader, csv_path: Path, folder: Path, n_positions: int) -> list[ImportRow]:
+def _read_rows(reader: CsvReader, csv_path: Path, folder: Path, n_positions: int) -> list[ImportRow]:
     columns = _read_columns(reader, csv_path)
     pose_given = any(name in columns for name in POSE_COLUMNS)
     rows: list[ImportRow] = []
@@ -306,7 +310,7 @@ def _check_calibration_row(values: dict[str, str], where: str, which: tuple[str,
         raise RunImportError(f"{where}: x_m..rz_deg: {frame} has no pose (leave them empty)")
 
 
-def _read_columns(reader, csv_path: Path) -> list[str]:
+def _read_columns(reader: CsvReader, csv_path: Path) -> list[str]:
     """The header line's column names (lower case), checked: known, required, pose as a set of six."""
     header = next(reader, None)
     while header is not None and not any(cell.strip() for cell in header):
@@ -402,6 +406,7 @@ def _check_frames(
         shape = (int(frame.mosaic.shape[0]), int(frame.mosaic.shape[1]))
         if checked:
             size, ref = checked[0], first
+            assert ref is not None  # the row of checked[0]
             if shape != size.shape:
                 raise RunImportError(
                     f"{where}: {row.name} is {shape[1]}x{shape[0]} but line {ref.line} ({ref.name}) is "
@@ -478,10 +483,10 @@ def _publish(tmp: Path, out: Path) -> None:
 
 
 def import_run(
-    folder,
-    csv_path,
-    rig_path,
-    out,
+    folder: str | Path,
+    csv_path: str | Path,
+    rig_path: str | Path,
+    out: str | Path,
     *,
     run_id: str | None = None,
     metadata: dict | None = None,
@@ -652,7 +657,8 @@ def _write_run(
                 ks = by_position[position]
                 frames = [_decode_again(rows[k], checked[k], csv_path) for k in ks]
                 done += len(ks)
-                pose = next((rows[k].pose for k in ks if rows[k].pose is not None), header.tool_poses[position])
+                given = (rows[k].pose for k in ks)
+                pose = next((p for p in given if p is not None), header.tool_poses[position])
                 stamps = [checked[k].timestamp for k in ks]
                 times = PositionTimes(min(stamps), min(stamps), max(stamps))
                 writer.write_position(position, pose, times, frames)

@@ -15,6 +15,7 @@ import itertools
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -29,6 +30,9 @@ from sim_devices.lights import TruthLight, load_truth
 from sim_devices.optics import MirrorBallRenderer, Rendering
 from sim_devices.sensor import SensorModel
 from sim_devices.world import SimWorld
+
+if TYPE_CHECKING:
+    from sim_devices.object_scene import ObjectSceneRenderer
 
 #: The simulated lab's room radiance when its lights are on (the daemon's simulated camera).
 #: The ball's brightest pixels then gather about 99 000 e⁻/s with the default optics (a
@@ -117,6 +121,7 @@ class SimulatedCamera(Camera):
         seed = sim.seed if seed is None else seed
         # The rig's object, when it has one, is photographed instead of the ball.
         options = dict(renderer_options or {})
+        renderer_class: type[MirrorBallRenderer] | type[ObjectSceneRenderer]
         if rig.object is None:
             renderer_class = MirrorBallRenderer
             options.setdefault("point_spread", rig.camera.point_spread if point_spread is None else point_spread)
@@ -147,12 +152,12 @@ class SimulatedCamera(Camera):
         self._colour: dict | None = None
 
     @property
-    def environment_radiance(self):
+    def environment_radiance(self) -> np.ndarray:
         """The room's radiance (R, G, B) while it is lit."""
         return self._room.copy()
 
     @environment_radiance.setter
-    def environment_radiance(self, value) -> None:
+    def environment_radiance(self, value: float | tuple[float, float, float]) -> None:
         self.renderer.set_environment(value)  # checked there
         self._room = self.renderer.environment.copy()
         self._cached.clear()

@@ -18,6 +18,7 @@ from fractions import Fraction
 from pathlib import Path
 
 import numpy as np
+from numpy.typing import ArrayLike
 from pidng.defs import (
     CalibrationIlluminant,
     CFAPattern,
@@ -45,7 +46,7 @@ class _SubIFDTag(dngTag):
     (layout and writing through ``subIFD``) works, so only the value is set here.
     """
 
-    def setValue(self, value):  # noqa: N802 - pidng's method name
+    def setValue(self, value: list[dngIFD]) -> None:  # noqa: N802 - pidng's method name
         self.Value = b"\x00\x00\x00\x00"
         self.subIFD = value[0]
 
@@ -176,7 +177,7 @@ def _image_tags(
 _RATIONAL_DENOMINATOR = 10_000
 
 
-def _rationals(values) -> list[list[int]]:
+def _rationals(values: ArrayLike) -> list[list[int]]:
     return [[round(float(v) * _RATIONAL_DENOMINATOR), _RATIONAL_DENOMINATOR] for v in np.ravel(values)]
 
 
@@ -203,7 +204,10 @@ def _colour_tags(tags: DNGTags, colour: dict | None) -> None:
 def _exif_tags(exposure: list[int], local: datetime, serial: str) -> dngIFD:
     """The EXIF sub-IFD: the exposure time as a rational, the time taken to the millisecond
     with its UTC offset, and the body's serial number."""
-    offset_minutes = int(local.utcoffset().total_seconds() // 60)
+    offset = local.utcoffset()
+    if offset is None:
+        raise ValueError("the time taken must be timezone-aware")
+    offset_minutes = int(offset.total_seconds() // 60)
     sign = "+" if offset_minutes >= 0 else "-"
     offset_text = f"{sign}{abs(offset_minutes) // 60:02d}:{abs(offset_minutes) % 60:02d}"
     exif = dngIFD()
@@ -303,7 +307,7 @@ def _assemble(tags: DNGTags, strip: bytes, exif_pointer: dngTag) -> bytearray:
     return buffer
 
 
-def _write_atomically(path: Path, data: bytes) -> Path:
+def _write_atomically(path: Path, data: bytes | bytearray) -> Path:
     # A hidden ".tmp" name in the same folder: no raw suffix, so watchers ignore it,
     # and the same file system, so os.replace is an atomic rename.
     descriptor, temporary = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)

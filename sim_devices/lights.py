@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Annotated, Literal, Self
 
 import numpy as np
+from numpy.typing import ArrayLike
 from pydantic import Field, PositiveFloat, model_validator
 
 from drivers.config_files import ConfigModel, load_model
@@ -39,7 +40,7 @@ class GaussianIntensity(ConfigModel):
     peak_w_sr: PositiveFloat = 1.0
     sigma_deg: PositiveFloat = 20.0
 
-    def __call__(self, theta, phi):
+    def __call__(self, theta: np.ndarray, phi: ArrayLike) -> np.ndarray:
         s = math.radians(self.sigma_deg)
         return self.peak_w_sr * np.exp(-0.5 * (theta / s) ** 2)
 
@@ -51,7 +52,7 @@ class CosinePowerIntensity(ConfigModel):
     peak_w_sr: PositiveFloat = 1.0
     mu: PositiveFloat = 3.0
 
-    def __call__(self, theta, phi):
+    def __call__(self, theta: np.ndarray, phi: ArrayLike) -> np.ndarray:
         return self.peak_w_sr * np.clip(np.cos(theta), 0.0, None) ** self.mu
 
 
@@ -64,7 +65,7 @@ class AnisotropicIntensity(ConfigModel):
     sigma_minor_deg: PositiveFloat = 12.0
     azimuth_deg: float = 0.0
 
-    def __call__(self, theta, phi):
+    def __call__(self, theta: np.ndarray, phi: ArrayLike) -> np.ndarray:
         a = np.asarray(phi) - math.radians(self.azimuth_deg)
         sm, sn = math.radians(self.sigma_major_deg), math.radians(self.sigma_minor_deg)
         return self.peak_w_sr * np.exp(-0.5 * theta**2 * (np.cos(a) ** 2 / sm**2 + np.sin(a) ** 2 / sn**2))
@@ -103,7 +104,7 @@ class Emitter(ConfigModel):
     def area_m2(self) -> float:
         return math.pi * self.radius_m**2
 
-    def radiance(self, theta, phi) -> np.ndarray:
+    def radiance(self, theta: ArrayLike, phi: ArrayLike) -> np.ndarray:
         """Radiance leaving the disc (any point on it) in direction (θ, φ)."""
         theta = np.asarray(theta, dtype=float)
         if isinstance(self.intensity, LambertianRadiance):
@@ -113,7 +114,7 @@ class Emitter(ConfigModel):
             value = self.intensity(theta, phi) / (np.maximum(cos_t, 1e-12) * self.area_m2)
         return np.where(cos_t > 0.0, value, 0.0)
 
-    def intensity_w_sr(self, theta, phi=0.0) -> np.ndarray:
+    def intensity_w_sr(self, theta: ArrayLike, phi: ArrayLike = 0.0) -> np.ndarray:
         """Radiant intensity of the whole disc: the truth a fit is compared with."""
         theta = np.asarray(theta, dtype=float)
         if isinstance(self.intensity, LambertianRadiance):

@@ -168,7 +168,7 @@ class SimulatedModbusArm:
     def __enter__(self) -> SimulatedModbusArm:
         return self.start()
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.stop()
 
     async def _serve(self, ready: threading.Event) -> None:
@@ -184,13 +184,18 @@ class SimulatedModbusArm:
                     baudrate=self.baudrate,
                     parity=self.parity,
                     stopbits=self.stopbits,
-                    trace_pdu=self._on_pdu,
+                    trace_pdu=self._on_pdu,  # type: ignore[arg-type]  # pymodbus drops a request its hook returns None for; its stubs omit None
                 )
             else:
-                self._server = ModbusTcpServer(device, address=(self.host, self.port), trace_pdu=self._on_pdu)
+                self._server = ModbusTcpServer(
+                    device,
+                    address=(self.host, self.port),
+                    trace_pdu=self._on_pdu,  # type: ignore[arg-type]  # pymodbus drops a request its hook returns None for; its stubs omit None
+                )
             await self._server.serve_forever(background=True)
             if not self.serial_port:
-                self.port = self._server.transport.sockets[0].getsockname()[1]
+                # A listening server's transport is an asyncio.Server; pymodbus types it as a BaseTransport.
+                self.port = self._server.transport.sockets[0].getsockname()[1]  # type: ignore[attr-defined]
         except Exception as exc:  # noqa: BLE001 - whatever fails here must reach start()
             self._startup_error = exc
             ready.set()
@@ -227,8 +232,10 @@ class SimulatedModbusArm:
         if self._loop is None or self._server is None:
             return
 
+        server = self._server
+
         async def drop() -> None:
-            for connection in list(self._server.active_connections.values()):
+            for connection in list(server.active_connections.values()):
                 connection.close()
             # Let the loop close the sockets before the caller goes on.
             await asyncio.sleep(0.01)

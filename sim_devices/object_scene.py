@@ -53,6 +53,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 import trimesh
+from numpy.typing import ArrayLike
 
 from drivers.contracts.rig import Rig
 from drivers.pose import Pose
@@ -98,13 +99,13 @@ class RayCaster:
         )
         self.backend = "embree"
 
-    def _local(self, origins):
+    def _local(self, origins: ArrayLike) -> np.ndarray:
         origins = np.asarray(origins, dtype=float)
         out = np.empty(origins.shape, dtype=np.float32)
         np.subtract(origins, self.offset, out=out, casting="same_kind")
         return out
 
-    def first_hit(self, origins, directions):
+    def first_hit(self, origins: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Face index (−1 for a miss) and barycentric coordinates (N, 3) of each ray's first hit."""
         n = len(origins)
         if self._scene is not None:
@@ -123,7 +124,7 @@ class RayCaster:
         bary[ray] = trimesh.triangles.points_to_barycentric(self._mesh.triangles[tri], loc)
         return face, bary
 
-    def occluded(self, origins, directions, distances) -> np.ndarray:
+    def occluded(self, origins: np.ndarray, directions: np.ndarray, distances: np.ndarray) -> np.ndarray:
         """True where the mesh meets the ray before ``distances`` (unit directions)."""
         if self._scene is not None:
             out = self._scene.run(
@@ -216,9 +217,9 @@ class ObjectSceneRenderer:
         self.chunk_rays = chunk_rays
         self.sensitivity = rig.camera.sensitivity_e_per_s
         self.set_environment(environment_radiance)
-        self._region = None
+        self._region: np.ndarray | None = None
 
-    def set_environment(self, radiance) -> None:
+    def set_environment(self, radiance: ArrayLike) -> None:
         """The uniform environment's radiance: a number, or one per channel (R, G, B)."""
         self.environment = environment_rgb(radiance)
 
@@ -313,7 +314,7 @@ class ObjectSceneRenderer:
             np.clip(rate, 0.0, None, out=rate)
         return Rendering(rate, stats)
 
-    def sample_rays(self, pix: np.ndarray):
+    def sample_rays(self, pix: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """``samples_per_pixel`` rays per pixel: sensor points (col, row) and aperture points.
 
         Sub-pixel positions follow the R2 sequence, randomly shifted per pixel; aperture
@@ -333,7 +334,7 @@ class ObjectSceneRenderer:
         sr = (rows[:, None] + sub[..., 1]).ravel()
         return sc, sr, disc[..., 0].ravel(), disc[..., 1].ravel()
 
-    def _render_pixels(self, plane: LightPlane, pix: np.ndarray):
+    def _render_pixels(self, plane: LightPlane, pix: np.ndarray) -> tuple[np.ndarray, int, int, int]:
         """Mean ``L_o · cos⁴β`` (unscaled) per pixel (m, 3); pixels with hits; rays cast."""
         cam, spp = self.camera, self.samples_per_pixel
         sc, sr, ax, ay = self.sample_rays(pix)
@@ -378,7 +379,9 @@ class ObjectSceneRenderer:
         reach = math.hypot(plane.housing_radius, half)
         return float(cam.rotation[2] @ (centre - cam.centre)) + reach > 0.0
 
-    def shade(self, plane: LightPlane, points, normals, view, albedo):
+    def shade(
+        self, plane: LightPlane, points: np.ndarray, normals: np.ndarray, view: np.ndarray, albedo: np.ndarray
+    ) -> tuple[np.ndarray, int]:
         """Outgoing radiance (N, 3) at surface points lit by the truth's emitters.
 
         ``normals`` must face the viewer (unit ``view`` directions point from the surface
@@ -433,6 +436,7 @@ class ObjectSceneRenderer:
             e = irradiance[:, None] * np.asarray(emitter.spectrum, dtype=float)[None, :]
             diffuse_e[sel] += e
             if glossy:
+                assert spec is not None and specular_e is not None  # glossy: both there
                 hx = wx[sel] * inv + view[sel, 0]
                 hy = wy[sel] * inv + view[sel, 1]
                 hz = wz[sel] * inv + view[sel, 2]
@@ -440,6 +444,6 @@ class ObjectSceneRenderer:
                 lobe = spec.k_s * (spec.exponent + 8.0) / (8.0 * math.pi) * np.clip(nh, 0.0, None) ** spec.exponent
                 specular_e[sel] += lobe[:, None] * e
         out = albedo * (1.0 / math.pi) * diffuse_e
-        if glossy:
+        if specular_e is not None:  # glossy
             out += specular_e
         return out, shadow_rays

@@ -27,13 +27,15 @@ UV conventions of the shipped meshes (object frame; ``up`` = +y):
 from __future__ import annotations
 
 import math
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Self
 
 import numpy as np
 import trimesh
+from numpy.typing import ArrayLike
 from pydantic import Field, PositiveFloat, model_validator
 from scipy.interpolate import CubicSpline
 from scipy.spatial import cKDTree
@@ -97,7 +99,7 @@ class SurfaceTruth(ConfigModel):
     specular: Specular | None = None
 
     @model_validator(mode="after")
-    def _energy(self):
+    def _energy(self) -> Self:
         if self.specular is not None:
             top = max([max(self.base_albedo)] + [max(p.albedo) for p in self.patches])
             if top + self.specular.k_s > 1.0:
@@ -175,14 +177,14 @@ RELIEF_BUMPS_MM = (
 )
 
 
-def _textured(vertices, faces, uv) -> trimesh.Trimesh:
+def _textured(vertices: np.ndarray, faces: np.ndarray, uv: np.ndarray) -> trimesh.Trimesh:
     visual = trimesh.visual.TextureVisuals(uv=np.asarray(uv, dtype=float))
     return trimesh.Trimesh(np.asarray(vertices, float), np.asarray(faces, np.int64), visual=visual, process=False)
 
 
 def vase_mesh(
     height_m: float = 0.05,
-    profile_mm=VASE_PROFILE_MM,
+    profile_mm: Sequence[tuple[float, float]] = VASE_PROFILE_MM,
     segments: int = 120,
     max_turn_deg: float = 2.5,
     max_step_m: float = 0.5e-3,
@@ -237,7 +239,7 @@ def vase_mesh(
 def relief_plate_mesh(
     size_m: tuple[float, float] = (0.06, 0.04),
     spacing_m: float = 0.4e-3,
-    bumps_mm=RELIEF_BUMPS_MM,
+    bumps_mm: Sequence[tuple[float, ...]] = RELIEF_BUMPS_MM,
 ) -> trimesh.Trimesh:
     """A plate in the object's x–y plane facing +z, with smooth Gaussian bumps.
 
@@ -282,7 +284,7 @@ def write_obj(path: str | Path, mesh: trimesh.Trimesh, comment: str = "") -> Pat
     return path
 
 
-def _uv_of(mesh) -> np.ndarray | None:
+def _uv_of(mesh: trimesh.Trimesh) -> np.ndarray | None:
     uv = getattr(mesh.visual, "uv", None)
     if uv is None or len(uv) != len(mesh.vertices):
         return None
@@ -363,7 +365,9 @@ class ObjectGeometry:
         out[ok] = np.linalg.svd(jac[ok], compute_uv=False)[:, -1]
         return out
 
-    def closest_faces(self, points: np.ndarray, candidates: int = 16, chunk: int = 50_000):
+    def closest_faces(
+        self, points: np.ndarray, candidates: int = 16, chunk: int = 50_000
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Closest face (N,), barycentric coordinates (N, 3) and distance (N,) of rig-frame points.
 
         Candidates are the faces with the nearest centroids; the exact point–triangle
@@ -391,7 +395,7 @@ class ObjectGeometry:
         return face, bary, dist
 
 
-def closest_point_on_triangles(triangles: np.ndarray, points: np.ndarray):
+def closest_point_on_triangles(triangles: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Closest point on each triangle (N, 3, 3) to each point (N, 3), and its barycentrics.
 
     Ericson, *Real-Time Collision Detection*, §5.1.5 (Voronoi regions of the vertices,
@@ -401,7 +405,7 @@ def closest_point_on_triangles(triangles: np.ndarray, points: np.ndarray):
     p = np.asarray(points, dtype=float)
     ab, ac = b - a, c - a
 
-    def dot(x, y):
+    def dot(x: np.ndarray, y: np.ndarray) -> np.ndarray:
         return np.einsum("ij,ij->i", x, y)
 
     ap, bp, cp = p - a, p - b, p - c
@@ -434,9 +438,9 @@ def closest_point_on_triangles(triangles: np.ndarray, points: np.ndarray):
 
 def surface_truth_at(
     rig: Rig,
-    points_rig,
+    points_rig: ArrayLike,
     *,
-    faces=None,
+    faces: np.ndarray | None = None,
     margin_m: float = 0.002,
     surface: SurfaceTruth | None = None,
     geometry: ObjectGeometry | None = None,
@@ -484,7 +488,7 @@ def surface_truth_at(
 
 
 # --- generating the shipped files -----------------------------------------------------------------
-SHIPPED = {
+SHIPPED: dict[str, tuple[Callable[[], trimesh.Trimesh], str]] = {
     "vase.obj": (
         vase_mesh,
         "A vase-like surface of revolution about +y, 5 cm tall, in metres.\n"

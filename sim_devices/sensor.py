@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from drivers.contracts.rig import Camera as CameraSpec
+
 CHANNEL_INDEX = {"R": 0, "G": 1, "B": 2}
 
 
@@ -59,7 +61,7 @@ class SensorModel:
         self.noise = noise
 
     @classmethod
-    def from_rig(cls, camera, noise: bool = True) -> SensorModel:
+    def from_rig(cls, camera: CameraSpec, noise: bool = True) -> SensorModel:
         return cls(
             camera.full_well_e,
             camera.read_noise_e,

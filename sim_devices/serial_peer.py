@@ -150,7 +150,7 @@ class SimulatedSerialArm:
     def __enter__(self) -> SimulatedSerialArm:
         return self.start()
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.stop()
 
     # -- fault injection ---------------------------------------------------------------
@@ -171,12 +171,15 @@ class SimulatedSerialArm:
     # -- serving -----------------------------------------------------------------------
     def _serve(self) -> None:
         while self._running.is_set():
-            readable, _, _ = select.select([self._master], [], [], _SELECT_INTERVAL_S)
+            master = self._master
+            if master is None:  # stop() closed the pty while this thread was finishing
+                return
+            readable, _, _ = select.select([master], [], [], _SELECT_INTERVAL_S)
             self.stage.tick()  # lets the watchdog fire while the host is silent
             if not readable:
                 continue
             try:
-                chunk = os.read(self._master, 4096)
+                chunk = os.read(master, 4096)
             except BlockingIOError:
                 continue
             except OSError as exc:
@@ -216,11 +219,14 @@ class SimulatedSerialArm:
         """Write all of ``data``; drop the rest if the host has stopped reading."""
         view = memoryview(data)
         while view and self._running.is_set():
-            _, writable, _ = select.select([], [self._master], [], 0.5)
+            master = self._master
+            if master is None:  # stop() closed the pty
+                return
+            _, writable, _ = select.select([], [master], [], 0.5)
             if not writable:
                 return  # the host's input queue is full: a real line would lose it too
             try:
-                view = view[os.write(self._master, view) :]
+                view = view[os.write(master, view) :]
             except BlockingIOError:
                 continue
 

@@ -13,17 +13,19 @@ from __future__ import annotations
 import json
 import tempfile
 import time
+from collections.abc import Sequence
 from pathlib import Path
 
 import h5py
 
-from acquisition.benchmarks.scoring import score_sources
+from acquisition.benchmarks.acquire import run_file_of
+from acquisition.benchmarks.scoring import fitted, score_sources
 from acquisition.daemon.catalog import Catalog
 from acquisition.daemon.devices import open_devices
 from acquisition.daemon.engine import RunEngine
 from acquisition.daemon.models import FixedBracket, RunRequest
-from acquisition.daemon.settings import load_settings
-from drivers.contracts.rig import load_rig
+from acquisition.daemon.settings import DaemonSettings, load_settings
+from drivers.contracts.rig import Rig, load_rig
 from processing.light_run.run import process_run
 from processing.options import FitMethod, NoiseSource, ProcessingOptions, Units
 from processing.steps import Step
@@ -34,10 +36,10 @@ REFERENCE_EXPOSURES_S = (2e-5, 1e-4, 5e-4, 2.5e-3, 1.25e-2)
 
 
 def acquire_simulated(
-    rig,
+    rig: Rig,
     truth_name: str,
     noise: bool,
-    exposures,
+    exposures: Sequence[float],
     positions: int | None,
     workdir: Path,
     *,
@@ -51,13 +53,18 @@ def acquire_simulated(
     settings.camera.simulated.truth = truth_name
     settings.camera.simulated.noise = noise
     settings.camera.simulated.diffraction = True
-    request = RunRequest(
-        preset=preset, count=positions, bracket=FixedBracket(exposures_s=list(exposures)), light_results=light_results
+    request = RunRequest.model_validate(
+        {
+            "preset": preset,
+            "count": positions,
+            "bracket": FixedBracket(exposures_s=list(exposures)),
+            "light_results": light_results,
+        }
     )
     return take_run(settings, rig, request)
 
 
-def take_run(settings, rig, request) -> Path:
+def take_run(settings: DaemonSettings, rig: Rig, request: RunRequest) -> Path:
     """One run of ``request`` through the daemon's run engine, on the devices ``settings``
     name (the simulated ones by default), in ``settings.data_dir``; the run file's path.
 
@@ -72,7 +79,7 @@ def take_run(settings, rig, request) -> Path:
         state = catalog.get_run(record.id)
         if state.state != "complete":
             raise RuntimeError(f"simulated run ended {state.state}: {state.last_error}")
-        return Path(state.path)
+        return run_file_of(state)
     finally:
         devices.close()
         catalog.close()
@@ -83,8 +90,8 @@ def bench_accuracy(
     noise: bool = True,
     truth: str = "five-gaussians",
     positions: int = 66,
-    rig_path=None,
-    exposures=REFERENCE_EXPOSURES_S,
+    rig_path: str | Path | None = None,
+    exposures: Sequence[float] = REFERENCE_EXPOSURES_S,
     fit_method: str = "gaussian",
     workdir: str | Path | None = None,
     layout_from_data: bool = False,
@@ -125,7 +132,7 @@ def bench_accuracy(
             ),
         )
         processed = time.perf_counter()
-    samples, model = report.samples, report.model
+    samples, model = fitted(report)
     scored = score_sources(model, samples, truth_light, matched=layout_from_data, fit_method=fit_method)
     out_sources = scored["sources"]
     worst = max(s["rms_rel_error"] for s in out_sources)

@@ -7,17 +7,19 @@ import math
 import statistics
 import tempfile
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import h5py
 import hdf5plugin
 
-from acquisition.daemon.catalog import Catalog
+from acquisition.daemon.catalog import Catalog, RunRecord
 from acquisition.daemon.devices import Devices
 from acquisition.daemon.engine import RunEngine
 from acquisition.daemon.models import FixedBracket, RunRequest
-from acquisition.daemon.settings import load_settings
-from drivers.contracts.rig import load_rig
+from acquisition.daemon.settings import DaemonSettings, load_settings
+from drivers.camera import RawFrame
+from drivers.contracts.rig import Rig, load_rig
 from drivers.modbus_arm import ModbusArm
 from drivers.modbus_profile import SIM_STAGE_PROFILE
 from sim_devices.camera import SimulatedCamera
@@ -27,7 +29,7 @@ from sim_devices.stage import SimulatedStage, StageConfig
 from sim_devices.world import SimWorld
 
 
-def _frames(rig, count: int, seed: int = 0):
+def _frames(rig: Rig, count: int, seed: int = 0) -> list[RawFrame]:
     """Realistic raw frames: rendered mirror-ball images with sensor noise."""
     poses = rig.tool_poses()
     state = {"pose": poses[len(poses) // 2]}
@@ -40,7 +42,7 @@ def _frames(rig, count: int, seed: int = 0):
     return frames
 
 
-def plain_h5py_write(path: Path, frames, positions: int, exposures: int) -> float:
+def plain_h5py_write(path: Path, frames: list[RawFrame], positions: int, exposures: int) -> float:
     """The same frames into one dataset with the same chunks and filter: the peer; its seconds.
 
     Parameters
@@ -69,8 +71,15 @@ def plain_h5py_write(path: Path, frames, positions: int, exposures: int) -> floa
     return time.perf_counter() - start
 
 
+def run_file_of(record: RunRecord) -> Path:
+    """The run file of a run that completed (RuntimeError where the catalog has none)."""
+    if record.path is None:
+        raise RuntimeError(f"run {record.id} has no run file in the catalog")
+    return Path(record.path)
+
+
 @contextlib.contextmanager
-def zero_latency_arm(rig):
+def zero_latency_arm(rig: Rig) -> Iterator[ModbusArm]:
     """The simulated stage at infinite speed behind a real Modbus TCP server on loopback, and
     the Modbus driver connected to it: the arm whose own time is (nearly) nothing."""
     stage = SimulatedStage(
@@ -92,7 +101,9 @@ def zero_latency_arm(rig):
             arm.close()
 
 
-def timed_engine_run(settings, rig, devices, request):
+def timed_engine_run(
+    settings: DaemonSettings, rig: Rig, devices: Devices, request: RunRequest
+) -> tuple[float, RunRecord]:
     """One run of ``request`` through the daemon's run engine in ``settings.data_dir``:
     (seconds from start to the run's end, the run's catalog record). RuntimeError when the
     run does not complete."""
@@ -113,7 +124,11 @@ def timed_engine_run(settings, rig, devices, request):
 
 
 def bench_acquire(
-    rig_path=None, positions: int = 20, exposures: int = 3, repeat: int = 3, distinct_frames: int = 6
+    rig_path: str | Path | None = None,
+    positions: int = 20,
+    exposures: int = 3,
+    repeat: int = 3,
+    distinct_frames: int = 6,
 ) -> dict:
     """Run the real engine on zero-latency devices and compare with a plain h5py write."""
     rig = load_rig(rig_path)
@@ -122,8 +137,8 @@ def bench_acquire(
     total_frames = positions * exposures
     engine_times, plain_times = [], []
     request = RunRequest(count=positions, bracket=FixedBracket(exposures_s=[0.0002 * 4**k for k in range(exposures)]))
-    with tempfile.TemporaryDirectory() as tmp, zero_latency_arm(rig) as arm:
-        tmp = Path(tmp)
+    with tempfile.TemporaryDirectory() as tmp_dir, zero_latency_arm(rig) as arm:
+        tmp = Path(tmp_dir)
         for r in range(repeat):
             settings = load_settings(None, data_dir=tmp / f"engine-{r}", rig=rig_path or None)
             seconds, _ = timed_engine_run(settings, rig, Devices(arm=arm, camera=ReplayCamera(frames)), request)

@@ -31,7 +31,7 @@ from drivers.pose import Pose, rotation_from_angles
 #: takes). What it changes: a rig field (``scale`` by %, or ``add`` a length), or one of the
 #: camera's, the arm's or the light's poses (``camera-turn``, ``camera-move``, ``principal``,
 #: ``arm-turn``, ``arm-move``, ``light-turn``).
-ERROR_PARTS: dict[str, tuple[str, str | int | None, tuple[str, ...]]] = {
+ERROR_PARTS: dict[str, tuple[str, int | None, tuple[str, ...]]] = {
     "pinhole": ("camera.pinhole_diameter_m", None, ("%", "mm", "um")),
     "sensor-distance": ("camera.sensor_distance_m", None, ("%", "mm", "um")),
     "ball-x": ("ball.centre_m", 0, ("mm", "um")),
@@ -135,13 +135,13 @@ def parse_error(name: str) -> WrongNumber:
             raise ValueError(f"--errors: {name!r}: a length cannot shrink by 100 % or more")
         return WrongNumber(name, what, "scale", round(1.0 + size / 100.0, 12))
     amount = round(size * _IN_SI[unit], 15)
-    if "." in what and axis is None:
-        return WrongNumber(name, what, "add", amount)
     if "." in what:
+        if axis is None:
+            return WrongNumber(name, what, "add", amount)
         vector = [0.0, 0.0, 0.0]
-        vector[int(axis)] = amount  # type: ignore[call-overload]
+        vector[axis] = amount
         return WrongNumber(name, what, "add", (vector[0], vector[1], vector[2]))
-    return WrongNumber(name, what, what, amount, int(axis))  # type: ignore[call-overload]
+    return WrongNumber(name, what, what, amount, axis)
 
 
 def described_wrong(rig: dict, error: str) -> dict:

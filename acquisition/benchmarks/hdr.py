@@ -29,6 +29,7 @@ import os
 import statistics
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numba
 import numpy as np
@@ -45,7 +46,7 @@ from acquisition.benchmarks.hdr_methods import (
     ours_method,
     significant,
 )
-from drivers.contracts.rig import load_rig, rig_from_dict, rig_to_toml_dict
+from drivers.contracts.rig import Rig, load_rig, rig_from_dict, rig_to_toml_dict
 from sim_devices.lights import load_truth
 from sim_devices.optics import MirrorBallRenderer
 from sim_devices.sensor import SensorModel, mosaic_of
@@ -81,7 +82,7 @@ def exposure_times(count: int) -> np.ndarray:
     return SHORTEST_S * (LONGEST_S / SHORTEST_S) ** (np.arange(count) / (count - 1))
 
 
-def rig_at_size(rig, width: int, height: int):
+def rig_at_size(rig: Rig, width: int, height: int) -> Rig:
     """The rig with its sensor resampled to ``width`` x ``height``, the same field of view across.
 
     Parameters
@@ -114,7 +115,7 @@ def _background(height: int, width: int) -> np.ndarray:
     return np.broadcast_to(np.logspace(math.log10(lo), math.log10(hi), width), (height, width))
 
 
-def _pixel_set(truth_dn: np.ndarray, sensor: Sensor, exposures: np.ndarray):
+def _pixel_set(truth_dn: np.ndarray, sensor: Sensor, exposures: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
     """The compared photosites, and the variance of the ideal merge of each."""
     clip = sensor.range_dn
     short = truth_dn * exposures.min()
@@ -133,7 +134,7 @@ def _pixel_set(truth_dn: np.ndarray, sensor: Sensor, exposures: np.ndarray):
     return mask, x, float(np.sum(1.0 / (info * x * x)))
 
 
-def _scenes(rig, sensor: Sensor, exposures: np.ndarray, distinct: int, seed: int) -> list[_Scene]:
+def _scenes(rig: Rig, sensor: Sensor, exposures: np.ndarray, distinct: int, seed: int) -> list[_Scene]:
     """The ball rendered at ``distinct`` positions spread over the schedule, the background
     added; each scene's pixel set and truth."""
     renderer = MirrorBallRenderer(
@@ -151,6 +152,7 @@ def _scenes(rig, sensor: Sensor, exposures: np.ndarray, distinct: int, seed: int
 
 
 def _bracket(sensor: Sensor, scene: _Scene, exposures: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    assert sensor.model is not None  # _sensor_of's
     rgb = np.broadcast_to(scene.rate_e, (3, *scene.rate_e.shape))  # every channel: the site's own rate
     return np.stack([sensor.model.expose(rgb, float(t), rng) for t in exposures])
 
@@ -203,7 +205,7 @@ def bench_hdr(
     repeat: int = 1,
     seed: int = 0,
     *,
-    rig_path=None,
+    rig_path: str | Path | None = None,
     peers: bool = True,
     distinct_scenes: int = DISTINCT_SCENES,
 ) -> dict:
@@ -269,7 +271,7 @@ def _check_parameters(positions: int, exposures: int, width: int, height: int, r
         raise BenchmarkError(f"repeat: must be at least 1, got {repeat}")
 
 
-def _sensor_of(rig) -> Sensor:
+def _sensor_of(rig: Rig) -> Sensor:
     """The rig's simulated sensor (with noise), and its constants in DN."""
     model = SensorModel.from_rig(rig.camera, noise=True)
     return Sensor(
@@ -351,7 +353,7 @@ ERROR_DEFINITION = (
 
 def _report(
     *,
-    rig,
+    rig: Rig,
     sensor: Sensor,
     scenes: list[_Scene],
     times_s: np.ndarray,
@@ -367,6 +369,8 @@ def _report(
     wall_s: float,
 ) -> dict:
     """The benchmark's JSON: the set-up, every method's time and error, the speed-ups and the target."""
+    model = sensor.model
+    assert model is not None  # _sensor_of's
     used = [scenes[p % len(scenes)] for p in range(positions)]
     out_methods = {name: _method_entry(m, states.get(name), positions) for name, m in methods.items()}
     result: dict = {
@@ -393,8 +397,8 @@ def _report(
             "cfa_pattern": sensor.cfa_pattern,
             "black_level_dn": sensor.black,
             "white_level_dn": sensor.white,
-            "full_well_e": sensor.model.full_well_e,
-            "read_noise_e": sensor.model.read_noise_e,
+            "full_well_e": model.full_well_e,
+            "read_noise_e": model.read_noise_e,
             "gain_e_per_dn": round(sensor.gain, 5),
         },
         "pixel_set": _pixel_set_report(used, positions * width * height),
@@ -421,6 +425,7 @@ def _method_entry(m: MergeMethod | str, state: _State | None, positions: int) ->
     }
     if not isinstance(m, MergeMethod):
         return {"status": m, **unmeasured, "notes": m}
+    assert state is not None  # every method that ran has its state
     if state.failed:
         return {"status": state.failed, **unmeasured, "notes": m.notes, "version": m.version}
     total = statistics.median(state.times)

@@ -45,7 +45,7 @@ import numpy as np
 from drivers.contracts.version import __version__
 from processing.hdr.brackets import merge_raw
 from processing.hdr.model import NoiseModel
-from sim_devices.sensor import cfa_channels
+from sim_devices.sensor import SensorModel, cfa_channels
 
 PEER_EXTRA = "not installed (pip install 'mirrorgonio[bench]')"
 
@@ -89,7 +89,7 @@ class Sensor:
     white: int
     gain: float  # e⁻/DN
     read_dn: float
-    model: object  # sim_devices.sensor.SensorModel
+    model: SensorModel | None  # None where no frames are simulated
 
     @property
     def range_dn(self) -> float:

@@ -305,11 +305,11 @@ PART_TABLES: dict[str, Callable[[dict], str]] = {
 }
 
 
-def _is_scalar(value) -> bool:
+def _is_scalar(value: object) -> bool:
     return value is None or isinstance(value, (bool, int, float, str))
 
 
-def _number(value) -> str:
+def _number(value: object) -> str:
     if value is None:
         return "—"
     if isinstance(value, bool):
@@ -319,7 +319,7 @@ def _number(value) -> str:
     return str(value)
 
 
-def _cell(text) -> str:
+def _cell(text: object) -> str:
     """Text safe in a table cell: no line breaks, pipes escaped."""
     return " ".join(str(text).split()).replace("|", "\\|")
 

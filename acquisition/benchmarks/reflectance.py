@@ -21,15 +21,16 @@ from __future__ import annotations
 
 import tempfile
 import time
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
 from acquisition.benchmarks.accuracy import REFERENCE_EXPOSURES_S, acquire_simulated
-from drivers.contracts.rig import RIGS_DIR, load_rig
+from drivers.contracts.rig import RIGS_DIR, Rig, load_rig
 from processing.light_run.run import process_run
 from processing.options import NoiseSource, ProcessingOptions, Units
-from processing.reflectance.run import reflectance_from_run
+from processing.reflectance.run import ReflectanceResult, reflectance_from_run
 from processing.steps import Step
 from sim_devices.lights import LIGHTS_DIR
 from sim_devices.objects import surface_truth_at
@@ -65,7 +66,7 @@ def bench_reflectance(
     noise: bool = True,
     light_positions: int = 66,
     workdir: str | Path | None = None,
-    object_exposures=OBJECT_EXPOSURES_S,
+    object_exposures: Sequence[float] = OBJECT_EXPOSURES_S,
 ) -> dict:
     """Measure the light, photograph the object, estimate ρ three ways, score each."""
     rig_path = Path(object_rig)
@@ -110,10 +111,17 @@ def bench_reflectance(
     }
 
 
-def _light_then_object(object_rig_model, truth: str, noise: bool, light_positions: int, workdir, object_exposures):
+def _light_then_object(
+    object_rig_model: Rig,
+    truth: str,
+    noise: bool,
+    light_positions: int,
+    workdir: str | Path | None,
+    object_exposures: Sequence[float],
+) -> tuple[ReflectanceResult, dict[str, float]]:
     """The light's sweep taken and processed into a light model, then the object's run taken
     and its reflectance estimated with it: the estimate, and the seconds of each step."""
-    times = {}
+    times: dict[str, float] = {}
     with tempfile.TemporaryDirectory() as tmp:
         base = Path(workdir) if workdir is not None else Path(tmp)
         t0 = time.perf_counter()

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import statistics
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -21,7 +22,7 @@ from sim_devices.optics import LightPlane, MirrorBallRenderer, trace
 TARGET_S = 10.0
 
 
-def bench_render(rig_path=None, repeat: int = 3, position: int = 33) -> dict:
+def bench_render(rig_path: str | Path | None = None, repeat: int = 3, position: int = 33) -> dict:
     """Render one full frame ``repeat`` times, and trace one chief ray per pixel as often.
 
     Parameters
@@ -59,6 +60,7 @@ def bench_render(rig_path=None, repeat: int = 3, position: int = 33) -> dict:
         stats = renderer.render(pose).stats
         render_times.append(time.perf_counter() - t0)
     render_s, chief_s = statistics.median(render_times), statistics.median(chief_times)
+    assert stats is not None  # repeat >= 1: median() refuses no times
     return {
         "benchmark": "render",
         "width": cam.width,

@@ -16,12 +16,25 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from drivers.pose import Pose
-from processing.fit import FitError, Samples, fit_intensity
+from processing.fit import FitError, IntensityFit, Samples, fit_intensity
+from processing.light_run.records import ProcessReport
+from processing.light_run.samples import SourceSamples
+from processing.lightmodel import LightModel, SourceModel
+from sim_devices.lights import Emitter, TruthLight
 
 
-def score_fit(fit, truth_emitter, theta_samples) -> tuple[float, float, float]:
+def fitted(report: ProcessReport) -> tuple[SourceSamples, LightModel]:
+    """The samples and the light model of a processing that ran the ``sources`` step."""
+    samples, model = report.samples, report.model
+    if not isinstance(samples, SourceSamples) or not isinstance(model, LightModel):
+        raise TypeError("the processing made no light model (it ran without the sources step)")
+    return samples, model
+
+
+def score_fit(fit: IntensityFit, truth_emitter: Emitter, theta_samples: ArrayLike) -> tuple[float, float, float]:
     """The error of ``fit`` against ``truth_emitter`` over the θ range of ``theta_samples``.
 
     Parameters
@@ -46,7 +59,7 @@ def score_fit(fit, truth_emitter, theta_samples) -> tuple[float, float, float]:
     return error, math.degrees(lo), math.degrees(hi)
 
 
-def score_fit_in_frame(source, truth_emitter, frame: Pose) -> tuple[float, float, float]:
+def score_fit_in_frame(source: SourceModel, truth_emitter: Emitter, frame: Pose) -> tuple[float, float, float]:
     """:func:`score_fit` for a source whose light frame is ``frame`` in the truth's: along the
     directions its samples left in (in the model's frame, in position order, 200 points
     between them), the fit against the truth at the same directions seen in the truth's frame."""
@@ -66,16 +79,16 @@ def score_fit_in_frame(source, truth_emitter, frame: Pose) -> tuple[float, float
     return error, math.degrees(float(theta.min())), math.degrees(float(theta.max()))
 
 
-def source_place(source, frame: Pose | None) -> np.ndarray:
+def source_place(source: SourceModel, frame: Pose | None) -> np.ndarray:
     """A source's centre on the truth's light plane: (u, v), its model frame mapped by ``frame``."""
     centre = np.array([*source.centre_m, 0.0])
     return centre[:2] if frame is None else (frame.rotation @ centre + frame.position)[:2]
 
 
 def score_sources(
-    model,
-    samples,
-    truth_light,
+    model: LightModel,
+    samples: SourceSamples,
+    truth_light: TruthLight,
     *,
     matched: bool,
     fit_method: str = "gaussian",
@@ -127,7 +140,7 @@ def score_sources(
     return result
 
 
-def _relative_places(places: np.ndarray, truth_light, scored_sources: list[dict]) -> dict:
+def _relative_places(places: np.ndarray, truth_light: TruthLight, scored_sources: list[dict]) -> dict:
     """The sources' places against the truth's after their common offset: what the data fix
     where the rig's frame is only known up to the turns the self-calibration cannot tell apart
     (the camera's roll or its place around the ball take the light around the ball with them)."""
@@ -142,7 +155,7 @@ def _relative_places(places: np.ndarray, truth_light, scored_sources: list[dict]
 _GAUSSIAN_TRUTH = {"a": lambda law: law.peak_w_sr, "sigma": lambda law: math.radians(law.sigma_deg)}
 
 
-def coverage(source, emitter, frame: Pose | None) -> dict:
+def coverage(source: SourceModel, emitter: Emitter, frame: Pose | None) -> dict:
     """How many of the source's quoted 1σ cover the truth: its samples' error bars (each
     sample's intensity against the truth's in the same direction, seen through ``frame``) and
     its fit's parameters (a gaussian's peak and width against the truth's gaussian, where the
@@ -183,7 +196,7 @@ def coverage_share(scored_sources: list[dict]) -> dict:
     return share
 
 
-def _score_cell_sums(samples, k: int, emitter, theta, fit_method: str) -> dict:
+def _score_cell_sums(samples: SourceSamples, k: int, emitter: Emitter, theta: np.ndarray, fit_method: str) -> dict:
     """Source ``k``'s chief-ray cell sums fitted and scored like the source's own fit."""
     ok = np.isfinite(samples.cell_sum[:, k]) & np.isfinite(samples.theta[:, k])
     try:

@@ -34,6 +34,7 @@ import os
 import platform
 import shutil
 import time
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -63,8 +64,8 @@ def parse_size(text: str) -> tuple[int, int]:
 
 def bench_speed(
     *,
-    rig_path=None,
-    sizes=SIZES,
+    rig_path: str | Path | None = None,
+    sizes: Sequence[tuple[int, int]] = SIZES,
     positions: int = POSITIONS,
     exposures: int = len(EXPOSURES_S),
     repeat: int = 3,
@@ -74,7 +75,7 @@ def bench_speed(
     scheduler: str = "local",
     workers: int | None = None,
     cache: Path | None = DEFAULT_CACHE,
-    log=None,
+    log: Callable[[str], None] | None = None,
 ) -> dict:
     """Measure the chain at every size in ``sizes``; see the module's description."""
     _check_options(positions, exposures, repeat, process_repeat, hdr_positions)
@@ -140,7 +141,16 @@ def _check_options(positions: int, exposures: int, repeat: int, process_repeat: 
 
 
 def _measure(
-    runs: dict, result: dict, *, repeat, process_repeat, hdr_positions, peers, scheduler, workers, say
+    runs: dict,
+    result: dict,
+    *,
+    repeat: int,
+    process_repeat: int,
+    hdr_positions: int,
+    peers: bool,
+    scheduler: str,
+    workers: int | None,
+    say: Callable[[str], None],
 ) -> None:
     """Every measurement at every size, into ``result["sizes"]``."""
     for (width, height), (rig, made) in runs.items():

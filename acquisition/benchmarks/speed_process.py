@@ -14,15 +14,17 @@ import shutil
 import statistics
 import tempfile
 import time
+from collections.abc import Callable
 from contextlib import contextmanager
 from pathlib import Path
 
 from acquisition.benchmarks.speed_resources import MemorySampler, cpu_report, cpu_usage
+from drivers.contracts.rig import Rig
 from drivers.contracts.runfile import RunFile
 from processing.light_run.position import warm_up_worker
 from processing.light_run.run import process_run
 from processing.options import ProcessingOptions
-from processing.parallel import open_compute
+from processing.parallel import Compute, open_compute
 from processing.steps import Step
 from sim_devices.lights import LIGHTS_DIR
 
@@ -61,7 +63,7 @@ def _quiet_dask():
 
 
 # --- the read floor -------------------------------------------------------------------------------
-def _read_all(run_path) -> tuple[int, int]:
+def _read_all(run_path: Path) -> tuple[int, int]:
     """Every complete position's frames, as the processing reads them; (frames, bytes)."""
     frames = nbytes = 0
     with RunFile.open(run_path) as run:
@@ -79,7 +81,7 @@ def read_position(index: int, run_path: str) -> int:
         return int(run.frames(index).nbytes)
 
 
-def _timed_read(run_path) -> float:
+def _timed_read(run_path: Path) -> float:
     """Seconds of one :func:`_read_all`."""
     t0 = time.perf_counter()
     _read_all(run_path)
@@ -110,7 +112,7 @@ def measure_read(run_path: Path, repeat: int) -> dict:
     return out
 
 
-def measure_parallel_read(run_path: Path, repeat: int, compute) -> dict:
+def measure_parallel_read(run_path: Path, repeat: int, compute: Compute) -> dict:
     """The same reads as position tasks on the processing's cluster (warm)."""
     with RunFile.open(run_path) as run:
         positions = [int(i) for i in run.completed_positions()]
@@ -128,7 +130,7 @@ def measure_parallel_read(run_path: Path, repeat: int, compute) -> dict:
 
 
 # --- whole-run processing -------------------------------------------------------------------------
-def _process_once(run_path: Path, layout, compute, *, images: bool = True) -> dict:
+def _process_once(run_path: Path, layout: Path | None, compute: Compute, *, images: bool = True) -> dict:
     """One whole-run processing on ``compute`` into a fresh folder (deleted afterwards)."""
     out_dir = Path(tempfile.mkdtemp(prefix="mirrorgonio-speed-out-"))
     try:
@@ -160,12 +162,12 @@ def _process_once(run_path: Path, layout, compute, *, images: bool = True) -> di
 
 def measure_process(
     run_path: Path,
-    rig,
+    rig: Rig,
     repeat: int,
     scheduler: str,
     workers: int | None,
     read_floor_s: float,
-    log=None,
+    log: Callable[[str], None] | None = None,
     parallel_read_repeat: int = 3,
 ) -> dict:
     """Whole-run processing as a lab's processing runs it: on a cluster that is up (the
@@ -191,7 +193,13 @@ def measure_process(
 
 
 def _on_a_cluster_that_is_up(
-    run_path: Path, layout: Path, repeat: int, scheduler: str, workers: int | None, say, parallel_read_repeat: int
+    run_path: Path,
+    layout: Path,
+    repeat: int,
+    scheduler: str,
+    workers: int | None,
+    say: Callable[[str], None],
+    parallel_read_repeat: int,
 ) -> dict:
     """The processings on one cluster, memory sampled throughout: the untimed first, ``repeat``
     timed ones each after a read of the floor, one without images, the reads as tasks."""

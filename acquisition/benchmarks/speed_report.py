@@ -3,19 +3,20 @@
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import Any
 
 from acquisition.benchmarks.speed_runs import POSITIONS
 
 #: A full sweep at the smaller size, processed fast enough, near enough the read floor, in
 #: little enough memory.
-TARGET = {"size": [2000, 1312], "process_s": 30.0, "over_read_floor": 3.0, "peak_memory_gb": 4.0}
+TARGET: dict[str, Any] = {"size": [2000, 1312], "process_s": 30.0, "over_read_floor": 3.0, "peak_memory_gb": 4.0}
 
 
 def judge_target(result: dict) -> dict:
     """Whether the run at :data:`TARGET`'s size met the target, check by check; not measured
     when the benchmark did not run that size with the full sweep and bracket."""
     w, h = TARGET["size"]
-    out = {
+    out: dict[str, Any] = {
         "what": f"a full {POSITIONS}-position x 5-exposure run at {w}x{h} processed in <= {TARGET['process_s']:g} s "
         f"on this machine, within {TARGET['over_read_floor']:g}x of the read floor, under "
         f"{TARGET['peak_memory_gb']:g} GB"

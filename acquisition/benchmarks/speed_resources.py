@@ -6,8 +6,11 @@ from __future__ import annotations
 import resource
 import statistics
 import threading
+from collections.abc import Callable
 
 import psutil
+
+from processing.parallel import Compute
 
 
 class MemorySampler:
@@ -26,7 +29,8 @@ class MemorySampler:
         self.max_children = 0
         self.samples = 0
         self.list_every = max(1, round(1.0 / interval_s))
-        self._kids, self._since_listed = [], 0
+        self._kids: list[psutil.Process] = []
+        self._since_listed = 0
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._loop, name="memory-sampler", daemon=True)
 
@@ -64,7 +68,7 @@ class MemorySampler:
         self._thread.start()
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         self._stop.set()
         self._thread.join()
         self._since_listed = 0  # the last sample lists the descendants again
@@ -91,10 +95,10 @@ def rusage() -> tuple[float, float, int]:
     return usage.ru_utime, usage.ru_stime, usage.ru_minflt
 
 
-def cpu_usage(compute) -> dict[str, tuple[float, float, int]]:
+def cpu_usage(compute: Compute) -> dict[str, tuple[float, float, int]]:
     """:func:`rusage` of this process (``"client"``) and of every Dask worker (by address)."""
     usage = {"client": rusage()}
-    if compute.dask:
+    if compute.client is not None:  # compute.dask
         usage.update(compute.client.run(rusage))
     return usage
 
@@ -105,7 +109,7 @@ def cpu_report(runs: list[dict]) -> dict:
     memory back to its host (free page reporting): writing into pages handed back costs
     several times writing into pages a process reuses."""
 
-    def median_of(pick) -> float:
+    def median_of(pick: Callable[[dict], float]) -> float:
         return float(statistics.median([pick(run["cpu"]) for run in runs]))
 
     def workers(cpu: dict, i: int) -> float:

@@ -16,13 +16,14 @@ import os
 import shutil
 import tempfile
 import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 from acquisition.benchmarks.accuracy import REFERENCE_EXPOSURES_S, take_run
 from acquisition.daemon.models import FixedBracket, RunRequest
 from acquisition.daemon.settings import load_settings
-from drivers.contracts.rig import rig_to_toml_dict
+from drivers.contracts.rig import Rig, rig_to_toml_dict
 
 #: The reference bracket (``bench accuracy``'s): 2e-5 s to 12.5 ms, steps of 5.
 EXPOSURES_S = REFERENCE_EXPOSURES_S
@@ -36,7 +37,7 @@ class SpeedBenchError(ValueError):
     """Parameters the benchmark cannot run with (one line naming the option)."""
 
 
-def cache_key(rig, exposures, positions: int) -> str:
+def cache_key(rig: Rig, exposures: Sequence[float], positions: int) -> str:
     """A short hash of everything that makes a cached run what it is."""
     data = {
         "rig": rig_to_toml_dict(rig),
@@ -59,7 +60,7 @@ class CachedRun:
     temporary: Path | None = None  # made without a cache: the folder to delete when done
 
 
-def _take_run(rig, exposures, positions: int, workdir: Path) -> Path:
+def _take_run(rig: Rig, exposures: Sequence[float], positions: int, workdir: Path) -> Path:
     """One run of the simulated rig through the daemon's run engine (the camera renders each
     pose once and exposes the bracket from it); the run file's path."""
     settings = load_settings(None, data_dir=workdir / "data")
@@ -76,7 +77,11 @@ def _take_run(rig, exposures, positions: int, workdir: Path) -> Path:
 
 
 def simulated_run(
-    rig, exposures=EXPOSURES_S, positions: int = POSITIONS, cache: Path | None = DEFAULT_CACHE, log=None
+    rig: Rig,
+    exposures: Sequence[float] = EXPOSURES_S,
+    positions: int = POSITIONS,
+    cache: Path | None = DEFAULT_CACHE,
+    log: Callable[[str], None] | None = None,
 ) -> CachedRun:
     """The run file of ``rig``'s sweep: from ``cache`` when it holds one, else made (and kept
     there). ``cache=None``: made in a temporary folder (``CachedRun.temporary``, the caller's

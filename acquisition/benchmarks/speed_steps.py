@@ -23,14 +23,16 @@ import statistics
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 import numba
 import numpy as np
 
-from acquisition.benchmarks.acquire import plain_h5py_write, timed_engine_run, zero_latency_arm
+from acquisition.benchmarks.acquire import plain_h5py_write, run_file_of, timed_engine_run, zero_latency_arm
 from acquisition.benchmarks.hdr_methods import (
     UNRESOLVED_MERGE_ONLY,
     MergeContext,
+    MergeMethod,
     Sensor,
     colour_hdri_method,
     hdrutils_method,
@@ -42,6 +44,7 @@ from acquisition.benchmarks.speed_runs import SpeedBenchError
 from acquisition.daemon.devices import Devices
 from acquisition.daemon.models import FixedBracket, RunRequest
 from acquisition.daemon.settings import load_settings
+from drivers.camera import Camera, RawFrame
 from drivers.contracts.runfile import RunFile
 from processing.trace import RigGeometry, light_pose_at, trace_pixels
 from sim_devices.replay_camera import ReplayCamera
@@ -113,13 +116,13 @@ def measure_hdr(run_path: Path, positions: int, repeat: int, peers: bool = True)
     over ``repeat`` of the total."""
     with RunFile.open(run_path) as run:
         picks, exposures, ctx = _brackets_to_merge(run, run_path, positions)
-        methods = {"mirrorgonio": ours_method(ctx, "optimal")}
+        methods: dict[str, MergeMethod | str] = {"mirrorgonio": ours_method(ctx, "optimal")}
         if peers:
             methods["hdrutils"] = hdrutils_method(ctx)
             methods["colour_hdri"] = colour_hdri_method(ctx)
         else:
             methods.update(hdrutils="skipped (--no-peers)", colour_hdri="skipped (--no-peers)")
-        usable = {name: m for name, m in methods.items() if not isinstance(m, str)}
+        usable = {name: m for name, m in methods.items() if isinstance(m, MergeMethod)}
         times, excluded, failed = _time_merges(run, run_path, picks, exposures, usable, repeat)
     out_methods = _hdr_entries(methods, times, excluded, failed, len(picks))
     ours = out_methods["mirrorgonio"]["ms_per_position"]
@@ -138,7 +141,7 @@ def measure_hdr(run_path: Path, positions: int, repeat: int, peers: bool = True)
     }
 
 
-def _brackets_to_merge(run, run_path: Path, positions: int) -> tuple[list[int], np.ndarray, MergeContext]:
+def _brackets_to_merge(run: RunFile, run_path: Path, positions: int) -> tuple[list[int], np.ndarray, MergeContext]:
     """The positions to merge (spread over the run's complete ones), their exposures, and the
     context the merges are built for (the rig's sensor, the run's levels)."""
     cam = run.header.rig.camera
@@ -156,7 +159,9 @@ def _brackets_to_merge(run, run_path: Path, positions: int) -> tuple[list[int], 
     return picks, exposures, MergeContext(sensor, exposures, height, width)
 
 
-def _time_merges(run, run_path: Path, picks: list[int], exposures: np.ndarray, usable: dict, repeat: int):
+def _time_merges(
+    run: RunFile, run_path: Path, picks: list[int], exposures: np.ndarray, usable: dict[str, MergeMethod], repeat: int
+) -> tuple[dict[str, list[float]], dict[str, list[float]], dict[str, str]]:
     """Every method on every picked bracket, ``repeat`` times: per method the summed seconds
     per repeat, those of its part timed apart, and why it failed (a peer's failure is a result)."""
     times = {name: [0.0] * repeat for name in usable}
@@ -225,15 +230,16 @@ def _hdr_entries(methods: dict, times: dict, excluded: dict, failed: dict, n: in
 
 
 # --- acquisition overhead -------------------------------------------------------------------------
-class _TimedCamera:
-    """Wraps a camera and adds up the time its capture calls take."""
+class _TimedCamera(Camera):
+    """Wraps a camera and adds up the time its capture calls take (all else is the camera's)."""
 
-    def __init__(self, camera):
+    def __init__(self, camera: Camera) -> None:
         self.camera = camera
+        self.name = camera.name
         self.capture_s = 0.0
         self.calls = 0
 
-    def capture(self, exposure_s: float):
+    def capture(self, exposure_s: float) -> RawFrame:
         """The wrapped camera's capture, timed."""
         t0 = time.perf_counter()
         try:
@@ -242,7 +248,20 @@ class _TimedCamera:
             self.capture_s += time.perf_counter() - t0
             self.calls += 1
 
-    def __getattr__(self, name):
+    @property
+    def identity(self) -> str:
+        return self.camera.identity
+
+    def problem(self) -> str | None:
+        return self.camera.problem()
+
+    def connect(self) -> None:
+        self.camera.connect()
+
+    def close(self) -> None:
+        self.camera.close()
+
+    def __getattr__(self, name: str) -> Any:
         return getattr(self.camera, name)
 
 
@@ -263,16 +282,17 @@ def measure_acquire(run_path: Path, repeat: int, distinct_positions: int = 4) ->
     frame_bytes = frames[0].mosaic.nbytes
     engine_times, capture_times, plain_times, file_bytes = [], [], [], 0
     request = RunRequest(count=positions, bracket=FixedBracket(exposures_s=exposures))
-    with tempfile.TemporaryDirectory(prefix="mirrorgonio-speed-acquire-") as tmp, zero_latency_arm(rig) as arm:
-        tmp = Path(tmp)
+    with tempfile.TemporaryDirectory(prefix="mirrorgonio-speed-acquire-") as tmp_dir, zero_latency_arm(rig) as arm:
+        tmp = Path(tmp_dir)
         for r in range(repeat):
             settings = load_settings(None, data_dir=tmp / f"engine-{r}")
             camera = _TimedCamera(ReplayCamera(frames))
             seconds, state = timed_engine_run(settings, rig, Devices(arm=arm, camera=camera), request)
             engine_times.append(seconds)
             capture_times.append(camera.capture_s)
-            file_bytes = Path(state.path).stat().st_size
-            Path(state.path).unlink()
+            run_file = run_file_of(state)
+            file_bytes = run_file.stat().st_size
+            run_file.unlink()
             plain = tmp / f"plain-{r}.h5"
             plain_times.append(plain_h5py_write(plain, frames, positions, len(exposures)))
             plain.unlink()

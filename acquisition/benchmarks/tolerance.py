@@ -16,20 +16,22 @@ import math
 import shutil
 import tempfile
 import time
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import h5py
 
 from acquisition.benchmarks.accuracy import REFERENCE_EXPOSURES_S, acquire_simulated
 from acquisition.benchmarks.description_errors import DEFAULT_ERRORS, described_wrong_all, parse_error, preset_errors
-from acquisition.benchmarks.scoring import coverage_share, score_sources
-from drivers.contracts.rig import RIGS_DIR, load_rig, rig_from_dict
+from acquisition.benchmarks.scoring import coverage_share, fitted, score_sources
+from drivers.contracts.rig import RIGS_DIR, Rig, load_rig, rig_from_dict
 from drivers.pose import Pose
 from processing.light_run.errors import ProcessingError
 from processing.light_run.position import warm_up_worker
 from processing.light_run.run import process_run
+from processing.lightmodel import LightModel
 from processing.options import FitChoice, NoiseSource, ProcessingOptions, Units
-from processing.parallel import open_compute
+from processing.parallel import Compute, open_compute
 from processing.steps import Step
 from sim_devices.lights import LIGHTS_DIR, load_truth
 
@@ -88,10 +90,10 @@ WAYS = {
 
 def bench_tolerance(
     *,
-    rig_path=None,
+    rig_path: str | Path | None = None,
     truth: str = "five-gaussians",
     positions: int = 66,
-    errors=None,
+    errors: list[str] | None = None,
     preset: str | None = None,
     seeds: int = 5,
     ways: list[str] | None = None,
@@ -99,10 +101,10 @@ def bench_tolerance(
     fit_aperture: bool = False,
     fit_sensor_distance: bool = False,
     noise: bool = True,
-    exposures=REFERENCE_EXPOSURES_S,
+    exposures: Sequence[float] = REFERENCE_EXPOSURES_S,
     scheduler: str = "local",
     workdir: str | Path | None = None,
-    log=None,
+    log: Callable[[str], None] | None = None,
 ) -> dict:
     """Take one simulated run, then process it with the rig described as taken and with each
     of ``errors`` (names :func:`parse_error` reads, default :data:`DEFAULT_ERRORS`), or with
@@ -157,7 +159,7 @@ def bench_tolerance(
     return result
 
 
-def _cases(errors, preset: str | None, seeds: int) -> list[tuple[str, list[str]]]:
+def _cases(errors: list[str] | None, preset: str | None, seeds: int) -> list[tuple[str, list[str]]]:
     """The descriptions to try besides the exact one: (name, the errors made in it), every name
     checked before anything is acquired."""
     if preset is not None:
@@ -194,12 +196,14 @@ def _ways(
     return {name: (given if WAYS[name][0] else None, *WAYS[name][1:4]) for name in names}
 
 
-def _process_one_way(copy: Path, out_dir: Path, way: tuple, compute, truth: tuple, row: dict, say) -> dict:
+def _process_one_way(
+    copy: Path, out_dir: Path, way: tuple, compute: Compute, truth: tuple, row: dict, say: Callable[[str], None]
+) -> dict:
     """``row`` completed with one processing of the run file ``copy`` the ``way`` :func:`_ways`
     names, its sources scored against the truth (the rig the run was taken with and its light);
     a processing that fails is said in the row."""
     truth_rig, truth_light = truth
-    layout, fitted, distance, calibrate = way
+    layout, fit_aperture, distance, calibrate = way
     t0 = time.perf_counter()
     try:
         options = ProcessingOptions(
@@ -208,7 +212,7 @@ def _process_one_way(copy: Path, out_dir: Path, way: tuple, compute, truth: tupl
             noise=NoiseSource.RIG,
             units=Units.WATTS_PER_SR,
             images=False,
-            fit_aperture=FitChoice.ALWAYS if fitted else FitChoice.NEVER,
+            fit_aperture=FitChoice.ALWAYS if fit_aperture else FitChoice.NEVER,
             fit_sensor_distance=FitChoice.ALWAYS if distance else FitChoice.NEVER,
             calibrate_rig=FitChoice.ALWAYS if calibrate else FitChoice.NEVER,
         )
@@ -217,16 +221,15 @@ def _process_one_way(copy: Path, out_dir: Path, way: tuple, compute, truth: tupl
         row.update(failed=str(exc), process_s=round(time.perf_counter() - t0, 1))
         say(f"{row['error']}, layout {row['layout']}: failed: {exc}")
         return row
-    frame = model_frame(report.model, truth_rig)
-    scored = score_sources(
-        report.model, report.samples, truth_light, matched=layout is None, cell_sums=False, frame=frame
-    )
+    samples, model = fitted(report)
+    frame = model_frame(model, truth_rig)
+    scored = score_sources(model, samples, truth_light, matched=layout is None, cell_sums=False, frame=frame)
     row.update(
-        sources_found=len(report.model.sources),
+        sources_found=len(model.sources),
         max_rms_rel_error=max(s["rms_rel_error"] for s in scored["sources"]),
         sources=scored["sources"],
         coverage=scored["coverage"],
-        quality=report.model.quality,
+        quality=model.quality,
         process_s=round(time.perf_counter() - t0, 1),
         timings=report.timings,
     )
@@ -234,9 +237,9 @@ def _process_one_way(copy: Path, out_dir: Path, way: tuple, compute, truth: tupl
         row["max_centre_error_um"] = max(s["centre_error_um"] for s in scored["sources"])
         row["max_centre_error_relative_um"] = max(s["centre_error_relative_um"] for s in scored["sources"])
         row["centre_offset_um"] = scored["centre_offset_um"]
-    if fitted:
+    if fit_aperture and report.aperture_fit is not None:
         row["aperture_fit"] = report.aperture_fit.record()
-    if distance:
+    if distance and report.sensor_distance_fit is not None:
         row["sensor_distance_fit"] = report.sensor_distance_fit.record()
     if report.rig_calibration is not None:
         row["rig_fit"] = _against_truth(report.rig_calibration.record(), row.get("what", ""), copy)
@@ -280,7 +283,7 @@ def _summary(rows: list[dict]) -> dict:
     return out
 
 
-def model_frame(model, truth_rig) -> Pose | None:
+def model_frame(model: LightModel, truth_rig: Rig) -> Pose | None:
     """The light frame the model was made in, in the truth's light frame, at the sweep's middle
     position (None where they are one): the model's rig (its provenance) composing the arm's
     tool pose there with its own base frame and mount, against the truth's."""

@@ -38,7 +38,7 @@ bench_app = typer.Typer(help="Benchmarks that print what they measured.", no_arg
 app.add_typer(simulate_app, name="simulate")
 app.add_typer(bench_app, name="bench")
 
-RigOption = Annotated[Path, typer.Option("--rig", help="Rig description (TOML).")]
+RigOption = Annotated[Path | None, typer.Option("--rig", help="Rig description (TOML).")]
 SchedulerOption = Annotated[
     str,
     typer.Option(
@@ -106,7 +106,7 @@ def with_declared_options(command: Callable, options: Iterable[Option], after: s
                 inspect.Parameter(option.public, inspect.Parameter.KEYWORD_ONLY, default=default, annotation=annotation)
             )
     rest = [p.replace(kind=inspect.Parameter.KEYWORD_ONLY) for p in own[cut:]]
-    command.__signature__ = inspect.Signature([*own[:cut], *built, *rest])
+    command.__signature__ = inspect.Signature([*own[:cut], *built, *rest])  # type: ignore[attr-defined]  # typer reads it
     return command
 
 
@@ -144,11 +144,12 @@ def fail(message: str) -> typer.Exit:
     return typer.Exit(code=2)
 
 
-def domain_errors() -> tuple[type[Exception], ...]:
-    """The errors of bad input and failing devices, each one line: a command ends with it."""
+def domain_errors(*extra: type[Exception]) -> tuple[type[Exception], ...]:
+    """The errors of bad input and failing devices, each one line: a command ends with it
+    (and the ``extra`` errors of the command's own work, first)."""
     from sim_devices.lights import TruthError  # noqa: PLC0415 - the simulation, only where a command uses it
 
-    return (RigError, TruthError, DeviceError, OSError)
+    return (*extra, RigError, TruthError, DeviceError, OSError)
 
 
 def print_result(result: dict, as_json: bool) -> None:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import shlex
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 
@@ -19,6 +19,9 @@ from acquisition.cli.app import (
     print_result,
 )
 from processing import FitMethod
+
+if TYPE_CHECKING:
+    from acquisition.benchmarks.record import Recording
 
 RecordOption = Annotated[
     Path | None,
@@ -40,18 +43,19 @@ def _command_line(ctx: typer.Context) -> str:
         if source is None or source.name == "DEFAULT":
             continue
         value = ctx.params[param.name]
+        is_flag = getattr(param, "is_flag", False)  # an option's (click.Option)
         if param.param_type_name != "option":
             words.append(str(value))
-        elif param.is_flag and param.secondary_opts:
+        elif is_flag and param.secondary_opts:
             words.append(param.opts[0] if value else param.secondary_opts[0])
-        elif param.is_flag:
+        elif is_flag:
             words += [param.opts[0]] if value else []
         else:
             words += [param.opts[0], str(value)]
     return shlex.join(words)
 
 
-def _start_recording(ctx: typer.Context, path: Path | None):
+def _start_recording(ctx: typer.Context, path: Path | None) -> Recording | None:
     """With ``--record``: the file checked and the start noted (a one-line error before the
     benchmark runs if the file cannot take the section); else None."""
     if path is None:
@@ -64,7 +68,7 @@ def _start_recording(ctx: typer.Context, path: Path | None):
         raise fail(f"--record: {exc}") from None
 
 
-def _record(recording, name: str, result: dict) -> None:
+def _record(recording: Recording | None, name: str, result: dict) -> None:
     """With ``--record``: the result written as the benchmark's section (said on standard error)."""
     if recording is None:
         return
@@ -144,7 +148,7 @@ def bench_hdr_command(
     recording = _start_recording(ctx, record)
     try:
         result = bench_hdr(positions, exposures, width, height, repeat, seed, rig_path=rig, peers=peers)
-    except (BenchmarkError, HDRError, *domain_errors()) as exc:
+    except domain_errors(BenchmarkError, HDRError) as exc:
         raise fail(str(exc)) from None
     print_result(result, as_json)
     _record(recording, "hdr", result)
@@ -193,7 +197,7 @@ def bench_accuracy_command(
             layout_from_data=layout_from_data,
             templates=templates,
         )
-    except (*domain_errors(), ProcessingError) as exc:
+    except domain_errors(ProcessingError) as exc:
         raise fail(str(exc)) from None
     print_result(result, as_json)
     _record(recording, "accuracy", result)
@@ -223,7 +227,7 @@ def bench_reflectance_command(
         result = bench_reflectance(
             object_rig=object_rig, truth=truth, noise=noise, light_positions=light_positions, workdir=workdir
         )
-    except (*domain_errors(), ProcessingError, ReflectanceError) as exc:
+    except domain_errors(ProcessingError, ReflectanceError) as exc:
         raise fail(str(exc)) from None
     print_result(result, as_json)
     _record(recording, "reflectance", result)
@@ -314,7 +318,7 @@ def bench_tolerance_command(
             scheduler=scheduler,
             log=lambda message: typer.echo(message, err=True),
         )
-    except (ValueError, ComputeError, ProcessingError, *domain_errors()) as exc:
+    except domain_errors(ValueError, ComputeError, ProcessingError) as exc:
         raise fail(str(exc)) from None
     print_result(result, as_json)
     if not as_json:
@@ -403,7 +407,7 @@ def bench_speed_command(
             cache=None if no_cache else (cache or DEFAULT_CACHE),
             log=lambda message: typer.echo(message, err=True),
         )
-    except (SpeedBenchError, ComputeError, ProcessingError, HDRError, *domain_errors()) as exc:
+    except domain_errors(SpeedBenchError, ComputeError, ProcessingError, HDRError) as exc:
         raise fail(str(exc)) from None
     print_result(result, as_json)
     if not as_json:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 
@@ -15,6 +15,9 @@ from acquisition.cli.app import (
     domain_errors,
     fail,
 )
+
+if TYPE_CHECKING:
+    from acquisition.daemon.catalog import JobRecord
 
 
 # --- serve ----------------------------------------------------------------------------------
@@ -42,7 +45,7 @@ def serve(
 
     try:
         check_configured_files(settings)
-    except (SettingsError, ProfileError, *domain_errors()) as exc:
+    except domain_errors(SettingsError, ProfileError) as exc:
         raise fail(str(exc)) from None
     import uvicorn
 
@@ -141,7 +144,7 @@ def worker_command(
         raise fail(str(exc)) from None
 
 
-def _say_job(job) -> None:
+def _say_job(job: JobRecord) -> None:
     """One job the worker ended: its state, and what it wrote."""
     if job.state == "complete":
         typer.echo(f"{job.id} complete ({job.run_id}): {job.message}")

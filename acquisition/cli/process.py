@@ -5,7 +5,7 @@ from __future__ import annotations
 import hashlib
 import time
 from pathlib import Path
-from typing import Annotated, Any
+from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
@@ -18,6 +18,11 @@ from acquisition.cli.app import (
     with_declared_options,
 )
 from processing import ComputeError, OptionsError, ProcessingOptions, check_scheduler, declared_options
+
+if TYPE_CHECKING:
+    from rich.progress import Progress, TaskID
+
+    from processing import ProcessReport
 
 
 def _distinct_runs(runs: list[Path]) -> list[Path]:
@@ -166,10 +171,7 @@ def _check_outputs(folders: dict[Path, Path | None], overwrite: bool) -> None:
     if overwrite:
         return
     from drivers.contracts.runfile import RunFile, RunFileError  # noqa: PLC0415 - h5py, once the options are checked
-    from processing import (
-        ProcessingError,  # noqa: PLC0415 - heavy
-        check_outputs,  # noqa: PLC0415 - heavy
-    )
+    from processing import ProcessingError, check_outputs
 
     for run, folder in folders.items():
         try:
@@ -183,7 +185,9 @@ def _check_outputs(folders: dict[Path, Path | None], overwrite: bool) -> None:
             raise fail(str(exc)) from None
 
 
-def _process_all(runs: list[Path], folders: dict, options: ProcessingOptions, scheduler: str, workers) -> list:
+def _process_all(
+    runs: list[Path], folders: dict, options: ProcessingOptions, scheduler: str, workers: int | None
+) -> list:
     """Every run processed in turn on one cluster: (run, report or None, seconds, error) each."""
     from rich.progress import (  # noqa: PLC0415 - rich's progress, once options are checked
         Progress,
@@ -191,12 +195,7 @@ def _process_all(runs: list[Path], folders: dict, options: ProcessingOptions, sc
         TimeElapsedColumn,
     )
 
-    from processing import (  # noqa: PLC0415 - heavy
-        ProcessingError,
-        open_compute,  # noqa: PLC0415 - heavy (dask)
-        process_run,
-        warm_up_worker,
-    )
+    from processing import ProcessingError, open_compute, process_run, warm_up_worker
 
     batch = len(runs) > 1
     outcomes: list[tuple[Path, object, float, str]] = []
@@ -238,21 +237,21 @@ class StepBars:
     the step's name, its positions (or done / to do) and its time; the steps stay listed as
     they end, until the run is done (:meth:`close`)."""
 
-    def __init__(self, bar, run_label: str) -> None:
+    def __init__(self, bar: Progress, run_label: str) -> None:
         self.bar, self.run_label = bar, run_label
-        self.tasks: dict[str, object] = {}
+        self.tasks: dict[str, TaskID] = {}
         self.seen: list[str] = []  # the steps in the order they started
 
     def __call__(self, step: str, done: int, total: int) -> None:
-        from processing import STEP_BY_NAME as BY_NAME  # noqa: PLC0415 - the processing is loaded by now
+        from processing import STEP_BY_NAME
 
-        unit = BY_NAME[step].unit  # the positions, counted; the other steps pulse until they end
+        unit = STEP_BY_NAME[step].unit  # the positions, counted; the other steps pulse until they end
         shown = total if unit or done >= total else None
         note = f"{done}/{total} {unit}" if unit else ""
         task = self.tasks.get(step)
         if task is None:
             self.seen.append(step)
-            label = f"{self.run_label} {len(self.seen)}. {BY_NAME[step].label}"
+            label = f"{self.run_label} {len(self.seen)}. {STEP_BY_NAME[step].label}"
             task = self.tasks[step] = self.bar.add_task(label, total=shown, note=note)
         self.bar.update(task, completed=done, total=shown, note=note)
         if total and done >= total:
@@ -263,12 +262,9 @@ class StepBars:
             self.bar.remove_task(task)
 
 
-def _say_processed(run: Path, report) -> None:
+def _say_processed(run: Path, report: ProcessReport) -> None:
     """What one run's processing wrote, and the camera's numbers it fitted."""
-    from processing import (
-        run_name,  # noqa: PLC0415
-        skipped_line,  # noqa: PLC0415 - the processing, once a run is done
-    )
+    from processing import run_name, skipped_line
 
     if report.skipped_corrupt:
         typer.echo(f"warning: {run}: {skipped_line(report.skipped_corrupt)}", err=True)

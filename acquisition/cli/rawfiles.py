@@ -38,12 +38,12 @@ def import_command(
 
     Everything is checked before anything is written; on bad input nothing is left behind.
     Positions the CSV gives no frame for are left incomplete in the run file."""
-    from rich.progress import Progress
+    from rich.progress import Progress, TaskID
 
     from acquisition.importer import RunImportError, format_ranges, import_run
 
     with Progress(transient=True) as bar:
-        tasks: dict[str, int] = {}
+        tasks: dict[str, TaskID] = {}
 
         def progress(stage: str, done: int, total: int) -> None:
             if stage not in tasks:
@@ -106,7 +106,7 @@ def calibrate(
         comparison = compare_with_rig(fit, rig_model)
         poses = rig_model.light_poses()
         sensitivity = angle_sensitivity(rig_model, poses[len(poses) // 2])
-    except (*domain_errors(), CalibrationError) as exc:
+    except domain_errors(CalibrationError) as exc:
         raise fail(str(exc)) from None
     result = {
         "image": str(image),

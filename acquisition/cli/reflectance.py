@@ -58,14 +58,14 @@ def reflectance(
 ) -> None:
     """The object's diffuse albedo under three light models (collimated, isotropic point, measured),
     with maps, a UV texture, profiles along its vertical axis and an HTML report (docs/reflectance.md)."""
-    from rich.progress import Progress
+    from rich.progress import Progress, TaskID
 
     from processing import ReflectanceError, ReflectanceSettings, reflectance_from_run
 
     try:
         settings = ReflectanceSettings(**declared_values(THRESHOLDS, thresholds))
         with Progress(transient=True) as bar:
-            tasks: dict[str, object] = {}
+            tasks: dict[str, TaskID] = {}
 
             def progress(stage: str, done: int, total: int) -> None:
                 if stage not in tasks:

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 
@@ -16,6 +16,9 @@ from acquisition.cli.app import (
     fail,
     simulate_app,
 )
+
+if TYPE_CHECKING:
+    from drivers.camera import RawFrame
 
 
 # --- simulate -----------------------------------------------------------------------------
@@ -70,7 +73,7 @@ def _capture_one(
     noise: bool,
     diffraction: bool,
     seed: int | None,
-):
+) -> RawFrame:
     from drivers.contracts.rig import load_rig
     from drivers.pose import Pose
     from sim_devices.camera import SimulatedCamera

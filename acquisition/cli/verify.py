@@ -3,11 +3,14 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 
 from acquisition.cli.app import app
+
+if TYPE_CHECKING:
+    from drivers.contracts.runfile import RunFile
 
 #: Exit statuses: every file sound; a file with corrupt frames or structure; a file that is not
 #: a readable run file (the worst of the files given).
@@ -36,7 +39,7 @@ def verify(
     raise typer.Exit(code=status)
 
 
-def _verify_one(run) -> int:
+def _verify_one(run: RunFile) -> int:
     """Check one open run file and print what was found; its exit status."""
     from rich.console import Console  # noqa: PLC0415 - rich's progress, only for a check
     from rich.progress import Progress  # noqa: PLC0415

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from pathlib import Path
 
@@ -93,7 +94,7 @@ def _public_detail(exc: Exception, settings: DaemonSettings) -> str:
 
 def create_app(settings: DaemonSettings) -> FastAPI:
     @asynccontextmanager
-    async def lifespan(app: FastAPI):
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         log_buffer = LogBuffer()
         for name in LOGGED:
             log_buffer.attach(name)
@@ -146,7 +147,8 @@ def create_app(settings: DaemonSettings) -> FastAPI:
         detail = _json_safe(jsonable_encoder(exc.errors()))
         return JSONResponse({"detail": detail}, status_code=status.HTTP_422_UNPROCESSABLE_CONTENT)
 
-    app.add_exception_handler(RequestValidationError, validation_error)
+    # Starlette types a handler as taking any Exception, though it is called only with the class it is registered for.
+    app.add_exception_handler(RequestValidationError, validation_error)  # type: ignore[arg-type]
 
     @app.get("/", response_class=HTMLResponse, include_in_schema=False)
     def web_page() -> HTMLResponse:

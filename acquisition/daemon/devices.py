@@ -130,14 +130,27 @@ def _open_arm(settings: DaemonSettings, rig: Rig, closers: list, simulated: dict
     elif cfg.kind in ("modbus-tcp", "modbus-rtu"):
         if cfg.profile is None:
             raise SettingsError("arm.profile: a Modbus arm needs its register-map profile")
-        options = dict(limits=limits, timeout_s=cfg.timeout_s, retries=cfg.retries)
         if cfg.kind == "modbus-tcp":
-            arm = ModbusArm(cfg.profile, transport="tcp", host=cfg.host, port=cfg.port or 502, **options)
+            arm = ModbusArm(
+                cfg.profile,
+                transport="tcp",
+                host=cfg.host,
+                port=cfg.port or 502,
+                limits=limits,
+                timeout_s=cfg.timeout_s,
+                retries=cfg.retries,
+            )
         else:
             if not cfg.serial_port:
                 raise SettingsError("arm.serial_port: Modbus RTU needs a serial port")
             arm = ModbusArm(
-                cfg.profile, transport="rtu", serial_port=cfg.serial_port, baudrate=cfg.baudrate or 19200, **options
+                cfg.profile,
+                transport="rtu",
+                serial_port=cfg.serial_port,
+                baudrate=cfg.baudrate or 19200,
+                limits=limits,
+                timeout_s=cfg.timeout_s,
+                retries=cfg.retries,
             )
     else:
         if not cfg.serial_port:

@@ -18,7 +18,7 @@ from pydantic import (
     model_validator,
 )
 
-from acquisition.daemon.settings import BRACKET_LENGTH, DEFAULT_AMBIENT_EXPOSURES_S, Exposure
+from acquisition.daemon.settings import BRACKET_MAX_LENGTH, BRACKET_MIN_LENGTH, DEFAULT_AMBIENT_EXPOSURES_S, Exposure
 from drivers.contracts.rig import MAX_POSITIONS, PoseSpec
 from processing import Option, ProcessingOptions, StepsError, declared_options, resolve_steps
 
@@ -44,7 +44,9 @@ class FixedBracket(BaseModel):
         },
     )
     mode: Literal["fixed"] = "fixed"
-    exposures_s: list[Exposure] = Field(**BRACKET_LENGTH, description=_EXPOSURES_DOC)
+    exposures_s: list[Exposure] = Field(
+        min_length=BRACKET_MIN_LENGTH, max_length=BRACKET_MAX_LENGTH, description=_EXPOSURES_DOC
+    )
 
 
 class AutoBracket(BaseModel):
@@ -81,7 +83,8 @@ class CalibrationOptions(BaseModel):
     after: StrictBool = Field(default=False, description="and after the last position too (to see drift)")
     ambient_exposures_s: list[Exposure] = Field(
         default_factory=lambda: list(DEFAULT_AMBIENT_EXPOSURES_S),
-        **BRACKET_LENGTH,
+        min_length=BRACKET_MIN_LENGTH,
+        max_length=BRACKET_MAX_LENGTH,
         description=f"the bracket of the ambient frames (the light off, the room lit; {_EXPOSURES_DOC}); "
         "default: the daemon's",
     )
@@ -111,7 +114,7 @@ class RunRequest(BaseModel):
     count: int | None = Field(default=None, ge=1, le=MAX_POSITIONS, description="take only the first COUNT positions")
     bracket: Bracket = Field(default_factory=lambda: FixedBracket(exposures_s=[0.0002, 0.001, 0.005]))
     calibration: CalibrationOptions = Field(
-        default_factory=CalibrationOptions,
+        default_factory=lambda: CalibrationOptions(),
         description="calibration frames with the light off, before (and after) the sweep",
     )
     force: StrictBool = Field(
@@ -152,7 +155,7 @@ def _job_field(option: Option) -> tuple[Any, Any]:
     }
     bounds = {key: value for key, value in bounds.items() if value is not None}
     if bounds:
-        kind = Annotated[kind, Field(**bounds)]
+        kind = Annotated[kind, Field(**bounds)]  # type: ignore[call-overload]  # pydantic's overloads take no **dict
     if option.given_default is None:
         kind = kind | None
     return kind, Field(default=option.given_default, description=option.help_as(lambda public: public))
@@ -200,7 +203,7 @@ class _JobRequest(BaseModel):
 
 #: The processing's options a job takes, as ``processing.options`` declares them.
 JOB_OPTIONS = tuple(option for option in declared_options(ProcessingOptions) if option.job)
-JobRequest = create_model(
+JobRequest = create_model(  # type: ignore[call-overload]  # its overloads take no **fields of a built dict
     "JobRequest",
     __base__=_JobRequest,
     __doc__=_JobRequest.__doc__,
@@ -463,7 +466,10 @@ class ShotRequest(BaseModel):
         extra="forbid", allow_inf_nan=False, json_schema_extra={"examples": [{"exposures_s": [0.001, 0.01]}]}
     )
     exposures_s: list[Exposure] | None = Field(
-        default=None, **BRACKET_LENGTH, description=f"{_EXPOSURES_DOC}; default: the daemon's default bracket"
+        default=None,
+        min_length=BRACKET_MIN_LENGTH,
+        max_length=BRACKET_MAX_LENGTH,
+        description=f"{_EXPOSURES_DOC}; default: the daemon's default bracket",
     )
 
 

@@ -42,7 +42,8 @@ Seconds = Annotated[float, Field(gt=0, le=DAY_S)]
 #: An exposure time, s: one a camera can take and a raw file can hold (``drivers.camera``).
 Exposure = Annotated[float, Field(ge=SHORTEST_EXPOSURE_S, le=LONGEST_EXPOSURE_S, allow_inf_nan=False)]
 #: A bracket: 1 to 16 exposures.
-BRACKET_LENGTH = {"min_length": 1, "max_length": 16}
+BRACKET_MIN_LENGTH = 1
+BRACKET_MAX_LENGTH = 16
 #: A simulated stage's speed or acceleration: ``inf`` makes that part of a move instantaneous.
 StageRate = Annotated[float, Field(gt=0, allow_inf_nan=True)]
 
@@ -167,7 +168,9 @@ class LightSettings(_Section):
     room_can_be_dark: bool = True
     dark_exposure_s: Exposure = 1e-4
     ambient_exposures_s: list[Exposure] = Field(
-        default_factory=lambda: list(DEFAULT_AMBIENT_EXPOSURES_S), **BRACKET_LENGTH
+        default_factory=lambda: list(DEFAULT_AMBIENT_EXPOSURES_S),
+        min_length=BRACKET_MIN_LENGTH,
+        max_length=BRACKET_MAX_LENGTH,
     )
 
 
@@ -230,7 +233,9 @@ class DaemonSettings(BaseSettings):
     light: LightSettings = Field(default_factory=LightSettings)
     auto_bracket: AutoBracketSettings = Field(default_factory=AutoBracketSettings)
     storage: StorageSettings = Field(default_factory=StorageSettings)
-    default_exposures_s: list[Exposure] = Field(default_factory=lambda: [0.0002, 0.001, 0.005], **BRACKET_LENGTH)
+    default_exposures_s: list[Exposure] = Field(
+        default_factory=lambda: [0.0002, 0.001, 0.005], min_length=BRACKET_MIN_LENGTH, max_length=BRACKET_MAX_LENGTH
+    )
 
     @field_validator("token", mode="before")
     @classmethod
@@ -316,7 +321,7 @@ def is_loopback(host: str) -> bool:
         return False
 
 
-def load_settings(path: str | Path | None = None, **overrides) -> DaemonSettings:
+def load_settings(path: str | Path | None = None, **overrides: object) -> DaemonSettings:
     """Read ``daemon.toml`` (optional); ``MG_*`` variables fill what the file leaves out."""
     data = read_toml(path, "configuration file", SettingsError) if path is not None else {}
     data.update({k: v for k, v in overrides.items() if v is not None})

@@ -32,6 +32,7 @@ import time
 import tomllib
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 from acquisition.daemon.catalog import ACTIVE_RUN_STATES, Catalog, CatalogError, JobClaimError, JobRecord, RunRecord
 from acquisition.daemon.client_files import ClientFileError, load_client_file
@@ -47,6 +48,7 @@ from processing import (
     ProcessingOptions,
     ProcessReport,
     ResultsError,
+    Step,
     StepsError,
     layout_from_dict,
     overall_fraction,
@@ -130,7 +132,7 @@ class JobWorker:
     def __init__(
         self,
         catalog: Catalog,
-        compute=None,
+        compute: Compute | None = None,
         *,
         worker_id: str | None = None,
         heartbeat_s: float = 5.0,
@@ -329,7 +331,9 @@ class JobWorker:
                 log.warning("job %s: heartbeat failed: %s", job.id, exc)
 
     # --- the processing --------------------------------------------------------------------
-    def _process_run(self, job: JobRecord, run_path: Path, steps, progress):
+    def _process_run(
+        self, job: JobRecord, run_path: Path, steps: tuple[Step, ...], progress: Callable[[str, int, int], None]
+    ) -> tuple[Path, dict[str, str | Path], str]:
         """Process the job's run beside its run file: (result folder, artifacts, message)."""
         options = job.options
         try:
@@ -354,7 +358,9 @@ class JobWorker:
             message = f"{report.quality.line()}; {message}"
         return run_path.parent, {k: str(v) for k, v in artifacts.items()}, message
 
-    def _processed(self, run_path: Path, steps, progress, options: dict) -> ProcessReport:
+    def _processed(
+        self, run_path: Path, steps: tuple[Step, ...], progress: Callable[[str, int, int], None], options: dict
+    ) -> ProcessReport:
         """``process_run`` with the job's options, its results beside the run file."""
         try:
             checked = ProcessingOptions.checked(
@@ -381,13 +387,13 @@ def _has_complete_position(path: Path) -> bool:
 
 def serve_jobs(
     catalog_path: str | Path,
-    compute,
+    compute: Compute,
     *,
     stop: threading.Event | None = None,
     once: bool = False,
     poll_s: float = 2.0,
-    on_job=None,
-    **options,
+    on_job: Callable[[JobRecord], None] | None = None,
+    **options: Any,
 ) -> int:
     """Open the catalog and run a :class:`JobWorker` on it (``mirrorgonio worker``)."""
     with contextlib.closing(Catalog(catalog_path)) as catalog:

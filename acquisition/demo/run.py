@@ -10,8 +10,11 @@ import signal
 import sys
 import threading
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
+from types import FrameType
+from typing import Any, NoReturn
 
 import httpx
 from rich.console import Console
@@ -30,6 +33,7 @@ from acquisition.demo.processes import Child, DemoError, child_env, free_port
 from acquisition.demo.summary import DemoResult
 from acquisition.demo.truth import aperture_used, score_light_model, truth_and_layout
 from drivers.contracts.rig import RIGS_DIR
+from sim_devices.lights import TruthLight
 
 #: The demo's default rig: the default geometry at half the resolution (rigs/demo.toml).
 DEMO_RIG_PATH = RIGS_DIR / "demo.toml"
@@ -60,7 +64,7 @@ def run_demo(
     workers: int | None = None,
     keep: int = 1,
     truth_layout: bool = False,
-    console=None,
+    console: Console | None = None,
 ) -> DemoResult:
     """Run the whole chain once (:mod:`acquisition.demo`); raises :class:`DemoError` on failure.
 
@@ -131,7 +135,7 @@ def run_demo(
     return result
 
 
-def _scored(truth, **fields) -> DemoResult:
+def _scored(truth: TruthLight, **fields: Any) -> DemoResult:
     """The demo's result: ``fields`` and the light model the worker wrote scored against ``truth``."""
     light_model = fields["artifacts"]["light_model"]
     accuracy = score_light_model(light_model, truth)
@@ -193,7 +197,7 @@ def _start_worker(session: _Session, config: Path, folder: Path, workers: int | 
     return worker
 
 
-def _wait_for_daemon(client, daemon: Child, timeout: float = 120.0) -> None:
+def _wait_for_daemon(client: httpx.Client, daemon: Child, timeout: float = 120.0) -> None:
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         daemon.check()
@@ -208,7 +212,7 @@ def _wait_for_daemon(client, daemon: Child, timeout: float = 120.0) -> None:
 
 
 # --- the sweep and its processing, through the REST API ---------------------------------------------
-def _answer(response, what: str) -> dict:
+def _answer(response: httpx.Response, what: str) -> dict:
     if response.status_code >= 400:
         try:
             detail = response.json().get("detail", response.text)
@@ -234,6 +238,7 @@ def _acquire(session: _Session, daemon: Child, truth_name: str, positions: int |
     """The default light sweep (``POST /runs``), followed with a progress bar: the finished run,
     and the seconds it took."""
     console, client = session.console, session.client
+    assert client is not None  # opened by _start_children
     started = time.perf_counter()
     body: dict = {
         "preset": "light-sweep",
@@ -278,6 +283,7 @@ def _process(session: _Session, worker: Child, layout: Path | None) -> tuple[dic
     with a progress bar: the finished job, a note when the daemon refused the layout, and the
     seconds it took."""
     console, client, run_id = session.console, session.client, session.run_id
+    assert client is not None and run_id is not None  # opened by _start_children, set by _acquire
     started = time.perf_counter()
     job, layout_note = _post_job(client, run_id, layout)
     if layout_note:
@@ -302,7 +308,7 @@ def _process(session: _Session, worker: Child, layout: Path | None) -> tuple[dic
     return job, layout_note, seconds
 
 
-def _post_job(client, run_id: str, layout: Path | None) -> tuple[dict, str]:
+def _post_job(client: httpx.Client, run_id: str, layout: Path | None) -> tuple[dict, str]:
     """Queue the run's processing with the rig's noise model (as ``bench accuracy`` does)
     and, if given, the truth's source layout. A daemon whose job requests do not take those
     options gets the job without them: the worker then finds the sources in the data, and
@@ -324,6 +330,8 @@ def _paths_from_catalog(catalog_path: Path, run_id: str, job_id: str) -> tuple[P
     with contextlib.closing(Catalog(catalog_path)) as catalog:
         run = catalog.get_run(run_id)
         job = catalog.get_job(job_id)
+    if run.path is None:
+        raise DemoError(f"run {run_id} has no run file in the catalog")
     return Path(run.path), {kind: Path(path) for kind, path in job.artifacts.items()}
 
 
@@ -332,12 +340,12 @@ def _is_main_thread() -> bool:
     return threading.current_thread() is threading.main_thread()
 
 
-def _terminate_as_interrupt(signum, frame):
+def _terminate_as_interrupt(signum: int, frame: FrameType | None) -> NoReturn:
     raise KeyboardInterrupt
 
 
 @contextlib.contextmanager
-def _sigterm_as_interrupt():
+def _sigterm_as_interrupt() -> Iterator[None]:
     """SIGTERM raises KeyboardInterrupt inside (the main thread only), so that the demo stops
     its children as on Ctrl-C; the previous handler is restored on the way out."""
     previous = None
@@ -350,7 +358,9 @@ def _sigterm_as_interrupt():
             signal.signal(signal.SIGTERM, previous)
 
 
-def _shutdown(console, children: list[Child], client, run_id: str | None, interrupted: bool) -> None:
+def _shutdown(
+    console: Console, children: list[Child], client: httpx.Client | None, run_id: str | None, interrupted: bool
+) -> None:
     """Abort an unfinished run, then stop the worker and the daemon (in that order)."""
     if client is not None:
         if interrupted and run_id is not None:

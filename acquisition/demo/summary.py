@@ -6,6 +6,7 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+from rich.console import Console
 from rich.table import Table
 
 from acquisition.demo.folder import shown
@@ -54,7 +55,7 @@ ARTIFACT_LABELS = (
 )
 
 
-def print_summary(result: DemoResult, console) -> None:
+def print_summary(result: DemoResult, console: Console) -> None:
     """Print what the demo made and measured: its files, the accuracy of each source, the times.
 
     Parameters

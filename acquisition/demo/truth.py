@@ -14,9 +14,9 @@ from pathlib import Path
 import numpy as np
 
 from acquisition.benchmarks.scoring import score_fit
-from drivers.contracts.rig import load_rig
+from drivers.contracts.rig import Rig, load_rig
 from processing import LightModel
-from sim_devices.lights import LIGHTS_DIR, load_truth
+from sim_devices.lights import LIGHTS_DIR, TruthLight, load_truth
 
 
 @dataclass
@@ -33,7 +33,7 @@ class SourceAccuracy:
     offset_m: float = 0.0
 
 
-def truth_and_layout(rig_path: Path):
+def truth_and_layout(rig_path: Path) -> tuple[Rig, TruthLight, Path]:
     """The rig's simulated truth light and its TOML file (which also serves as the source layout)."""
     rig = load_rig(rig_path)
     name = rig.simulation.truth
@@ -41,7 +41,7 @@ def truth_and_layout(rig_path: Path):
     return rig, load_truth(name), path.resolve()
 
 
-def score_light_model(light_model: Path, truth) -> list[SourceAccuracy]:
+def score_light_model(light_model: Path, truth: TruthLight) -> list[SourceAccuracy]:
     """Each truth emitter against the fitted source of the same name (else the nearest one),
     scored as ``mirrorgonio bench accuracy`` does, over the θ its samples cover."""
     model = LightModel.load(light_model)

@@ -12,6 +12,7 @@ import hashlib
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -50,11 +51,11 @@ class ApertureShape:
 
     # --- construction -------------------------------------------------------------------------
     @classmethod
-    def circle(cls, diameter: float, **rough) -> ApertureShape:
+    def circle(cls, diameter: float, **rough: Any) -> ApertureShape:
         return cls((diameter / 2.0, diameter / 2.0), **rough)
 
     @classmethod
-    def ellipse(cls, axes: tuple[float, float], angle: float = 0.0, **rough) -> ApertureShape:
+    def ellipse(cls, axes: tuple[float, float], angle: float = 0.0, **rough: Any) -> ApertureShape:
         """An ellipse of full ``axes`` (diameters), its first axis ``angle`` radians from +x."""
         return cls((axes[0] / 2.0, axes[1] / 2.0), angle, **rough)
 
@@ -166,7 +167,9 @@ class ApertureShape:
         half = 0.5 * cell / self.mask_pixel
         u, v = x / self.mask_pixel + self.mask_centre[0], y / self.mask_pixel + self.mask_centre[1]
 
-        def integral(uu, vv):  # the image's integral over [0, uu] × [0, vv], in pixels
+        def integral(
+            uu: np.ndarray, vv: np.ndarray
+        ) -> np.ndarray:  # the image's integral over [0, uu] × [0, vv], in pixels
             at = [np.ravel(vv), np.ravel(uu)]
             return ndimage.map_coordinates(self.mask, at, order=1, mode="nearest").reshape(np.shape(uu))
 
@@ -187,7 +190,7 @@ def read_mask(path: str | Path) -> np.ndarray:
         raise RigError(f"camera.aperture.mask: cannot read {path} as an image")
     if image.ndim != 2 or image.dtype not in (np.uint8, np.uint16):
         raise RigError(f"camera.aperture.mask: {path} is not an 8- or 16-bit greyscale image")
-    transmission = image.astype(float) / np.iinfo(image.dtype).max
+    transmission = image.astype(float) / (255.0 if image.dtype == np.uint8 else 65535.0)
     if not np.any(transmission > 0):
         raise RigError(f"camera.aperture.mask: {path} transmits nowhere (an all-black image)")
     return transmission

@@ -45,6 +45,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from scipy import fft as sfft
@@ -309,7 +310,12 @@ def fresnel_psf(
 
 
 def channel_psf(
-    camera: Camera, aperture: ApertureShape, channel: int, path: PathCurvature, samples: int = BAND_SAMPLES, **options
+    camera: Camera,
+    aperture: ApertureShape,
+    channel: int,
+    path: PathCurvature,
+    samples: int = BAND_SAMPLES,
+    **options: Any,
 ) -> np.ndarray:
     """:func:`fresnel_psf` over channel 0, 1 or 2's band (:func:`channel_band`)."""
     wavelengths, weights = channel_band(camera, channel, samples)

@@ -4,6 +4,7 @@ the exact trace of a batch of rays through them."""
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -47,7 +48,9 @@ class CameraOptics:
             wavelengths=np.asarray(cam.channel_wavelengths_m, dtype=float),
         )
 
-    def rays(self, col, row, ax, ay):
+    def rays(
+        self, col: np.ndarray, row: np.ndarray, ax: np.ndarray, ay: np.ndarray
+    ) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray], np.ndarray]:
         """Rays from sensor points (pixel coordinates) through aperture points (metres).
 
         Returns origins and unit directions in the rig frame, and the ``cos⁴β`` factor of
@@ -104,7 +107,9 @@ class LightPlane:
             rig.light.housing_depth_m,
         )
 
-    def to_local(self, px, py, pz, vx, vy, vz):
+    def to_local(
+        self, px: np.ndarray, py: np.ndarray, pz: np.ndarray, vx: np.ndarray, vy: np.ndarray, vz: np.ndarray
+    ) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray]]:
         """Point and direction from the rig frame into the light frame."""
         r, o = self.rotation, self.origin
         qx, qy, qz = px - o[0], py - o[1], pz - o[2]
@@ -120,7 +125,7 @@ class LightPlane:
         )
         return lp, lv
 
-    def blocks_segment(self, start, end) -> np.ndarray:
+    def blocks_segment(self, start: Sequence[np.ndarray], end: Sequence[np.ndarray]) -> np.ndarray:
         """True where the segment ``start → end`` (rig frame) passes through the housing."""
         if self.housing_radius <= 0.0:
             return np.zeros(np.shape(start[0]), dtype=bool)
@@ -188,7 +193,17 @@ class Trace:
     cos4: np.ndarray
 
 
-def trace(camera: CameraOptics, mirror: Mirror, plane: LightPlane, col, row, ax, ay, *, fresnel=True) -> Trace:
+def trace(
+    camera: CameraOptics,
+    mirror: Mirror,
+    plane: LightPlane,
+    col: np.ndarray,
+    row: np.ndarray,
+    ax: np.ndarray,
+    ay: np.ndarray,
+    *,
+    fresnel: bool = True,
+) -> Trace:
     """Trace rays given by sensor point (pixels) and aperture point (metres)."""
     (ox, oy, oz), (dx, dy, dz), cos4 = camera.rays(col, row, ax, ay)
     c = mirror.centre

@@ -4,10 +4,12 @@ physics and the sampling of each emitter's pre-image)."""
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
+from numpy.typing import ArrayLike
 
 from drivers.contracts.rig import Rig
 from drivers.pose import Pose
@@ -15,7 +17,7 @@ from sim_devices.lights import Emitter, TruthLight
 from sim_devices.optics.aperture import ApertureShape
 from sim_devices.optics.diffraction import apply_diffraction
 from sim_devices.optics.fresnel import BAND_SAMPLES, PathCurvature
-from sim_devices.optics.geometry import CameraOptics, LightPlane, Mirror, fresnel_conductor, trace
+from sim_devices.optics.geometry import CameraOptics, LightPlane, Mirror, Trace, fresnel_conductor, trace
 from sim_devices.optics.point_spread import FresnelBlur
 from sim_devices.optics.sampling import subpixel_pattern, unit_disc_samples
 
@@ -35,7 +37,7 @@ class RenderStats:
     per_emitter_image_distance: dict = field(default_factory=dict)
 
 
-def environment_rgb(radiance) -> np.ndarray:
+def environment_rgb(radiance: ArrayLike) -> np.ndarray:
     """A uniform environment's radiance as (R, G, B): a number or one per channel, finite, ≥ 0."""
     env = np.broadcast_to(np.asarray(radiance, dtype=float), (3,)).copy()
     if not np.all(np.isfinite(env)) or np.any(env < 0):
@@ -127,7 +129,7 @@ class MirrorBallRenderer:
         self.set_environment(environment_radiance)
         self.environment_aperture_samples = environment_aperture_samples
 
-    def set_environment(self, radiance) -> None:
+    def set_environment(self, radiance: ArrayLike) -> None:
         """The uniform environment's radiance: a number, or one per channel (R, G, B)."""
         self.environment = environment_rgb(radiance)
 
@@ -205,7 +207,15 @@ class MirrorBallRenderer:
             np.clip(rate, 0.0, None, out=rate)
         return Rendering(rate, stats)
 
-    def _render_emitters(self, plane, stats, layer_of, col, row, uv0):
+    def _render_emitters(
+        self,
+        plane: LightPlane,
+        stats: RenderStats,
+        layer_of: Callable[[Emitter], np.ndarray],
+        col: np.ndarray,
+        row: np.ndarray,
+        uv0: np.ndarray,
+    ) -> None:
         """Add each emitter's image to ``layer_of(emitter)``, a (3, H·W) rate array."""
         cam = self.camera
         # Affine map of aperture offset and sensor offset onto the light plane, per pixel.
@@ -230,7 +240,7 @@ class MirrorBallRenderer:
         stats.rim_hit_fraction = rim_hits / total_hits if total_hits else 0.0
 
     # --- the uniform environment ------------------------------------------------------------
-    def _environment_blur_px(self, plane) -> float:
+    def _environment_blur_px(self, plane: LightPlane) -> float:
         """An upper bound of the radius (pixels) of any scene point's blur on the sensor.
 
         Everything the environment pass can see lies between the nearest of the ball's
@@ -253,7 +263,9 @@ class MirrorBallRenderer:
             blur = a * f * max(abs(1.0 / z - 1.0 / cam.focus_distance) for z in (z_near, z_far))
         return blur / cam.pitch
 
-    def _environment_rays(self, plane, col, row, ax, ay):
+    def _environment_rays(
+        self, plane: LightPlane, col: np.ndarray, row: np.ndarray, ax: np.ndarray, ay: np.ndarray
+    ) -> np.ndarray:
         """Per ray: the environment's ``F(α) · cos⁴β`` (N, 3), 0 where it is not seen."""
         (ox, oy, oz), (dx, dy, dz), cos4 = self.camera.rays(col, row, ax, ay)
         c, radius = self.mirror.centre, self.mirror.radius
@@ -277,13 +289,13 @@ class MirrorBallRenderer:
         value = np.stack([np.interp(c, grid, table[:, ch]) for ch in range(table.shape[1])], axis=-1)
         return np.where(seen[:, None], value * cos4[:, None], 0.0)
 
-    def _fresnel_table(self):
+    def _fresnel_table(self) -> tuple[np.ndarray, np.ndarray]:
         if getattr(self, "_fresnel_lut", None) is None:
             grid = np.linspace(0.0, 1.0, 16385)
             self._fresnel_lut = (grid, fresnel_conductor(grid, self.mirror.n, self.mirror.k))
         return self._fresnel_lut
 
-    def _render_environment(self, plane, stats) -> np.ndarray:
+    def _render_environment(self, plane: LightPlane, stats: RenderStats) -> np.ndarray:
         """Unscaled rate (3, H·W) of the uniform environment reflected by the ball."""
         cam = self.camera
         out = np.zeros((3, cam.height * cam.width))
@@ -314,7 +326,9 @@ class MirrorBallRenderer:
             out[:, pix] = value.T * self.environment[:, None]
         return out
 
-    def _environment_pixels(self, plane, col, row, ndisc):
+    def _environment_pixels(
+        self, plane: LightPlane, col: np.ndarray, row: np.ndarray, ndisc: int
+    ) -> tuple[np.ndarray, int]:
         """Mean of ``F · cos⁴`` over each pixel's area × the whole aperture (stratified)."""
         ra = self.camera.aperture_radius
         nsub = len(self.subpixel)
@@ -333,14 +347,16 @@ class MirrorBallRenderer:
             out[sl] = value.reshape(m, per_pixel, 3).mean(axis=1)
         return out, col.size * per_pixel
 
-    def _hidden_environment(self, plane, t, on) -> np.ndarray:
+    def _hidden_environment(self, plane: LightPlane, t: Trace, on: np.ndarray) -> np.ndarray:
         """``L_env · F · cos⁴`` (N, 3) for emitter hits outside the housing's face: light of
         the surroundings the emitter hides (already counted by the environment pass)."""
         bare = on & (t.u * t.u + t.v * t.v > plane.housing_radius**2)
         return np.where(bare[:, None], t.fresnel * t.cos4[:, None] * self.environment[None, :], 0.0)
 
     # --- the Fresnel point spread's path -----------------------------------------------------
-    def _emitter_path(self, plane, emitter: Emitter, col, row, uv0) -> PathCurvature | None:
+    def _emitter_path(
+        self, plane: LightPlane, emitter: Emitter, col: np.ndarray, row: np.ndarray, uv0: np.ndarray
+    ) -> PathCurvature | None:
         """The optical path about the chief ray onto the emitter's centre (None where it is not
         traced): Newton's method on the exact trace for the sensor point, then the rays'
         magnification ``M = ∂p/∂ρ = −J_p⁻¹ J_ρ`` by central differences (1 % of the pinhole's
@@ -366,7 +382,9 @@ class MirrorBallRenderer:
         sensor = ((point[0] - cam.cx) * cam.pitch, (point[1] - cam.cy) * cam.pitch)
         return PathCurvature.from_rays(-np.linalg.solve(jd, ja), sensor, cam.sensor_distance, cam.pitch)
 
-    def _central_jacobians(self, plane, point, h_a, h_p):
+    def _central_jacobians(
+        self, plane: LightPlane, point: np.ndarray, h_a: float, h_p: float
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
         """``(∂(u, v)/∂ρ, ∂(u, v)/∂p, (u, v))`` of the chief ray from sensor ``point`` (pixels), or None."""
         dp = np.array([0, 1, -1, 0, 0, 0, 0, 0, 0]) * h_p
         dq = np.array([0, 0, 0, 1, -1, 0, 0, 0, 0]) * h_p
@@ -388,7 +406,16 @@ class MirrorBallRenderer:
         return PathCurvature.on_axis(distance, cam.sensor_distance, cam.pitch)
 
     # --- local linearisation ------------------------------------------------------------------
-    def _jacobian_aperture(self, plane, col, row, ax, ay, uv, h):
+    def _jacobian_aperture(
+        self,
+        plane: LightPlane,
+        col: np.ndarray,
+        row: np.ndarray,
+        ax: np.ndarray,
+        ay: np.ndarray,
+        uv: np.ndarray,
+        h: float,
+    ) -> tuple[np.ndarray, np.ndarray]:
         tx = trace(self.camera, self.mirror, plane, col, row, ax + h, ay, fresnel=False)
         ty = trace(self.camera, self.mirror, plane, col, row, ax, ay + h, fresnel=False)
         j = np.empty((col.size, 2, 2))
@@ -396,7 +423,16 @@ class MirrorBallRenderer:
         j[:, 0, 1], j[:, 1, 1] = (ty.u - uv[:, 0]) / h, (ty.v - uv[:, 1]) / h
         return j, tx.valid & ty.valid
 
-    def _jacobian_sensor(self, plane, col, row, ax, ay, uv, h=0.25):
+    def _jacobian_sensor(
+        self,
+        plane: LightPlane,
+        col: np.ndarray,
+        row: np.ndarray,
+        ax: np.ndarray,
+        ay: np.ndarray,
+        uv: np.ndarray,
+        h: float = 0.25,
+    ) -> tuple[np.ndarray, np.ndarray]:
         tx = trace(self.camera, self.mirror, plane, col + h, row, ax, ay, fresnel=False)
         ty = trace(self.camera, self.mirror, plane, col, row + h, ax, ay, fresnel=False)
         j = np.empty((col.size, 2, 2))
@@ -405,7 +441,16 @@ class MirrorBallRenderer:
         return j, tx.valid & ty.valid
 
     # --- one emitter --------------------------------------------------------------------------
-    def _render_emitter(self, plane, emitter: Emitter, col, row, uv0, ja, jd):
+    def _render_emitter(
+        self,
+        plane: LightPlane,
+        emitter: Emitter,
+        col: np.ndarray,
+        row: np.ndarray,
+        uv0: np.ndarray,
+        ja: np.ndarray,
+        jd: np.ndarray,
+    ) -> tuple[np.ndarray, np.ndarray, int, int, int]:
         cam = self.camera
         ra = cam.aperture_radius
         q = np.asarray(emitter.centre_m, dtype=float)
@@ -441,7 +486,16 @@ class MirrorBallRenderer:
         c, p, n = self._wide(plane, emitter, col[idx], row[idx])
         return c, p, 0, 0, n
 
-    def _narrow(self, plane, emitter, col, row, a0, uv0, ja):
+    def _narrow(
+        self,
+        plane: LightPlane,
+        emitter: Emitter,
+        col: np.ndarray,
+        row: np.ndarray,
+        a0: np.ndarray,
+        uv0: np.ndarray,
+        ja: np.ndarray,
+    ) -> tuple[np.ndarray, np.ndarray, int, int, int]:
         """Emitter smaller than the aperture's footprint: sample its pre-image ellipse."""
         ra, rho = self.camera.aperture_radius, emitter.radius_m
         col, row, a, j, jd = self._aim_at_emitter(plane, emitter, col, row, a0, uv0, ja)
@@ -461,7 +515,16 @@ class MirrorBallRenderer:
             return np.zeros((0, 3)), np.zeros(0, dtype=np.int64), 0, 0, 0
         return self._sample_ellipses(plane, emitter, col, row, a, j_inv, shift_per_px, ellipse_area)
 
-    def _aim_at_emitter(self, plane, emitter, col, row, a0, uv0, ja):
+    def _aim_at_emitter(
+        self,
+        plane: LightPlane,
+        emitter: Emitter,
+        col: np.ndarray,
+        row: np.ndarray,
+        a0: np.ndarray,
+        uv0: np.ndarray,
+        ja: np.ndarray,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Newton's method on the exact trace: per pixel, the aperture point whose chief ray lands
         on the emitter's centre, with the aperture and sensor Jacobians there.
 
@@ -494,7 +557,17 @@ class MirrorBallRenderer:
         good &= okd
         return col[good], row[good], a[good], j[good], jd[good]
 
-    def _sample_ellipses(self, plane, emitter, col, row, a, j_inv, shift_per_px, ellipse_area):
+    def _sample_ellipses(
+        self,
+        plane: LightPlane,
+        emitter: Emitter,
+        col: np.ndarray,
+        row: np.ndarray,
+        a: np.ndarray,
+        j_inv: np.ndarray,
+        shift_per_px: np.ndarray,
+        ellipse_area: np.ndarray,
+    ) -> tuple[np.ndarray, np.ndarray, int, int, int]:
         """Trace stratified samples of each pixel's pre-image ellipse (in chunks of rays).
 
         Returns ``(contribution per pixel (N, 3), pixel index, rim hits, hits, rays)``.
@@ -543,7 +616,16 @@ class MirrorBallRenderer:
             pix_all.append(pixel_index[sl])
         return np.concatenate(contrib_all), np.concatenate(pix_all), rim, hits, npx * per_pixel
 
-    def _sensor_narrow(self, plane, emitter, col0, row0, uv_chief, ja, jd):
+    def _sensor_narrow(
+        self,
+        plane: LightPlane,
+        emitter: Emitter,
+        col0: np.ndarray,
+        row0: np.ndarray,
+        uv_chief: np.ndarray,
+        ja: np.ndarray,
+        jd: np.ndarray,
+    ) -> tuple[np.ndarray, np.ndarray, int, int, int]:
         """Emitter whose image, for a fixed aperture point, is small on the sensor.
 
         Stratified aperture points; for each, Newton's method finds the sensor point whose
@@ -589,7 +671,9 @@ class MirrorBallRenderer:
         rim = int(np.count_nonzero(disc_r[on] > 0.9))
         return value, pixel, rim, int(on.sum()), int(px.size + 8 * n_ap)
 
-    def _wide(self, plane, emitter, col, row):
+    def _wide(
+        self, plane: LightPlane, emitter: Emitter, col: np.ndarray, row: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, int]:
         """Emitter wider than the aperture's footprint: sample the whole aperture."""
         cam, ra = self.camera, self.camera.aperture_radius
         npx = col.size

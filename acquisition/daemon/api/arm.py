@@ -5,11 +5,11 @@ from __future__ import annotations
 from fastapi import APIRouter, status
 
 from acquisition.daemon import manual as bench
-from acquisition.daemon.api.deps import WRITE_ERRORS, EngineDep, TokenDep
+from acquisition.daemon.api.deps import WRITE_ERRORS, EngineDep, Responses, TokenDep
 from acquisition.daemon.models import ArmMove, JogRequest, Problem
 
 router = APIRouter(prefix="/arm", tags=["arm"])
-MOVE_ERRORS = {
+MOVE_ERRORS: Responses = {
     **WRITE_ERRORS,
     409: {"model": Problem, "description": "a run is active, or the devices are busy"},
     503: {"model": Problem, "description": "the arm failed (alarm, timeout, stopped short)"},

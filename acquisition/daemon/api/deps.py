@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import hashlib
 import hmac
-from typing import Annotated
+from typing import Annotated, Any
 
 from fastapi import Depends, HTTPException, Request, status
 from fastapi.security import APIKeyCookie, HTTPAuthorizationCredentials, HTTPBearer
@@ -83,20 +83,22 @@ def require_read_token(
 
 TokenDep = Depends(require_token)
 ReadTokenDep = Depends(require_read_token)
+#: An endpoint's OpenAPI ``responses``: the extra answers it documents, by status code.
+Responses = dict[int | str, dict[str, Any]]
 #: The answers ``require_token`` adds to an endpoint it guards (for its OpenAPI ``responses``).
-TOKEN_ERRORS = {
+TOKEN_ERRORS: Responses = {
     401: {"model": Problem, "description": "no bearer token (a token is configured)"},
     403: {"model": Problem, "description": "the token is not valid for this daemon"},
 }
 #: The answers of an endpoint that changes something: the token's, and the request guard's
 #: (``acquisition.daemon.api.guard``).
-WRITE_ERRORS = {
+WRITE_ERRORS: Responses = {
     **TOKEN_ERRORS,
     403: {"model": Problem, "description": "the token is not valid for this daemon, or the Origin is not allowed"},
     415: {"model": Problem, "description": "not sent as application/json"},
 }
 #: The request guard's answers to any request.
-GUARD_ERRORS = {
+GUARD_ERRORS: Responses = {
     400: {"model": Problem, "description": "the Host is not allowed, or the request cannot be read"},
     413: {"model": Problem, "description": "the body is larger than the limit (max_body_bytes)"},
 }

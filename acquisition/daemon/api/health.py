@@ -5,8 +5,10 @@ from __future__ import annotations
 from fastapi import APIRouter, Response, status
 
 from acquisition.daemon.api.deps import TOKEN_ERRORS, CatalogDep, EngineDep, ReadTokenDep, SettingsDep
+from acquisition.daemon.engine import RunEngine
 from acquisition.daemon.manual import pose_record
 from acquisition.daemon.models import ArmState, CameraState, DevicesStatus, Health
+from acquisition.daemon.settings import DaemonSettings
 from acquisition.daemon.storage import StorageError, directory_problems, min_free_bytes
 from drivers.contracts.version import __version__
 from drivers.errors import DeviceError
@@ -14,7 +16,7 @@ from drivers.errors import DeviceError
 router = APIRouter(tags=["health"])
 
 
-def arm_state(engine) -> ArmState:
+def arm_state(engine: RunEngine) -> ArmState:
     arm = engine.devices.arm
     try:
         st = arm.status()
@@ -33,7 +35,7 @@ def arm_state(engine) -> ArmState:
     )
 
 
-def camera_state(engine) -> CameraState:
+def camera_state(engine: RunEngine) -> CameraState:
     camera = engine.devices.camera
     problem = camera.problem()
     return CameraState(connected=problem is None, identity=camera.identity, error=problem)
@@ -70,7 +72,7 @@ def health(engine: EngineDep, catalog: CatalogDep, settings: SettingsDep, respon
     )
 
 
-def storage_problems(engine, settings) -> list[str]:
+def storage_problems(engine: RunEngine, settings: DaemonSettings) -> list[str]:
     """The data directory's problems (read-only, not writable, too little free space), and the
     runs' ends the catalog could not record yet (recorded now if it can be written again)."""
     directories = [settings.data_dir, settings.runs_dir]

@@ -220,11 +220,14 @@ class _Chunks:
     def __init__(self) -> None:
         self._parts: list[bytes] = []
 
-    def write(self, data) -> int:
+    def write(self, data: bytes) -> int:
         self._parts.append(bytes(data))
         return len(data)
 
     def flush(self) -> None:
+        pass
+
+    def close(self) -> None:  # the file-like protocol ZipFile asks for; it never closes a stream it was given
         pass
 
     def take(self) -> bytes:

@@ -17,7 +17,7 @@ def presets(engine: EngineDep, settings: SettingsDep) -> dict:
     schedules = engine.preflight.presets()
     for name in schedules:
         try:
-            rig = engine.preflight.plan_schedule(RunRequest(preset=name))
+            rig = engine.preflight.plan_schedule(RunRequest.model_validate({"preset": name}))
             out[name] = {
                 "schedule": rig.schedule.model_dump(mode="json"),
                 "positions": len(rig.light_poses()),

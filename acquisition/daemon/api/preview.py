@@ -5,13 +5,21 @@ from __future__ import annotations
 from fastapi import APIRouter, HTTPException, Request, Response, status
 
 from acquisition.daemon import manual as bench
-from acquisition.daemon.api.deps import TOKEN_ERRORS, WRITE_ERRORS, EngineDep, ReadTokenDep, SettingsDep, TokenDep
+from acquisition.daemon.api.deps import (
+    TOKEN_ERRORS,
+    WRITE_ERRORS,
+    EngineDep,
+    ReadTokenDep,
+    Responses,
+    SettingsDep,
+    TokenDep,
+)
 from acquisition.daemon.models import FrameSummary, Problem, ShotRequest, ShotResult
 from acquisition.daemon.preview import Previews
 
 router = APIRouter(tags=["preview"], dependencies=[ReadTokenDep], responses=TOKEN_ERRORS)
-NO_FRAME = {404: {"model": Problem, "description": "no frame has been taken yet"}}
-PNG = {200: {"content": {"image/png": {}}}}
+NO_FRAME: Responses = {404: {"model": Problem, "description": "no frame has been taken yet"}}
+PNG: Responses = {200: {"content": {"image/png": {}}}}
 
 
 def previews(request: Request) -> Previews:

@@ -14,6 +14,7 @@ from acquisition.daemon.api.deps import (
     CatalogDep,
     EngineDep,
     ReadTokenDep,
+    Responses,
     SettingsDep,
     TokenDep,
 )
@@ -32,18 +33,22 @@ from acquisition.daemon.models import (
 
 router = APIRouter(prefix="/runs", tags=["runs"], dependencies=[ReadTokenDep], responses=TOKEN_ERRORS)
 FINAL = ("complete", "aborted", "failed", "interrupted")
-ERRORS = {404: {"model": Problem}, 409: {"model": Problem}}
+ERRORS: Responses = {404: {"model": Problem}, 409: {"model": Problem}}
 # A storage that refuses the catalog's write, or a run that would not fit (docs/daemon.md).
-STORAGE_ERRORS = {
+STORAGE_ERRORS: Responses = {
     503: {"model": Problem, "description": "the data's storage cannot be written (read-only, an I/O error)"},
     507: {
         "model": Problem,
         "description": "not enough free space (the catalog's disk is full, or the run would not fit)",
     },
 }
-GUARDED_ERRORS = {**ERRORS, **WRITE_ERRORS, **STORAGE_ERRORS}  # and 401/403 from the token, 415 from the guard
+GUARDED_ERRORS: Responses = {
+    **ERRORS,
+    **WRITE_ERRORS,
+    **STORAGE_ERRORS,
+}  # and 401/403 from the token, 415 from the guard
 # FastAPI's answer to a body it cannot read as JSON text at all (not UTF-8, say).
-BODY_ERRORS = {400: {"model": Problem, "description": "the body cannot be read"}}
+BODY_ERRORS: Responses = {400: {"model": Problem, "description": "the body cannot be read"}}
 
 
 def run_status(record: RunRecord, engine: RunEngine | None = None) -> RunStatus:
@@ -185,8 +190,8 @@ def download(run_id: str, catalog: CatalogDep, engine: EngineDep) -> FileRespons
         raise HTTPException(
             status.HTTP_409_CONFLICT, f"run {run_id} is {record.state}: the file is still being written"
         )
-    path = Path(record.path)
-    if not path.exists():
+    path = Path(record.path) if record.path is not None else None
+    if path is None or not path.exists():
         raise HTTPException(status.HTTP_404_NOT_FOUND, f"run {run_id} has no run file")
     return FileResponse(path, media_type="application/x-hdf5", filename=path.name)
 

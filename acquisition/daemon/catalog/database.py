@@ -39,7 +39,7 @@ def to_json(value: dict, what: str) -> str:
         raise CatalogError(f"{what} is not plain JSON: {exc}") from None
 
 
-def check_int(name: str, value, lo: int, hi: int | None = None) -> int:
+def check_int(name: str, value: object, lo: int, hi: int | None = None) -> int:
     """``value`` if it is an integer in ``[lo, hi]`` (no upper bound if ``hi`` is None), else a CatalogError."""
     if isinstance(value, bool) or not isinstance(value, int):
         raise CatalogError(f"{name} must be an integer, not {value!r}")
@@ -49,7 +49,7 @@ def check_int(name: str, value, lo: int, hi: int | None = None) -> int:
     return value
 
 
-def check_real(name: str, value, lo: float, hi: float | None = None) -> float:
+def check_real(name: str, value: object, lo: float, hi: float | None = None) -> float:
     """``value`` as a float if it is a finite number in ``[lo, hi]``, else a CatalogError."""
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
         raise CatalogError(f"{name} must be a finite number, not {value!r}")
@@ -59,7 +59,7 @@ def check_real(name: str, value, lo: float, hi: float | None = None) -> float:
     return float(value)
 
 
-def check_text(name: str, value) -> str:
+def check_text(name: str, value: object) -> str:
     """``value`` if it is a non-empty one-line string, else a CatalogError."""
     if not isinstance(value, str) or not value.strip() or "\n" in value:
         raise CatalogError(f"{name} must be a non-empty one-line string, not {value!r}")
@@ -115,7 +115,7 @@ class CatalogDatabase:
     def __enter__(self) -> Self:
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
     def close(self) -> None:

@@ -5,6 +5,9 @@ Each pickles with its arguments (``__reduce__``), so that it crosses a process b
 
 from __future__ import annotations
 
+from collections.abc import Iterable
+from typing import Self
+
 from acquisition.daemon.storage import InsufficientStorageError, StorageUnavailableError
 
 
@@ -19,7 +22,7 @@ class UnknownRunError(CatalogError):
         self.run_id = run_id
         super().__init__(f"unknown run {run_id!r}")
 
-    def __reduce__(self):
+    def __reduce__(self) -> tuple[type[Self], tuple[object, ...]]:
         return (type(self), (self.run_id,))
 
 
@@ -30,7 +33,7 @@ class UnknownJobError(CatalogError):
         self.job_id = job_id
         super().__init__(f"unknown job {job_id!r}")
 
-    def __reduce__(self):
+    def __reduce__(self) -> tuple[type[Self], tuple[object, ...]]:
         return (type(self), (self.job_id,))
 
 
@@ -47,7 +50,7 @@ class InvalidTransitionError(CatalogError):
         The states it may go to from ``from_state``.
     """
 
-    def __init__(self, record_id: str, from_state: str, to_state: str, allowed=()):
+    def __init__(self, record_id: str, from_state: str, to_state: str, allowed: Iterable[str] = ()) -> None:
         self.record_id = record_id
         self.from_state = from_state
         self.to_state = to_state
@@ -55,7 +58,7 @@ class InvalidTransitionError(CatalogError):
         targets = ", ".join(self.allowed) or "none, it is final"
         super().__init__(f"{record_id}: cannot go from {from_state} to {to_state} (from {from_state}: {targets})")
 
-    def __reduce__(self):
+    def __reduce__(self) -> tuple[type[Self], tuple[object, ...]]:
         return (type(self), (self.record_id, self.from_state, self.to_state, self.allowed))
 
 
@@ -68,7 +71,7 @@ class ActiveRunError(CatalogError):
         self.wanted = wanted
         super().__init__(f"cannot {wanted}: run {active_id} is {active_state} (one run in progress at a time)")
 
-    def __reduce__(self):
+    def __reduce__(self) -> tuple[type[Self], tuple[object, ...]]:
         return (type(self), (self.active_id, self.active_state, self.wanted))
 
 
@@ -81,7 +84,7 @@ class NotQueuedError(CatalogError):
         self.wanted = wanted
         super().__init__(f"cannot {wanted}: run {run_id} is {state}, not queued")
 
-    def __reduce__(self):
+    def __reduce__(self) -> tuple[type[Self], tuple[object, ...]]:
         return (type(self), (self.run_id, self.state, self.wanted))
 
 
@@ -95,7 +98,7 @@ class JobClaimError(CatalogError):
         self.claimed_by = claimed_by
         super().__init__(f"job {job_id} is {state}, claimed by {claimed_by or 'nobody'}, not by {worker_id}")
 
-    def __reduce__(self):
+    def __reduce__(self) -> tuple[type[Self], tuple[object, ...]]:
         return (type(self), (self.job_id, self.worker_id, self.state, self.claimed_by))
 
 

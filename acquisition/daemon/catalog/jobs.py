@@ -21,7 +21,7 @@ from acquisition.daemon.catalog.schema import JOB_COLUMNS
 _STEP_NAME = re.compile(r"[a-z][a-z0-9_]*\Z")
 
 
-def _normalise_steps(steps) -> str:
+def _normalise_steps(steps: object) -> str:
     """A job's comma-separated step names, stripped; a CatalogError for a bad or repeated name."""
     if not isinstance(steps, str):
         raise CatalogError(f"steps must be a comma-separated string such as 'hdr,sources', not {steps!r}")
@@ -34,7 +34,7 @@ def _normalise_steps(steps) -> str:
     return ",".join(names)
 
 
-def _artifacts_json(job_id: str, artifacts) -> str:
+def _artifacts_json(job_id: str, artifacts: object) -> str:
     """A job's result files by kind, as stored; a CatalogError unless the kinds are lowercase names."""
     if not isinstance(artifacts, dict) or not all(isinstance(k, str) and _STEP_NAME.match(k) for k in artifacts):
         raise CatalogError(f"{job_id}: artifacts must map kinds (lowercase names) to file paths")
@@ -297,6 +297,7 @@ class JobCatalog(CatalogDatabase):
                 job = self._fetch_job(conn, job_id)
                 if job.state != "running":
                     raise InvalidTransitionError(job_id, job.state, new_state, ALLOWED_JOB_TRANSITIONS[job.state])
+                assert worker_id is not None  # without a worker named, a running job always matches
                 raise JobClaimError(job_id, worker_id, job.state, job.claimed_by)
             return self._fetch_job(conn, job_id)
 

@@ -13,7 +13,7 @@ from datetime import datetime
 
 from acquisition.daemon.catalog.database import CatalogDatabase, check_text
 from acquisition.daemon.catalog.errors import CatalogError, NotQueuedError
-from acquisition.daemon.catalog.records import RunRecord, format_time, parse_time, run_from_row
+from acquisition.daemon.catalog.records import RunRecord, format_time, parse_required_time, run_from_row
 from acquisition.daemon.catalog.runs import RunCatalog
 from acquisition.daemon.catalog.schema import RUN_COLUMNS
 
@@ -31,7 +31,7 @@ class QueueCatalog(RunCatalog, CatalogDatabase):
         """Why the queue is held and since when (a UTC datetime); None while it runs on."""
         with self._read() as conn:
             row = conn.execute("SELECT held, held_utc FROM run_queue WHERE id = 1").fetchone()
-            return None if row is None or row["held"] is None else (row["held"], parse_time(row["held_utc"]))
+            return None if row is None or row["held"] is None else (row["held"], parse_required_time(row["held_utc"]))
 
     def hold_queue(self, reason: str) -> None:
         """Hold the queue: no queued run starts by itself until :meth:`release_queue`.

@@ -112,12 +112,17 @@ def parse_time(text: str | None) -> datetime | None:
     return None if text is None else datetime.strptime(text, _TIME_FORMAT).replace(tzinfo=UTC)
 
 
+def parse_required_time(text: str) -> datetime:
+    """A stored time of a NOT NULL column as a timezone-aware UTC datetime."""
+    return datetime.strptime(text, _TIME_FORMAT).replace(tzinfo=UTC)
+
+
 def run_from_row(row: sqlite3.Row) -> RunRecord:
     """The record of a row of ``runs`` selected with :data:`~acquisition.daemon.catalog.schema.RUN_COLUMNS`."""
     return RunRecord(
         id=row["id"],
-        created_utc=parse_time(row["created_utc"]),
-        updated_utc=parse_time(row["updated_utc"]),
+        created_utc=parse_required_time(row["created_utc"]),
+        updated_utc=parse_required_time(row["updated_utc"]),
         state=row["state"],
         preset=row["preset"],
         path=row["path"],
@@ -139,8 +144,8 @@ def job_from_row(row: sqlite3.Row) -> JobRecord:
     return JobRecord(
         id=row["id"],
         run_id=row["run_id"],
-        created_utc=parse_time(row["created_utc"]),
-        updated_utc=parse_time(row["updated_utc"]),
+        created_utc=parse_required_time(row["created_utc"]),
+        updated_utc=parse_required_time(row["updated_utc"]),
         state=row["state"],
         steps=row["steps"],
         options=json.loads(row["options_json"]),

@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterable
+
 from acquisition.daemon.catalog.records import JOB_STATES, RUN_STATES
 
 SCHEMA_VERSION = 4
 
 
-def sql_list(states) -> str:
+def sql_list(states: Iterable[str]) -> str:
     """States as the list of an SQL ``IN (...)``: ``'queued', 'running'``."""
     return ", ".join(f"'{s}'" for s in states)
 
