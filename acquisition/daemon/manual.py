@@ -18,7 +18,7 @@ from drivers.arm import SoftLimits
 from drivers.camera import RawFrame
 from drivers.pose import Pose
 
-log = logging.getLogger("mirrorgonio.bench")
+log = logging.getLogger("mirrorgonio.manual")
 
 #: The unit of a jog's step on each axis, and its factor to the arm's (metres, radians).
 JOG_UNITS = {

@@ -426,7 +426,7 @@ class Problem(BaseModel):
     detail: str | list
 
 
-# --- the bench: the alignment preview, test shots, jog and home -------------------------------
+# --- manual control: the alignment preview, test shots, jog and home ------------------------
 class ChannelHistogram(BaseModel):
     below: int = Field(description="photosites less than 1 DN above black")
     counts: list[int] = Field(description="photosites in each bin of `edges_dn`")

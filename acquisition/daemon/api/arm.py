@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from fastapi import APIRouter, status
 
-from acquisition.daemon import manual as bench
+from acquisition.daemon import manual
 from acquisition.daemon.api.deps import WRITE_ERRORS, EngineDep, Responses, TokenDep
 from acquisition.daemon.models import ArmMove, JogRequest, Problem
 
@@ -34,12 +34,12 @@ def jog(body: JogRequest, engine: EngineDep) -> ArmMove:
     """Move one axis of the tool pose by ``step`` (mm, or degrees for rx, ry, rz) from where the
     arm is; answers once it is there. A target outside the rig's ``[arm.soft_limits]`` is refused
     (422) before anything is sent; a jog during a run is refused (409)."""
-    reached, what = bench.jog(engine, body.axis, body.step)
-    return ArmMove(position=bench.pose_record(reached), moved=what)
+    reached, what = manual.jog(engine, body.axis, body.step)
+    return ArmMove(position=manual.pose_record(reached), moved=what)
 
 
 @router.post("/home", response_model=ArmMove, dependencies=[TokenDep], responses=MOVE_ERRORS)
 def home(engine: EngineDep) -> ArmMove:
     """Run the controller's homing; answers once the arm is home. Refused (409) during a run."""
-    reached, what = bench.home(engine)
-    return ArmMove(position=bench.pose_record(reached), moved=what)
+    reached, what = manual.home(engine)
+    return ArmMove(position=manual.pose_record(reached), moved=what)

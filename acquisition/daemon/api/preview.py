@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from fastapi import APIRouter, HTTPException, Request, Response, status
 
-from acquisition.daemon import manual as bench
+from acquisition.daemon import manual
 from acquisition.daemon.api.deps import (
     TOKEN_ERRORS,
     WRITE_ERRORS,
@@ -74,5 +74,5 @@ def test_shot(engine: EngineDep, settings: SettingsDep, body: ShotRequest | None
     bracket), shown in the preview; nothing is stored in a run. Refused (409) while a run is
     active."""
     exposures = (body.exposures_s if body is not None else None) or list(settings.default_exposures_s)
-    frames = bench.take_test_shot(engine, exposures)
+    frames = manual.take_test_shot(engine, exposures)
     return ShotResult.model_validate({"frames": frames, "serial": engine.frame_serial})

@@ -1,6 +1,6 @@
-"""The technician's bench through the daemon's API, in process with the simulated rig: the
-alignment preview (the ball's expected outline, saturation, histogram), the test shot, jog and
-home within the soft limits, and the log lines."""
+"""The technician's manual control (:mod:`acquisition.daemon.manual`) through the daemon's API,
+in process with the simulated rig: the alignment preview (the ball's expected outline,
+saturation, histogram), the test shot, jog and home within the soft limits, and the log lines."""
 
 from __future__ import annotations
 
