@@ -15,12 +15,14 @@ optical axis, estimated with ``samples_per_pixel`` rays per pixel (stratified su
 positions paired at random with stratified aperture points). A ray that hits the object
 at point r with normal n, from view direction v, brings back
 
-    L_o = ρ/π · E + Σ_e k_s · (m + 8)/(8π) · (n·h_e)^m · E_e          (per channel)
-    E_e = I_e(θ_e, φ_e) · s_e · max(0, n·ω_e) / d_e² · V_e,   E = Σ_e E_e
+    L_o = Σ_e f(ω_e, v) · E_e                                          (per channel)
+    E_e = I_e(θ_e, φ_e) · s_e · max(0, n·ω_e) / d_e² · V_e
 
-- ρ: the surface truth's diffuse albedo at the hit's UV (barycentric interpolation of the
-  face's vertex UVs); the specular lobe (energy-normalised Blinn–Phong, channel-neutral,
-  h_e the half vector of ω_e and v) only when the surface truth has one;
+- f: the surface truth's BRDF at the hit's UV (barycentric interpolation of the face's
+  vertex UVs): the Lambertian ``(1 − m)·ρ/π`` plus, where the finish is glossy, the GGX
+  microfacet lobe of :mod:`sim_devices.brdf` (roughness, specular weight and index,
+  metalness per region); or, for the older highlight tests, ``ρ/π`` plus an
+  energy-normalised, channel-neutral Blinn–Phong lobe ``k_s·(m + 8)/(8π)·(n·h_e)^m``;
 - each emitter e is taken as a point at its disc centre p_e on the light plane: at 30 cm a
   0.5 mm disc differs from a point by (r/d)² ≈ 3·10⁻⁶ in irradiance (larger discs are not
   integrated over: a truth such as ``lambertian-disc``, 1 m wide, is *not* meant for this
@@ -57,6 +59,7 @@ from numpy.typing import ArrayLike
 
 from drivers.contracts.rig import Rig
 from drivers.pose import Pose
+from sim_devices.brdf import Finish, specular_lobe
 from sim_devices.lights import TruthLight
 from sim_devices.objects import ObjectError, ObjectGeometry, SurfaceTruth, load_surface
 from sim_devices.optics import (
@@ -356,7 +359,8 @@ class ObjectSceneRenderer:
             normals[flip] *= -1.0
             uv = self.geometry.uv_at(f, bary[idx]) if self.surface.patches else None
             albedo = self.surface.albedo_at(uv, idx.size)
-            value, shadow_rays = self.shade(plane, points, normals, view, albedo)
+            finish = self.surface.finish_at(uv, idx.size) if self.surface.glossy else None
+            value, shadow_rays = self.shade(plane, points, normals, view, albedo, finish)
             radiance[idx] = value + albedo * self.environment[None, :]
         if plane.housing_radius > 0 and self._housing_in_view(plane):
             far = np.where(hit[:, None], 0.0, 10.0)  # misses: 10 m on
@@ -379,13 +383,29 @@ class ObjectSceneRenderer:
         reach = math.hypot(plane.housing_radius, half)
         return float(cam.rotation[2] @ (centre - cam.centre)) + reach > 0.0
 
+    def shadowed(self, points: np.ndarray, normals: np.ndarray, target: np.ndarray) -> np.ndarray:
+        """True where the mesh stands between each point (started just off the surface,
+        along its normal) and the target point."""
+        start = points + self.shadow_offset * normals
+        towards = target - start
+        reach = np.sqrt(np.einsum("ij,ij->i", towards, towards))
+        return self.caster.occluded(start, towards / reach[:, None], reach)
+
     def shade(
-        self, plane: LightPlane, points: np.ndarray, normals: np.ndarray, view: np.ndarray, albedo: np.ndarray
+        self,
+        plane: LightPlane,
+        points: np.ndarray,
+        normals: np.ndarray,
+        view: np.ndarray,
+        albedo: np.ndarray,
+        finish: Finish | None = None,
     ) -> tuple[np.ndarray, int]:
         """Outgoing radiance (N, 3) at surface points lit by the truth's emitters.
 
         ``normals`` must face the viewer (unit ``view`` directions point from the surface
-        towards the camera). Returns the radiance and the number of shadow rays cast.
+        towards the camera); ``finish`` (None: matte) adds the microfacet lobe and dims the
+        diffuse part by ``1 − metalness``. Returns the radiance and the number of shadow
+        rays cast.
         """
         n_pts = len(points)
         if self.truth is None or n_pts == 0:
@@ -394,6 +414,10 @@ class ObjectSceneRenderer:
         glossy = spec is not None and spec.k_s > 0
         diffuse_e = np.zeros((n_pts, 3))
         specular_e = np.zeros((n_pts, 3)) if glossy else None
+        lobed = np.flatnonzero(finish.glossy) if finish is not None else np.zeros(0, np.int64)
+        lobe_e = np.zeros((n_pts, 3)) if lobed.size else None
+        in_lobe = np.full(n_pts, -1, np.int64)
+        in_lobe[lobed] = np.arange(lobed.size)
         rot, origin = plane.rotation, plane.origin
         px, py, pz = (np.ascontiguousarray(points[:, i]) for i in range(3))
         nx, ny, nz = (np.ascontiguousarray(normals[:, i]) for i in range(3))
@@ -418,16 +442,7 @@ class ObjectSceneRenderer:
                 sel, inv, intensity = sel[keep], inv[keep], intensity[keep]
             if sel.size == 0:
                 continue
-            # Shadow ray: from just off the surface to the emitter's centre.
-            off = self.shadow_offset
-            start = np.empty((sel.size, 3))
-            start[:, 0] = px[sel] + off * nx[sel]
-            start[:, 1] = py[sel] + off * ny[sel]
-            start[:, 2] = pz[sel] + off * nz[sel]
-            towards = np.array([ex, ey, ez]) - start
-            reach = np.sqrt(np.einsum("ij,ij->i", towards, towards))
-            towards /= reach[:, None]
-            blocked = self.caster.occluded(start, towards, reach)
+            blocked = self.shadowed(points[sel], normals[sel], np.array([ex, ey, ez]))
             shadow_rays += sel.size
             if blocked.any():
                 free = ~blocked
@@ -443,7 +458,15 @@ class ObjectSceneRenderer:
                 nh = (nx[sel] * hx + ny[sel] * hy + nz[sel] * hz) / np.sqrt(hx * hx + hy * hy + hz * hz)
                 lobe = spec.k_s * (spec.exponent + 8.0) / (8.0 * math.pi) * np.clip(nh, 0.0, None) ** spec.exponent
                 specular_e[sel] += lobe[:, None] * e
-        out = albedo * (1.0 / math.pi) * diffuse_e
+            if lobe_e is not None and finish is not None:
+                at = sel[in_lobe[sel] >= 0]
+                towards_light = np.column_stack([wx[at], wy[at], wz[at]]) * inv_d[at, None]
+                f_spec = specular_lobe(towards_light, view[at], normals[at], albedo[at], finish.take(in_lobe[at]))
+                lobe_e[at] += f_spec * e[np.searchsorted(sel, at)]
+        diffuse = albedo if finish is None else albedo * (1.0 - finish.metalness)[:, None]
+        out = diffuse * (1.0 / math.pi) * diffuse_e
         if specular_e is not None:  # glossy
             out += specular_e
+        if lobe_e is not None:
+            out += lobe_e
         return out, shadow_rays

@@ -10,10 +10,13 @@ The simulated camera photographs an object in place of the ball when the rig has
   and per-vertex UVs. The processing reads the same file with trimesh, so both sides see
   the same polyhedron whatever trimesh does on loading;
 - the surface truth (:class:`SurfaceTruth`, TOML files in ``sim_devices/surfaces/``): a
-  base albedo per channel (R, G, B), painted elliptical patches in UV space with other
-  albedos, and an optional energy-normalised Blinn–Phong specular lobe;
+  base albedo per channel (R, G, B) and finish (GGX roughness, dielectric specular weight
+  and index, metalness: :mod:`sim_devices.brdf`), painted elliptical patches in UV space
+  with their own albedo and finish, and, for the older tests of highlight rejection, an
+  optional energy-normalised Blinn–Phong lobe;
 - :func:`surface_truth_at`: the truth albedo at rig-frame surface points, and whether each
-  lies in the base-albedo region well away from any patch (for the reflectance benchmark).
+  lies in the base-albedo region well away from any patch (for the reflectance benchmark);
+  :func:`surface_finish_at` the truth finish there.
 
 UV conventions of the shipped meshes (object frame; ``up`` = +y):
 
@@ -42,6 +45,7 @@ from scipy.spatial import cKDTree
 
 from drivers.config_files import MAX_BINARY_BYTES, ConfigModel, check_input_file, load_model
 from drivers.contracts.rig import RIGS_DIR, Rig
+from sim_devices.brdf import Finish, fresnel_dielectric
 
 SURFACES_DIR = Path(__file__).resolve().parent / "surfaces"
 OBJECTS_DIR = RIGS_DIR / "objects"
@@ -60,16 +64,36 @@ Fraction = Annotated[float, Field(ge=0.0, le=1.0)]
 Albedo = tuple[Fraction, Fraction, Fraction]
 
 
+class SurfaceFinish(ConfigModel):
+    """The gloss of a region (:mod:`sim_devices.brdf`); the default is matte.
+
+    ``roughness`` is GGX's α (0.02: a polished coat, 0.5: a satin one); ``specular`` the
+    dielectric's specular weight (0 matte, 1 a full glaze or varnish) with its index
+    ``ior``; ``metalness`` 1 makes the region a conductor whose albedo is its F₀.
+    """
+
+    roughness: Annotated[float, Field(ge=0.02, le=1.0)] = 0.5
+    specular: Fraction = 0.0
+    ior: Annotated[float, Field(ge=1.0, le=3.0)] = 1.5
+    metalness: Fraction = 0.0
+
+    @property
+    def glossy(self) -> bool:
+        return self.specular > 0.0 or self.metalness > 0.0
+
+
 class Patch(ConfigModel):
     """A painted patch: the inside of an ellipse in UV space, axis-aligned.
 
-    ``radius_uv`` is one radius, or the semi-axes along u and along v.
+    ``radius_uv`` is one radius, or the semi-axes along u and along v. Without a
+    ``finish`` the patch keeps the surface's base finish.
     """
 
     name: str = ""
     centre_uv: tuple[float, float]
     radius_uv: PositiveFloat | tuple[PositiveFloat, PositiveFloat]
     albedo: Albedo
+    finish: SurfaceFinish | None = None
 
     @property
     def radii(self) -> tuple[float, float]:
@@ -89,24 +113,43 @@ class SurfaceTruth(ConfigModel):
     """The reflectance truth of a simulated object's surface.
 
     The diffuse part is Lambertian with albedo ``ρ`` per channel (R, G, B): the base albedo
-    everywhere except inside the patches (a later patch paints over an earlier one).
+    everywhere except inside the patches (a later patch paints over an earlier one). The
+    microfacet lobe follows the base ``finish`` and each patch's own.
     """
 
     name: str = "surface"
     description: str = ""
     base_albedo: Albedo
+    finish: SurfaceFinish = Field(default_factory=SurfaceFinish)
     patches: list[Patch] = Field(default_factory=list)
     specular: Specular | None = None
 
     @model_validator(mode="after")
     def _energy(self) -> Self:
         if self.specular is not None:
+            if self.glossy:
+                raise ValueError("specular: a Blinn-Phong lobe beside a glossy finish; give one or the other")
             top = max([max(self.base_albedo)] + [max(p.albedo) for p in self.patches])
             if top + self.specular.k_s > 1.0:
                 raise ValueError(
                     f"specular.k_s: albedo {top:g} plus k_s {self.specular.k_s:g} reflects more than it receives"
                 )
+        regions = [("finish", self.base_albedo, self.finish)]
+        regions += [(f"patches[{i}].finish", p.albedo, p.finish or self.finish) for i, p in enumerate(self.patches)]
+        for where, albedo, finish in regions:
+            coat = finish.specular * float(fresnel_dielectric(1.0, finish.ior))
+            total = (1.0 - finish.metalness) * (max(albedo) + coat)
+            if total > 1.0:
+                raise ValueError(
+                    f"{where}: albedo {max(albedo):g} plus the coat's {coat:.3g} at normal incidence "
+                    "reflects more than it receives"
+                )
         return self
+
+    @property
+    def glossy(self) -> bool:
+        """True where any region has a microfacet lobe."""
+        return self.finish.glossy or any(p.finish is not None and p.finish.glossy for p in self.patches)
 
     def patch_index(self, uv: np.ndarray) -> np.ndarray:
         """Index of the patch that paints each UV point (the last one wins), −1 for the base."""
@@ -124,6 +167,14 @@ class SurfaceTruth(ConfigModel):
             return np.broadcast_to(np.asarray(self.base_albedo, float), (count or 0, 3)).copy()
         table = np.array([self.base_albedo] + [p.albedo for p in self.patches], dtype=float)
         return table[self.patch_index(uv) + 1]
+
+    def finish_at(self, uv: np.ndarray | None, count: int | None = None) -> Finish:
+        """The finish at UV points (``uv`` None: the base everywhere, ``count`` points)."""
+        finishes = [self.finish] + [p.finish or self.finish for p in self.patches]
+        table = np.array([(f.roughness, f.specular, f.ior, f.metalness) for f in finishes], dtype=float)
+        rows = np.zeros(count or 0, np.int64) if uv is None else self.patch_index(uv) + 1
+        values = table[rows]
+        return Finish(roughness=values[:, 0], specular=values[:, 1], ior=values[:, 2], metalness=values[:, 3])
 
     def uv_distance_to_patches(self, uv: np.ndarray) -> np.ndarray:
         """A lower bound of the UV-space distance from each point to the nearest patch.
@@ -472,19 +523,47 @@ def surface_truth_at(
     surface = surface or load_surface(rig.simulation.surface)
     geometry = geometry or ObjectGeometry.from_rig(rig)
     points = np.asarray(points_rig, dtype=float).reshape(-1, 3)
+    if not surface.patches:
+        return surface.albedo_at(None, len(points)), np.ones(len(points), dtype=bool)
+    faces, uv = _surface_uv(geometry, points, faces)
+    albedo = surface.albedo_at(uv)
+    uniform = surface.uv_distance_to_patches(uv) * geometry.uv_metric[faces] >= margin_m
+    return albedo, uniform
+
+
+def surface_finish_at(
+    rig: Rig,
+    points_rig: ArrayLike,
+    *,
+    faces: np.ndarray | None = None,
+    surface: SurfaceTruth | None = None,
+    geometry: ObjectGeometry | None = None,
+) -> Finish:
+    """The truth finish (GGX α, specular weight, index, metalness) at rig-frame surface points.
+
+    The arguments are those of :func:`surface_truth_at`.
+    """
+    surface = surface or load_surface(rig.simulation.surface)
+    geometry = geometry or ObjectGeometry.from_rig(rig)
+    points = np.asarray(points_rig, dtype=float).reshape(-1, 3)
+    if not surface.patches:
+        return surface.finish_at(None, len(points))
+    return surface.finish_at(_surface_uv(geometry, points, faces)[1])
+
+
+def _surface_uv(
+    geometry: ObjectGeometry, points: np.ndarray, faces: np.ndarray | None
+) -> tuple[np.ndarray, np.ndarray]:
+    """The face each point lies on and its UV (closest face → barycentric → UV)."""
     if faces is None:
         faces, bary, _ = geometry.closest_faces(points)
     else:
         faces = np.asarray(faces, dtype=np.int64).ravel()
         _, bary = closest_point_on_triangles(geometry.triangles[faces], points)
-    if not surface.patches:
-        return surface.albedo_at(None, len(points)), np.ones(len(points), dtype=bool)
     uv = geometry.uv_at(faces, bary)
     if uv is None:
         raise ObjectError(f"{geometry.path}: the mesh has no texture coordinates for the surface's patches")
-    albedo = surface.albedo_at(uv)
-    uniform = surface.uv_distance_to_patches(uv) * geometry.uv_metric[faces] >= margin_m
-    return albedo, uniform
+    return faces, uv
 
 
 # --- generating the shipped files -----------------------------------------------------------------

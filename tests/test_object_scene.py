@@ -18,6 +18,7 @@ import trimesh
 from drivers.contracts.rig import DEFAULT_RIG_PATH, load_rig, look_rotation, rig_from_dict
 from drivers.pose import Pose
 from drivers.raw_decode import decode_raw
+from sim_devices.brdf import brdf, specular_lobe
 from sim_devices.camera import SimulatedCamera
 from sim_devices.lights import TruthLight
 from sim_devices.object_scene import ObjectSceneRenderer
@@ -27,6 +28,7 @@ from sim_devices.objects import (
     SurfaceTruth,
     load_surface,
     relief_plate_mesh,
+    surface_finish_at,
     surface_truth_at,
     write_obj,
     write_shipped,
@@ -271,6 +273,49 @@ def test_specular_lobe_brightens_only_near_the_mirror_direction(tmp_path):
         assert np.max(np.abs(ratio[ch][far] - 1)) < 1e-6
 
 
+@pytest.mark.parametrize(
+    "finish, albedo",
+    [
+        ({"roughness": 0.3, "specular": 1.0, "ior": 1.5}, (0.60, 0.55, 0.50)),  # a satin glaze
+        ({"roughness": 0.15, "metalness": 1.0}, (1.00, 0.766, 0.336)),  # gold leaf
+    ],
+    ids=["glaze", "gold"],
+)
+def test_a_microfacet_finish_is_the_brdf_times_the_irradiance(tmp_path, finish, albedo):
+    # The same wide view of a large plate, the light's mirror image in view; every pixel
+    # against K·f(l, v)·E·⟨cos⁴β⟩ with f from sim_devices.brdf (checked against Mitsuba 3 in
+    # test_sim_brdf.py), l and v of the pixel's chief ray.
+    plate = write_obj(tmp_path / "big.obj", relief_plate_mesh(size_m=(0.24, 0.16), spacing_m=0.02, bumps_mm=()))
+    rig = object_rig(plate, pitch=100e-6)
+    surface = SurfaceTruth(base_albedo=albedo, finish=finish)
+    truth = single_emitter({"model": "cos-power", "peak_w_sr": 1.0, "mu": 1.0}, spectrum=(1.0, 0.9, 0.8))
+    position = np.array([0.0, 0.01, 0.30])
+    pose = Pose.from_rotation(position, look_rotation(-position, (1.0, 0.0, 0.0)))
+    rate = (
+        ObjectSceneRenderer(rig, truth, surface=surface, samples_per_pixel=16, diffraction=False, seed=4)
+        .render(pose)
+        .rate
+    )
+
+    cols, rows = pixel_grid()
+    origin, d = chief_rays(rig, cols, rows)
+    points = origin + (-origin[2] / d[..., 2])[..., None] * d
+    emitter = truth.emitters[0]
+    e, p_e = irradiance(points, np.array([0.0, 0.0, 1.0]), pose, emitter, emitter.intensity)
+    light = p_e - points
+    light /= np.linalg.norm(light, axis=-1, keepdims=True)
+    count = light[..., 0].size
+    normal = np.tile([0.0, 0.0, 1.0], (count, 1))
+    directions = (light.reshape(-1, 3), -d.reshape(-1, 3), normal, np.tile(albedo, (count, 1)))
+    f = brdf(*directions, surface.finish_at(None, count))
+    assert np.max(specular_lobe(*directions, surface.finish_at(None, count)) / f) > 0.1  # a highlight in view
+    spectrum = np.array(emitter.spectrum)
+    expected = K * (f * spectrum).T.reshape(3, H, W) * e * mean_cos4_over_aperture(rig, cols, rows)
+    ratio = rate / expected
+    assert np.median(np.abs(ratio - 1)) < 2e-3
+    assert np.percentile(np.abs(ratio - 1), 99) < 1e-2
+
+
 # --- 5. shipped meshes and rigs, and a DNG capture ---------------------------------------------------
 def test_shipped_objects_load_with_uvs_and_are_regenerated_identically(tmp_path):
     written = write_shipped(tmp_path)
@@ -336,6 +381,22 @@ def test_surface_truth_at_the_shipped_vase():
     assert uniform.tolist() == [False, True, False]
 
 
+def test_the_glazed_gilded_vase_has_its_finishes_where_its_file_paints_them():
+    rig = load_rig(ROOT / "rigs" / "object-vase.toml")
+    mesh = trimesh.load(rig.object.mesh, force="mesh")
+    surface = load_surface("glazed-gilded")
+    uv = mesh.visual.uv
+    names = ["matte terracotta", "glossy cobalt glaze", "dark varnish", "gold leaf"]
+    centres = [next(p for p in surface.patches if p.name == name).centre_uv for name in names]
+    where = [np.argmin(np.hypot(uv[:, 0] - cu, uv[:, 1] - cv)) for cu, cv in centres]
+    where.append(np.argmin(np.hypot(uv[:, 0] - 0.5, uv[:, 1] - 0.92)))  # the satin base
+    finish = surface_finish_at(rig, mesh.vertices[where], surface=surface)
+    assert finish.specular.tolist() == [0.0, 1.0, 1.0, 0.0, 1.0]
+    assert finish.metalness.tolist() == [0.0, 0.0, 0.0, 1.0, 0.0]
+    assert finish.roughness[[1, 2, 3, 4]].tolist() == [0.15, 0.15, 0.20, 0.35]
+    assert finish.glossy.tolist() == [False, True, True, True, True]
+
+
 # --- 6. bad surface files ---------------------------------------------------------------------------
 @pytest.mark.parametrize(
     "body, field",
@@ -347,6 +408,12 @@ def test_surface_truth_at_the_shipped_vase():
             "patches[0].albedo[1]: must be >= 0",
         ),
         ("base_albedo = [0.6, 0.5]\n", "base_albedo"),
+        ("base_albedo = [0.99, 0.5, 0.5]\n[finish]\nspecular = 1.0\n", "finish: albedo 0.99 plus the coat's 0.04"),
+        ("base_albedo = [0.6, 0.5, 0.5]\n[finish]\nroughness = 0.0\n", "finish.roughness: must be >= 0.02"),
+        (
+            "base_albedo = [0.6, 0.5, 0.5]\n[finish]\nmetalness = 1.0\n[specular]\nk_s = 0.1\nexponent = 50\n",
+            "specular: a Blinn-Phong lobe beside a glossy finish",
+        ),
     ],
 )
 def test_bad_surface_file_is_one_line_naming_file_and_field(tmp_path, body, field):
