@@ -17,7 +17,8 @@ answers a request without the processing in memory.
 - where it runs: :func:`open_compute`, :func:`check_scheduler`, :class:`Compute`;
 - its results: :class:`Results` (the HDR results file), :class:`LightModel`, :func:`run_name`;
 - an object: :func:`reflectance_from_run` with :class:`ReflectanceSettings`, giving a
-  :class:`ReflectanceResult`;
+  :class:`ReflectanceResult`; before its run, :func:`highlight_coverage` (which points a
+  schedule shows a highlight on, a :class:`HighlightCoverage`) and :func:`write_coverage`;
 - the ball's position from a photograph: :func:`calibrate_ball` and its helpers;
 - the errors, each one line that names the file, the field or the option.
 """
@@ -72,6 +73,7 @@ if TYPE_CHECKING:
     )
     from processing.parallel import Compute, ComputeError, check_scheduler, open_compute
     from processing.reflectance.codes import ReflectanceError, ReflectanceSettings
+    from processing.reflectance.coverage import HighlightCoverage, highlight_coverage, write_coverage
     from processing.reflectance.estimate import ReflectanceResult
     from processing.reflectance.run import reflectance_from_run
     from processing.results import Results, ResultsError, run_name
@@ -91,6 +93,7 @@ __all__ = [
     "FitMethod",
     "HDRError",
     "HDRMethod",
+    "HighlightCoverage",
     "LightModel",
     "MAX_LUMENS",
     "MAX_NAME",
@@ -122,6 +125,7 @@ __all__ = [
     "compare_with_rig",
     "declared_options",
     "describe_progress",
+    "highlight_coverage",
     "layout_from_dict",
     "load_layout",
     "mosaic_luminance",
@@ -133,6 +137,7 @@ __all__ = [
     "run_name",
     "skipped_line",
     "warm_up_worker",
+    "write_coverage",
 ]
 
 

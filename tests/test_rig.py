@@ -124,6 +124,37 @@ def test_raster_object_arc_and_pose_list_schedules():
     assert math.degrees(single.rx) == pytest.approx(160)
 
 
+def test_an_object_dome_covers_rings_of_the_hemisphere_aimed_at_the_object():
+    data = _default_data()
+    data["arm"]["soft_limits"] = {"x_m": [-0.3, 0.3], "y_m": [-0.3, 0.3], "z_m": [0.0, 0.45]}
+    data["schedule"] = {"kind": "object-dome", "centre_m": [0.0, 0.0, 0.01]}
+    dome = rig_from_dict(data).light_poses()
+    assert len(dome) == 4 + 8 + 10 + 12 + 14
+    centre = np.array([0.0, 0.0, 0.01])
+    offsets = np.array([p.position for p in dome]) - centre
+    assert np.linalg.norm(offsets, axis=1) == pytest.approx(np.full(len(dome), 0.25))
+    polar = np.degrees(np.arccos(offsets[:, 2] / 0.25))
+    rings = np.repeat([12.0, 27.0, 42.0, 57.0, 72.0], [4, 8, 10, 12, 14])
+    assert polar == pytest.approx(rings)
+    for pose, offset in zip(dome, offsets, strict=True):  # each light looks at the object
+        np.testing.assert_allclose(pose.rotation[:, 2], -offset / 0.25, atol=1e-12)
+    azimuth = np.degrees(np.arctan2(offsets[:, 1], offsets[:, 0]))
+    assert sorted(np.round(azimuth[4:12] % 360, 6)) == pytest.approx(22.5 + 45.0 * np.arange(8))  # interleaved
+    # Walked back and forth: the step from one ring to the next is short.
+    assert np.linalg.norm(dome[12].position - dome[11].position) < 0.1
+
+    data["schedule"] = {"kind": "object-dome", "radius_m": [0.2, 0.3], "polar_deg": [20.0, 40.0], "counts": [3, 5]}
+    two = rig_from_dict(data).light_poses()
+    assert [round(float(np.linalg.norm(p.position)), 9) for p in two] == [0.2] * 3 + [0.3] * 5
+    for bad, field in (
+        ({"polar_deg": [20.0, 40.0], "counts": [3]}, "counts: 1 rings, but polar_deg has 2"),
+        ({"polar_deg": [95.0], "counts": [3]}, "polar_deg[0]: must be < 90"),
+        ({"radius_m": [0.2], "polar_deg": [20.0, 40.0], "counts": [3, 3]}, "radius_m: 1 distances for 2 rings"),
+    ):
+        data["schedule"] = {"kind": "object-dome", **bad}
+        assert field in _error(data)
+
+
 def _error(data) -> str:
     with pytest.raises(RigError) as info:
         rig_from_dict(data, "bad.toml")

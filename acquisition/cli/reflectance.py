@@ -7,7 +7,8 @@ from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
-from acquisition.cli.app import app, declared_values, fail, with_declared_options
+from acquisition.cli.app import RigOption, app, declared_values, default_rig, fail, with_declared_options
+from drivers.contracts.rig import RigError, load_rig
 from processing import ReflectanceThresholds, declared_options
 
 if TYPE_CHECKING:
@@ -121,3 +122,62 @@ def _print_summary(result: ReflectanceResult) -> None:
         typer.echo(f"warning: {warning}", err=True)
     folder = result.outputs["report.html"].parent
     typer.echo(f"outputs in {folder}: report.html, reflectance.json, reflectance.h5, albedo-*.exr/png, profiles.png")
+
+
+# --- coverage ------------------------------------------------------------------------------------
+def coverage(
+    rig: RigOption = None,
+    roughness: Annotated[
+        list[float] | None,
+        typer.Option(
+            "--roughness",
+            min=0.02,
+            max=1.0,
+            help="GGX roughness α to plan for; repeat for several (default: 0.15 and 0.35, a gloss and a satin).",
+        ),
+    ] = None,
+    lobe_fraction: Annotated[
+        float,
+        typer.Option(min=0.01, max=1.0, help="A sample counts where the lobe is at least this share of its peak."),
+    ] = 0.25,
+    out: Annotated[
+        Path | None, typer.Option("--out", help="Folder for coverage.json and the maps (default: none written).")
+    ] = None,
+) -> None:
+    """Before an object run: which points of the object the rig's schedule shows a highlight on,
+    counted per point the camera sees and per texel of the mesh's UV layout (docs/reflectance.md)."""
+    from rich.console import Console
+    from rich.table import Table
+
+    from processing import ReflectanceError, highlight_coverage, write_coverage
+
+    try:
+        loaded = load_rig(rig or default_rig())
+        plans = [
+            highlight_coverage(loaded, roughness=alpha, lobe_fraction=lobe_fraction)
+            for alpha in (roughness or [0.15, 0.35])
+        ]
+        written = write_coverage(plans, out) if out is not None else []
+    except (ReflectanceError, RigError, ValueError, OSError) as exc:
+        raise fail(" ".join(str(exc).split())) from None
+    table = Table(
+        title=f"highlight samples of {plans[0].positions} light positions ({loaded.schedule.kind})",
+        title_justify="left",
+    )
+    for column in ("roughness α", "points seen", "≥ 1 highlight", "≥ 3 highlights", "median"):
+        table.add_column(column)
+    for plan in plans:
+        s = plan.summary()
+        table.add_row(
+            f"{plan.roughness:g}",
+            str(s["points"]),
+            f"{100 * s['share_with_highlight']:.1f} %",
+            f"{100 * s['share_with_three']:.1f} %",
+            f"{s['median_highlights']:g}",
+        )
+    Console().print(table)
+    if written:
+        typer.echo(f"written: {', '.join(p.name for p in written)} in {written[0].parent}")
+
+
+app.command("coverage")(coverage)

@@ -109,7 +109,7 @@ class RunRequest(BaseModel):
             ]
         },
     )
-    preset: Literal["light-sweep", "object-arc", "raster", "poses"] = "light-sweep"
+    preset: Literal["light-sweep", "object-arc", "object-dome", "raster", "poses"] = "light-sweep"
     poses: list[PoseSpec] | None = Field(default=None, max_length=10000, description="light poses, for preset 'poses'")
     count: int | None = Field(default=None, ge=1, le=MAX_POSITIONS, description="take only the first COUNT positions")
     bracket: Bracket = Field(default_factory=lambda: FixedBracket(exposures_s=[0.0002, 0.001, 0.005]))

@@ -21,10 +21,12 @@ from acquisition.daemon.run_plan import (
 )
 from acquisition.daemon.settings import DaemonSettings
 from acquisition.daemon.storage import check_room, run_bytes
-from drivers.contracts.rig import LightSweep, ObjectArc, Raster, Rig, RigError, rig_from_dict
+from drivers.contracts.rig import LightSweep, ObjectArc, ObjectDome, Raster, Rig, RigError, rig_from_dict
 from drivers.contracts.runfile import RunHeader, file_sha256
 from drivers.contracts.version import __version__
 from drivers.pose import Pose
+
+OBJECT_PRESETS = ("object-arc", "object-dome")  # schedules that light an object, not the ball
 
 
 class RunPreflight:
@@ -38,7 +40,7 @@ class RunPreflight:
     # --- the schedule and the files a run belongs with ------------------------------------
     def presets(self) -> dict[str, dict]:
         """Schedules a run can use: the rig's own, and the other kinds' defaults."""
-        base = {"light-sweep": LightSweep(), "object-arc": ObjectArc(), "raster": Raster()}
+        base = {"light-sweep": LightSweep(), "object-arc": ObjectArc(), "object-dome": ObjectDome(), "raster": Raster()}
         base[self.rig.schedule.kind] = self.rig.schedule
         return {name: schedule.model_dump(mode="json") for name, schedule in base.items()}
 
@@ -48,7 +50,7 @@ class RunPreflight:
             schedule = {"kind": "poses", "poses": [p.model_dump(mode="json") for p in request.poses or []]}
         else:
             schedule = self.presets()[request.preset]
-        if request.preset == "object-arc" and self.rig.object is None:
+        if request.preset in OBJECT_PRESETS and self.rig.object is None:
             raise RigError(
                 f"preset {request.preset}: the rig has no [object] (the mesh and pose of what is photographed)"
             )

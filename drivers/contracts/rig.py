@@ -498,6 +498,67 @@ class ObjectArc(ConfigModel):
         return poses
 
 
+class ObjectDome(ConfigModel):
+    """Light positions over the hemisphere on the camera's side of an object, aimed at it.
+
+    Ring k holds ``counts[k]`` lights evenly spread in azimuth about ``reference_direction``
+    (from the object towards the camera), ``polar_deg[k]`` away from it, at ``radius_m``
+    (one distance, or one per ring). Successive rings are turned by half a step so their
+    azimuths interleave, and walked in alternating directions so the arm's moves stay
+    short. The defaults (48 positions, 12° to 72° from the camera's direction, 25 cm)
+    light every front-facing normal up to about 36° from the view direction in its mirror
+    direction, which is what a glossy surface needs: a highlight sample per texel.
+    """
+
+    kind: Literal["object-dome"] = "object-dome"
+    centre_m: Vec3 = (0.0, 0.0, 0.0)
+    radius_m: PositiveFloat | list[PositiveFloat] = 0.25
+    polar_deg: list[Annotated[float, Field(ge=0.0, lt=90.0)]] = Field(
+        default_factory=lambda: [12.0, 27.0, 42.0, 57.0, 72.0], min_length=1, max_length=1000
+    )
+    counts: list[Annotated[int, Field(ge=1, le=1000)]] = Field(
+        default_factory=lambda: [4, 8, 10, 12, 14], min_length=1, max_length=1000
+    )
+    reference_direction: Vec3 = (0.0, 0.0, 1.0)
+    x_axis: Vec3 = (1.0, 0.0, 0.0)
+
+    @model_validator(mode="after")
+    def _rings_agree(self) -> Self:
+        if len(self.counts) != len(self.polar_deg):
+            raise ValueError(f"counts: {len(self.counts)} rings, but polar_deg has {len(self.polar_deg)}")
+        if isinstance(self.radius_m, list) and len(self.radius_m) != len(self.polar_deg):
+            raise ValueError(f"radius_m: {len(self.radius_m)} distances for {len(self.polar_deg)} rings")
+        if sum(self.counts) > MAX_POSITIONS:
+            raise ValueError(f"counts: {sum(self.counts)} positions, more than {MAX_POSITIONS}")
+        if not np.linalg.norm(self.reference_direction) > 0:
+            raise ValueError("reference_direction: must be a non-zero vector")
+        return self
+
+    def light_poses(self) -> list[Pose]:
+        pole = np.asarray(self.reference_direction, dtype=float)
+        pole /= np.linalg.norm(pole)
+        # An orthonormal frame about the pole: e1 along the x-axis hint where it is not parallel.
+        hint = np.asarray(self.x_axis, dtype=float)
+        e1 = hint - (hint @ pole) * pole
+        if np.linalg.norm(e1) < 1e-9:
+            e1 = np.cross(pole, [0.0, 1.0, 0.0] if abs(pole[1]) < 0.9 else [1.0, 0.0, 0.0])
+        e1 /= np.linalg.norm(e1)
+        e2 = np.cross(pole, e1)
+        radii = self.radius_m if isinstance(self.radius_m, list) else [self.radius_m] * len(self.counts)
+        centre = np.asarray(self.centre_m)
+        poses = []
+        for ring, (polar, count, radius) in enumerate(zip(self.polar_deg, self.counts, radii, strict=True)):
+            step = 2.0 * math.pi / count
+            azimuths = (np.arange(count) + 0.5 * (ring % 2)) * step
+            if ring % 2:
+                azimuths = azimuths[::-1]
+            t = math.radians(polar)
+            for phi in azimuths:
+                direction = math.cos(t) * pole + math.sin(t) * (math.cos(phi) * e1 + math.sin(phi) * e2)
+                poses.append(Pose.from_rotation(centre + radius * direction, look_rotation(-direction, self.x_axis)))
+        return poses
+
+
 class PoseList(ConfigModel):
     """An explicit list of light poses."""
 
@@ -508,7 +569,7 @@ class PoseList(ConfigModel):
         return [p.to_pose() for p in self.poses]
 
 
-Schedule = Annotated[LightSweep | Raster | ObjectArc | PoseList, Field(discriminator="kind")]
+Schedule = Annotated[LightSweep | Raster | ObjectArc | ObjectDome | PoseList, Field(discriminator="kind")]
 
 
 class SceneObject(ConfigModel):

@@ -296,7 +296,7 @@ def estimate_reflectance(
         surface.normals,
         surface.faces,
         heights,
-        _uv_at(mesh_rig, surface.faces, points),
+        uv_at_points(mesh_rig, surface.faces, points),
         radiance,
         {m: samples.irradiance[m] for m in methods},
         {m: samples.tints[m] for m in methods},
@@ -403,7 +403,7 @@ def channel_irradiance(grey: np.ndarray, colour: np.ndarray | None) -> np.ndarra
     return grey[..., None] * colour if colour is not None else np.repeat(grey[..., None], 3, axis=-1)
 
 
-def _uv_at(mesh: trimesh.Trimesh, faces: np.ndarray, points: np.ndarray) -> np.ndarray | None:
+def uv_at_points(mesh: trimesh.Trimesh, faces: np.ndarray, points: np.ndarray) -> np.ndarray | None:
     """The mesh's UV coordinates at hit points (barycentric), or None without UVs."""
     uv = getattr(getattr(mesh, "visual", None), "uv", None)
     if uv is None or len(uv) != len(mesh.vertices):

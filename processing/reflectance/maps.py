@@ -69,26 +69,36 @@ def uv_texture(result: ReflectanceResult, method: str, size: int = 1024, fill: i
         return None
 
     valid = result.valid & np.all(np.isfinite(result.uv), axis=1)
-    uv = result.uv[valid]
-    rho = result.rho_points[method][valid]
+    return splat_uv(result.uv[valid], result.rho_points[method][valid], size, fill)
+
+
+def splat_uv(uv: np.ndarray, values: np.ndarray, size: int, fill: int = 2) -> np.ndarray:
+    """Values (N, C) at UV points splatted into a (size, size, C) texture, NaN where none land.
+
+    ``v`` is up, so row 0 is ``v = 1``; a texel holds the mean of the values that land in
+    it; empty texels within ``fill`` texels of filled ones take the mean of their filled
+    3 × 3 neighbours (``fill`` passes).
+    """
     u = np.mod(uv[:, 0], 1.0)
     v = np.mod(uv[:, 1], 1.0)
     col = np.clip((u * size).astype(int), 0, size - 1)
     row = np.clip(((1.0 - v) * size).astype(int), 0, size - 1)
     flat = row * size + col
-    total = np.zeros((size * size, 3))
+    channels = values.shape[1]
+    total = np.zeros((size * size, channels))
     count = np.bincount(flat, minlength=size * size).astype(float)
-    for c in range(3):
-        total[:, c] = np.bincount(flat, weights=rho[:, c], minlength=size * size)
+    for c in range(channels):
+        total[:, c] = np.bincount(flat, weights=values[:, c], minlength=size * size)
     with np.errstate(divide="ignore", invalid="ignore"):
-        texture = (total / count[:, None]).reshape(size, size, 3)
+        texture = (total / count[:, None]).reshape(size, size, channels)
     for _ in range(max(0, int(fill))):
         known = np.all(np.isfinite(texture), axis=-1)
         if known.all() or not known.any():
             break
         weight = uniform_filter(known.astype(float), size=3, mode="constant")
         summed = np.stack(
-            [uniform_filter(np.where(known, texture[..., c], 0.0), size=3, mode="constant") for c in range(3)], axis=-1
+            [uniform_filter(np.where(known, texture[..., c], 0.0), size=3, mode="constant") for c in range(channels)],
+            axis=-1,
         )
         grow = ~known & (weight > 0.5 / 9.0)  # at least one filled neighbour (not round-off)
         texture[grow] = summed[grow] / weight[grow, None]
