@@ -584,6 +584,18 @@ class ReflectanceThresholds:
         exclusive_minimum=True,
     )
     min_lights: int = option(2, "Usable lights a pixel needs.", cli=False, minimum=2, unit="lights")
+    hold_out: int = option(
+        4,
+        "Light positions left out of the BRDF fit, spread over the schedule, to check it by relighting them (0: none).",
+        minimum=0,
+        unit="lights",
+    )
+    basis: int = option(
+        6,
+        "At most this many basis materials lend their lobe to the points no highlight reached.",
+        minimum=1,
+        unit="materials",
+    )
 
     def __post_init__(self) -> None:
         for declared in declared_options(type(self)):

@@ -8,11 +8,16 @@ microfacet lobe with Smith's height-correlated masking–shadowing and Schlick's
     L_c = E_c · (ρ_c/π + K·(F0_c·(1 − w) + w)),   K = D(h)·G₂(l, v) / (4 (n·l)(n·v)),
     w = (1 − v·h)⁵
 
-with ρ the diffuse albedo, F0 the specular reflectance at normal incidence (about 0.04 for
-glazes, varnishes and lacquers, tinted and high for metals) and α the roughness in D and
-G₂. For a fixed α the model is linear in ρ_c and F0_c, so each channel is a weighted 2 × 2
-least-squares problem; α is searched on a log grid shared by the three channels and refined
-by a parabola through the χ² minimum (the variable projection of Golub & Pereyra, 1973).
+with ρ the diffuse albedo, F0 the specular reflectance at normal incidence and α the
+roughness in D and G₂. Two materials are tried at every point and the better kept: a
+*dielectric* (a body colour ρ under a coat whose reflection is grey, F0 from 0 to 0.1: about
+0.04 for glazes, varnishes and lacquers) and a *metal* (no body colour, a tinted F0); the
+point's metalness is which one won. For a fixed α either model is linear in its colours,
+a small weighted least-squares problem per point; α is searched on a log grid and refined
+by parabolas through the χ² minimum (the variable projection of Golub & Pereyra, 1973).
+A grey coat is physics (a dielectric's Fresnel reflectance hardly depends on wavelength)
+and it matters: with a free F0 per channel a broad, tinted lobe can pass for part of the
+body colour.
 
 Weights: a sample's variance is taken proportional to its radiance plus a floor (shot noise
 dominates in an HDR merge), and the parameters' 1σ come from the least-squares covariance
@@ -37,12 +42,29 @@ from __future__ import annotations
 import copy
 import math
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
 #: Roughness values searched (GGX α): from a polished lacquer to a nearly Lambertian lobe.
 ROUGHNESS_GRID = np.geomspace(0.02, 1.0, 36)
+
+#: A point's mirror direction is probed when a sample's half vector comes this close to its normal (degrees).
+PROBE_DEG = 10.0
+
+#: A point whose χ² per degree of freedom passes this many times the median point's is not explained.
+OUTLIER_CHI2 = 4.0
+
+#: Below this F0 (with 2σ) a point whose mirror direction was probed is matte: half a glaze's 0.04.
+MATTE_F0 = 0.02
+
+#: The largest F0 a dielectric is given: an index of 1.93 (glazes, varnishes, lacquers: 0.03-0.06).
+DIELECTRIC_F0_MAX = 0.1
+
+#: Basis colours closer than this (chromaticity, and a quarter of the log brightness) are one material.
+SAME_COLOUR = 0.03
 
 #: Confidence of a point's lobe.
 CONFIDENCE_NONE, CONFIDENCE_SHARED, CONFIDENCE_OWN = 0, 1, 2
@@ -101,54 +123,45 @@ class BRDFFit:
     samples: np.ndarray  # (N,) usable samples
     highlights: np.ndarray  # (N,) samples with the fitted lobe above a quarter of its peak
     confidence: np.ndarray  # (N,) CONFIDENCE_*
+    metal: np.ndarray  # (N,) bool: the better material is a metal
     basis: list[dict] = field(default_factory=list)
 
     @property
     def metalness(self) -> np.ndarray:
-        """1 where the specular reflectance is a metal's (bright, and no diffuse part beside it).
-
-        Dielectrics reflect at most ~0.1 at normal incidence (an index below 2); a metal's
-        F0 is above ~0.5 and it has no body colour. The blend between is linear in the
-        share of the specular in the total reflectance.
-        """
-        f0 = self.specular.mean(axis=1)
-        rho = self.diffuse.mean(axis=1)
-        share = f0 / np.maximum(f0 + rho, 1e-9)
-        return np.clip((f0 - 0.15) / 0.35, 0.0, 1.0) * np.clip((share - 0.5) / 0.3, 0.0, 1.0)
+        """1 for the points fitted as a metal (no body colour, a tinted F0), 0 for dielectrics."""
+        return self.metal.astype(float)
 
 
-def _solve_two(
+def _solve_materials(
     a: np.ndarray, b: np.ndarray, y: np.ndarray, wgt: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Weighted ``y ≈ x₁·a + x₂·b`` with x ≥ 0 per column (samples along axis 0).
+    """The better of two materials per point, for columns (n_lights, N, 3) and weights.
 
-    Returns x₁, x₂, the χ² and the inverse normal matrix (its 2 × 2 entries as (3, ...)).
+    A dielectric: ``y_c ≈ ρ_c·a_c + F0·b_c`` with one, grey F0 in [0, :data:`DIELECTRIC_F0_MAX`]
+    (a coat's reflection has no colour of its own) and ρ_c ≥ 0; a metal: ``y_c ≈ F0_c·b_c``
+    with no body colour. Returns ρ (N, 3), F0 (N, 3), χ² (N,) and the metal flag (N,).
     """
-    saa = np.sum(wgt * a * a, axis=0)
+    saa = np.sum(wgt * a * a, axis=0)  # (N, 3)
     sbb = np.sum(wgt * b * b, axis=0)
     sab = np.sum(wgt * a * b, axis=0)
     say = np.sum(wgt * a * y, axis=0)
     sby = np.sum(wgt * b * y, axis=0)
     syy = np.sum(wgt * y * y, axis=0)
-    det = saa * sbb - sab * sab
-    ok = det > 1e-12 * np.maximum(saa * sbb, 1e-300)
     with np.errstate(divide="ignore", invalid="ignore"):
-        x1 = np.where(ok, (sbb * say - sab * sby) / det, 0.0)
-        x2 = np.where(ok, (saa * sby - sab * say) / det, 0.0)
-        only_a = np.where(saa > 0, say / saa, 0.0)
-        only_b = np.where(sbb > 0, sby / sbb, 0.0)
-    # Non-negativity: where the pair leaves the quadrant, the better of the two one-term fits.
-    out = ~ok | (x1 < 0) | (x2 < 0)
-    chi_a = syy - np.maximum(only_a, 0.0) * say
-    chi_b = syy - np.maximum(only_b, 0.0) * sby
-    use_a = chi_a <= chi_b
-    x1 = np.where(out, np.where(use_a, np.maximum(only_a, 0.0), 0.0), x1)
-    x2 = np.where(out, np.where(use_a, 0.0, np.maximum(only_b, 0.0)), x2)
-    chi2 = syy - 2 * x1 * say - 2 * x2 * sby + x1 * x1 * saa + 2 * x1 * x2 * sab + x2 * x2 * sbb
-    with np.errstate(divide="ignore", invalid="ignore"):
-        inv = np.stack([sbb / det, saa / det, -sab / det])
-    inv = np.where(ok, inv, np.stack([1.0 / np.maximum(saa, 1e-300), 1.0 / np.maximum(sbb, 1e-300), 0.0 * saa]))
-    return x1, x2, np.maximum(chi2, 0.0), inv
+        ratio = np.where(saa > 0, sab / saa, 0.0)
+        # The grey F0 by the Schur complement of the three diffuse unknowns.
+        f0 = np.sum(sby - ratio * say, axis=1) / np.sum(sbb - ratio * sab, axis=1)
+        f0 = np.clip(np.nan_to_num(f0, nan=0.0), 0.0, DIELECTRIC_F0_MAX)
+        rho = np.maximum(np.where(saa > 0, (say - sab * f0[:, None]) / saa, 0.0), 0.0)
+        metal_f0 = np.maximum(np.where(sbb > 0, sby / sbb, 0.0), 0.0)
+    f0_rgb = np.repeat(f0[:, None], 3, axis=1)
+    chi_d = syy - 2 * rho * say - 2 * f0_rgb * sby + rho * rho * saa + 2 * rho * f0_rgb * sab + f0_rgb * f0_rgb * sbb
+    chi_m = syy - 2 * metal_f0 * sby + metal_f0 * metal_f0 * sbb
+    chi_d, chi_m = np.maximum(chi_d.sum(axis=1), 0.0), np.maximum(chi_m.sum(axis=1), 0.0)
+    metal = chi_m < chi_d
+    rho = np.where(metal[:, None], 0.0, rho)
+    specular = np.where(metal[:, None], metal_f0, f0_rgb)
+    return rho, specular, np.where(metal, chi_m, chi_d), metal
 
 
 def _design(
@@ -180,14 +193,16 @@ def _joint_sigmas(
     irradiance: np.ndarray,
     alpha: np.ndarray,
     f0: np.ndarray,
+    metal: np.ndarray,
     wgt: np.ndarray,
     chi2_red: np.ndarray,
     step: float = 0.02,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """1σ of ρ (N, 3), F0 (N, 3) and log α (N,) from the 7 × 7 Fisher matrix of each point.
+    """1σ of ρ (N, 3), F0 (N, 3) and log α (N,) from each point's Fisher matrix.
 
-    The columns are ∂L/∂ρ_c, ∂L/∂F0_c (each one channel) and ∂L/∂log α (every channel, by
-    a central difference of K), so the marginal errors carry the correlations between the
+    The parameters are the material's own: a dielectric's ρ_R, ρ_G, ρ_B, its grey F0 and
+    log α; a metal's F0_R, F0_G, F0_B and log α (its ρ is 0, exactly). ∂L/∂log α comes from
+    a central difference of K, so the marginal errors carry the correlations between the
     lobe's height and width and the body colour. The weights are inverse variances up to a
     scale, so the covariance is scaled by the point's own χ² per degree of freedom: the
     residuals' scale, noise and model error together.
@@ -197,22 +212,57 @@ def _joint_sigmas(
     up = _design(geometry, irradiance, (alpha * math.exp(step))[None, :])
     down = _design(geometry, irradiance, (alpha * math.exp(-step))[None, :])
     d_alpha = (f0[None] * (up[1] - down[1]) + (up[2] - down[2])) / (2.0 * step)  # (n_lights, N, 3)
-    fisher = np.zeros((n_points, 7, 7))
+    # Slots 0-2: ρ_c (dielectric) or F0_c (metal); slot 3: the dielectric's grey F0; slot 4: log α.
+    fisher = np.zeros((n_points, 5, 5))
     for c in range(3):
         w = wgt[..., c]
-        cols = (a[..., c], b[..., c], d_alpha[..., c])
-        index = (c, 3 + c, 6)
-        for i, ci in zip(index, cols, strict=True):
-            for j, cj in zip(index, cols, strict=True):
+        first = np.where(metal[None, :], b[..., c], a[..., c])
+        grey = np.where(metal[None, :], 0.0, b[..., c])
+        cols = {c: first, 3: grey, 4: d_alpha[..., c]}
+        for i, ci in cols.items():
+            for j, cj in cols.items():
                 fisher[:, i, j] += np.sum(w * ci * cj, axis=0)
-    scale = chi2_red
-    diag = np.full((n_points, 7), np.inf)
+    fisher[metal, 3, 3] = 1.0  # the metal has no grey F0: a unit diagonal keeps the matrix whole
+    diag = np.full((n_points, 5), np.inf)
     ok = np.all(np.isfinite(fisher), axis=(1, 2)) & (np.linalg.det(fisher) > 0)
     if ok.any():
         diag[ok] = np.diagonal(np.linalg.pinv(fisher[ok], hermitian=True), axis1=1, axis2=2)
     with np.errstate(invalid="ignore"):  # points without samples: NaN
-        sigma = np.sqrt(np.maximum(diag, 0.0) * scale[:, None])
-    return sigma[:, :3], sigma[:, 3:6], sigma[:, 6]
+        sigma = np.sqrt(np.maximum(diag, 0.0) * chi2_red[:, None])
+    sigma_rho = np.where(metal[:, None], 0.0, sigma[:, :3])
+    sigma_f0 = np.where(metal[:, None], sigma[:, :3], np.repeat(sigma[:, 3:4], 3, axis=1))
+    return sigma_rho, sigma_f0, sigma[:, 4]
+
+
+def _refined_roughness(
+    chi: np.ndarray, grid: np.ndarray, chi2_at: Callable[[np.ndarray], np.ndarray]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each point's α from its χ² on the grid (len(grid), N): a parabola through the grid's
+    minimum and its neighbours in log α, then two finer ones (a quarter and a sixteenth of
+    the step, ``chi2_at`` evaluating χ² anywhere) where χ² is not quadratic over a whole
+    step. Returns α, χ²'s curvature in log α there, and whether the minimum lies inside
+    the grid with a positive curvature (a width the data pin, not an end of the range)."""
+    n_points = chi.shape[1]
+    best = np.argmin(chi, axis=0)
+    log_grid = np.log(grid)
+    inner = np.clip(best, 1, len(grid) - 2)
+    rows = np.arange(n_points)
+    c_m, c_0, c_p = chi[inner - 1, rows], chi[inner, rows], chi[inner + 1, rows]
+    step = log_grid[1] - log_grid[0]
+    curvature = (c_p - 2 * c_0 + c_m) / step**2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        shift = np.where(curvature > 0, -0.5 * (c_p - c_m) / (step * curvature), 0.0)
+    interior = best == inner
+    log_alpha = np.where(interior, log_grid[inner] + np.clip(shift, -step, step), log_grid[best])
+    for level in (4.0, 16.0):
+        h = step / level
+        c_m, c_0, c_p = (chi2_at(log_alpha + d) for d in (-h, 0.0, h))
+        fine = (c_p - 2 * c_0 + c_m) / h**2
+        with np.errstate(divide="ignore", invalid="ignore"):
+            move = np.where(fine > 0, -0.5 * (c_p - c_m) / (h * fine), 0.0)
+        log_alpha = np.where(interior, log_alpha + np.clip(move, -2 * h, 2 * h), log_alpha)
+        curvature = np.where(interior & (fine > 0), fine, curvature)
+    return np.exp(log_alpha), curvature, interior & (curvature > 0)
 
 
 def fit_brdf(
@@ -254,55 +304,45 @@ def fit_brdf(
     chi = np.empty((len(grid), n_points))
     for g, alpha in enumerate(grid):
         a, b, o = _design(geometry, irradiance, float(alpha))
-        _, _, c2, _ = _solve_two(a, b, y - o, wgt)
-        chi[g] = c2.sum(axis=-1)
-    best = np.argmin(chi, axis=0)
-    log_grid = np.log(grid)
+        chi[g] = _solve_materials(a, b, y - o, wgt)[2]
 
     def chi2_at(log_alpha: np.ndarray) -> np.ndarray:
         a, b, o = _design(geometry, irradiance, np.exp(log_alpha)[None, :])
-        return _solve_two(a, b, y - o, wgt)[2].sum(axis=-1)
+        return _solve_materials(a, b, y - o, wgt)[2]
 
-    # A parabola through the minimum and its neighbours, in log α.
-    inner = np.clip(best, 1, len(grid) - 2)
-    rows = np.arange(n_points)
-    c_m, c_0, c_p = chi[inner - 1, rows], chi[inner, rows], chi[inner + 1, rows]
-    step = log_grid[1] - log_grid[0]
-    curvature = (c_p - 2 * c_0 + c_m) / step**2
-    with np.errstate(divide="ignore", invalid="ignore"):
-        shift = np.where(curvature > 0, -0.5 * (c_p - c_m) / (step * curvature), 0.0)
-    shift = np.clip(shift, -step, step)
-    log_alpha = np.where(best == inner, log_grid[inner] + shift, log_grid[best])
-    # Two finer parabolas about the estimate (a quarter, then a sixteenth of the grid step):
-    # the grid's parabola is biased where χ² is not quadratic over a whole step.
-    interior = best == inner
-    for level in (4.0, 16.0):
-        h = step / level
-        c_m, c_0, c_p = (chi2_at(log_alpha + d) for d in (-h, 0.0, h))
-        fine = (c_p - 2 * c_0 + c_m) / h**2
-        with np.errstate(divide="ignore", invalid="ignore"):
-            move = np.where(fine > 0, -0.5 * (c_p - c_m) / (h * fine), 0.0)
-        log_alpha = np.where(interior, log_alpha + np.clip(move, -2 * h, 2 * h), log_alpha)
-        curvature = np.where(interior & (fine > 0), fine, curvature)
-    alpha = np.exp(log_alpha)
+    alpha, curvature, pinned_curve = _refined_roughness(chi, grid, chi2_at)
 
     # The linear parameters at each point's own α, and their covariance.
     n_used = used.sum(axis=0)
     a, b, o = _design(geometry, irradiance, alpha[None, :])  # alpha broadcasts over the lights
-    rho, f0, c2, inv = _solve_two(a, b, y - o, wgt)
-    dof = np.maximum(3 * n_used - 7, 1)
-    chi2_red = c2.sum(axis=-1) / dof
-    pinned_curve = (best > 0) & (best < len(grid) - 1) & (curvature > 0)
-    sigma_rho, sigma_f0, sigma_log_alpha = _joint_sigmas(geometry, irradiance, alpha, f0, wgt, chi2_red)
+    rho, f0, c2, metal = _solve_materials(a, b, y - o, wgt)
+    dof = np.maximum(3 * n_used - np.where(metal, 4, 5), 1)
+    chi2_red = c2 / dof
+    sigma_rho, sigma_f0, sigma_log_alpha = _joint_sigmas(geometry, irradiance, alpha, f0, metal, wgt, chi2_red)
     sigma_alpha = np.where(pinned_curve, alpha * np.nan_to_num(sigma_log_alpha, nan=np.inf), np.inf)
 
     k_fit = ggx_lobe(geometry.cos_l, geometry.cos_v, geometry.cos_h, alpha[None, :])
     peak = ggx_lobe(np.ones(1), np.ones(1), np.ones(1), alpha)
     highlights = np.sum(used & (k_fit >= 0.25 * peak[None, :]), axis=0)
+    # The lobe's peak is only seen where a sample's half vector came within 10° of the
+    # normal (its mirror direction was probed); elsewhere a broad lobe and the diffuse part
+    # trade off, and a fit can look pinned when it is not.
+    probed = np.sum(used & (geometry.cos_h >= math.cos(math.radians(PROBE_DEG))), axis=0) >= 1
     significant = f0.mean(axis=1) > 3.0 * sigma_f0.mean(axis=1)
-    pinned = pinned_curve & (sigma_alpha < 0.5 * alpha) & significant & (highlights >= 1)
     enough = n_used >= min_samples
-    confidence = np.where(enough & pinned, CONFIDENCE_OWN, CONFIDENCE_NONE).astype(np.uint8)
+    # A point the model does not explain (a superpixel astride two facets sees two
+    # highlights; a cast shadow's edge) fits a broad, bright lobe that is no material's:
+    # its χ² stands out from the other points' (the weights share one scale).
+    typical = float(np.median(chi2_red[enough])) if enough.any() else 0.0
+    explained = chi2_red <= OUTLIER_CHI2 * typical
+    pinned = pinned_curve & (sigma_alpha < 0.5 * alpha) & significant & (highlights >= 1) & probed & explained
+    # A matte point: its mirror direction was probed and no lobe answered, F0 + 2σ below
+    # half a glaze's. It is known to have no lobe (F0 as fitted, near 0; α 1, the widest),
+    # which is not the same as not knowing.
+    matte = enough & ~pinned & probed & (f0.mean(axis=1) + 2.0 * sigma_f0.mean(axis=1) < MATTE_F0)
+    alpha = np.where(matte, 1.0, alpha)
+    sigma_alpha = np.where(matte, np.nan, sigma_alpha)
+    confidence = np.where(enough & (pinned | matte), CONFIDENCE_OWN, CONFIDENCE_NONE).astype(np.uint8)
     nan3 = np.full((n_points, 3), np.nan)
     return BRDFFit(
         diffuse=np.where(enough[:, None], rho, nan3),
@@ -315,6 +355,7 @@ def fit_brdf(
         samples=n_used,
         highlights=highlights,
         confidence=confidence,
+        metal=metal & enough,
     )
 
 
@@ -324,42 +365,30 @@ def _colour_features(diffuse: np.ndarray) -> np.ndarray:
     return np.column_stack([diffuse[:, :2] / total, 0.25 * np.log(total[:, 0])])
 
 
-def share_lobes(
-    fit: BRDFFit,
-    radiance: np.ndarray,
-    irradiance: np.ndarray,
-    geometry: Geometry,
-    used: np.ndarray,
-    *,
-    max_basis: int = 6,
-    seed: int = 0,
-    weights: np.ndarray | None = None,
-) -> BRDFFit:
-    """Give the points whose lobe is not pinned the lobe of the nearest basis material.
+def basis_materials(fit: BRDFFit, own: np.ndarray, max_basis: int, seed: int) -> list[dict[str, Any]]:
+    """The materials of the points whose lobe is pinned (``own``): k-means of their colour
+    (see :func:`share_lobes`), each with the median F0 and α of its members, their spread
+    as the 1σ, and whether it is a metal."""
+    from scipy.cluster.vq import kmeans, vq  # noqa: PLC0415 - only where lobes are shared
 
-    The basis materials are k-means clusters (scipy's ``kmeans2``, k chosen as the largest
-    up to ``max_basis`` whose clusters each hold at least 2 % of the pinned points) of the
-    pinned points' diffuse colour; each basis has the median F0 and α of its members. An
-    unpinned point takes the basis nearest in diffuse colour, its albedo is refitted with
-    that lobe fixed, and its confidence becomes :data:`CONFIDENCE_SHARED`; its 1σ of F0 and
-    α are the spread of the basis (a borrowed value is no better known than that).
-    Without pinned points nothing changes.
-    """
-    from scipy.cluster.vq import kmeans2  # noqa: PLC0415 - only where lobes are shared
-
-    own = fit.confidence == CONFIDENCE_OWN
-    fitted = np.isfinite(fit.roughness)
-    borrow = fitted & ~own
-    if not own.any() or not borrow.any():
-        return fit
-    features = _colour_features(np.maximum(fit.diffuse[own], 0.0))
-    rng = np.random.default_rng(seed)
-    labels, centres = np.zeros(int(own.sum()), np.int64), features.mean(axis=0, keepdims=True)
-    for k in range(min(max_basis, int(own.sum()) // 50), 1, -1):
-        centres_k, labels_k = kmeans2(features, k, minit="++", seed=rng)
-        if np.bincount(labels_k, minlength=k).min() >= 0.02 * len(labels_k):
-            labels, centres = labels_k, centres_k
-            break
+    features = _colour_features(np.maximum(fit.diffuse[own] + fit.specular[own], 0.0))
+    smallest = max(10, int(0.005 * len(features)))  # a material of its own: 0.5 % of the pinned points
+    k = max(1, min(max_basis, len(features) // smallest))
+    # The best of 10 k-means runs (least distortion), seeded: the same bases every time.
+    centres, _ = kmeans(features, k, iter=10, seed=seed) if k > 1 else (features.mean(axis=0)[None], 0.0)
+    labels, _ = vq(features, centres)
+    # Clusters too small to be a material (stray colours at edges) give their points to the
+    # others, and clusters of one colour are one material (k-means splits a large one).
+    kept = np.flatnonzero(np.bincount(labels, minlength=len(centres)) >= smallest)
+    centres = centres[kept] if kept.size else features.mean(axis=0)[None]
+    labels, _ = vq(features, centres)
+    order = np.argsort(-np.bincount(labels, minlength=len(centres)))
+    merged: list[int] = []
+    for c in order:
+        if all(np.linalg.norm(centres[c] - centres[m]) > SAME_COLOUR for m in merged):
+            merged.append(int(c))
+    centres = centres[merged]
+    labels, _ = vq(features, centres)
     basis = []
     for c in range(len(centres)):
         members = labels == c
@@ -375,29 +404,73 @@ def share_lobes(
                     typical * 1.4826 * np.median(np.abs(np.log(fit.roughness[own][members]) - math.log(typical)))
                 ),
                 "points": int(members.sum()),
+                "metal": bool(np.mean(fit.metal[own][members]) > 0.5),
             }
         )
+    return basis
+
+
+def share_lobes(
+    fit: BRDFFit,
+    radiance: np.ndarray,
+    irradiance: np.ndarray,
+    geometry: Geometry,
+    used: np.ndarray,
+    *,
+    max_basis: int = 6,
+    seed: int = 0,
+    weights: np.ndarray | None = None,
+) -> BRDFFit:
+    """Give the points whose lobe is not pinned the lobe of the nearest basis material.
+
+    The basis materials are k-means clusters (scipy's ``kmeans``, the best of 10 runs, with
+    ``max_basis`` centres; those holding less than 0.5 % of the pinned points are dropped
+    and their points given to the nearest others) of the pinned points' colour (diffuse
+    plus specular reflectance: a metal's colour is its F0); each basis has the median F0
+    and α of its members. An unpinned point takes the basis whose lobe, with the point's
+    albedo refitted under it, explains its samples best (its own colour can mislead: a
+    point whose lobe was never seen may have split diffuse and specular wrongly), and its
+    confidence becomes :data:`CONFIDENCE_SHARED`; its 1σ of F0 and
+    α are the spread of the basis (a borrowed value is no better known than that).
+    Without pinned points nothing changes.
+    """
+
+    own = fit.confidence == CONFIDENCE_OWN
+    fitted = np.isfinite(fit.roughness)
+    borrow = fitted & ~own
+    if not own.any() or not borrow.any():
+        return fit
+    basis = basis_materials(fit, own, max_basis, seed)
     index = np.flatnonzero(borrow)
-    distance = np.linalg.norm(
-        _colour_features(np.maximum(fit.diffuse[index], 0.0))[:, None, :] - centres[None], axis=-1
-    )
-    nearest = np.argmin(distance, axis=1)
+    sub = (slice(None), index)
+    sub_geometry = Geometry(geometry.cos_l[sub], geometry.cos_v[sub], geometry.cos_h[sub], geometry.cos_vh[sub])
+    u = used[sub]
+    observed = np.where(u[..., None], np.nan_to_num(radiance[sub], nan=0.0), 0.0)
+    wgt = sample_weights(radiance[sub], u) if weights is None else np.where(u[..., None], weights[sub], 0.0)
+    # Each basis's lobe, the body colour refitted under it; the point takes the one that
+    # explains its own samples best (its colour alone can mislead: a point whose lobe was
+    # never seen may have fitted a wrong share of diffuse and specular).
+    best_chi = np.full(len(index), np.inf)
+    nearest = np.zeros(len(index), np.int64)
+    rho = np.zeros((len(index), 3))
+    sigma_rho = np.full((len(index), 3), np.inf)
+    for c, material in enumerate(basis):
+        a, b, o = _design(sub_geometry, irradiance[sub], material["roughness"])
+        y = observed - o - np.asarray(material["specular"])[None, None, :] * b
+        saa = np.sum(wgt * a * a, axis=0)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            body = 0.0 if material["metal"] else np.maximum(np.sum(wgt * a * y, axis=0) / saa, 0.0)
+            chi = np.sum(wgt * (y - body * a) ** 2, axis=(0, 2))
+            sigma = np.sqrt(1.0 / saa)
+        better = chi < best_chi
+        best_chi[better], nearest[better] = chi[better], c
+        rho[better] = np.broadcast_to(body, rho.shape)[better]
+        sigma_rho[better] = np.where(material["metal"], 0.0, sigma)[better]
+    resid = best_chi / np.maximum(3 * u.sum(axis=0) - 3, 1)
+    sigma_rho = sigma_rho * np.sqrt(resid)[:, None]
     alpha = np.array([basis[c]["roughness"] for c in nearest])
     f0 = np.array([basis[c]["specular"] for c in nearest])
-    sub = (slice(None), index)
-    a, b, o = _design(
-        Geometry(geometry.cos_l[sub], geometry.cos_v[sub], geometry.cos_h[sub], geometry.cos_vh[sub]),
-        irradiance[sub],
-        alpha[None, :],
-    )
-    u = used[sub]
-    y = np.where(u[..., None], np.nan_to_num(radiance[sub], nan=0.0), 0.0) - o - f0[None] * b
-    wgt = sample_weights(radiance[sub], u) if weights is None else np.where(u[..., None], weights[sub], 0.0)
-    saa = np.sum(wgt * a * a, axis=0)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        rho = np.maximum(np.sum(wgt * a * y, axis=0) / saa, 0.0)
-        resid = np.sum(wgt * (y - rho[None] * a) ** 2, axis=(0, 2)) / np.maximum(3 * u.sum(axis=0) - 3, 1)
-        sigma_rho = np.sqrt(1.0 / saa) * np.sqrt(resid)[:, None]
+    borrowed_metal = np.array([basis[c]["metal"] for c in nearest], dtype=bool)
     out = copy.deepcopy(fit)
     out.diffuse[index] = rho
     out.sigma_diffuse[index] = sigma_rho
@@ -407,5 +480,45 @@ def share_lobes(
     out.sigma_roughness[index] = np.array([basis[c]["sigma_roughness"] for c in nearest])
     out.chi2[index] = resid
     out.confidence[index] = CONFIDENCE_SHARED
+    out.metal[index] = borrowed_metal
     out.basis = basis
     return out
+
+
+@dataclass
+class MaterialResult:
+    """Per light model, the fitted reflectance of every point, and the relighting check."""
+
+    fits: dict[str, BRDFFit]
+    fitted_lights: np.ndarray  # indices of the light positions the fits used
+    held_out: np.ndarray  # indices of the positions left out for relighting
+    relighting: dict[str, dict[str, Any]] = field(default_factory=dict)
+    notes: list[str] = field(default_factory=list)
+
+    def summary(self) -> dict[str, Any]:
+        """Per light model: medians of the parameters over the points with their own lobe,
+        the shares per confidence, the basis materials and the relighting error."""
+        out: dict[str, Any] = {
+            "fitted_positions": self.fitted_lights.tolist(),
+            "held_out_positions": self.held_out.tolist(),
+            "notes": list(self.notes),
+            "methods": {},
+        }
+        for method, fit in self.fits.items():
+            fitted = np.isfinite(fit.roughness)
+            own = fit.confidence == CONFIDENCE_OWN
+            counts = {
+                name: int(np.sum(fit.confidence[fitted] == code))
+                for name, code in (("own", CONFIDENCE_OWN), ("shared", CONFIDENCE_SHARED), ("none", CONFIDENCE_NONE))
+            }
+            stats: dict[str, Any] = {"points": int(fitted.sum()), "confidence": counts, "basis": fit.basis}
+            if own.any():
+                stats.update(
+                    diffuse_median=np.median(fit.diffuse[own], axis=0).tolist(),
+                    specular_median=np.median(fit.specular[own], axis=0).tolist(),
+                    roughness_median=float(np.median(fit.roughness[own])),
+                    chi2_median=float(np.median(fit.chi2[own])),
+                )
+            stats["relighting"] = self.relighting.get(method, {})
+            out["methods"][method] = stats
+        return out

@@ -7,7 +7,7 @@ import math
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import trimesh
@@ -33,6 +33,9 @@ from processing.reflectance.codes import (
 )
 from processing.reflectance.lights import LIGHT_MODELS
 from processing.reflectance.samples import LightSamples, Surface, drop_outliers, light_samples, surface_seen
+
+if TYPE_CHECKING:
+    from processing.reflectance.brdf import MaterialResult
 
 log = logging.getLogger("mirrorgonio.processing")
 
@@ -112,6 +115,7 @@ class ReflectanceResult:
     warnings: list[str] = field(default_factory=list)
     outputs: dict[str, Path] = field(default_factory=dict)
     metadata: dict = field(default_factory=dict)
+    materials: MaterialResult | None = None  # the BRDF per point (processing.reflectance.materials)
 
     def irradiance_rgb(self, method: str) -> np.ndarray:
         """Each channel's irradiance per light and point, (n_lights, N, 3) float32: what

@@ -18,6 +18,7 @@ from processing.reflectance.codes import PIXEL_CODES, PIXEL_COLOURS, PIXEL_SHORT
 from processing.reflectance.estimate import ReflectanceResult
 from processing.reflectance.lights import LIGHT_MODELS
 from processing.reflectance.maps import reflectance_profiles, uv_texture
+from processing.reflectance.material_outputs import write_material_outputs
 from processing.reflectance.page import reflectance_profiles_figure, write_reflectance_report
 
 log = logging.getLogger("mirrorgonio.processing")
@@ -87,7 +88,16 @@ def _write_points(path: Path, result: ReflectanceResult, run_id: str | None) -> 
 
 #: The files a reflectance writes into its folder whatever the mesh, and those per light model.
 FIXED_OUTPUTS = ("reflectance.json", "reflectance.h5", "report.html", "reasons.png", "profiles.png")
-PER_MODEL_OUTPUTS = ("albedo-{}.exr", "albedo-{}.png", "texture-{}.exr", "texture-{}.png")
+PER_MODEL_OUTPUTS = (
+    "albedo-{}.exr",
+    "albedo-{}.png",
+    "texture-{}.exr",
+    "texture-{}.png",
+    "brdf-{}.exr",
+    "basecolor-{}.png",
+    "confidence-{}.png",
+    "object-{}.glb",
+)
 
 
 def outputs_in(out_dir: str | os.PathLike[str]) -> list[Path]:
@@ -105,13 +115,17 @@ def write_outputs(
     texture_size: int = 1024,
     bins: int = 24,
     metadata: dict[str, Any] | None = None,
+    mesh_object_frame: Any | None = None,
 ) -> dict[str, Path]:
     """Write the files of ``docs/reflectance.md`` into ``out_dir``; returns them by name.
 
     Per method ``albedo-<method>.exr`` (NaN where invalid) and ``.png``; ``reasons.png``;
     ``texture-<method>.exr`` and ``.png`` when the mesh has UVs; ``profiles.png``;
     ``reflectance.h5`` (the per-point data); ``reflectance.json`` (the summary); and
-    ``report.html``.
+    ``report.html``. With the BRDF fitted (``result.materials``), per method the
+    ``brdf-<method>.exr`` layers, ``basecolor-`` and ``confidence-<method>.png`` and, for a
+    mesh with UVs given in its own frame, ``object-<method>.glb``
+    (:mod:`~processing.reflectance.material_outputs`).
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -137,11 +151,14 @@ def write_outputs(
     files["profiles.png"] = out / "profiles.png"
 
     files["reflectance.h5"] = _write_points(out / "reflectance.h5", result, (metadata or {}).get("run_id"))
+    if result.materials is not None:
+        files.update(write_material_outputs(result.materials, result, out, mesh_object_frame, texture_size))
 
     summary = {
         **(metadata or {}),
         **result.summary(),
         "png_scale": scale,
+        "brdf": result.materials.summary() if result.materials is not None else None,
         "profiles": profiles,
         "pixel_codes": {str(c): PIXEL_SHORT[c] for c in PIXEL_CODES},
         "sample_codes": {str(c): SAMPLE_SHORT[c] for c in SAMPLE_CODES},

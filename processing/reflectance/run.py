@@ -28,6 +28,7 @@ from processing.radiometry import gain_mismatch, radiometric_gain
 from processing.reflectance.camera import superpixel_any
 from processing.reflectance.codes import ReflectanceError, ReflectanceSettings
 from processing.reflectance.estimate import ReflectanceResult, estimate_reflectance
+from processing.reflectance.materials import estimate_materials
 from processing.reflectance.outputs import outputs_in, write_outputs
 from processing.results import Results, ResultsError, results_path_for, run_name
 from processing.steps import Step
@@ -311,7 +312,25 @@ def reflectance_from_run(
         "gain_source": "rig",
         **({"skipped_corrupt": skipped_record(inputs.skipped)} if inputs.skipped else {}),
     }
-    write_outputs(result, out, texture_size=texture_size, bins=bins, metadata=result.metadata)
+    settings = result.settings
+    rotation, translation = rig.camera.pose.extrinsics()
+    camera_centre = -np.asarray(rotation).T @ np.asarray(translation, float)
+    result.materials = estimate_materials(result, camera_centre, hold_out=settings.hold_out, max_basis=settings.basis)
+    if result.materials is None:  # an albedo-only schedule (object-arc): said in the summary, not a warning
+        result.metadata["brdf_skipped"] = (
+            f"{len(result.lights)} light positions: too few to fit a specular lobe per point "
+            "(the object-dome schedule samples the highlights)"
+        )
+        log.info("%s: %s", run_path, result.metadata["brdf_skipped"])
+    mesh_own_frame = load_mesh(inputs.mesh_path, obj.units_m if obj is not None else 1.0)
+    write_outputs(
+        result,
+        out,
+        texture_size=texture_size,
+        bins=bins,
+        metadata=result.metadata,
+        mesh_object_frame=mesh_own_frame,
+    )
     return result
 
 

@@ -1,0 +1,146 @@
+"""The object's whole reflectance from its samples, under each light model, and the relighting check.
+
+The diffuse estimate (:mod:`~processing.reflectance.estimate`) leaves out the samples where a
+highlight could be; here those are the ones that matter. Every sample the diffuse estimate
+excluded *only* as a possible highlight (``specular-geometry``, ``specular-outlier``) is used
+again, with the lit, unshadowed, unsaturated ones, and :func:`~processing.reflectance.brdf.fit_brdf`
+fits the diffuse albedo, the specular reflectance F0 and the GGX roughness α per point;
+:func:`~processing.reflectance.brdf.share_lobes` fills in the points no highlight reached.
+
+Each light model gives the irradiance of its own (``ReflectanceResult.irradiance_rgb``) and
+the direction the light comes from: for the isotropic and the measured models the direction
+from the point to the light's isotropic point (the intensity-weighted centroid of the
+sources; their spread, a few millimetres at 20–40 cm, turns the direction by well under a
+degree, narrower than the sharpest lobe fitted), for the collimated model the one direction
+from the object's centre to that point.
+
+Relighting: ``hold_out`` light positions, spread over the schedule, are left out of the fit;
+the fitted BRDF under each light model then predicts their photographs, and the RMS of the
+difference over the points, relative to the mean radiance, is the check a user believes (it
+does not depend on how a model splits diffuse from specular). Noise is included in it: a
+perfect model scores the noise.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from processing.reflectance.brdf import (
+    BRDFFit,
+    Geometry,
+    MaterialResult,
+    fit_brdf,
+    ggx_lobe,
+    share_lobes,
+)
+from processing.reflectance.codes import SAMPLE_SPECULAR_GEOMETRY, SAMPLE_SPECULAR_OUTLIER, SAMPLE_USED
+from processing.reflectance.estimate import ReflectanceResult
+
+#: Fewer light positions than this (after the held-out ones) cannot fit a lobe per point.
+MIN_POSITIONS = 8
+
+
+def held_out_positions(n_lights: int, hold_out: int) -> np.ndarray:
+    """``hold_out`` positions spread evenly over the schedule (none when too few remain)."""
+    if hold_out <= 0 or n_lights - hold_out < MIN_POSITIONS:
+        return np.zeros(0, np.int64)
+    return np.unique(np.round((np.arange(hold_out) + 0.5) * n_lights / hold_out - 0.5).astype(np.int64))
+
+
+def light_directions(result: ReflectanceResult, method: str) -> np.ndarray:
+    """Unit vectors from every point towards each light (n_lights, N, 3), as ``method`` sees it."""
+    points = result.points
+    out = np.empty((len(result.lights), len(points), 3))
+    for j, light in enumerate(result.lights):
+        target = np.asarray(light["isotropic_point_m"], float)
+        if method == "collimated":
+            towards = np.broadcast_to(target - result.object_centre, points.shape)
+        else:
+            towards = target - points
+        out[j] = towards / np.linalg.norm(towards, axis=-1, keepdims=True)
+    return out
+
+
+def usable_samples(result: ReflectanceResult) -> np.ndarray:
+    """(n_lights, N): samples the BRDF fit takes, highlights included."""
+    code = result.sample_code
+    return (code == SAMPLE_USED) | (code == SAMPLE_SPECULAR_GEOMETRY) | (code == SAMPLE_SPECULAR_OUTLIER)
+
+
+def predicted_radiance(fit: BRDFFit, irradiance: np.ndarray, geometry: Geometry) -> np.ndarray:
+    """What a fitted BRDF sends to the camera under the given irradiance (n_lights, N, 3)."""
+    k = ggx_lobe(geometry.cos_l, geometry.cos_v, geometry.cos_h, fit.roughness[None, :])
+    w = np.clip(1.0 - geometry.cos_vh, 0.0, 1.0) ** 5
+    fresnel = fit.specular[None] + (1.0 - fit.specular[None]) * w[..., None]
+    return irradiance * (fit.diffuse[None] / math.pi + k[..., None] * fresnel)
+
+
+def estimate_materials(
+    result: ReflectanceResult,
+    camera_centre: np.ndarray,
+    *,
+    hold_out: int = 4,
+    max_basis: int = 6,
+) -> MaterialResult | None:
+    """Fit the BRDF per point under each of the result's light models, and relight the held-out positions.
+
+    Returns None (with nothing fitted) when the run has fewer than :data:`MIN_POSITIONS`
+    light positions besides the held-out ones: a lobe needs samples from many directions
+    (the ``object-dome`` schedule; ``object-arc``'s five are for the albedo alone).
+    """
+    n_lights = len(result.lights)
+    held = held_out_positions(n_lights, hold_out)
+    fitted = np.setdiff1d(np.arange(n_lights), held)
+    if len(fitted) < MIN_POSITIONS:
+        return None
+    view = np.asarray(camera_centre, float) - result.points
+    view /= np.linalg.norm(view, axis=1, keepdims=True)
+    valid = result.valid
+    usable = usable_samples(result) & valid[None, :]
+    radiance = result.radiance.astype(float)
+    material = MaterialResult({}, fitted, held)
+    for method in result.methods:
+        irradiance = result.irradiance_rgb(method).astype(float)
+        geometry = Geometry.of(light_directions(result, method), view, result.normals)
+        sub = Geometry(*(getattr(geometry, name)[fitted] for name in ("cos_l", "cos_v", "cos_h", "cos_vh")))
+        fit = fit_brdf(radiance[fitted], irradiance[fitted], sub, usable[fitted])
+        fit = share_lobes(fit, radiance[fitted], irradiance[fitted], sub, usable[fitted], max_basis=max_basis)
+        material.fits[method] = fit
+        if len(held):
+            material.relighting[method] = _relighting(fit, radiance, irradiance, geometry, usable, held)
+    return material
+
+
+def _relighting(
+    fit: BRDFFit,
+    radiance: np.ndarray,
+    irradiance: np.ndarray,
+    geometry: Geometry,
+    usable: np.ndarray,
+    held: np.ndarray,
+) -> dict[str, Any]:
+    """RMS of photograph − rendering over the held-out samples, relative to their mean radiance."""
+    sub = Geometry(*(getattr(geometry, name)[held] for name in ("cos_l", "cos_v", "cos_h", "cos_vh")))
+    predicted = predicted_radiance(fit, irradiance[held], sub)
+    ok = usable[held] & np.isfinite(fit.roughness)[None, :] & np.all(np.isfinite(radiance[held]), axis=-1)
+    if not ok.any():
+        return {"samples": 0}
+    diff = (radiance[held] - predicted)[ok]
+    mean = float(np.mean(radiance[held][ok]))
+    per_position = []
+    for k, j in enumerate(held):
+        here = ok[k]
+        if here.any():
+            d = radiance[j][here] - predicted[k][here]
+            per_position.append(
+                {"position": int(j), "rms_relative": float(np.sqrt(np.mean(d * d)) / np.mean(radiance[j][here]))}
+            )
+    return {
+        "samples": int(ok.sum()),
+        "rms_relative": float(np.sqrt(np.mean(diff * diff)) / mean),
+        "bias_relative": float(np.mean(diff) / mean),
+        "per_position": per_position,
+    }
