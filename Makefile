@@ -6,7 +6,7 @@ VENV   ?= .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test install browser bench constraints clean
+.PHONY: demo test install browser node-tools bench constraints clean
 
 $(PY):
 	$(PYTHON) -m venv $(VENV)
@@ -43,8 +43,19 @@ browser:
 	  $$SUDO apt-get update && \
 	  $$SUDO env DEBIAN_FRONTEND=noninteractive apt-get install -y --no-install-recommends $$missing; }
 
+# The Node tools the tests run (tests/js/package.json: the Khronos glTF-Validator), at the
+# versions package-lock.json records, from the npm registry; reinstalled when the lock changes.
+NODE_TOOLS := tests/js/node_modules/.package-lock.json
+
+$(NODE_TOOLS): tests/js/package-lock.json
+	@command -v npm >/dev/null || { echo "npm is missing: the tests validate glTF files with Node (apt-get install nodejs npm)" >&2; exit 1; }
+	npm ci --prefix tests/js --silent --no-audit --no-fund
+	touch $(NODE_TOOLS)
+
+node-tools: $(NODE_TOOLS)
+
 # The linters first (seconds), then the suite (import-linter's contracts run inside it).
-test: $(STAMP) browser
+test: $(STAMP) browser $(NODE_TOOLS)
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/ruff format --check .
 	$(VENV)/bin/mypy

@@ -11,6 +11,7 @@ import time
 from pathlib import Path
 
 import httpx
+import numpy as np
 import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -166,3 +167,32 @@ def wait_for(
             return status
         time.sleep(0.1)
     raise AssertionError(f"run {run_id} did not reach {states}: {status}")
+
+
+# --- the simulated truth light as a light model (the object chains' tests) ---------------------
+TRUTH = "five-gaussians"
+
+
+def truth_light_model(rig):
+    """Each emitter fitted (gaussian) to noise-free samples of its own intensity: a LightModel."""
+    from drivers.contracts.rig import rig_to_toml_dict
+    from processing.fit import Samples, fit_intensity
+    from processing.lightmodel import LightModel, SourceModel, samples_table
+    from sim_devices.lights import load_truth
+
+    theta = np.radians(np.linspace(0.5, 45.0, 60))
+    sources = []
+    for emitter in load_truth(TRUTH).emitters:
+        values = emitter.intensity_w_sr(theta)
+        samples = Samples(theta, np.zeros_like(theta), values, 1e-4 * values.max() + 0 * values, emitter.name)
+        fit = fit_intensity(samples, "gaussian")
+        sources.append(
+            SourceModel(
+                emitter.name,
+                tuple(emitter.centre_m),
+                emitter.radius_m,
+                fit,
+                samples_table(samples, np.arange(theta.size), values),
+            )
+        )
+    return LightModel(sources, "W/sr", {"run_id": "truth", "rig": rig_to_toml_dict(rig)})

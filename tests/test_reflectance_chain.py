@@ -13,39 +13,16 @@ import math
 
 import numpy as np
 import pytest
+from conftest import TRUTH, truth_light_model
 
 from acquisition.benchmarks.accuracy import acquire_simulated
 from acquisition.benchmarks.reflectance import OBJECT_RIGS, score
 from drivers.contracts.rig import load_rig, rig_from_dict, rig_to_toml_dict
 from drivers.contracts.runfile import RunFile, file_sha256
-from processing.fit import Samples, fit_intensity
-from processing.lightmodel import LightModel, SourceModel, samples_table
 from processing.reflectance.codes import ReflectanceError
 from processing.reflectance.run import reflectance_from_run
 from sim_devices.lights import load_truth
 from sim_devices.objects import surface_truth_at
-
-TRUTH = "five-gaussians"
-
-
-def truth_light_model(rig) -> LightModel:
-    """Each emitter fitted (gaussian) to noise-free samples of its own intensity."""
-    theta = np.radians(np.linspace(0.5, 45.0, 60))
-    sources = []
-    for emitter in load_truth(TRUTH).emitters:
-        values = emitter.intensity_w_sr(theta)
-        samples = Samples(theta, np.zeros_like(theta), values, 1e-4 * values.max() + 0 * values, emitter.name)
-        fit = fit_intensity(samples, "gaussian")
-        sources.append(
-            SourceModel(
-                emitter.name,
-                tuple(emitter.centre_m),
-                emitter.radius_m,
-                fit,
-                samples_table(samples, np.arange(theta.size), values),
-            )
-        )
-    return LightModel(sources, "W/sr", {"run_id": "truth", "rig": rig_to_toml_dict(rig)})
 
 
 def reduced(name: str, **changes):
