@@ -28,12 +28,12 @@ import psutil
 from drivers.contracts.version import __version__
 
 #: The benchmarks in the order their sections appear.
-ORDER = ("render", "acquire", "hdr", "accuracy", "reflectance", "tolerance", "speed")
+ORDER = ("render", "acquire", "hdr", "accuracy", "reflectance", "brdf", "tolerance", "speed")
 HEADER = """# Benchmark results
 
 This file is generated: each section below is the last recorded result of one benchmark,
 written by `mirrorgonio bench NAME ... --record docs/benchmarks.md` (NAME one of render,
-acquire, hdr, accuracy, reflectance, tolerance, speed). A run replaces its own section,
+acquire, hdr, accuracy, reflectance, brdf, tolerance, speed). A run replaces its own section,
 between the marker lines that carry the benchmark's name, and leaves the others as they
 are. Never edit it by hand: run the benchmark again. What each benchmark measures:
 `mirrorgonio bench NAME --help` and the modules in `acquisition/benchmarks/`.
@@ -297,11 +297,37 @@ def _reflectance_methods(result: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _brdf_methods(result: dict) -> str:
+    """``bench brdf``: one row per light model and subset of points (own lobe, all fitted)."""
+    lines = [
+        "| light model | points | diffuse median (R, G, B) | diffuse p90 (R, G, B) | roughness median | "
+        "specular median | within 1σ: α, ρ | relighting RMS (median position) |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- |",
+    ]
+    for method, scores in result.get("methods", {}).items():
+        relit = scores.get("relighting", {})
+        for subset in ("own", "all"):
+            part = scores.get(subset, {})
+            cells = [
+                method,
+                subset,
+                ", ".join(_number(v) for v in part.get("diffuse_median") or []),
+                ", ".join(_number(v) for v in part.get("diffuse_p90") or []),
+                _number(part.get("roughness_median")),
+                _number(part.get("specular_median")),
+                ", ".join(_number(part.get(k)) for k in ("within_sigma_roughness_share", "within_sigma_diffuse_share")),
+                f"{_number(relit.get('rms_relative'))} ({_number(relit.get('median_position_rms'))})",
+            ]
+            lines.append("| " + " | ".join(_cell(c) for c in cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
 #: The tables of a result's parts, by benchmark.
 PART_TABLES: dict[str, Callable[[dict], str]] = {
     "hdr": _hdr_methods,
     "accuracy": _accuracy_sources,
     "reflectance": _reflectance_methods,
+    "brdf": _brdf_methods,
 }
 
 

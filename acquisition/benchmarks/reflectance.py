@@ -73,7 +73,7 @@ def bench_reflectance(
     if not rig_path.suffix:
         rig_path = OBJECT_RIGS / f"{object_rig}.toml"
     object_rig_model = load_rig(rig_path)
-    result, times = _light_then_object(object_rig_model, truth, noise, light_positions, workdir, object_exposures)
+    result, times = light_then_object(object_rig_model, truth, noise, light_positions, workdir, object_exposures)
 
     valid = np.all(np.isfinite(result.rho_points["measured"]), axis=1)
     if not valid.any():
@@ -111,7 +111,7 @@ def bench_reflectance(
     }
 
 
-def _light_then_object(
+def light_then_object(
     object_rig_model: Rig,
     truth: str,
     noise: bool,
@@ -120,7 +120,8 @@ def _light_then_object(
     object_exposures: Sequence[float],
 ) -> tuple[ReflectanceResult, dict[str, float]]:
     """The light's sweep taken and processed into a light model, then the object's run taken
-    and its reflectance estimated with it: the estimate, and the seconds of each step."""
+    on its rig's own schedule and its reflectance estimated with it: the estimate, and the
+    seconds of each step."""
     times: dict[str, float] = {}
     with tempfile.TemporaryDirectory() as tmp:
         base = Path(workdir) if workdir is not None else Path(tmp)
@@ -147,7 +148,7 @@ def _light_then_object(
             object_exposures,
             None,
             base / "object",
-            preset="object-arc",
+            preset=object_rig_model.schedule.kind,
             light_results=str(light.light_model),
         )
         times["object_acquire_s"] = time.perf_counter() - t0

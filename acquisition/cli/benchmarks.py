@@ -233,6 +233,37 @@ def bench_reflectance_command(
     _record(recording, "reflectance", result)
 
 
+@bench_app.command("brdf")
+def bench_brdf_command(
+    ctx: typer.Context,
+    object_rig: Annotated[
+        str, typer.Option("--object", help="Object rig with a glossy surface and a dome schedule, or a TOML path.")
+    ] = "object-vase-glazed",
+    truth: Annotated[str, typer.Option(help="Shipped truth light (the same lights both runs).")] = "five-gaussians",
+    noise: Annotated[bool, typer.Option(help="Photon, read and quantisation noise.")] = True,
+    light_positions: Annotated[int, typer.Option(min=3, help="Positions of the light sweep (the first N).")] = 66,
+    workdir: Annotated[
+        Path | None, typer.Option(help="Keep the runs and outputs here (default: a temporary folder).")
+    ] = None,
+    as_json: Annotated[bool, typer.Option("--json", help="Print JSON only.")] = False,
+    record: RecordOption = None,
+) -> None:
+    """Measure the light, photograph a glossy object on a dome of lights, score its BRDF (diffuse,
+    specular, roughness, error bars, relighting) under three light models."""
+    from acquisition.benchmarks.brdf import bench_brdf
+    from processing import ProcessingError, ReflectanceError
+
+    recording = _start_recording(ctx, record)
+    try:
+        result = bench_brdf(
+            object_rig=object_rig, truth=truth, noise=noise, light_positions=light_positions, workdir=workdir
+        )
+    except domain_errors(ProcessingError, ReflectanceError) as exc:
+        raise fail(str(exc)) from None
+    print_result(result, as_json)
+    _record(recording, "brdf", result)
+
+
 def _rig_errors_help() -> str:
     from acquisition.benchmarks.description_errors import DEFAULT_ERRORS, ERROR_PARTS
 

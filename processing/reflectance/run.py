@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import os
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -279,7 +280,9 @@ def reflectance_from_run(
     run_path = Path(object_run)
     out = Path(out_dir) if out_dir is not None else run_path.with_name(f"{run_name(run_path)}.reflectance")
     warnings: list[str] = []
+    clock = {"start": time.perf_counter()}
     inputs = _gathered(run_path, light, mesh, out, progress, warnings, _Checks(ignore_corrupt, overwrite))
+    clock["inputs"] = time.perf_counter()  # the run read, its HDR merged (or found), the light model
     rig, measured, obj = inputs.rig, inputs.measured, inputs.rig.object
     for text in warnings:
         log.warning("%s", text)
@@ -297,6 +300,7 @@ def reflectance_from_run(
         mesh_name=str(inputs.mesh_path),
         progress=progress,
     )
+    clock["albedo"] = time.perf_counter()  # rays, samples, shadows, the albedo under three models
     result.warnings[:0] = warnings
     if inputs.skipped:  # logged by the checksum pass itself
         result.warnings.append(f"{run_path}: {skipped_line(inputs.skipped)}")
@@ -316,6 +320,7 @@ def reflectance_from_run(
     rotation, translation = rig.camera.pose.extrinsics()
     camera_centre = -np.asarray(rotation).T @ np.asarray(translation, float)
     result.materials = estimate_materials(result, camera_centre, hold_out=settings.hold_out, max_basis=settings.basis)
+    clock["brdf"] = time.perf_counter()  # the BRDF per point under three models, the relighting
     if result.materials is None:  # an albedo-only schedule (object-arc): said in the summary, not a warning
         result.metadata["brdf_skipped"] = (
             f"{len(result.lights)} light positions: too few to fit a specular lobe per point "
@@ -331,6 +336,11 @@ def reflectance_from_run(
         metadata=result.metadata,
         mesh_object_frame=mesh_own_frame,
     )
+    clock["outputs"] = time.perf_counter()  # maps, EXR, PNG, glTF, HDF5, report
+    steps = list(clock)
+    result.metadata["times_s"] = {
+        step: round(clock[step] - clock[before], 2) for before, step in zip(steps, steps[1:], strict=False)
+    }
     return result
 
 
