@@ -23,7 +23,6 @@ perfect model scores the noise.
 
 from __future__ import annotations
 
-import math
 from typing import Any
 
 import numpy as np
@@ -33,7 +32,7 @@ from processing.reflectance.brdf import (
     Geometry,
     MaterialResult,
     fit_brdf,
-    ggx_lobe,
+    predicted_radiance,
     share_lobes,
 )
 from processing.reflectance.codes import SAMPLE_SPECULAR_GEOMETRY, SAMPLE_SPECULAR_OUTLIER, SAMPLE_USED
@@ -68,14 +67,6 @@ def usable_samples(result: ReflectanceResult) -> np.ndarray:
     """(n_lights, N): samples the BRDF fit takes, highlights included."""
     code = result.sample_code
     return (code == SAMPLE_USED) | (code == SAMPLE_SPECULAR_GEOMETRY) | (code == SAMPLE_SPECULAR_OUTLIER)
-
-
-def predicted_radiance(fit: BRDFFit, irradiance: np.ndarray, geometry: Geometry) -> np.ndarray:
-    """What a fitted BRDF sends to the camera under the given irradiance (n_lights, N, 3)."""
-    k = ggx_lobe(geometry.cos_l, geometry.cos_v, geometry.cos_h, fit.roughness[None, :])
-    w = np.clip(1.0 - geometry.cos_vh, 0.0, 1.0) ** 5
-    fresnel = fit.specular[None] + (1.0 - fit.specular[None]) * w[..., None]
-    return irradiance * (fit.diffuse[None] / math.pi + k[..., None] * fresnel)
 
 
 def estimate_materials(
