@@ -105,6 +105,12 @@ def test_the_maps_and_the_gltf_asset_open_and_validate(glazed):
         assert roughness.shape == (1024, 1024) and np.nanmax(roughness) <= 1.0
         assert channels["diffuse"].pixels.shape == (1024, 1024, 3)
     assert (out / "basecolor-measured.png").stat().st_size > 1000
+    held = result.materials.held_out.tolist()
+    for name in [f"relit-{j}.png" for j in held] + ["relit-novel.png"]:
+        assert (out / name).stat().st_size > 1000, name
+    page = (out / "report.html").read_text()
+    assert "The whole reflectance" in page and "Relighting: held-out positions" in page
+    assert page.count("data:image/png;base64") >= 5 + len(held) + 3  # albedo part, strips, maps, the new light
     reports = subprocess.run(
         ["node", str(VALIDATOR), *(str(out / f"object-{m}.glb") for m in result.methods)],
         capture_output=True,

@@ -23,10 +23,12 @@ perfect model scores the noise.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from drivers.contracts.rig import look_rotation
+from drivers.pose import Pose
 from processing.reflectance.brdf import (
     BRDFFit,
     Geometry,
@@ -35,8 +37,19 @@ from processing.reflectance.brdf import (
     predicted_radiance,
     share_lobes,
 )
-from processing.reflectance.codes import SAMPLE_SPECULAR_GEOMETRY, SAMPLE_SPECULAR_OUTLIER, SAMPLE_USED
+from processing.reflectance.codes import (
+    SAMPLE_SHADOW,
+    SAMPLE_SPECULAR_GEOMETRY,
+    SAMPLE_SPECULAR_OUTLIER,
+    SAMPLE_USED,
+)
 from processing.reflectance.estimate import ReflectanceResult
+from processing.reflectance.lights import MeasuredLight, light_centre, to_rig
+
+if TYPE_CHECKING:
+    import trimesh
+
+    from processing.lightmodel import LightModel
 
 #: Fewer light positions than this (after the held-out ones) cannot fit a lobe per point.
 MIN_POSITIONS = 8
@@ -135,3 +148,96 @@ def _relighting(
         "bias_relative": float(np.mean(diff) / mean),
         "per_position": per_position,
     }
+
+
+def novel_light_pose(result: ReflectanceResult, camera_centre: np.ndarray) -> Pose:
+    """A light the run never used: from up and to the right of the camera's direction
+    (about 45° off it), at the schedule's mean distance, aimed at the object's centre."""
+    centre = result.object_centre
+    view = np.asarray(camera_centre, float) - centre
+    view /= np.linalg.norm(view)
+    right = np.cross([0.0, 1.0, 0.0], view)
+    if np.linalg.norm(right) < 1e-6:
+        right = np.cross([1.0, 0.0, 0.0], view)
+    right /= np.linalg.norm(right)
+    up = np.cross(view, right)
+    direction = view + 0.8 * right + 0.6 * up
+    direction /= np.linalg.norm(direction)
+    positions = np.array([light["position_m"] for light in result.lights])
+    distance = float(np.mean(np.linalg.norm(positions - centre, axis=1)))
+    return Pose.from_rotation(centre + distance * direction, look_rotation(-direction, right))
+
+
+def relight(
+    fit: BRDFFit,
+    result: ReflectanceResult,
+    light_model: LightModel,
+    pose: Pose,
+    mesh: trimesh.Trimesh,
+    camera_centre: np.ndarray,
+) -> np.ndarray:
+    """The object's radiance (N, 3) under the measured light at ``pose``, from its fitted BRDF,
+    with the mesh's cast shadows (towards the light's isotropic point)."""
+    light = MeasuredLight(light_model, pose)
+    grey, tint = light.irradiance_and_tint(result.points, result.normals)
+    irradiance = grey[:, None] * (tint if tint is not None else 1.0)
+    target = to_rig(pose, light_centre(light_model)[0])
+    towards = target - result.points
+    towards /= np.linalg.norm(towards, axis=1, keepdims=True)
+    scene = float(np.linalg.norm(np.ptp(mesh.bounds, axis=0)))
+    lit = np.einsum("ij,ij->i", towards, result.normals) > 0
+    shadow = np.zeros(len(result.points), bool)
+    if lit.any():
+        start = result.points[lit] + 1e-5 * scene * result.normals[lit]
+        shadow[np.flatnonzero(lit)] = mesh.ray.intersects_any(start, towards[lit])
+    irradiance[shadow | ~lit] = 0.0
+    view = np.asarray(camera_centre, float) - result.points
+    view /= np.linalg.norm(view, axis=1, keepdims=True)
+    geometry = Geometry.of(towards[None], view, result.normals)
+    return predicted_radiance(fit, irradiance[None], geometry)[0]
+
+
+def relighting_images(
+    result: ReflectanceResult,
+    method: str,
+    light_model: LightModel,
+    mesh: trimesh.Trimesh,
+    camera_centre: np.ndarray,
+) -> dict[str, np.ndarray]:
+    """8-bit RGB strips for the report: per held-out position the photograph, the rendering
+    from the fitted BRDF and 5 × their absolute difference side by side (one display scale
+    each strip); and the object under :func:`novel_light_pose`, a light it never saw."""
+    assert result.materials is not None  # the caller checked
+    fit = result.materials.fits[method]
+    view = np.asarray(camera_centre, float) - result.points
+    view /= np.linalg.norm(view, axis=1, keepdims=True)
+    geometry = Geometry.of(light_directions(result, method), view, result.normals)
+    irradiance = result.irradiance_rgb(method).astype(float)
+    shown = np.isfinite(fit.roughness) & result.valid
+    strips = {}
+    for j in result.materials.held_out:
+        photo = result.radiance[j].astype(float)
+        sub = Geometry(*(getattr(geometry, name)[j : j + 1] for name in ("cos_l", "cos_v", "cos_h", "cos_vh")))
+        rendered = predicted_radiance(fit, irradiance[j : j + 1], sub)[0]
+        rendered[result.sample_code[j] == SAMPLE_SHADOW] = 0.0  # the model's irradiance ignores cast shadows
+        scale = _display_scale(photo[shown])
+        panels = [photo, rendered, 5.0 * np.abs(photo - rendered)]
+        strips[f"relit-{int(j)}"] = np.concatenate([_grid_image(result, p, shown, scale) for p in panels], axis=1)
+    novel = relight(fit, result, light_model, novel_light_pose(result, camera_centre), mesh, camera_centre)
+    strips["relit-novel"] = _grid_image(result, novel, shown, _display_scale(novel[shown]))
+    return strips
+
+
+def _display_scale(values: np.ndarray) -> float:
+    finite = values[np.isfinite(values)]
+    scale = float(np.percentile(finite, 99.5)) if finite.size else 1.0
+    return scale if scale > 0 else 1.0
+
+
+def _grid_image(result: ReflectanceResult, values: np.ndarray, shown: np.ndarray, scale: float) -> np.ndarray:
+    """Per-point radiance on the superpixel grid, sRGB 8-bit, white where nothing is shown."""
+    image = np.ones((*result.shape, 3))
+    linear = np.clip(np.nan_to_num(values[shown] / scale, nan=0.0), 0.0, 1.0)
+    encoded = np.where(linear <= 0.0031308, 12.92 * linear, 1.055 * np.power(linear, 1.0 / 2.4) - 0.055)
+    image[result.rows[shown], result.cols[shown]] = encoded
+    return (255.0 * image + 0.5).astype(np.uint8)

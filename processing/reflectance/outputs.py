@@ -19,6 +19,7 @@ from processing.reflectance.estimate import ReflectanceResult
 from processing.reflectance.lights import LIGHT_MODELS
 from processing.reflectance.maps import reflectance_profiles, uv_texture
 from processing.reflectance.material_outputs import write_material_outputs
+from processing.reflectance.material_outputs import write_png as write_rgb_png
 from processing.reflectance.page import reflectance_profiles_figure, write_reflectance_report
 
 log = logging.getLogger("mirrorgonio.processing")
@@ -116,6 +117,7 @@ def write_outputs(
     bins: int = 24,
     metadata: dict[str, Any] | None = None,
     mesh_object_frame: Any | None = None,
+    relit: dict[str, np.ndarray] | None = None,
 ) -> dict[str, Path]:
     """Write the files of ``docs/reflectance.md`` into ``out_dir``; returns them by name.
 
@@ -125,7 +127,8 @@ def write_outputs(
     ``report.html``. With the BRDF fitted (``result.materials``), per method the
     ``brdf-<method>.exr`` layers, ``basecolor-`` and ``confidence-<method>.png`` and, for a
     mesh with UVs given in its own frame, ``object-<method>.glb``
-    (:mod:`~processing.reflectance.material_outputs`).
+    (:mod:`~processing.reflectance.material_outputs`); ``relit`` images (8-bit RGB by name,
+    :func:`~processing.reflectance.materials.relighting_images`) as ``<name>.png``.
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -153,6 +156,8 @@ def write_outputs(
     files["reflectance.h5"] = _write_points(out / "reflectance.h5", result, (metadata or {}).get("run_id"))
     if result.materials is not None:
         files.update(write_material_outputs(result.materials, result, out, mesh_object_frame, texture_size))
+    for name, image in (relit or {}).items():
+        files[f"{name}.png"] = write_rgb_png(out / f"{name}.png", image)
 
     summary = {
         **(metadata or {}),
@@ -176,6 +181,11 @@ def write_outputs(
             "reasons": out / "reasons.png",
             "profiles": out / "profiles.png",
             **{f"texture-{m}": p for m, p in textures.items()},
+            **{
+                name.removesuffix(".png"): path
+                for name, path in files.items()
+                if name.startswith(("relit-", "basecolor-", "confidence-"))
+            },
         },
     )
     result.outputs = files

@@ -114,6 +114,7 @@ def reflectance_section(summary: dict[str, Any], images: dict[str, Path] | None 
         *_profiles_part(embed),
         *_reasons_part(summary, embed),
         *_textures_part(methods, embed),
+        *_brdf_part(summary, methods, embed),
         *_lights_part(summary),
     ]
     return "\n".join(p for p in parts if p)
@@ -211,6 +212,49 @@ def _textures_part(methods: list[str], embed: Embed) -> list[str]:
     if not textures:
         return []
     return ["<h2>Albedo in the mesh's UV space</h2>", f'<div class="strip wide">{textures}</div>']
+
+
+def _brdf_part(summary: dict[str, Any], methods: list[str], embed: Embed) -> list[str]:
+    """The whole reflectance: per light model what was fitted, and the relighting check."""
+    brdf = summary.get("brdf")
+    if not brdf:
+        skipped = summary.get("brdf_skipped")
+        return ["<h2>The whole reflectance</h2>", html_note(f"not fitted: {skipped}")] if skipped else []
+    header = ["light model", "own lobe", "shared", "ρ median (R, G, B)", "F0 median", "α median", "relit RMS"]
+    rows = []
+    for m in methods:
+        stats = brdf["methods"].get(m, {})
+        counts = stats.get("confidence", {})
+        relit = stats.get("relighting", {})
+        rows.append(
+            [
+                _METHOD_NAMES[m],
+                str(counts.get("own", 0)),
+                str(counts.get("shared", 0)),
+                ", ".join(_fmt(v, 3) for v in stats.get("diffuse_median", [])),
+                ", ".join(_fmt(v, 3) for v in stats.get("specular_median", [])),
+                _fmt(stats.get("roughness_median"), 3),
+                f"{100 * relit['rms_relative']:.1f} %" if "rms_relative" in relit else "—",
+            ]
+        )
+    held = brdf.get("held_out_positions", [])
+    strips = "".join(
+        embed(f"relit-{j}", f"held-out position {j}", f"position {j}: photograph, rendering, 5 × |difference|")
+        for j in held
+    )
+    maps = "".join(
+        embed(f"{kind}-measured", f"{kind}, measured light", caption)
+        for kind, caption in (("basecolor", "base colour (glTF)"), ("confidence", "confidence: own, shared, none"))
+    )
+    novel = embed("relit-novel", "relit under a new light", "the object under a light the run never used")
+    return [
+        "<h2>The whole reflectance: diffuse, specular, roughness</h2>",
+        html_table(header, rows),
+        f'<div class="strip wide">{maps}</div>' if maps else "",
+        "<h3>Relighting: held-out positions</h3>" if strips else "",
+        f'<div class="strip wide">{strips}</div>' if strips else "",
+        f'<div class="strip wide">{novel}</div>' if novel else "",
+    ]
 
 
 def _lights_part(summary: dict[str, Any]) -> list[str]:

@@ -29,7 +29,7 @@ from processing.radiometry import gain_mismatch, radiometric_gain
 from processing.reflectance.camera import superpixel_any
 from processing.reflectance.codes import ReflectanceError, ReflectanceSettings
 from processing.reflectance.estimate import ReflectanceResult, estimate_reflectance
-from processing.reflectance.materials import estimate_materials
+from processing.reflectance.materials import estimate_materials, relighting_images
 from processing.reflectance.outputs import outputs_in, write_outputs
 from processing.results import Results, ResultsError, results_path_for, run_name
 from processing.steps import Step
@@ -327,6 +327,11 @@ def reflectance_from_run(
             "(the object-dome schedule samples the highlights)"
         )
         log.info("%s: %s", run_path, result.metadata["brdf_skipped"])
+    relit = (
+        relighting_images(result, "measured", inputs.light_model, inputs.mesh, camera_centre)
+        if result.materials is not None and "measured" in result.materials.fits
+        else {}
+    )
     mesh_own_frame = load_mesh(inputs.mesh_path, obj.units_m if obj is not None else 1.0)
     write_outputs(
         result,
@@ -335,6 +340,7 @@ def reflectance_from_run(
         bins=bins,
         metadata=result.metadata,
         mesh_object_frame=mesh_own_frame,
+        relit=relit,
     )
     clock["outputs"] = time.perf_counter()  # maps, EXR, PNG, glTF, HDF5, report
     steps = list(clock)
