@@ -125,3 +125,51 @@ def test_the_maps_and_the_gltf_asset_open_and_validate(glazed):
         assert report["issues"]["numWarnings"] == 0, report["issues"]["messages"][:5]
         assert set(report["info"]["extensionsUsed"]) == {"KHR_materials_ior", "KHR_materials_specular"}
         assert report["info"]["materialCount"] == 1 and report["info"]["hasTextures"]
+
+
+def test_the_asset_loads_and_renders_in_a_browser_with_three_js(glazed, tmp_path):
+    """three.js (tests/js/node_modules, installed by make test) in Debian's chromium, served
+    from this machine: the asset parses, its material is the PBR one with the specular
+    extension's texture, and it renders (SwiftShader's WebGL) to lit pixels."""
+    import functools
+    import http.server
+    import threading
+
+    from playwright.sync_api import sync_playwright
+    from test_web import CHROMIUM_ARGS, chromium_executable
+
+    _, _, out = glazed
+    site = tmp_path / "site"
+    site.mkdir()
+    (site / "node_modules").symlink_to(ROOT / "tests" / "js" / "node_modules")
+    (site / "viewer.html").symlink_to(ROOT / "tests" / "js" / "viewer.html")
+    (site / "object.glb").symlink_to(out / "object-measured.glb")
+    handler = functools.partial(http.server.SimpleHTTPRequestHandler, directory=str(site))
+    handler.log_message = lambda *args: None  # type: ignore[method-assign]
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    try:
+        with sync_playwright() as pw:
+            browser = pw.chromium.launch(
+                executable_path=chromium_executable(),
+                headless=True,
+                args=[*CHROMIUM_ARGS, "--enable-unsafe-swiftshader", "--use-angle=swiftshader"],
+            )
+            try:
+                page = browser.new_page()
+                errors: list[str] = []
+                page.on("pageerror", lambda exc: errors.append(str(exc)))
+                page.goto(f"http://127.0.0.1:{server.server_port}/viewer.html?asset=object.glb")
+                page.wait_for_function("window.result !== undefined", timeout=60_000)
+                result = page.evaluate("window.result")
+            finally:
+                browser.close()
+    finally:
+        server.shutdown()
+    assert errors == [] and result["ok"], (errors, result)
+    (material,) = result["materials"]
+    assert material["type"] == "MeshPhysicalMaterial"  # KHR_materials_specular / _ior read
+    assert material["hasMap"] and material["hasMetalnessRoughnessMap"] and material["hasSpecularColorMap"]
+    assert material["mapColorSpace"] == "srgb" and material["ior"] == pytest.approx(1.5)
+    assert 0.02 < max(result["size"]) < 0.1  # metres: the 5 cm vase
+    assert result["rendered"] and result["litPixels"] > 2000, result
