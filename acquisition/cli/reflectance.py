@@ -118,10 +118,39 @@ def _print_summary(result: ReflectanceResult) -> None:
     console.print(table)
     left_out = {k: v for k, v in summary["pixel_reasons"].items() if v and k not in ("valid", "background")}
     console.print("left out: " + (", ".join(f"{k} {v}" for k, v in left_out.items()) or "none"), highlight=False)
+    if result.materials is not None:
+        console.print(_brdf_table(result.materials.summary()))
+    elif "brdf_skipped" in result.metadata:
+        console.print(f"BRDF not fitted: {result.metadata['brdf_skipped']}", highlight=False)
     for warning in result.warnings:
         typer.echo(f"warning: {warning}", err=True)
     folder = result.outputs["report.html"].parent
-    typer.echo(f"outputs in {folder}: report.html, reflectance.json, reflectance.h5, albedo-*.exr/png, profiles.png")
+    assets = ", brdf-*.exr, object-*.glb" if result.materials is not None else ""
+    typer.echo(
+        f"outputs in {folder}: report.html, reflectance.json, reflectance.h5, albedo-*.exr/png, profiles.png{assets}"
+    )
+
+
+def _brdf_table(summary: dict[str, Any]) -> Any:
+    """Per light model: points with their own lobe and shared ones, the medians, the relighting error."""
+    from rich.table import Table
+
+    held = summary["held_out_positions"]
+    table = Table(title=f"BRDF per point (relit: {len(held)} held-out positions)", title_justify="left")
+    for column in ("light model", "own lobe", "shared", "median ρ (R, G, B)", "median F0 (R, G, B)", "median α", "relit RMS"):
+        table.add_column(column)
+    for method, stats in summary["methods"].items():
+        relit = stats.get("relighting", {}).get("rms_relative")
+        table.add_row(
+            method,
+            str(stats["confidence"]["own"]),
+            str(stats["confidence"]["shared"]),
+            ", ".join(f"{v:.4f}" for v in stats.get("diffuse_median", [])),
+            ", ".join(f"{v:.4f}" for v in stats.get("specular_median", [])),
+            f"{stats['roughness_median']:.3f}" if "roughness_median" in stats else "—",
+            f"{100 * relit:.2f} %" if relit is not None else "—",
+        )
+    return table
 
 
 # --- coverage ------------------------------------------------------------------------------------
