@@ -137,7 +137,15 @@ def _brdf_table(summary: dict[str, Any]) -> Any:
 
     held = summary["held_out_positions"]
     table = Table(title=f"BRDF per point (relit: {len(held)} held-out positions)", title_justify="left")
-    for column in ("light model", "own lobe", "shared", "median ρ (R, G, B)", "median F0 (R, G, B)", "median α", "relit RMS"):
+    for column in (
+        "light model",
+        "own lobe",
+        "shared",
+        "median ρ (R, G, B)",
+        "median F0 (R, G, B)",
+        "median α",
+        "relit RMS",
+    ):
         table.add_column(column)
     for method, stats in summary["methods"].items():
         relit = stats.get("relighting", {}).get("rms_relative")

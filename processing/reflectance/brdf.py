@@ -539,6 +539,7 @@ class MaterialResult:
     fitted_lights: np.ndarray  # indices of the light positions the fits used
     held_out: np.ndarray  # indices of the positions left out for relighting
     relighting: dict[str, dict[str, Any]] = field(default_factory=dict)
+    sigma_scale: dict[str, dict[str, float]] = field(default_factory=dict)  # per model, the 1σ's neighbour scale
     notes: list[str] = field(default_factory=list)
 
     def summary(self) -> dict[str, Any]:
@@ -566,5 +567,6 @@ class MaterialResult:
                     chi2_median=float(np.median(fit.chi2[own])),
                 )
             stats["relighting"] = self.relighting.get(method, {})
+            stats["sigma_scale"] = self.sigma_scale.get(method, {})
             out["methods"][method] = stats
         return out

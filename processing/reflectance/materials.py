@@ -23,6 +23,7 @@ perfect model scores the noise.
 
 from __future__ import annotations
 
+import copy
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -30,6 +31,7 @@ import numpy as np
 from drivers.contracts.rig import look_rotation
 from drivers.pose import Pose
 from processing.reflectance.brdf import (
+    CONFIDENCE_OWN,
     BRDFFit,
     Geometry,
     MaterialResult,
@@ -112,10 +114,56 @@ def estimate_materials(
         sub = Geometry(*(getattr(geometry, name)[fitted] for name in ("cos_l", "cos_v", "cos_h", "cos_vh")))
         fit = fit_brdf(radiance[fitted], irradiance[fitted], sub, usable[fitted])
         fit = share_lobes(fit, radiance[fitted], irradiance[fitted], sub, usable[fitted], max_basis=max_basis)
+        material.sigma_scale[method] = neighbour_sigma_scale(fit, result.rows, result.cols)
+        fit = scaled_sigmas(fit, material.sigma_scale[method])
         material.fits[method] = fit
         if len(held):
             material.relighting[method] = _relighting(fit, radiance, irradiance, geometry, usable, held)
     return material
+
+
+def neighbour_sigma_scale(fit: BRDFFit, rows: np.ndarray, cols: np.ndarray) -> dict[str, float]:
+    """How much the quoted 1σ understate the point-to-point scatter, per parameter (≥ 1).
+
+    The residuals see the noise, not the errors a point's samples share: its normal (a flat
+    facet for a curved surface, a superpixel astride two facets), its irradiance from the
+    light model. Those make neighbouring points disagree by more than their 1σ allow. For
+    every pair of neighbours on the superpixel grid (right and below) with their own lobes,
+    ``z = (p₁ − p₂)/√(σ₁² + σ₂²)``; on a surface whose material changes only at the borders
+    of regions, the median |z| is 0.674 when the 1σ are right (a normal's), and its ratio to
+    that is the scale. The median keeps the borders (few pairs) from counting. Only ρ and
+    α are scaled (F0 takes α's): a scale below 1 is not applied.
+    """
+    index = np.full((int(rows.max(initial=0)) + 2, int(cols.max(initial=0)) + 2), -1, np.int64)
+    index[rows, cols] = np.arange(len(rows))
+    own = (fit.confidence == CONFIDENCE_OWN) & np.isfinite(fit.roughness)
+    pairs = []
+    for dr, dc in ((0, 1), (1, 0)):
+        other = index[rows + dr, cols + dc]
+        ok = (other >= 0) & own & own[np.maximum(other, 0)]
+        pairs.append((np.flatnonzero(ok), other[ok]))
+    first = np.concatenate([p[0] for p in pairs])
+    second = np.concatenate([p[1] for p in pairs])
+
+    def scale(values: np.ndarray, sigma: np.ndarray) -> float:
+        with np.errstate(divide="ignore", invalid="ignore"):
+            z = np.abs(values[first] - values[second]) / np.hypot(sigma[first], sigma[second])
+        z = z[np.isfinite(z)]
+        return max(1.0, float(np.median(z)) / 0.6745) if z.size >= 50 else 1.0
+
+    return {
+        "diffuse": scale(fit.diffuse.mean(axis=1), np.sqrt(np.mean(fit.sigma_diffuse**2, axis=1))),
+        "roughness": scale(np.log(fit.roughness), fit.sigma_roughness / fit.roughness),
+    }
+
+
+def scaled_sigmas(fit: BRDFFit, scale: dict[str, float]) -> BRDFFit:
+    """The fit with its 1σ multiplied by :func:`neighbour_sigma_scale`'s factors."""
+    out = copy.copy(fit)
+    out.sigma_diffuse = fit.sigma_diffuse * scale["diffuse"]
+    out.sigma_roughness = fit.sigma_roughness * scale["roughness"]
+    out.sigma_specular = fit.sigma_specular * scale["roughness"]
+    return out
 
 
 def _relighting(
