@@ -316,22 +316,8 @@ def reflectance_from_run(
         "gain_source": "rig",
         **({"skipped_corrupt": skipped_record(inputs.skipped)} if inputs.skipped else {}),
     }
-    settings = result.settings
-    rotation, translation = rig.camera.pose.extrinsics()
-    camera_centre = -np.asarray(rotation).T @ np.asarray(translation, float)
-    result.materials = estimate_materials(result, camera_centre, hold_out=settings.hold_out, max_basis=settings.basis)
+    relit = _whole_reflectance(result, inputs, run_path)
     clock["brdf"] = time.perf_counter()  # the BRDF per point under three models, the relighting
-    if result.materials is None:  # an albedo-only schedule (object-arc): said in the summary, not a warning
-        result.metadata["brdf_skipped"] = (
-            f"{len(result.lights)} light positions: too few to fit a specular lobe per point "
-            "(the object-dome schedule samples the highlights)"
-        )
-        log.info("%s: %s", run_path, result.metadata["brdf_skipped"])
-    relit = (
-        relighting_images(result, "measured", inputs.light_model, inputs.mesh, camera_centre)
-        if result.materials is not None and "measured" in result.materials.fits
-        else {}
-    )
     mesh_own_frame = load_mesh(inputs.mesh_path, obj.units_m if obj is not None else 1.0)
     write_outputs(
         result,
@@ -348,6 +334,25 @@ def reflectance_from_run(
         step: round(clock[step] - clock[before], 2) for before, step in zip(steps, steps[1:], strict=False)
     }
     return result
+
+
+def _whole_reflectance(result: ReflectanceResult, inputs: _ObjectInputs, run_path: Path) -> dict[str, np.ndarray]:
+    """The BRDF per point into ``result.materials`` (or why not, in its metadata), and the
+    relighting images of the measured light model for the report."""
+    settings = result.settings
+    rotation, translation = inputs.rig.camera.pose.extrinsics()
+    camera_centre = -np.asarray(rotation).T @ np.asarray(translation, float)
+    result.materials = estimate_materials(result, camera_centre, hold_out=settings.hold_out, max_basis=settings.basis)
+    if result.materials is None:  # an albedo-only schedule (object-arc): said in the summary, not a warning
+        result.metadata["brdf_skipped"] = (
+            f"{len(result.lights)} light positions: too few to fit a specular lobe per point "
+            "(the object-dome schedule samples the highlights)"
+        )
+        log.info("%s: %s", run_path, result.metadata["brdf_skipped"])
+        return {}
+    if "measured" not in result.materials.fits:
+        return {}
+    return relighting_images(result, "measured", inputs.light_model, inputs.mesh, camera_centre)
 
 
 @dataclass
