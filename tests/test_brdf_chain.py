@@ -116,7 +116,7 @@ def test_the_maps_and_the_gltf_asset_open_and_validate(glazed):
         capture_output=True,
         text=True,
         check=True,
-        timeout=120,
+        timeout=600,
     ).stdout.splitlines()
     assert len(reports) == 3
     for line in reports:
@@ -160,7 +160,7 @@ def test_the_asset_loads_and_renders_in_a_browser_with_three_js(glazed, tmp_path
                 errors: list[str] = []
                 page.on("pageerror", lambda exc: errors.append(str(exc)))
                 page.goto(f"http://127.0.0.1:{server.server_port}/viewer.html?asset=object.glb")
-                page.wait_for_function("window.result !== undefined", timeout=60_000)
+                page.wait_for_function("window.result !== undefined", timeout=600_000)  # a hang guard
                 result = page.evaluate("window.result")
             finally:
                 browser.close()
