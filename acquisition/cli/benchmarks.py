@@ -203,18 +203,27 @@ def bench_accuracy_command(
     _record(recording, "accuracy", result)
 
 
+# The options the two object benchmarks share: the light measured first, then the object.
+ObjectTruthOption = Annotated[str, typer.Option("--truth", help="Shipped truth light (the same lights both runs).")]
+NoiseOption = Annotated[bool, typer.Option("--noise/--no-noise", help="Photon, read and quantisation noise.")]
+LightPositionsOption = Annotated[
+    int, typer.Option("--light-positions", min=3, help="Positions of the light sweep (the first N).")
+]
+WorkdirOption = Annotated[
+    Path | None, typer.Option("--workdir", help="Keep the runs and outputs here (default: a temporary folder).")
+]
+
+
 @bench_app.command("reflectance")
 def bench_reflectance_command(
     ctx: typer.Context,
     object_rig: Annotated[
         str, typer.Option("--object", help="Object rig: object-vase, object-relief or a TOML path.")
     ] = "object-vase",
-    truth: Annotated[str, typer.Option(help="Shipped truth light (the same lights both runs).")] = "five-gaussians",
-    noise: Annotated[bool, typer.Option(help="Photon, read and quantisation noise.")] = True,
-    light_positions: Annotated[int, typer.Option(min=3, help="Positions of the light sweep (the first N).")] = 66,
-    workdir: Annotated[
-        Path | None, typer.Option(help="Keep the runs and outputs here (default: a temporary folder).")
-    ] = None,
+    truth: ObjectTruthOption = "five-gaussians",
+    noise: NoiseOption = True,
+    light_positions: LightPositionsOption = 66,
+    workdir: WorkdirOption = None,
     as_json: Annotated[bool, typer.Option("--json", help="Print JSON only.")] = False,
     record: RecordOption = None,
 ) -> None:
@@ -239,12 +248,10 @@ def bench_brdf_command(
     object_rig: Annotated[
         str, typer.Option("--object", help="Object rig with a glossy surface and a dome schedule, or a TOML path.")
     ] = "object-vase-glazed",
-    truth: Annotated[str, typer.Option(help="Shipped truth light (the same lights both runs).")] = "five-gaussians",
-    noise: Annotated[bool, typer.Option(help="Photon, read and quantisation noise.")] = True,
-    light_positions: Annotated[int, typer.Option(min=3, help="Positions of the light sweep (the first N).")] = 66,
-    workdir: Annotated[
-        Path | None, typer.Option(help="Keep the runs and outputs here (default: a temporary folder).")
-    ] = None,
+    truth: ObjectTruthOption = "five-gaussians",
+    noise: NoiseOption = True,
+    light_positions: LightPositionsOption = 66,
+    workdir: WorkdirOption = None,
     as_json: Annotated[bool, typer.Option("--json", help="Print JSON only.")] = False,
     record: RecordOption = None,
 ) -> None:
