@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import re
 import signal
 import socket
 import subprocess
@@ -12,6 +13,7 @@ from pathlib import Path
 
 import httpx
 import numpy as np
+import OpenEXR
 import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -196,3 +198,56 @@ def truth_light_model(rig):
             )
         )
     return LightModel(sources, "W/sr", {"run_id": "truth", "rig": rig_to_toml_dict(rig)})
+
+
+# pbrt-v4 goniometric lights as the renderer reads them (tests/test_exports.py, test_brdf_chain.py)
+
+
+def pbrt_square_from_direction(w):
+    """pbrt-v4's ``EqualAreaSphereToSquare`` (Clarberg 2008), with the exact arctangent where
+    pbrt has its minimax polynomial: our own reading of the renderer, not the writer's map."""
+    x, y, z = np.abs(w[:, 0]), np.abs(w[:, 1]), np.abs(w[:, 2])
+    r = np.sqrt(np.maximum(1.0 - z, 0.0))
+    a, b = np.maximum(x, y), np.minimum(x, y)
+    phi = np.arctan(np.divide(b, a, out=np.zeros_like(a), where=a > 0)) * 2 / np.pi
+    phi = np.where(x < y, 1.0 - phi, phi)
+    v = phi * r
+    u = r - v
+    south = w[:, 2] < 0
+    u, v = np.where(south, 1.0 - v, u), np.where(south, 1.0 - u, v)
+    u, v = np.copysign(u, w[:, 0]), np.copysign(v, w[:, 1])
+    return 0.5 * (u + 1.0), 0.5 * (v + 1.0)
+
+
+def read_pbrt_lights(path):
+    """Per ``LightSource "goniometric"``: (world ← light 4×4, table (n, n), rgb I, scale), as pbrt
+    reads them (``Transform`` column by column; the table's ``Y`` channel)."""
+    text = Path(path).read_text()
+    lights = []
+    for block in re.findall(r"AttributeBegin(.*?)AttributeEnd", text, re.S):
+        numbers = [float(t) for t in re.search(r"Transform \[(.*?)\]", block).group(1).split()]
+        matrix = np.array(numbers).reshape(4, 4).T
+        name = re.search(r'"string filename" "(.*?)"', block).group(1)
+        rgb = np.array([float(t) for t in re.search(r'"rgb I" \[(.*?)\]', block).group(1).split()])
+        scale = float(re.search(r'"float scale" (\S+)', block).group(1))
+        with OpenEXR.File(str(Path(path).parent / name)) as exr:
+            table = np.array(exr.channels()["Y"].pixels, dtype=float)
+        lights.append((matrix, table, rgb, scale))
+    return lights
+
+
+def pbrt_irradiance_rgb(lights, points, normals):
+    """``Σ I(w)·max(0, n·ω)/r²`` as pbrt evaluates its goniometric lights: the direction into the
+    light's space, y and z swapped, the nearest pixel of the equal-area table."""
+    swap = np.array([[1.0, 0, 0], [0, 0, 1.0], [0, 1.0, 0]])
+    E = np.zeros((len(points), 3))
+    for matrix, table, rgb, scale in lights:
+        d = points - matrix[:3, 3]
+        dist = np.linalg.norm(d, axis=1)
+        w = (d / dist[:, None]) @ np.linalg.inv(matrix[:3, :3]).T @ swap.T
+        u, v = pbrt_square_from_direction(w)
+        n = table.shape[0]
+        col, row = np.clip((u * n).astype(int), 0, n - 1), np.clip((v * n).astype(int), 0, n - 1)
+        cos_in = np.maximum(0.0, -np.einsum("ij,ij->i", normals, d) / dist)
+        E += (scale * table[row, col] * cos_in / dist**2)[:, None] * rgb
+    return E

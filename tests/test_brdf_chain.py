@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import OpenEXR
 import pytest
-from conftest import TRUTH, truth_light_model
+from conftest import TRUTH, pbrt_irradiance_rgb, read_pbrt_lights, truth_light_model
 
 from acquisition.benchmarks.accuracy import acquire_simulated
 from drivers.contracts.rig import load_rig, rig_from_dict, rig_to_toml_dict
@@ -173,3 +173,23 @@ def test_the_asset_loads_and_renders_in_a_browser_with_three_js(glazed, tmp_path
     assert material["mapColorSpace"] == "srgb" and material["ior"] == pytest.approx(1.5)
     assert 0.02 < max(result["size"]) < 0.1  # metres: the 5 cm vase
     assert result["rendered"] and result["litPixels"] > 2000, result
+
+
+def test_the_light_is_written_for_renderers_where_the_run_put_it(glazed):
+    """``lights/light-position-NN.pbrt``: the measured light's sources as pbrt-v4 goniometric
+    lights in the mesh's own frame (the ``.glb``'s), lighting the object as the run did."""
+    rig, result, out = glazed
+    model = truth_light_model(load_rig(None))
+    obj = rig.object.pose.to_pose()
+    own_frame = (result.points - obj.position) @ obj.rotation  # metres, the mesh's own frame
+    own_normals = result.normals @ obj.rotation
+    poses = rig.light_poses()
+    for position in (result.metadata["positions"][0], result.metadata["positions"][20]):
+        pose = poses[position]
+        want = model.irradiance_rgb((result.points - pose.position) @ pose.rotation, result.normals @ pose.rotation)
+        lights = read_pbrt_lights(out / "lights" / f"light-position-{position:02d}.pbrt")
+        got = pbrt_irradiance_rgb(lights, own_frame, own_normals)
+        lit = want.mean(axis=1) > 0.05 * want.mean(axis=1).max()
+        assert lit.sum() > 1000
+        assert np.median(np.abs(got[lit] / want[lit] - 1)) < 0.01, position
+    assert f"lights/light-position-{len(poses) - 1:02d}.pbrt" in result.outputs

@@ -142,6 +142,7 @@ def test_outputs_keep_the_whole_run_name(tmp_path):
         "yaw-0.05.ies",
         "yaw-0.05.ldt",
         "yaw-0.05.tm25ray",
+        "yaw-0.05.pbrt",
         "yaw-0.05.report.html",
         "yaw-0.05.rig-fitted.toml",
     ]

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import pbrt_irradiance_rgb, read_pbrt_lights
 from scipy.integrate import trapezoid
 
 from processing.exports.far_field import ExportError
@@ -352,3 +353,52 @@ def test_tm25_errors_are_one_line(tmp_path, symmetric_model):
 
     with pytest.raises(ExportError, match="n_rays: must be a positive integer"):
         write_tm25(symmetric_model, tmp_path / "z.tm25ray", 0, seed=1)
+
+
+# --------------------------------------------------------------------------- pbrt-v4 goniometric lights
+
+
+def test_pbrt_goniometric_lights_reproduce_the_near_field(tmp_path, asymmetric_model):
+    from drivers.pose import Pose
+    from processing.exports.pbrt import write_pbrt_lights
+
+    tinted = SourceModel(**{**vars(asymmetric_model.sources[1]), "colour": (1.2, 1.0, 0.8)})
+    model = LightModel([asymmetric_model.sources[0], tinted], "relative")
+    pose = Pose(0.05, -0.02, 0.30, 2.9, 0.3, 0.5)
+    files = write_pbrt_lights(model, tmp_path / "light.pbrt", poses=[pose], pose_names=["p0"])
+    assert [f.name for f in files] == ["light.pbrt", "light-p0.pbrt", "light-source-c.exr", "light-source-e.exr"]
+    rng = np.random.default_rng(5)
+    # points 5–30 cm in front of the light, lit from the light, in the light frame and in the rig's
+    local = np.column_stack([rng.uniform(-0.12, 0.12, 400), rng.uniform(-0.12, 0.12, 400), rng.uniform(0.05, 0.3, 400)])
+    normals = -local / np.linalg.norm(local, axis=1)[:, None] + rng.normal(0, 0.3, (400, 3))
+    normals /= np.linalg.norm(normals, axis=1)[:, None]
+    want = model.irradiance_rgb(local, normals)
+    for scene, points, n in [
+        ("light.pbrt", local, normals),
+        ("light-p0.pbrt", local @ pose.rotation.T + pose.position, normals @ pose.rotation.T),
+    ]:
+        got = pbrt_irradiance_rgb(read_pbrt_lights(tmp_path / scene), points, n)
+        error = np.abs(got - want) / want.max()
+        assert np.median(error) < 1e-3 and error.max() < 0.01, (scene, np.median(error), error.max())
+        # the colour goes with its source: the red-to-blue ratio of the coloured lobe's side
+        assert np.corrcoef(got[:, 0] / got[:, 2], want[:, 0] / want[:, 2])[0, 1] > 0.99
+
+
+def test_pbrt_tables_hold_each_sources_flux_and_say_their_units(tmp_path, asymmetric_model):
+    from processing.exports.pbrt import write_pbrt_lights
+
+    write_pbrt_lights(asymmetric_model, tmp_path / "light.pbrt", calibration=250.0)
+    lights = read_pbrt_lights(tmp_path / "light.pbrt")
+    for (_, table, _, scale), source in zip(lights, asymmetric_model.sources, strict=True):
+        # equal area: every pixel is 4π/n² sr, so the flux is the mean times 4π
+        assert table.mean() * 4 * np.pi == pytest.approx(source.flux(), rel=2e-3)
+        assert scale == 250.0
+    assert "candela (250 cd per model unit)" in (tmp_path / "light.pbrt").read_text()
+    write_pbrt_lights(asymmetric_model, tmp_path / "none.pbrt", extrapolation="none")
+    measured_only = read_pbrt_lights(tmp_path / "none.pbrt")
+    for (_, table, _, _), source in zip(measured_only, asymmetric_model.sources, strict=True):
+        assert 0 < table.mean() * 4 * np.pi < source.flux()  # beyond the measured 40°, nothing
+    with pytest.raises(ExportError, match=r"bad\.pbrt: calibration"):
+        write_pbrt_lights(asymmetric_model, tmp_path / "bad.pbrt", calibration=-1.0)
+    with pytest.raises(ExportError, match=r"bad\.pbrt: extrapolation"):
+        write_pbrt_lights(asymmetric_model, tmp_path / "bad.pbrt", extrapolation="some")

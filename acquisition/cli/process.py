@@ -299,6 +299,6 @@ def _say_processed(run: Path, report: ProcessReport) -> None:
     files = ", ".join(
         f"{kind.upper()} {paths[0]}"
         for kind, paths in report.outputs.items()
-        if kind in ("ies", "ldt", "tm25", "report")
+        if kind in ("ies", "ldt", "tm25", "pbrt", "report")
     )
     typer.echo(f"  light model {report.light_model}; {files}")

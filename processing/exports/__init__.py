@@ -6,6 +6,8 @@
 - :func:`write_tm25` / :func:`read_tm25` — IES TM-25-13 binary ray files: the **near
   field**, rays leaving each source's emitting disc with directions drawn from its own
   ``I_s(θ, φ)``.
+- :func:`write_pbrt_lights` — the near field for renderers: each source a pbrt-v4
+  ``goniometric`` light at its place, with its own equal-area intensity table.
 
 Angles (both far-field formats): the light's axis (+z of the light frame) is photometric
 nadir, vertical angle γ = θ; horizontal angle C = 0 is the light frame's +x, and C grows
@@ -34,13 +36,14 @@ multiple of 32 bytes, then 512-byte column labels and the additional text, then 
 as float32 rows ``x y z kx ky kz`` (mm, unit vector) followed by the flagged columns.
 
 Modules: :mod:`~processing.exports.far_field` (what the two far-field formats share),
-:mod:`~processing.exports.ies`, :mod:`~processing.exports.ldt` and
-:mod:`~processing.exports.tm25`.
+:mod:`~processing.exports.ies`, :mod:`~processing.exports.ldt`,
+:mod:`~processing.exports.tm25` and :mod:`~processing.exports.pbrt`.
 """
 
 from processing.exports.far_field import ExportError
 from processing.exports.ies import FILE_GENERATION_TYPES, write_ies
 from processing.exports.ldt import write_ldt
+from processing.exports.pbrt import write_pbrt_lights
 from processing.exports.tm25 import TM25_COLUMNS, TM25Error, read_tm25, write_tm25
 
 __all__ = [
@@ -51,5 +54,6 @@ __all__ = [
     "read_tm25",
     "write_ies",
     "write_ldt",
+    "write_pbrt_lights",
     "write_tm25",
 ]

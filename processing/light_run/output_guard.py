@@ -21,6 +21,7 @@ OUTPUT_SUFFIXES = (
     ".ies",
     ".ldt",
     ".tm25ray",
+    ".pbrt",
     ".report.html",
     ".rig-fitted.toml",
 )

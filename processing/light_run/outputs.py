@@ -16,6 +16,7 @@ from drivers.contracts.runfile import CorruptFrame, RunFile
 from drivers.contracts.version import __version__
 from processing.exports.ies import write_ies
 from processing.exports.ldt import write_ldt
+from processing.exports.pbrt import write_pbrt_lights
 from processing.exports.tm25 import write_tm25
 from processing.light_run.from_data import FIT_FRACTIONS, spread_over
 from processing.light_run.light_fit import fit_light_model
@@ -143,7 +144,7 @@ def finish_sources(done: SourcesToFinish) -> None:
 def write_light_files(
     model: LightModel, run_path: Path, out: Path, options: ProcessingOptions
 ) -> dict[str, list[Path]]:
-    """The IES, LDT and TM-25 files of ``model``, with the names, the lamp flux or calibration
+    """The IES, LDT, TM-25 and pbrt-v4 files of ``model``, with the names, the lamp flux or calibration
     and the ray count of ``options`` (the luminaire named after the run where none is given)."""
     luminaire = options.luminaire or f"mirrorgonio run {run_name(run_path)}"
     photometric: dict[str, Any] = {  # what the IES and the LDT say alike
@@ -169,7 +170,13 @@ def write_light_files(
         calibration=options.candela_per_unit,
         lamp_lumens=options.lamp_lumens,
     )
-    return {"ies": [ies], "ldt": [ldt], "tm25": [tm25]}
+    pbrt = write_pbrt_lights(
+        model,
+        output_path(run_path, out, ".pbrt") / "light.pbrt",
+        calibration=options.candela_per_unit,
+        extrapolation=options.extrapolation,
+    )
+    return {"ies": [ies], "ldt": [ldt], "tm25": [tm25], "pbrt": pbrt}
 
 
 def record_provenance(

@@ -5,6 +5,8 @@ from __future__ import annotations
 import json
 import logging
 import os
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -13,7 +15,9 @@ import h5py
 import numpy as np
 import OpenEXR
 
-from processing.lightmodel import json_ready
+from drivers.pose import Pose
+from processing.exports.pbrt import write_pbrt_lights
+from processing.lightmodel import LightModel, json_ready
 from processing.reflectance.codes import PIXEL_CODES, PIXEL_COLOURS, PIXEL_SHORT, SAMPLE_CODES, SAMPLE_SHORT
 from processing.reflectance.estimate import ReflectanceResult
 from processing.reflectance.lights import LIGHT_MODELS
@@ -101,6 +105,35 @@ PER_MODEL_OUTPUTS = (
 )
 
 
+@dataclass
+class PlacedLight:
+    """The light model where the run put it: per position its pose in the mesh's own frame."""
+
+    model: LightModel
+    poses: dict[str, Pose]
+    calibration: float | None = None
+
+    @classmethod
+    def from_run(
+        cls, model: LightModel, poses: Sequence[Pose], positions: Iterable[int], object_pose: Pose | None
+    ) -> PlacedLight:
+        """The rig-frame light poses of a run's ``positions`` in the frame of an object at ``object_pose``."""
+        rig_to_object = (object_pose or Pose(0.0, 0.0, 0.0)).inverse()
+        placed = {f"position-{k:02d}": rig_to_object.compose(p) for k, p in zip(list(positions), poses, strict=True)}
+        return cls(model, placed)
+
+    def write(self, folder: Path) -> dict[str, Path]:
+        """``light.pbrt`` (the light frame), ``light-<position>.pbrt`` and the tables, by file name."""
+        written = write_pbrt_lights(
+            self.model,
+            folder / "light.pbrt",
+            poses=list(self.poses.values()),
+            pose_names=list(self.poses),
+            calibration=self.calibration,
+        )
+        return {f"lights/{path.name}": path for path in written}
+
+
 def outputs_in(out_dir: str | os.PathLike[str]) -> list[Path]:
     """Every file :func:`write_outputs` may write into ``out_dir`` (the textures only for a mesh
     with UVs): what must not hold another run's reflectance before it is written."""
@@ -118,6 +151,7 @@ def write_outputs(
     metadata: dict[str, Any] | None = None,
     mesh_object_frame: Any | None = None,
     relit: dict[str, np.ndarray] | None = None,
+    placed_light: PlacedLight | None = None,
 ) -> dict[str, Path]:
     """Write the files of ``docs/reflectance.md`` into ``out_dir``; returns them by name.
 
@@ -128,7 +162,9 @@ def write_outputs(
     ``brdf-<method>.exr`` layers, ``basecolor-`` and ``confidence-<method>.png`` and, for a
     mesh with UVs given in its own frame, ``object-<method>.glb``
     (:mod:`~processing.reflectance.material_outputs`); ``relit`` images (8-bit RGB by name,
-    :func:`~processing.reflectance.materials.relighting_images`) as ``<name>.png``.
+    :func:`~processing.reflectance.materials.relighting_images`) as ``<name>.png``; with a
+    ``placed_light``, the light as pbrt-v4 goniometric lights at every position of the run, in
+    the mesh's own frame (``lights/``, :mod:`~processing.exports.pbrt`).
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -158,6 +194,8 @@ def write_outputs(
         files.update(write_material_outputs(result.materials, result, out, mesh_object_frame, texture_size))
     for name, image in (relit or {}).items():
         files[f"{name}.png"] = write_rgb_png(out / f"{name}.png", image)
+    if placed_light is not None:
+        files.update(placed_light.write(out / "lights"))
 
     summary = {
         **(metadata or {}),

@@ -30,7 +30,7 @@ from processing.reflectance.camera import superpixel_any
 from processing.reflectance.codes import ReflectanceError, ReflectanceSettings
 from processing.reflectance.estimate import ReflectanceResult, estimate_reflectance
 from processing.reflectance.materials import estimate_materials, relighting_images
-from processing.reflectance.outputs import outputs_in, write_outputs
+from processing.reflectance.outputs import PlacedLight, outputs_in, write_outputs
 from processing.results import Results, ResultsError, results_path_for, run_name
 from processing.steps import Step
 from processing.trace import RigGeometry, light_pose_at_position
@@ -327,6 +327,9 @@ def reflectance_from_run(
         metadata=result.metadata,
         mesh_object_frame=mesh_own_frame,
         relit=relit,
+        placed_light=PlacedLight.from_run(inputs.light_model, measured.poses, measured.positions, inputs.object_pose)
+        if result.materials is not None
+        else None,
     )
     clock["outputs"] = time.perf_counter()  # maps, EXR, PNG, glTF, HDF5, report
     steps = list(clock)
