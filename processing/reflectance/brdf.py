@@ -43,10 +43,14 @@ import copy
 import math
 import warnings
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any, NamedTuple
 
+import numba
 import numpy as np
+
+from processing.parallel import default_workers, in_dask_worker
 
 #: Roughness values searched (GGX α): from a polished lacquer to a nearly Lambertian lobe.
 ROUGHNESS_GRID = np.geomspace(0.02, 1.0, 36)
@@ -229,6 +233,106 @@ def sample_weights(radiance: np.ndarray, used: np.ndarray, floor_fraction: float
     return np.where(used[..., None], wgt, 0.0)
 
 
+@numba.njit(cache=True, nogil=True)
+def _chi2_kernel(cos_l, cos_v, cos_h, coat_shape, schlick_w, irradiance, y, wgt, alphas, out):  # pragma: no cover
+    """χ² of the better material (:func:`_solve_materials`) per point at each α of ``alphas``
+    (G, N): the same sums and the same closed-form solve, one point at a time, without the
+    (n_lights, N, 3) temporaries of the array version."""
+    n_lights, n_points = cos_l.shape
+    inv_pi = 1.0 / math.pi
+    s = np.zeros((9, 3))
+    for n in range(n_points):
+        for g in range(alphas.shape[0]):
+            a2 = alphas[g, n] * alphas[g, n]
+            s[:] = 0.0
+            for j in range(n_lights):
+                if wgt[j, n, 0] == 0.0 and wgt[j, n, 1] == 0.0 and wgt[j, n, 2] == 0.0:
+                    continue
+                k = 0.0
+                if cos_l[j, n] > 0.0 and cos_v[j, n] > 0.0 and cos_h[j, n] > 0.0:
+                    cl = min(max(cos_l[j, n], 1e-6), 1.0)
+                    cv = min(max(cos_v[j, n], 1e-6), 1.0)
+                    ch = min(cos_h[j, n], 1.0)
+                    d = a2 / (math.pi * (ch * ch * (a2 - 1.0) + 1.0) ** 2)
+                    lam_l = 0.5 * (math.sqrt(1.0 + a2 * (1.0 - cl * cl) / (cl * cl)) - 1.0)
+                    lam_v = 0.5 * (math.sqrt(1.0 + a2 * (1.0 - cv * cv) / (cv * cv)) - 1.0)
+                    k = d / (1.0 + lam_l + lam_v) / (4.0 * cl * cv)
+                for c in range(3):
+                    w, e, yy = wgt[j, n, c], irradiance[j, n, c], y[j, n, c]
+                    a = e * inv_pi
+                    lobe = e * k
+                    b = lobe * coat_shape[j, n]
+                    m = lobe * (1.0 - schlick_w[j, n])
+                    ym = yy - lobe * schlick_w[j, n]
+                    s[0, c] += w * a * a
+                    s[1, c] += w * b * b
+                    s[2, c] += w * a * b
+                    s[3, c] += w * a * yy
+                    s[4, c] += w * b * yy
+                    s[5, c] += w * yy * yy
+                    s[6, c] += w * m * m
+                    s[7, c] += w * m * ym
+                    s[8, c] += w * ym * ym
+            num, den = 0.0, 0.0
+            for c in range(3):
+                ratio = s[2, c] / s[0, c] if s[0, c] > 0.0 else 0.0
+                num += s[4, c] - ratio * s[3, c]
+                den += s[1, c] - ratio * s[2, c]
+            if den != 0.0:
+                f0 = num / den
+            else:
+                f0 = DIELECTRIC_F0_MAX if num > 0.0 else 0.0
+            if not math.isfinite(f0):
+                f0 = 0.0 if math.isnan(f0) else (DIELECTRIC_F0_MAX if f0 > 0 else 0.0)
+            f0 = min(max(f0, 0.0), DIELECTRIC_F0_MAX)
+            chi_d, chi_m = 0.0, 0.0
+            for c in range(3):
+                saa, sbb, sab, say, sby, syy = s[0, c], s[1, c], s[2, c], s[3, c], s[4, c], s[5, c]
+                rho = max((say - sab * f0) / saa, 0.0) if saa > 0.0 else 0.0
+                chi_d += syy - 2 * rho * say - 2 * f0 * sby + rho * rho * saa + 2 * rho * f0 * sab + f0 * f0 * sbb
+                mf = max(s[7, c] / s[6, c], 0.0) if s[6, c] > 0.0 else 0.0
+                chi_m += s[8, c] - 2 * mf * s[7, c] + mf * mf * s[6, c]
+            chi_d, chi_m = max(chi_d, 0.0), max(chi_m, 0.0)
+            out[g, n] = chi_m if chi_m < chi_d else chi_d
+
+
+def chi2_of_roughness(
+    geometry: Geometry, irradiance: np.ndarray, y: np.ndarray, wgt: np.ndarray, alphas: np.ndarray
+) -> np.ndarray:
+    """χ² of the better material at every point for each row of ``alphas`` (G, N): the
+    compiled :func:`_chi2_kernel` over blocks of points, on as many threads as there are
+    cores (one inside a Dask worker, whose processes already share them)."""
+    alphas = np.ascontiguousarray(np.broadcast_to(alphas, (len(alphas), y.shape[1])), dtype=float)
+    arrays = (
+        np.ascontiguousarray(geometry.cos_l, dtype=float),
+        np.ascontiguousarray(np.broadcast_to(geometry.cos_v, geometry.cos_l.shape), dtype=float),
+        np.ascontiguousarray(geometry.cos_h, dtype=float),
+        np.ascontiguousarray(coat_fresnel_shape(geometry.cos_vh), dtype=float),
+        np.ascontiguousarray(np.clip(1.0 - geometry.cos_vh, 0.0, 1.0) ** 5, dtype=float),
+        np.ascontiguousarray(irradiance, dtype=float),
+        np.ascontiguousarray(y, dtype=float),
+        np.ascontiguousarray(wgt, dtype=float),
+    )
+    out = np.empty(alphas.shape)
+    n_points = y.shape[1]
+    threads = 1 if in_dask_worker() else default_workers()
+    blocks = [slice(i, min(i + 2048, n_points)) for i in range(0, n_points, 2048)]
+
+    def block(b: slice) -> None:
+        sub = [a[:, b] for a in arrays]
+        part = np.empty((alphas.shape[0], b.stop - b.start))
+        _chi2_kernel(*[np.ascontiguousarray(a) for a in sub], np.ascontiguousarray(alphas[:, b]), part)
+        out[:, b] = part
+
+    if threads > 1 and len(blocks) > 1:
+        with ThreadPoolExecutor(threads) as pool:
+            list(pool.map(block, blocks))
+    else:
+        for b in blocks:
+            block(b)
+    return out
+
+
 def _joint_sigmas(
     geometry: Geometry,
     irradiance: np.ndarray,
@@ -348,12 +452,10 @@ def fit_brdf(
     n_points = radiance.shape[1]
     y = np.where(used[..., None], np.nan_to_num(radiance, nan=0.0), 0.0)
     wgt = sample_weights(radiance, used) if weights is None else np.where(used[..., None], weights, 0.0)
-    chi = np.empty((len(grid), n_points))
-    for g, alpha in enumerate(grid):
-        chi[g] = _solve_materials(_design(geometry, irradiance, float(alpha)), y, wgt)[2]
+    chi = chi2_of_roughness(geometry, irradiance, y, wgt, np.asarray(grid, float)[:, None])
 
     def chi2_at(log_alpha: np.ndarray) -> np.ndarray:
-        return _solve_materials(_design(geometry, irradiance, np.exp(log_alpha)[None, :]), y, wgt)[2]
+        return chi2_of_roughness(geometry, irradiance, y, wgt, np.exp(log_alpha)[None, :])[0]
 
     alpha, curvature, pinned_curve = _refined_roughness(chi, grid, chi2_at)
 
