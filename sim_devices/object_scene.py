@@ -206,10 +206,10 @@ class ObjectSceneRenderer:
             surface = load_surface(surface or rig.simulation.surface)
         self.surface = surface
         self.geometry = ObjectGeometry.from_rig(rig)
-        if self.surface.patches and self.geometry.uv is None:
+        if self.surface.varies and self.geometry.uv is None:
             raise ObjectError(
                 f"{self.geometry.path}: the mesh has no texture coordinates, but surface "
-                f"{self.surface.name!r} paints patches in UV space"
+                f"{self.surface.name!r} paints patches or maps in UV space"
             )
         self.caster = RayCaster(self.geometry.vertices, self.geometry.faces)
         self.camera = CameraOptics.from_rig(rig)
@@ -357,7 +357,7 @@ class ObjectSceneRenderer:
             view = -dirs[idx]
             flip = np.einsum("ij,ij->i", normals, view) < 0.0
             normals[flip] *= -1.0
-            uv = self.geometry.uv_at(f, bary[idx]) if self.surface.patches else None
+            uv = self.geometry.uv_at(f, bary[idx]) if self.surface.varies else None
             albedo = self.surface.albedo_at(uv, idx.size)
             finish = self.surface.finish_at(uv, idx.size) if self.surface.glossy else None
             value, shadow_rays = self.shade(plane, points, normals, view, albedo, finish)

@@ -36,10 +36,12 @@ from functools import cached_property
 from pathlib import Path
 from typing import Annotated, Self
 
+import cv2
 import numpy as np
+import OpenEXR
 import trimesh
 from numpy.typing import ArrayLike
-from pydantic import Field, PositiveFloat, model_validator
+from pydantic import Field, PositiveFloat, PrivateAttr, model_validator
 from scipy.interpolate import CubicSpline
 from scipy.spatial import cKDTree
 
@@ -109,12 +111,87 @@ class Specular(ConfigModel):
     exponent: PositiveFloat
 
 
+class SurfaceMaps(ConfigModel):
+    """Images of the surface's parameters in the mesh's UV layout; paths relative to the surface file.
+
+    u runs along an image's columns and v up its rows (row 0 is v = 1, as OBJ and glTF place
+    textures); between texel centres the value is bilinear, u wraps and v clamps. A map sets
+    its parameter everywhere, over the base and the patches (which still paint the
+    parameters without a map). ``albedo``: RGB, a PNG in sRGB (8 or 16 bit) or a linear
+    OpenEXR; ``roughness`` (GGX α, 0.02–1), ``specular`` (the coat's weight, 0–1) and
+    ``metalness`` (0–1): one channel, a PNG whose value over its full scale is the number,
+    or a linear OpenEXR (channel ``Y``, or its only one).
+    """
+
+    albedo: str | None = None
+    roughness: str | None = None
+    specular: str | None = None
+    metalness: str | None = None
+
+
+#: Each map's channels and the range its values must lie in.
+MAP_CHANNELS = {
+    "albedo": (3, 0.0, 1.0),
+    "roughness": (1, 0.02, 1.0),
+    "specular": (1, 0.0, 1.0),
+    "metalness": (1, 0.0, 1.0),
+}
+
+
+def read_surface_map(path: Path, name: str) -> np.ndarray:
+    """One map as float (H, W, channels), linear; a one-line :class:`SurfaceError` naming the
+    field and the file for a missing, unreadable, wrongly shaped or out-of-range image."""
+    where = f"maps.{name}: {path}"
+    check_input_file(path, "surface map", SurfaceError, field=f"maps.{name}", limit=MAX_BINARY_BYTES)
+    channels, lo, hi = MAP_CHANNELS[name]
+    if path.suffix.lower() == ".exr":
+        try:
+            with OpenEXR.File(str(path)) as exr:  # the pixels are the file's only while it is open
+                layers = exr.channels()
+                key = "RGB" if channels == 3 and "RGB" in layers else ("Y" if "Y" in layers else next(iter(layers)))
+                image = np.array(layers[key].pixels, dtype=float)
+        except RuntimeError as exc:  # what OpenEXR raises for a file it cannot read
+            raise SurfaceError(f"{where}: not a readable OpenEXR file ({exc})") from None
+    elif path.suffix.lower() == ".png":
+        raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        if raw is None:
+            raise SurfaceError(f"{where}: not a readable PNG file")
+        image = raw.astype(float) / (65535.0 if raw.dtype == np.uint16 else 255.0)
+        if image.ndim == 3:
+            image = image[..., 2::-1] if image.shape[2] >= 3 else image[..., :1]  # OpenCV's BGR(A)
+        if name == "albedo":
+            image = np.where(image <= 0.04045, image / 12.92, ((image + 0.055) / 1.055) ** 2.4)  # sRGB
+    else:
+        raise SurfaceError(f"{where}: a map is a .png or an .exr file")
+    image = image.reshape(image.shape[0], image.shape[1], -1)
+    if image.shape[2] != channels:
+        raise SurfaceError(f"{where}: {image.shape[2]} channels, the {name} map needs {channels}")
+    if not (np.all(np.isfinite(image)) and image.min() >= lo - 1e-6 and image.max() <= hi + 1e-6):
+        raise SurfaceError(f"{where}: values {image.min():.4g} to {image.max():.4g}, outside {lo:g}-{hi:g}")
+    return np.clip(image, lo, hi)
+
+
+def sample_uv(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """Bilinear values (N, channels) of a UV map at points ``uv`` (N, 2): u wraps, v clamps."""
+    h, w = image.shape[:2]
+    x = np.asarray(uv[:, 0], float) * w - 0.5
+    y = (1.0 - np.asarray(uv[:, 1], float)) * h - 0.5
+    x0, y0 = np.floor(x), np.floor(y)
+    fx, fy = (x - x0)[:, None], (y - y0)[:, None]
+    xs = [np.mod(x0, w).astype(np.int64), np.mod(x0 + 1, w).astype(np.int64)]
+    ys = [np.clip(y0, 0, h - 1).astype(np.int64), np.clip(y0 + 1, 0, h - 1).astype(np.int64)]
+    top = image[ys[0], xs[0]] * (1 - fx) + image[ys[0], xs[1]] * fx
+    bottom = image[ys[1], xs[0]] * (1 - fx) + image[ys[1], xs[1]] * fx
+    return top * (1 - fy) + bottom * fy
+
+
 class SurfaceTruth(ConfigModel):
     """The reflectance truth of a simulated object's surface.
 
     The diffuse part is Lambertian with albedo ``ρ`` per channel (R, G, B): the base albedo
     everywhere except inside the patches (a later patch paints over an earlier one). The
-    microfacet lobe follows the base ``finish`` and each patch's own.
+    microfacet lobe follows the base ``finish`` and each patch's own. ``maps`` set any
+    parameter from an image in UV space (:class:`SurfaceMaps`), read by :func:`load_surface`.
     """
 
     name: str = "surface"
@@ -123,6 +200,48 @@ class SurfaceTruth(ConfigModel):
     finish: SurfaceFinish = Field(default_factory=SurfaceFinish)
     patches: list[Patch] = Field(default_factory=list)
     specular: Specular | None = None
+    maps: SurfaceMaps | None = None
+    _images: dict[str, np.ndarray] = PrivateAttr(default_factory=dict)
+
+    def read_maps(self, surface_file: Path) -> SurfaceTruth:
+        """Read the :attr:`maps` (paths relative to ``surface_file``'s folder) and check the energy they allow."""
+        if self.maps is None:
+            return self
+        folder = surface_file.parent
+        for name in MAP_CHANNELS:
+            relative = getattr(self.maps, name)
+            if relative is not None:
+                try:
+                    self._images[name] = read_surface_map(folder / relative, name)
+                except SurfaceError as exc:  # said from the surface file the map belongs to
+                    raise SurfaceError(f"{surface_file}: {exc}") from None
+        if self.specular is not None and self._images:
+            raise SurfaceError(
+                f"{surface_file}: maps: a Blinn-Phong lobe (specular) beside maps; give one or the other"
+            )
+        albedo = self._images.get("albedo")
+        if albedo is not None:  # every albedo texel under the finish there (:meth:`finish_at`)
+            h, w = albedo.shape[:2]
+            v, u = np.mgrid[0:h, 0:w]
+            uv = np.column_stack([((u + 0.5) / w).ravel(), (1.0 - (v + 0.5) / h).ravel()])
+            finish = self.finish_at(uv)
+            coat = finish.specular * fresnel_dielectric(np.ones(len(uv)), finish.ior)
+            total = (1.0 - finish.metalness) * (albedo.reshape(-1, 3).max(axis=1) + coat)
+            worst = int(np.argmax(total))
+            if total[worst] > 1.0 + 1e-6:
+                raise SurfaceError(
+                    f"{surface_file}: maps.albedo: albedo {albedo.reshape(-1, 3)[worst].max():.3g} plus a coat's "
+                    f"{coat[worst]:.3g} at uv ({uv[worst, 0]:.3f}, {uv[worst, 1]:.3f}) reflects more than it receives"
+                )
+        return self
+
+    def _finishes(self) -> list[SurfaceFinish]:
+        return [self.finish] + [p.finish or self.finish for p in self.patches]
+
+    @property
+    def varies(self) -> bool:
+        """Whether anything changes over the surface (patches or maps): it then needs UVs."""
+        return bool(self.patches) or bool(self._images)
 
     @model_validator(mode="after")
     def _energy(self) -> Self:
@@ -149,7 +268,8 @@ class SurfaceTruth(ConfigModel):
     @property
     def glossy(self) -> bool:
         """True where any region has a microfacet lobe."""
-        return self.finish.glossy or any(p.finish is not None and p.finish.glossy for p in self.patches)
+        mapped = any(float(self._images[k].max()) > 0 for k in ("specular", "metalness") if k in self._images)
+        return mapped or self.finish.glossy or any(p.finish is not None and p.finish.glossy for p in self.patches)
 
     def patch_index(self, uv: np.ndarray) -> np.ndarray:
         """Index of the patch that paints each UV point (the last one wins), −1 for the base."""
@@ -165,15 +285,20 @@ class SurfaceTruth(ConfigModel):
         """Diffuse albedo (N, 3) at UV points (``uv`` None: the base everywhere, ``count`` points)."""
         if uv is None:
             return np.broadcast_to(np.asarray(self.base_albedo, float), (count or 0, 3)).copy()
+        if "albedo" in self._images:
+            return sample_uv(self._images["albedo"], np.asarray(uv, float).reshape(-1, 2))
         table = np.array([self.base_albedo] + [p.albedo for p in self.patches], dtype=float)
         return table[self.patch_index(uv) + 1]
 
     def finish_at(self, uv: np.ndarray | None, count: int | None = None) -> Finish:
         """The finish at UV points (``uv`` None: the base everywhere, ``count`` points)."""
-        finishes = [self.finish] + [p.finish or self.finish for p in self.patches]
-        table = np.array([(f.roughness, f.specular, f.ior, f.metalness) for f in finishes], dtype=float)
+        table = np.array([(f.roughness, f.specular, f.ior, f.metalness) for f in self._finishes()], dtype=float)
         rows = np.zeros(count or 0, np.int64) if uv is None else self.patch_index(uv) + 1
         values = table[rows]
+        if uv is not None:
+            for column, name in ((0, "roughness"), (1, "specular"), (3, "metalness")):
+                if name in self._images:
+                    values[:, column] = sample_uv(self._images[name], np.asarray(uv, float).reshape(-1, 2))[:, 0]
         return Finish(roughness=values[:, 0], specular=values[:, 1], ior=values[:, 2], metalness=values[:, 3])
 
     def uv_distance_to_patches(self, uv: np.ndarray) -> np.ndarray:
@@ -199,7 +324,7 @@ def load_surface(name_or_path: str | Path) -> SurfaceTruth:
         if not path.exists():
             shipped = ", ".join(sorted(p.stem for p in SURFACES_DIR.glob("*.toml")))
             raise SurfaceError(f"{name_or_path}: no such surface (shipped: {shipped})")
-    return load_model(path, SurfaceTruth, "surface file", SurfaceError)
+    return load_model(path, SurfaceTruth, "surface file", SurfaceError).read_maps(path)
 
 
 # --- shipped meshes ----------------------------------------------------------------------------
@@ -523,11 +648,13 @@ def surface_truth_at(
     surface = surface or load_surface(rig.simulation.surface)
     geometry = geometry or ObjectGeometry.from_rig(rig)
     points = np.asarray(points_rig, dtype=float).reshape(-1, 3)
-    if not surface.patches:
+    if not surface.varies:
         return surface.albedo_at(None, len(points)), np.ones(len(points), dtype=bool)
     faces, uv = _surface_uv(geometry, points, faces)
     albedo = surface.albedo_at(uv)
     uniform = surface.uv_distance_to_patches(uv) * geometry.uv_metric[faces] >= margin_m
+    if surface.maps is not None and surface.maps.albedo is not None:
+        uniform[:] = False  # an albedo map promises no plain region
     return albedo, uniform
 
 
@@ -546,7 +673,7 @@ def surface_finish_at(
     surface = surface or load_surface(rig.simulation.surface)
     geometry = geometry or ObjectGeometry.from_rig(rig)
     points = np.asarray(points_rig, dtype=float).reshape(-1, 3)
-    if not surface.patches:
+    if not surface.varies:
         return surface.finish_at(None, len(points))
     return surface.finish_at(_surface_uv(geometry, points, faces)[1])
 

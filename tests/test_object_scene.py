@@ -235,6 +235,117 @@ def test_patch_to_base_ratio_is_the_albedo_ratio(flat_plate):
         assert with_patch[ch][i_in] / with_patch[ch][i_out] == pytest.approx(expected[ch] * geometric, rel=0.01)
 
 
+# --- 3b. parameters as image maps in UV space ---------------------------------------------------------
+def write_maps_of(surface, folder, size=(512, 1024)):
+    """``surface`` rasterised at the texel centres into the map files a surface file names:
+    the albedo as a 16-bit sRGB PNG, roughness, specular and metalness as one-channel EXRs."""
+    import cv2
+    import OpenEXR
+
+    h, w = size
+    v, u = np.mgrid[0:h, 0:w]
+    uv = np.column_stack([((u + 0.5) / w).ravel(), (1.0 - (v + 0.5) / h).ravel()])
+    albedo = surface.albedo_at(uv).reshape(h, w, 3)
+    encoded = np.where(albedo <= 0.0031308, 12.92 * albedo, 1.055 * albedo ** (1 / 2.4) - 0.055)
+    cv2.imwrite(str(folder / "albedo.png"), np.round(encoded[..., ::-1] * 65535).astype(np.uint16))
+    finish = surface.finish_at(uv)
+    for name in ("roughness", "specular", "metalness"):
+        values = getattr(finish, name).reshape(h, w).astype(np.float32)
+        header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+        with OpenEXR.File(header, {"Y": values}) as exr:
+            exr.write(str(folder / f"{name}.exr"))
+    maps = "\n".join(
+        f'{name} = "{name}.{"png" if name == "albedo" else "exr"}"'
+        for name in ("albedo", "roughness", "specular", "metalness")
+    )
+    path = folder / "mapped.toml"
+    path.write_text(f"base_albedo = [0.5, 0.5, 0.5]\n[finish]\nior = 1.5\n[maps]\n{maps}\n")
+    return path
+
+
+def test_maps_paint_every_parameter_as_the_patches_do(tmp_path):
+    painted = load_surface("glazed-gilded")
+    mapped = load_surface(write_maps_of(painted, tmp_path))
+    assert mapped.varies and mapped.glossy and not mapped.patches
+    rng = np.random.default_rng(3)
+    uv = rng.uniform(0.0, 1.0, (20000, 2))
+    inside = painted.uv_distance_to_patches(uv)  # away from the edges, where a texel straddles two regions
+    edge = np.zeros(len(uv), bool)
+    for patch in painted.patches:
+        (cu, cv), (ru, rv) = patch.centre_uv, patch.radii
+        s = np.hypot((uv[:, 0] - cu) / ru, (uv[:, 1] - cv) / rv)
+        edge |= np.abs(s - 1.0) * min(ru, rv) < 3.0 / 512
+    away = ~edge
+    assert away.sum() > 15000 and (inside[away] == 0).sum() > 1000  # in the patches: 6 %
+    np.testing.assert_allclose(mapped.albedo_at(uv)[away], painted.albedo_at(uv)[away], atol=2e-5)
+    want, got = painted.finish_at(uv), mapped.finish_at(uv)
+    for name in ("roughness", "specular", "metalness"):
+        np.testing.assert_allclose(getattr(got, name)[away], getattr(want, name)[away], atol=1e-6)
+    # at the regions' edges the maps blend their texels: values between the two regions'
+    gold = next(p for p in painted.patches if p.name == "gold leaf")
+    across = np.column_stack(
+        [np.full(9, gold.centre_uv[0]), gold.centre_uv[1] + gold.radii[1] + np.linspace(-2, 2, 9) / 512]
+    )
+    metal = mapped.finish_at(across).metalness
+    assert metal[0] == 1.0 and metal[-1] == 0.0 and np.all(np.diff(metal) <= 0) and 0 < metal[4] < 1
+
+
+def test_a_mapped_surface_renders_as_the_painted_one(flat_plate, tmp_path):
+    rig = object_rig(flat_plate)
+    painted = SurfaceTruth(
+        base_albedo=(0.60, 0.55, 0.50),
+        finish={"roughness": 0.3, "specular": 1.0},
+        patches=[
+            {
+                "centre_uv": (0.5, 0.5),
+                "radius_uv": (0.2, 0.3),
+                "albedo": (0.2, 0.4, 0.9),
+                "finish": {"roughness": 0.1, "metalness": 1.0},
+            }
+        ],
+    )
+    mapped = load_surface(write_maps_of(painted, tmp_path, size=(256, 256)))
+    truth = single_emitter({"model": "gaussian", "peak_w_sr": 1.0, "sigma_deg": 20.0})
+    options = dict(samples_per_pixel=4, diffraction=False, seed=11)
+    pose = arc_pose(20.0)
+    a = ObjectSceneRenderer(rig, truth, surface=painted, **options).render(pose).rate
+    b = ObjectSceneRenderer(rig, truth, surface=mapped, **options).render(pose).rate
+    cols, rows = pixel_grid()
+    origin, d = chief_rays(rig, cols, rows)
+    points = origin + (-origin[2] / d[..., 2])[..., None] * d
+    u, v = (points[..., 0] + 0.03) / 0.06, (points[..., 1] + 0.02) / 0.04
+    s = np.hypot((u - 0.5) / 0.2, (v - 0.5) / 0.3)
+    away = np.abs(s - 1.0) > 0.1
+    lit = a[1] > 0.05 * a[1].max()
+    assert (away & lit & (s < 1)).sum() > 300 and (away & lit & (s > 1)).sum() > 300
+    assert np.max(np.abs(b[:, away & lit] / a[:, away & lit] - 1)) < 2e-3
+
+
+@pytest.mark.parametrize(
+    "maps, field",
+    [
+        ('roughness = "missing.exr"', "maps.roughness: "),
+        ('metalness = "albedo.png"', "maps.metalness: "),  # three channels for a one-channel map
+        ('roughness = "zero.exr"', "outside 0.02-1"),
+        ('albedo = "zero.txt"', "a .png or an .exr file"),
+    ],
+)
+def test_a_bad_map_is_one_line_naming_the_surface_file_and_the_field(tmp_path, maps, field):
+    write_maps_of(load_surface("patches"), tmp_path, size=(16, 32))
+    import OpenEXR
+
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    with OpenEXR.File(header, {"Y": np.zeros((4, 4), np.float32)}) as exr:
+        exr.write(str(tmp_path / "zero.exr"))
+    (tmp_path / "zero.txt").write_text("0")
+    path = tmp_path / "bad-maps.toml"
+    path.write_text(f"base_albedo = [0.5, 0.5, 0.5]\n[maps]\n{maps}\n")
+    with pytest.raises(SurfaceError) as info:
+        load_surface(path)
+    message = str(info.value)
+    assert "\n" not in message and message.startswith(str(path)) and field in message, message
+
+
 # --- 4. the specular lobe --------------------------------------------------------------------------
 def test_specular_lobe_brightens_only_near_the_mirror_direction(tmp_path):
     # A wide view (±25° across) of a large plate, so that the half vector strays far from
