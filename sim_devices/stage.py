@@ -99,7 +99,6 @@ class SimulatedStage:
         self.config = config or StageConfig()
         self._clock = clock or time.monotonic
         self._lock = threading.RLock()
-        self._rng = np.random.default_rng(self.config.seed)
         now = self._clock()
         self._start = self.config.home_pose
         self._target = self.config.home_pose
@@ -185,12 +184,20 @@ class SimulatedStage:
             return self._true_pose_locked()
 
     def readback_pose(self) -> Pose:
-        """What the encoders report: the true pose plus small noise."""
+        """What the encoders report: the true pose plus small noise.
+
+        The noise is drawn once per move, from the stage's seed and the move's number, and
+        held until the next: how often the host polls (which depends on how fast the
+        machine is) does not change what a pose reads, so a seeded run records the same
+        poses on any machine. It stands for the encoders' error at a standstill, which does
+        not change from one reading to the next either.
+        """
         with self._lock:
             self._update()
             p = self._true_pose_locked()
-            dn = self._rng.normal(0.0, self.config.readback_noise_m, 3)
-            da = self._rng.normal(0.0, self.config.readback_noise_rad, 3)
+            noise = np.random.default_rng((self.config.seed, self.move_count))
+            dn = noise.normal(0.0, self.config.readback_noise_m, 3)
+            da = noise.normal(0.0, self.config.readback_noise_rad, 3)
             return Pose(p.x + dn[0], p.y + dn[1], p.z + dn[2], p.rx + da[0], p.ry + da[1], p.rz + da[2])
 
     @property
