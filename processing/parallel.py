@@ -32,6 +32,8 @@ from collections.abc import Callable, Hashable, Iterable
 from itertools import islice
 from typing import TYPE_CHECKING, Any
 
+from threadpoolctl import threadpool_limits
+
 if TYPE_CHECKING:
     import distributed
 
@@ -197,8 +199,12 @@ class Compute:
         """
         items = list(items)
         if self.client is None:
-            for item in items:
-                on_result(item, func(item, *args, **kwargs))
+            # One BLAS thread, as in a Dask worker (its nanny sets OMP_NUM_THREADS=1): a
+            # least-squares solve summed by two threads differs in the last bits, and a run
+            # processed here or on a cluster gives the same numbers to the last digit.
+            with threadpool_limits(limits=1, user_api="blas"):
+                for item in items:
+                    on_result(item, func(item, *args, **kwargs))
             return
         from distributed import as_completed  # noqa: PLC0415 - heavy: dask, only where a cluster runs
 

@@ -319,6 +319,21 @@ def _brdf_methods(result: dict) -> str:
                 f"{_number(relit.get('rms_relative'))} ({_number(relit.get('median_position_rms'))})",
             ]
             lines.append("| " + " | ".join(_cell(c) for c in cells) + " |")
+    held = result.get("held_out_positions", [])
+    lines += ["", "| light model | " + " | ".join(f"relit position {j}" for j in held) + " |"]
+    lines.append("| --- |" + " --- |" * len(held))
+    for method, scores in result.get("methods", {}).items():
+        per = {p["position"]: p["rms_relative"] for p in scores.get("relighting", {}).get("per_position", [])}
+        lines.append("| " + " | ".join([_cell(method), *(_cell(_number(per.get(j))) for j in held)]) + " |")
+    times = {
+        **result.get("times_s", {}),
+        **{f"reflectance: {k}": v for k, v in result.get("reflectance_times_s", {}).items()},
+    }
+    lines += ["", "| step | seconds |", "| --- | --- |", *(f"| {_cell(k)} | {_number(v)} |" for k, v in times.items())]
+    met = result.get("meets_target", {})
+    if met:
+        lines += ["", "| target (measured light) | met |", "| --- | --- |"]
+        lines += [f"| {_cell(k)} | {'yes' if v else 'no'} |" for k, v in met.items()]
     return "\n".join(lines) + "\n"
 
 
