@@ -135,3 +135,27 @@ def test_the_command_records_its_section(tmp_path):
     assert f"| render_s_median | {printed['render_s_median']:.6g} |" in section
     bad = CliRunner().invoke(app, ["bench", "render", "--record", str(tmp_path / "nowhere" / "b.md")])
     assert bad.exit_code == 2 and "error: --record: " in bad.output
+
+
+def test_the_repeatability_spread_and_its_tables():
+    """bench repeatability's spread over seeds: each source's mean offset, its standard deviation
+    (sample, ddof 1), the worst distance; then its section's tables."""
+    from acquisition.benchmarks.repeatability import spread
+
+    def row(seed, du, found=2):
+        sources = [
+            {"name": "a", "centre_offset_um": [du, 0.0], "centre_error_um": abs(du), "rms_rel_error": 0.004},
+            {"name": "b", "centre_offset_um": [0.0, 2 * du], "centre_error_um": abs(2 * du), "rms_rel_error": 0.006},
+        ]
+        result = {"sources": sources, "sources_found": found, "max_rms_rel_error": 0.006, "quality": {"status": "ok"}}
+        return {"seed": seed, "result": {**result, "process_s": 80.0}}
+
+    out = spread([row(0, 10.0), row(1, -30.0), row(2, 50.0, found=3)])
+    assert out["sources"]["a"]["mean_offset_um"] == [10.0, 0.0]
+    assert out["sources"]["a"]["std_um"] == [40.0, 0.0]
+    assert out["sources"]["b"]["std_um"] == [0.0, 80.0] and out["sources"]["b"]["worst_distance_um"] == 100.0
+    assert out["worst_distance_um"] == 100.0 and out["all_within_100_um"] is True  # 100 µm is within
+    assert out["all_five_found"] is False  # seed 2 found a third source
+    text = result_tables("repeatability", {"benchmark": "repeatability", "seeds": 3, **out})
+    assert "| a | 10, 0 | 40, 0 | 50 | 0.004 |" in text
+    assert "| 2 | 3 | 100 | 0.006 | ok | 80 |" in text

@@ -28,12 +28,12 @@ import psutil
 from drivers.contracts.version import __version__
 
 #: The benchmarks in the order their sections appear.
-ORDER = ("render", "acquire", "hdr", "accuracy", "reflectance", "brdf", "tolerance", "speed")
+ORDER = ("render", "acquire", "hdr", "accuracy", "repeatability", "reflectance", "brdf", "tolerance", "speed")
 HEADER = """# Benchmark results
 
 This file is generated: each section below is the last recorded result of one benchmark,
 written by `mirrorgonio bench NAME ... --record docs/benchmarks.md` (NAME one of render,
-acquire, hdr, accuracy, reflectance, brdf, tolerance, speed). A run replaces its own section,
+acquire, hdr, accuracy, repeatability, reflectance, brdf, tolerance, speed). A run replaces its own section,
 between the marker lines that carry the benchmark's name, and leaves the others as they
 are. Never edit it by hand: run the benchmark again. What each benchmark measures:
 `mirrorgonio bench NAME --help` and the modules in `acquisition/benchmarks/`.
@@ -337,12 +337,36 @@ def _brdf_methods(result: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _repeatability_sources(result: dict) -> str:
+    """``bench repeatability``: one row per truth source, then one per seed."""
+    lines = [
+        "| source | mean offset u, v (µm) | spread 1σ u, v (µm) | worst distance (µm) | worst RMS / peak |",
+        "| --- | --- | --- | --- | --- |",
+    ]
+    for name, entry in result.get("sources", {}).items():
+        cells = [
+            name,
+            ", ".join(_number(v) for v in entry.get("mean_offset_um") or []),
+            ", ".join(_number(v) for v in entry.get("std_um") or []),
+            _number(entry.get("worst_distance_um")),
+            _number(entry.get("worst_rms_rel_error")),
+        ]
+        lines.append("| " + " | ".join(_cell(c) for c in cells) + " |")
+    lines += ["", "| seed | sources | worst distance (µm) | worst RMS / peak | quality | processing (s) |"]
+    lines.append("| --- | --- | --- | --- | --- | --- |")
+    for row in result.get("per_seed", []):
+        keys = ("seed", "sources_found", "worst_distance_um", "worst_rms_rel_error", "quality", "process_s")
+        lines.append("| " + " | ".join(_cell(_number(row.get(k))) for k in keys) + " |")
+    return "\n".join(lines) + "\n"
+
+
 #: The tables of a result's parts, by benchmark.
 PART_TABLES: dict[str, Callable[[dict], str]] = {
     "hdr": _hdr_methods,
     "accuracy": _accuracy_sources,
     "reflectance": _reflectance_methods,
     "brdf": _brdf_methods,
+    "repeatability": _repeatability_sources,
 }
 
 

@@ -125,6 +125,8 @@ def score_sources(
         if matched:
             entry["found_as"] = source.name
             entry["centre_error_um"] = round(1e6 * float(distances[k]), 1)
+            offset = found[k] - np.asarray(emitter.centre_m, float)
+            entry["centre_offset_um"] = [round(1e6 * float(d), 1) for d in offset]
             entry["found_radius_mm"] = round(1e3 * source.radius_m, 3)
             entry["true_radius_mm"] = round(1e3 * emitter.radius_m, 3)
         entry["coverage"] = coverage(source, emitter, frame)

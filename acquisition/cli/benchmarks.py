@@ -271,6 +271,30 @@ def bench_brdf_command(
     _record(recording, "brdf", result)
 
 
+@bench_app.command("repeatability")
+def bench_repeatability_command(
+    ctx: typer.Context,
+    seeds: Annotated[int, typer.Option(min=1, max=100, help="Seeds (noise realisations) to take and process.")] = 10,
+    truth: Annotated[str, typer.Option(help="Shipped truth light.")] = "five-gaussians",
+    rig: RigOption = None,
+    workdir: WorkdirOption = None,
+    as_json: Annotated[bool, typer.Option("--json", help="Print JSON only.")] = False,
+    record: RecordOption = None,
+) -> None:
+    """The reference simulation once per seed, the sources found in the data: each source's
+    place and intensity over the seeds (spread, worst), and the first seed taken twice (the same?)."""
+    from acquisition.benchmarks.repeatability import bench_repeatability
+    from processing import ProcessingError
+
+    recording = _start_recording(ctx, record)
+    try:
+        result = bench_repeatability(seeds=seeds, truth=truth, rig_path=rig, workdir=workdir)
+    except domain_errors(ProcessingError) as exc:
+        raise fail(str(exc)) from None
+    print_result(result, as_json)
+    _record(recording, "repeatability", result)
+
+
 def _rig_errors_help() -> str:
     from acquisition.benchmarks.description_errors import DEFAULT_ERRORS, ERROR_PARTS
 

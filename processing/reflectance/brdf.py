@@ -319,9 +319,9 @@ def chi2_of_roughness(
     blocks = [slice(i, min(i + 2048, n_points)) for i in range(0, n_points, 2048)]
 
     def block(b: slice) -> None:
-        sub = [a[:, b] for a in arrays]
+        cos_l, cos_v, cos_h, shape, schlick, irr, obs, w = (np.ascontiguousarray(a[:, b]) for a in arrays)
         part = np.empty((alphas.shape[0], b.stop - b.start))
-        _chi2_kernel(*[np.ascontiguousarray(a) for a in sub], np.ascontiguousarray(alphas[:, b]), part)
+        _chi2_kernel(cos_l, cos_v, cos_h, shape, schlick, irr, obs, w, np.ascontiguousarray(alphas[:, b]), part)
         out[:, b] = part
 
     if threads > 1 and len(blocks) > 1:
