@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import cast
 
@@ -139,11 +141,12 @@ def fit_rig(
         )
         vector = _Vector(limit, centres, radius, max_radius, hold_sources)
         x0 = vector.pack(start.vector, centres, radius)
+        residuals = _LastResiduals(lambda x: rig.residuals(*vector.unpack(x, light_axis)))
         result = least_squares(
-            lambda x: rig.residuals(*vector.unpack(x, light_axis)),
+            residuals,
             x0,
+            jac=lambda x: forward_jacobian(residuals, x, vector.bounds, order=vector.cheapest_first()),
             bounds=vector.bounds,
-            diff_step=0.01,
             xtol=1e-4,
             ftol=1e-6,
             max_nfev=max_nfev,
@@ -198,6 +201,14 @@ class _Vector:
         lower, upper = self.bounds
         return np.clip(x, lower + 1e-9, upper - 1e-9)
 
+    def cheapest_first(self) -> np.ndarray:
+        """The vector's indices, the sources' centres first (each moves one source's templates),
+        then the radius and the rig's numbers (each moves them all)."""
+        if self.hold:
+            return np.arange(self.n)
+        radius = self.n + self.centres.size
+        return np.concatenate([np.arange(self.n, radius), [radius], np.arange(self.n)])
+
     def unpack(self, x: np.ndarray, light_axis: np.ndarray) -> tuple[RigCorrection, np.ndarray, float]:
         values = np.zeros(self.fitted.size)
         values[self.fitted] = x[: self.n]
@@ -205,6 +216,60 @@ class _Vector:
         if self.hold:
             return correction, self.centres, self.radius
         return correction, x[self.n : -1].reshape(-1, 2) * 1e-3, float(x[-1]) * 1e-3
+
+
+class _LastResiduals:
+    """The residual function, remembering its last value: the Jacobian at a point starts from
+    the residuals the fit has just computed there."""
+
+    def __init__(self, fun: Callable[[np.ndarray], np.ndarray]) -> None:
+        self.fun = fun
+        self.x: np.ndarray | None = None
+        self.value: np.ndarray | None = None
+
+    def __call__(self, x: np.ndarray) -> np.ndarray:
+        self.x, self.value = np.array(x, float), self.fun(x)
+        return self.value
+
+    def at(self, x: np.ndarray) -> np.ndarray:
+        if self.x is not None and self.value is not None and np.array_equal(self.x, x):
+            return self.value
+        return self(x)
+
+
+def forward_jacobian(
+    fun: _LastResiduals,
+    x: np.ndarray,
+    bounds: tuple[np.ndarray, np.ndarray],
+    *,
+    order: np.ndarray,
+    rel_step: float = 0.01,
+) -> np.ndarray:
+    """Forward differences as least_squares' ``2-point`` takes them (scipy ≥ 1.17: a step of
+    ``rel_step · |x|`` signed as x, √ε·max(1, |x|) where that is none, turned back where it
+    would leave the bounds), column by column in ``order``.
+
+    The order is the point: a source's centre moves that source's templates alone, and the
+    problem keeps the templates of the point itself (:meth:`LayoutProblem._column`) only for a
+    while. Taken first, right after the residuals there, the sources' columns rebuild one
+    source each; taken after the rig's numbers (each of which rebuilds every template), they
+    found the point's templates gone and rebuilt them all: with 13 sources the Jacobian cost
+    47 evaluations' templates, now about 23.
+    """
+    f0 = fun.at(x)
+    lower, upper = bounds
+    sign = np.where(x >= 0, 1.0, -1.0)
+    h = rel_step * sign * np.abs(x)
+    # Where that is no step (x = 0), machine precision's: √ε · max(1, |x|), as scipy does.
+    h = np.where((x + h) - x == 0, math.sqrt(np.finfo(float).eps) * sign * np.maximum(1.0, np.abs(x)), h)
+    outside = (x + h > upper) | (x + h < lower)
+    h = np.where(outside, -h, h)
+    jac = np.empty((f0.size, x.size))
+    for i in order:
+        step = x.copy()
+        step[i] += h[i]
+        jac[:, i] = (fun.fun(step) - f0) / (step[i] - x[i])
+    return jac
 
 
 def _sigma(jac: np.ndarray, residuals: np.ndarray, n: int) -> np.ndarray:
