@@ -11,8 +11,6 @@ frame is the sensor's bias and read noise.
 
 from __future__ import annotations
 
-import collections
-import hashlib
 import itertools
 import time
 from collections.abc import Callable
@@ -25,7 +23,6 @@ from drivers.camera import Camera, RawFrame
 from drivers.config_files import require_memory
 from drivers.contracts.rig import Rig, RigError
 from drivers.errors import DeviceError
-from drivers.pose import Pose
 from drivers.raw_decode import decode_raw
 from sim_devices.colour import colour_matrices
 from sim_devices.dng import write_dng
@@ -141,8 +138,7 @@ class SimulatedCamera(Camera):
             **options,
         )
         self.sensor = SensorModel.from_rig(rig.camera, noise=sim.noise if noise is None else noise)
-        self.seed = seed
-        self._repeats: collections.Counter[tuple] = collections.Counter()
+        self.rng = np.random.default_rng(seed + 1)
         self.name = "simulated pinhole camera"
         self.serial = serial
         self._wall_clock = wall_clock
@@ -179,39 +175,18 @@ class SimulatedCamera(Camera):
     def identity(self) -> str:
         return f"mirrorgonio {self.name} {self.serial}"
 
-    def rendering(self, pose: Pose | None = None) -> Rendering:
-        """The noise-free expected electron rates for the light's current pose and the lights' state.
-
-        The renderer's sub-pixel samples are drawn from the seed and what is rendered (the
-        pose and the lights), not from how many renderings came before: a preview taken
-        between two positions does not change the next position's frames.
-        """
-        pose = pose or self.world.light_pose()
+    def rendering(self) -> Rendering:
+        """The noise-free expected electron rates for the light's current pose and the lights' state."""
+        pose = self.world.light_pose()
         lights = (self.world.light_on, self.world.room_lit)
         key = tuple(round(v, 10) for v in pose.as_tuple())
         cached = self._cached.get(lights)
         if cached is None or cached[0] != key:
             self.renderer.truth = self.truth if lights[0] else None
             self.renderer.set_environment(self._room if lights[1] else 0.0)
-            self.renderer.rng = np.random.default_rng([self.seed, _digest(("render", key, lights))])
             cached = (key, self.renderer.render(pose))
             self._cached[lights] = cached
         return cached[1]
-
-    def _frame_noise(self, pose: Pose, exposure_s: float) -> np.random.Generator:
-        """The noise of one frame: drawn from the seed, what the frame is (the light's pose, the
-        lights, the exposure) and how many frames of that same kind came before. A run with
-        a given seed gets the same frames whatever the timing and whatever else was captured
-        in between (previews, metering frames of other positions)."""
-        kind = (
-            tuple(round(v, 7) for v in pose.as_tuple()),
-            self.world.light_on,
-            self.world.room_lit,
-            round(float(exposure_s), 12),
-        )
-        repeat = self._repeats[kind]
-        self._repeats[kind] += 1
-        return np.random.default_rng([self.seed + 1, _digest(("frame", kind, repeat))])
 
     def capture(self, exposure_s: float) -> RawFrame:
         return self.capture_to(self.out_dir / f"sim-{next(self._counter):06d}.dng", exposure_s)
@@ -220,9 +195,8 @@ class SimulatedCamera(Camera):
         """Capture one frame into the DNG file ``path`` and decode it back."""
         if not exposure_s > 0:
             raise DeviceError(self.identity, "capture", f"exposure must be positive, got {exposure_s!r}")
-        pose = self.world.light_pose()
-        rates = self.rendering(pose).rate
-        mosaic = self.sensor.expose(rates, exposure_s, self._frame_noise(pose, exposure_s))
+        rates = self.rendering().rate
+        mosaic = self.sensor.expose(rates, exposure_s, self.rng)
         self.last_mosaic = mosaic  # what was written, for checking the decode path
         if self.latency_s:
             self._sleep(self.latency_s + exposure_s)
@@ -250,9 +224,3 @@ class SimulatedCamera(Camera):
         if self._colour is None:
             self._colour = colour_matrices(self.rig.camera)
         return self._colour
-
-
-def _digest(key: object) -> int:
-    """A 128-bit integer of ``key``'s text: a seed entropy that is the same in every process
-    (Python's own ``hash`` of a string is salted per process)."""
-    return int.from_bytes(hashlib.blake2b(repr(key).encode(), digest_size=16).digest(), "little")

@@ -519,37 +519,6 @@ def test_the_simulated_camera_renders_the_light_only_when_on_and_the_room_only_w
     assert frame.mosaic.std() == pytest.approx(np.hypot(rig.camera.read_noise_e / gain, 12**-0.5), rel=0.25)
 
 
-def test_a_seeded_simulated_camera_makes_the_same_frames_whatever_else_it_captured(tmp_path):
-    """A frame's noise and the rendering's sub-pixel samples come from the seed and what the
-    frame is (pose, lights, exposure, how many such frames before), not from the call order:
-    a preview at another pose in between, or a second camera object, changes nothing."""
-    from conftest import rig_with
-
-    from sim_devices.camera import SimulatedCamera
-    from sim_devices.world import SimWorld
-
-    rig = rig_with(camera__width=250, camera__height=164, camera__pixel_pitch_m=47.2e-6)
-    poses = rig.tool_poses()
-    here = {"pose": poses[20]}
-    to_tool = rig.light.light_to_tool.to_pose()
-
-    def camera(folder):
-        world = SimWorld(lambda: here["pose"], to_tool)
-        return SimulatedCamera(rig, world, tmp_path / folder, seed=7, diffraction=True)
-
-    plain, busy = camera("plain"), camera("busy")
-    first = plain.capture(0.05).mosaic
-    here["pose"] = poses[40]
-    busy.capture(0.02)  # a preview elsewhere, before
-    here["pose"] = poses[20]
-    again = busy.capture(0.05).mosaic
-    np.testing.assert_array_equal(first, again)
-    # The same kind of frame again is a new noise realisation, the same on both cameras.
-    second, busy_second = plain.capture(0.05).mosaic, busy.capture(0.05).mosaic
-    assert np.any(second != first)
-    np.testing.assert_array_equal(second, busy_second)
-
-
 def test_the_simulated_stage_reads_back_the_same_pose_however_often_it_is_polled():
     import math
 

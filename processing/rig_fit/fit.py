@@ -140,11 +140,10 @@ def fit_rig(
             problem.chi2(centres, radius) if hold_sources else problem.fit(centres, radius, max_radius, 8)[2]
         )
         vector = _Vector(limit, centres, radius, max_radius, hold_sources)
-        x0 = vector.pack(start.vector, centres, radius)
         residuals = _LastResiduals(lambda x: rig.residuals(*vector.unpack(x, light_axis)))
         result = least_squares(
             residuals,
-            x0,
+            vector.pack(start.vector, centres, radius),
             jac=lambda x: forward_jacobian(residuals, x, vector.bounds, order=vector.cheapest_first()),
             bounds=vector.bounds,
             xtol=1e-4,
