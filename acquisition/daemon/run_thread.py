@@ -417,10 +417,12 @@ class RunThread:
         # The end recorded and the rig released in one step: a request sees the run in
         # progress, or ended with the engine free and the queue moved on.
         with context.lock:
+            # No step from here: a status reads the catalog, then the step, without the lock, and
+            # must not find the run ended and still at a step.
+            self.step = None
             context.pending.record(self.run_id, outcome, message)
             level = logging.INFO if outcome == "complete" else logging.WARNING
             log.log(level, "run %s %s%s", self.run_id, outcome, f": {message}" if message else "")
-            self.step = None
             self.exiting = True
             context.ended(self.run_id, outcome, message)
         context.events.publish()

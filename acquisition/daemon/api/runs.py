@@ -72,7 +72,8 @@ def run_status(record: RunRecord, engine: RunEngine | None = None) -> RunStatus:
         finished_utc=record.finished_utc,
         exposures_per_position=record.exposures_per_position,
         file_url=f"/runs/{record.id}/file",
-        step=engine.step(record.id) if engine is not None else None,
+        # An ended run has no step, even if read just before it was resumed (a new thread's step).
+        step=engine.step(record.id) if engine is not None and record.state not in FINAL else None,
         queue_position=record.queue_position,
     )
 
