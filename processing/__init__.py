@@ -20,6 +20,8 @@ answers a request without the processing in memory.
   :class:`ReflectanceResult`; before its run, :func:`highlight_coverage` (which points a
   schedule shows a highlight on, a :class:`HighlightCoverage`) and :func:`write_coverage`;
 - the ball's position from a photograph: :func:`calibrate_ball` and its helpers;
+- the camera's photometric scale from a reference: :func:`calibrate_photometry` with a
+  :class:`LampReference` or a :class:`MeterReference`;
 - the errors, each one line that names the file, the field or the option.
 """
 
@@ -39,6 +41,8 @@ if TYPE_CHECKING:
         compare_with_rig,
         mosaic_luminance,
     )
+    from processing.calibration.photometric import LampReference, MeterReference, PhotometryError
+    from processing.calibration.photometric import calibrate as calibrate_photometry
     from processing.hdr.model import HDRError
     from processing.light_run.checksums import CorruptRunError, skipped_line
     from processing.light_run.errors import ProcessingError
@@ -49,7 +53,7 @@ if TYPE_CHECKING:
     from processing.light_run.progress import overall_fraction
     from processing.light_run.records import ProcessReport
     from processing.light_run.run import process_run
-    from processing.lightmodel import LightModel
+    from processing.lightmodel import LightModel, LightModelError
     from processing.options import (
         DEFAULT_RAYS,
         FLAG_CHOICE,
@@ -94,17 +98,21 @@ __all__ = [
     "HDRError",
     "HDRMethod",
     "HighlightCoverage",
+    "LampReference",
     "LightModel",
+    "LightModelError",
     "MAX_LUMENS",
     "MAX_NAME",
     "MAX_RAYS",
     "MIN_RAYS",
+    "MeterReference",
     "NAME_PATTERN",
     "NoiseSource",
     "Option",
     "OptionsError",
     "ProcessReport",
     "ProcessingError",
+    "PhotometryError",
     "ProcessingOptions",
     "ReflectanceError",
     "ReflectanceResult",
@@ -120,6 +128,7 @@ __all__ = [
     "Units",
     "angle_sensitivity",
     "calibrate_ball",
+    "calibrate_photometry",
     "check_outputs",
     "check_scheduler",
     "compare_with_rig",

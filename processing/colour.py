@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 
 from drivers.contracts.camera_colour import ILLUMINANT_CCT_K
+from drivers.contracts.rig import Camera
 
 __all__ = [
     "DUV_LIMIT",
@@ -32,7 +33,9 @@ __all__ = [
     "chromaticity",
     "colour_section",
     "describe",
+    "luminance_over_reference",
     "over_theta",
+    "planckian_luminance_ratios",
     "relative_luminance",
 ]
 
@@ -259,6 +262,120 @@ def relative_luminance(
     if not (np.all(np.isfinite(luminance)) and mean > 0):
         return [1.0] * len(channels)
     return [float(v) for v in luminance / mean]
+
+
+def luminance_over_reference(
+    rgb: Sequence[Sequence[float]] | np.ndarray,
+    weights: Sequence[float] | np.ndarray,
+    reference_rgb: Sequence[float] | np.ndarray,
+    description: dict[str, Any],
+) -> tuple[np.ndarray, float, np.ndarray]:
+    """Each light's luminance per unit of camera signal over a reference light's: how a
+    photometric scale measured on the reference carries over to lights of other colours.
+
+    Through one matrix, the mix's (as :func:`relative_luminance`), so that the two calibration
+    matrices' different scales cancel. The spectral mismatch of a three-channel camera (no
+    3×3 matrix is exact for every spectrum) is estimated by the same ratio through each
+    calibration matrix alone: half their difference, as a fraction.
+
+    Parameters
+    ----------
+    rgb : array_like, shape (n, 3)
+        Each light's camera RGB (any scale; each is taken at a channel mean of 1).
+    weights : array_like, shape (n,)
+        Each light's share of the mix (its flux).
+    reference_rgb : array_like, shape (3,)
+        The reference's camera RGB.
+    description : dict
+        The camera's colour matrices (empty: every ratio 1, the camera signal only).
+
+    Returns
+    -------
+    ratios : ndarray (n,)
+        Each light's luminance over the reference's, per unit of camera signal.
+    mixed : float
+        The same for the weighed mix (the ratios' weighed mean).
+    mismatch : ndarray (n,)
+        Each ratio's estimated spectral-mismatch error, a fraction (0 with one matrix).
+    """
+    channels = np.asarray(rgb, dtype=float).reshape(-1, 3)
+    channels = channels / channels.mean(axis=1, keepdims=True)
+    reference = np.asarray(reference_rgb, dtype=float).reshape(3)
+    reference = reference / reference.mean()
+    weights = np.asarray(weights, dtype=float).reshape(-1)
+    ones = np.ones(len(channels))
+    if not description:
+        return ones, 1.0, np.zeros(len(channels))
+    mixed = weights @ channels / weights.sum()
+
+    def ratios_through(matrix: np.ndarray) -> np.ndarray:
+        luminance = np.linalg.solve(matrix, np.column_stack([channels.T, reference]))[1]
+        return luminance[:-1] / luminance[-1]
+
+    ratios = ratios_through(_interpolated_matrix(description, _cct_duv(camera_to_xyz(mixed, description))[0]))
+    mismatch = np.zeros(len(channels))
+    if "color_matrix_2" in description:
+        first = ratios_through(np.asarray(description["color_matrix_1"], dtype=float))
+        second = ratios_through(np.asarray(description["color_matrix_2"], dtype=float))
+        mismatch = 0.5 * np.abs(first - second) / ratios
+    return ratios, float(weights @ ratios / weights.sum()), mismatch
+
+
+#: The farthest a light may lie from the Planckian locus (Duv) for the spectral-mismatch
+#: correction to take its spectrum as a blackbody's (about twice a white LED's usual spread).
+PLANCKIAN_DUV = 0.006
+_WAVELENGTHS_NM = np.arange(360.0, 831.0, 1.0)
+_SECOND_RADIATION_M_K = 1.438776877e-2
+
+
+def _channel_curves(camera: Camera) -> np.ndarray:
+    """The described camera's three channel responses on 360-830 nm (1 nm), (n, 3), each of
+    unit area: tabulated (linear, zero outside) or Gaussian bands of the stated FWHM."""
+    lam = _WAVELENGTHS_NM * 1e-9
+    curves = np.empty((lam.size, 3))
+    for c in range(3):
+        if camera.spectral_response is not None:
+            grid, response = camera.spectral_response.curve(c)
+            curves[:, c] = np.interp(lam, grid, response, left=0.0, right=0.0)
+        else:
+            fwhm = max(camera.channel_bandwidths_m[c], 1e-9)  # a single wavelength: the nearest nanometre
+            width = fwhm / (2.0 * math.sqrt(2.0 * math.log(2.0)))
+            curves[:, c] = np.exp(-0.5 * ((lam - camera.channel_wavelengths_m[c]) / width) ** 2)
+        curves[:, c] /= max(float(curves[:, c].sum()), 1e-300)
+    return curves
+
+
+def _luminance_per_signal(cct_k: float, curves: np.ndarray) -> float:
+    """A blackbody's luminance (ȳ) per unit of the channels' mean response, any common scale."""
+    import colour  # noqa: PLC0415 - colour-science takes a second to import
+
+    lam = _WAVELENGTHS_NM * 1e-9
+    spectrum = lam**-5 / np.expm1(_SECOND_RADIATION_M_K / (lam * cct_k))
+    observer = colour.MSDS_CMFS["CIE 1931 2 Degree Standard Observer"].copy()
+    ybar = np.asarray(observer.align(colour.SpectralShape(360, 830, 1)).values, dtype=float)[:, 1]
+    return float(spectrum @ ybar) / float(np.mean(spectrum @ curves))
+
+
+def planckian_luminance_ratios(cct_k: Sequence[float | None], reference_cct_k: float, camera: Camera) -> np.ndarray:
+    """Each light's luminance per unit of camera signal over the reference's, its spectrum taken
+    as a blackbody's at its measured CCT: the spectral-mismatch correction of a photometer
+    with a known spectral responsivity (CIE 198-SP1), with the camera's channels as the rig
+    describes them. NaN where a light has no CCT.
+
+    Examples
+    --------
+    >>> ratios = planckian_luminance_ratios([2856.0, 5000.0], 2856.0, Camera())
+    >>> [round(float(r), 4) for r in ratios]
+    [1.0, 0.9114]
+    """
+    curves = _channel_curves(camera)
+    reference = _luminance_per_signal(reference_cct_k, curves)
+    return np.array(
+        [
+            _luminance_per_signal(t, curves) / reference if t is not None and math.isfinite(t) else math.nan
+            for t in cct_k
+        ]
+    )
 
 
 def describe(section: dict[str, Any]) -> str:

@@ -245,6 +245,64 @@ class IntensityFit:
         """The model's intensity at ``(θ, φ)`` (see :meth:`evaluate`)."""
         return self.evaluate(theta, phi)[0]
 
+    def scaled(self, factor: float) -> IntensityFit:
+        """The fit of ``factor`` times the intensity: its intensity parameters (``a``, a
+        polynomial's coefficients), their covariance and the residuals scaled; its shape and
+        its χ² as they were.
+
+        Examples
+        --------
+        >>> fit = IntensityFit("gaussian", {"a": 2.0, "sigma": 0.3}, {"a": 0.01, "sigma": 0.002},
+        ...                    np.diag([1e-4, 4e-6]), np.ones(5), 1.0, 5, (0.0, 0.5), (0.0, 0.0))
+        >>> twice = fit.scaled(2.0)
+        >>> twice.params, twice.uncertainties["a"], float(twice(0.0)) == 2.0 * float(fit(0.0))
+        ({'a': 4.0, 'sigma': 0.3}, 0.02, True)
+        """
+        names = list(self.params)
+        scales = np.array([factor if name == "a" or self.method == "polynomial" else 1.0 for name in names])
+        return IntensityFit(
+            self.method,
+            {name: self.params[name] * s for name, s in zip(names, scales, strict=True)},
+            {name: self.uncertainties[name] * s for name, s in zip(names, scales, strict=True)},
+            np.asarray(self.covariance, dtype=float) * np.outer(scales, scales),
+            np.asarray(self.residuals, dtype=float) * factor,
+            self.chi2_reduced,
+            self.n_samples,
+            self.theta_range,
+            self.phi_range,
+            dict(self.info),
+        )
+
+    def band(self, theta: ArrayLike, phi: ArrayLike = 0.0) -> np.ndarray:
+        """The 1σ of the model's intensity at ``(θ, φ)`` from its parameters' covariance.
+
+        ``σ_I² = J C J^T · max(1, χ²_ν)``: ``J`` the model's gradient in its parameters
+        (central differences), the covariance inflated where the residuals say the samples'
+        own errors are too small. ``inf`` where a parameter is not determined.
+
+        Examples
+        --------
+        >>> fit = IntensityFit("gaussian", {"a": 2.0, "sigma": 0.3}, {"a": 0.01, "sigma": 0.0},
+        ...                    np.diag([1e-4, 0.0]), np.zeros(5), 1.0, 5, (0.0, 0.5), (0.0, 0.0))
+        >>> [round(float(v), 4) for v in fit.band([0.0, 0.3])]
+        [0.01, 0.0061]
+        """
+        theta, phi = np.broadcast_arrays(np.asarray(theta, dtype=float), np.asarray(phi, dtype=float))
+        names = list(self.params)
+        covariance = np.asarray(self.covariance, dtype=float)
+        if not np.all(np.isfinite(covariance)) or any(not math.isfinite(self.uncertainties[n]) for n in names):
+            return np.full(theta.shape, np.inf)
+        model = _MODELS[self.method]
+        gradient = np.empty((len(names), *theta.shape))
+        for i, name in enumerate(names):
+            step = 1e-6 * max(abs(self.params[name]), 1e-3)
+            up = model(theta, phi, {**self.params, name: self.params[name] + step})
+            down = model(theta, phi, {**self.params, name: self.params[name] - step})
+            gradient[i] = (np.asarray(up, dtype=float) - np.asarray(down, dtype=float)) / (2.0 * step)
+        variance = np.einsum("i...,ij,j...->...", gradient, covariance, gradient)
+        inflation = max(1.0, self.chi2_reduced) if math.isfinite(self.chi2_reduced) else 1.0
+        return np.sqrt(np.maximum(variance, 0.0) * inflation)
+
     def to_dict(self) -> dict[str, Any]:
         """A JSON-able record; :meth:`from_dict` restores it exactly."""
         return {

@@ -466,6 +466,15 @@ class ProcessingOptions:
         "reference); the IES and LDT files are then in candela. Not with {lamp_lumens}.",
         **_SCALE,
     )
+    photometric_calibration: Path | None = option(
+        None,
+        "A rig file whose [camera.photometric] (the camera's photometric scale, mirrorgonio calibrate-photometry) "
+        "applies instead of the run's own rig's: for a run taken before the calibration was stored. With either, "
+        "the light model, the report and the light files are in candela and lumens. Not with {candela_per_unit} "
+        "or {lamp_lumens}.",
+        job=True,
+        max_length=MAX_PATH,
+    )
     manufacturer: str | None = option(
         None, "The manufacturer the light files name (IES [MANUFAC], LDT company, TM-25).", **_LIGHT_FILE_NAME
     )
@@ -508,6 +517,12 @@ class ProcessingOptions:
             raise OptionsError(
                 "--lamp-lumens, --candela-per-unit: give one (relative intensities scaled to a lamp flux, or "
                 "absolute candela), not both"
+            )
+        if out.get("photometric_calibration") is not None and (
+            out.get("lamp_lumens") is not None or out.get("candela_per_unit") is not None
+        ):
+            raise OptionsError(
+                "--photometric-calibration: not with --lamp-lumens or --candela-per-unit (one scale for the files)"
             )
         return cls(**out)
 

@@ -102,6 +102,37 @@ def _cmfs() -> np.ndarray:
     return np.asarray(cmfs.values, dtype=float)
 
 
+#: The maximum luminous efficacy of photopic vision (lm/W) with the CIE 1931 ȳ(λ) as V(λ).
+K_M_LM_PER_W = 683.002
+
+
+def candela_per_unit(cct_k: float, camera: Camera) -> float:
+    """The luminous intensity (cd) of one unit of a blackbody emitter's intensity.
+
+    The simulation's unit of intensity is the spectral radiant intensity seen through the
+    camera's channels: an emitter of intensity ``I`` and relative spectrum ``S(λ)`` emits
+    ``I · S(λ) / m`` W sr⁻¹ nm⁻¹, ``m`` the mean over the channels of ``∫ S c_i dλ`` (each
+    ``c_i`` of unit area, :func:`channel_sensitivities`), so that its camera RGB has mean
+    ``I``. Its luminous intensity is then ``K_m ∫ V(λ) I S(λ) / m dλ`` (CIE 1931 ȳ as V).
+
+    Parameters
+    ----------
+    cct_k : float
+        The blackbody's temperature, kelvin.
+    camera : drivers.contracts.rig.Camera
+        Whose channels define the unit.
+
+    Examples
+    --------
+    >>> from drivers.contracts.rig import Camera
+    >>> round(candela_per_unit(2856.0, Camera()), 1)
+    83378.0
+    """
+    spectrum = planck(cct_k)
+    spectrum = spectrum / float(np.mean(camera_rgb(spectrum, camera)))
+    return K_M_LM_PER_W * float(spectrum @ _cmfs()[:, 1])  # 1 nm steps
+
+
 @lru_cache(maxsize=1)
 def _training() -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """The ColorChecker's reflectances (24, n) and each calibration illuminant's spectrum (n,)."""

@@ -121,6 +121,16 @@ class Emitter(ConfigModel):
             return self.intensity.radiance_w_sr_m2 * np.clip(np.cos(theta), 0.0, None) * self.area_m2
         return self.intensity(theta, phi)
 
+    def luminous_intensity_cd(self, theta: ArrayLike, phi: ArrayLike, camera: Camera) -> np.ndarray:
+        """Luminous intensity of the whole disc (cd), through the CIE observer: the truth of an
+        absolute measurement (:func:`sim_devices.colour.candela_per_unit`). Needs ``cct_k``:
+        a camera RGB alone defines no spectrum."""
+        if self.cct_k is None:
+            raise TruthError(f"emitter {self.name}: a luminous intensity needs cct_k (a spectrum), not camera RGB")
+        from sim_devices.colour import candela_per_unit  # noqa: PLC0415 - colour-science is heavy
+
+        return candela_per_unit(self.cct_k, camera) * self.intensity_w_sr(theta, phi)
+
 
 class TruthLight(ConfigModel):
     """A ground-truth light: the emitters on its plane."""

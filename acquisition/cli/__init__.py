@@ -5,7 +5,17 @@ adds its commands to it. The commands import their work when they run, so that t
 starts in a fraction of a second whatever it is asked.
 """
 
-from acquisition.cli import benchmarks, daemon, demo, process, rawfiles, reflectance, simulate, verify  # noqa: F401 - they register their commands
+from acquisition.cli import (  # noqa: F401 - they register their commands
+    benchmarks,
+    daemon,
+    demo,
+    photometry,
+    process,
+    rawfiles,
+    reflectance,
+    simulate,
+    verify,
+)
 from acquisition.cli.app import app, main
 
 __all__ = ["app", "main"]

@@ -125,6 +125,31 @@ def simulate_capture(
     )
 
 
+@simulate_app.command("certificate")
+def simulate_certificate(
+    truth: Annotated[str, typer.Argument(help="Truth light (shipped name or TOML path), e.g. reference-lamp.")],
+    rig: RigOption = None,
+    theta: Annotated[float, typer.Option("--theta-deg", min=0.0, max=90.0, help="Polar angle, degrees.")] = 0.0,
+    phi: Annotated[float, typer.Option("--phi-deg", min=-360.0, max=360.0, help="Azimuth, degrees.")] = 0.0,
+) -> None:
+    """Print each emitter's luminous intensity (cd) in one direction: a simulated reference
+    lamp's calibration certificate, for ``mirrorgonio calibrate-photometry --reference-cd``."""
+    from drivers.contracts.rig import load_rig
+    from sim_devices.lights import TruthError, load_truth
+
+    try:
+        camera = load_rig(rig or default_rig()).camera
+        light = load_truth(truth)
+        values = [
+            (e.name, float(e.luminous_intensity_cd(math.radians(theta), math.radians(phi), camera)))
+            for e in light.emitters
+        ]
+    except domain_errors(TruthError) as exc:
+        raise fail(str(exc)) from None
+    for name, candela in values:
+        typer.echo(f"{name}: {candela:.6g} cd at theta {theta:g} deg, phi {phi:g} deg")
+
+
 @simulate_app.command("point-spread")
 def simulate_point_spread(
     output: Annotated[Path, typer.Option("-o", "--output", help="The .npz file to write.")],

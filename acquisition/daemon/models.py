@@ -194,6 +194,10 @@ class _JobRequest(BaseModel):
     def _one_photometric_scale(self):
         if getattr(self, "lamp_lumens", None) is not None and getattr(self, "candela_per_unit", None) is not None:
             raise ValueError("lamp_lumens, candela_per_unit: give one (relative scaled to a lamp flux, or candela)")
+        if getattr(self, "photometric_calibration", None) is not None and (
+            getattr(self, "lamp_lumens", None) is not None or getattr(self, "candela_per_unit", None) is not None
+        ):
+            raise ValueError("photometric_calibration: not with lamp_lumens or candela_per_unit (one scale)")
         return self
 
     def options(self) -> dict:

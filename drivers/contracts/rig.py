@@ -20,6 +20,7 @@ from pydantic import Field, PositiveFloat, PositiveInt, model_validator
 
 from drivers.arm import SoftLimits
 from drivers.config_files import ConfigModel, load_model, validate_model
+from drivers.contracts.photometric import PhotometricCalibration
 from drivers.pose import Pose, angles_from_rotation, rotation_from_angles
 
 # scipy.spatial.transform is imported where a rotation is computed (CameraPose.extrinsics,
@@ -269,6 +270,7 @@ class Camera(ConfigModel):
     point_spread: Literal["geometric-airy", "fresnel"] = "fresnel"
     measured_point_spread: MeasuredPointSpread | None = None
     sensitivity_e_per_s: PositiveFloat = 1000.0
+    photometric: PhotometricCalibration | None = None
 
     @model_validator(mode="after")
     def _levels(self) -> Self:

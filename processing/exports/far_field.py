@@ -149,3 +149,19 @@ def describe_light(model: LightModel) -> tuple[str, str, str]:
     rig = str(prov.get("rig") or "unknown rig")
     methods = sorted({s.fit.method for s in model.sources})
     return run, rig, ", ".join(methods)
+
+
+def absolute_note(model: LightModel) -> str | None:
+    """The light files' words on an absolute scale's uncertainty and origin (ASCII), from the
+    model's ``photometry.absolute``; None without one."""
+    absolute = model.photometry.get("absolute")
+    if absolute is None:
+        return None
+    calibration = absolute["calibration"]
+    plain = str.maketrans({"θ": "theta ", "φ": "phi ", "°": " deg", "±": "+-", "σ": "sigma"})
+    text = (
+        f"Candela through the camera's photometric calibration ({calibration['reference']}; "
+        f"1-sigma {100 * absolute['relative_uncertainty']:.2f} % of the scale, colour included); "
+        f"total flux {absolute['flux_lm']:.5g} lm +- {absolute['flux_lm_sigma']:.2g} (1 sigma)."
+    )
+    return ascii_only(text.translate(plain))

@@ -12,6 +12,7 @@ from drivers.contracts.version import __version__
 from processing.colour import describe
 from processing.exports.far_field import (
     ExportError,
+    absolute_note,
     angle_grid,
     checked_extrapolation,
     describe_light,
@@ -71,9 +72,10 @@ def _ies_units(
 ) -> tuple[str, str]:
     """``([_UNITS], [OTHER])``: what the intensities are, in a word and in a sentence."""
     if absolute:
+        note = absolute_note(model)
         return "candela", (
             f"Absolute photometry: candela = {calibration:.6g} cd per model unit x the model's {model.units} "
-            "intensities."
+            "intensities." + (f" {note}" if note else "")
         )
     scaled = f"scaled to a lamp flux of {lamp_lumens:.6g} lm" if lamp_lumens is not None else "scaled to a peak of 1000"
     return "relative intensity", (

@@ -41,7 +41,10 @@ def _ldt_description(
     n_c, c_step_deg, n_gamma, gamma_step_deg = grid
     symmetric = all(s.fit.method != "gaussian-2d" for s in model.sources)
     run, rig, methods = describe_light(model)
+    scale = model.photometry.get("absolute")
     units = "candela (calibrated)" if absolute else f"relative ({model.units}, uncalibrated)"
+    if absolute and scale is not None:
+        units = f"candela (calibrated, 1-sigma {100 * scale['relative_uncertainty']:.2f} %)"
 
     def line(text: str, limit: int) -> str:
         return ascii_only(text)[:limit]

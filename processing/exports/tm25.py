@@ -15,7 +15,7 @@ import numpy as np
 
 from drivers.contracts.version import __version__
 from processing.colour import describe
-from processing.exports.far_field import ExportError, far_field_scaling
+from processing.exports.far_field import ExportError, absolute_note, far_field_scaling
 from processing.lightmodel import LightModel, SourceModel
 
 
@@ -219,6 +219,9 @@ def _tm25_texts(
     prov = model.provenance
     run = str(prov.get("run_id") or "unknown run")
     unit_note = "W (radiant flux)" if model.units == "W/sr" else "relative units (uncalibrated measurement)"
+    absolute = absolute_note(model)
+    if absolute is not None:
+        unit_note += f"; luminous flux in lm: {absolute}"
     return {
         "name": name or f"light of mirrorgonio run {run}",
         "manufacturer": manufacturer,

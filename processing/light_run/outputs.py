@@ -11,9 +11,11 @@ from typing import Any
 
 import numpy as np
 
+from drivers.contracts.photometric import PhotometricCalibration
 from drivers.contracts.rig import rig_to_toml_dict, write_rig
 from drivers.contracts.runfile import CorruptFrame, RunFile
 from drivers.contracts.version import __version__
+from processing.calibration.photometric import absolute_photometry, luminous_model
 from processing.exports.ies import write_ies
 from processing.exports.ldt import write_ldt
 from processing.exports.pbrt import write_pbrt_lights
@@ -63,6 +65,9 @@ class SourcesToFinish:
         Where the report's sections are drawn (default: here).
     truth : callable, optional
         The simulated truth, drawn beside the fits in the report.
+    photometric : tuple, optional
+        The camera's photometric calibration and where it was read: the model is then also
+        in candela and lumens (``photometry.absolute``), and so are the light files.
     """
 
     run: RunFile
@@ -76,6 +81,7 @@ class SourcesToFinish:
     steps: Steps
     compute: Compute | None = None
     truth: Truth | None = None
+    photometric: tuple[PhotometricCalibration, str] | None = None
 
 
 def finish_sources(done: SourcesToFinish) -> None:
@@ -102,6 +108,11 @@ def finish_sources(done: SourcesToFinish) -> None:
     record_provenance(model, report, plan, options, out / name, done.positions, done.rows)
     clock = time.perf_counter()
     model.photometry = summarize(model, options.extrapolation).record()
+    if done.photometric is not None:
+        calibration, origin = done.photometric
+        model.photometry["absolute"] = absolute_photometry(
+            model, calibration, run.header.camera_colour, run.header.rig.camera, origin
+        )
     timings["photometry"] = time.perf_counter() - clock
     report.light_model = model.save(output_path(run_path, out, ".light.json"))
 
@@ -147,9 +158,13 @@ def write_light_files(
     """The IES, LDT, TM-25 and pbrt-v4 files of ``model``, with the names, the lamp flux or calibration
     and the ray count of ``options`` (the luminaire named after the run where none is given)."""
     luminaire = options.luminaire or f"mirrorgonio run {run_name(run_path)}"
+    absolute = model.photometry.get("absolute")
+    calibration = options.candela_per_unit
+    if absolute is not None:  # each source weighed by its own luminance, one scale for all
+        model, calibration = luminous_model(model, absolute), absolute["reference_candela_per_unit"]
     photometric: dict[str, Any] = {  # what the IES and the LDT say alike
         "lamp_lumens": options.lamp_lumens,
-        "calibration": options.candela_per_unit,
+        "calibration": calibration,
         "luminaire": luminaire,
         "lamp": options.lamp,
         "extrapolation": options.extrapolation,
@@ -167,13 +182,13 @@ def write_light_files(
         seed=0,
         name=options.luminaire,
         manufacturer=options.manufacturer or "unknown",
-        calibration=options.candela_per_unit,
+        calibration=calibration,
         lamp_lumens=options.lamp_lumens,
     )
     pbrt = write_pbrt_lights(
         model,
         output_path(run_path, out, ".pbrt") / "light.pbrt",
-        calibration=options.candela_per_unit,
+        calibration=calibration,
         extrapolation=options.extrapolation,
     )
     return {"ies": [ies], "ldt": [ldt], "tm25": [tm25], "pbrt": pbrt}

@@ -27,6 +27,8 @@ from typing import Any, Final
 
 import numpy as np
 
+from drivers.contracts.photometric import PhotometricCalibration
+from drivers.contracts.rig import RigError, load_rig
 from drivers.contracts.runfile import CorruptFrame, RunFile, RunFileError
 from drivers.contracts.version import __version__
 from processing.light_run.checksums import sound_positions
@@ -143,6 +145,7 @@ class LightRun:
         self.step, self.step_done = "hdr", 0  # the pass over the positions under way, and its positions done
         # The measured point spread's record, where there is one: it leaves no aperture to fit.
         self.point_spread: dict[str, Any] | None = self._point_spread() if Step.SOURCES in options.steps else None
+        self.photometric = self._photometric_calibration() if Step.SOURCES in options.steps else None
         self.plan: Final[ProcessingPlan] = plan_processing(options, point_spread_measured=self.point_spread is not None)
         # The positions to process and the report's count and noise model: _start's, before any pass.
         self.positions: np.ndarray = np.empty(0, dtype=np.intp)
@@ -186,6 +189,7 @@ class LightRun:
                     self.steps,
                     compute=self.compute,
                     truth=self.truth,
+                    photometric=self.photometric,
                 )
             )
         self.timings["total"] = time.perf_counter() - started
@@ -241,6 +245,28 @@ class LightRun:
         self.report.partial = positions.size < run.n_positions
         self.report.compute = self.compute.description
         self.steps.positions_total = self.plan.passes * int(positions.size)
+
+    def _photometric_calibration(self) -> tuple[PhotometricCalibration, str] | None:
+        """The camera's photometric scale and where it was read, checked before any work: the
+        ``photometric_calibration`` option's rig file, else the run's own rig; None where the
+        light files get another scale or neither holds one."""
+        options = self.options
+        if options.lamp_lumens is not None or options.candela_per_unit is not None:
+            return None
+        path = options.photometric_calibration
+        if path is None:
+            own = self.run.header.rig.camera.photometric
+            return None if own is None else (own, "the run's rig, [camera.photometric]")
+        try:
+            calibration = load_rig(path).camera.photometric
+        except RigError as exc:
+            raise ProcessingError(f"--photometric-calibration: {exc}") from None
+        if calibration is None:
+            raise ProcessingError(
+                f"--photometric-calibration: {path}: no [camera.photometric] in it (mirrorgonio "
+                "calibrate-photometry writes one)"
+            )
+        return calibration, f"{path}, [camera.photometric]"
 
     def _point_spread(self) -> dict[str, Any] | None:
         """The measured point spread the rig names, read and checked before any work: its record

@@ -243,18 +243,56 @@ def _zones_table(summary: Photometry) -> str:
     return html_table(["zone γ", "flux", "% of total", "cumulative %", "% of the zone beyond the measured γ"], rows)
 
 
+def _absolute_html(absolute: dict[str, Any]) -> str:
+    """The light in candela and lumens (``photometry.absolute``): where the scale comes from and
+    each source's peak and flux with their 1σ."""
+    calibration = absolute["calibration"]
+    rescaled = calibration["rescaled_by"]
+    said = (
+        f"<p><b>Absolute photometry.</b> The camera's photometric scale, {calibration['candela_per_unit']:.6g} cd "
+        f"per unit ± {100 * calibration['relative_uncertainty']:.2f} % (1σ), read from "
+        f"{html.escape(str(calibration['from']))}: {html.escape(str(calibration['reference']))}"
+        + (
+            f", rescaled by {rescaled:.6g} for the camera's gain and sensitivity as now described"
+            if rescaled != 1.0
+            else ""
+        )
+        + f". Across colours: {html.escape(absolute['colour'])}. Total luminous flux "
+        f"<b>{absolute['flux_lm']:.5g} lm ± {absolute['flux_lm_sigma']:.2g}</b> (1σ); the IES, LDT, TM-25 and "
+        "pbrt files are in candela and lumens.</p>"
+    )
+    rows = [
+        [
+            entry["name"],
+            f"{entry['candela_per_unit']:.6g}",
+            f"{entry['peak_cd']:.5g} ± {entry['peak_cd_sigma']:.2g} at θ {entry['peak_theta_deg']:.1f}°",
+            f"{entry['flux_lm']:.5g}",
+            f"{100 * entry['relative_uncertainty']:.2f} % (of which colour {100 * entry['spectral_mismatch']:.2f} %)",
+        ]
+        for entry in absolute["sources"]
+    ]
+    return said + html_table(["source", "cd per unit", "peak (cd, 1σ)", "flux (lm)", "scale's 1σ"], rows)
+
+
 def photometry_section(model: LightModel, encoder: FigureEncoder | None = None) -> str:
     """The section's HTML: the figures, the zonal flux, the two diagrams and the illuminance maps,
     for the extrapolation the light files were written with (the model's ``photometry``)."""
     summary = summarize(model, model.photometry.get("extrapolation", Extrapolation.FITTED))
     every = summary.light_theta_max_deg[0]
     written = "zero" if summary.extrapolation == Extrapolation.NONE else "the fits' extrapolation"
-    units = "in W/sr" if model.units == "W/sr" else "relative (not calibrated)"
+    units = (
+        "in W/sr"
+        if model.units == "W/sr"
+        else "relative (in candela below)"
+        if "absolute" in model.photometry
+        else "relative (not calibrated)"
+    )
     parts = [
         f"<p>The whole light, as its IES and LDT files describe it: beyond the measured γ ({every:.1f}°) they "
         f"hold {html.escape(written)} (<code>--extrapolation</code>). Intensities {units}; "
         "γ from the light's axis, C counter-clockwise from the light's +x seen from the lit side.</p>",
         _figures_table(model, summary),
+        *([_absolute_html(model.photometry["absolute"])] if "absolute" in model.photometry else []),
         figure_html(
             diagrams_figure(model, summary),
             "C-plane polar diagram and isocandela diagram",
