@@ -259,7 +259,7 @@ class IntensityFit:
         ({'a': 4.0, 'sigma': 0.3}, 0.02, True)
         """
         names = list(self.params)
-        scales = np.array([factor if name == "a" or self.method == "polynomial" else 1.0 for name in names])
+        scales = [float(factor) if scales_with else 1.0 for scales_with in _intensity_parameters(self.method, names)]
         return IntensityFit(
             self.method,
             {name: self.params[name] * s for name, s in zip(names, scales, strict=True)},
@@ -274,11 +274,13 @@ class IntensityFit:
         )
 
     def band(self, theta: ArrayLike, phi: ArrayLike = 0.0) -> np.ndarray:
-        """The 1σ of the model's intensity at ``(θ, φ)`` from its parameters' covariance.
+        """The 1σ of the model's intensity at ``(θ, φ)`` from the parameters' covariance.
 
         ``σ_I² = J C J^T · max(1, χ²_ν)``: ``J`` the model's gradient in its parameters
         (central differences), the covariance inflated where the residuals say the samples'
-        own errors are too small. ``inf`` where a parameter is not determined.
+        errors are too small. A fit by :func:`fit_with_model_error` holds the templates' model
+        error in ``C`` as a scale common to the sweep, so the band is then at least ``ε I``.
+        ``inf`` where a parameter is not determined.
 
         Examples
         --------
@@ -764,7 +766,39 @@ def fit_with_model_error(samples: Samples, method: str = "gaussian", **options: 
         fit = fit_intensity(widened, method, **options)
     fit.info["model_error"] = round(epsilon, 6)
     fit.info["chi2_reduced_noise"] = round(noise_only, 4)
-    return fit, widened
+    return _with_scale_error(fit, epsilon), widened
+
+
+def _intensity_parameters(method: str, names: list[str]) -> list[bool]:
+    """Which of a fit's parameters are in intensity units (they scale with the intensity)."""
+    return [name == "a" or method == "polynomial" for name in names]
+
+
+def _with_scale_error(fit: IntensityFit, epsilon: float) -> IntensityFit:
+    """``fit`` with a scale error ε common to all its samples in its covariance.
+
+    The templates are one model for every position (their point spread, the rig's last error):
+    the part of their error that the widened σ treats as independent averages down over the
+    samples, but a share of it is common to the sweep and does not. Taken whole as a common
+    scale (the conservative reading: ``docs/light-model.md``, "Uncertainties"), it adds
+    ``ε² p pᵀ`` to the covariance, ``p`` the intensity parameters (0 for the shape's), so that
+    the intensity's band is at least ``ε I`` everywhere.
+    """
+    if epsilon <= 0.0:
+        return fit
+    names = list(fit.params)
+    p = np.array(
+        [
+            fit.params[n] if scales else 0.0
+            for n, scales in zip(names, _intensity_parameters(fit.method, names), strict=True)
+        ]
+    )
+    covariance = np.asarray(fit.covariance, dtype=float) + epsilon**2 * np.outer(p, p)
+    uncertainties = {
+        n: (math.sqrt(covariance[i, i]) if math.isfinite(fit.uncertainties[n]) else math.inf)
+        for i, n in enumerate(names)
+    }
+    return replace(fit, covariance=covariance, uncertainties=uncertainties)
 
 
 def _model_error(sigma: np.ndarray, residuals: np.ndarray, model: np.ndarray, parameters: int) -> float:

@@ -201,7 +201,25 @@ class SourceModel:
             "colour": list(self.colour),
             **({"chromaticity": json_ready(self.chromaticity)} if self.chromaticity else {}),
             "fit": self.fit.to_dict(),
+            "band": self.band_table(),
             "samples": json_ready(self.samples),
+        }
+
+    def band_table(self, step_deg: float = 1.0) -> dict[str, Any]:
+        """The fit and its 1σ (:meth:`processing.fit.IntensityFit.band`) over the measured θ, for
+        readers without this code: ``theta_deg`` every ``step_deg`` from the range's start to
+        its end, ``phi_deg`` (0 alone for a fit symmetric about the axis, every 15° for a 2-D
+        one), ``intensity`` and ``sigma`` as ``[phi][theta]``; derived, not read back."""
+        lo, hi = (math.degrees(v) for v in self.fit.theta_range)
+        theta = np.unique(np.append(np.arange(lo, hi, step_deg), hi)) if hi > lo else np.array([lo])
+        phi = np.arange(0.0, 360.0, 15.0) if self.fit.method == "gaussian-2d" else np.zeros(1)
+        t, p = np.meshgrid(np.radians(theta), np.radians(phi))
+        return {
+            "theta_deg": [round(float(v), 4) for v in theta],
+            "phi_deg": [float(v) for v in phi],
+            "intensity": json_ready(self.intensity(t, p)),
+            "sigma": json_ready(self.fit.band(t, p)),
+            "model_error": float(self.fit.info.get("model_error", 0.0)),
         }
 
 

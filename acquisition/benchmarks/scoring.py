@@ -159,9 +159,10 @@ _GAUSSIAN_TRUTH = {"a": lambda law: law.peak_w_sr, "sigma": lambda law: math.rad
 
 def coverage(source: SourceModel, emitter: Emitter, frame: Pose | None) -> dict:
     """How many of the source's quoted 1σ cover the truth: its samples' error bars (each
-    sample's intensity against the truth's in the same direction, seen through ``frame``) and
-    its fit's parameters (a gaussian's peak and width against the truth's gaussian, where the
-    frames agree in direction: a turned frame makes the truth's lobe another function)."""
+    sample's intensity against the truth's in the same direction, seen through ``frame``), its
+    fit's 1σ band on I(θ, φ) at the same directions, and its fit's parameters (a gaussian's
+    peak and width against the truth's gaussian, where the frames agree in direction: a
+    turned frame makes the truth's lobe another function)."""
     theta = np.asarray(source.samples["theta"], float)
     phi = np.asarray(source.samples.get("phi") or np.zeros_like(theta), float)
     direction = np.stack([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi), np.cos(theta)], axis=-1)
@@ -171,9 +172,13 @@ def coverage(source: SourceModel, emitter: Emitter, frame: Pose | None) -> dict:
         np.arccos(np.clip(direction[:, 2], -1.0, 1.0)), np.arctan2(direction[:, 1], direction[:, 0])
     )
     error = np.abs(np.asarray(source.samples["intensity"], float) - true)
+    # The fit's 1σ band at the same directions, against the truth there.
+    band_error = np.abs(source.intensity(theta, phi) - true)
     out = {
         "samples_within": int(np.count_nonzero(error <= np.asarray(source.samples["sigma"], float))),
         "samples": int(theta.size),
+        "band_within": int(np.count_nonzero(band_error <= source.fit.band(theta, phi))),
+        "band": int(theta.size),
     }
     law = getattr(emitter, "intensity", None)
     turned = frame is not None and frame.distance_to(Pose(0.0, 0.0, 0.0))[1] > math.radians(0.2)
@@ -188,10 +193,10 @@ def coverage(source: SourceModel, emitter: Emitter, frame: Pose | None) -> dict:
 
 
 def coverage_share(scored_sources: list[dict]) -> dict:
-    """The share of quoted 1σ that cover the truth over all sources: parameters and samples
-    (a true 1σ covers 68 %)."""
+    """The share of quoted 1σ that cover the truth over all sources: parameters, samples and
+    the fits' I(θ) band (a true 1σ covers 68 %)."""
     share = {}
-    for kind in ("parameters", "samples"):
+    for kind in ("parameters", "samples", "band"):
         total = sum(entry["coverage"].get(kind, 0) for entry in scored_sources)
         within = sum(entry["coverage"].get(f"{kind}_within", 0) for entry in scored_sources)
         share[kind] = round(within / total, 3) if total else None

@@ -165,3 +165,20 @@ def absolute_note(model: LightModel) -> str | None:
         f"total flux {absolute['flux_lm']:.5g} lm +- {absolute['flux_lm_sigma']:.2g} (1 sigma)."
     )
     return ascii_only(text.translate(plain))
+
+
+def intensity_uncertainty(model: LightModel, theta_max_deg: float) -> tuple[float, float]:
+    """The whole light's 1σ over its measured θ, as fractions of its intensity: the median and
+    the largest where the light holds at least a tenth of its peak. Each source's band
+    (:meth:`processing.fit.IntensityFit.band`), the sources taken as independent, on the
+    C-planes every 15°."""
+    theta = np.radians(np.linspace(0.0, theta_max_deg, 46))[None, :]
+    phi = np.radians(np.arange(0.0, 360.0, 15.0))[:, None]
+    total = np.zeros((phi.size, theta.size))
+    variance = np.zeros_like(total)
+    for source in model.sources:
+        total += source.intensity(theta, phi)
+        variance += source.fit.band(theta, phi) ** 2
+    strong = total >= 0.1 * float(total.max())
+    relative = np.sqrt(variance[strong]) / total[strong]
+    return float(np.median(relative)), float(relative.max())

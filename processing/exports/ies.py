@@ -18,6 +18,7 @@ from processing.exports.far_field import (
     describe_light,
     far_field_scaling,
     far_field_table,
+    intensity_uncertainty,
     keyword_lines,
     luminous_opening,
     measured_range_text,
@@ -88,10 +89,17 @@ def _angle_keyword(value: float | None) -> str:
     return "undefined" if value is None else f"{value:.1f}"
 
 
-def _ies_photometry_keywords(summary: Photometry) -> list[str]:
+def _ies_photometry_keywords(model: LightModel, summary: Photometry) -> list[str]:
     """The user keywords (LM-63-2019: ``[_…]``) of the table's photometric summary and its
-    measured range: degrees, and % of the table's flux."""
+    measured range: degrees, and % of the table's flux; the intensities' 1σ over that range."""
     lines = keyword_lines("_MEASURED_THETA_MAX", f"{summary.light_theta_max_deg[0]:.1f}")
+    median, largest = intensity_uncertainty(model, summary.light_theta_max_deg[0])
+    lines += keyword_lines(
+        "_INTENSITY_UNCERTAINTY",
+        f"1-sigma {100 * median:.2f} % median, {100 * largest:.2f} % largest, over the measured gamma where the "
+        "intensity is at least 10 % of the peak (fits and templates' model error; a calibration's own 1-sigma "
+        "adds to it)",
+    )
     lines += keyword_lines("_EXTRAPOLATION", summary.extrapolation)
     lines += keyword_lines("_FLUX_BEYOND_MEASURED", f"{100 * summary.beyond_fraction:.1f} %")
     for kind in ("beam", "field"):
@@ -135,7 +143,7 @@ def _ies_keywords(
     )
     lines += keyword_lines("OTHER", f"{other} {measured_range_text(summary)}")
     lines += keyword_lines("_UNITS", units_word)
-    lines += _ies_photometry_keywords(summary)
+    lines += _ies_photometry_keywords(model, summary)
     lines += _ies_colour(model)
     return lines + keyword_lines("_SOFTWARE", f"mirrorgonio {__version__}")
 

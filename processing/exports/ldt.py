@@ -14,6 +14,7 @@ from processing.exports.far_field import (
     describe_light,
     far_field_scaling,
     far_field_table,
+    intensity_uncertainty,
     luminous_opening,
     plain_number,
     write_text,
@@ -23,11 +24,15 @@ from processing.options import Extrapolation
 from processing.photometry import Photometry, summarize
 
 
-def _ldt_report_line(run: str, summary: Photometry) -> str:
-    """Line 8, the measurement report: the γ measured, what lies beyond, and the run (78 characters: a
-    long run id is cut, not the range)."""
+def _ldt_report_line(run: str, model: LightModel, summary: Photometry) -> str:
+    """Line 8, the measurement report: the γ measured, what lies beyond, the intensities' median
+    1σ there, and the run (78 characters: a long run id is cut, not the range)."""
     beyond = "zero" if summary.extrapolation == Extrapolation.NONE else "fitted"
-    return f"measured to gamma {summary.light_theta_max_deg[0]:.1f} deg, {beyond} beyond; mirrorgonio run {run}"
+    median, _ = intensity_uncertainty(model, summary.light_theta_max_deg[0])
+    return (
+        f"to gamma {summary.light_theta_max_deg[0]:.1f} deg, {beyond} beyond, 1-sigma {100 * median:.2f} %; "
+        f"mirrorgonio run {run}"
+    )
 
 
 def _ldt_description(
@@ -57,7 +62,7 @@ def _ldt_description(
         plain_number(c_step_deg),  # Dc
         str(n_gamma),  # Ng
         plain_number(gamma_step_deg),  # Dg
-        line(_ldt_report_line(run, summary), 78),  # measurement report
+        line(_ldt_report_line(run, model, summary), 78),  # measurement report
         line(luminaire or f"near-field light model, {len(model.sources)} sources ({methods})", 78),
         line(luminaire_number or run, 78),
         line(file_name, 8 + 4 + 66),

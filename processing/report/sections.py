@@ -365,6 +365,7 @@ def intensity_section(ctx: ReportContext) -> str:
         "θ covered",
         "samples",
         "χ²ᵣ",
+        "1σ of I on the axis (of which model error)",
     ]
     if ctx.truth is not None:
         header.append("error vs truth (RMS / peak)")
@@ -381,6 +382,7 @@ def intensity_section(ctx: ReportContext) -> str:
             f"{math.degrees(lo):.1f}° – {math.degrees(hi):.1f}°",
             str(len(d.theta)),
             f"{source.fit.chi2_reduced:.3g}",
+            _band_on_axis(source),
         ]
         if ctx.truth is not None:
             err = truth_error(source, ctx.truth, k)
@@ -393,6 +395,14 @@ def intensity_section(ctx: ReportContext) -> str:
             "the source's samples cover (<code>docs/measurement.md</code>).</p>"
         )
     return "\n".join(parts)
+
+
+def _band_on_axis(source: SourceModel) -> str:
+    """The fit's 1σ on the axis (:meth:`~processing.fit.IntensityFit.band`), in % of I there."""
+    value, sigma = float(source.intensity(0.0)), float(source.fit.band(0.0))
+    if not (value > 0 and math.isfinite(sigma)):
+        return "not determined"
+    return f"{100 * sigma / value:.2f} % ({100 * float(source.fit.info.get('model_error', 0.0)):.2f} %)"
 
 
 def layout_section(ctx: ReportContext) -> str:
