@@ -116,9 +116,10 @@ def test_the_reference_lamp_gives_the_cameras_scale_and_the_rig_file_keeps_it(la
     assert calibration is not None
     true = candela_per_unit(2856.0, lab.camera)
     error = calibration.candela_per_unit / true - 1.0
-    # measured: +0.53 % (the lone lamp's peak fitted 0.5 % low on the reduced rig), 1σ 0.56 %
+    # measured: +0.53 % (the lone lamp's peak fitted 0.5 % low on the reduced rig), 1σ 0.90 % (the
+    # certificate's 0.5 % and the fit's, its 0.7 % model error taken as common to the sweep)
     assert abs(error) < 0.01 and abs(error) < 2.0 * calibration.relative_uncertainty, (error, calibration)
-    assert 0.005 < calibration.relative_uncertainty < 0.01  # the certificate's 0.5 % and the fit's
+    assert 0.005 < calibration.relative_uncertainty < 0.012
     assert calibration.reference.startswith("simulated standard lamp SL-1: ")
     assert calibration.run_id == "run-lamp" and calibration.made_utc is not None
     assert calibration.reference_camera_rgb is not None and calibration.reference_camera_rgb[0] > 1.4  # warm
@@ -157,7 +158,9 @@ def test_a_light_taken_later_is_in_candela_at_every_angle_its_uncertainty_coveri
         total += entry["flux_lm"]
     # measured: the worst 1.8 % (the centre's tail, where its cool neighbour's light mixes in)
     assert 0.005 < worst < 0.02
-    assert np.mean(inside) > 0.5  # the 1σ band is not a 2σ one in disguise (measured 0.9)
+    # On this coarse rig the model error is mostly white and the band, taking it whole, wide:
+    # every angle within 1σ (measured 1.0; docs/light-model.md, "Uncertainties").
+    assert np.mean(inside) > 0.5
     total_true *= 2.0 * math.pi
     assert total == pytest.approx(total_true, rel=0.02)
     assert abs(total - total_true) < 2.0 * absolute["flux_lm_sigma"]
