@@ -221,8 +221,13 @@ def test_a_wrong_pinhole_costs_the_fits_and_fitting_the_aperture_wins_them_back(
     # and its cell, and the benchmark goes on.
     assert "failed" not in runs["pinhole+40%", "given"]
     assert "the best aperture lies at the search's bound" in runs["pinhole+40%", fitted]["failed"]
-    table = out["markdown"].splitlines()
+    table, coverage = (part.splitlines() for part in out["markdown"].split("\n\n", 1))
     assert table[0].startswith("| rig description |") and len(table) == 6
+    # then the share of quoted 1σ holding the truth, one row per way (no rig fitted here: no rig numbers)
+    assert coverage[0].startswith("Quoted 1σ that hold the truth") and len(coverage) == 2 + 2 + 2
+    for row in coverage[4:]:
+        cells = [cell.strip() for cell in row.split("|")[2:-1]]
+        assert all(cell.endswith(" %") for cell in cells[:3]) and cells[3] == "", coverage
     assert table[5].startswith("| pinhole+40% (`camera.pinhole_diameter_m × 1.4`) |") and "| failed: " in table[5]
     assert table[2].startswith(f"| as taken | {100 * as_taken['max_rms_rel_error']:.2f} % |")
     assert table[3].startswith("| pinhole+10% (`camera.pinhole_diameter_m × 1.1`) |")

@@ -11,6 +11,7 @@ import pytest
 
 from processing import fit as fitmod
 from processing.fit import FIT_METHODS, FitError, IntensityFit, Samples, fit_intensity
+from processing.fit_model_error import fit_with_model_error
 
 # The reference sweep: 66 positions, θ from about 3° to 41° (docs/measurement.md).
 THETA = np.radians(np.linspace(3.0, 41.0, 66))
@@ -264,7 +265,7 @@ def test_the_model_error_is_taken_as_a_scale_common_to_the_sweep():
     truth = 2.0 * np.exp(-(THETA**2) / (2 * 0.3**2))
     measured = truth * (1.0 + 0.01 * rng.standard_normal(THETA.size))  # 1 % scatter, σ says 0.1 %
     plain = fit_intensity(Samples(THETA, np.zeros_like(THETA), measured, 0.001 * truth), "gaussian")
-    fit, widened = fitmod.fit_with_model_error(Samples(THETA, np.zeros_like(THETA), measured, 0.001 * truth))
+    fit, widened = fit_with_model_error(Samples(THETA, np.zeros_like(THETA), measured, 0.001 * truth))
     epsilon = fit.info["model_error"]
     assert epsilon == pytest.approx(0.01, rel=0.2)
     assert fit.uncertainties["a"] >= epsilon * fit.params["a"]
@@ -285,7 +286,7 @@ def test_the_band_covers_a_scale_error_the_residuals_cannot_see():
     for _ in range(400):
         common = 1.0 + 0.004 * rng.standard_normal()
         measured = truth * common * (1.0 + 0.004 * rng.standard_normal(THETA.size))
-        fit, _ = fitmod.fit_with_model_error(Samples(THETA, np.zeros_like(THETA), measured, 1e-4 * truth))
+        fit, _ = fit_with_model_error(Samples(THETA, np.zeros_like(THETA), measured, 1e-4 * truth))
         within.append(abs(float(fit(0.0)) - 2.0) <= float(fit.band(0.0)))
     # A true 1σ holds 68 %; measured 0.69. Without the common term the band is ε/√66: about 10 %.
     assert 0.6 < np.mean(within) < 0.78
@@ -296,7 +297,7 @@ def test_the_light_model_file_carries_each_sources_band(tmp_path):
     IntensityFit.band gives them; derived at writing, not read back."""
     from processing.lightmodel import LightModel, SourceModel
 
-    fit, _ = fitmod.fit_with_model_error(gaussian_samples())
+    fit, _ = fit_with_model_error(gaussian_samples())
     model = LightModel([SourceModel("led0", (0.0, 0.0), 0.0005, fit)], "relative", {"run_id": "r"})
     path = model.save(tmp_path / "m.light.json")
     record = json.loads(path.read_text())["sources"][0]["band"]

@@ -10,7 +10,8 @@ import numpy as np
 from drivers.contracts.runfile import RunFile
 from drivers.contracts.version import __version__
 from processing.colour import THETA_BIN_DEG, binned_colour, colour_section, over_theta, relative_luminance
-from processing.fit import FitError, Samples, fit_with_model_error
+from processing.fit import FitError, Samples
+from processing.fit_model_error import fit_with_model_error
 from processing.light_run.errors import ProcessingError
 from processing.light_run.samples import SourceSamples
 from processing.lightmodel import LightModel, SourceModel, samples_table

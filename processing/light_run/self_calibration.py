@@ -181,9 +181,10 @@ def _calibration(
 
 
 def _settled(before: RigFit, after: RigFit, limit: np.ndarray) -> bool:
-    """The correction moved by less than its 1σ (or a fiftieth of its tolerance) in every number."""
+    """The correction moved by less than its statistical 1σ (or a fiftieth of its tolerance) in
+    every number."""
     moved = np.abs(after.correction.vector - before.correction.vector)
-    return bool(np.all(moved <= np.maximum(np.asarray(after.sigma), 0.02 * limit)))
+    return bool(np.all(moved <= np.maximum(np.asarray(after.statistical or after.sigma), 0.02 * limit)))
 
 
 def _fitted_rig(

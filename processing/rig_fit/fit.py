@@ -8,7 +8,7 @@ from dataclasses import dataclass, field, replace
 from typing import cast
 
 import numpy as np
-from scipy.optimize import least_squares
+from scipy.optimize import OptimizeResult, least_squares
 from threadpoolctl import threadpool_limits
 
 from drivers.contracts.rig import Tolerances
@@ -34,8 +34,12 @@ class RigFit:
     correction : RigCorrection
         The fitted numbers (:data:`~processing.rig_fit.correction.FITTED`), in their fit units.
     sigma : tuple of float
-        Each one's 1σ, from the fit's Jacobian with the residuals' scatter (χ² per degree of
-        freedom) as the noise: the templates' own error counted in.
+        Each one's 1σ: the larger of the statistical one (the fit's Jacobian with the residuals'
+        scatter, χ² per degree of freedom, as independent noise) and the one the positions'
+        disagreement gives (a sandwich clustered by position: the templates' error is shared by
+        a position's pixels, so they are not independent evidence).
+    statistical : tuple of float
+        The statistical 1σ alone: the searches' test of having settled (a step within it).
     sources : list of Source
         The sources at their fitted places.
     chi2_described, chi2 : float
@@ -59,6 +63,7 @@ class RigFit:
     at_bound: tuple[str, ...] = ()
     silhouette: dict = field(default_factory=dict)
     held: dict[str, str] = field(default_factory=lambda: dict(HELD))
+    statistical: tuple[float, ...] = ()
 
     def record(self) -> dict:
         """A JSON-able record: each fitted number with its 1σ, the held ones with why, χ²/pixel."""
@@ -162,8 +167,7 @@ def fit_rig(
         for number, value, bound in zip(FITTED, correction.values, limit, strict=True)
         if bound > 0 and abs(value) >= bound * (1.0 - 1e-3)
     )
-    sigma = np.zeros(len(FITTED))
-    sigma[~held] = _sigma(result.jac, result.fun, int(np.count_nonzero(~held)))
+    statistical, sigma = _sigmas(result, problem, held)
     return RigFit(
         correction,
         tuple(float(s) for s in sigma),
@@ -175,6 +179,7 @@ def fit_rig(
         at_bound,
         silhouette.record(geometry) if silhouette is not None else {},
         HELD | {name: ROUND_TEMPLATES for name, hold in zip((n.name for n in FITTED), held, strict=True) if hold},
+        tuple(float(s) for s in statistical),
     )
 
 
@@ -277,4 +282,42 @@ def _sigma(jac: np.ndarray, residuals: np.ndarray, n: int) -> np.ndarray:
     dof = max(1, residuals.size - jac.shape[1])
     scale = float(residuals @ residuals) / dof
     covariance = np.linalg.pinv(jac.T @ jac) * scale
+    return np.sqrt(np.clip(np.diag(covariance)[:n], 0.0, None))
+
+
+def _sigmas(result: OptimizeResult, problem: LayoutProblem, held: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each number's statistical 1σ (:func:`_sigma`) and the one reported: the larger of it and
+    the clustered sandwich's (:func:`_clustered_sigma`, one cluster per position's pixels); 0
+    for the held ones."""
+    statistical, sigma = np.zeros(len(FITTED)), np.zeros(len(FITTED))
+    fitted = int(np.count_nonzero(~held))
+    statistical[~held] = _sigma(result.jac, result.fun, fitted)
+    blocks = [sum(int(np.count_nonzero(pick)) for pick in window[3]) for window in problem.windows]
+    sigma[~held] = np.maximum(statistical[~held], _clustered_sigma(result.jac, result.fun, blocks, fitted))
+    return statistical, sigma
+
+
+def _clustered_sigma(jac: np.ndarray, residuals: np.ndarray, blocks: list[int], n: int) -> np.ndarray:
+    """The first ``n`` parameters' 1σ from a sandwich clustered by position (Liang & Zeger 1986):
+    ``B M B`` with ``B = (JᵀJ)⁻¹`` and ``M = G/(G−1) Σ_g (J_gᵀ r_g)(J_gᵀ r_g)ᵀ``, one cluster per
+    position's pixels (``blocks``, in the residuals' order), every further row (the silhouette's,
+    the priors') its own. The pixels of a position share the templates' error there; the
+    positions, seen from different places, are the evidence that is close to independent.
+
+    Examples
+    --------
+    >>> rng = np.random.default_rng(1)
+    >>> jac = np.ones((400, 1))  # one number, seen by every pixel alike
+    >>> shared = np.repeat(rng.normal(0.0, 1.0, 4), 100)  # each position's pixels off together
+    >>> residuals = shared + 0.1 * rng.standard_normal(400)
+    >>> bool(_clustered_sigma(jac, residuals, [100] * 4, 1)[0] > 5 * _sigma(jac, residuals, 1)[0])
+    True
+    """
+    bread = np.linalg.pinv(jac.T @ jac)
+    edges = np.cumsum([0, *blocks])
+    scores = [jac[a:b].T @ residuals[a:b] for a, b in zip(edges[:-1], edges[1:], strict=True)]
+    scores += [jac[i] * residuals[i] for i in range(int(edges[-1]), residuals.size)]
+    groups = len(scores)
+    meat = sum(np.outer(g, g) for g in scores) * groups / max(1, groups - 1)
+    covariance = bread @ meat @ bread
     return np.sqrt(np.clip(np.diag(covariance)[:n], 0.0, None))
