@@ -17,6 +17,7 @@ the colour is camera RGB only, and every section says so.
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Sequence
 from typing import Any
@@ -250,18 +251,27 @@ def relative_luminance(
     -------
     list of float
     """
-    channels = np.asarray(rgb, dtype=float).reshape(-1, 3)
-    channels = channels / channels.mean(axis=1, keepdims=True)
-    weights = np.asarray(weights, dtype=float).reshape(-1)
+    channels, weights = _unit_channels(rgb), np.asarray(weights, dtype=float).reshape(-1)
     mixed = weights @ channels
     if not description or not (np.all(np.isfinite(mixed)) and mixed.sum() > 0):
         return [1.0] * len(channels)
-    matrix = _interpolated_matrix(description, _cct_duv(camera_to_xyz(mixed, description))[0])
-    luminance = np.linalg.solve(matrix, channels.T)[1]
+    luminance = np.linalg.solve(_mix_matrix(mixed, description), channels.T)[1]
     mean = float(weights @ luminance) / float(weights.sum())
     if not (np.all(np.isfinite(luminance)) and mean > 0):
         return [1.0] * len(channels)
     return [float(v) for v in luminance / mean]
+
+
+def _unit_channels(rgb: Sequence[Sequence[float]] | np.ndarray) -> np.ndarray:
+    """Camera RGB rows, (n, 3), each at a channel mean of 1."""
+    channels = np.asarray(rgb, dtype=float).reshape(-1, 3)
+    return channels / channels.mean(axis=1, keepdims=True)
+
+
+def _mix_matrix(mixed: np.ndarray, description: dict[str, Any]) -> np.ndarray:
+    """The one XYZ → camera matrix several lights are compared through: the matrices
+    interpolated at their mix's CCT."""
+    return _interpolated_matrix(description, _cct_duv(camera_to_xyz(mixed, description))[0])
 
 
 def luminance_over_reference(
@@ -269,7 +279,7 @@ def luminance_over_reference(
     weights: Sequence[float] | np.ndarray,
     reference_rgb: Sequence[float] | np.ndarray,
     description: dict[str, Any],
-) -> tuple[np.ndarray, float, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray]:
     """Each light's luminance per unit of camera signal over a reference light's: how a
     photometric scale measured on the reference carries over to lights of other colours.
 
@@ -293,32 +303,25 @@ def luminance_over_reference(
     -------
     ratios : ndarray (n,)
         Each light's luminance over the reference's, per unit of camera signal.
-    mixed : float
-        The same for the weighed mix (the ratios' weighed mean).
     mismatch : ndarray (n,)
         Each ratio's estimated spectral-mismatch error, a fraction (0 with one matrix).
     """
-    channels = np.asarray(rgb, dtype=float).reshape(-1, 3)
-    channels = channels / channels.mean(axis=1, keepdims=True)
-    reference = np.asarray(reference_rgb, dtype=float).reshape(3)
-    reference = reference / reference.mean()
-    weights = np.asarray(weights, dtype=float).reshape(-1)
-    ones = np.ones(len(channels))
+    channels, weights = _unit_channels(rgb), np.asarray(weights, dtype=float).reshape(-1)
+    reference = _unit_channels(np.asarray(reference_rgb, dtype=float).reshape(1, 3))[0]
     if not description:
-        return ones, 1.0, np.zeros(len(channels))
-    mixed = weights @ channels / weights.sum()
+        return np.ones(len(channels)), np.zeros(len(channels))
 
     def ratios_through(matrix: np.ndarray) -> np.ndarray:
         luminance = np.linalg.solve(matrix, np.column_stack([channels.T, reference]))[1]
         return luminance[:-1] / luminance[-1]
 
-    ratios = ratios_through(_interpolated_matrix(description, _cct_duv(camera_to_xyz(mixed, description))[0]))
+    ratios = ratios_through(_mix_matrix(weights @ channels / weights.sum(), description))
     mismatch = np.zeros(len(channels))
     if "color_matrix_2" in description:
         first = ratios_through(np.asarray(description["color_matrix_1"], dtype=float))
         second = ratios_through(np.asarray(description["color_matrix_2"], dtype=float))
         mismatch = 0.5 * np.abs(first - second) / ratios
-    return ratios, float(weights @ ratios / weights.sum()), mismatch
+    return ratios, mismatch
 
 
 #: The farthest a light may lie from the Planckian locus (Duv) for the spectral-mismatch
@@ -347,13 +350,18 @@ def _channel_curves(camera: Camera) -> np.ndarray:
 
 def _luminance_per_signal(cct_k: float, curves: np.ndarray) -> float:
     """A blackbody's luminance (ȳ) per unit of the channels' mean response, any common scale."""
-    import colour  # noqa: PLC0415 - colour-science takes a second to import
-
     lam = _WAVELENGTHS_NM * 1e-9
     spectrum = lam**-5 / np.expm1(_SECOND_RADIATION_M_K / (lam * cct_k))
+    return float(spectrum @ _ybar()) / float(np.mean(spectrum @ curves))
+
+
+@functools.lru_cache(maxsize=1)
+def _ybar() -> np.ndarray:
+    """The CIE 1931 2° observer's ȳ (V) on 360-830 nm, 1 nm."""
+    import colour  # noqa: PLC0415 - colour-science takes a second to import
+
     observer = colour.MSDS_CMFS["CIE 1931 2 Degree Standard Observer"].copy()
-    ybar = np.asarray(observer.align(colour.SpectralShape(360, 830, 1)).values, dtype=float)[:, 1]
-    return float(spectrum @ ybar) / float(np.mean(spectrum @ curves))
+    return np.asarray(observer.align(colour.SpectralShape(360, 830, 1)).values, dtype=float)[:, 1]
 
 
 def planckian_luminance_ratios(cct_k: Sequence[float | None], reference_cct_k: float, camera: Camera) -> np.ndarray:

@@ -92,6 +92,14 @@ class MeterReference:
     name: str = "illuminance meter"
 
 
+def _fluxes_and_colours(model: LightModel) -> tuple[np.ndarray, np.ndarray]:
+    """Each source's flux (model units × sr) and its colour (camera RGB, mean 1)."""
+    return (
+        np.array([s.flux() for s in model.sources]),
+        np.array([np.asarray(s.colour, dtype=float) for s in model.sources]),
+    )
+
+
 def model_unit(model: LightModel) -> tuple[float, float]:
     """``(gain_e_per_dn, sensitivity_e_per_s)`` that defined ``model``'s unit of intensity."""
     gain = model.provenance.get("gain_e_per_dn")
@@ -245,15 +253,18 @@ def _meter_scale(model: LightModel, reference: MeterReference) -> tuple[float, l
         float(np.sqrt(np.sum(sigmas**2))) / illuminance,
         abs(illuminance - farther) / step / illuminance * reference.position_uncertainty_m,
     ]
-    flux = np.array([s.flux() for s in model.sources])
-    colours = np.array([np.asarray(s.colour, dtype=float) for s in model.sources])
+    flux, colours = _fluxes_and_colours(model)
     # The relative luminances are over the flux-weighted mean colour's: that colour is the reference's.
     mixed = flux @ colours / float(flux.sum())
     return reference.lux / illuminance, fractions, mixed / mixed.mean()
 
 
 def luminance_ratios(
-    model: LightModel, reference_rgb: tuple[float, float, float] | None, camera_colour: dict[str, Any], camera: Camera
+    model: LightModel,
+    fluxes_and_colours: tuple[np.ndarray, np.ndarray],
+    reference_rgb: tuple[float, float, float] | None,
+    camera_colour: dict[str, Any],
+    camera: Camera,
 ) -> tuple[np.ndarray, np.ndarray, str]:
     """Each source's luminance per unit of camera signal over the reference's, and each
     ratio's 1σ (a fraction), with how they were found.
@@ -270,9 +281,8 @@ def luminance_ratios(
     if reference_rgb is None or not camera_colour:
         note = "camera signal only (no colour matrices, or no reference colour): for lights of the reference's spectrum"
         return np.ones(n), np.zeros(n), note
-    flux = np.array([s.flux() for s in model.sources])
-    colours = np.array([np.asarray(s.colour, dtype=float) for s in model.sources])
-    matrix, _, disagreement = luminance_over_reference(colours, flux, reference_rgb, camera_colour)
+    flux, colours = fluxes_and_colours
+    matrix, disagreement = luminance_over_reference(colours, flux, reference_rgb, camera_colour)
     reference = chromaticity(camera_to_xyz(reference_rgb, camera_colour))
     near = [
         s.chromaticity.get("cct_k") is not None and abs(float(s.chromaticity.get("duv", math.inf))) <= PLANCKIAN_DUV
@@ -322,8 +332,10 @@ def absolute_photometry(
     # The same camera described with another gain or sensitivity gives other model units.
     rescaled = (calibration.gain_e_per_dn / calibration.sensitivity_e_per_s) / (gain / sensitivity)
     scale = calibration.candela_per_unit * rescaled
-    ratios, spectral, colour_note = luminance_ratios(model, calibration.reference_camera_rgb, camera_colour, camera)
-    flux = np.array([s.flux() for s in model.sources])
+    flux, colours = _fluxes_and_colours(model)
+    ratios, spectral, colour_note = luminance_ratios(
+        model, (flux, colours), calibration.reference_camera_rgb, camera_colour, camera
+    )
     sources: list[dict[str, Any]] = []
     for source, ratio, mismatch, source_flux in zip(model.sources, ratios, spectral, flux, strict=True):
         per_unit = scale * float(ratio)
