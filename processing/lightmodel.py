@@ -135,6 +135,9 @@ class SourceModel:
         ``XYZ``, ``x``, ``y``, ``u_prime``, ``v_prime``, ``cct_k``, ``duv``, and
         ``over_theta`` (the same in bins of θ); empty where not measured (cell sums, a model
         from before colour was kept).
+    centre_sigma_m : tuple of float or None
+        The 1σ of ``centre_m`` where the centre was found in the data (the larger of the
+        least-squares and the position-clustered estimate); None for a layout that was given.
     """
 
     name: str
@@ -144,6 +147,7 @@ class SourceModel:
     samples: dict[str, Any] = field(default_factory=dict)
     colour: tuple[float, float, float] = (1.0, 1.0, 1.0)
     chromaticity: dict[str, Any] = field(default_factory=dict)
+    centre_sigma_m: tuple[float, float] | None = None
 
     def __post_init__(self):
         self.name = str(self.name)
@@ -176,6 +180,16 @@ class SourceModel:
         self.colour = tuple(float(c) for c in (colour if abs(mean - 1.0) < 1e-12 else colour / mean))
         if not isinstance(self.chromaticity, dict):
             raise LightModelError(f"source {self.name!r}: chromaticity must be a table (dict)")
+        if self.centre_sigma_m is not None:
+            try:
+                su, sv = (float(c) for c in self.centre_sigma_m)
+            except (TypeError, ValueError):
+                raise LightModelError(
+                    f"source {self.name!r}: centre_sigma_m must be two numbers, got {self.centre_sigma_m!r}"
+                ) from None
+            if not (su >= 0 and sv >= 0 and math.isfinite(su) and math.isfinite(sv)):
+                raise LightModelError(f"source {self.name!r}: centre_sigma_m must be finite and >= 0")
+            self.centre_sigma_m = (su, sv)
 
     def intensity(self, theta: ArrayLike, phi: ArrayLike = 0.0) -> np.ndarray:
         """``I_s(θ, φ)``: the fit, clipped at zero, and zero behind the plane (θ > 90°)."""
@@ -197,6 +211,7 @@ class SourceModel:
         return {
             "name": self.name,
             "centre_m": list(self.centre_m),
+            **({"centre_sigma_m": list(self.centre_sigma_m)} if self.centre_sigma_m is not None else {}),
             "radius_m": self.radius_m,
             "colour": list(self.colour),
             **({"chromaticity": json_ready(self.chromaticity)} if self.chromaticity else {}),
@@ -485,6 +500,7 @@ class LightModel:
                         s.get("samples", {}),
                         s.get("colour", (1.0, 1.0, 1.0)),
                         s.get("chromaticity", {}),
+                        s.get("centre_sigma_m"),
                     )
                 )  # files without colours: grey
             except (LightModelError, TypeError, ValueError) as e:

@@ -7,6 +7,7 @@ is evidence, not an echo.
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -134,23 +135,52 @@ def test_the_layout_search_moves_a_poor_guess_onto_the_sources_and_adds_the_one_
     assert np.all(_distances_to_truth(twice, truth) < 30e-6)
 
 
-def _reduced_rig_positions():
-    """The demo's reduced rig (23.6 µm pixels: the five sources image 2-3 px apart) at five of
-    the sweep's first ten positions, as a partial run has them, with seeded noise at about an
-    HDR merge's variance for 10 ms (χ² per pixel near 1); the builder and the truth."""
+@functools.lru_cache(maxsize=1)
+def _reduced_rig_images():
+    """The demo's reduced rig's noiseless mosaics at five of the sweep's first ten positions,
+    their poses, the builder and the truth."""
     rig = load_rig(REDUCED_RIG)
     truth = load_truth("five-gaussians")
     renderer = MirrorBallRenderer(rig, truth, diffraction=True, seed=4)
-    rng = np.random.default_rng(1)
+    poses = [rig.light_poses()[index] for index in (1, 3, 5, 7, 9)]
+    mosaics = [mosaic_of(renderer.render(pose).rate, "RGGB") for pose in poses]
+    return mosaics, poses, TemplateBuilder(RigGeometry.from_rig(rig), rig.camera.sensitivity_e_per_s), truth
+
+
+def _reduced_rig_positions(noise_seed: int = 1):
+    """The demo's reduced rig (23.6 µm pixels: the five sources image 2-3 px apart) at five of
+    the sweep's first ten positions, as a partial run has them, with seeded noise at about an
+    HDR merge's variance for 10 ms (χ² per pixel near 1); the builder and the truth."""
+    mosaics, poses, builder, truth = _reduced_rig_images()
+    rng = np.random.default_rng(noise_seed)
     exposure = 10e-3
     data = []
-    for index in (1, 3, 5, 7, 9):
-        pose = rig.light_poses()[index]
-        mosaic = mosaic_of(renderer.render(pose).rate, "RGGB")
+    for mosaic, pose in zip(mosaics, poses, strict=True):
         variance = mosaic / exposure + (3.0 / exposure) ** 2
         noisy = mosaic + rng.normal(size=mosaic.shape) * np.sqrt(variance)
         data.append(LayoutData(noisy, variance, np.ones(mosaic.shape, bool), pose))
-    return data, TemplateBuilder(RigGeometry.from_rig(rig), rig.camera.sensitivity_e_per_s), truth
+    return data, builder, truth
+
+
+def test_the_centres_quoted_sigma_covers_their_error_over_noise_realisations():
+    """Each centre found carries a 1σ (the larger of the least-squares one and the sandwich
+    clustered by position). Over six noise realisations of the reduced rig, started from the
+    truth: 50-85 % of the 60 coordinates lie within 1σ of it (a true 1σ holds 68 %) and at
+    least 80 % within 2σ. Measured: 70 % and 90 %. The tail is one bias the sandwich cannot
+    see: the +u source comes out 116 µm along u in every realisation (spread 31 µm, quoted
+    1σ 41 µm), where its 2-3 px image on this coarse sensor meets the centre's."""
+    z = []
+    for noise_seed in range(10, 16):
+        data, builder, truth = _reduced_rig_positions(noise_seed)
+        start = [Source(e.name, tuple(e.centre_m), 0.5e-3) for e in truth.emitters]
+        fit = refine_layout(data, builder, "RGGB", start)
+        assert len(fit.sources) == 5, fit.message
+        for found, emitter in zip(fit.sources, truth.emitters, strict=True):
+            assert found.centre_sigma is not None and min(found.centre_sigma) > 0
+            z.extend((np.array(found.centre) - np.array(emitter.centre_m)) / np.array(found.centre_sigma))
+    z = np.abs(np.array(z))
+    assert 0.5 <= np.mean(z < 1.0) <= 0.85, np.round(z, 2)
+    assert np.mean(z < 2.0) >= 0.8, np.round(z, 2)
 
 
 def _distances_to_truth(fit, truth) -> np.ndarray:

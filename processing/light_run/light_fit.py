@@ -160,6 +160,7 @@ def fit_light_model(
                 table,
                 source_colour(samples.intensity_rgb[:, k]),
                 source_chromaticity(samples.theta[:, k], samples.intensity_rgb[:, k], run.header.camera_colour),
+                source.centre_sigma,
             )
         )
     provenance = {

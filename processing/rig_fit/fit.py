@@ -17,7 +17,7 @@ from processing.rig_fit.correction import FITTED, HELD, RigCorrection, bounds
 from processing.rig_fit.problem import RigProblem
 from processing.rig_fit.silhouette import SilhouetteTerm
 from processing.trace import light_pose_at
-from processing.unmixing.problem import LayoutData, LayoutProblem
+from processing.unmixing.problem import LayoutData, LayoutProblem, clustered_sigma, scaled_sigma
 from processing.unmixing.sources import Source, SourcesError
 from processing.unmixing.templates import TemplateBuilder
 
@@ -158,16 +158,16 @@ def fit_rig(
         correction, fitted_centres, fitted_radius = vector.unpack(result.x, light_axis)
         geometry = rig.set_correction(correction)
         chi2 = problem.chi2(fitted_centres, fitted_radius)
-    sources = [
-        replace(source, centre=(float(u), float(v)), radius=fitted_radius)
-        for source, (u, v) in zip(layout, fitted_centres, strict=True)
-    ]
     at_bound = tuple(
         number.name
         for number, value, bound in zip(FITTED, correction.values, limit, strict=True)
         if bound > 0 and abs(value) >= bound * (1.0 - 1e-3)
     )
-    statistical, sigma = _sigmas(result, problem, held)
+    statistical, sigma, centre_sigma = _sigmas(result, problem, held, vector)
+    sources = [
+        replace(source, centre=(float(u), float(v)), radius=fitted_radius, centre_sigma=where)
+        for source, (u, v), where in zip(layout, fitted_centres, centre_sigma, strict=True)
+    ]
     return RigFit(
         correction,
         tuple(float(s) for s in sigma),
@@ -276,48 +276,20 @@ def forward_jacobian(
     return jac
 
 
-def _sigma(jac: np.ndarray, residuals: np.ndarray, n: int) -> np.ndarray:
-    """The first ``n`` parameters' 1σ: ``(JᵀJ)⁻¹`` scaled by the residuals' χ² per degree of
-    freedom (so that a misfit the noise does not explain widens them)."""
-    dof = max(1, residuals.size - jac.shape[1])
-    scale = float(residuals @ residuals) / dof
-    covariance = np.linalg.pinv(jac.T @ jac) * scale
-    return np.sqrt(np.clip(np.diag(covariance)[:n], 0.0, None))
-
-
-def _sigmas(result: OptimizeResult, problem: LayoutProblem, held: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Each number's statistical 1σ (:func:`_sigma`) and the one reported: the larger of it and
-    the clustered sandwich's (:func:`_clustered_sigma`, one cluster per position's pixels); 0
-    for the held ones."""
+def _sigmas(
+    result: OptimizeResult, problem: LayoutProblem, held: np.ndarray, vector: _Vector
+) -> tuple[np.ndarray, np.ndarray, list[tuple[float, float] | None]]:
+    """Each number's statistical 1σ (:func:`~processing.unmixing.problem.scaled_sigma`) and the one
+    reported: the larger of it and the clustered sandwich's
+    (:func:`~processing.unmixing.problem.clustered_sigma`, one cluster per position's pixels); 0
+    for the held ones. Then each source's centre's 1σ (m) the same way, from the same joint
+    covariance (so with the rig's numbers' correlations), or None for each where they were held."""
     statistical, sigma = np.zeros(len(FITTED)), np.zeros(len(FITTED))
-    fitted = int(np.count_nonzero(~held))
-    statistical[~held] = _sigma(result.jac, result.fun, fitted)
-    blocks = [sum(int(np.count_nonzero(pick)) for pick in window[3]) for window in problem.windows]
-    sigma[~held] = np.maximum(statistical[~held], _clustered_sigma(result.jac, result.fun, blocks, fitted))
-    return statistical, sigma
-
-
-def _clustered_sigma(jac: np.ndarray, residuals: np.ndarray, blocks: list[int], n: int) -> np.ndarray:
-    """The first ``n`` parameters' 1σ from a sandwich clustered by position (Liang & Zeger 1986):
-    ``B M B`` with ``B = (JᵀJ)⁻¹`` and ``M = G/(G−1) Σ_g (J_gᵀ r_g)(J_gᵀ r_g)ᵀ``, one cluster per
-    position's pixels (``blocks``, in the residuals' order), every further row (the silhouette's,
-    the priors') its own. The pixels of a position share the templates' error there; the
-    positions, seen from different places, are the evidence that is close to independent.
-
-    Examples
-    --------
-    >>> rng = np.random.default_rng(1)
-    >>> jac = np.ones((400, 1))  # one number, seen by every pixel alike
-    >>> shared = np.repeat(rng.normal(0.0, 1.0, 4), 100)  # each position's pixels off together
-    >>> residuals = shared + 0.1 * rng.standard_normal(400)
-    >>> bool(_clustered_sigma(jac, residuals, [100] * 4, 1)[0] > 5 * _sigma(jac, residuals, 1)[0])
-    True
-    """
-    bread = np.linalg.pinv(jac.T @ jac)
-    edges = np.cumsum([0, *blocks])
-    scores = [jac[a:b].T @ residuals[a:b] for a, b in zip(edges[:-1], edges[1:], strict=True)]
-    scores += [jac[i] * residuals[i] for i in range(int(edges[-1]), residuals.size)]
-    groups = len(scores)
-    meat = sum(np.outer(g, g) for g in scores) * groups / max(1, groups - 1)
-    covariance = bread @ meat @ bread
-    return np.sqrt(np.clip(np.diag(covariance)[:n], 0.0, None))
+    n = result.x.size
+    scaled = scaled_sigma(result.jac, result.fun, n)
+    reported = np.maximum(scaled, clustered_sigma(result.jac, result.fun, problem.blocks, n))
+    statistical[~held], sigma[~held] = scaled[: vector.n], reported[: vector.n]
+    if vector.hold:
+        return statistical, sigma, [None] * len(vector.centres)
+    centres = reported[vector.n : -1].reshape(-1, 2) * 1e-3
+    return statistical, sigma, [(float(u), float(v)) for u, v in centres]

@@ -174,6 +174,7 @@ def refine_layout(
     carries at least ``min_share`` of the brightest source's light; the search stops at
     the first seed that does not, or at ``max_sources``. A seed is judged after
     ``screen_nfev`` steps of the whole fit, not where it stands (:meth:`_Refinement.grow`).
+    Each source found carries its centre's 1σ (:meth:`LayoutProblem.centre_sigma`).
 
     Parameters
     ----------
@@ -212,7 +213,11 @@ def refine_layout(
             if not untried or not fit.grow(untried, min_gain, min_share, min_distance, screen_nfev, screen_seeds):
                 break
         fit.drop_dark_sources()
-        sources = [Source(f"source-{k}", (float(u), float(v)), fit.radius) for k, (u, v) in enumerate(fit.centres)]
+        sigma = problem.centre_sigma(fit.centres, fit.radius)
+        sources = [
+            Source(f"source-{k}", (float(u), float(v)), fit.radius, (float(su), float(sv)))
+            for k, ((u, v), (su, sv)) in enumerate(zip(fit.centres, sigma, strict=True))
+        ]
         count = f"{len(sources)} source{'s' * (len(sources) != 1)}"
         return LayoutFit(
             sources,

@@ -18,6 +18,7 @@ class Source:
     name: str
     centre: tuple[float, float]  # (u, v) on the light plane, metres
     radius: float  # emitting disc, metres
+    centre_sigma: tuple[float, float] | None = None  # 1σ of (u, v) where the centre was fitted, metres
 
 
 def load_layout(path: str | Path, field: str | None = None) -> list[Source]:
