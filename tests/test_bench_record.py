@@ -139,13 +139,16 @@ def test_the_command_records_its_section(tmp_path):
 
 def test_the_repeatability_spread_and_its_tables():
     """bench repeatability's spread over seeds: each source's mean offset, its standard deviation
-    (sample, ddof 1), the worst distance; then its section's tables."""
+    (sample, ddof 1), the worst distance, the quoted 1σ against that spread; then its section's
+    tables."""
     from acquisition.benchmarks.repeatability import spread
 
     def row(seed, du, found=2):
+        quoted = {"centre_sigma_um": [20.0, 5.0], "fit": {"a": 1.0 + du / 1000}, "fit_sigma": {"a": 0.01}}
         sources = [
-            {"name": "a", "centre_offset_um": [du, 0.0], "centre_error_um": abs(du), "rms_rel_error": 0.004},
-            {"name": "b", "centre_offset_um": [0.0, 2 * du], "centre_error_um": abs(2 * du), "rms_rel_error": 0.006},
+            {"name": "a", "centre_offset_um": [du, 0.0], "centre_error_um": abs(du), "rms_rel_error": 0.004, **quoted},
+            {"name": "b", "centre_offset_um": [0.0, 2 * du], "centre_error_um": abs(2 * du), "rms_rel_error": 0.006}
+            | quoted,
         ]
         result = {"sources": sources, "sources_found": found, "max_rms_rel_error": 0.006, "quality": {"status": "ok"}}
         return {"seed": seed, "result": {**result, "process_s": 80.0}}
@@ -156,6 +159,12 @@ def test_the_repeatability_spread_and_its_tables():
     assert out["sources"]["b"]["std_um"] == [0.0, 80.0] and out["sources"]["b"]["worst_distance_um"] == 100.0
     assert out["worst_distance_um"] == 100.0 and out["all_within_100_um"] is True  # 100 µm is within
     assert out["all_five_found"] is False  # seed 2 found a third source
+    # a: u spread 40 µm against 20 quoted, v none to compare; the peak 1.01 ± 0.04 against 0.01
+    a = out["sources"]["a"]
+    assert a["quoted_sigma_um"] == [20.0, 5.0] and a["quoted_over_spread"][:2] == [0.5, None]
+    assert a["peak_spread_rel"] == pytest.approx(0.04 / 1.01, abs=1e-5)
+    assert a["quoted_over_spread"][2] == 0.25
+    assert out["quoted_within_1_5x"] == "0/4"
     text = result_tables("repeatability", {"benchmark": "repeatability", "seeds": 3, **out})
-    assert "| a | 10, 0 | 40, 0 | 50 | 0.004 |" in text
+    assert "| a | 10, 0 | 40, 0 | 20, 5 | 0.0396, 0.00992 | 0.5, —, 0.25 | 50 | 0.004 |" in text
     assert "| 2 | 3 | 100 | 0.006 | ok | 80 |" in text

@@ -347,14 +347,18 @@ def _brdf_methods(result: dict) -> str:
 def _repeatability_sources(result: dict) -> str:
     """``bench repeatability``: one row per truth source, then one per seed."""
     lines = [
-        "| source | mean offset u, v (µm) | spread 1σ u, v (µm) | worst distance (µm) | worst RMS / peak |",
-        "| --- | --- | --- | --- | --- |",
+        "| source | mean offset u, v (µm) | spread 1σ u, v (µm) | quoted 1σ u, v (µm) | peak: spread, quoted 1σ "
+        "| quoted over spread (u, v, peak) | worst distance (µm) | worst RMS / peak |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     for name, entry in result.get("sources", {}).items():
         cells = [
             name,
             ", ".join(_number(v) for v in entry.get("mean_offset_um") or []),
             ", ".join(_number(v) for v in entry.get("std_um") or []),
+            ", ".join(_number(v) for v in entry.get("quoted_sigma_um") or []),
+            ", ".join(_number(entry.get(k)) for k in ("peak_spread_rel", "quoted_peak_sigma_rel")),
+            ", ".join(_number(v) for v in entry.get("quoted_over_spread") or []),
             _number(entry.get("worst_distance_um")),
             _number(entry.get("worst_rms_rel_error")),
         ]

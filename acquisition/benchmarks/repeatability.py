@@ -57,7 +57,9 @@ def _same_light_model(a: Path, b: Path) -> bool:
 
 def spread(rows: list[dict[str, Any]]) -> dict[str, Any]:
     """Per truth source over the seeds: the mean offset of its place and its standard deviation
-    (µm, u and v), the worst distance, and the worst intensity error (RMS over peak)."""
+    (µm, u and v), the worst distance, and the worst intensity error (RMS over peak); against
+    them what the processing quoted: the centre's 1σ (RMS over the seeds) over the spread, and
+    the peak's relative 1σ (the fit's ``a``) over the spread of the peak."""
     names = [s["name"] for s in rows[0]["result"]["sources"]]
     sources = {}
     for name in names:
@@ -68,7 +70,9 @@ def spread(rows: list[dict[str, Any]]) -> dict[str, Any]:
             "std_um": [round(float(v), 1) for v in offsets.std(axis=0, ddof=1)] if len(rows) > 1 else None,
             "worst_distance_um": round(float(max(e["centre_error_um"] for e in entries)), 1),
             "worst_rms_rel_error": round(float(max(e["rms_rel_error"] for e in entries)), 5),
+            **_quoted_against_spread(entries, offsets),
         }
+    ratios = [r for s in sources.values() for r in s.get("quoted_over_spread", []) if r is not None]
     per_seed = [
         {
             "seed": r["seed"],
@@ -86,4 +90,25 @@ def spread(rows: list[dict[str, Any]]) -> dict[str, Any]:
         "worst_distance_um": max(p["worst_distance_um"] for p in per_seed),
         "all_within_100_um": all(p["worst_distance_um"] <= 100.0 for p in per_seed),
         "all_five_found": all(p["sources_found"] == len(names) for p in per_seed),
+        "quoted_over_spread_median": round(float(np.median(ratios)), 2) if ratios else None,
+        "quoted_within_1_5x": f"{sum(1 / 1.5 <= r <= 1.5 for r in ratios)}/{len(ratios)}" if ratios else None,
     }
+
+
+def _quoted_against_spread(entries: list[dict[str, Any]], offsets: np.ndarray) -> dict[str, Any]:
+    """The quoted 1σ of a source's place (u, v, µm) and peak (relative), RMS over the seeds, and
+    each over the spread of what it quotes: [u, v, peak] (empty with fewer than three seeds)."""
+    sigmas = [e.get("centre_sigma_um") for e in entries]
+    peaks = np.array([e["fit"].get("a", np.nan) for e in entries], float)
+    peak_sigma = np.array([e["fit_sigma"].get("a", np.nan) for e in entries], float) / peaks
+    out: dict[str, Any] = {"quoted_peak_sigma_rel": round(float(np.sqrt(np.nanmean(peak_sigma**2))), 5)}
+    if all(s is not None for s in sigmas):
+        out["quoted_sigma_um"] = [round(float(v), 1) for v in np.sqrt(np.mean(np.square(sigmas), axis=0))]
+    if len(entries) >= 3:
+        spread = [*offsets.std(axis=0, ddof=1), float(np.nanstd(peaks, ddof=1) / np.nanmean(peaks))]
+        out["peak_spread_rel"] = round(spread[2], 5)
+        quoted = [*out.get("quoted_sigma_um", [np.nan, np.nan]), out["quoted_peak_sigma_rel"]]
+        out["quoted_over_spread"] = [
+            round(q / s, 2) if s > 0 and np.isfinite(q) else None for q, s in zip(quoted, spread, strict=True)
+        ]
+    return out

@@ -121,12 +121,15 @@ def score_sources(
             "theta_min_deg": round(lo, 2),
             "theta_max_deg": round(hi, 2),
             "fit": {k2: round(v, 6) for k2, v in source.fit.params.items()},
+            "fit_sigma": {k2: round(v, 8) for k2, v in source.fit.uncertainties.items()},
         }
         if matched:
             entry["found_as"] = source.name
             entry["centre_error_um"] = round(1e6 * float(distances[k]), 1)
             offset = found[k] - np.asarray(emitter.centre_m, float)
             entry["centre_offset_um"] = [round(1e6 * float(d), 1) for d in offset]
+            if source.centre_sigma_m is not None:
+                entry["centre_sigma_um"] = [round(1e6 * s, 2) for s in source.centre_sigma_m]
             entry["found_radius_mm"] = round(1e3 * source.radius_m, 3)
             entry["true_radius_mm"] = round(1e3 * emitter.radius_m, 3)
         entry["coverage"] = coverage(source, emitter, frame)
