@@ -436,6 +436,15 @@ class ProcessingOptions:
         "sensor distance with the rest: their own fits then stay off.",
         job=True,
     )
+    refine_point_spread: FitChoice = option(
+        FitChoice.AUTO,
+        "Refine the camera's point spread from the sweep (docs/light-model.md, \"The point spread from the "
+        "data\"): a correction shared by every position, estimated at the fits' positions and kept where it "
+        "lowers the χ² of the positions between them by a fifth. auto where the sources are searched for (no "
+        "{layout}) and the templates' χ²/pixel is over 1.5; always (estimated whatever the χ², kept where it "
+        "lowers the held-out χ² at all); never. Not with a measured point spread (camera.measured_point_spread).",
+        job=True,
+    )
     ignore_corrupt: bool = option(
         False,
         "Process the rest of a run with frames that fail their checksums: a position with a corrupt frame is "

@@ -15,6 +15,7 @@ from drivers.contracts.runfile import RunFile
 from processing.rig_fit import RigCorrection
 from processing.trace import RigGeometry
 from processing.unmixing.fresnel import FresnelPupil
+from processing.unmixing.kernels import PointSpreadCorrection
 from processing.unmixing.measured import MeasuredKernels, load_measured_point_spread
 from processing.unmixing.templates import TemplateBuilder
 
@@ -53,7 +54,11 @@ def geometry_and_builder(
             _GEOMETRIES.pop(next(iter(_GEOMETRIES)))
         pupil = FresnelPupil.from_camera(rig.camera) if rig.camera.point_spread == "fresnel" else None
         builder = TemplateBuilder(
-            geometry, rig.camera.sensitivity_e_per_s, pupil=pupil, measured=measured_point_spread(rig)
+            geometry,
+            rig.camera.sensitivity_e_per_s,
+            pupil=pupil,
+            measured=measured_point_spread(rig),
+            correction=camera.point_spread,
         )
         held = _GEOMETRIES[key] = (rig, geometry, builder)
     return held[1], held[2]
@@ -88,8 +93,10 @@ def _measured(path: str, version: tuple[int, int] | None, pitch: float) -> Measu
 class CameraFit:
     """The rig's numbers fitted to the data: the camera's aperture and sensor distance
     (``--fit-aperture``, ``--fit-sensor-distance``), then the self-calibration's correction of
-    the rig (``--calibrate-rig``); each None where the rig's description stands."""
+    the rig (``--calibrate-rig``), and the point spread refined from the sweep
+    (``--refine-point-spread``); each None where the rig's description stands."""
 
     aperture_m: float | None = None
     sensor_distance_m: float | None = None
     rig: RigCorrection | None = None
+    point_spread: PointSpreadCorrection | None = None

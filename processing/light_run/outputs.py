@@ -214,6 +214,8 @@ def record_provenance(
     model.provenance["sensor_distance_m"] = camera_provenance(report.sensor_distance_fit, "--fit-sensor-distance")
     if report.point_spread is not None:
         model.provenance["point_spread"] = report.point_spread
+    if report.point_spread_refinement is not None:
+        model.provenance["point_spread_refinement"] = report.point_spread_refinement
     if report.skipped_corrupt:  # --ignore-corrupt: the frames the run file failed to give back
         model.provenance["skipped_corrupt"] = skipped_record(report.skipped_corrupt)
     if report.rig_calibration is not None:
@@ -225,6 +227,9 @@ def record_provenance(
         fit_positions = spread_over(positions, FIT_FRACTIONS) if options.layout is None else None
     report.quality = judge(rows, calibration, fit_positions)
     model.quality = report.quality.record()
+    refinement = report.point_spread_refinement
+    if refinement is not None and refinement.get("needed"):  # the check says what the refinement changed
+        model.quality["point_spread_refined"] = refinement["message"]
     if not report.quality.ok:
         log.warning("%s: %s", report.run_file, report.quality.line())
 

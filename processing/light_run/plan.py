@@ -63,6 +63,8 @@ class ProcessingPlan:
     layout: tuple[Source, ...] | None
     long_sweep: CameraFits
     short_sweep: CameraFits
+    #: ``--refine-point-spread``: "never", "needed" (where the templates' χ² asks for it), "always".
+    point_spread: str = "never"
 
     def camera(self, positions: int) -> CameraFits:
         """The fits for ``positions`` merged positions."""
@@ -87,7 +89,13 @@ class ProcessingPlan:
     def fused(self) -> bool:
         """One task per position merges and estimates: the layout is given and nothing is fitted
         before the estimate (with a layout given, the long and the short sweep fit alike)."""
-        return self.merge and self.estimate and self.layout is not None and not self.long_sweep.fits_camera
+        return (
+            self.merge
+            and self.estimate
+            and self.layout is not None
+            and not self.long_sweep.fits_camera
+            and self.point_spread == "never"
+        )
 
     @property
     def passes(self) -> int:
@@ -118,7 +126,9 @@ def plan_processing(options: ProcessingOptions, point_spread_measured: bool = Fa
     rest of the rig, so where it runs neither is fitted alone. With fewer merged positions than
     :data:`RIG_FIT_MIN_POSITIONS` (the plan's ``short_sweep``), ``AUTO`` holds the rig (and fits
     the aperture alone where it searches). With the camera's point spread measured
-    (``point_spread_measured``) no aperture changes the templates, so the aperture is not fitted.
+    (``point_spread_measured``) no aperture changes the templates, so the aperture is not fitted,
+    and the point spread is not refined. ``AUTO`` refines it where the sources are searched for,
+    if the templates' χ² asks for it (``point_spread`` "needed").
 
     Raises
     ------
@@ -137,6 +147,8 @@ def plan_processing(options: ProcessingOptions, point_spread_measured: bool = Fa
     (False, True, False)
     >>> plan_processing(ProcessingOptions.checked(steps="hdr,sources")).camera(3).calibrate_rig
     False
+    >>> plan_processing(ProcessingOptions.checked(steps="hdr,sources")).point_spread
+    'needed'
     """
     layout = None
     if Step.SOURCES in options.steps and options.layout is not None:
@@ -173,9 +185,19 @@ def plan_processing(options: ProcessingOptions, point_spread_measured: bool = Fa
                 f"{name} always: the self-calibration fits it with the rest of the rig "
                 "(--calibrate-rig never to fit it alone)"
             )
+    if point_spread_measured and options.refine_point_spread is FitChoice.ALWAYS:
+        raise ProcessingError(
+            "--refine-point-spread always: the rig's camera has a measured point spread "
+            "(camera.measured_point_spread), which is used as measured"
+        )
+    if point_spread_measured or not wanted(options.refine_point_spread):
+        point_spread = "never"
+    else:
+        point_spread = "always" if options.refine_point_spread is FitChoice.ALWAYS else "needed"
     return ProcessingPlan(
         options,
         layout,
         long_sweep=fits(calibrate),
         short_sweep=fits(options.calibrate_rig is FitChoice.ALWAYS),
+        point_spread=point_spread,
     )

@@ -42,7 +42,8 @@ STEPS: tuple[Step, ...] = (
     Step("calibration", "self-calibration (layout search and rig fit)", "", 0.15),
     Step("layout", "layout search", "", 0.15),
     Step("camera", "camera fit", "", 0.15),
-    Step("estimate", "source estimate", "positions", 0.20),
+    Step("point-spread", "point spread refined from the sweep", "", 0.03),
+    Step("estimate", "source estimate", "positions", 0.17),
     Step("fits", "fits", "", 0.05),
     Step("exports", "light files (IES, LDT, TM-25)", "", 0.05),
     Step("report", "report", "", 0.10),
@@ -67,7 +68,7 @@ def overall_fraction(step: str, done: int, total: int) -> float:
     --------
     >>> overall_fraction("checksums", 0, 1), round(overall_fraction("hdr", 33, 66), 3)
     (0.0, 0.25)
-    >>> overall_fraction("estimate", 0, 66) == overall_fraction("layout", 1, 1)
+    >>> overall_fraction("estimate", 0, 66) == overall_fraction("point-spread", 1, 1)
     True
     """
     slots: list[str] = []

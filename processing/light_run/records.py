@@ -234,6 +234,7 @@ class ProcessReport:
     sensor_distance_fit: FittedNumber | None = None  # the sensor distance fitted to the data
     rig_calibration: RigCalibration | None = None  # the rig fitted to the data (self-calibration)
     point_spread: dict[str, Any] | None = None  # the measured point spread, where the rig's camera has one
+    point_spread_refinement: dict[str, Any] | None = None  # the point spread refined from the sweep, where tried
     quality: Quality | None = None  # the verdict on the light model
     spatial_resolution_m: float = float("nan")
     n_positions: int = 0

@@ -22,6 +22,7 @@ import logging
 import os
 import time
 from collections.abc import Callable, Iterator, Sequence
+from dataclasses import replace
 from pathlib import Path
 from typing import Any, Final
 
@@ -39,6 +40,7 @@ from processing.light_run.noise import choose_noise, report_gain_mismatch
 from processing.light_run.output_guard import check_outputs, output_path
 from processing.light_run.outputs import SourcesToFinish, finish_sources
 from processing.light_run.plan import FRESNEL_MISMATCH_WARNING, RIG_FIT_MIN_POSITIONS, ProcessingPlan, plan_processing
+from processing.light_run.point_spread import point_spread_from_data
 from processing.light_run.position import (
     HDRWork,
     PositionResult,
@@ -385,7 +387,7 @@ class LightRun:
                 with self._step("camera"):
                     aperture, distance = camera_at_layout(*args, layout, options.ball_centre, self.compute, fits)
         self.report.aperture_fit, self.report.sensor_distance_fit = aperture, distance
-        camera = fitted_camera(aperture, distance)
+        camera = self._refined_point_spread(layout, fitted_camera(aperture, distance))
         return plan_sources(self.run, layout, options.estimator, options.ball_centre, self.positions, camera)
 
     def _calibrated_sources(self) -> SourcesPlan:
@@ -401,8 +403,28 @@ class LightRun:
                 layout = plan.layout
                 calibration = rig_at_layout(*args, layout, options.ball_centre, self.compute)
         self.report.rig_calibration = calibration
-        camera = CameraFit(rig=calibration.correction)
+        camera = self._refined_point_spread(layout, CameraFit(rig=calibration.correction))
         return plan_sources(self.run, layout, options.estimator, options.ball_centre, self.positions, camera)
+
+    def _refined_point_spread(self, layout: Sequence[Source], camera: CameraFit) -> CameraFit:
+        """``camera`` with the point spread refined from the sweep, where the plan asks for it and
+        the held-out positions support it (:mod:`processing.light_run.point_spread`)."""
+        if self.plan.point_spread == "never":
+            return camera
+        with self._step("point-spread"):
+            refinement = point_spread_from_data(
+                self.run,
+                self.results_file,
+                self.positions,
+                layout,
+                self.options.ball_centre,
+                self.compute,
+                camera,
+                force=self.plan.point_spread == "always",
+            )
+        self.report.point_spread_refinement = refinement.record()
+        log.info("%s: point spread from the sweep: %s", self.run_path, refinement.message)
+        return camera if refinement.correction is None else replace(camera, point_spread=refinement.correction)
 
     def _estimate_pass(self, sources: SourcesPlan) -> None:
         """Unmix every merged position with ``sources`` (read back from the results file)."""

@@ -11,6 +11,7 @@ from scipy import fft as sfft
 from drivers.pose import Pose
 from processing.trace import RigGeometry, conductor_reflectance, housing_blocks, specular_points
 from processing.unmixing.fresnel import FresnelPupil, fresnel_kernel, rounded_curvature, shadow_curvature
+from processing.unmixing.kernels import PointSpreadCorrection
 from processing.unmixing.measured import MeasuredKernels
 from processing.unmixing.psf import convex_coverage, convolve_full, convolve_same, diffract, polygon_area
 from processing.unmixing.sources import Source
@@ -46,7 +47,9 @@ class TemplateBuilder:
     over each channel's band instead (:mod:`processing.unmixing.fresnel`), its curvature read
     off the same traced shadow; with ``measured``, the lab's measured point spread
     (:mod:`processing.unmixing.measured`). ``airy_margin_px`` is how far the diffraction
-    reaches beyond the geometric image, in pixels.
+    reaches beyond the geometric image, in pixels. ``correction``, the point spread refined
+    from the sweep (:mod:`processing.unmixing.point_spread_fit`), is added to either kernel
+    within its reach.
     """
 
     geometry: RigGeometry
@@ -57,6 +60,7 @@ class TemplateBuilder:
     airy_margin_px: int = 32
     pupil: FresnelPupil | None = None
     measured: MeasuredKernels | None = None
+    correction: PointSpreadCorrection | None = None
 
     def build(self, source: Source, light_pose: Pose) -> Template | None:
         """The source's template, or None if the ball does not show it to the camera."""
@@ -158,7 +162,7 @@ class TemplateBuilder:
         if self.measured is not None:
             measured = self.measured
             kernels = [measured.kernel(c, reach) for c in range(3)]
-            return (*self._convolved(kernels, disc, centre), 1.0)
+            return (*self._convolved(self._corrected(kernels), disc, centre), 1.0)
         if self.pupil is None:
             return (*self._render(outline, disc, centre), 1.0)
         # The kernels are not renormalised: a hard edge's far tails (a few per cent of the light
@@ -170,7 +174,10 @@ class TemplateBuilder:
             for c in range(3)
         ]
         xx, xy, yy = g.aperture_shape  # the aperture's area over the round rim's
-        return (*self._convolved(kernels, disc, centre), xx * yy - xy * xy)
+        return (*self._convolved(self._corrected(kernels), disc, centre), xx * yy - xy * xy)
+
+    def _corrected(self, kernels: list[np.ndarray]) -> list[np.ndarray]:
+        return kernels if self.correction is None else self.correction.added_to(kernels)
 
     def _convolved(
         self, kernels: list[np.ndarray], disc: np.ndarray, centre: np.ndarray
