@@ -32,7 +32,7 @@ THRESHOLDS = declared_options(ReflectanceThresholds)
 PROCESS_FLAGS = {
     "--steps", "--method", "--noise", "--layout", "--estimator", "--fit", "--ball-centre", "--images",
     "--no-images", "--fit-aperture", "--no-fit-aperture", "--fit-sensor-distance", "--calibrate-rig",
-    "--no-calibrate-rig", "--ignore-corrupt", "--overwrite", "--extrapolation", "--lamp-lumens",
+    "--no-calibrate-rig", "--refine-point-spread", "--no-refine-point-spread", "--ignore-corrupt", "--overwrite", "--extrapolation", "--lamp-lumens",
     "--candela-per-unit", "--photometric-calibration", "--manufacturer", "--luminaire", "--lamp", "--rays",
 }  # fmt: skip
 #: The options only the command itself takes (not the processing's).
@@ -42,7 +42,7 @@ REFLECTANCE_OWN = {"object_run", "light", "mesh", "out", "texture_size", "ignore
 #: The job request's fields as the page (acquisition/daemon/web/app.js) and the API's clients send them.
 JOB_FIELDS = {
     "steps", "partial", "ignore_corrupt", "estimator", "fit", "layout", "noise", "fit_aperture",
-    "fit_sensor_distance", "calibrate_rig", "extrapolation", "lamp_lumens", "candela_per_unit",
+    "fit_sensor_distance", "calibrate_rig", "refine_point_spread", "extrapolation", "lamp_lumens", "candela_per_unit",
     "photometric_calibration", "manufacturer", "luminaire", "lamp", "rays",
 }  # fmt: skip
 
@@ -136,7 +136,7 @@ def job_disagreements(model, declared: tuple[Option, ...]) -> list[str]:
 def test_the_python_api_is_the_declarations():
     assert api_disagreements(ProcessingOptions, PROCESSING) == []
     assert api_disagreements(ReflectanceSettings, THRESHOLDS) == []
-    assert len(PROCESSING) == 22 and len(THRESHOLDS) == 10  # --photometric-calibration; --hold-out, --basis
+    assert len(PROCESSING) == 23 and len(THRESHOLDS) == 10  # --refine-point-spread; --hold-out, --basis
 
 
 def test_the_process_command_takes_the_declared_options_by_their_names():
