@@ -92,3 +92,21 @@ def test_the_plan_refines_the_point_spread_where_the_sources_are_searched_for(tm
     always = ProcessingOptions.checked(steps="hdr,sources", refine_point_spread="always")
     with pytest.raises(ProcessingError, match="--refine-point-spread always: the rig's camera has a measured"):
         plan_processing(always, point_spread_measured=True)
+
+
+def test_the_reports_quality_line_says_what_the_refinement_changed():
+    """Where the sweep asked for the point spread to be refined, the report's first words say so."""
+    from processing.fit import IntensityFit
+    from processing.lightmodel import LightModel, SourceModel
+    from processing.report.trust import quality_banner
+
+    fit = IntensityFit(
+        "gaussian", {"a": 2.0, "sigma": 0.5}, {"a": 0.002, "sigma": 0.001}, np.diag([4e-6, 1e-6]),
+        np.zeros(9), 1.0, 9, (0.0, 0.6), (0.0, 0.0),
+    )  # fmt: skip
+    quality = {"status": "ok", "model_error": 0.015, "model_error_allowance": 0.03, "chi2_per_pixel": 2.25}
+    quality |= {"positions": 66, "unexplained_positions": []}
+    refined = "kept: the held-out positions' χ²/pixel 6.61 → 1.12 (+83 %)"
+    model = LightModel([SourceModel("s", (0.0, 0.0), 0.0005, fit)], quality=quality | {"point_spread_refined": refined})
+    assert "the point spread refined from the sweep, kept: the held-out positions" in quality_banner(model)
+    assert "refined" not in quality_banner(LightModel([SourceModel("s", (0.0, 0.0), 0.0005, fit)], quality=quality))

@@ -21,6 +21,9 @@ def quality_banner(model: LightModel) -> str:
         f"{quality.get('chi2_per_pixel', float('nan')):.3f}), {len(quality.get('unexplained_positions', []))} of "
         f"{quality.get('positions', '?')} positions unexplained"
     )
+    refined = quality.get("point_spread_refined")
+    if refined:  # the sweep asked for the point spread to be refined: what that did
+        figures += f"; the point spread refined from the sweep, {refined}"
     if quality.get("status") == "ok":
         return f'<p class="quality-ok">Quality ok: the templates explain the data ({html.escape(figures)}).</p>'
     return (
