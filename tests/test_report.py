@@ -105,7 +105,8 @@ def test_without_run_samples_or_report_it_renders_with_notes(tmp_path):
     assert "no HDR previews found" in text
     assert "noise model" in text and "not given to the report" in text
     assert "could not be drawn" not in text
-    assert len(images(text)) == 2 + 4  # the whole light's diagrams and illuminance, then the sources' figures
+    assert len(images(text)) == 2 + 5  # the whole light's diagrams and illuminance, then the sources' figures
+    assert "1σ band on I per source" in text
 
 
 def test_a_model_read_back_from_its_file_reports_the_same(tmp_path):
@@ -246,10 +247,10 @@ def test_the_pipeline_writes_the_report_after_the_light_model(processed):
     pngs = images(text)
     previews = re.findall(r'alt="position (\d+)"', text)
     assert 1 < len(previews) <= 6
-    # the whole light's diagrams and illuminance; polar, layout, coverage, angles, residuals; the
-    # strip; and the colour over θ where it varies
+    # the whole light's diagrams and illuminance; polar, layout, coverage, angles, residuals, the
+    # 1σ band; the strip; and the colour over θ where it varies
     varies = any(s.chromaticity["over_theta"]["varies"] for s in report.model.sources)
-    assert len(pngs) == 2 + 5 + len(previews) + varies
+    assert len(pngs) == 2 + 6 + len(previews) + varies
     for png in pngs:
         decode(png)
 

@@ -500,6 +500,47 @@ def residuals_figure(model: LightModel, *, samples: SampleColumns | None = None)
 
 
 def context_residuals_figure(ctx: ReportContext) -> Figure:
+    fig, axes = _source_panels(ctx, "(data − fit) / σ")
+    for k, (ax, source) in enumerate(zip(axes, ctx.model.sources, strict=True)):
+        d = ctx.data[k]
+        signed = np.degrees(signed_theta(d.theta, d.phi, ctx.azimuth))
+        with np.errstate(invalid="ignore", divide="ignore"):
+            r = (d.intensity - source.fit(d.theta, d.phi)) / d.sigma
+        ax.axhspan(-3, 3, color="0.93", lw=0)
+        ax.axhspan(-1, 1, color="0.85", lw=0)
+        ax.axhline(0, color="0.4", lw=0.7)
+        ax.plot(signed, r, "o", color=ctx.colours[k], ms=3.5, mec="k", mew=0.3)
+        ax.set_title(f"{source.name}: χ²ᵣ = {source.fit.chi2_reduced:.3g}", fontsize=9, y=1.0)  # y: no overlap search
+    for ax in axes:
+        settle_axes(ax, xlabel_pad=0.25, ylabel_pad=0.45)
+    return fig
+
+
+def context_band_figure(ctx: ReportContext) -> Figure:
+    """Per source, the fit's 1σ band (:meth:`~processing.fit.IntensityFit.band`) and the samples,
+    both relative to the fit, in % against θ: the band is a few tenths of a per cent of I, which
+    no plot of I itself shows."""
+    fig, axes = _source_panels(ctx, "relative to the fit [%]")
+    for k, (ax, source) in enumerate(zip(axes, ctx.model.sources, strict=True)):
+        d = ctx.data[k]
+        signed = np.degrees(signed_theta(d.theta, d.phi, ctx.azimuth))
+        order = np.argsort(signed)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            fit = source.fit(d.theta, d.phi)
+            band = 100.0 * source.fit.band(d.theta, d.phi) / fit
+            deviation, error = 100.0 * (d.intensity - fit) / fit, 100.0 * d.sigma / fit
+        ax.fill_between(signed[order], -band[order], band[order], color=ctx.colours[k], alpha=0.35, lw=0)
+        ax.axhline(0, color="0.4", lw=0.7)
+        ax.errorbar(signed, deviation, error, fmt="o", color="0.25", ms=2.5, elinewidth=0.6, capsize=0)
+        on_axis = float(source.fit.band(0.0) / source.intensity(0.0)) if source.intensity(0.0) > 0 else float("nan")
+        ax.set_title(f"{source.name}: ±{100 * on_axis:.2g} % on the axis", fontsize=9, y=1.0)
+    for ax in axes:
+        settle_axes(ax, xlabel_pad=0.25, ylabel_pad=0.45)
+    return fig
+
+
+def _source_panels(ctx: ReportContext, ylabel: str) -> tuple[Figure, list[Axes]]:
+    """One panel a source on a grid, sharing one y scale (read off the left column), θ below."""
     n = len(ctx.model.sources)
     rows, cols = panel_grid(n)
     width, height = 3.6 * cols, 2.4 * rows
@@ -516,24 +557,13 @@ def context_residuals_figure(ctx: ReportContext) -> Figure:
         hspace=hgap / ((height - bottom - top - (rows - 1) * hgap) / rows),
     )
     axes: list[Axes] = []
-    for k, source in enumerate(ctx.model.sources):
+    for k in range(n):
         ax = fig.add_subplot(grid[divmod(k, cols)], sharey=axes[0] if axes else None)
         axes.append(ax)
-        d = ctx.data[k]
-        signed = np.degrees(signed_theta(d.theta, d.phi, ctx.azimuth))
-        with np.errstate(invalid="ignore", divide="ignore"):
-            r = (d.intensity - source.fit(d.theta, d.phi)) / d.sigma
-        ax.axhspan(-3, 3, color="0.93", lw=0)
-        ax.axhspan(-1, 1, color="0.85", lw=0)
-        ax.axhline(0, color="0.4", lw=0.7)
-        ax.plot(signed, r, "o", color=ctx.colours[k], ms=3.5, mec="k", mew=0.3)
-        ax.set_title(f"{source.name}: χ²ᵣ = {source.fit.chi2_reduced:.3g}", fontsize=9, y=1.0)  # y: no overlap search
         ax.grid(True, color="0.9", lw=0.5)
         if k % cols == 0:
-            ax.set_ylabel("(data − fit) / σ")
+            ax.set_ylabel(ylabel)
         if k >= n - cols:
             ax.set_xlabel("θ [°] (signed by side)")
-        ax.tick_params(labelsize=8, labelleft=k % cols == 0)  # one y scale, read off the left column
-    for ax in axes:
-        settle_axes(ax, xlabel_pad=0.25, ylabel_pad=0.45)
-    return fig
+        ax.tick_params(labelsize=8, labelleft=k % cols == 0)
+    return fig, axes

@@ -28,6 +28,7 @@ from processing.report.context import (
 )
 from processing.report.figures import (
     angles_figure,
+    context_band_figure,
     context_coverage_figure,
     context_polar_figure,
     context_residuals_figure,
@@ -496,8 +497,15 @@ def residuals_section(ctx: ReportContext) -> str:
         "A good fit scatters evenly about 0, mostly within the dark band, and has χ²ᵣ near 1; a wave or a "
         "trend with θ means the model's shape does not match the source."
     )
+    band = (
+        "Each source's 1σ band on I(θ) (shaded; the light model's band: the fit's covariance, the templates' model "
+        "error as a scale common to the sweep included) and the samples with their σ, both relative to the fit. "
+        "The band is what to propagate from this light; the samples' scatter about it is what the fit left."
+    )
+    residuals = context_residuals_figure(ctx)
     parts = [
-        figure_html(context_residuals_figure(ctx), "normalised residuals per source", html.escape(caption), ctx.encoder)
+        figure_html(residuals, "normalised residuals per source", html.escape(caption), ctx.encoder),
+        figure_html(context_band_figure(ctx), "1σ band on I per source", html.escape(band), ctx.encoder),
     ]
     rows = []
     for source in ctx.model.sources:
