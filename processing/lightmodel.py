@@ -151,13 +151,7 @@ class SourceModel:
 
     def __post_init__(self):
         self.name = str(self.name)
-        try:
-            u, v = (float(c) for c in self.centre_m)
-        except (TypeError, ValueError):
-            raise LightModelError(
-                f"source {self.name!r}: centre_m must be two numbers (u, v), got {self.centre_m!r}"
-            ) from None
-        self.centre_m = (u, v)
+        u, v = self.centre_m = self._pair("centre_m", self.centre_m)
         self.radius_m = float(self.radius_m)
         if not (math.isfinite(u) and math.isfinite(v)):
             raise LightModelError(f"source {self.name!r}: centre_m must be finite, got {self.centre_m}")
@@ -181,15 +175,17 @@ class SourceModel:
         if not isinstance(self.chromaticity, dict):
             raise LightModelError(f"source {self.name!r}: chromaticity must be a table (dict)")
         if self.centre_sigma_m is not None:
-            try:
-                su, sv = (float(c) for c in self.centre_sigma_m)
-            except (TypeError, ValueError):
-                raise LightModelError(
-                    f"source {self.name!r}: centre_sigma_m must be two numbers, got {self.centre_sigma_m!r}"
-                ) from None
+            su, sv = self.centre_sigma_m = self._pair("centre_sigma_m", self.centre_sigma_m)
             if not (su >= 0 and sv >= 0 and math.isfinite(su) and math.isfinite(sv)):
                 raise LightModelError(f"source {self.name!r}: centre_sigma_m must be finite and >= 0")
-            self.centre_sigma_m = (su, sv)
+
+    def _pair(self, field: str, value: object) -> tuple[float, float]:
+        """``value`` as two floats (u, v), or the one-line error naming the source and the field."""
+        try:
+            u, v = (float(c) for c in value)  # type: ignore[attr-defined]
+        except (TypeError, ValueError):
+            raise LightModelError(f"source {self.name!r}: {field} must be two numbers (u, v), got {value!r}") from None
+        return u, v
 
     def intensity(self, theta: ArrayLike, phi: ArrayLike = 0.0) -> np.ndarray:
         """``I_s(θ, φ)``: the fit, clipped at zero, and zero behind the plane (θ > 90°)."""

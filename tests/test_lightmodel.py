@@ -286,3 +286,18 @@ def test_a_bad_colour_is_one_line_naming_the_source(colour):
     with pytest.raises(LightModelError) as exc:
         SourceModel(s.name, s.centre_m, s.radius_m, s.fit, s.samples, colour)
     assert one_line(exc).startswith(f"source {s.name!r}: colour must be")
+
+
+def test_a_centres_1_sigma_reads_back_and_a_bad_one_is_one_line(tmp_path):
+    """``centre_sigma_m`` (where the centre was found in the data) is saved and read back; a
+    negative or malformed one is refused naming the source and the field."""
+    model = five_gaussians()
+    s = model.sources[0]
+    found = SourceModel(s.name, s.centre_m, s.radius_m, s.fit, s.samples, centre_sigma_m=(2e-5, 3e-5))
+    path = LightModel([found]).save(tmp_path / "m.light.json")
+    assert LightModel.load(path).sources[0].centre_sigma_m == (2e-5, 3e-5)
+    assert "centre_sigma_m" not in model.sources[1].to_dict()  # a layout given: none
+    for bad, says in (((1e-5, -1e-5), "must be finite and >= 0"), ("x", "must be two numbers")):
+        with pytest.raises(LightModelError) as exc:
+            SourceModel(s.name, s.centre_m, s.radius_m, s.fit, centre_sigma_m=bad)
+        assert one_line(exc).startswith(f"source {s.name!r}: centre_sigma_m {says}")
