@@ -191,7 +191,8 @@ def fresnel_kernel(
     >>> round(float(kernel[40, 40] / (pitch**2 / (math.pi * a * a)) / analytic), 3)
     0.996
     """
-    return _kernel(pupil, tuple(float(c) for c in curvature), sensor_distance, pitch, band, reach).copy()
+    # The cached array itself, read-only: the templates keep its transform while it lives.
+    return _kernel(pupil, tuple(float(c) for c in curvature), sensor_distance, pitch, band, reach)
 
 
 @functools.lru_cache(maxsize=384)

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import functools
 import math
+import threading
+import weakref
 
 import numba
 import numpy as np
@@ -201,9 +203,34 @@ def convolve_same(image: np.ndarray, kernel: np.ndarray) -> np.ndarray:
     return sfft.irfft(back, n=length, axis=1)[:, half : half + n]
 
 
-def convolve_full(image: np.ndarray, kernel: np.ndarray) -> np.ndarray:
-    """The full linear convolution of two square arrays (``n + k - 1`` a side), by FFT."""
-    length = image.shape[0] + kernel.shape[0] - 1
+def convolve_full_each(image: np.ndarray, kernels: list[np.ndarray]) -> np.ndarray:
+    """The full linear convolution (``n + k - 1`` a side, by FFT) of one square ``image`` with
+    each of ``kernels`` (square, of one size), stacked: the image's transform taken once, and a
+    read-only kernel's kept while the kernel lives (the Fresnel kernels are cached and
+    read-only, and a run's templates share a few of them, so the rig's fit builds its thousands
+    of templates with a third of the transforms)."""
+    length = image.shape[0] + kernels[0].shape[0] - 1
     size = sfft.next_fast_len(length, real=True)
-    product = sfft.rfft2(image, s=(size, size)) * sfft.rfft2(kernel, s=(size, size))
-    return sfft.irfft2(product, s=(size, size))[:length, :length]
+    spectrum = sfft.rfft2(image, s=(size, size))
+    return np.stack(
+        [sfft.irfft2(spectrum * _kernel_spectrum(kernel, size), s=(size, size))[:length, :length] for kernel in kernels]
+    )
+
+
+#: The transforms of read-only kernels: (id, size) → (a weak reference to the kernel, its rfft2).
+_SPECTRA: dict[tuple[int, int], tuple[weakref.ref, np.ndarray]] = {}
+_SPECTRA_LOCK = threading.Lock()
+
+
+def _kernel_spectrum(kernel: np.ndarray, size: int) -> np.ndarray:
+    key = (id(kernel), size)
+    held = _SPECTRA.get(key)
+    if held is not None and held[0]() is kernel:  # the same array, not another at its old address
+        return held[1]
+    spectrum = sfft.rfft2(kernel, s=(size, size))
+    if not kernel.flags.writeable:
+        with _SPECTRA_LOCK:
+            if len(_SPECTRA) >= 128:
+                _SPECTRA.pop(next(iter(_SPECTRA)), None)
+            _SPECTRA[key] = (weakref.ref(kernel), spectrum)
+    return spectrum

@@ -13,7 +13,7 @@ from processing.trace import RigGeometry, conductor_reflectance, housing_blocks,
 from processing.unmixing.fresnel import FresnelPupil, fresnel_kernel, rounded_curvature, shadow_curvature
 from processing.unmixing.kernels import PointSpreadCorrection
 from processing.unmixing.measured import MeasuredKernels
-from processing.unmixing.psf import convex_coverage, convolve_full, convolve_same, diffract, polygon_area
+from processing.unmixing.psf import convex_coverage, convolve_full_each, convolve_same, diffract, polygon_area
 from processing.unmixing.sources import Source
 
 
@@ -199,7 +199,7 @@ class TemplateBuilder:
         sharp /= sharp.sum()
         geometric = sharp.reshape(n, os_, n, os_).sum(axis=(1, 3))
         reach = kernels[0].shape[0] // 2
-        channels = np.stack([convolve_full(geometric, kernel) for kernel in kernels])
+        channels = convolve_full_each(geometric, kernels)
         return r0 - reach, c0 - reach, channels
 
     def _render(self, outline: np.ndarray, disc: np.ndarray, centre: np.ndarray) -> tuple[int, int, np.ndarray]:
