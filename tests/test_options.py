@@ -32,7 +32,8 @@ THRESHOLDS = declared_options(ReflectanceThresholds)
 PROCESS_FLAGS = {
     "--steps", "--method", "--noise", "--layout", "--estimator", "--fit", "--ball-centre", "--images",
     "--no-images", "--fit-aperture", "--no-fit-aperture", "--fit-sensor-distance", "--calibrate-rig",
-    "--no-calibrate-rig", "--refine-point-spread", "--no-refine-point-spread", "--ignore-corrupt", "--overwrite", "--extrapolation", "--lamp-lumens",
+    "--no-calibrate-rig", "--refine-point-spread", "--no-refine-point-spread", "--ignore-corrupt", "--overwrite",
+    "--extrapolation", "--lamp-lumens",
     "--candela-per-unit", "--photometric-calibration", "--manufacturer", "--luminaire", "--lamp", "--rays",
 }  # fmt: skip
 #: The options only the command itself takes (not the processing's).
