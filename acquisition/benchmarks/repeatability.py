@@ -103,7 +103,8 @@ def _quoted_against_spread(entries: list[dict[str, Any]], offsets: np.ndarray) -
     peak_sigma = np.array([e["fit_sigma"].get("a", np.nan) for e in entries], float) / peaks
     out: dict[str, Any] = {"quoted_peak_sigma_rel": round(float(np.sqrt(np.nanmean(peak_sigma**2))), 5)}
     if all(s is not None for s in sigmas):
-        out["quoted_sigma_um"] = [round(float(v), 1) for v in np.sqrt(np.mean(np.square(sigmas), axis=0))]
+        quoted_um = np.array(sigmas, dtype=float)
+        out["quoted_sigma_um"] = [round(float(v), 1) for v in np.sqrt(np.mean(quoted_um**2, axis=0))]
     if len(entries) >= 3:
         spread = [*offsets.std(axis=0, ddof=1), float(np.nanstd(peaks, ddof=1) / np.nanmean(peaks))]
         out["peak_spread_rel"] = round(spread[2], 5)
