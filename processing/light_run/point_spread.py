@@ -20,6 +20,19 @@ from processing.unmixing.sources import Source
 #: Where the refinement is judged: halfway between the fits' positions, so on none of them.
 HELD_OUT_FRACTIONS = (1 / 12, 3 / 12, 5 / 12, 7 / 12, 9 / 12, 11 / 12)
 
+#: Why a sweep's point spread is not refined when it is short.
+TOO_FEW = "{} merged positions: too few to judge a refinement on positions it did not see"
+
+
+def refinement_positions(positions: ArrayLike) -> tuple[list[int], list[int]] | None:
+    """The positions the refinement is estimated at and those it is judged at, or None where the
+    sweep has too few merged positions for both (the second set must hold none of the first)."""
+    positions = np.asarray(positions)
+    train, held = spread_over(positions, FIT_FRACTIONS), spread_over(positions, HELD_OUT_FRACTIONS)
+    if set(train) & set(held) or len(held) < len(HELD_OUT_FRACTIONS):
+        return None
+    return train, held
+
 
 def point_spread_from_data(
     run: RunFile,
@@ -35,12 +48,10 @@ def point_spread_from_data(
     """The correction of the templates' point spread the merged ``positions`` support, with the
     sources of ``layout`` and the camera as ``camera`` has it (``force``: estimated whatever the
     templates' χ², kept if it lowers the held-out positions' at all)."""
-    positions = np.asarray(positions)
-    train, held = spread_over(positions, FIT_FRACTIONS), spread_over(positions, HELD_OUT_FRACTIONS)
-    if set(train) & set(held) or len(held) < len(HELD_OUT_FRACTIONS):
-        return PointSpreadRefinement(
-            None, False, f"{positions.size} merged positions: too few to judge a refinement on positions it did not see"
-        )
+    picks = refinement_positions(positions)
+    if picks is None:
+        return PointSpreadRefinement(None, False, TOO_FEW.format(np.asarray(positions).size))
+    train, held = picks
     args = (str(run.path), str(results_file), ball_centre, tuple(train), tuple(held), tuple(layout), camera, force)
     compute = compute or Compute()
     return compute.submit(_refined, *args).result() if compute.dask else _refined(*args)

@@ -40,7 +40,7 @@ from processing.light_run.noise import choose_noise, report_gain_mismatch
 from processing.light_run.output_guard import check_outputs, output_path
 from processing.light_run.outputs import SourcesToFinish, finish_sources
 from processing.light_run.plan import FRESNEL_MISMATCH_WARNING, RIG_FIT_MIN_POSITIONS, ProcessingPlan, plan_processing
-from processing.light_run.point_spread import point_spread_from_data
+from processing.light_run.point_spread import TOO_FEW, point_spread_from_data, refinement_positions
 from processing.light_run.position import (
     HDRWork,
     PositionResult,
@@ -61,6 +61,7 @@ from processing.results import HDRInfo, Results, ResultsError, ResultsWriter, re
 from processing.steps import Step
 from processing.trace import RigGeometry
 from processing.unmixing.measured import PointSpreadError, virtual_image_distance
+from processing.unmixing.point_spread_fit import PointSpreadRefinement
 from processing.unmixing.sources import Source
 
 log = logging.getLogger("mirrorgonio.processing")
@@ -410,6 +411,10 @@ class LightRun:
         """``camera`` with the point spread refined from the sweep, where the plan asks for it and
         the held-out positions support it (:mod:`processing.light_run.point_spread`)."""
         if self.plan.point_spread == "never":
+            return camera
+        if refinement_positions(self.positions) is None:  # a short sweep: said, but no step to show
+            too_few = PointSpreadRefinement(None, False, TOO_FEW.format(self.positions.size))
+            self.report.point_spread_refinement = too_few.record()
             return camera
         with self._step("point-spread"):
             refinement = point_spread_from_data(

@@ -42,8 +42,10 @@ class PointSpreadCorrection:
         Examples
         --------
         >>> correction = PointSpreadCorrection.of(np.full((3, 3, 3), 0.1))
-        >>> correction.added_to([np.ones((1, 1))] * 3)[0], correction.added_to([np.zeros((5, 5))] * 3)[0][0]
-        (array([[1.1]]), array([0., 0., 0., 0., 0.]))
+        >>> correction.added_to([np.ones((1, 1))] * 3)[0].tolist()  # cropped to the kernel's one pixel
+        [[1.1]]
+        >>> correction.added_to([np.zeros((5, 5))] * 3)[0][1:4, 1:4].tolist() == np.full((3, 3), 0.1).tolist()
+        True
         """
         out = []
         for kernel, extra in zip(kernels, self.kernels, strict=True):
