@@ -109,14 +109,15 @@ def test_demo_runs_the_whole_chain_and_leaves_nothing_running(tmp_path, layout_o
     assert all(math.isfinite(float(value)) for _, value in printed)
     # Found in the data, each source's distance from the truth's is shown. On this rig (23.6 µm
     # pixels, the five sources imaged 2-3 px apart, 12 positions on one side: the rig held, the
-    # pinhole fitted) all five are found within 43-177 µm, except the centre one at 413 µm in a
-    # fresh environment's first run (the same code and seed: the outcome depends on something the
-    # first run's timing changes, not yet found). Before the search screened a second seed the
-    # centre one was missed, and the nearest source found was 3.3 mm from it. The search's
-    # accuracy at the default resolutions is tested in test_sources and test_process.
+    # pinhole fitted) the seeded run is the same run on every machine and every try
+    # (tests/test_repeatable_runs.py), and its five come out 415, 46, 103, 163 and 65 µm from the
+    # truth: the centre one is where the coarse sensor merges its image with its neighbours'.
+    # Before the search screened a second seed the centre one was missed, the nearest source
+    # found 3.3 mm from it. The search's accuracy at the default resolutions is tested in
+    # test_sources and test_process.
     offsets = [float(um) for um in re.findall(r"│\s*([0-9]+) µm off\s*│", done.stdout)]
     assert len(offsets) == (0 if layout_option else 5), done.stdout
-    assert all(um < 500 for um in offsets), offsets
+    assert max(offsets) < 450 and sorted(offsets)[-2] < 200, offsets  # measured: 415, then 163
     assert re.search(r"│ max\s*│\s*[0-9.]+ %", done.stdout), done.stdout
     for step in ("acquisition", "processing", "whole demo"):
         assert re.search(rf"{step}[^│]*│\s*[0-9.]+ s", done.stdout), step
