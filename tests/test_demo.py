@@ -117,7 +117,7 @@ def test_demo_runs_the_whole_chain_and_leaves_nothing_running(tmp_path, layout_o
     # test_sources and test_process.
     offsets = [float(um) for um in re.findall(r"│\s*([0-9]+) µm off\s*│", done.stdout)]
     assert len(offsets) == (0 if layout_option else 5), done.stdout
-    assert max(offsets) < 450 and sorted(offsets)[-2] < 200, offsets  # measured: 415, then 163
+    assert not offsets or (max(offsets) < 450 and sorted(offsets)[-2] < 200), offsets  # measured: 415, then 163
     assert re.search(r"│ max\s*│\s*[0-9.]+ %", done.stdout), done.stdout
     for step in ("acquisition", "processing", "whole demo"):
         assert re.search(rf"{step}[^│]*│\s*[0-9.]+ s", done.stdout), step
