@@ -27,13 +27,16 @@ demo: $(STAMP)
 	$(VENV)/bin/mirrorgonio demo $(DEMO_ARGS)
 
 # Debian packages the tests use: chromium, the browser tests/test_web.py drives
-# (`playwright install` needs a download site the lab may not reach), and docker-compose,
-# which tests/test_deploy.py runs to validate docker-compose.yml offline (about 1 MB).
+# (`playwright install` needs a download site the lab may not reach); docker-compose,
+# which tests/test_deploy.py runs to validate docker-compose.yml offline (about 1 MB); and
+# postgresql, whose server the catalog's tests start in a throwaway folder of their own
+# (its programs live in /usr/lib/postgresql/VERSION/bin, off the PATH: dpkg says it is there).
 # The missing ones are installed in one apt step, as root or through sudo.
-TEST_DEBS := chromium docker-compose
+TEST_DEBS := chromium docker-compose postgresql
 
 browser:
-	@missing=; for deb in $(TEST_DEBS); do command -v $$deb >/dev/null || missing="$$missing $$deb"; done; \
+	@missing=; for deb in $(TEST_DEBS); do \
+	  command -v $$deb >/dev/null || dpkg -s $$deb >/dev/null 2>&1 || missing="$$missing $$deb"; done; \
 	[ -z "$$missing" ] || { \
 	  if [ "$$(id -u)" = 0 ]; then SUDO=; \
 	  elif command -v sudo >/dev/null; then SUDO=sudo; \

@@ -251,3 +251,56 @@ def pbrt_irradiance_rgb(lights, points, normals):
         cos_in = np.maximum(0.0, -np.einsum("ij,ij->i", normals, d) / dist)
         E += (scale * table[row, col] * cos_in / dist**2)[:, None] * rgb
     return E
+
+
+# --- the catalog on both of its databases --------------------------------------------------
+@pytest.fixture(scope="session")
+def postgres_server():
+    """A throwaway PostgreSQL server for this test process (installed by ``make test``)."""
+    from acquisition.daemon.catalog.throwaway_server import PostgresNotFoundError, ThrowawayPostgres
+
+    try:
+        server = ThrowawayPostgres()
+    except PostgresNotFoundError as exc:
+        pytest.fail(f"{exc}: `make test` installs it", pytrace=False)
+    yield server
+    server.close()
+
+
+_databases = iter(range(1_000_000))
+
+
+@pytest.fixture(params=["sqlite", "postgresql"])
+def catalog_url(request, tmp_path):
+    """A new, empty catalog's location, on each database: an SQLite file, or a database of
+    its own on the throwaway PostgreSQL server."""
+    if request.param == "sqlite":
+        return str(tmp_path / "catalog.sqlite")
+    server = request.getfixturevalue("postgres_server")
+    return server.create_database(f"catalog_{os.getpid()}_{next(_databases)}")
+
+
+def run_sql(location: str, *statements: tuple[str, tuple] | str) -> list[list[tuple]]:
+    """Run statements on a catalog's database directly (``?`` placeholders), past the Catalog;
+    each statement's rows (those that return some)."""
+    import sqlite3
+
+    results = []
+    if location.startswith("postgresql://"):
+        import psycopg
+
+        with psycopg.connect(location, autocommit=True) as conn:
+            for statement in statements:
+                sql, params = (statement, ()) if isinstance(statement, str) else statement
+                cursor = conn.execute(sql.replace("?", "%s"), params)
+                results.append(cursor.fetchall() if cursor.description else [])
+        return results
+    conn = sqlite3.connect(location)
+    try:
+        with conn:
+            for statement in statements:
+                sql, params = (statement, ()) if isinstance(statement, str) else statement
+                results.append(conn.execute(sql, params).fetchall())
+    finally:
+        conn.close()
+    return results

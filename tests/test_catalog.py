@@ -4,15 +4,16 @@ import itertools
 import multiprocessing
 import pickle
 import re
-import sqlite3
 import threading
 import time
 from datetime import UTC, datetime, timedelta, timezone
 
 import pytest
+from conftest import run_sql
 
 from acquisition.daemon.catalog import (
     ALLOWED_RUN_TRANSITIONS,
+    DEFAULT_RIG,
     JOB_STATES,
     RUN_STATES,
     SCHEMA_VERSION,
@@ -22,6 +23,7 @@ from acquisition.daemon.catalog import (
     InvalidTransitionError,
     JobClaimError,
     NotQueuedError,
+    OtherRigError,
     UnknownJobError,
     UnknownRunError,
 )
@@ -51,8 +53,9 @@ def clock():
 
 
 @pytest.fixture
-def db(tmp_path):
-    return tmp_path / "catalog.sqlite"
+def db(catalog_url):
+    """A new catalog's location: every test here runs on SQLite and on PostgreSQL."""
+    return catalog_url
 
 
 @pytest.fixture
@@ -344,15 +347,24 @@ def test_the_clock_must_be_timezone_aware(db):
 def test_schema_version_is_recorded_and_a_newer_one_refused(db, clock):
     Catalog(db, clock=clock).close()
     Catalog(db, clock=clock).close()  # reopening does not migrate twice
-    with sqlite3.connect(db) as conn:
-        assert conn.execute("SELECT version FROM schema_version").fetchall() == [
-            (v,) for v in range(1, SCHEMA_VERSION + 1)
-        ]
-        assert conn.execute("PRAGMA journal_mode").fetchone()[0] == "wal"
-        conn.execute("INSERT INTO schema_version VALUES (?, 'later')", (SCHEMA_VERSION + 1,))
-    conn.close()
+    versions, _ = run_sql(
+        db,
+        "SELECT version FROM schema_version ORDER BY version",
+        ("INSERT INTO schema_version VALUES (?, 'later')", (SCHEMA_VERSION + 1,)),
+    )
+    assert versions == [(v,) for v in range(1, SCHEMA_VERSION + 1)]
+    if not db.startswith("postgresql://"):
+        assert run_sql(db, "PRAGMA journal_mode") == [[("wal",)]]
     with pytest.raises(CatalogError, match=f"schema version {SCHEMA_VERSION + 1}, newer"):
         Catalog(db, clock=clock)
+
+
+def test_a_server_that_cannot_be_reached_is_one_line_without_its_password():
+    with pytest.raises(CatalogError, match=r"cannot open catalog postgresql://lab@127\.0\.0\.1:9/catalog: ") as caught:
+        Catalog("postgresql://lab:s3cret@127.0.0.1:9/catalog", busy_timeout_s=1)
+    assert "s3cret" not in str(caught.value) and "\n" not in str(caught.value)
+    with pytest.raises(CatalogError, match="unknown URL scheme 'mysql'"):
+        Catalog("mysql://lab@host/catalog")
 
 
 def test_a_file_that_is_not_a_catalog_is_refused(tmp_path):
@@ -512,26 +524,21 @@ def test_a_version_1_catalog_is_migrated_and_keeps_its_jobs(db, clock):
     # The version-1 schema, as the first release wrote it, with one job in it.
     from acquisition.daemon.catalog.schema import MIGRATIONS
 
-    with sqlite3.connect(db) as conn:
-        conn.execute("CREATE TABLE schema_version (version INTEGER PRIMARY KEY, applied_utc TEXT NOT NULL)")
-        for statement in MIGRATIONS[0]:
-            conn.execute(statement)
-        conn.execute("INSERT INTO schema_version VALUES (1, '2026-11-20T00:00:00.000000Z')")
-        conn.execute(
-            "INSERT INTO runs (id, seq, created_utc, updated_utc, state, n_positions, positions_done, request_json) "
-            "VALUES ('run-old', 1, 't', 't', 'complete', 3, 3, '{}')"
-        )
-        conn.execute(  # a run left queued: it keeps its turn in the queue
-            "INSERT INTO runs (id, seq, created_utc, updated_utc, state, n_positions, positions_done, request_json) "
-            "VALUES ('run-waits', 2, '2026-11-20T00:00:00.000000Z', '2026-11-20T00:00:00.000000Z', 'queued', 3, 0, "
-            "'{}')"
-        )
-        conn.execute(
-            "INSERT INTO jobs (id, seq, run_id, created_utc, updated_utc, state, steps, options_json, progress) "
-            "VALUES ('job-old', 1, 'run-old', '2026-11-20T00:00:00.000000Z', '2026-11-20T00:00:00.000000Z', "
-            "'queued', 'hdr,trace,fit', '{}', 0)"
-        )
-    conn.close()
+    run_sql(
+        db,
+        "CREATE TABLE schema_version (version INTEGER PRIMARY KEY, applied_utc TEXT NOT NULL)",
+        *MIGRATIONS[0],
+        "INSERT INTO schema_version VALUES (1, '2026-11-20T00:00:00.000000Z')",
+        "INSERT INTO runs (id, seq, created_utc, updated_utc, state, n_positions, positions_done, request_json) "
+        "VALUES ('run-old', 1, '2026-11-19T00:00:00.000000Z', '2026-11-19T00:00:00.000000Z', 'complete', 3, 3, '{}')",
+        # a run left queued: it keeps its turn in the queue
+        "INSERT INTO runs (id, seq, created_utc, updated_utc, state, n_positions, positions_done, request_json) "
+        "VALUES ('run-waits', 2, '2026-11-20T00:00:00.000000Z', '2026-11-20T00:00:00.000000Z', 'queued', 3, 0, "
+        "'{}')",
+        "INSERT INTO jobs (id, seq, run_id, created_utc, updated_utc, state, steps, options_json, progress) "
+        "VALUES ('job-old', 1, 'run-old', '2026-11-20T00:00:00.000000Z', '2026-11-20T00:00:00.000000Z', "
+        "'queued', 'hdr,trace,fit', '{}', 0)",
+    )
     cat = Catalog(db, clock=clock)
     try:
         job = cat.get_job("job-old")
@@ -539,6 +546,12 @@ def test_a_version_1_catalog_is_migrated_and_keeps_its_jobs(db, clock):
         assert cat.claim_job("w1").id == "job-old"
         assert [(r.id, r.queue_position) for r in cat.queued_runs()] == [("run-waits", 1)]
         assert cat.queue_hold() is None
+        # The runs before rigs had names are the default rig's; new rows number on after the old.
+        assert cat.get_run("run-old").rig == cat.get_job("job-old").rig == DEFAULT_RIG
+        newer = _run_in(cat, "complete")
+        cat.create_job(newer.id)
+        assert [r.id for r in cat.list_runs()][-2:] == ["run-waits", "run-old"]
+        assert [j.id for j in cat.list_jobs()][-1] == "job-old"
     finally:
         cat.close()
 
@@ -632,3 +645,96 @@ def test_concurrent_writes_from_threads_do_not_lock(db, clock):
     finally:
         for c in [shared, *own]:
             c.close()
+
+
+# --- several rigs, one catalog -------------------------------------------------------------
+def test_each_rig_has_its_runs_queue_and_jobs_and_reads_the_others(db, clock):
+    a, b = Catalog(db, clock=clock, rig="rig-a"), Catalog(db, clock=clock, rig="rig-b")
+    try:
+        a1, a2 = _new_run(a), _new_run(a)
+        b1 = _new_run(b)
+        assert (a1.rig, b1.rig) == ("rig-a", "rig-b")
+        assert b1.queue_position == 1  # each rig's queue is its own
+        a.transition_run(a1.id, "running")
+        assert b.transition_run(b1.id, "running").state == "running"  # one run in progress per rig
+        assert a.active_run().id == a1.id and b.active_run().id == b1.id
+        a.hold_queue("lamp warming up")
+        assert a.queue_hold()[0] == "lamp warming up" and b.queue_hold() is None
+        assert [r.id for r in a.queued_runs()] == [a2.id] and b.queued_runs() == []
+        # The lab's runs, read from either rig; another rig's runs, by name.
+        assert {r.id for r in b.list_runs(rig=None)} == {a1.id, a2.id, b1.id}
+        assert [r.id for r in b.list_runs(rig="rig-a")] == [a2.id, a1.id]
+        assert [r.id for r in b.list_runs()] == [b1.id]
+        assert b.get_run(a1.id).state == "running" and b.rigs() == ["rig-a", "rig-b"]
+        # ... and never changed by the rig that is not theirs.
+        for change in (
+            lambda: b.transition_run(a1.id, "aborted"),
+            lambda: b.create_job(a1.id),
+            lambda: b.remove_from_queue(a2.id, "no"),
+            lambda: b.reorder_queue([a2.id]),
+            lambda: b.update_progress(a1.id, positions_done=1, current_position=1),
+        ):
+            with pytest.raises(OtherRigError, match="belongs to rig 'rig-a'"):
+                change()
+        assert a.get_run(a1.id).state == "running" and a.get_run(a2.id).queue_position == 1
+        refused = f"cannot make it aborted: run {a1.id} belongs to rig 'rig-a'; rig 'rig-b' can only read it"
+        with pytest.raises(OtherRigError, match=refused):
+            b.transition_run(a1.id, "aborted")
+        # A daemon that restarts interrupts only its own rig's runs.
+        assert Catalog(db, clock=clock, rig="rig-b").mark_interrupted() == [b1.id]
+        assert a.get_run(a1.id).state == "running"
+        # Jobs: each rig lists its own; a worker claims any rig's, or those of the rigs it serves.
+        ja, jb = a.create_job(a1.id), b.create_job(b1.id)
+        assert [j.id for j in a.list_jobs()] == [ja.id] and {j.id for j in a.list_jobs(rig=None)} == {ja.id, jb.id}
+        assert a.claim_job("w1", rigs=["rig-b"]).id == jb.id
+        assert a.claim_job("w1", rigs=["rig-b"]) is None
+        assert b.claim_job("w2").id == ja.id and ja.rig == "rig-a"
+        with pytest.raises(CatalogError, match="not a rig's name"):
+            Catalog(db, rig="Rig A")
+    finally:
+        a.close()
+        b.close()
+
+
+def test_a_catalog_survives_its_server_restarting():
+    """PostgreSQL restarts under an open catalog: what was begun before is kept, the next
+    operations reconnect, and an operation while it is down fails in one line (503)."""
+    from acquisition.daemon.catalog import CatalogUnavailableError
+    from acquisition.daemon.catalog.throwaway_server import ThrowawayPostgres
+
+    with ThrowawayPostgres() as server:
+        cat = Catalog(server.create_database("restarts"), busy_timeout_s=2)
+        try:
+            run = _run_in(cat, "running")
+            server.restart()
+            assert cat.get_run(run.id).state == "running"  # reconnected on its own
+            job = cat.create_job(run.id)
+            server.stop()
+            with pytest.raises(CatalogUnavailableError, match=r"cannot reach the catalog postgresql://.*") as down:
+                cat.claim_job("w1")
+            assert "\n" not in str(down.value)
+            server.start()
+            assert cat.claim_job("w1").id == job.id
+        finally:
+            cat.close()
+
+
+def test_postgresql_errors_map_to_the_catalogs_one_line_errors():
+    """The SQLSTATEs a full disk or a read-only server give (which a test cannot provoke on
+    the throwaway server) become the same errors as SQLite's."""
+    import psycopg
+
+    from acquisition.daemon.catalog import CatalogFullError, CatalogUnavailableError
+    from acquisition.daemon.catalog.backends import PostgresBackend
+
+    backend = PostgresBackend.__new__(PostgresBackend)
+    backend.where, backend._psycopg, backend._conn = "postgresql://lab@db/catalog", psycopg, None
+    full = backend.storage_error(psycopg.errors.DiskFull("could not extend file"), "writing")
+    assert isinstance(full, CatalogFullError) and "no space left on device writing the catalog" in str(full)
+    read_only = backend.storage_error(psycopg.errors.ReadOnlySqlTransaction("read-only"), "writing")
+    assert isinstance(read_only, CatalogUnavailableError) and "cannot be written" in str(read_only)
+    locked = backend.storage_error(psycopg.errors.LockNotAvailable("lock timeout"), "writing")
+    assert isinstance(locked, CatalogUnavailableError)
+    bug = psycopg.errors.UniqueViolation("duplicate key")
+    assert backend.storage_error(bug, "writing") is bug
+    assert backend.storage_error(ValueError("not the database's"), "writing") is None

@@ -1,14 +1,13 @@
-"""The catalog's SQLite file: opening and migrating it, its transactions, its clock, new ids,
+"""The catalog's database: opening and migrating it, its transactions, its clock, new ids,
 and the checks of the values the runs and the jobs are given."""
 
 from __future__ import annotations
 
-import contextlib
 import json
 import math
 import os
+import re
 import secrets
-import sqlite3
 import threading
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -16,12 +15,12 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Self
 
+from acquisition.daemon.catalog.backends import Backend, Connection, Dialects, open_backend
 from acquisition.daemon.catalog.errors import CatalogError, CatalogFullError, CatalogUnavailableError
 from acquisition.daemon.catalog.records import format_time
-from acquisition.daemon.catalog.schema import MIGRATIONS, SCHEMA_VERSION
+from acquisition.daemon.catalog.schema import DEFAULT_RIG, MIGRATIONS, SCHEMA_VERSION
 
-#: SQLite's primary result codes of a storage that refused (``sqlite3.Error.sqlite_errorcode & 0xFF``).
-_SQLITE_READONLY, _SQLITE_IOERR, _SQLITE_FULL = 8, 10, 13
+_RIG_NAME = re.compile(r"[a-z0-9][a-z0-9_.-]{0,62}\Z")
 
 
 def _utc_now() -> datetime:
@@ -66,8 +65,19 @@ def check_text(name: str, value: object) -> str:
     return value
 
 
+def check_rig(rig: object) -> str:
+    """``rig`` if it is a rig's name (lowercase letters, digits, ``-``, ``_``, ``.``; at most 63
+    characters), else a CatalogError."""
+    if not isinstance(rig, str) or not _RIG_NAME.match(rig):
+        raise CatalogError(
+            f"rig {rig!r} is not a rig's name (lowercase letters, digits, '-', '_' and '.', at most 63, "
+            "starting with a letter or digit)"
+        )
+    return rig
+
+
 class CatalogDatabase:
-    """The catalog's SQLite connection, shared by the threads of a process under a lock.
+    """The catalog's database connection, shared by the threads of a process under a lock.
 
     The runs (:class:`~acquisition.daemon.catalog.runs.RunCatalog`) and the jobs
     (:class:`~acquisition.daemon.catalog.jobs.JobCatalog`) are built on it; see
@@ -76,41 +86,33 @@ class CatalogDatabase:
 
     def __init__(
         self,
-        path: str | Path,
+        location: str | Path,
         clock: Callable[[], datetime] = _utc_now,
         *,
+        rig: str = DEFAULT_RIG,
         busy_timeout_s: float = 10.0,
     ):
-        self.path = str(path)
+        self.rig = check_rig(rig)
         self._clock = clock
         self._lock = threading.RLock()
         self._pid = os.getpid()
         busy_timeout_s = check_real("busy_timeout_s", busy_timeout_s, 0.0)
+        self._backend: Backend | None = open_backend(location, busy_timeout_s)
+        self.path = self._backend.where
         try:
-            conn = sqlite3.connect(self.path, timeout=busy_timeout_s, isolation_level=None, check_same_thread=False)
-        except sqlite3.Error as exc:
-            raise CatalogError(f"cannot open catalog {self.path}: {exc}") from None
-        conn.row_factory = sqlite3.Row
-        self._conn: sqlite3.Connection | None = conn
-        try:
-            conn.execute(f"PRAGMA busy_timeout = {int(busy_timeout_s * 1000)}")
-            mode = conn.execute("PRAGMA journal_mode = WAL").fetchone()[0]
-            if mode.lower() not in ("wal", "memory"):
-                raise CatalogError(f"cannot open catalog {self.path}: journal mode is {mode}, not wal")
-            conn.execute("PRAGMA foreign_keys = ON")
             self._migrate()
-        except sqlite3.Error as exc:
-            conn.close()
-            self._conn = None
+        except (CatalogFullError, CatalogUnavailableError) as exc:
+            self._backend.close()
+            self._backend = None
             raise CatalogError(f"cannot open catalog {self.path}: {exc}") from None
         except BaseException:
-            conn.close()
-            self._conn = None
+            self._backend.close()
+            self._backend = None
             raise
 
     # --- plumbing ------------------------------------------------------------------
     def __repr__(self) -> str:
-        return f"Catalog({self.path!r})"
+        return f"Catalog({self.path!r}, rig={self.rig!r})"
 
     def __enter__(self) -> Self:
         return self
@@ -118,65 +120,65 @@ class CatalogDatabase:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
+    @property
+    def dialect(self) -> str:
+        """``"sqlite"`` or ``"postgresql"``."""
+        return self._open_backend().dialect
+
     def close(self) -> None:
         """Close the connection; the catalog cannot be used afterwards. Idempotent."""
         with self._lock:
-            if self._conn is not None and os.getpid() == self._pid:
-                self._conn.close()
-            self._conn = None
+            if self._backend is not None and os.getpid() == self._pid:
+                self._backend.close()
+            self._backend = None
 
-    def _connection(self) -> sqlite3.Connection:
+    def _open_backend(self) -> Backend:
         if os.getpid() != self._pid:
             raise CatalogError(
                 f"catalog {self.path} was opened in process {self._pid}: open a new Catalog in process {os.getpid()}"
             )
-        if self._conn is None:
+        if self._backend is None:
             raise CatalogError(f"catalog {self.path} is closed")
-        return self._conn
+        return self._backend
 
     @contextmanager
-    def _read(self) -> Iterator[sqlite3.Connection]:
-        with self._lock:
-            conn = self._connection()
-            try:
-                yield conn
-            except sqlite3.DatabaseError as exc:
-                raise self._storage_error(exc, "reading") from None
+    def _read(self) -> Iterator[Connection]:
+        with self._transaction(write=False) as conn:
+            yield conn
 
     @contextmanager
-    def _write(self) -> Iterator[sqlite3.Connection]:
-        """One write transaction, holding SQLite's write lock from its start."""
+    def _write(self, *serialised: str) -> Iterator[Connection]:
+        """One write transaction; where the backend does not serialise every write, the
+        ``serialised`` keys are held to its end (writes naming one key never interleave)."""
+        with self._transaction(write=True, serialised=serialised) as conn:
+            yield conn
+
+    @contextmanager
+    def _transaction(self, *, write: bool, serialised: tuple[str, ...] = ()) -> Iterator[Connection]:
+        doing = "writing" if write else "reading"
         with self._lock:
-            conn = self._connection()
+            backend = self._open_backend()
+            conn: Connection | None = None
             try:
-                conn.execute("BEGIN IMMEDIATE")
+                conn = backend.begin(write=write)
                 try:
+                    for key in serialised:
+                        backend.serialise(conn, key)
                     yield conn
                 except BaseException:
-                    if conn.in_transaction:  # SQLite may already have rolled back (disk full, I/O error)
-                        with contextlib.suppress(sqlite3.Error):
-                            conn.execute("ROLLBACK")
+                    backend.rollback(conn)
                     raise
-                conn.execute("COMMIT")
-            except sqlite3.DatabaseError as exc:
-                if conn.in_transaction:  # a failed COMMIT leaves the transaction open
-                    with contextlib.suppress(sqlite3.Error):
-                        conn.execute("ROLLBACK")
-                raise self._storage_error(exc, "writing") from None
-
-    def _storage_error(self, exc: sqlite3.DatabaseError, doing: str) -> Exception:
-        """The one-line catalog error of SQLite's ``exc``: full (507) or unavailable (503);
-        ``exc`` itself when it is a bug rather than the storage (a constraint, a bad statement)."""
-        if isinstance(exc, sqlite3.IntegrityError | sqlite3.ProgrammingError):
-            return exc
-        code = (getattr(exc, "sqlite_errorcode", 0) or 0) & 0xFF
-        if code == _SQLITE_FULL:
-            return CatalogFullError(f"no space left on device {doing} the catalog {self.path}")
-        if code == _SQLITE_READONLY:
-            return CatalogUnavailableError(f"the catalog {self.path} cannot be written ({exc})")
-        if code == _SQLITE_IOERR:
-            return CatalogUnavailableError(f"I/O error {doing} the catalog {self.path}")
-        return CatalogUnavailableError(f"catalog {self.path}: {doing} failed: {exc}")
+                if write or backend.dialect != "sqlite":
+                    backend.commit(conn)
+            except Exception as exc:
+                mapped = backend.storage_error(exc, doing)
+                if mapped is None:
+                    raise
+                if conn is not None:
+                    backend.rollback(conn)  # a failed COMMIT leaves the transaction open
+                if mapped is exc:
+                    raise
+                raise mapped from None
 
     def _now(self) -> datetime:
         now = self._clock()
@@ -185,7 +187,8 @@ class CatalogDatabase:
         return now.astimezone(UTC)
 
     def _migrate(self) -> None:
-        with self._write() as conn:
+        with self._write("migrate") as conn:
+            dialect = self.dialect
             conn.execute(
                 "CREATE TABLE IF NOT EXISTS schema_version (version INTEGER PRIMARY KEY, applied_utc TEXT NOT NULL)"
             )
@@ -197,16 +200,17 @@ class CatalogDatabase:
             stamp = format_time(self._now())
             for number in range(version + 1, SCHEMA_VERSION + 1):
                 for statement in MIGRATIONS[number - 1]:
-                    conn.execute(statement)
+                    text = getattr(statement, dialect) if isinstance(statement, Dialects) else statement
+                    if text is not None:
+                        conn.execute(text)
                 conn.execute("INSERT INTO schema_version (version, applied_utc) VALUES (?, ?)", (number, stamp))
 
     @staticmethod
-    def _new_id(conn: sqlite3.Connection, table: str, prefix: str, now: datetime) -> str:
+    def _new_id(conn: Connection, table: str, prefix: str, now: datetime) -> str:
         while True:
             candidate = f"{prefix}-{now:%Y%m%d-%H%M%S}-{secrets.token_hex(2)}"
             if conn.execute(f"SELECT 1 FROM {table} WHERE id = ?", (candidate,)).fetchone() is None:
                 return candidate
 
-    @staticmethod
-    def _next_seq(conn: sqlite3.Connection, table: str) -> int:
-        return conn.execute(f"SELECT COALESCE(MAX(seq), 0) + 1 FROM {table}").fetchone()[0]
+    def _next_seq(self, conn: Connection, table: str) -> int:
+        return self._open_backend().next_seq(conn, table)

@@ -88,6 +88,20 @@ class NotQueuedError(CatalogError):
         return (type(self), (self.run_id, self.state, self.wanted))
 
 
+class OtherRigError(CatalogError):
+    """A change to a run of another rig: a daemon reads the lab's runs but changes only its own."""
+
+    def __init__(self, run_id: str, run_rig: str, rig: str, wanted: str):
+        self.run_id = run_id
+        self.run_rig = run_rig
+        self.rig = rig
+        self.wanted = wanted
+        super().__init__(f"cannot {wanted}: run {run_id} belongs to rig {run_rig!r}; rig {rig!r} can only read it")
+
+    def __reduce__(self) -> tuple[type[Self], tuple[object, ...]]:
+        return (type(self), (self.run_id, self.run_rig, self.rig, self.wanted))
+
+
 class JobClaimError(CatalogError):
     """A worker reported on a job it no longer holds (requeued, claimed by another, or finished)."""
 

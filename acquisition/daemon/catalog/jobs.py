@@ -3,15 +3,24 @@
 from __future__ import annotations
 
 import re
-import sqlite3
+from collections.abc import Sequence
 from datetime import timedelta
 from pathlib import Path
 
-from acquisition.daemon.catalog.database import CatalogDatabase, check_int, check_real, check_text, to_json
+from acquisition.daemon.catalog.backends import Connection
+from acquisition.daemon.catalog.database import (
+    CatalogDatabase,
+    check_int,
+    check_real,
+    check_rig,
+    check_text,
+    to_json,
+)
 from acquisition.daemon.catalog.errors import (
     CatalogError,
     InvalidTransitionError,
     JobClaimError,
+    OtherRigError,
     UnknownJobError,
     UnknownRunError,
 )
@@ -45,7 +54,7 @@ class JobCatalog(CatalogDatabase):
     """The catalog's processing jobs (see :class:`acquisition.daemon.catalog.Catalog`)."""
 
     @staticmethod
-    def _fetch_job(conn: sqlite3.Connection, job_id: str) -> JobRecord:
+    def _fetch_job(conn: Connection, job_id: str) -> JobRecord:
         row = conn.execute(f"SELECT {JOB_COLUMNS} FROM jobs WHERE id = ?", (job_id,)).fetchone()
         if row is None:
             raise UnknownJobError(job_id)
@@ -57,7 +66,8 @@ class JobCatalog(CatalogDatabase):
         Parameters
         ----------
         run_id : str
-            The run to process (in any state: a partial run can be processed too).
+            The run to process (in any state: a partial run can be processed too), one of
+            this rig's.
         steps : str
             Comma-separated step names, in order.
         options : dict, optional
@@ -72,19 +82,24 @@ class JobCatalog(CatalogDatabase):
         ------
         UnknownRunError
             No run has this id.
+        OtherRigError
+            The run is another rig's.
         """
         steps = _normalise_steps(steps)
         options_json = to_json({} if options is None else options, "the job options")
         with self._write() as conn:
-            if conn.execute("SELECT 1 FROM runs WHERE id = ?", (run_id,)).fetchone() is None:
+            row = conn.execute("SELECT rig FROM runs WHERE id = ?", (run_id,)).fetchone()
+            if row is None:
                 raise UnknownRunError(run_id)
+            if row["rig"] != self.rig:
+                raise OtherRigError(run_id, row["rig"], self.rig, "queue a job for it")
             now = self._now()
             job_id = self._new_id(conn, "jobs", "job", now)
             stamp = format_time(now)
             conn.execute(
-                "INSERT INTO jobs (id, seq, run_id, created_utc, updated_utc, state, steps, options_json, progress) "
-                "VALUES (?, ?, ?, ?, ?, 'queued', ?, ?, 0)",
-                (job_id, self._next_seq(conn, "jobs"), run_id, stamp, stamp, steps, options_json),
+                "INSERT INTO jobs (id, seq, run_id, rig, created_utc, updated_utc, state, steps, options_json, "
+                "progress) VALUES (?, ?, ?, ?, ?, ?, 'queued', ?, ?, 0)",
+                (job_id, self._next_seq(conn, "jobs"), run_id, self.rig, stamp, stamp, steps, options_json),
             )
             return self._fetch_job(conn, job_id)
 
@@ -99,8 +114,9 @@ class JobCatalog(CatalogDatabase):
         with self._read() as conn:
             return self._fetch_job(conn, job_id)
 
-    def list_jobs(self, run_id: str | None = None, limit: int = 100) -> list[JobRecord]:
-        """The newest jobs first, at most ``limit``, only those of ``run_id`` if given.
+    def list_jobs(self, run_id: str | None = None, limit: int = 100, *, rig: str | None = "") -> list[JobRecord]:
+        """The newest jobs first, at most ``limit``, only those of ``run_id`` if given (of any rig),
+        else of ``rig``: this rig (``""``, the default), another (its name), the whole lab (None).
 
         Raises
         ------
@@ -109,8 +125,13 @@ class JobCatalog(CatalogDatabase):
         """
         limit = check_int("limit", limit, 1)
         with self._read() as conn:
-            if run_id is None:
+            if run_id is None and rig is None:
                 rows = conn.execute(f"SELECT {JOB_COLUMNS} FROM jobs ORDER BY seq DESC LIMIT ?", (limit,))
+            elif run_id is None:
+                rows = conn.execute(
+                    f"SELECT {JOB_COLUMNS} FROM jobs WHERE rig = ? ORDER BY seq DESC LIMIT ?",
+                    (check_rig(rig) if rig else self.rig, limit),
+                )
             else:
                 if conn.execute("SELECT 1 FROM runs WHERE id = ?", (run_id,)).fetchone() is None:
                     raise UnknownRunError(run_id)
@@ -119,11 +140,14 @@ class JobCatalog(CatalogDatabase):
                 )
             return [job_from_row(row) for row in rows]
 
-    def claim_job(self, worker_id: str) -> JobRecord | None:
-        """Take the oldest queued job that may run now: it becomes ``running``, claimed by ``worker_id``.
+    def claim_job(self, worker_id: str, *, rigs: Sequence[str] | None = None) -> JobRecord | None:
+        """Take the oldest queued job that may run now (of any rig, or of ``rigs`` if given): it
+        becomes ``running``, claimed by ``worker_id``.
 
-        Atomic across threads and processes (one ``BEGIN IMMEDIATE`` transaction): two
-        workers never get the same job. Progress restarts at 0 and the heartbeat at now.
+        Atomic across threads and processes: two workers never get the same job (SQLite: one
+        ``BEGIN IMMEDIATE`` transaction; PostgreSQL: the row is locked by
+        ``SELECT ... FOR UPDATE SKIP LOCKED``, so that concurrent claims take the next jobs
+        instead of waiting). Progress restarts at 0 and the heartbeat at now.
         A job put back with :meth:`release_job` is skipped until its ``not_before_utc``,
         so that it does not hold up the jobs queued after it.
 
@@ -133,12 +157,14 @@ class JobCatalog(CatalogDatabase):
             The claimed job, or None when no job is queued (or all wait).
         """
         check_text("worker_id", worker_id)
+        names = [check_rig(rig) for rig in rigs] if rigs is not None else []
+        among = f" AND rig IN ({', '.join('?' * len(names))})" if rigs is not None else ""
         with self._write() as conn:
             stamp = format_time(self._now())
             row = conn.execute(
-                "SELECT id FROM jobs WHERE state = 'queued' AND (not_before_utc IS NULL OR not_before_utc <= ?) "
-                "ORDER BY seq LIMIT 1",
-                (stamp,),
+                "SELECT id FROM jobs WHERE state = 'queued' AND (not_before_utc IS NULL OR not_before_utc <= ?)"
+                f"{among} ORDER BY seq LIMIT 1{self._open_backend().claim_lock}",
+                (stamp, *names),
             ).fetchone()
             if row is None:
                 return None
@@ -272,25 +298,23 @@ class JobCatalog(CatalogDatabase):
             check_text("message", message)
         files = None if artifacts is None else _artifacts_json(job_id, artifacts)
         new_state = "complete" if error is None else "failed"
+        complete = new_state == "complete"
+        held_by = (" AND claimed_by = ?", (worker_id,)) if worker_id is not None else ("", ())
         with self._write() as conn:
             changed = conn.execute(
                 "UPDATE jobs SET state = ?, error = ?, result_dir = COALESCE(?, result_dir), updated_utc = ?, "
-                "progress = CASE WHEN ? = 'complete' THEN 1.0 ELSE progress END, "
-                "step = CASE WHEN ? = 'complete' THEN NULL ELSE step END, "
+                f"progress = {'1.0' if complete else 'progress'}, step = {'NULL' if complete else 'step'}, "
                 "artifacts_json = COALESCE(?, artifacts_json), message = COALESCE(?, message) "
-                "WHERE id = ? AND state = 'running' AND (? IS NULL OR claimed_by = ?)",
+                f"WHERE id = ? AND state = 'running'{held_by[0]}",
                 (
                     new_state,
                     error,
                     None if result_dir is None else str(result_dir),
                     format_time(self._now()),
-                    new_state,
-                    new_state,
                     files,
                     message,
                     job_id,
-                    worker_id,
-                    worker_id,
+                    *held_by[1],
                 ),
             ).rowcount
             if changed == 0:
@@ -316,11 +340,11 @@ class JobCatalog(CatalogDatabase):
         with self._write() as conn:
             now = self._now()
             cutoff = format_time(now - timedelta(seconds=older_than_s))
-            stale = "state = 'running' AND (heartbeat_utc IS NULL OR heartbeat_utc < ?)"
-            ids = [row["id"] for row in conn.execute(f"SELECT id FROM jobs WHERE {stale} ORDER BY seq", (cutoff,))]
-            conn.execute(
+            rows = conn.execute(
                 "UPDATE jobs SET state = 'queued', claimed_by = NULL, heartbeat_utc = NULL, updated_utc = ?, "
-                f"step = NULL, message = 'requeued: its worker stopped sending heartbeats' WHERE {stale}",
+                "step = NULL, message = 'requeued: its worker stopped sending heartbeats' "
+                "WHERE state = 'running' AND (heartbeat_utc IS NULL OR heartbeat_utc < ?) RETURNING id, seq",
                 (format_time(now), cutoff),
             )
+            ids = [row["id"] for row in sorted(rows, key=lambda row: row["seq"])]
             return ids

@@ -3,7 +3,7 @@ is held (and why).
 
 The order is each queued run's ``queue_order`` (ascending); its position, from 1, is its rank
 among the queued runs (:data:`~acquisition.daemon.catalog.schema.RUN_COLUMNS`). The queue's hold is
-one row of ``run_queue``: its reason, or NULL while the queue runs on. The daemon decides
+a row of ``rig_queues`` per rig: its reason, or NULL (or no row) while the queue runs on. The daemon decides
 when to hold and release it (``acquisition.daemon.engine``); the catalog keeps both across restarts.
 """
 
@@ -22,15 +22,18 @@ class QueueCatalog(RunCatalog, CatalogDatabase):
     """The catalog's queue of runs (see :class:`acquisition.daemon.catalog.Catalog`)."""
 
     def queued_runs(self) -> list[RunRecord]:
-        """The queued runs, the next to start first."""
+        """This rig's queued runs, the next to start first."""
         with self._read() as conn:
-            rows = conn.execute(f"SELECT {RUN_COLUMNS} FROM runs WHERE state = 'queued' ORDER BY queue_order, seq")
+            rows = conn.execute(
+                f"SELECT {RUN_COLUMNS} FROM runs WHERE rig = ? AND state = 'queued' ORDER BY queue_order, seq",
+                (self.rig,),
+            )
             return [run_from_row(row) for row in rows]
 
     def queue_hold(self) -> tuple[str, datetime] | None:
         """Why the queue is held and since when (a UTC datetime); None while it runs on."""
         with self._read() as conn:
-            row = conn.execute("SELECT held, held_utc FROM run_queue WHERE id = 1").fetchone()
+            row = conn.execute("SELECT held, held_utc FROM rig_queues WHERE rig = ?", (self.rig,)).fetchone()
             return None if row is None or row["held"] is None else (row["held"], parse_required_time(row["held_utc"]))
 
     def hold_queue(self, reason: str) -> None:
@@ -43,12 +46,16 @@ class QueueCatalog(RunCatalog, CatalogDatabase):
         """
         check_text("reason", reason)
         with self._write() as conn:
-            conn.execute("UPDATE run_queue SET held = ?, held_utc = ? WHERE id = 1", (reason, format_time(self._now())))
+            conn.execute(
+                "INSERT INTO rig_queues (rig, held, held_utc) VALUES (?, ?, ?) "
+                "ON CONFLICT (rig) DO UPDATE SET held = excluded.held, held_utc = excluded.held_utc",
+                (self.rig, reason, format_time(self._now())),
+            )
 
     def release_queue(self) -> None:
         """Let the queue run on (its next run starts once the rig is free)."""
         with self._write() as conn:
-            conn.execute("UPDATE run_queue SET held = NULL, held_utc = NULL WHERE id = 1")
+            conn.execute("UPDATE rig_queues SET held = NULL, held_utc = NULL WHERE rig = ?", (self.rig,))
 
     def reorder_queue(self, run_ids: list[str]) -> list[RunRecord]:
         """Put the queued runs ``run_ids`` first, in that order; the queued runs not named
@@ -66,14 +73,16 @@ class QueueCatalog(RunCatalog, CatalogDatabase):
         if len(set(run_ids)) != len(run_ids):
             twice = next(run_id for run_id in run_ids if run_ids.count(run_id) > 1)
             raise CatalogError(f"run {twice!r} is named twice in the queue's order")
-        with self._write() as conn:
+        with self._write(self._rig_lock) as conn:
             for run_id in run_ids:
-                state = self._fetch_run(conn, run_id).state
+                state = self._fetch_own_run(conn, run_id, "reorder the queue").state
                 if state != "queued":
                     raise NotQueuedError(run_id, state, "reorder the queue")
             rest = [
                 row["id"]
-                for row in conn.execute("SELECT id FROM runs WHERE state = 'queued' ORDER BY queue_order, seq")
+                for row in conn.execute(
+                    "SELECT id FROM runs WHERE rig = ? AND state = 'queued' ORDER BY queue_order, seq", (self.rig,)
+                )
                 if row["id"] not in run_ids
             ]
             for order, run_id in enumerate([*run_ids, *rest], start=1):
@@ -92,7 +101,8 @@ class QueueCatalog(RunCatalog, CatalogDatabase):
             The run is not queued (it has started, ended, or was removed already).
         """
         check_text("error", error)
-        with self._write() as conn:
+        with self._write(self._rig_lock) as conn:
+            self._fetch_own_run(conn, run_id, "remove it from the queue")
             stamp = format_time(self._now())
             changed = conn.execute(
                 "UPDATE runs SET state = 'aborted', queue_order = NULL, updated_utc = ?, finished_utc = ?, "
@@ -102,6 +112,7 @@ class QueueCatalog(RunCatalog, CatalogDatabase):
             record = self._fetch_run(conn, run_id)
             if changed == 0:
                 raise NotQueuedError(run_id, record.state, "remove it from the queue")
-            if conn.execute("SELECT 1 FROM runs WHERE state = 'queued' LIMIT 1").fetchone() is None:
-                conn.execute("UPDATE run_queue SET held = NULL, held_utc = NULL WHERE id = 1")
+            left = conn.execute("SELECT 1 FROM runs WHERE rig = ? AND state = 'queued' LIMIT 1", (self.rig,))
+            if left.fetchone() is None:
+                conn.execute("UPDATE rig_queues SET held = NULL, held_utc = NULL WHERE rig = ?", (self.rig,))
             return record

@@ -4,11 +4,12 @@ them, and the records a caller gets back (built from the table rows)."""
 from __future__ import annotations
 
 import json
-import sqlite3
 from datetime import UTC, datetime
 from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, computed_field
+
+from acquisition.daemon.catalog.backends import Row
 
 RunState = Literal["queued", "running", "paused", "complete", "aborted", "failed", "interrupted"]
 JobState = Literal["queued", "running", "complete", "failed"]
@@ -44,6 +45,8 @@ IN_PROGRESS_RUN_STATES: tuple[str, ...] = ("running", "paused")
 
 #: Times are stored as fixed-width UTC text: compared as strings, they compare as times.
 _TIME_FORMAT = "%Y-%m-%dT%H:%M:%S.%fZ"
+#: The rig of a catalog that names none, and of the runs and jobs recorded before rigs had names.
+DEFAULT_RIG = "default"
 
 
 class _Record(BaseModel):
@@ -54,6 +57,7 @@ class RunRecord(_Record):
     """One run, as the catalog holds it. Times are timezone-aware UTC."""
 
     id: str
+    rig: str = DEFAULT_RIG
     created_utc: datetime
     updated_utc: datetime
     state: RunState
@@ -85,6 +89,7 @@ class JobRecord(_Record):
 
     id: str
     run_id: str
+    rig: str = DEFAULT_RIG
     created_utc: datetime
     updated_utc: datetime
     state: JobState
@@ -117,10 +122,11 @@ def parse_required_time(text: str) -> datetime:
     return datetime.strptime(text, _TIME_FORMAT).replace(tzinfo=UTC)
 
 
-def run_from_row(row: sqlite3.Row) -> RunRecord:
+def run_from_row(row: Row) -> RunRecord:
     """The record of a row of ``runs`` selected with :data:`~acquisition.daemon.catalog.schema.RUN_COLUMNS`."""
     return RunRecord(
         id=row["id"],
+        rig=row["rig"],
         created_utc=parse_required_time(row["created_utc"]),
         updated_utc=parse_required_time(row["updated_utc"]),
         state=row["state"],
@@ -139,11 +145,12 @@ def run_from_row(row: sqlite3.Row) -> RunRecord:
     )
 
 
-def job_from_row(row: sqlite3.Row) -> JobRecord:
+def job_from_row(row: Row) -> JobRecord:
     """The record of a row of ``jobs`` selected with :data:`~acquisition.daemon.catalog.schema.JOB_COLUMNS`."""
     return JobRecord(
         id=row["id"],
         run_id=row["run_id"],
+        rig=row["rig"],
         created_utc=parse_required_time(row["created_utc"]),
         updated_utc=parse_required_time(row["updated_utc"]),
         state=row["state"],

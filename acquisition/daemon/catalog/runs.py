@@ -2,12 +2,18 @@
 
 from __future__ import annotations
 
-import sqlite3
 from collections.abc import Callable
 from pathlib import Path
 
-from acquisition.daemon.catalog.database import CatalogDatabase, check_int, check_real, check_text, to_json
-from acquisition.daemon.catalog.errors import ActiveRunError, CatalogError, InvalidTransitionError, UnknownRunError
+from acquisition.daemon.catalog.backends import Connection, Row
+from acquisition.daemon.catalog.database import CatalogDatabase, check_int, check_real, check_rig, check_text, to_json
+from acquisition.daemon.catalog.errors import (
+    ActiveRunError,
+    CatalogError,
+    InvalidTransitionError,
+    OtherRigError,
+    UnknownRunError,
+)
 from acquisition.daemon.catalog.records import (
     ALLOWED_RUN_TRANSITIONS,
     IN_PROGRESS_RUN_STATES,
@@ -25,21 +31,32 @@ _FINISHING_RUN_STATES = ("complete", "aborted", "failed")
 class RunCatalog(CatalogDatabase):
     """The catalog's runs (see :class:`acquisition.daemon.catalog.Catalog`)."""
 
-    @staticmethod
-    def _other_active(conn: sqlite3.Connection, run_id: str | None) -> sqlite3.Row | None:
-        """The run in progress other than ``run_id`` (any run in progress if None)."""
+    def _other_active(self, conn: Connection, run_id: str | None) -> Row | None:
+        """The run of this rig in progress other than ``run_id`` (any run in progress if None)."""
         return conn.execute(
-            f"SELECT id, state FROM runs WHERE state IN ({sql_list(IN_PROGRESS_RUN_STATES)}) AND id <> ? "
+            f"SELECT id, state FROM runs WHERE rig = ? AND state IN ({sql_list(IN_PROGRESS_RUN_STATES)}) AND id <> ? "
             "ORDER BY seq DESC LIMIT 1",
-            ("" if run_id is None else run_id,),
+            (self.rig, "" if run_id is None else run_id),
         ).fetchone()
 
     @staticmethod
-    def _fetch_run(conn: sqlite3.Connection, run_id: str) -> RunRecord:
+    def _fetch_run(conn: Connection, run_id: str) -> RunRecord:
         row = conn.execute(f"SELECT {RUN_COLUMNS} FROM runs WHERE id = ?", (run_id,)).fetchone()
         if row is None:
             raise UnknownRunError(run_id)
         return run_from_row(row)
+
+    def _fetch_own_run(self, conn: Connection, run_id: str, wanted: str) -> RunRecord:
+        """The run, if it is this rig's; an OtherRigError if another rig's (those are read-only here)."""
+        run = self._fetch_run(conn, run_id)
+        if run.rig != self.rig:
+            raise OtherRigError(run_id, run.rig, self.rig, wanted)
+        return run
+
+    @property
+    def _rig_lock(self) -> str:
+        """The key a write holds where it checks and changes this rig's runs (their queue, the run in progress)."""
+        return f"rig:{self.rig}"
 
     def create_run(
         self,
@@ -78,21 +95,32 @@ class RunCatalog(CatalogDatabase):
             check_text("preset", preset)
         n_positions = check_int("n_positions", n_positions, 1)
         request_json = to_json(request, "the run request")
-        with self._write() as conn:
+        with self._write(self._rig_lock) as conn:
             now = self._now()
             run_id = self._new_id(conn, "runs", "run", now)
             path = None if path_for is None else str(path_for(run_id))
             stamp = format_time(now)
-            order = conn.execute("SELECT COALESCE(MAX(queue_order), 0) + 1 FROM runs").fetchone()[0]
+            order = conn.execute("SELECT COALESCE(MAX(queue_order), 0) + 1 FROM runs WHERE rig = ?", (self.rig,))
             conn.execute(
-                "INSERT INTO runs (id, seq, created_utc, updated_utc, state, preset, path, n_positions, "
-                "positions_done, request_json, queue_order) VALUES (?, ?, ?, ?, 'queued', ?, ?, ?, 0, ?, ?)",
-                (run_id, self._next_seq(conn, "runs"), stamp, stamp, preset, path, n_positions, request_json, order),
+                "INSERT INTO runs (id, seq, rig, created_utc, updated_utc, state, preset, path, n_positions, "
+                "positions_done, request_json, queue_order) VALUES (?, ?, ?, ?, ?, 'queued', ?, ?, ?, 0, ?, ?)",
+                (
+                    run_id,
+                    self._next_seq(conn, "runs"),
+                    self.rig,
+                    stamp,
+                    stamp,
+                    preset,
+                    path,
+                    n_positions,
+                    request_json,
+                    order.fetchone()[0],
+                ),
             )
             return self._fetch_run(conn, run_id)
 
     def get_run(self, run_id: str) -> RunRecord:
-        """The run with this id.
+        """The run with this id (of any rig).
 
         Raises
         ------
@@ -102,15 +130,32 @@ class RunCatalog(CatalogDatabase):
         with self._read() as conn:
             return self._fetch_run(conn, run_id)
 
-    def list_runs(self, limit: int = 100, state: str | None = None) -> list[RunRecord]:
-        """The newest runs first, at most ``limit`` of them, only those in ``state`` if given."""
+    def list_runs(self, limit: int = 100, state: str | None = None, *, rig: str | None = "") -> list[RunRecord]:
+        """The newest runs first, at most ``limit`` of them, only those in ``state`` if given.
+
+        ``rig``: this rig's runs (``""``, the default), another rig's (its name), or the whole
+        lab's (None).
+        """
         limit = check_int("limit", limit, 1)
         if state is not None and state not in RUN_STATES:
             raise CatalogError(f"unknown run state {state!r} (one of: {', '.join(RUN_STATES)})")
-        where, params = ("WHERE state = ? ", (state, limit)) if state is not None else ("", (limit,))
+        conditions, params = [], []
+        if rig is not None:
+            conditions.append("rig = ?")
+            params.append(check_rig(rig) if rig else self.rig)
+        if state is not None:
+            conditions.append("state = ?")
+            params.append(state)
+        where = f"WHERE {' AND '.join(conditions)} " if conditions else ""
         with self._read() as conn:
-            rows = conn.execute(f"SELECT {RUN_COLUMNS} FROM runs {where}ORDER BY seq DESC LIMIT ?", params)
+            rows = conn.execute(f"SELECT {RUN_COLUMNS} FROM runs {where}ORDER BY seq DESC LIMIT ?", (*params, limit))
             return [run_from_row(row) for row in rows]
+
+    def rigs(self) -> list[str]:
+        """The rigs the catalog has runs of, and this one, by name."""
+        with self._read() as conn:
+            names = {row[0] for row in conn.execute("SELECT DISTINCT rig FROM runs")}
+        return sorted(names | {self.rig})
 
     def transition_run(self, run_id: str, new_state: str, *, error: str | None = None) -> RunRecord:
         """Move a run to ``new_state`` if :data:`ALLOWED_RUN_TRANSITIONS` allows it.
@@ -150,25 +195,26 @@ class RunCatalog(CatalogDatabase):
         if error is not None:
             check_text("error", error)
         sources = [s for s, targets in ALLOWED_RUN_TRANSITIONS.items() if new_state in targets]
-        with self._write() as conn:
+        with self._write(self._rig_lock) as conn:
+            self._fetch_own_run(conn, run_id, f"make it {new_state}")
             if new_state in IN_PROGRESS_RUN_STATES:
                 active = self._other_active(conn, run_id)
                 if active is not None:
                     raise ActiveRunError(active["id"], active["state"], f"make {run_id} {new_state}")
             stamp = format_time(self._now())
             if new_state == "running":
-                finished = "NULL"
+                finished: tuple[str, tuple[str, ...]] = ("NULL", ())
             elif new_state in _FINISHING_RUN_STATES:
-                finished = ":now"
+                finished = ("?", (stamp,))
             else:
-                finished = "finished_utc"
-            started = "COALESCE(started_utc, :now)" if new_state == "running" else "started_utc"
+                finished = ("finished_utc", ())
+            started = ("COALESCE(started_utc, ?)", (stamp,)) if new_state == "running" else ("started_utc", ())
             kept_error = "NULL" if new_state == "running" else "last_error"
             changed = conn.execute(
-                f"UPDATE runs SET state = :new, queue_order = NULL, updated_utc = :now, started_utc = {started}, "
-                f"finished_utc = {finished}, last_error = COALESCE(:error, {kept_error}) "
-                f"WHERE id = :id AND state IN ({sql_list(sources) or 'NULL'})",
-                {"new": new_state, "now": stamp, "error": error, "id": run_id},
+                f"UPDATE runs SET state = ?, queue_order = NULL, updated_utc = ?, started_utc = {started[0]}, "
+                f"finished_utc = {finished[0]}, last_error = COALESCE(?, {kept_error}) "
+                f"WHERE id = ? AND state IN ({sql_list(sources) or 'NULL'})",
+                (new_state, stamp, *started[1], *finished[1], error, run_id),
             ).rowcount
             if changed == 0:
                 current = self._fetch_run(conn, run_id).state
@@ -219,10 +265,7 @@ class RunCatalog(CatalogDatabase):
         if exposures_per_position is not None:
             check_int("exposures_per_position", exposures_per_position, 1)
         with self._write() as conn:
-            row = conn.execute("SELECT n_positions FROM runs WHERE id = ?", (run_id,)).fetchone()
-            if row is None:
-                raise UnknownRunError(run_id)
-            n = row["n_positions"]
+            n = self._fetch_own_run(conn, run_id, "record its progress").n_positions
             if positions_done is not None and positions_done > n:
                 raise CatalogError(f"{run_id}: positions_done {positions_done} > n_positions {n}")
             if current_position is not None and current_position >= n:
@@ -246,30 +289,27 @@ class RunCatalog(CatalogDatabase):
         the queued runs wait: :meth:`~acquisition.daemon.catalog.queue.QueueCatalog.queued_runs`)."""
         with self._read() as conn:
             row = conn.execute(
-                f"SELECT {RUN_COLUMNS} FROM runs WHERE state IN ({sql_list(IN_PROGRESS_RUN_STATES)}) "
-                "ORDER BY seq DESC LIMIT 1"
+                f"SELECT {RUN_COLUMNS} FROM runs WHERE rig = ? AND state IN ({sql_list(IN_PROGRESS_RUN_STATES)}) "
+                "ORDER BY seq DESC LIMIT 1",
+                (self.rig,),
             ).fetchone()
             return None if row is None else run_from_row(row)
 
     def mark_interrupted(self) -> list[str]:
-        """At daemon start: every run left running or paused becomes ``interrupted`` (the queued
-        runs stay queued, in their order).
+        """At daemon start: every run of this rig left running or paused becomes ``interrupted``
+        (the queued runs stay queued, in their order; other rigs' runs are theirs).
 
         Returns
         -------
         list of str
             The ids of those runs, oldest first.
         """
-        with self._write() as conn:
-            ids = [
-                row["id"]
-                for row in conn.execute(
-                    f"SELECT id FROM runs WHERE state IN ({sql_list(IN_PROGRESS_RUN_STATES)}) ORDER BY seq"
-                )
-            ]
+        in_progress = f"rig = ? AND state IN ({sql_list(IN_PROGRESS_RUN_STATES)})"
+        with self._write(self._rig_lock) as conn:
+            rows = conn.execute(f"SELECT id FROM runs WHERE {in_progress} ORDER BY seq", (self.rig,))
+            ids = [row["id"] for row in rows]
             conn.execute(
-                f"UPDATE runs SET state = 'interrupted', updated_utc = ? "
-                f"WHERE state IN ({sql_list(IN_PROGRESS_RUN_STATES)})",
-                (format_time(self._now()),),
+                f"UPDATE runs SET state = 'interrupted', updated_utc = ? WHERE {in_progress}",
+                (format_time(self._now()), self.rig),
             )
             return ids

@@ -4,9 +4,10 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 
-from acquisition.daemon.catalog.records import JOB_STATES, RUN_STATES
+from acquisition.daemon.catalog.backends import Dialects
+from acquisition.daemon.catalog.records import DEFAULT_RIG, JOB_STATES, RUN_STATES
 
-SCHEMA_VERSION = 4
+SCHEMA_VERSION = 5
 
 
 def sql_list(states: Iterable[str]) -> str:
@@ -14,11 +15,13 @@ def sql_list(states: Iterable[str]) -> str:
     return ", ".join(f"'{s}'" for s in states)
 
 
-# One tuple of statements per schema version; version N is MIGRATIONS[N - 1]. Never edit
-# a released entry: append a new one. ``seq`` orders rows (newest first, oldest queued job
-# first) even when two share a timestamp; it is MAX(seq) + 1 taken inside the write
-# transaction (PostgreSQL would use a sequence instead).
-MIGRATIONS: tuple[tuple[str, ...], ...] = (
+# One tuple of statements per schema version; version N is MIGRATIONS[N - 1]. Never change
+# what a released entry does: append a new one. A statement is SQL both databases run, or
+# :class:`Dialects` where they differ. ``seq`` orders rows (newest first, oldest queued job
+# first) even when two share a timestamp: MAX(seq) + 1 taken under SQLite's write lock, a
+# sequence on PostgreSQL. ``DOUBLE PRECISION`` is SQLite's REAL (the same affinity) and
+# PostgreSQL's 8-byte float (its REAL has 4).
+MIGRATIONS: tuple[tuple[str | Dialects, ...], ...] = (
     (
         f"""CREATE TABLE runs (
             id TEXT PRIMARY KEY,
@@ -36,7 +39,7 @@ MIGRATIONS: tuple[tuple[str, ...], ...] = (
             finished_utc TEXT,
             last_error TEXT,
             request_json TEXT NOT NULL,
-            seconds_per_position REAL
+            seconds_per_position DOUBLE PRECISION
         )""",
         "CREATE INDEX runs_state ON runs (state)",
         f"""CREATE TABLE jobs (
@@ -48,7 +51,7 @@ MIGRATIONS: tuple[tuple[str, ...], ...] = (
             state TEXT NOT NULL CHECK (state IN ({sql_list(JOB_STATES)})),
             steps TEXT NOT NULL,
             options_json TEXT NOT NULL,
-            progress REAL NOT NULL CHECK (progress >= 0 AND progress <= 1),
+            progress DOUBLE PRECISION NOT NULL CHECK (progress >= 0 AND progress <= 1),
             claimed_by TEXT,
             heartbeat_utc TEXT,
             error TEXT,
@@ -75,18 +78,37 @@ MIGRATIONS: tuple[tuple[str, ...], ...] = (
         "CREATE TABLE run_queue (id INTEGER PRIMARY KEY CHECK (id = 1), held TEXT, held_utc TEXT)",
         "INSERT INTO run_queue (id) VALUES (1)",
     ),
+    # 5: several rigs in one catalog: each run and job names its rig (those before, the
+    # default one), and each rig's queue has its own hold; on PostgreSQL, seq from sequences.
+    (
+        f"ALTER TABLE runs ADD COLUMN rig TEXT NOT NULL DEFAULT '{DEFAULT_RIG}'",
+        f"ALTER TABLE jobs ADD COLUMN rig TEXT NOT NULL DEFAULT '{DEFAULT_RIG}'",
+        "CREATE INDEX runs_rig_state ON runs (rig, state)",
+        "CREATE INDEX jobs_rig_seq ON jobs (rig, seq)",
+        "CREATE TABLE rig_queues (rig TEXT PRIMARY KEY, held TEXT, held_utc TEXT)",
+        f"INSERT INTO rig_queues (rig, held, held_utc) SELECT '{DEFAULT_RIG}', held, held_utc FROM run_queue",
+        "DROP TABLE run_queue",
+        *(
+            statement
+            for table in ("runs", "jobs")
+            for statement in (
+                Dialects(None, f"CREATE SEQUENCE {table}_seq"),
+                Dialects(None, f"SELECT setval('{table}_seq', COALESCE((SELECT MAX(seq) FROM {table}), 0) + 1, false)"),
+            )
+        ),
+    ),
 )
 assert len(MIGRATIONS) == SCHEMA_VERSION
 
 #: The columns a run's record is built from (selected ``FROM runs``, unaliased: a queued run's
 #: place in the queue is its rank among the queued runs), and a job's.
 RUN_COLUMNS = (
-    "id, created_utc, updated_utc, state, preset, path, n_positions, positions_done, current_position, "
+    "id, rig, created_utc, updated_utc, state, preset, path, n_positions, positions_done, current_position, "
     "exposures_per_position, started_utc, finished_utc, last_error, request_json, seconds_per_position, "
     "CASE WHEN state = 'queued' THEN (SELECT COUNT(*) FROM runs AS ahead WHERE ahead.state = 'queued' "
-    "AND ahead.queue_order <= runs.queue_order) END AS queue_position"
+    "AND ahead.rig = runs.rig AND ahead.queue_order <= runs.queue_order) END AS queue_position"
 )
 JOB_COLUMNS = (
-    "id, run_id, created_utc, updated_utc, state, steps, options_json, progress, claimed_by, heartbeat_utc, "
+    "id, run_id, rig, created_utc, updated_utc, state, steps, options_json, progress, claimed_by, heartbeat_utc, "
     "error, result_dir, artifacts_json, message, not_before_utc, step"
 )
