@@ -65,11 +65,29 @@ def serve(
 def worker_command(
     config: Annotated[
         Path | None,
-        typer.Option("--config", help="daemon.toml: the worker uses its data_dir (the catalog and the runs)."),
+        typer.Option(
+            "--config",
+            help="daemon.toml: the worker uses its data_dir, catalog and token (MG_CATALOG, MG_TOKEN).",
+        ),
     ] = None,
     data_dir: Annotated[
         Path | None,
-        typer.Option("--data-dir", help="Where the catalog and the run files are (overrides the configuration)."),
+        typer.Option(
+            "--data-dir",
+            help="Where the catalog and the run files are (overrides the configuration); with a catalog on a "
+            "server, where the run files fetched from other machines' daemons are kept while processed.",
+        ),
+    ] = None,
+    catalog: Annotated[
+        str | None,
+        typer.Option(
+            "--catalog",
+            help="The catalog's URL (postgresql://USER@HOST/DATABASE for a lab's); default the configuration's.",
+        ),
+    ] = None,
+    rigs: Annotated[
+        list[str] | None,
+        typer.Option("--rig", help="Take only this rig's jobs (repeat for several); default every rig's."),
     ] = None,
     scheduler: SchedulerOption = "local",
     workers: WorkersOption = None,
@@ -108,11 +126,13 @@ def worker_command(
     from processing import ComputeError, open_compute
 
     try:
-        settings = load_settings(config, data_dir=data_dir) if data_dir is not None else load_settings(config)
+        settings = load_settings(config, data_dir=data_dir, catalog=catalog)
     except (SettingsError, OSError) as exc:
         raise fail(str(exc)) from None
-    if not Path(settings.data_dir).is_dir():
+    if not settings.shared_catalog and not Path(settings.data_dir).is_dir():
         raise fail(f"--data-dir: {settings.data_dir} is not a folder (the daemon's data folder, with catalog.sqlite)")
+    if settings.shared_catalog:
+        Path(settings.data_dir).mkdir(parents=True, exist_ok=True)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
     from processing import warm_up_worker
 
@@ -123,14 +143,19 @@ def worker_command(
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
-    typer.echo(f"worker: jobs from {settings.catalog_path}, positions on {compute.description}")
     from acquisition.daemon.catalog import CatalogError
+    from acquisition.daemon.catalog.backends import redact_url
+
+    typer.echo(f"worker: jobs from {redact_url(settings.catalog_url)}, positions on {compute.description}")
 
     try:
         with compute:
             serve_jobs(
-                settings.catalog_path,
+                settings.catalog_url,
                 compute,
+                fetch_to=Path(settings.data_dir) / "fetched",
+                token=settings.token.get_secret_value() if settings.token else None,
+                rigs=rigs or None,
                 stop=stop,
                 once=once,
                 poll_s=poll,

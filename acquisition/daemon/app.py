@@ -26,6 +26,7 @@ from acquisition.daemon.catalog import (
     CatalogError,
     InvalidTransitionError,
     NotQueuedError,
+    OtherRigError,
     UnknownJobError,
     UnknownRunError,
 )
@@ -37,6 +38,7 @@ from acquisition.daemon.manual import MoveRefusedError
 from acquisition.daemon.preview import Previews
 from acquisition.daemon.settings import DaemonSettings
 from acquisition.daemon.storage import InsufficientStorageError, StorageUnavailableError
+from acquisition.daemon.transfer import DigestCache, TransferError
 from drivers.contracts.rig import RigError, load_rig
 from drivers.contracts.version import __version__
 from drivers.errors import DeviceError
@@ -57,10 +59,12 @@ ERROR_STATUS: list[tuple[type[Exception], int]] = [
     (InvalidTransitionError, status.HTTP_409_CONFLICT),
     (ActiveRunError, status.HTTP_409_CONFLICT),
     (NotQueuedError, status.HTTP_409_CONFLICT),
+    (OtherRigError, status.HTTP_403_FORBIDDEN),
     (RunConflictError, status.HTTP_409_CONFLICT),
     (RigError, status.HTTP_422_UNPROCESSABLE_CONTENT),
     (MoveRefusedError, status.HTTP_422_UNPROCESSABLE_CONTENT),
     (ClientFileError, status.HTTP_422_UNPROCESSABLE_CONTENT),
+    (TransferError, status.HTTP_422_UNPROCESSABLE_CONTENT),
     (CatalogError, status.HTTP_400_BAD_REQUEST),
     (RunEngineError, status.HTTP_400_BAD_REQUEST),
     (DeviceError, status.HTTP_503_SERVICE_UNAVAILABLE),
@@ -101,7 +105,8 @@ def create_app(settings: DaemonSettings) -> FastAPI:
         app.state.log_buffer = log_buffer
         rig = load_rig(settings.rig)
         Path(settings.data_dir).mkdir(parents=True, exist_ok=True)
-        catalog = Catalog(settings.catalog_path)
+        catalog = Catalog(settings.catalog_url, rig=settings.rig_name)
+        catalog.register_daemon(settings.daemon_url())  # where workers without this disk fetch runs
         interrupted = catalog.mark_interrupted()
         if interrupted:
             log.warning("runs interrupted by the last shutdown: %s", ", ".join(interrupted))
@@ -109,6 +114,7 @@ def create_app(settings: DaemonSettings) -> FastAPI:
         engine = RunEngine(settings, rig, devices, catalog)
         engine.after_restart(interrupted)  # the queued runs wait for the operator
         app.state.settings, app.state.catalog, app.state.engine = settings, catalog, engine
+        app.state.digests = DigestCache()
         app.state.previews = Previews(lambda: (engine.frame_serial, engine.latest_frame, engine.latest_frame_run), rig)
         try:
             yield

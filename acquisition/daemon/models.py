@@ -18,6 +18,7 @@ from pydantic import (
     model_validator,
 )
 
+from acquisition.daemon.catalog import DEFAULT_RIG
 from acquisition.daemon.settings import BRACKET_MAX_LENGTH, BRACKET_MIN_LENGTH, DEFAULT_AMBIENT_EXPOSURES_S, Exposure
 from drivers.contracts.rig import MAX_POSITIONS, PoseSpec
 from processing import Option, ProcessingOptions, StepsError, declared_options, resolve_steps
@@ -253,6 +254,10 @@ class RunStatus(BaseModel):
         }
     )
     id: str
+    rig: str = Field(default=DEFAULT_RIG, description="the rig that took (or takes) the run")
+    read_only: bool = Field(
+        default=False, description="another rig's run: this daemon shows it, and only its own daemon changes it"
+    )
     state: str
     preset: str | None
     n_positions: int
@@ -352,6 +357,7 @@ class JobStatus(BaseModel):
     )
     id: str
     run_id: str
+    rig: str = Field(default=DEFAULT_RIG, description="the rig of the job's run")
     state: str
     steps: str
     options: dict = Field(default_factory=dict)
@@ -419,6 +425,7 @@ class Health(BaseModel):
     reasons: list[str]
     version: str
     active_run: str | None
+    rig: str = Field(default=DEFAULT_RIG, description="this daemon's rig (its name in the catalog)")
     queued_runs: int = Field(default=0, description="runs waiting in the queue")
     queue_held: str | None = Field(default=None, description="why the queue is held (GET /queue); None if it is not")
 
@@ -540,6 +547,13 @@ class PhotometrySummary(BaseModel):
     near_field_difference_percent: float | None = Field(
         None, description="the array of sources against one point source: largest illuminance difference, % of peak"
     )
+
+
+class ResultsReceived(BaseModel):
+    """Where the daemon keeps the results a worker on another machine sent."""
+
+    result_dir: str = Field(description="the folder of the results: the run file's")
+    files: dict[str, str] = Field(description="each file's path in the archive -> its path on the daemon's disk")
 
 
 class ReportFigure(BaseModel):

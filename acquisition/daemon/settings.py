@@ -9,12 +9,15 @@ from __future__ import annotations
 
 import ipaddress
 import json
+import socket
 from pathlib import Path
 from typing import Annotated, Literal
 
 from pydantic import ConfigDict, Field, PositiveFloat, SecretStr, field_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
+from acquisition.daemon.catalog import DEFAULT_RIG
+from acquisition.daemon.catalog.backends import POSTGRESQL_SCHEMES, SQLITE_PREFIX, redact_url
 from drivers.camera import LONGEST_EXPOSURE_S, SHORTEST_EXPOSURE_S
 from drivers.config_files import ConfigModel, read_toml, validate_model
 from drivers.contracts.rig import DEFAULT_RIG_PATH
@@ -211,6 +214,17 @@ class DaemonSettings(BaseSettings):
 
     data_dir: Path = Path("data")
     rig: Path = DEFAULT_RIG_PATH
+    rig_name: str = Field(
+        default=DEFAULT_RIG,
+        pattern=r"^[a-z0-9][a-z0-9_.-]{0,62}$",
+        description="this rig's name in the catalog: its runs, their jobs and its queue carry it (lowercase "
+        "letters, digits, '-', '_', '.'); several rigs that share one catalog each need their own",
+    )
+    catalog: str | None = Field(
+        default=None,
+        description="the catalog: sqlite:///PATH, or postgresql://USER:PASSWORD@HOST:PORT/DATABASE for a lab "
+        "whose rigs and workers share one; default DATA_DIR/catalog.sqlite",
+    )
     host: str = "127.0.0.1"
     port: int = Field(default=8000, ge=0, le=65535)
     token: SecretStr | None = Field(
@@ -226,6 +240,17 @@ class DaemonSettings(BaseSettings):
     )
     max_body_bytes: int = Field(
         default=DEFAULT_MAX_BODY_BYTES, ge=1024, le=1 << 30, description="the largest request body taken"
+    )
+    max_results_bytes: int = Field(
+        default=1 << 34,
+        ge=1024,
+        description="the largest results archive a worker on another machine may send back (PUT /jobs/{id}/results)",
+    )
+    public_url: str | None = Field(
+        default=None,
+        pattern=r"^https?://[^\s/]+(/\S*)?$",
+        description="where workers on other machines reach this daemon (http://HOST:PORT), recorded in the "
+        "catalog; default http://HOST:PORT of the listening address (the machine's name for 0.0.0.0)",
     )
     device_retries: int = Field(default=2, ge=0, description="retries of a transient device error")
     arm: ArmSettings = Field(default_factory=ArmSettings)
@@ -252,6 +277,20 @@ class DaemonSettings(BaseSettings):
                 f"too short ({len(text)} character{'s' * (len(text) > 1)}): at least {MIN_TOKEN_LENGTH} are needed "
                 "(set token in the configuration or MG_TOKEN, e.g. to the output of "
                 "`python3 -c 'import secrets; print(secrets.token_hex(16))'`)"
+            )
+        return text
+
+    @field_validator("catalog")
+    @classmethod
+    def _catalog_url(cls, value: str | None) -> str | None:
+        """An SQLite or PostgreSQL URL; an empty one is the default file."""
+        if value is None or not value.strip():
+            return None
+        text = value.strip()
+        scheme = text.split("://", 1)[0].lower() if "://" in text else ""
+        if scheme not in ("sqlite", *POSTGRESQL_SCHEMES) or (scheme == "sqlite" and not text.startswith(SQLITE_PREFIX)):
+            raise ValueError(
+                f"not a catalog URL: {redact_url(text)!r} (sqlite:///PATH or postgresql://USER@HOST/DATABASE)"
             )
         return text
 
@@ -296,7 +335,29 @@ class DaemonSettings(BaseSettings):
 
     @property
     def catalog_path(self) -> Path:
+        """The SQLite catalog's file where no ``catalog`` URL is set."""
         return self.data_dir / "catalog.sqlite"
+
+    @property
+    def catalog_url(self) -> str:
+        """Where the catalog is: the ``catalog`` URL, else the SQLite file in the data folder."""
+        return self.catalog if self.catalog is not None else str(self.catalog_path)
+
+    @property
+    def shared_catalog(self) -> bool:
+        """The catalog is on a server, shared with other rigs and workers (not a file of this daemon's)."""
+        return self.catalog is not None and not self.catalog.startswith(SQLITE_PREFIX)
+
+    def daemon_url(self) -> str:
+        """:attr:`public_url`, else the listening address (this machine's name for a wildcard one)."""
+        if self.public_url is not None:
+            return self.public_url.rstrip("/")
+        host = self.host.strip()
+        if host in ("", "0.0.0.0", "::", "[::]"):
+            host = socket.gethostname()
+        elif ":" in host and not host.startswith("["):
+            host = f"[{host}]"
+        return f"http://{host}:{self.port}"
 
     @property
     def runs_dir(self) -> Path:

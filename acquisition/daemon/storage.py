@@ -127,3 +127,13 @@ def check_room(directory: Path, needed: int, what: str) -> None:
             f"{what} needs about {mb(needed)}, {mb(free)} free in {directory}: "
             'free some space, or send "force": true to start anyway'
         )
+
+
+def storage_error(exc: OSError, path: Path) -> StorageError | OSError:
+    """A write of ``path`` the storage refused as the one-line error the API maps to 507 (full)
+    or 503 (read-only, an I/O error); ``exc`` itself for any other failure."""
+    code = storage_errno(exc)
+    if code is None:
+        return exc
+    kind = InsufficientStorageError if code == errno.ENOSPC else StorageUnavailableError
+    return kind(f"{STORAGE_ERRNOS[code]} writing {path}")

@@ -9,7 +9,10 @@
    job asked for ``partial``: then only the positions complete now are processed;
 4. process the run (``processing.light_run.run.process_run``, positions in parallel on the
    worker's Dask cluster) while a thread sends a heartbeat with the progress every few
-   seconds; the results go beside the run file;
+   seconds; the results go beside the run file. A worker that cannot see the run file at
+   its path (another machine, no shared disk) fetches it from its rig's daemon first and
+   sends the results back to it after (:mod:`acquisition.daemon.transfer`); a daemon it
+   cannot reach puts the job back to wait;
 5. record the job ``complete`` with its result files (report, IES, LDT, TM-25 ray file,
    light model, results file), or ``failed`` with the reason in one line, and go on with
    the next job.
@@ -26,7 +29,6 @@ import fcntl
 import logging
 import os
 import socket
-import sqlite3
 import threading
 import time
 import tomllib
@@ -37,6 +39,7 @@ from typing import Any
 from acquisition.daemon.catalog import ACTIVE_RUN_STATES, Catalog, CatalogError, JobClaimError, JobRecord, RunRecord
 from acquisition.daemon.client_files import ClientFileError, load_client_file
 from acquisition.daemon.models import JOB_OPTIONS
+from acquisition.daemon.transfer import DaemonUnreachableError, RunFetcher
 from drivers.contracts.runfile import RunFile, RunFileError
 from processing import (
     Compute,
@@ -127,6 +130,11 @@ class JobWorker:
         ``process(job, run_path, steps, progress) -> (result_dir, artifacts, message)``, where
         ``progress(step, done, total)`` as ``process_run`` calls it; the default runs
         ``processing.light_run.run.process_run`` (tests substitute their own).
+    fetcher : RunFetcher, optional
+        Fetches the run files this worker cannot see at their paths from their rigs'
+        daemons, and sends the results back; without one, such a job fails (no such file).
+    rigs : list of str, optional
+        Take only the jobs of these rigs (default: any rig's).
     """
 
     def __init__(
@@ -139,6 +147,8 @@ class JobWorker:
         stale_after_s: float = 60.0,
         wait_s: float = 10.0,
         process: Callable | None = None,
+        fetcher: RunFetcher | None = None,
+        rigs: list[str] | None = None,
     ):
         if heartbeat_s <= 0 or stale_after_s <= 0 or wait_s < 0:
             raise ValueError("heartbeat_s and stale_after_s must be > 0, wait_s >= 0")
@@ -149,6 +159,8 @@ class JobWorker:
         self.stale_after_s = float(stale_after_s)
         self.wait_s = float(wait_s)
         self._process = process or self._process_run
+        self.fetcher = fetcher
+        self.rigs = rigs
         self._progress: float | None = None
         self._note: str | None = None
         self._step: str | None = None
@@ -208,7 +220,7 @@ class JobWorker:
         requeued = self.catalog.requeue_stale_jobs(self.stale_after_s)
         if requeued:
             log.warning("requeued jobs whose worker stopped sending heartbeats: %s", ", ".join(requeued))
-        job = self.catalog.claim_job(self.worker_id)
+        job = self.catalog.claim_job(self.worker_id, rigs=self.rigs)
         if job is None:
             return None
         log.info("%s: claimed job %s (run %s, steps %s)", self.worker_id, job.id, job.run_id, job.steps)
@@ -238,6 +250,15 @@ class JobWorker:
         if not run.path:
             return self._fail(job, f"run {run.id} has no run file")
         path = Path(run.path)
+        remote = self.fetcher is not None and RunFetcher.is_remote(
+            run
+        )  # without a fetcher, processing says what is missing
+        if remote and acquiring:
+            return self._fail(
+                job,
+                f"partial processing needs the run file on the worker's disk: run {run.id} is still being acquired "
+                f"on rig {run.rig}, and {path} is not here (a worker that shares that disk can process it)",
+            )
         if acquiring and not _has_complete_position(path):
             return self._wait(
                 job, f"waiting: run {run.id} is being acquired ({acquiring}) and has no complete position yet"
@@ -248,8 +269,22 @@ class JobWorker:
         stop = threading.Event()
         beat = threading.Thread(target=self._heartbeats, args=(job, stop), name=f"heartbeat-{job.id}", daemon=True)
         beat.start()
+        keep_copy = False
         try:
+            if remote:
+                assert self.fetcher is not None
+                self._note = f"fetching run {run.id} from rig {run.rig}'s daemon"
+                path = self.fetcher.fetch(run)
             result_dir, artifacts, message = self._process(job, path, steps, self._report_progress)
+            if remote and not self._lost.is_set():
+                assert self.fetcher is not None
+                self._note = f"sending the results to rig {run.rig}'s daemon"
+                sent = {kind: str(file) for kind, file in artifacts.items()}
+                result_dir, artifacts = self.fetcher.send_results(job.id, self.worker_id, run, path, sent)
+        except DaemonUnreachableError as exc:
+            keep_copy = True  # the next try resumes the fetch where it stopped
+            stop.set()
+            return self._wait(job, f"waiting: {one_line(exc)}")
         except JobLostError:
             log.warning("%s: job %s was taken from this worker: abandoned", self.worker_id, job.id)
             return self.catalog.get_job(job.id)
@@ -263,6 +298,8 @@ class JobWorker:
         finally:
             stop.set()
             beat.join()
+            if remote and self.fetcher is not None and not keep_copy:
+                self.fetcher.forget(run)
         if self._lost.is_set():
             log.warning("%s: job %s was taken from this worker: its results are not recorded", self.worker_id, job.id)
             return self.catalog.get_job(job.id)
@@ -327,7 +364,7 @@ class JobWorker:
                 log.warning("%s: %s", self.worker_id, exc)
                 self._lost.set()
                 return
-            except (CatalogError, sqlite3.Error) as exc:  # a busy catalog: the next beat may pass
+            except CatalogError as exc:  # a busy or unreachable catalog: the next beat may pass
                 log.warning("job %s: heartbeat failed: %s", job.id, exc)
 
     # --- the processing --------------------------------------------------------------------
@@ -393,12 +430,16 @@ def serve_jobs(
     once: bool = False,
     poll_s: float = 2.0,
     on_job: Callable[[JobRecord], None] | None = None,
+    fetch_to: Path | None = None,
+    token: str | None = None,
     **options: Any,
 ) -> int:
-    """Open the catalog and run a :class:`JobWorker` on it (``mirrorgonio worker``)."""
+    """Open the catalog and run a :class:`JobWorker` on it (``mirrorgonio worker``); run files
+    not on this disk are fetched into ``fetch_to`` (with the daemons' ``token``) if given."""
     with contextlib.closing(Catalog(catalog_path)) as catalog:
-        worker = JobWorker(catalog, compute, **options)
-        log.info("worker %s: jobs from %s, compute on %s", worker.worker_id, catalog_path, worker.compute.description)
+        fetcher = RunFetcher(catalog.daemon_url, fetch_to, token) if fetch_to is not None else None
+        worker = JobWorker(catalog, compute, fetcher=fetcher, **options)
+        log.info("worker %s: jobs from %s, compute on %s", worker.worker_id, catalog.path, worker.compute.description)
         started = time.monotonic()
         ended = worker.run(stop, once=once, poll_s=poll_s, on_job=on_job)
         log.info("worker %s: %d jobs in %.0f s", worker.worker_id, ended, time.monotonic() - started)

@@ -7,7 +7,7 @@ import hashlib
 import hmac
 from typing import Annotated, Any
 
-from fastapi import Depends, HTTPException, Request, status
+from fastapi import Depends, HTTPException, Query, Request, status
 from fastapi.security import APIKeyCookie, HTTPAuthorizationCredentials, HTTPBearer
 
 from acquisition.daemon.catalog import Catalog
@@ -26,6 +26,20 @@ def get_catalog(request: Request) -> Catalog:
 
 def get_settings(request: Request) -> DaemonSettings:
     return request.app.state.settings
+
+
+#: Which rig's runs or jobs a listing shows: this daemon's (absent), another's (its name), the lab's (``all``).
+RigQuery = Annotated[
+    str | None,
+    Query(max_length=63, description="a rig's name, or 'all' for every rig sharing the catalog; default this rig"),
+]
+
+
+def catalog_rig(rig: str | None) -> str | None:
+    """The catalog's ``rig=`` of a listing's ``rig`` query: ``""`` this rig, None the whole lab."""
+    if rig is None:
+        return ""
+    return None if rig == "all" else rig
 
 
 EngineDep = Annotated[RunEngine, Depends(get_engine)]

@@ -11,6 +11,9 @@
 - A body over ``max_body_bytes`` is 413: at once from ``Content-Length``, before any byte
   of it is read; a body of unannounced length (chunked) as soon as what has arrived passes
   the limit, and the rest is not read.
+- The one upload, a worker's results (``PUT /jobs/{id}/results``), is a tar archive
+  (``application/x-tar``, which no browser form sends) up to ``max_results_bytes``; the
+  route itself needs the token.
 
 Each refusal is a JSON problem (``{"detail": "one line"}``), like the API's other errors.
 """
@@ -18,6 +21,7 @@ Each refusal is a JSON problem (``{"detail": "one line"}``), like the API's othe
 from __future__ import annotations
 
 import json
+import re
 from collections.abc import Awaitable, Callable, MutableMapping
 from typing import Any
 from urllib.parse import urlsplit
@@ -34,6 +38,9 @@ ASGIApp = Callable[[Scope, Receive, Send], Awaitable[None]]
 #: The methods that change nothing: no content type or origin is asked of them.
 SAFE_METHODS = frozenset({"GET", "HEAD", "OPTIONS"})
 JSON_TYPE = "application/json"
+TAR_TYPE = "application/x-tar"
+#: The routes that take a body other than JSON: (method, path) -> its media type.
+UPLOAD_ROUTES = ((("PUT", re.compile(r"/jobs/[^/]+/results\Z")), TAR_TYPE),)
 
 
 class _BodyTooLarge(Exception):
@@ -57,6 +64,14 @@ class RequestGuard:
         self.app = app
         self.hosts = settings.host_allow_list()
         self.limit = settings.max_body_bytes
+        self.upload_limit = settings.max_results_bytes
+
+    def body_rule(self, scope: Scope) -> tuple[str, int]:
+        """The media type a request's body must have, and its size limit."""
+        for (method, path), media in UPLOAD_ROUTES:
+            if scope["method"] == method and path.match(scope["path"]):
+                return media, self.upload_limit
+        return JSON_TYPE, self.limit
 
     def allowed(self, netloc: str) -> bool:
         """Whether ``netloc`` (``NAME[:PORT]``) names an allowed host."""
@@ -78,12 +93,13 @@ class RequestGuard:
             return 400, (
                 f"host: {hosts[0]!r} is not a host this daemon answers to (its setting allowed_hosts, MG_ALLOWED_HOSTS)"
             )
+        expected, limit = self.body_rule(scope)
         lengths = headers.get("content-length", [])
         if lengths:
             if len(set(lengths)) != 1 or not lengths[0].strip().isdigit():
                 return 400, f"content-length: {lengths!r} is not one length"
-            if int(lengths[0]) > self.limit:
-                return 413, f"the body ({int(lengths[0])} bytes) is larger than the limit of {self.limit} bytes"
+            if int(lengths[0]) > limit:
+                return 413, f"the body ({int(lengths[0])} bytes) is larger than the limit of {limit} bytes"
         if scope["method"] in SAFE_METHODS:
             return None
         for origin in headers.get("origin", []):
@@ -95,10 +111,10 @@ class RequestGuard:
                 )
         types = headers.get("content-type", [])
         media = types[0].partition(";")[0].strip().lower() if len(types) == 1 else None
-        if media != JSON_TYPE:
+        if media != expected:
             got = repr(types[0]) if len(types) == 1 else "none" if not types else f"{len(types)} Content-Type headers"
             return 415, (
-                f"content-type: a request that changes something is sent as {JSON_TYPE}, "
+                f"content-type: a request that changes something is sent as {expected}, "
                 f"with or without a body (got {got})"
             )
         return None
@@ -114,15 +130,16 @@ class RequestGuard:
             return
         received = 0
         started = cut = False
+        limit = self.body_rule(scope)[1]
 
         async def counted_receive() -> Message:
             nonlocal received, cut
             message = await receive()
             if message["type"] == "http.request":
                 received += len(message.get("body", b""))
-                if received > self.limit:
+                if received > limit:
                     if not cut and not started:
-                        detail = f"the body is larger than the limit of {self.limit} bytes"
+                        detail = f"the body is larger than the limit of {limit} bytes"
                         for answer in _problem(413, detail):
                             await send(answer)
                     cut = True

@@ -67,6 +67,7 @@ def health(engine: EngineDep, catalog: CatalogDep, settings: SettingsDep, respon
         reasons=reasons,
         version=__version__,
         active_run=active.id if active else None,
+        rig=catalog.rig,
         queued_runs=len(catalog.queued_runs()),
         queue_held=hold[0] if hold else None,
     )

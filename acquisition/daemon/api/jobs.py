@@ -17,13 +17,26 @@ import re
 import zipfile
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Annotated
 
-from fastapi import APIRouter, HTTPException, status
+from fastapi import APIRouter, HTTPException, Query, Request, status
+from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import FileResponse, Response, StreamingResponse
 
-from acquisition.daemon.api.deps import TOKEN_ERRORS, CatalogDep, ReadTokenDep
-from acquisition.daemon.catalog import JobRecord
-from acquisition.daemon.models import JobStatus, PhotometrySummary, Problem, ReportFigure
+from acquisition.daemon.api.deps import (
+    TOKEN_ERRORS,
+    WRITE_ERRORS,
+    CatalogDep,
+    ReadTokenDep,
+    RigQuery,
+    TokenDep,
+    catalog_rig,
+)
+from acquisition.daemon.api.guard import TAR_TYPE
+from acquisition.daemon.catalog import JobClaimError, JobRecord, OtherRigError
+from acquisition.daemon.models import JobStatus, PhotometrySummary, Problem, ReportFigure, ResultsReceived
+from acquisition.daemon.storage import storage_error
+from acquisition.daemon.transfer import unpack_results
 from processing import Results, ResultsError
 
 router = APIRouter(prefix="/jobs", tags=["jobs"], dependencies=[ReadTokenDep], responses=TOKEN_ERRORS)
@@ -47,6 +60,7 @@ def job_status(job: JobRecord) -> JobStatus:
     return JobStatus(
         id=job.id,
         run_id=job.run_id,
+        rig=job.rig,
         state=job.state,
         steps=job.steps,
         options=job.options,
@@ -64,9 +78,13 @@ def job_status(job: JobRecord) -> JobStatus:
 
 
 @router.get("", response_model=list[JobStatus], responses={404: {"model": Problem, "description": "unknown run_id"}})
-def list_jobs(catalog: CatalogDep, run_id: str | None = None, limit: int = 100) -> list[JobStatus]:
-    """Jobs, newest first (those of one run with ``run_id``)."""
-    return [job_status(j) for j in catalog.list_jobs(run_id=run_id, limit=max(1, min(limit, 1000)))]
+def list_jobs(
+    catalog: CatalogDep, run_id: str | None = None, limit: int = 100, rig: RigQuery = None
+) -> list[JobStatus]:
+    """Jobs, newest first: those of one run (``run_id``), else this rig's, another rig's
+    (``rig=NAME``) or the whole lab's (``rig=all``)."""
+    jobs = catalog.list_jobs(run_id=run_id, limit=max(1, min(limit, 1000)), rig=catalog_rig(rig))
+    return [job_status(j) for j in jobs]
 
 
 @router.get("/{job_id}", response_model=JobStatus, responses={404: {"model": Problem}})
@@ -254,3 +272,53 @@ def zip_stream(members: list[tuple[Path, str]], block: int = 1 << 20) -> Iterato
                 yield chunk
     if chunk := sink.take():
         yield chunk
+
+
+# --- results from a worker on another machine ---------------------------------------------
+@router.put(
+    "/{job_id}/results",
+    response_model=ResultsReceived,
+    dependencies=[TokenDep],
+    responses={
+        404: {"model": Problem},
+        409: {"model": Problem, "description": "the job is not running under this worker"},
+        403: {"model": Problem, "description": "the job is another rig's"},
+        422: {"model": Problem, "description": "the archive cannot be read, or a member would land elsewhere"},
+        503: {"model": Problem},
+        507: {"model": Problem},
+        **WRITE_ERRORS,
+    },
+    openapi_extra={"requestBody": {"content": {TAR_TYPE: {"schema": {"type": "string", "format": "binary"}}}}},
+)
+async def receive_results(
+    job_id: str,
+    request: Request,
+    catalog: CatalogDep,
+    worker_id: Annotated[str, Query(min_length=1, max_length=200, description="the worker that holds the job")],
+) -> ResultsReceived:
+    """A worker that does not share this daemon's disk sends its job's results (a tar archive,
+    ``application/x-tar``): they are kept beside the run file, as a worker on this disk would
+    have written them, and the answer says where each file is (for the job's artifacts)."""
+    job = await run_in_threadpool(catalog.get_job, job_id)
+    if job.state != "running" or job.claimed_by != worker_id:
+        raise JobClaimError(job_id, worker_id, job.state, job.claimed_by)
+    run = await run_in_threadpool(catalog.get_run, job.run_id)
+    if run.rig != catalog.rig:
+        raise OtherRigError(run.id, run.rig, catalog.rig, f"keep the results of job {job_id}")
+    if not run.path:
+        raise HTTPException(status.HTTP_404_NOT_FOUND, f"run {run.id} has no run file to keep results beside")
+    run_path = Path(run.path)
+    folder = run_path.parent
+    archive = folder / f".upload-{job_id}.tar"
+    try:
+        with archive.open("wb") as out:
+            async for chunk in request.stream():
+                await run_in_threadpool(out.write, chunk)
+        files = await run_in_threadpool(
+            unpack_results, archive, folder, {run_path.name, run_path.name + ".lock", archive.name}
+        )
+    except OSError as exc:
+        raise storage_error(exc, archive) from None
+    finally:
+        archive.unlink(missing_ok=True)
+    return ResultsReceived(result_dir=str(folder), files=files)

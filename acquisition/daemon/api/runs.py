@@ -15,8 +15,10 @@ from acquisition.daemon.api.deps import (
     EngineDep,
     ReadTokenDep,
     Responses,
+    RigQuery,
     SettingsDep,
     TokenDep,
+    catalog_rig,
 )
 from acquisition.daemon.api.jobs import job_status
 from acquisition.daemon.catalog import RunRecord
@@ -30,6 +32,7 @@ from acquisition.daemon.models import (
     RunRequest,
     RunStatus,
 )
+from acquisition.daemon.transfer import DIGEST_HEADER, repr_digest
 
 router = APIRouter(prefix="/runs", tags=["runs"], dependencies=[ReadTokenDep], responses=TOKEN_ERRORS)
 FINAL = ("complete", "aborted", "failed", "interrupted")
@@ -59,6 +62,8 @@ def run_status(record: RunRecord, engine: RunEngine | None = None) -> RunStatus:
     percent = 100.0 * record.positions_done / record.n_positions if record.n_positions else 0.0
     return RunStatus(
         id=record.id,
+        rig=record.rig,
+        read_only=engine is not None and record.rig != engine.catalog.rig,
         state=record.state,
         preset=record.preset,
         n_positions=record.n_positions,
@@ -109,10 +114,11 @@ def start_run(body: RunRequest, engine: EngineDep, settings: SettingsDep, respon
     return run_status(record, engine)
 
 
-@router.get("", response_model=list[RunStatus])
-def list_runs(catalog: CatalogDep, engine: EngineDep, limit: int = 100) -> list[RunStatus]:
-    """Runs, newest first."""
-    return [run_status(r, engine) for r in catalog.list_runs(limit=max(1, min(limit, 1000)))]
+@router.get("", response_model=list[RunStatus], responses={400: {"model": Problem, "description": "a bad rig name"}})
+def list_runs(catalog: CatalogDep, engine: EngineDep, limit: int = 100, rig: RigQuery = None) -> list[RunStatus]:
+    """Runs, newest first: this rig's, another rig's (``rig=NAME``) or the whole lab's
+    (``rig=all``), where rigs share a catalog. Other rigs' runs are read-only here."""
+    return [run_status(r, engine) for r in catalog.list_runs(limit=max(1, min(limit, 1000)), rig=catalog_rig(rig))]
 
 
 @router.get("/{run_id}", response_model=RunStatus, responses=ERRORS)
@@ -184,9 +190,17 @@ def run_preview(run_id: str, request: Request, catalog: CatalogDep) -> Response:
 
 
 @router.get("/{run_id}/file", responses={200: {"content": {"application/x-hdf5": {}}}, **ERRORS})
-def download(run_id: str, catalog: CatalogDep, engine: EngineDep) -> FileResponse:
-    """The run file (HDF5, ``docs/run-file.md``); refused while the run is being written."""
+def download(run_id: str, request: Request, catalog: CatalogDep, engine: EngineDep) -> FileResponse:
+    """The run file (HDF5, ``docs/run-file.md``); refused while the run is being written. Its
+    SHA-256 is in ``Repr-Digest``; ``Range`` resumes a cut download (with ``If-Range`` on the
+    ``ETag``). Another rig's run is fetched from its own daemon."""
     record = engine.pending.known(catalog.get_run(run_id))
+    if record.rig != catalog.rig:
+        raise HTTPException(
+            status.HTTP_404_NOT_FOUND,
+            f"run {run_id} is rig {record.rig!r}'s: its file is with that rig's daemon"
+            + (f" ({url})" if (url := catalog.daemon_url(record.rig)) else ""),
+        )
     if record.state in ("running", "paused", "queued"):
         raise HTTPException(
             status.HTTP_409_CONFLICT, f"run {run_id} is {record.state}: the file is still being written"
@@ -194,7 +208,10 @@ def download(run_id: str, catalog: CatalogDep, engine: EngineDep) -> FileRespons
     path = Path(record.path) if record.path is not None else None
     if path is None or not path.exists():
         raise HTTPException(status.HTTP_404_NOT_FOUND, f"run {run_id} has no run file")
-    return FileResponse(path, media_type="application/x-hdf5", filename=path.name)
+    digest = request.app.state.digests.get(path)
+    return FileResponse(
+        path, media_type="application/x-hdf5", filename=path.name, headers={DIGEST_HEADER: repr_digest(digest)}
+    )
 
 
 @router.post(

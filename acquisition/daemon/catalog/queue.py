@@ -3,7 +3,7 @@ is held (and why).
 
 The order is each queued run's ``queue_order`` (ascending); its position, from 1, is its rank
 among the queued runs (:data:`~acquisition.daemon.catalog.schema.RUN_COLUMNS`). The queue's hold is
-a row of ``rig_queues`` per rig: its reason, or NULL (or no row) while the queue runs on. The daemon decides
+a row of ``rigs`` per rig: its reason, or NULL (or no row) while the queue runs on. The daemon decides
 when to hold and release it (``acquisition.daemon.engine``); the catalog keeps both across restarts.
 """
 
@@ -33,7 +33,7 @@ class QueueCatalog(RunCatalog, CatalogDatabase):
     def queue_hold(self) -> tuple[str, datetime] | None:
         """Why the queue is held and since when (a UTC datetime); None while it runs on."""
         with self._read() as conn:
-            row = conn.execute("SELECT held, held_utc FROM rig_queues WHERE rig = ?", (self.rig,)).fetchone()
+            row = conn.execute("SELECT held, held_utc FROM rigs WHERE rig = ?", (self.rig,)).fetchone()
             return None if row is None or row["held"] is None else (row["held"], parse_required_time(row["held_utc"]))
 
     def hold_queue(self, reason: str) -> None:
@@ -47,7 +47,7 @@ class QueueCatalog(RunCatalog, CatalogDatabase):
         check_text("reason", reason)
         with self._write() as conn:
             conn.execute(
-                "INSERT INTO rig_queues (rig, held, held_utc) VALUES (?, ?, ?) "
+                "INSERT INTO rigs (rig, held, held_utc) VALUES (?, ?, ?) "
                 "ON CONFLICT (rig) DO UPDATE SET held = excluded.held, held_utc = excluded.held_utc",
                 (self.rig, reason, format_time(self._now())),
             )
@@ -55,7 +55,27 @@ class QueueCatalog(RunCatalog, CatalogDatabase):
     def release_queue(self) -> None:
         """Let the queue run on (its next run starts once the rig is free)."""
         with self._write() as conn:
-            conn.execute("UPDATE rig_queues SET held = NULL, held_utc = NULL WHERE rig = ?", (self.rig,))
+            conn.execute("UPDATE rigs SET held = NULL, held_utc = NULL WHERE rig = ?", (self.rig,))
+
+    def register_daemon(self, url: str) -> None:
+        """Record where this rig's daemon answers (``http://HOST:PORT``): workers that do not
+        share its disk fetch its run files there and send the results back."""
+        check_text("url", url)
+        if not url.startswith(("http://", "https://")):
+            raise CatalogError(f"the daemon's URL must be http:// or https://, not {url!r}")
+        with self._write() as conn:
+            conn.execute(
+                "INSERT INTO rigs (rig, daemon_url, daemon_seen_utc) VALUES (?, ?, ?) "
+                "ON CONFLICT (rig) DO UPDATE SET daemon_url = excluded.daemon_url, "
+                "daemon_seen_utc = excluded.daemon_seen_utc",
+                (self.rig, url.rstrip("/"), format_time(self._now())),
+            )
+
+    def daemon_url(self, rig: str) -> str | None:
+        """Where rig ``rig``'s daemon said it answers, if it did."""
+        with self._read() as conn:
+            row = conn.execute("SELECT daemon_url FROM rigs WHERE rig = ?", (rig,)).fetchone()
+            return None if row is None else row["daemon_url"]
 
     def reorder_queue(self, run_ids: list[str]) -> list[RunRecord]:
         """Put the queued runs ``run_ids`` first, in that order; the queued runs not named
@@ -114,5 +134,5 @@ class QueueCatalog(RunCatalog, CatalogDatabase):
                 raise NotQueuedError(run_id, record.state, "remove it from the queue")
             left = conn.execute("SELECT 1 FROM runs WHERE rig = ? AND state = 'queued' LIMIT 1", (self.rig,))
             if left.fetchone() is None:
-                conn.execute("UPDATE rig_queues SET held = NULL, held_utc = NULL WHERE rig = ?", (self.rig,))
+                conn.execute("UPDATE rigs SET held = NULL, held_utc = NULL WHERE rig = ?", (self.rig,))
             return record

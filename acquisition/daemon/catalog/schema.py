@@ -79,14 +79,15 @@ MIGRATIONS: tuple[tuple[str | Dialects, ...], ...] = (
         "INSERT INTO run_queue (id) VALUES (1)",
     ),
     # 5: several rigs in one catalog: each run and job names its rig (those before, the
-    # default one), and each rig's queue has its own hold; on PostgreSQL, seq from sequences.
+    # default one); each rig has a row with its queue's hold and where its daemon answers
+    # (workers on other machines fetch run files from it); on PostgreSQL, seq from sequences.
     (
         f"ALTER TABLE runs ADD COLUMN rig TEXT NOT NULL DEFAULT '{DEFAULT_RIG}'",
         f"ALTER TABLE jobs ADD COLUMN rig TEXT NOT NULL DEFAULT '{DEFAULT_RIG}'",
         "CREATE INDEX runs_rig_state ON runs (rig, state)",
         "CREATE INDEX jobs_rig_seq ON jobs (rig, seq)",
-        "CREATE TABLE rig_queues (rig TEXT PRIMARY KEY, held TEXT, held_utc TEXT)",
-        f"INSERT INTO rig_queues (rig, held, held_utc) SELECT '{DEFAULT_RIG}', held, held_utc FROM run_queue",
+        "CREATE TABLE rigs (rig TEXT PRIMARY KEY, held TEXT, held_utc TEXT, daemon_url TEXT, daemon_seen_utc TEXT)",
+        f"INSERT INTO rigs (rig, held, held_utc) SELECT '{DEFAULT_RIG}', held, held_utc FROM run_queue",
         "DROP TABLE run_queue",
         *(
             statement

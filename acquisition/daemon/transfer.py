@@ -1,0 +1,321 @@
+"""Run files and results between a daemon and a worker that does not share its disk.
+
+The worker fetches a run file with ``GET /runs/{id}/file``, resuming a cut transfer with
+``Range`` (``If-Range`` on the file's ``ETag``, so that a changed file starts over), and
+checks it against the SHA-256 the daemon sends (``Repr-Digest``, RFC 9530) and against its
+frames' own checksums before any work. It sends its results back as one tar archive,
+``PUT /jobs/{id}/results``; the daemon unpacks it beside the run file, where a worker on its
+own disk would have written them, refusing any member that would land elsewhere.
+"""
+
+from __future__ import annotations
+
+import base64
+import contextlib
+import hashlib
+import os
+import shutil
+import tarfile
+import threading
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import httpx
+
+from acquisition.daemon.catalog import RunRecord
+from drivers.contracts.runfile import RunFile, RunFileError
+
+#: Bytes read at a time, hashing or streaming.
+BLOCK = 1 << 20
+DIGEST_HEADER = "Repr-Digest"
+
+
+class TransferError(RuntimeError):
+    """A run file or results that cannot be moved, or are not what was sent (one line)."""
+
+
+def sha256_file(path: str | os.PathLike[str]) -> str:
+    """The file's SHA-256, hex."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        while block := f.read(BLOCK):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def repr_digest(hex_digest: str) -> str:
+    """A ``Repr-Digest`` header's value: ``sha-256=:BASE64:``."""
+    return f"sha-256=:{base64.b64encode(bytes.fromhex(hex_digest)).decode()}:"
+
+
+def digest_from_header(value: str | None) -> str | None:
+    """The hex SHA-256 of a ``Repr-Digest`` header, None if it has none."""
+    for part in (value or "").split(","):
+        name, _, rest = part.strip().partition("=")
+        if name.strip().lower() == "sha-256" and rest.startswith(":") and rest.endswith(":"):
+            with contextlib.suppress(ValueError):
+                return base64.b64decode(rest[1:-1], validate=True).hex()
+    return None
+
+
+class DigestCache:
+    """Files' SHA-256 by (path, size, mtime): a finished run file is hashed once, not per fetch."""
+
+    def __init__(self) -> None:
+        self._digests: dict[tuple[str, int, int], str] = {}
+        self._lock = threading.Lock()
+
+    def get(self, path: Path) -> str:
+        stat = path.stat()
+        key = (str(path), stat.st_size, stat.st_mtime_ns)
+        with self._lock:
+            known = self._digests.get(key)
+        if known is None:
+            known = sha256_file(path)
+            with self._lock:
+                self._digests[key] = known
+        return known
+
+
+def pack_results(folder: Path, exclude: set[str]) -> Iterator[bytes]:
+    """The files under ``folder`` (but those named in ``exclude`` at its top) as a tar stream."""
+    reader, writer = os.pipe()
+
+    def write() -> None:
+        with os.fdopen(writer, "wb") as out, tarfile.open(fileobj=out, mode="w|") as tar:
+            for entry in sorted(folder.iterdir()):
+                if entry.name not in exclude:
+                    tar.add(entry, arcname=entry.name)
+
+    thread = threading.Thread(target=write, name="pack-results", daemon=True)
+    thread.start()
+    with os.fdopen(reader, "rb") as source:
+        while block := source.read(BLOCK):
+            yield block
+    thread.join()
+
+
+def unpack_results(archive: Path, folder: Path, protected: set[str]) -> dict[str, str]:
+    """Unpack a results archive into ``folder``: every member a plain file or folder inside it,
+    none named as one of ``protected`` (the run file and its lock). Files already there are
+    replaced (a job processed again), each only once all of the archive has unpacked.
+
+    Returns
+    -------
+    dict
+        Each file's path in the archive -> its path in ``folder``.
+
+    Raises
+    ------
+    TransferError
+        The archive cannot be read, or a member would leave ``folder`` or replace a protected file.
+    """
+    staging = folder / f".results-{archive.stem}"
+    shutil.rmtree(staging, ignore_errors=True)
+    try:
+        with tarfile.open(archive, mode="r:") as tar:
+            members = tar.getmembers()
+            for member in members:
+                top = Path(member.name).parts[0] if member.name else ""
+                if not (member.isfile() or member.isdir()) or top in protected:
+                    raise TransferError(f"results archive: {member.name!r} is not a results file it may write")
+            tar.extractall(staging, filter="data")  # refuses absolute names, '..' and links out
+        files = {member.name: str(folder / member.name) for member in members if member.isfile()}
+        for entry in staging.iterdir():
+            target = folder / entry.name
+            if target.is_dir() and not target.is_symlink():
+                shutil.rmtree(target)
+            os.replace(entry, target)
+        return files
+    except (tarfile.TarError, OSError) as exc:
+        raise TransferError(f"results archive: {exc}") from None
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+
+
+# --- the worker's side ---------------------------------------------------------------------
+class DaemonUnreachableError(TransferError):
+    """The daemon did not answer within the time given: the job waits and is tried again."""
+
+
+class RunFetcher:
+    """A worker's copies of the run files it cannot see at their paths, fetched from the daemon
+    of each run's rig, and its results sent back there.
+
+    Parameters
+    ----------
+    daemon_url : callable
+        ``daemon_url(rig)``: where that rig's daemon answers (the catalog's record), or None.
+    folder : Path
+        Where the copies are kept while their job runs (``FOLDER/RIG/RUN/``).
+    token : str, optional
+        The daemons' API token (a lab gives its daemons and workers one).
+    patience_s : float
+        How long a fetch or a send goes on retrying a daemon that does not answer (its network
+        cut, it restarts) before the job is put back to wait.
+    """
+
+    def __init__(
+        self,
+        daemon_url: Callable[[str], str | None],
+        folder: Path,
+        token: str | None = None,
+        *,
+        patience_s: float = 300.0,
+        timeout_s: float = 30.0,
+    ):
+        self.daemon_url = daemon_url
+        self.folder = Path(folder)
+        self.patience_s = float(patience_s)
+        self._headers = {"Authorization": f"Bearer {token}"} if token else {}
+        self._timeout = httpx.Timeout(timeout_s)
+
+    @staticmethod
+    def is_remote(run: RunRecord) -> bool:
+        """Whether the run's file is not to be seen at its path here."""
+        return bool(run.path) and not Path(str(run.path)).is_file()
+
+    def _base(self, rig: str) -> str:
+        url = self.daemon_url(rig)
+        if url is None:
+            raise DaemonUnreachableError(f"rig {rig!r}'s daemon has not recorded where it answers (its public_url)")
+        return url
+
+    def run_folder(self, run: RunRecord) -> Path:
+        return self.folder / run.rig / run.id
+
+    def fetch(self, run: RunRecord, on_progress: Callable[[int, int], None] | None = None) -> Path:
+        """The run's file, fetched into :meth:`run_folder` (resuming a cut transfer) and checked
+        against the daemon's SHA-256 and the frames' checksums.
+
+        Raises
+        ------
+        DaemonUnreachableError
+            The daemon did not answer for ``patience_s``.
+        TransferError
+            The daemon refused, or what arrived is not the file it sent.
+        """
+        url = f"{self._base(run.rig)}/runs/{run.id}/file"
+        local = self.run_folder(run) / Path(str(run.path)).name
+        local.parent.mkdir(parents=True, exist_ok=True)
+        part, tag_file = local.with_name(local.name + ".part"), local.with_name(local.name + ".etag")
+        deadline = time.monotonic() + self.patience_s
+        wait = 0.5
+        while True:
+            try:
+                digest = self._download(url, part, tag_file, on_progress)
+                break
+            except (httpx.TransportError, httpx.RemoteProtocolError) as exc:
+                if time.monotonic() > deadline:
+                    raise DaemonUnreachableError(
+                        f"fetching run {run.id} from {url}: {str(exc) or type(exc).__name__}"
+                    ) from None
+                time.sleep(wait)
+                wait = min(2 * wait, 10.0)
+        if digest is not None and sha256_file(part) != digest:
+            part.unlink(missing_ok=True)
+            tag_file.unlink(missing_ok=True)
+            raise DaemonUnreachableError(
+                f"run {run.id} from {url}: the file that arrived is not the daemon's (its SHA-256 differs)"
+            )
+        problems = _frame_problems(part)
+        if problems and digest is None:
+            part.unlink(missing_ok=True)
+            raise TransferError(f"run {run.id} from {url}: {problems[0]}")
+        os.replace(part, local)
+        tag_file.unlink(missing_ok=True)
+        return local
+
+    def _download(
+        self, url: str, part: Path, tag_file: Path, on_progress: Callable[[int, int], None] | None
+    ) -> str | None:
+        """Download ``url`` into ``part``, from where it stopped if it can; the daemon's SHA-256."""
+        have = part.stat().st_size if part.exists() else 0
+        tag = tag_file.read_text() if tag_file.exists() else None
+        headers = dict(self._headers)
+        if have and tag:
+            headers.update({"Range": f"bytes={have}-", "If-Range": tag})
+        with httpx.stream("GET", url, headers=headers, timeout=self._timeout) as answer:
+            if answer.status_code not in (200, 206):
+                answer.read()
+                raise TransferError(f"GET {url}: {answer.status_code} {_detail(answer)}")
+            digest = digest_from_header(answer.headers.get(DIGEST_HEADER))
+            resumed = answer.status_code == 206
+            total = int(answer.headers.get("content-length", 0)) + (have if resumed else 0)
+            if "etag" in answer.headers:
+                tag_file.write_text(answer.headers["etag"])
+            with part.open("ab" if resumed else "wb") as out:
+                done = have if resumed else 0
+                for block in answer.iter_bytes(BLOCK):
+                    out.write(block)
+                    done += len(block)
+                    if on_progress is not None:
+                        on_progress(done, total)
+        return digest
+
+    def send_results(
+        self, job_id: str, worker_id: str, run: RunRecord, local_run: Path, artifacts: dict[str, str]
+    ) -> tuple[str, dict[str, str]]:
+        """Send the results written beside ``local_run`` to the run's daemon; where it keeps them:
+        (its result folder, the artifacts as its paths). The local copies are deleted then.
+
+        Raises
+        ------
+        DaemonUnreachableError, TransferError
+            As :meth:`fetch`.
+        """
+        url = f"{self._base(run.rig)}/jobs/{job_id}/results"
+        folder = local_run.parent
+        exclude = {local_run.name, local_run.name + ".lock"}
+        deadline = time.monotonic() + self.patience_s
+        wait = 0.5
+        while True:
+            try:
+                answer = httpx.put(
+                    url,
+                    params={"worker_id": worker_id},
+                    content=pack_results(folder, exclude),
+                    headers={**self._headers, "Content-Type": "application/x-tar"},
+                    timeout=self._timeout,
+                )
+                break
+            except (httpx.TransportError, httpx.RemoteProtocolError) as exc:
+                if time.monotonic() > deadline:
+                    raise DaemonUnreachableError(f"sending job {job_id}'s results to {url}: {exc}") from None
+                time.sleep(wait)
+                wait = min(2 * wait, 10.0)
+        if answer.status_code != 200:
+            raise TransferError(f"PUT {url}: {answer.status_code} {_detail(answer)}")
+        kept = answer.json()
+        files: dict[str, str] = kept["files"]
+        mapped = {}
+        for kind, path in artifacts.items():
+            name = Path(path).resolve().relative_to(folder.resolve()).as_posix()
+            if name not in files:
+                raise TransferError(f"job {job_id}: the daemon did not keep its {kind} ({name})")
+            mapped[kind] = files[name]
+        shutil.rmtree(folder, ignore_errors=True)
+        return kept["result_dir"], mapped
+
+    def forget(self, run: RunRecord) -> None:
+        """Delete the local copy of a run and whatever was written beside it."""
+        shutil.rmtree(self.run_folder(run), ignore_errors=True)
+
+
+def _detail(answer: httpx.Response) -> str:
+    try:
+        return str(answer.json().get("detail", answer.text))
+    except ValueError:
+        return answer.text[:200]
+
+
+def _frame_problems(path: Path) -> list[str]:
+    """What is wrong with a run file's structure or its complete positions' frames (checksums)."""
+    try:
+        with RunFile.open(path) as f:
+            problems = list(f.structure_problems())
+            problems += [frame.describe() for frame in f.corrupt_frames()]
+    except RunFileError as exc:
+        return [str(exc)]
+    return problems
