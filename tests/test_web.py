@@ -481,3 +481,35 @@ def test_the_next_job_takes_the_options_set_on_the_page(tmp_path, daemon_factory
         expect(page.locator(f'#jobs tr[data-job-id="{job["id"]}"] td').first).to_have_attribute("title", said)
     data.catalog.close()
     assert page.script_errors == []
+
+
+def test_the_page_shows_the_labs_runs_with_other_rigs_read_only(
+    tmp_path, daemon_factory, page, captured, postgres_server
+):
+    from test_worker import _finished_run
+
+    from acquisition.daemon.catalog import Catalog
+
+    url = postgres_server.create_database("lab_page")
+    configs = {}
+    for rig in ("rig-a", "rig-b"):
+        config = write_config(tmp_path / f"{rig}.toml", tmp_path / rig)
+        config.write_text(f'rig_name = "{rig}"\ncatalog = "{url}"\n' + config.read_text())
+        configs[rig] = config
+    with Catalog(url, rig="rig-a") as rig_a, Catalog(url, rig="rig-b") as rig_b:
+        theirs = _finished_run(rig_a, tmp_path / "rig-a", captured[2])
+        ours = _finished_run(rig_b, tmp_path / "rig-b", captured[2])
+    daemon = daemon_factory(configs["rig-b"], token=TOKEN)
+    open_page(page, daemon)
+    expect(page.locator("#rig-name")).to_have_text("of rig rig-b")
+    expect(page.locator(f'#runs tr[data-run-id="{ours.id}"]')).to_contain_text("complete")
+    expect(page.locator(f'#runs tr[data-run-id="{theirs.id}"]')).to_have_count(0)  # its own rig's runs first
+    page.locator("#all-rigs").check()
+    row = page.locator(f'#runs tr[data-run-id="{theirs.id}"]')
+    expect(row.locator(".badge.rig")).to_have_text("rig-a")
+    expect(row.locator("button.process")).to_be_disabled()
+    expect(row.locator("button.process")).to_have_attribute("title", "rig rig-a's run: process it from its own daemon")
+    mine = page.locator(f'#runs tr[data-run-id="{ours.id}"]')
+    expect(mine.locator("button.process")).to_be_enabled()
+    expect(mine.locator(".badge.rig")).to_have_count(0)
+    assert page.script_errors == []

@@ -8,6 +8,7 @@ real Dask clusters.
 from __future__ import annotations
 
 import io
+import json
 import os
 import shutil
 import signal
@@ -20,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import REDUCED_RIG
+from conftest import REDUCED_RIG, write_config
 
 from acquisition.daemon.catalog import Catalog
 from acquisition.daemon.worker import ARTIFACT_KINDS, JobLostError, JobWorker, one_line, writer_alive
@@ -554,3 +555,208 @@ def test_a_job_on_a_run_with_a_corrupt_frame_fails_in_one_line_or_skips_it_with_
     assert [(f["position"], f["frame"]) for f in provenance["skipped_corrupt"]["frames"]] == [(33, 2)]
     with Results.open(done.artifacts["results"]) as results:
         assert np.flatnonzero(results.hdr_done).tolist() == sorted((20, 45, LATE))
+
+
+# --- a lab: rigs sharing a PostgreSQL catalog, a worker without their disks -----------------
+TOKEN = "lab-token-0123456789abcdef"
+
+
+def _lab_daemon(daemon_factory, tmp_path, url, rig):
+    """A real daemon of rig ``rig`` on the shared catalog, with a data folder of its own."""
+    data_dir = tmp_path / rig
+    config = write_config(tmp_path / f"{rig}.toml", data_dir, extra="")
+    text = config.read_text()
+    config.write_text(f'rig_name = "{rig}"\ncatalog = "{url}"\n' + text)
+    return daemon_factory(config, token=TOKEN), data_dir
+
+
+def _finished_run(catalog, data_dir, source):
+    run = catalog.create_run(
+        preset="light-sweep", path_for=lambda rid: data_dir / "runs" / f"{rid}.h5", n_positions=66, request={}
+    )
+    Path(run.path).parent.mkdir(parents=True, exist_ok=True)
+    shutil.copy(source, run.path)
+    catalog.transition_run(run.id, "running")
+    return catalog.transition_run(run.id, "complete")
+
+
+def _without_disk(data_dir: Path) -> list[str]:
+    """The command prefix that runs a program in a mount namespace of its own where ``data_dir``
+    is an empty tmpfs: a worker on another machine, which does not see the daemon's disk."""
+    probe = subprocess.run(["unshare", "-m", "true"], capture_output=True, check=False)
+    if probe.returncode != 0:
+        pytest.skip(f"a worker without the daemon's disk needs a mount namespace: {probe.stderr.decode().strip()}")
+    return ["unshare", "-m", "sh", "-c", f'mount -t tmpfs tmpfs "{data_dir}" && exec "$0" "$@"']
+
+
+def test_a_worker_without_the_daemons_disk_fetches_the_run_and_sends_the_results_back(
+    captured, tmp_path, postgres_server, daemon_factory
+):
+    _, _, source = captured
+    url = postgres_server.create_database("lab_remote_worker")
+    daemon, data_dir = _lab_daemon(daemon_factory, tmp_path, url, "rig-a")
+    with Catalog(url, rig="rig-a") as rig_a:
+        assert rig_a.daemon_url("rig-a") == daemon.url  # the daemon said where it answers
+        run = _finished_run(rig_a, data_dir, source)
+        remote_job = rig_a.create_job(run.id, steps="hdr,sources", options={"layout": LAYOUT})
+        worker_dir = tmp_path / "worker-b"
+        exe = Path(sys.executable).with_name("mirrorgonio")
+        command = [str(exe), "worker", "--catalog", url, "--data-dir", str(worker_dir), "--scheduler", "none"]
+        done_cli = subprocess.run(
+            [*_without_disk(data_dir), *command, "--once", "--id", "w-remote"],
+            capture_output=True,
+            text=True,
+            timeout=300,
+            env={**os.environ, "MG_TOKEN": TOKEN},
+            check=False,
+        )
+        assert done_cli.returncode == 0, done_cli.stdout + done_cli.stderr
+        done = rig_a.get_job(remote_job.id)
+        assert done.state == "complete" and done.claimed_by == "w-remote", (done, done_cli.stderr[-3000:])
+        folder = Path(run.path).parent
+        assert done.result_dir == str(folder)  # the daemon keeps the results with the run
+        assert set(done.artifacts) == set(ARTIFACT_KINDS)
+        for kind, path in done.artifacts.items():
+            assert Path(path).parent == folder and Path(path).is_file(), (kind, path)
+        assert not any(worker_dir.rglob("*.h5")), "the worker's copies are deleted once the daemon has the results"
+        with daemon.client() as http:
+            assert http.get(f"/jobs/{done.id}/artifacts/report").status_code == 200
+            assert http.get(f"/jobs/{done.id}/artifacts/results").status_code == 200  # the results with their files
+        # The same run processed by a worker on the daemon's own disk gives the same light model.
+        remote_model = json.loads(Path(done.artifacts["light_model"]).read_text())
+        local_job = rig_a.create_job(run.id, steps="hdr,sources", options={"layout": LAYOUT})
+        with Catalog(url) as lab:
+            local = JobWorker(lab, worker_id="w-local").run_once()
+        assert local.id == local_job.id and local.state == "complete"
+        local_model = json.loads(Path(local.artifacts["light_model"]).read_text())
+        assert remote_model["sources"] == local_model["sources"]
+
+
+def test_a_cut_fetch_resumes_and_a_wrong_one_is_caught(captured, tmp_path, postgres_server, daemon_factory):
+    from acquisition.daemon.transfer import DaemonUnreachableError, RunFetcher, sha256_file
+
+    _, _, source = captured
+    url = postgres_server.create_database("lab_fetch")
+    daemon, data_dir = _lab_daemon(daemon_factory, tmp_path, url, "rig-a")
+    with Catalog(url, rig="rig-a") as rig_a:
+        run = _finished_run(rig_a, data_dir, source)
+        fetcher = RunFetcher(rig_a.daemon_url, tmp_path / "worker", TOKEN, patience_s=2)
+        local = fetcher.run_folder(run) / Path(run.path).name
+        part, tag = local.with_name(local.name + ".part"), local.with_name(local.name + ".etag")
+        with daemon.client() as http, http.stream("GET", f"/runs/{run.id}/file") as answer:
+            etag = answer.headers["etag"]
+        whole = Path(run.path).read_bytes()
+        local.parent.mkdir(parents=True)
+        # Cut after a third: the rest is asked for with Range, and the whole checks out.
+        part.write_bytes(whole[: len(whole) // 3])
+        tag.write_text(etag)
+        assert sha256_file(fetcher.fetch(run)) == sha256_file(run.path)
+        # A copy whose first third went wrong: the daemon's SHA-256 catches it, and it starts over.
+        local.unlink()
+        part.write_bytes(b"\0" * (len(whole) // 3))
+        tag.write_text(etag)
+        with pytest.raises(DaemonUnreachableError, match="its SHA-256 differs"):
+            fetcher.fetch(run)
+        assert not part.exists()
+        assert sha256_file(fetcher.fetch(run)) == sha256_file(run.path)
+        # Without the token, the daemon gives nothing.
+        with pytest.raises(Exception, match="401"):
+            RunFetcher(rig_a.daemon_url, tmp_path / "other", None).fetch(run)
+        # A daemon that does not answer: the job waits (its copy so far is kept for the next try).
+        daemon.stop()
+        with pytest.raises(DaemonUnreachableError, match=f"fetching run {run.id} from {daemon.url}"):
+            RunFetcher(rig_a.daemon_url, tmp_path / "third", TOKEN, patience_s=0.5).fetch(run)
+
+
+def test_partial_processing_without_the_daemons_disk_is_refused_with_its_reason(tmp_path, postgres_server):
+    from acquisition.daemon.transfer import RunFetcher
+
+    url = postgres_server.create_database("lab_partial")
+    with Catalog(url, rig="rig-a") as rig_a, Catalog(url) as lab:
+        rig_a.register_daemon("http://rig-a.lab:8000")
+        run = rig_a.create_run(
+            preset="light-sweep", path_for=lambda rid: f"/srv/rig-a/runs/{rid}.h5", n_positions=66, request={}
+        )
+        rig_a.transition_run(run.id, "running")
+        job = rig_a.create_job(run.id, options={"partial": True})
+        fetcher = RunFetcher(lab.daemon_url, tmp_path / "worker")
+        done = JobWorker(lab, worker_id="w-remote", fetcher=fetcher).run_once()
+        assert done.id == job.id and done.state == "failed"
+        assert done.error.startswith("partial processing needs the run file on the worker's disk: ")
+        assert f"still being acquired on rig rig-a, and /srv/rig-a/runs/{run.id}.h5 is not here" in done.error
+        # A whole-run job on it waits for the run's end as everywhere.
+        waiting = rig_a.create_job(run.id)
+        again = JobWorker(lab, worker_id="w-remote", fetcher=fetcher).run_once()
+        assert again.id == waiting.id and again.state == "queued" and "still being acquired" in again.message
+
+
+def test_a_results_archive_cannot_write_outside_its_folder_or_over_the_run(tmp_path):
+    import tarfile
+
+    from acquisition.daemon.transfer import TransferError, pack_results, unpack_results
+
+    folder = tmp_path / "runs"
+    folder.mkdir()
+    (folder / "run-1.h5").write_bytes(b"the run")
+    made = tmp_path / "made"
+    (made / "run-1.report").mkdir(parents=True)
+    (made / "run-1.report" / "index.html").write_text("report")
+    (made / "run-1.ies").write_text("ies")
+    (made / "run-1.h5").write_text("the worker's copy of the run")
+    archive = tmp_path / "ok.tar"
+    archive.write_bytes(b"".join(pack_results(made, exclude={"run-1.h5"})))
+    files = unpack_results(archive, folder, {"run-1.h5"})
+    assert files == {
+        "run-1.ies": str(folder / "run-1.ies"),
+        "run-1.report/index.html": str(folder / "run-1.report" / "index.html"),
+    }
+    assert (folder / "run-1.h5").read_bytes() == b"the run" and (folder / "run-1.ies").read_text() == "ies"
+
+    def archive_of(name, member):
+        path = tmp_path / name
+        with tarfile.open(path, "w") as tar:
+            tar.addfile(member, io.BytesIO(b"x") if member.isfile() else None)
+        return path
+
+    outside = tarfile.TarInfo("../escaped")
+    outside.size = 1
+    link = tarfile.TarInfo("run-1.link")
+    link.type, link.linkname = tarfile.SYMTYPE, "/etc/passwd"
+    over = tarfile.TarInfo("run-1.h5")
+    over.size = 1
+    for name, member in (("outside.tar", outside), ("link.tar", link), ("over.tar", over)):
+        with pytest.raises(TransferError, match="results archive: "):
+            unpack_results(archive_of(name, member), folder, {"run-1.h5"})
+    assert not (tmp_path / "escaped").exists() and not (folder / "run-1.link").exists()
+    assert (folder / "run-1.h5").read_bytes() == b"the run"
+
+
+def test_each_daemon_lists_the_labs_runs_and_changes_only_its_own(captured, tmp_path, postgres_server, daemon_factory):
+    _, _, source = captured
+    url = postgres_server.create_database("lab_listing")
+    daemon_a, data_a = _lab_daemon(daemon_factory, tmp_path, url, "rig-a")
+    daemon_b, _ = _lab_daemon(daemon_factory, tmp_path, url, "rig-b")
+    with Catalog(url, rig="rig-a") as rig_a:
+        run = _finished_run(rig_a, data_a, source)
+        job = rig_a.create_job(run.id)
+    with daemon_b.client() as b, daemon_a.client() as a:
+        assert b.get("/health").json()["rig"] == "rig-b"
+        assert b.get("/runs").json() == []  # its own rig's runs
+        lab = b.get("/runs", params={"rig": "all"}).json()
+        assert [(r["id"], r["rig"], r["read_only"]) for r in lab] == [(run.id, "rig-a", True)]
+        assert [r["id"] for r in b.get("/runs", params={"rig": "rig-a"}).json()] == [run.id]
+        assert a.get("/runs").json()[0]["read_only"] is False
+        assert b.get(f"/runs/{run.id}").json()["state"] == "complete"
+        assert [j["id"] for j in b.get("/jobs", params={"rig": "all"}).json()] == [job.id]
+        assert b.get("/jobs").json() == []
+        refused = b.post(f"/runs/{run.id}/process", json={})
+        assert refused.status_code == 403
+        assert refused.json()["detail"] == (
+            f"cannot queue a job for it: run {run.id} belongs to rig 'rig-a'; rig 'rig-b' can only read it"
+        )
+        file = b.get(f"/runs/{run.id}/file")
+        assert file.status_code == 404 and daemon_a.url in file.json()["detail"]
+        served = a.get(f"/runs/{run.id}/file")
+        assert served.status_code == 200 and served.headers["repr-digest"].startswith("sha-256=:")
+        bad = b.get("/runs", params={"rig": "Rig A"})
+        assert bad.status_code == 400 and "not a rig's name" in bad.json()["detail"]

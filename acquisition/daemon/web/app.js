@@ -150,6 +150,7 @@ async function showStatus() {
 
 function renderHealth(h) {
   setBadge($("health-status"), h.status, `badge-${h.status}`);
+  $("rig-name").textContent = `of rig ${h.rig}`;
   let active = h.active_run ? `active run ${h.active_run}` : "no active run";
   if (h.queued_runs) active += `, ${h.queued_runs} queued${h.queue_held ? " (the queue is held)" : ""}`;
   $("health-summary").textContent = `${h.reasons.length ? h.reasons.join("; ") : "devices ready"} · ${active} · v${h.version}`;
@@ -412,8 +413,9 @@ async function refreshRuns() {
   if (runsLoading) return;
   runsLoading = true;
   try {
+    const lab = $("all-rigs").checked ? "&rig=all" : "";
     const [runs, jobs, queue] = await Promise.all(
-      [api("GET", "/runs?limit=50"), api("GET", "/jobs?limit=200"), api("GET", "/queue")]);
+      [api("GET", `/runs?limit=50${lab}`), api("GET", `/jobs?limit=200${lab}`), api("GET", "/queue")]);
     renderQueue(queue);
     const latestJob = {};
     for (const job of jobs) {
@@ -450,11 +452,13 @@ function renderRuns(runs, latestJob) {
       : el("span", { className: "muted", textContent:
           run.state === "queued" ? "not yet taken" : FINAL.includes(run.state) ? "none: never started" : "being written" });
     const job = latestJob[run.id];
-    const process = el("button", { type: "button", className: "small process", textContent: "process", disabled: !hasFile });
+    // Another rig's run is shown, not changed: its own daemon has its file and takes its jobs.
+    const process = el("button", { type: "button", className: "small process", textContent: "process",
+      disabled: !hasFile || run.read_only, title: run.read_only ? `rig ${run.rig}'s run: process it from its own daemon` : "" });
     process.addEventListener("click", () => processRun(run.id));
     const jobText = job ? ` ${job.state}${job.state === "running" ? ` ${Math.round(job.progress * 100)} %` : ""}${job.error ? `: ${job.error}` : ""}` : "";
     const row = el("tr", {},
-      el("td", {}, view),
+      el("td", {}, view, ...(run.read_only ? [" ", el("span", { className: "badge rig", textContent: run.rig })] : [])),
       el("td", { textContent: run.preset || "—" }),
       el("td", {}, state),
       el("td", { className: "num percent-cell", textContent: `${fmtPercent(run.percent_done)} (${run.positions_done} of ${run.n_positions})` }),
@@ -666,6 +670,7 @@ function init() {
   });
   $("start-form").addEventListener("submit", startRun);
   $("preset").addEventListener("change", showPresetInfo);
+  $("all-rigs").addEventListener("change", refreshRuns);
   for (const radio of document.querySelectorAll("input[name=bracket]")) radio.addEventListener("change", showBracketFields);
   $("pause").addEventListener("click", () => control("pause"));
   $("resume").addEventListener("click", () => control("resume"));
