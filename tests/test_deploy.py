@@ -42,7 +42,18 @@ DOCKERIGNORE = ROOT / ".dockerignore"
 TOKEN_MESSAGE = "set MG_TOKEN to the API token"
 DOCKER_COMPOSE = shutil.which("docker-compose")
 #: The services the issue asks for, by profile (None: always on).
-EXPECTED = {"daemon": None, "worker": None, "sim-arm": None, "dask-scheduler": "scale", "dask-worker": "scale"}
+EXPECTED = {
+    "daemon": None,
+    "worker": None,
+    "sim-arm": None,
+    "dask-scheduler": "scale",
+    "dask-worker": "scale",
+    "catalog-db": "lab",
+    "lab-daemon": "lab",
+    "lab-worker": "lab",
+}
+#: The services that run another project's image: the lab's catalog, on PostgreSQL's own.
+EXTERNAL_IMAGES = {"catalog-db": "postgres:"}
 
 
 # --- resolving the compose file ---------------------------------------------------------------
@@ -240,13 +251,18 @@ def compose_problems(
         return [f"compose file does not resolve: {exc}"]
     problems: list[str] = []
     services: dict = config.get("services") or {}
+    for name, prefix in EXTERNAL_IMAGES.items():
+        if name in services and not str(services[name].get("image", "")).startswith(prefix):
+            problems.append(f"{name}: image {services[name].get('image')}, expected {prefix}...")
+    external = {name: services.pop(name) for name in EXTERNAL_IMAGES if name in services}
     argv = {name: service_argv(svc) for name, svc in services.items()}
 
+    everything = {**services, **external}
     for name, profile in EXPECTED.items():
-        if name not in services:
+        if name not in everything:
             problems.append(f"{name}: missing")
-        elif _profiles(services[name]) != ({profile} if profile else set()):
-            problems.append(f"{name}: profiles {sorted(_profiles(services[name]))}, expected {profile or 'none'}")
+        elif _profiles(everything[name]) != ({profile} if profile else set()):
+            problems.append(f"{name}: profiles {sorted(_profiles(everything[name]))}, expected {profile or 'none'}")
 
     # One image for all.
     images = {(svc.get("image"), json.dumps(svc.get("build"), sort_keys=True)) for svc in services.values()}
@@ -264,7 +280,7 @@ def compose_problems(
     for name, svc in services.items():
         code = _healthcheck_code(svc)
         if code is None:
-            if not name.startswith("worker"):  # the processing workers have none
+            if argv[name][:2] != ["mirrorgonio", "worker"]:  # the processing workers have none
                 problems.append(f"{name}: no healthcheck")
             continue
         try:
@@ -286,15 +302,15 @@ def compose_problems(
     # always on may depend on one that only a profile starts.
     for name, svc in services.items():
         for dep, spec in (svc.get("depends_on") or {}).items():
-            if dep not in services:
+            if dep not in everything:
                 problems.append(f"{name}: depends on unknown service {dep}")
                 continue
-            wanted = "service_healthy" if "healthcheck" in services[dep] else "service_started"
+            wanted = "service_healthy" if "healthcheck" in everything[dep] else "service_started"
             if not isinstance(spec, dict) or spec.get("condition") != wanted:
                 problems.append(f"{name}: depends_on {dep} should have condition {wanted}")
-            if not _profiles(svc) and _profiles(services[dep]):
+            if not _profiles(svc) and _profiles(everything[dep]):
                 problems.append(
-                    f"{name}: always on, but depends on {dep} of profile(s) {sorted(_profiles(services[dep]))}"
+                    f"{name}: always on, but depends on {dep} of profile(s) {sorted(_profiles(everything[dep]))}"
                 )
 
     # Data on the named volume, at the same path everywhere (the catalog records run paths).
@@ -311,7 +327,56 @@ def compose_problems(
             problems.append(f"{name}: /data is not on a named volume declared under volumes: ({mounts})")
 
     daemon_problems, data_dir = _daemon_problems(services, argv)
-    return problems + daemon_problems + _links_problems(services, argv, data_dir)
+    return (
+        problems
+        + daemon_problems
+        + _links_problems(services, argv, data_dir)
+        + _lab_problems(services, external, argv, declared)
+    )
+
+
+def _lab_problems(services: dict, external: dict, argv: dict, declared: set[str]) -> list[str]:
+    """The lab profile: the daemon and the workers on the catalog-db service's database, the
+    workers told where the daemon answers and sharing no volume with it."""
+    if "lab-daemon" not in services:
+        return []
+    from acquisition.daemon.settings import SettingsError
+
+    problems = []
+    db = external.get("catalog-db") or {}
+    db_env = db.get("environment") or {}
+    try:
+        daemon = daemon_settings(services["lab-daemon"], argv["lab-daemon"])
+    except (SettingsError, ValueError) as exc:
+        return [f"lab-daemon: its configuration is refused: {exc}"]
+    catalogs = {"lab-daemon": daemon.catalog}
+    for name, args in argv.items():
+        if args[:2] == ["mirrorgonio", "worker"] and "lab" in _profiles(services[name]):
+            catalogs[name] = _option(args, "--catalog") or (services[name].get("environment") or {}).get("MG_CATALOG")
+            shared = {str(v).split(":")[0] for v in services[name].get("volumes") or []} & {
+                str(v).split(":")[0] for v in services["lab-daemon"].get("volumes") or []
+            }
+            if shared:
+                problems.append(f"{name}: shares volume(s) {sorted(shared)} with lab-daemon")
+            if not (services[name].get("environment") or {}).get("MG_TOKEN"):
+                problems.append(f"{name}: no MG_TOKEN to fetch run files from the daemons with")
+    for name, url in catalogs.items():
+        parts = urlparse(url or "")
+        if (
+            parts.scheme != "postgresql"
+            or parts.hostname != "catalog-db"
+            or str(parts.port) not in db.get("expose", [])
+        ):
+            problems.append(f"{name}: catalog {url!r} is not the catalog-db service's PostgreSQL")
+        elif (parts.username, parts.path.lstrip("/")) != (db_env.get("POSTGRES_USER"), db_env.get("POSTGRES_DB")):
+            problems.append(f"{name}: catalog {url!r} names another user or database than catalog-db creates")
+    told = urlparse(daemon.daemon_url())
+    if told.hostname != "lab-daemon" or str(told.port) != str(daemon.port):
+        problems.append(f"lab-daemon: workers are told {daemon.daemon_url()}, not where it listens")
+    volumes = [str(v).split(":")[0] for v in services["lab-daemon"].get("volumes") or []]
+    if not volumes or volumes[0] not in declared or volumes[0] == "mg-data":
+        problems.append(f"lab-daemon: its runs are not on a volume of its own ({volumes})")
+    return problems
 
 
 def daemon_settings(service: dict, args: list[str]):
@@ -403,7 +468,9 @@ def _links_problems(services: dict, argv: dict, data_dir: str | None) -> list[st
         scheduler_at = ("dask-scheduler", _option(argv["dask-scheduler"], "--port") or "8786")
     for name, args in argv.items():
         if args[:2] == ["mirrorgonio", "worker"]:
-            if data_dir and _option(args, "--data-dir") != data_dir:
+            catalog = _option(args, "--catalog") or (services[name].get("environment") or {}).get("MG_CATALOG")
+            on_server = (catalog or "").startswith("postgresql://")  # its data folder is its own (_lab_problems)
+            if data_dir and not on_server and _option(args, "--data-dir") != data_dir:
                 problems.append(f"{name}: --data-dir {_option(args, '--data-dir')}, the daemon's is {data_dir}")
             address = _option(args, "--scheduler") or (services[name].get("environment") or {}).get("MG_SCHEDULER")
             if address not in (None, "local", "none"):
@@ -511,9 +578,13 @@ def test_every_service_runs_a_real_command_line():
     services = _parse_compose(COMPOSE, {"MG_TOKEN": "x"})["services"]
     leaves = {}
     for name, svc in services.items():
+        if name in EXTERNAL_IMAGES:
+            continue
         contexts = parse_command_line(service_argv(svc))
         leaves[name] = " ".join(c.info_name for c in contexts)
     assert leaves == {
+        "lab-daemon": "mirrorgonio serve",
+        "lab-worker": "mirrorgonio worker",
         "sim-arm": "mirrorgonio simulate arm",
         "daemon": "mirrorgonio serve",
         "worker": "mirrorgonio worker",
@@ -583,6 +654,15 @@ PLANTED = [
     ("'http://127.0.0.1:8000/health'", "'http://127.0.0.1:8080/health'"),
     ("'http://127.0.0.1:8000/health'", "'http://daemon:8000/health'"),  # a Host the daemon refuses
     ('"tcp://dask-scheduler:8786"]', '"tcp://dask-scheduler:8788"]'),
+    # The lab: a worker that mounts the rig's volume, a catalog that is not catalog-db's, a
+    # daemon that tells the workers a wrong address, the database's image replaced.
+    (
+        'command: ["worker", "--data-dir", "/tmp/worker"]',
+        'command: ["worker", "--data-dir", "/tmp/worker"]\n    volumes:\n      - mg-rig-data:/data',
+    ),
+    ("@catalog-db:5432/mirrorgonio\n      MG_RIG_NAME", "@catalog-db:5433/mirrorgonio\n      MG_RIG_NAME"),
+    ("MG_PUBLIC_URL: http://lab-daemon:8000", "MG_PUBLIC_URL: http://lab-daemon:8001"),
+    ("image: postgres:16-bookworm", "image: mirrorgonio:latest"),
 ]
 
 
@@ -592,9 +672,9 @@ def test_a_planted_mistake_is_found(tmp_path, old, new, tool):
     if tool == "docker-compose" and DOCKER_COMPOSE is None:
         _without_docker_compose("the planted mistake is checked by the parser alone")
     text = COMPOSE.read_text()
-    assert text.count(old) == 1, f"the compose file changed: update the planted mistake {old!r}"
+    assert text.count(old) >= 1, f"the compose file changed: update the planted mistake {old!r}"
     broken = tmp_path / "docker-compose.yml"
-    broken.write_text(text.replace(old, new))
+    broken.write_text(text.replace(old, new, 1))  # the first: the one-host daemon's, where the lab's repeats it
     env = {} if "MG_TOKEN:-" in new else None
     chosen = DOCKER_COMPOSE if tool == "docker-compose" else None
     problems = compose_problems(broken, env=env, tool=chosen)

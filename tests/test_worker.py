@@ -592,6 +592,8 @@ def _without_disk(data_dir: Path) -> list[str]:
 def test_a_worker_without_the_daemons_disk_fetches_the_run_and_sends_the_results_back(
     captured, tmp_path, postgres_server, daemon_factory
 ):
+    from acquisition.benchmarks.lab import SAME_RESULTS_RTOL, light_model_difference
+
     _, _, source = captured
     url = postgres_server.create_database("lab_remote_worker")
     daemon, data_dir = _lab_daemon(daemon_factory, tmp_path, url, "rig-a")
@@ -629,7 +631,8 @@ def test_a_worker_without_the_daemons_disk_fetches_the_run_and_sends_the_results
             local = JobWorker(lab, worker_id="w-local").run_once()
         assert local.id == local_job.id and local.state == "complete"
         local_model = json.loads(Path(local.artifacts["light_model"]).read_text())
-        assert remote_model["sources"] == local_model["sources"]
+        # The same to rounding: two processes may sum in another order (their BLAS threads).
+        assert light_model_difference(remote_model["sources"], local_model["sources"]) < SAME_RESULTS_RTOL
 
 
 def test_a_cut_fetch_resumes_and_a_wrong_one_is_caught(captured, tmp_path, postgres_server, daemon_factory):

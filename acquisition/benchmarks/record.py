@@ -28,12 +28,12 @@ import psutil
 from drivers.contracts.version import __version__
 
 #: The benchmarks in the order their sections appear.
-ORDER = ("render", "acquire", "hdr", "accuracy", "repeatability", "reflectance", "brdf", "tolerance", "speed")
+ORDER = ("render", "acquire", "hdr", "accuracy", "repeatability", "reflectance", "brdf", "tolerance", "speed", "lab")
 HEADER = """# Benchmark results
 
 This file is generated: each section below is the last recorded result of one benchmark,
 written by `mirrorgonio bench NAME ... --record docs/benchmarks.md` (NAME one of render,
-acquire, hdr, accuracy, repeatability, reflectance, brdf, tolerance, speed). A run replaces its own section,
+acquire, hdr, accuracy, repeatability, reflectance, brdf, tolerance, speed, lab). A run replaces its own section,
 between the marker lines that carry the benchmark's name, and leaves the others as they
 are. Never edit it by hand: run the benchmark again. What each benchmark measures:
 `mirrorgonio bench NAME --help` and the modules in `acquisition/benchmarks/`.

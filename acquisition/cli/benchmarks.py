@@ -476,3 +476,30 @@ def bench_speed_command(
         typer.echo("")
         typer.echo(result["markdown"])
     _record(recording, "speed", result)
+
+
+@bench_app.command("lab")
+def bench_lab_command(
+    ctx: typer.Context,
+    rigs: Annotated[int, typer.Option(min=2, max=9, help="Rigs: daemons, each in a network namespace of its own.")] = 3,
+    workers: Annotated[int, typer.Option(min=1, max=16, help="Workers without the rigs' disks.")] = 3,
+    runs: Annotated[int, typer.Option(min=3, max=300, help="Runs, shared among the rigs, one job each.")] = 30,
+    cut: Annotated[float, typer.Option(min=1.0, max=600.0, help="Seconds one rig's network stays cut.")] = 30.0,
+    workdir: WorkdirOption = None,
+    as_json: Annotated[bool, typer.Option("--json", help="Print JSON only.")] = False,
+    record: RecordOption = None,
+) -> None:
+    """A lab on one PostgreSQL catalog (needs root): daemons, workers that fetch the run files
+    and send the results back, a worker killed mid-job, PostgreSQL restarted and a rig's network
+    cut meanwhile; jobs lost or recorded twice, results against one machine's, recovery times,
+    the catalog's latency."""
+    from acquisition.benchmarks.lab import LabBenchError, bench_lab
+    from acquisition.daemon.catalog.throwaway_server import PostgresNotFoundError
+
+    recording = _start_recording(ctx, record)
+    try:
+        result = bench_lab(rigs=rigs, workers=workers, runs=runs, cut_s=cut, workdir=workdir)
+    except domain_errors(LabBenchError, PostgresNotFoundError) as exc:
+        raise fail(str(exc)) from None
+    print_result(result, as_json)
+    _record(recording, "lab", result)

@@ -61,34 +61,40 @@ def serve(
 
 
 # --- worker -------------------------------------------------------------------------------
+WorkerConfigOption = Annotated[
+    Path | None,
+    typer.Option(
+        "--config",
+        help="daemon.toml: the worker uses its data_dir, catalog and token (MG_CATALOG, MG_TOKEN).",
+    ),
+]
+WorkerDataOption = Annotated[
+    Path | None,
+    typer.Option(
+        "--data-dir",
+        help="Where the catalog and the run files are (overrides the configuration); with a catalog on a "
+        "server, where the run files fetched from other machines' daemons are kept while processed.",
+    ),
+]
+CatalogOption = Annotated[
+    str | None,
+    typer.Option(
+        "--catalog",
+        help="The catalog's URL (postgresql://USER@HOST/DATABASE for a lab's); default the configuration's.",
+    ),
+]
+RigsOption = Annotated[
+    list[str] | None,
+    typer.Option("--rig", help="Take only this rig's jobs (repeat for several); default every rig's."),
+]
+
+
 @app.command("worker")
 def worker_command(
-    config: Annotated[
-        Path | None,
-        typer.Option(
-            "--config",
-            help="daemon.toml: the worker uses its data_dir, catalog and token (MG_CATALOG, MG_TOKEN).",
-        ),
-    ] = None,
-    data_dir: Annotated[
-        Path | None,
-        typer.Option(
-            "--data-dir",
-            help="Where the catalog and the run files are (overrides the configuration); with a catalog on a "
-            "server, where the run files fetched from other machines' daemons are kept while processed.",
-        ),
-    ] = None,
-    catalog: Annotated[
-        str | None,
-        typer.Option(
-            "--catalog",
-            help="The catalog's URL (postgresql://USER@HOST/DATABASE for a lab's); default the configuration's.",
-        ),
-    ] = None,
-    rigs: Annotated[
-        list[str] | None,
-        typer.Option("--rig", help="Take only this rig's jobs (repeat for several); default every rig's."),
-    ] = None,
+    config: WorkerConfigOption = None,
+    data_dir: WorkerDataOption = None,
+    catalog: CatalogOption = None,
+    rigs: RigsOption = None,
     scheduler: SchedulerOption = "local",
     workers: WorkersOption = None,
     once: Annotated[bool, typer.Option("--once", help="Process the jobs that can run now, then exit.")] = False,

@@ -12,6 +12,7 @@ import json
 import socket
 from pathlib import Path
 from typing import Annotated, Literal
+from urllib.parse import urlsplit
 
 from pydantic import ConfigDict, Field, PositiveFloat, SecretStr, field_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
@@ -323,7 +324,8 @@ class DaemonSettings(BaseSettings):
     def host_allow_list(self) -> list[tuple[str, int | None]]:
         """The hosts requests may name (``Host``, and ``Origin`` of a request that changes
         something), as (name, port or None for any); ``("*", None)`` for any host: the
-        loopback names, the listening address on its port, and ``allowed_hosts``."""
+        loopback names, the listening address on its port, the name workers are told to reach
+        it by (:meth:`daemon_url`), and ``allowed_hosts``."""
         hosts: list[tuple[str, int | None]] = [(name, None) for name in LOOPBACK_HOSTS]
         for entry in self.allowed_hosts or []:
             hosts.append(("*", None) if entry.strip() == "*" else split_host(entry))
@@ -331,6 +333,9 @@ class DaemonSettings(BaseSettings):
         name = f"[{bind}]" if ":" in bind and not bind.startswith("[") else bind
         if name not in ("", "0.0.0.0", "[::]", *LOOPBACK_HOSTS):  # a wildcard address is no name
             hosts.append((name, self.port or None))
+        told = urlsplit(self.daemon_url())
+        if told.hostname:
+            hosts.append((told.hostname.lower(), told.port or (443 if told.scheme == "https" else 80)))
         return hosts
 
     @property

@@ -36,7 +36,15 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from acquisition.daemon.catalog import ACTIVE_RUN_STATES, Catalog, CatalogError, JobClaimError, JobRecord, RunRecord
+from acquisition.daemon.catalog import (
+    ACTIVE_RUN_STATES,
+    Catalog,
+    CatalogError,
+    CatalogUnavailableError,
+    JobClaimError,
+    JobRecord,
+    RunRecord,
+)
 from acquisition.daemon.client_files import ClientFileError, load_client_file
 from acquisition.daemon.models import JOB_OPTIONS
 from acquisition.daemon.transfer import DaemonUnreachableError, RunFetcher
@@ -188,7 +196,12 @@ class JobWorker:
         waiting: set[str] = set()
         repeats = 0  # waiting jobs claimed again in a row, with nothing else to do in between
         while not stop.is_set():
-            job = self.run_once()
+            try:
+                job = self.run_once()
+            except CatalogUnavailableError as exc:  # the server restarts, the network is cut: try again
+                log.warning("%s: the catalog cannot be reached: %s", self.worker_id, exc)
+                stop.wait(poll_s)
+                continue
             if job is not None and on_job is not None:
                 on_job(job)
             if job is not None and job.state in ("complete", "failed"):
@@ -232,37 +245,14 @@ class JobWorker:
         try:
             steps = resolve_steps(job.steps)
             run = self.catalog.get_run(job.run_id)
+        except CatalogUnavailableError:
+            raise  # not the job's fault: without heartbeats it is requeued, or claimed again by this worker
         except (StepsError, CatalogError) as exc:
             return self._fail(job, one_line(exc))
-        if job.options.get("layout") is not None:
-            try:  # the client's path: read here, with a time limit, before the job is started
-                load_client_file(str(job.options["layout"]), "layout", "layout file", _layout)
-            except ClientFileError as exc:
-                return self._fail(job, str(exc))
-        partial = bool(job.options.get("partial", False))
-        acquiring = self._acquiring(run)
-        if acquiring and not partial:
-            return self._wait(
-                job,
-                f"waiting: run {run.id} is still being acquired ({acquiring}); "
-                "ask for partial to process the positions complete so far",
-            )
-        if not run.path:
-            return self._fail(job, f"run {run.id} has no run file")
-        path = Path(run.path)
-        remote = self.fetcher is not None and RunFetcher.is_remote(
-            run
-        )  # without a fetcher, processing says what is missing
-        if remote and acquiring:
-            return self._fail(
-                job,
-                f"partial processing needs the run file on the worker's disk: run {run.id} is still being acquired "
-                f"on rig {run.rig}, and {path} is not here (a worker that shares that disk can process it)",
-            )
-        if acquiring and not _has_complete_position(path):
-            return self._wait(
-                job, f"waiting: run {run.id} is being acquired ({acquiring}) and has no complete position yet"
-            )
+        not_now = self._not_now(job, run)
+        if not_now is not None:
+            return not_now
+        remote = self.fetcher is not None and RunFetcher.is_remote(run)  # without a fetcher: processing says
         self._progress, self._note, self._step = 0.0, None, None
         self._steps_seen.clear()
         self._lost.clear()
@@ -271,16 +261,7 @@ class JobWorker:
         beat.start()
         keep_copy = False
         try:
-            if remote:
-                assert self.fetcher is not None
-                self._note = f"fetching run {run.id} from rig {run.rig}'s daemon"
-                path = self.fetcher.fetch(run)
-            result_dir, artifacts, message = self._process(job, path, steps, self._report_progress)
-            if remote and not self._lost.is_set():
-                assert self.fetcher is not None
-                self._note = f"sending the results to rig {run.rig}'s daemon"
-                sent = {kind: str(file) for kind, file in artifacts.items()}
-                result_dir, artifacts = self.fetcher.send_results(job.id, self.worker_id, run, path, sent)
+            result_dir, artifacts, message = self._fetch_process_send(job, run, steps, remote)
         except DaemonUnreachableError as exc:
             keep_copy = True  # the next try resumes the fetch where it stopped
             stop.set()
@@ -304,14 +285,67 @@ class JobWorker:
             log.warning("%s: job %s was taken from this worker: its results are not recorded", self.worker_id, job.id)
             return self.catalog.get_job(job.id)
         try:
-            done = self.catalog.finish_job(
-                job.id, worker_id=self.worker_id, result_dir=result_dir, artifacts=artifacts, message=message
+            done = self._persistently(
+                self.catalog.finish_job,
+                job.id,
+                worker_id=self.worker_id,
+                result_dir=result_dir,
+                artifacts=artifacts,
+                message=message,
             )
         except JobClaimError as exc:
             log.warning("%s: %s", self.worker_id, exc)
             return self.catalog.get_job(job.id)
         log.info("job %s complete: %s; %s", job.id, message, ", ".join(f"{k} {v}" for k, v in artifacts.items()))
         return done
+
+    def _not_now(self, job: JobRecord, run: RunRecord) -> JobRecord | None:
+        """The job put back to wait or failed, if it cannot be processed now (its layout file
+        cannot be read, its run is being acquired, it asks for partial processing of a run
+        whose file is not on this disk); None when it can."""
+        if job.options.get("layout") is not None:
+            try:  # the client's path: read here, with a time limit, before the job is started
+                load_client_file(str(job.options["layout"]), "layout", "layout file", _layout)
+            except ClientFileError as exc:
+                return self._fail(job, str(exc))
+        acquiring = self._acquiring(run)
+        if acquiring and not job.options.get("partial", False):
+            return self._wait(
+                job,
+                f"waiting: run {run.id} is still being acquired ({acquiring}); "
+                "ask for partial to process the positions complete so far",
+            )
+        if not run.path:
+            return self._fail(job, f"run {run.id} has no run file")
+        if acquiring and self.fetcher is not None and RunFetcher.is_remote(run):
+            return self._fail(
+                job,
+                f"partial processing needs the run file on the worker's disk: run {run.id} is still being acquired "
+                f"on rig {run.rig}, and {run.path} is not here (a worker that shares that disk can process it)",
+            )
+        if acquiring and not _has_complete_position(Path(run.path)):
+            return self._wait(
+                job, f"waiting: run {run.id} is being acquired ({acquiring}) and has no complete position yet"
+            )
+        return None
+
+    def _fetch_process_send(
+        self, job: JobRecord, run: RunRecord, steps: tuple[Step, ...], remote: bool
+    ) -> tuple[str | Path, dict[str, str], str]:
+        """Process the run in place, or (``remote``) fetched from its daemon with the results sent
+        back: (result folder, artifacts, message) as the daemon will serve them."""
+        path = Path(str(run.path))
+        if remote:
+            assert self.fetcher is not None
+            self._note = f"fetching run {run.id} from rig {run.rig}'s daemon"
+            path = self.fetcher.fetch(run)
+        result_dir, artifacts, message = self._process(job, path, steps, self._report_progress)
+        files = {kind: str(file) for kind, file in artifacts.items()}
+        if remote and not self._lost.is_set():
+            assert self.fetcher is not None
+            self._note = f"sending the results to rig {run.rig}'s daemon"
+            result_dir, files = self.fetcher.send_results(job.id, self.worker_id, run, path, files)
+        return result_dir, files, message
 
     def _acquiring(self, run: RunRecord) -> str:
         """Why the run is still being acquired ("" if it is not)."""
@@ -330,15 +364,30 @@ class JobWorker:
 
     def _wait(self, job: JobRecord, message: str) -> JobRecord:
         log.info("job %s: %s", job.id, message)
-        return self.catalog.release_job(job.id, self.worker_id, message=message, retry_after_s=self.wait_s)
+        return self._persistently(
+            self.catalog.release_job, job.id, self.worker_id, message=message, retry_after_s=self.wait_s
+        )
 
     def _fail(self, job: JobRecord, reason: str) -> JobRecord:
         log.warning("job %s failed: %s", job.id, reason)
         try:
-            return self.catalog.finish_job(job.id, worker_id=self.worker_id, error=reason)
+            return self._persistently(self.catalog.finish_job, job.id, worker_id=self.worker_id, error=reason)
         except JobClaimError as exc:
             log.warning("%s: %s", self.worker_id, exc)
             return self.catalog.get_job(job.id)
+
+    def _persistently(self, write: Callable[..., JobRecord], *args: Any, **kwargs: Any) -> JobRecord:
+        """A job's end written to the catalog, retried while the catalog cannot be reached for as
+        long as the job stays this worker's (``stale_after_s``: past that it is requeued anyway)."""
+        deadline = time.monotonic() + self.stale_after_s
+        while True:
+            try:
+                return write(*args, **kwargs)
+            except CatalogUnavailableError as exc:
+                if time.monotonic() > deadline:
+                    raise
+                log.warning("%s: recording job %s waits for the catalog: %s", self.worker_id, args[0], exc)
+                time.sleep(min(2.0, self.heartbeat_s))
 
     def _report_progress(self, step: str, done: int, total: int) -> None:
         """``process_run``'s progress, kept for the next heartbeat: the job's ``step`` (the one
@@ -399,14 +448,25 @@ class JobWorker:
         self, run_path: Path, steps: tuple[Step, ...], progress: Callable[[str, int, int], None], options: dict
     ) -> ProcessReport:
         """``process_run`` with the job's options, its results beside the run file."""
-        try:
-            checked = ProcessingOptions.checked(
-                **{o.name: options.get(o.public) for o in JOB_OPTIONS if o.name != "steps"},  # None: the default
-                steps=steps,  # the job's steps as the worker resolved them
-            )
-        except OptionsError as exc:  # a bad option fails the job in one line, as the processing's own errors do
-            raise ProcessingError(str(exc)) from None
+        checked = job_processing_options(options, steps)
         return process_run(run_path, run_path.parent, checked, progress=progress, compute=self.compute)
+
+
+def job_processing_options(options: dict, steps: tuple[Step, ...]) -> ProcessingOptions:
+    """A job's options (as the API took them) and its resolved steps as the processing's options.
+
+    Raises
+    ------
+    ProcessingError
+        An option the processing refuses (one line, as the processing's own errors).
+    """
+    try:
+        return ProcessingOptions.checked(
+            **{o.name: options.get(o.public) for o in JOB_OPTIONS if o.name != "steps"},  # None: the default
+            steps=steps,  # the job's steps as the worker resolved them
+        )
+    except OptionsError as exc:
+        raise ProcessingError(str(exc)) from None
 
 
 def _layout(text: str) -> list:

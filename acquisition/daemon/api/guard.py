@@ -69,7 +69,7 @@ class RequestGuard:
     def body_rule(self, scope: Scope) -> tuple[str, int]:
         """The media type a request's body must have, and its size limit."""
         for (method, path), media in UPLOAD_ROUTES:
-            if scope["method"] == method and path.match(scope["path"]):
+            if scope.get("method") == method and path.match(scope.get("path", "")):
                 return media, self.upload_limit
         return JSON_TYPE, self.limit
 

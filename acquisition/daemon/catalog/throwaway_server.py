@@ -58,20 +58,20 @@ class ThrowawayPostgres:
     ----------
     fast : bool
         Run without fsync (tests); False for a server that behaves as a lab's would.
-
-    Examples
-    --------
-    >>> with ThrowawayPostgres() as server:  # doctest: +SKIP
-    ...     url = server.create_database("catalog")
+    listen : str
+        The addresses it listens on (PostgreSQL's ``listen_addresses``; ``*`` for all).
+    trusted : list of str
+        Networks (CIDR) besides the loopback whose connections it trusts.
     """
 
-    def __init__(self, *, fast: bool = True):
+    def __init__(self, *, fast: bool = True, listen: str = "127.0.0.1", trusted: tuple[str, ...] | list[str] = ()):
         self.bin = find_postgres_bin()
         self.folder = Path(tempfile.mkdtemp(prefix="mirrorgonio-pg-"))
         self.data = self.folder / "data"
         self.log = self.folder / "server.log"
         self.port = _free_port()
         self._settings = FAST_SETTINGS if fast else ()
+        self._listen = listen
         self._user = None
         if os.geteuid() == 0:
             try:
@@ -82,6 +82,9 @@ class ThrowawayPostgres:
                 ) from None
             os.chown(self.folder, self._user.pw_uid, self._user.pw_gid)
         self._run("initdb", "-D", str(self.data), "-U", "postgres", "--auth=trust", "--no-sync", "-E", "UTF8")
+        with (self.data / "pg_hba.conf").open("a") as hba:
+            for network in trusted:
+                hba.write(f"host all all {network} trust\n")
         self.start()
 
     def _run(self, program: str, *args: str) -> None:
@@ -96,7 +99,7 @@ class ThrowawayPostgres:
     def start(self) -> None:
         """Start the server (again) on its port; waits until it takes connections."""
         options = " ".join(
-            [f"-p {self.port}", "-c listen_addresses=127.0.0.1", f"-k {self.folder}"]
+            [f"-p {self.port}", f"-c listen_addresses='{self._listen}'", f"-k {self.folder}"]
             + [f"-c {setting}" for setting in self._settings]
         )
         self._run("pg_ctl", "-D", str(self.data), "-l", str(self.log), "-w", "-t", "60", "-o", options, "start")
