@@ -691,6 +691,14 @@ def test_each_rig_has_its_runs_queue_and_jobs_and_reads_the_others(db, clock):
         assert b.claim_job("w2").id == ja.id and ja.rig == "rig-a"
         with pytest.raises(CatalogError, match="not a rig's name"):
             Catalog(db, rig="Rig A")
+        # Where each rig's daemon answers, for the workers that fetch its run files.
+        assert b.daemon_url("rig-a") is None
+        a.register_daemon("http://rig-a.lab:8000/")
+        a.register_daemon("http://10.0.0.7:8000")  # it moved: the last word counts
+        assert b.daemon_url("rig-a") == "http://10.0.0.7:8000" and b.daemon_url("rig-c") is None
+        with pytest.raises(CatalogError, match="http:// or https://"):
+            a.register_daemon("ftp://rig-a.lab")
+        assert a.queue_hold()[0] == "lamp warming up"  # the same row keeps the queue's hold
     finally:
         a.close()
         b.close()

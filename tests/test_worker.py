@@ -643,7 +643,7 @@ def test_a_cut_fetch_resumes_and_a_wrong_one_is_caught(captured, tmp_path, postg
     daemon, data_dir = _lab_daemon(daemon_factory, tmp_path, url, "rig-a")
     with Catalog(url, rig="rig-a") as rig_a:
         run = _finished_run(rig_a, data_dir, source)
-        fetcher = RunFetcher(rig_a.daemon_url, tmp_path / "worker", TOKEN, patience_s=2)
+        fetcher = RunFetcher(rig_a.daemon_url, tmp_path / "worker", TOKEN, fetch_patience_s=2)
         local = fetcher.run_folder(run) / Path(run.path).name
         part, tag = local.with_name(local.name + ".part"), local.with_name(local.name + ".etag")
         with daemon.client() as http, http.stream("GET", f"/runs/{run.id}/file") as answer:
@@ -668,7 +668,7 @@ def test_a_cut_fetch_resumes_and_a_wrong_one_is_caught(captured, tmp_path, postg
         # A daemon that does not answer: the job waits (its copy so far is kept for the next try).
         daemon.stop()
         with pytest.raises(DaemonUnreachableError, match=f"fetching run {run.id} from {daemon.url}"):
-            RunFetcher(rig_a.daemon_url, tmp_path / "third", TOKEN, patience_s=0.5).fetch(run)
+            RunFetcher(rig_a.daemon_url, tmp_path / "third", TOKEN, fetch_patience_s=0.5).fetch(run)
 
 
 def test_partial_processing_without_the_daemons_disk_is_refused_with_its_reason(tmp_path, postgres_server):
@@ -763,3 +763,64 @@ def test_each_daemon_lists_the_labs_runs_and_changes_only_its_own(captured, tmp_
         assert served.status_code == 200 and served.headers["repr-digest"].startswith("sha-256=:")
         bad = b.get("/runs", params={"rig": "Rig A"})
         assert bad.status_code == 400 and "not a rig's name" in bad.json()["detail"]
+
+
+def test_a_daemon_that_answers_it_cannot_now_is_tried_again_and_a_refusal_is_not(captured, tmp_path):
+    """A 503 (the daemon's catalog or disk away) is passing: the fetch tries again; a 404 is an answer."""
+    import http.server
+    import threading as th
+
+    from acquisition.daemon.catalog import RunRecord
+    from acquisition.daemon.transfer import RunFetcher, TransferError, repr_digest, sha256_file
+
+    _, _, source = captured
+    body, answers = Path(source).read_bytes(), ["503", "200"]
+
+    class Daemon(http.server.BaseHTTPRequestHandler):
+        def do_GET(self):  # noqa: N802 - the http.server protocol
+            code = answers.pop(0) if answers else "404"
+            self.send_response(int(code))
+            if code == "200":
+                self.send_header("Repr-Digest", repr_digest(sha256_file(source)))
+                self.send_header("Content-Length", str(len(body)))
+                self.end_headers()
+                self.wfile.write(body)
+            else:
+                self.send_header("Content-Type", "application/json")
+                self.end_headers()
+                self.wfile.write(json.dumps({"detail": f"said {code}"}).encode())
+
+        def log_message(self, *args):
+            pass
+
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Daemon)
+    th.Thread(target=server.serve_forever, daemon=True).start()
+    try:
+        url = f"http://127.0.0.1:{server.server_address[1]}"
+        now = datetime.now(UTC)
+        run = RunRecord(
+            id="run-x",
+            rig="rig-a",
+            created_utc=now,
+            updated_utc=now,
+            state="complete",
+            preset=None,
+            path="/elsewhere/run-x.h5",
+            n_positions=66,
+            positions_done=3,
+            current_position=None,
+            exposures_per_position=4,
+            started_utc=now,
+            finished_utc=now,
+            last_error=None,
+            request={},
+            seconds_per_position=None,
+        )
+        fetcher = RunFetcher(lambda rig: url, tmp_path / "w", fetch_patience_s=10)
+        assert sha256_file(fetcher.fetch(run)) == sha256_file(source)  # after one 503
+        fetcher.forget(run)
+        with pytest.raises(TransferError, match="404 said 404") as refused:
+            fetcher.fetch(run)
+        assert type(refused.value) is TransferError  # not "unreachable": the job fails, it does not wait
+    finally:
+        server.shutdown()

@@ -70,7 +70,7 @@ def take_run(settings: DaemonSettings, rig: Rig, request: RunRequest) -> Path:
 
     Raises RuntimeError when the run does not complete."""
     settings.data_dir.mkdir(parents=True, exist_ok=True)
-    catalog = Catalog(settings.catalog_path)
+    catalog = Catalog(settings.catalog_url, rig=settings.rig_name)
     devices = open_devices(settings, rig)
     try:
         engine = RunEngine(settings, rig, devices, catalog)

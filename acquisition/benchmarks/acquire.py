@@ -108,7 +108,7 @@ def timed_engine_run(
     (seconds from start to the run's end, the run's catalog record). RuntimeError when the
     run does not complete."""
     settings.data_dir.mkdir(parents=True)
-    catalog = Catalog(settings.catalog_path)
+    catalog = Catalog(settings.catalog_url, rig=settings.rig_name)
     try:
         engine = RunEngine(settings, rig, devices, catalog)
         start = time.perf_counter()

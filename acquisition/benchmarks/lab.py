@@ -56,8 +56,11 @@ LAYOUT = str(LIGHTS_DIR / "five-gaussians.toml")
 JOB = {"steps": "hdr,sources", "layout": LAYOUT}
 SUBNET = "10.77"  # rig k's link: SUBNET.k.1 (this side) and SUBNET.k.2 (its daemon)
 EXPOSURES_S = (0.0002, 0.001, 0.005, 0.025)
-#: The rigs' description: the demo rig (1000 x 656 pixels), a few positions of its sweep each.
+#: The rigs' description: the demo rig (1000 x 656 pixels), and the positions of its sweep in
+#: the first rig's runs (two more in each next rig's): a job of some seconds, so that the faults
+#: happen while jobs run.
 DEMO_RIG = DEFAULT_RIG_PATH.parent / "demo.toml"
+RUN_POSITIONS = 8
 
 
 #: Two light models are the same results when no number differs by more than this, relatively:
@@ -76,8 +79,10 @@ def light_model_difference(a: Any, b: Any) -> float:
         if len(a) != len(b):
             return math.inf
         return max((light_model_difference(x, y) for x, y in zip(a, b, strict=True)), default=0.0)
+    if isinstance(a, bool) or isinstance(b, bool):
+        return 0.0 if type(a) is type(b) and a == b else math.inf
     numbers = (int, float)
-    if isinstance(a, numbers) and isinstance(b, numbers) and not isinstance(a, bool) and not isinstance(b, bool):
+    if isinstance(a, numbers) and isinstance(b, numbers):
         if a == b:
             return 0.0
         return abs(a - b) / max(abs(a), abs(b))
@@ -132,7 +137,8 @@ class Rig:
         return self.root / f"{self.name}-source.h5"
 
     def connect(self) -> None:
-        """The namespace and its link to this side."""
+        """The namespace and its link to this side (those a run stopped short left, deleted first)."""
+        self.disconnect()
         inside = f"mglab{self.index}n"
         _run("ip", "netns", "add", self.netns)
         _run("ip", "link", "add", self.link, "type", "veth", "peer", "name", inside)
@@ -142,6 +148,9 @@ class Rig:
         _run("ip", "netns", "exec", self.netns, "ip", "addr", "add", f"{SUBNET}.{self.index}.2/24", "dev", inside)
         _run("ip", "netns", "exec", self.netns, "ip", "link", "set", inside, "up")
         _run("ip", "netns", "exec", self.netns, "ip", "link", "set", "lo", "up")
+        # While the link is down its packets are dropped, as a cut cable drops them (without
+        # this route they would follow the default route to whatever answers there).
+        _run("ip", "route", "add", "blackhole", f"{SUBNET}.{self.index}.0/24", "metric", "4000")
 
     def start(self, catalog_url: str) -> None:
         self.data_dir.mkdir(parents=True, exist_ok=True)
@@ -181,6 +190,11 @@ class Rig:
 
     def disconnect(self) -> None:
         subprocess.run(["ip", "link", "del", self.link], capture_output=True, check=False)
+        subprocess.run(
+            ["ip", "route", "del", "blackhole", f"{SUBNET}.{self.index}.0/24", "metric", "4000"],
+            capture_output=True,
+            check=False,
+        )
         subprocess.run(["ip", "netns", "del", self.netns], capture_output=True, check=False)
 
     def results_uploads(self) -> Counter[str]:
@@ -319,6 +333,7 @@ def bench_lab(
     root.mkdir(parents=True, exist_ok=True)
     lab = [Rig(k + 1, root) for k in range(rigs)]
     server = ThrowawayPostgres(fast=False, listen="*", trusted=[f"{SUBNET}.0.0/16"])
+    signal.signal(signal.SIGTERM, _interrupt)  # a stopped bench still takes its namespaces down
     started = time.monotonic()
     pool: list[Worker] = []
     probe: LatencyProbe | None = None
@@ -371,18 +386,22 @@ def bench_lab(
         server.close()
 
 
+def _interrupt(*_: object) -> None:
+    raise KeyboardInterrupt
+
+
 def _jobs(watch: Catalog) -> list[JobRecord]:
     return watch.list_jobs(rig=None, limit=1000)
 
 
 def _make_sources(lab: list[Rig], root: Path) -> dict[str, dict]:
-    """Each rig's run file (a few positions of the demo rig, a different number each, made
+    """Each rig's run file (some positions of the demo rig, a different number each, made
     through the daemon's run engine), and the light model's sources of a single-machine
     processing of it, by rig."""
     described = load_rig(DEMO_RIG)
     references = {}
     for rig in lab:
-        made = simulated_run(described, EXPOSURES_S, positions=2 + rig.index, cache=None)
+        made = simulated_run(described, EXPOSURES_S, positions=RUN_POSITIONS + 2 * rig.index, cache=None)
         shutil.move(made.path, rig.source)
         if made.temporary is not None:
             shutil.rmtree(made.temporary, ignore_errors=True)
@@ -494,7 +513,8 @@ def _kill_a_worker(watch: Catalog, pool: list[Worker], log: Callable[[str], None
 def _restart_postgres(watch: Catalog, server: ThrowawayPostgres, log: Callable[[str], None]) -> dict[str, Any]:
     """PostgreSQL restarted (a fast shutdown: every connection breaks) while jobs run: how long
     it was down, and until the catalog answers and the next job completes."""
-    _wait(lambda: any(j.state == "running" for j in _jobs(watch)), 300)
+    if _wait(lambda: any(j.state == "running" for j in _jobs(watch)), 60) is None:
+        raise LabBenchError("no job was running for PostgreSQL's restart: give the lab more runs (--runs)")
     before = sum(j.state == "complete" for j in _jobs(watch))
     restart_at = time.monotonic()
     server.restart()
@@ -520,7 +540,8 @@ def _cut_a_rig(watch: Catalog, rig: Rig, cut_s: float, log: Callable[[str], None
     def of_rig(state: str) -> int:
         return sum(j.state == state and j.rig == rig.name for j in _jobs(watch))
 
-    _wait(lambda: of_rig("running") > 0, 300)
+    if _wait(lambda: of_rig("running") > 0, 120) is None:
+        raise LabBenchError(f"no job of {rig.name} was running for its network cut: give the lab more runs (--runs)")
     done_before = of_rig("complete")
     rig.cut(True)
     log(f"  fault 3: {rig.name}'s network cut for {cut_s:.0f} s")

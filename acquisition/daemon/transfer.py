@@ -20,12 +20,14 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import NoReturn, TypeVar
 
 import httpx
 
 from acquisition.daemon.catalog import RunRecord
 from drivers.contracts.runfile import RunFile, RunFileError
 
+T = TypeVar("T")
 #: Bytes read at a time, hashing or streaming.
 BLOCK = 1 << 20
 DIGEST_HEADER = "Repr-Digest"
@@ -151,9 +153,12 @@ class RunFetcher:
         Where the copies are kept while their job runs (``FOLDER/RIG/RUN/``).
     token : str, optional
         The daemons' API token (a lab gives its daemons and workers one).
-    patience_s : float
-        How long a fetch or a send goes on retrying a daemon that does not answer (its network
-        cut, it restarts) before the job is put back to wait.
+    fetch_patience_s : float
+        How long a fetch goes on retrying a daemon that does not answer (its network cut, it
+        restarts, it answers 5xx) before the job is put back to wait: short, so that a rig
+        that is away does not hold the worker from the other rigs' jobs.
+    send_patience_s : float
+        The same for sending results back: long, since giving up means processing again.
     """
 
     def __init__(
@@ -162,12 +167,14 @@ class RunFetcher:
         folder: Path,
         token: str | None = None,
         *,
-        patience_s: float = 300.0,
+        fetch_patience_s: float = 30.0,
+        send_patience_s: float = 300.0,
         timeout_s: float = 30.0,
     ):
         self.daemon_url = daemon_url
         self.folder = Path(folder)
-        self.patience_s = float(patience_s)
+        self.fetch_patience_s = float(fetch_patience_s)
+        self.send_patience_s = float(send_patience_s)
         self._headers = {"Authorization": f"Bearer {token}"} if token else {}
         self._timeout = httpx.Timeout(timeout_s)
 
@@ -192,7 +199,7 @@ class RunFetcher:
         Raises
         ------
         DaemonUnreachableError
-            The daemon did not answer for ``patience_s``.
+            The daemon did not answer for ``fetch_patience_s``.
         TransferError
             The daemon refused, or what arrived is not the file it sent.
         """
@@ -200,19 +207,11 @@ class RunFetcher:
         local = self.run_folder(run) / Path(str(run.path)).name
         local.parent.mkdir(parents=True, exist_ok=True)
         part, tag_file = local.with_name(local.name + ".part"), local.with_name(local.name + ".etag")
-        deadline = time.monotonic() + self.patience_s
-        wait = 0.5
-        while True:
-            try:
-                digest = self._download(url, part, tag_file, on_progress)
-                break
-            except (httpx.TransportError, httpx.RemoteProtocolError) as exc:
-                if time.monotonic() > deadline:
-                    raise DaemonUnreachableError(
-                        f"fetching run {run.id} from {url}: {str(exc) or type(exc).__name__}"
-                    ) from None
-                time.sleep(wait)
-                wait = min(2 * wait, 10.0)
+        digest = _retried(
+            lambda: self._download(url, part, tag_file, on_progress),
+            f"fetching run {run.id} from {url}",
+            self.fetch_patience_s,
+        )
         if digest is not None and sha256_file(part) != digest:
             part.unlink(missing_ok=True)
             tag_file.unlink(missing_ok=True)
@@ -239,7 +238,7 @@ class RunFetcher:
         with httpx.stream("GET", url, headers=headers, timeout=self._timeout) as answer:
             if answer.status_code not in (200, 206):
                 answer.read()
-                raise TransferError(f"GET {url}: {answer.status_code} {_detail(answer)}")
+                _refused(answer, f"GET {url}")
             digest = digest_from_header(answer.headers.get(DIGEST_HEADER))
             resumed = answer.status_code == 206
             total = int(answer.headers.get("content-length", 0)) + (have if resumed else 0)
@@ -268,26 +267,20 @@ class RunFetcher:
         url = f"{self._base(run.rig)}/jobs/{job_id}/results"
         folder = local_run.parent
         exclude = {local_run.name, local_run.name + ".lock"}
-        deadline = time.monotonic() + self.patience_s
-        wait = 0.5
-        while True:
-            try:
-                answer = httpx.put(
-                    url,
-                    params={"worker_id": worker_id},
-                    content=pack_results(folder, exclude),
-                    headers={**self._headers, "Content-Type": "application/x-tar"},
-                    timeout=self._timeout,
-                )
-                break
-            except (httpx.TransportError, httpx.RemoteProtocolError) as exc:
-                if time.monotonic() > deadline:
-                    raise DaemonUnreachableError(f"sending job {job_id}'s results to {url}: {exc}") from None
-                time.sleep(wait)
-                wait = min(2 * wait, 10.0)
-        if answer.status_code != 200:
-            raise TransferError(f"PUT {url}: {answer.status_code} {_detail(answer)}")
-        kept = answer.json()
+
+        def send() -> dict:
+            answer = httpx.put(
+                url,
+                params={"worker_id": worker_id},
+                content=pack_results(folder, exclude),  # packed afresh at each try
+                headers={**self._headers, "Content-Type": "application/x-tar"},
+                timeout=self._timeout,
+            )
+            if answer.status_code != 200:
+                _refused(answer, f"PUT {url}")
+            return answer.json()
+
+        kept = _retried(send, f"sending job {job_id}'s results to {url}", self.send_patience_s)
         files: dict[str, str] = kept["files"]
         mapped = {}
         for kind, path in artifacts.items():
@@ -301,6 +294,35 @@ class RunFetcher:
     def forget(self, run: RunRecord) -> None:
         """Delete the local copy of a run and whatever was written beside it."""
         shutil.rmtree(self.run_folder(run), ignore_errors=True)
+
+
+class _DaemonBusy(Exception):
+    """An answer worth trying again: the daemon's own storage or catalog is away (5xx), or it
+    asks to wait (429)."""
+
+
+def _refused(answer: httpx.Response, what: str) -> NoReturn:
+    """Raise for an answer that is not the one asked for: retried where it is the daemon's
+    passing trouble (5xx, 429), a TransferError naming the status otherwise."""
+    text = f"{what}: {answer.status_code} {_detail(answer)}"
+    if answer.status_code >= 500 or answer.status_code == 429:
+        raise _DaemonBusy(text)
+    raise TransferError(text)
+
+
+def _retried(action: Callable[[], T], what: str, patience_s: float) -> T:
+    """``action()``, tried again with a growing pause while the daemon does not answer or
+    answers that it cannot now, for ``patience_s``; then a DaemonUnreachableError."""
+    deadline = time.monotonic() + patience_s
+    pause = 0.5
+    while True:
+        try:
+            return action()
+        except (httpx.TransportError, _DaemonBusy) as exc:
+            if time.monotonic() > deadline:
+                raise DaemonUnreachableError(f"{what}: {str(exc) or type(exc).__name__}") from None
+            time.sleep(pause)
+            pause = min(2 * pause, 10.0)
 
 
 def _detail(answer: httpx.Response) -> str:

@@ -262,7 +262,7 @@ class JobWorker:
         keep_copy = False
         try:
             result_dir, artifacts, message = self._fetch_process_send(job, run, steps, remote)
-        except DaemonUnreachableError as exc:
+        except (DaemonUnreachableError, CatalogUnavailableError) as exc:  # away for now: the job waits
             keep_copy = True  # the next try resumes the fetch where it stopped
             stop.set()
             return self._wait(job, f"waiting: {one_line(exc)}")
@@ -483,7 +483,7 @@ def _has_complete_position(path: Path) -> bool:
 
 
 def serve_jobs(
-    catalog_path: str | Path,
+    catalog_url: str | Path,
     compute: Compute,
     *,
     stop: threading.Event | None = None,
@@ -496,7 +496,7 @@ def serve_jobs(
 ) -> int:
     """Open the catalog and run a :class:`JobWorker` on it (``mirrorgonio worker``); run files
     not on this disk are fetched into ``fetch_to`` (with the daemons' ``token``) if given."""
-    with contextlib.closing(Catalog(catalog_path)) as catalog:
+    with contextlib.closing(Catalog(catalog_url)) as catalog:
         fetcher = RunFetcher(catalog.daemon_url, fetch_to, token) if fetch_to is not None else None
         worker = JobWorker(catalog, compute, fetcher=fetcher, **options)
         log.info("worker %s: jobs from %s, compute on %s", worker.worker_id, catalog.path, worker.compute.description)
