@@ -636,7 +636,8 @@ def test_a_worker_without_the_daemons_disk_fetches_the_run_and_sends_the_results
 
 
 def test_a_cut_fetch_resumes_and_a_wrong_one_is_caught(captured, tmp_path, postgres_server, daemon_factory):
-    from acquisition.daemon.transfer import DaemonUnreachableError, RunFetcher, sha256_file
+    from acquisition.daemon.transfer import DaemonUnreachableError, RunFetcher
+    from drivers.contracts.runfile import file_sha256
 
     _, _, source = captured
     url = postgres_server.create_database("lab_fetch")
@@ -653,7 +654,7 @@ def test_a_cut_fetch_resumes_and_a_wrong_one_is_caught(captured, tmp_path, postg
         # Cut after a third: the rest is asked for with Range, and the whole checks out.
         part.write_bytes(whole[: len(whole) // 3])
         tag.write_text(etag)
-        assert sha256_file(fetcher.fetch(run)) == sha256_file(run.path)
+        assert file_sha256(fetcher.fetch(run)) == file_sha256(run.path)
         # A copy whose first third went wrong: the daemon's SHA-256 catches it, and it starts over.
         local.unlink()
         part.write_bytes(b"\0" * (len(whole) // 3))
@@ -661,7 +662,7 @@ def test_a_cut_fetch_resumes_and_a_wrong_one_is_caught(captured, tmp_path, postg
         with pytest.raises(DaemonUnreachableError, match="its SHA-256 differs"):
             fetcher.fetch(run)
         assert not part.exists()
-        assert sha256_file(fetcher.fetch(run)) == sha256_file(run.path)
+        assert file_sha256(fetcher.fetch(run)) == file_sha256(run.path)
         # Without the token, the daemon gives nothing.
         with pytest.raises(Exception, match="401"):
             RunFetcher(rig_a.daemon_url, tmp_path / "other", None).fetch(run)
@@ -771,7 +772,8 @@ def test_a_daemon_that_answers_it_cannot_now_is_tried_again_and_a_refusal_is_not
     import threading as th
 
     from acquisition.daemon.catalog import RunRecord
-    from acquisition.daemon.transfer import RunFetcher, TransferError, repr_digest, sha256_file
+    from acquisition.daemon.transfer import RunFetcher, TransferError, repr_digest
+    from drivers.contracts.runfile import file_sha256
 
     _, _, source = captured
     body, answers = Path(source).read_bytes(), ["503", "200"]
@@ -781,7 +783,7 @@ def test_a_daemon_that_answers_it_cannot_now_is_tried_again_and_a_refusal_is_not
             code = answers.pop(0) if answers else "404"
             self.send_response(int(code))
             if code == "200":
-                self.send_header("Repr-Digest", repr_digest(sha256_file(source)))
+                self.send_header("Repr-Digest", repr_digest(file_sha256(source)))
                 self.send_header("Content-Length", str(len(body)))
                 self.end_headers()
                 self.wfile.write(body)
@@ -817,7 +819,7 @@ def test_a_daemon_that_answers_it_cannot_now_is_tried_again_and_a_refusal_is_not
             seconds_per_position=None,
         )
         fetcher = RunFetcher(lambda rig: url, tmp_path / "w", fetch_patience_s=10)
-        assert sha256_file(fetcher.fetch(run)) == sha256_file(source)  # after one 503
+        assert file_sha256(fetcher.fetch(run)) == file_sha256(source)  # after one 503
         fetcher.forget(run)
         with pytest.raises(TransferError, match="404 said 404") as refused:
             fetcher.fetch(run)

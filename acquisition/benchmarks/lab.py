@@ -373,7 +373,6 @@ def bench_lab(
             "all_done_s": None if finished is None else round(elapsed, 1),
             **faults,
             **probe.summary(),
-            "workdir": str(root),
         }
     finally:
         if probe is not None:

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import base64
 import contextlib
-import hashlib
 import os
 import shutil
 import tarfile
@@ -25,7 +24,7 @@ from typing import NoReturn, TypeVar
 import httpx
 
 from acquisition.daemon.catalog import RunRecord
-from drivers.contracts.runfile import RunFile, RunFileError
+from drivers.contracts.runfile import RunFile, RunFileError, file_sha256
 
 T = TypeVar("T")
 #: Bytes read at a time, hashing or streaming.
@@ -35,15 +34,6 @@ DIGEST_HEADER = "Repr-Digest"
 
 class TransferError(RuntimeError):
     """A run file or results that cannot be moved, or are not what was sent (one line)."""
-
-
-def sha256_file(path: str | os.PathLike[str]) -> str:
-    """The file's SHA-256, hex."""
-    digest = hashlib.sha256()
-    with open(path, "rb") as f:
-        while block := f.read(BLOCK):
-            digest.update(block)
-    return digest.hexdigest()
 
 
 def repr_digest(hex_digest: str) -> str:
@@ -74,7 +64,7 @@ class DigestCache:
         with self._lock:
             known = self._digests.get(key)
         if known is None:
-            known = sha256_file(path)
+            known = file_sha256(path)
             with self._lock:
                 self._digests[key] = known
         return known
@@ -212,7 +202,7 @@ class RunFetcher:
             f"fetching run {run.id} from {url}",
             self.fetch_patience_s,
         )
-        if digest is not None and sha256_file(part) != digest:
+        if digest is not None and file_sha256(part) != digest:
             part.unlink(missing_ok=True)
             tag_file.unlink(missing_ok=True)
             raise DaemonUnreachableError(
