@@ -5,11 +5,13 @@ operator resumes it or starts the queue; a queued run that no longer fits in the
 holds it with the reason; a restart keeps the queue, held.
 
 The rig is tiny (250 x 164 pixels), the arm instant, each run a few one-frame positions: the
-daemon's run thread, run files and SQLite catalog are the real ones.
+daemon's run thread, run files and catalog are the real ones; the shared daemon's tests run
+with the catalog on SQLite and on PostgreSQL.
 """
 
 from __future__ import annotations
 
+import os
 import re
 import time
 
@@ -31,13 +33,16 @@ TINY = {"count": 2, "bracket": {"mode": "fixed", "exposures_s": [0.001]}, "calib
 LONGER = {**TINY, "count": 4}
 
 
-@pytest.fixture(scope="module")
-def shared(tmp_path_factory):
+@pytest.fixture(scope="module", params=["sqlite", "postgresql"])
+def shared(request, tmp_path_factory):
     """One daemon for the tests that need no particular data directory (its simulated camera
-    costs a second or two on its first frames)."""
+    costs a second or two on its first frames), on each of the catalog's databases."""
     folder = tmp_path_factory.mktemp("queue")
     (folder / "tiny.toml").write_text(TINY_RIG)
-    settings = load_settings(None, data_dir=folder / "data", rig=folder / "tiny.toml")
+    catalog = None
+    if request.param == "postgresql":
+        catalog = request.getfixturevalue("postgres_server").create_database(f"queue_{os.getpid()}")
+    settings = load_settings(None, data_dir=folder / "data", rig=folder / "tiny.toml", catalog=catalog)
     settings.arm.simulated.speed_m_s = settings.arm.simulated.accel_m_s2 = float("inf")
     app = create_app(settings)
     with TestClient(app, base_url="http://127.0.0.1", headers={"Content-Type": "application/json"}) as http:
