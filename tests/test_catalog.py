@@ -2,11 +2,16 @@
 
 import itertools
 import multiprocessing
+import os
 import pickle
 import re
+import secrets
+import shutil
+import tempfile
 import threading
 import time
 from datetime import UTC, datetime, timedelta, timezone
+from pathlib import Path
 
 import pytest
 from conftest import run_sql
@@ -727,22 +732,77 @@ def test_a_catalog_survives_its_server_restarting():
             cat.close()
 
 
-def test_postgresql_errors_map_to_the_catalogs_one_line_errors():
-    """The SQLSTATEs a full disk or a read-only server give (which a test cannot provoke on
-    the throwaway server) become the same errors as SQLite's."""
+def test_a_full_disk_under_postgresql_is_a_507_and_a_read_only_server_a_503(tmp_path, postgres_server):
+    """The catalog's database in a tablespace on a 16 MB tmpfs: once it is full, a write is a
+    one-line CatalogFullError (507) and what was written stays readable; a server made
+    read-only refuses writes as unavailable (503)."""
+    import pwd
+    import subprocess
+
     import psycopg
 
     from acquisition.daemon.catalog import CatalogFullError, CatalogUnavailableError
-    from acquisition.daemon.catalog.backends import PostgresBackend
 
-    backend = PostgresBackend.__new__(PostgresBackend)
-    backend.where, backend._psycopg, backend._conn = "postgresql://lab@db/catalog", psycopg, None
-    full = backend.storage_error(psycopg.errors.DiskFull("could not extend file"), "writing")
-    assert isinstance(full, CatalogFullError) and "no space left on device writing the catalog" in str(full)
-    read_only = backend.storage_error(psycopg.errors.ReadOnlySqlTransaction("read-only"), "writing")
-    assert isinstance(read_only, CatalogUnavailableError) and "cannot be written" in str(read_only)
-    locked = backend.storage_error(psycopg.errors.LockNotAvailable("lock timeout"), "writing")
-    assert isinstance(locked, CatalogUnavailableError)
-    bug = psycopg.errors.UniqueViolation("duplicate key")
-    assert backend.storage_error(bug, "writing") is bug
-    assert backend.storage_error(ValueError("not the database's"), "writing") is None
+    small = Path(tempfile.mkdtemp(prefix="mirrorgonio-small-"))
+    mounted = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=16m", "tmpfs", str(small)], capture_output=True)
+    if mounted.returncode != 0:
+        pytest.skip(f"a small file system needs mount: {mounted.stderr.decode().strip()}")
+    try:
+        if os.geteuid() == 0:
+            user = pwd.getpwnam("postgres")
+            os.chown(small, user.pw_uid, user.pw_gid)
+        with psycopg.connect(postgres_server.url(), autocommit=True) as admin:
+            admin.execute(f"CREATE TABLESPACE small_{os.getpid()} LOCATION '{small}'")
+            admin.execute(f"CREATE DATABASE full_{os.getpid()} TABLESPACE small_{os.getpid()}")
+        cat = Catalog(postgres_server.url(f"full_{os.getpid()}"))
+        try:
+            run = _run_in(cat, "complete")
+            with pytest.raises(CatalogFullError, match=r"^no space left on device writing the catalog postgresql://"):
+                for k in range(10_000):  # 100 kB a job that does not compress: about 160 fill it
+                    cat.create_job(run.id, options={"k": k, "padding": secrets.token_hex(50_000)})
+            assert cat.get_run(run.id).state == "complete" and len(cat.list_jobs(run.id, limit=10)) == 10
+            with psycopg.connect(postgres_server.url(), autocommit=True) as admin:
+                admin.execute(f"ALTER DATABASE full_{os.getpid()} SET default_transaction_read_only = on")
+                admin.execute(  # the setting applies to new sessions: the catalog's is ended, it reconnects
+                    "SELECT pg_terminate_backend(pid) FROM pg_stat_activity WHERE datname = %s",
+                    (f"full_{os.getpid()}",),
+                )
+            with pytest.raises(CatalogUnavailableError, match="cannot be written"):
+                cat.hold_queue("read-only now")
+            assert cat.get_run(run.id).state == "complete"
+        finally:
+            cat.close()
+        with psycopg.connect(postgres_server.url(), autocommit=True) as admin:
+            admin.execute(f"DROP DATABASE full_{os.getpid()}")
+            admin.execute(f"DROP TABLESPACE small_{os.getpid()}")
+    finally:
+        subprocess.run(["umount", "-l", str(small)], capture_output=True)
+        shutil.rmtree(small, ignore_errors=True)
+
+
+def test_a_rig_lock_held_past_the_busy_timeout_is_a_503_and_a_bug_stays_a_bug(postgres_server):
+    """Another session holds the rig's advisory lock (a daemon stuck mid-write): a change to the
+    rig's runs waits ``busy_timeout_s``, then fails as unavailable, as SQLite's "database is
+    locked" does; a constraint broken by hand is PostgreSQL's own error, not a storage one."""
+    import psycopg
+
+    from acquisition.daemon.catalog import CatalogUnavailableError
+
+    url = postgres_server.create_database(f"locked_{os.getpid()}")
+    cat = Catalog(url, rig="rig-a", busy_timeout_s=0.5)
+    try:
+        run = _new_run(cat)
+        with psycopg.connect(url, autocommit=True) as other, other.transaction():
+            other.execute("SELECT pg_advisory_xact_lock(hashtext('mirrorgonio:rig:rig-a'))")
+            started = time.monotonic()
+            with pytest.raises(CatalogUnavailableError, match="writing failed: canceling statement due to lock"):
+                cat.transition_run(run.id, "running")
+            assert 0.4 < time.monotonic() - started < 5
+            assert cat.claim_job("w1") is None  # the jobs take no rig lock: workers go on
+        assert cat.transition_run(run.id, "running").state == "running"
+        with psycopg.connect(url, autocommit=True) as other:
+            other.execute("ALTER TABLE runs ADD CONSTRAINT few CHECK (n_positions < 50)")
+        with pytest.raises(psycopg.errors.CheckViolation):
+            _new_run(cat, n=60)
+    finally:
+        cat.close()
