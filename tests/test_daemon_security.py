@@ -293,3 +293,30 @@ def test_the_guard_refuses_from_the_headers_alone():
     assert refusal(scope(content_type="application/json", origin="localhost"))[0] == 403
     two_hosts = {"type": "http", "method": "GET", "headers": [(b"host", b"localhost"), (b"host", b"evil.example")]}
     assert refusal(two_hosts) == (400, "host: a request names one Host (it has 2)")
+
+
+def test_workers_uploads_take_a_tar_archive_on_their_route_only_and_the_daemons_told_name():
+    """The one non-JSON body: a worker's results (PUT /jobs/ID/results, application/x-tar, up
+    to max_results_bytes); the name the daemon tells workers is one it answers to."""
+    check = guard(max_body_bytes=2048, max_results_bytes=10_000)
+
+    def scope(method, path, **headers):
+        pairs = [(b"host", b"localhost:8000")] + [
+            (k.replace("_", "-").encode(), v.encode()) for k, v in headers.items()
+        ]
+        return {"type": "http", "method": method, "path": path, "headers": pairs}
+
+    results = "/jobs/job-1/results"
+    assert check.refusal(scope("PUT", results, content_type="application/x-tar", content_length="9000")) is None
+    assert check.refusal(scope("PUT", results, content_type="application/x-tar", content_length="10001"))[0] == 413
+    assert check.refusal(scope("PUT", results, content_type="application/json"))[0] == 415
+    assert check.refusal(scope("PUT", "/jobs/job-1/results/x", content_type="application/x-tar"))[0] == 415
+    assert check.refusal(scope("POST", results, content_type="application/x-tar"))[0] == 415
+    assert check.refusal(scope("POST", "/runs", content_type="application/x-tar"))[0] == 415
+    assert check.refusal(scope("POST", "/runs", content_type="application/json", content_length="2049"))[0] == 413
+    told = guard(host="0.0.0.0", port=8000, token=TOKEN, public_url="http://rig-1.lab:8000")
+    assert told.allowed("rig-1.lab:8000") and not told.allowed("rig-1.lab:8001")
+    with pytest.raises(SettingsError, match="public_url"):
+        load_settings(None, public_url="rig-1.lab:8000")
+    with pytest.raises(SettingsError, match=r"^<settings>: catalog: not a catalog URL: 'mysql://lab@db/x'"):
+        load_settings(None, catalog="mysql://lab:s3cret@db/x")  # and no password in the message
