@@ -205,8 +205,10 @@ class CatalogDatabase:
                         conn.execute(text)
                 conn.execute("INSERT INTO schema_version (version, applied_utc) VALUES (?, ?)", (number, stamp))
 
-    @staticmethod
-    def _new_id(conn: Connection, table: str, prefix: str, now: datetime) -> str:
+    def _new_id(self, conn: Connection, table: str, prefix: str, now: datetime) -> str:
+        """A new row's id, free in ``table``; the write that inserts it holds the table's id key
+        to its end, so that two processes cannot pick the same one (SQLite serialises every write)."""
+        self._open_backend().serialise(conn, f"ids:{table}")
         while True:
             candidate = f"{prefix}-{now:%Y%m%d-%H%M%S}-{secrets.token_hex(2)}"
             if conn.execute(f"SELECT 1 FROM {table} WHERE id = ?", (candidate,)).fetchone() is None:
