@@ -168,3 +168,17 @@ def test_the_repeatability_spread_and_its_tables():
     text = result_tables("repeatability", {"benchmark": "repeatability", "seeds": 3, **out})
     assert "| a | 10, 0 | 40, 0 | 20, 5 | 0.0396, 0.00992 | 0.5, —, 0.25 | 50 | 0.004 |" in text
     assert "| 2 | 3 | 100 | 0.006 | ok | 80 |" in text
+
+
+def test_an_old_header_is_brought_up_to_date_and_the_sections_kept(tmp_path):
+    path = tmp_path / "benchmarks.md"
+    _record(path, "render", {"benchmark": "render", "render_s_median": 1.5})
+    old = path.read_text().replace("speed, lab)", "speed)")  # a header from before `bench lab`
+    path.write_text(old)
+    _record(path, "acquire", ACQUIRE)
+    now = path.read_text()
+    assert "speed, lab)" in now and _section(now, "render") == _section(old, "render")
+    mine = tmp_path / "mine.md"  # a file that is not the generated one: left as it is
+    mine.write_text("# My notes\n\n")
+    _record(mine, "render", {"benchmark": "render", "render_s_median": 1.5})
+    assert mine.read_text().startswith("# My notes\n\n<!-- bench:render -->")

@@ -33,10 +33,11 @@ HEADER = """# Benchmark results
 
 This file is generated: each section below is the last recorded result of one benchmark,
 written by `mirrorgonio bench NAME ... --record docs/benchmarks.md` (NAME one of render,
-acquire, hdr, accuracy, repeatability, reflectance, brdf, tolerance, speed, lab). A run replaces its own section,
-between the marker lines that carry the benchmark's name, and leaves the others as they
-are. Never edit it by hand: run the benchmark again. What each benchmark measures:
-`mirrorgonio bench NAME --help` and the modules in `acquisition/benchmarks/`.
+acquire, hdr, accuracy, repeatability, reflectance, brdf, tolerance, speed, lab). A run
+replaces its own section, between the marker lines that carry the benchmark's name, and
+leaves the others as they are. Never edit it by hand: run the benchmark again. What each
+benchmark measures: `mirrorgonio bench NAME --help` and the modules in
+`acquisition/benchmarks/`.
 """
 _MARKER = re.compile(r"^<!-- (/?)bench:([a-z0-9_-]+) -->[ \t]*$", re.MULTILINE)
 #: Strings longer than this are left out of the table of a result's figures (explanations).
@@ -123,10 +124,19 @@ def record_result(recording: Recording, name: str, result: dict) -> None:
     )
     path = recording.path
     text = path.read_text(encoding="utf-8") if path.exists() else HEADER
-    updated = replace_section(text, name, section, path)
+    updated = replace_section(_with_header(text), name, section, path)
     temporary = path.with_name(f".{path.name}.tmp")
     temporary.write_text(updated, encoding="utf-8")
     os.replace(temporary, path)
+
+
+def _with_header(text: str) -> str:
+    """``text`` with this program's :data:`HEADER` in place of the one it has (the list of
+    benchmarks grows); a file without the generated header's title is left as it is."""
+    first = text.find("<!-- bench:")
+    if not text.startswith(HEADER.splitlines()[0]) or first < 0:
+        return text
+    return HEADER.rstrip("\n") + "\n\n" + text[first:]
 
 
 # --- the file's sections --------------------------------------------------------------------------
