@@ -19,6 +19,7 @@ from __future__ import annotations
 import contextlib
 import re
 import sqlite3
+from abc import ABC, abstractmethod
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -63,7 +64,7 @@ class Dialects:
     postgresql: str | None
 
 
-class Backend:
+class Backend(ABC):
     """What differs between the databases (see the module's docstring)."""
 
     #: ``"sqlite"`` or ``"postgresql"``: which of :class:`Dialects`' statements runs here.
@@ -74,34 +75,36 @@ class Backend:
     #: hold are passed over (empty where the whole write is serialised).
     claim_lock = ""
 
-    def connection(self) -> Connection:
-        raise NotImplementedError
-
+    @abstractmethod
     def begin(self, *, write: bool) -> Connection:
         """Start an operation's transaction (where one is needed) on a live connection."""
-        raise NotImplementedError
 
-    def commit(self, conn: Connection) -> None:
-        conn.execute("COMMIT")
+    @abstractmethod
+    def commit(self, conn: Connection, *, write: bool) -> None:
+        """End the operation :meth:`begin` started, keeping what it wrote."""
 
-    def rollback(self, conn: Connection) -> None:
-        raise NotImplementedError
+    @abstractmethod
+    def rollback(self) -> None:
+        """End the operation under way, dropping what it wrote (quietly: the connection may be gone)."""
 
+    @abstractmethod
     def serialise(self, conn: Connection, key: str) -> None:
         """Within a write: hold ``key`` until it ends, so that writes naming the same key
-        happen one after the other (a no-op where every write already is)."""
+        happen one after the other."""
 
+    @abstractmethod
     def next_seq(self, conn: Connection, table: str) -> int:
-        return conn.execute(f"SELECT COALESCE(MAX(seq), 0) + 1 FROM {table}").fetchone()[0]
+        """The ``seq`` of a row inserted into ``table`` in this write."""
 
+    @abstractmethod
     def storage_error(self, exc: BaseException, doing: str) -> Exception | None:
         """The one-line catalog error of the database's ``exc``: full (507) or unavailable (503);
         ``exc`` itself when it is a bug (a constraint, a bad statement); None when ``exc`` is
         not the database's."""
-        raise NotImplementedError
 
+    @abstractmethod
     def close(self) -> None:
-        raise NotImplementedError
+        """Close the connection."""
 
 
 def open_backend(location: str | Path, busy_timeout_s: float) -> Backend:
@@ -153,15 +156,22 @@ class SQLiteBackend(Backend):
             conn.close()
             raise
 
-    def connection(self) -> Connection:
-        return cast(Connection, self._conn)  # sqlite3's own, which takes the same calls
-
     def begin(self, *, write: bool) -> Connection:
         if write:  # the write lock from the start: a transaction never has to upgrade and fail busy
             self._conn.execute("BEGIN IMMEDIATE")
-        return self.connection()
+        return cast(Connection, self._conn)  # sqlite3's own, which takes the same calls
 
-    def rollback(self, conn: Connection) -> None:
+    def commit(self, conn: Connection, *, write: bool) -> None:
+        if write:  # a read began no transaction: WAL gives each statement its snapshot
+            conn.execute("COMMIT")
+
+    def serialise(self, conn: Connection, key: str) -> None:
+        pass  # every write holds SQLite's one write lock from its start already
+
+    def next_seq(self, conn: Connection, table: str) -> int:
+        return conn.execute(f"SELECT COALESCE(MAX(seq), 0) + 1 FROM {table}").fetchone()[0]
+
+    def rollback(self) -> None:
         if self._conn.in_transaction:  # SQLite may already have rolled back (disk full, I/O error)
             with contextlib.suppress(sqlite3.Error):
                 self._conn.execute("ROLLBACK")
@@ -277,11 +287,6 @@ class PostgresBackend(Backend):
         self._conn = _PostgresConnection(raw)
         return self._conn
 
-    def connection(self) -> Connection:
-        if self._conn is None or self._conn.raw.closed:
-            return self._connect()
-        return self._conn
-
     def begin(self, *, write: bool) -> Connection:
         conn = self._conn if self._conn is not None and not self._conn.raw.closed else self._connect()
         try:
@@ -295,7 +300,10 @@ class PostgresBackend(Backend):
             conn.execute("BEGIN")
         return conn
 
-    def rollback(self, conn: Connection) -> None:
+    def commit(self, conn: Connection, *, write: bool) -> None:
+        conn.execute("COMMIT")  # a read's too: it ends the transaction its BEGIN opened
+
+    def rollback(self) -> None:
         raw = self._conn.raw if self._conn is not None else None
         if raw is None or raw.closed:
             return

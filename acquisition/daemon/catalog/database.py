@@ -166,16 +166,15 @@ class CatalogDatabase:
                         backend.serialise(conn, key)
                     yield conn
                 except BaseException:
-                    backend.rollback(conn)
+                    backend.rollback()
                     raise
-                if write or backend.dialect != "sqlite":
-                    backend.commit(conn)
+                backend.commit(conn, write=write)
             except Exception as exc:
                 mapped = backend.storage_error(exc, doing)
                 if mapped is None:
                     raise
                 if conn is not None:
-                    backend.rollback(conn)  # a failed COMMIT leaves the transaction open
+                    backend.rollback()  # a failed COMMIT leaves the transaction open
                 if mapped is exc:
                     raise
                 raise mapped from None
