@@ -776,14 +776,15 @@ def test_a_daemon_that_answers_it_cannot_now_is_tried_again_and_a_refusal_is_not
     from drivers.contracts.runfile import file_sha256
 
     _, _, source = captured
-    body, answers = Path(source).read_bytes(), ["503", "200"]
+    body, answers = Path(source).read_bytes(), ["503", "200", "bare"]
 
     class Daemon(http.server.BaseHTTPRequestHandler):
         def do_GET(self):  # noqa: N802 - the http.server protocol
             code = answers.pop(0) if answers else "404"
-            self.send_response(int(code))
-            if code == "200":
-                self.send_header("Repr-Digest", repr_digest(file_sha256(source)))
+            self.send_response(200 if code == "bare" else int(code))
+            if code in ("200", "bare"):
+                if code == "200":  # "bare": a file without its SHA-256, which cannot be checked
+                    self.send_header("Repr-Digest", repr_digest(file_sha256(source)))
                 self.send_header("Content-Length", str(len(body)))
                 self.end_headers()
                 self.wfile.write(body)
@@ -821,6 +822,8 @@ def test_a_daemon_that_answers_it_cannot_now_is_tried_again_and_a_refusal_is_not
         fetcher = RunFetcher(lambda rig: url, tmp_path / "w", fetch_patience_s=10)
         assert file_sha256(fetcher.fetch(run)) == file_sha256(source)  # after one 503
         fetcher.forget(run)
+        with pytest.raises(TransferError, match="the daemon sent no SHA-256"):
+            fetcher.fetch(run)
         with pytest.raises(TransferError, match="404 said 404") as refused:
             fetcher.fetch(run)
         assert type(refused.value) is TransferError  # not "unreachable": the job fails, it does not wait

@@ -2,10 +2,12 @@
 
 The worker fetches a run file with ``GET /runs/{id}/file``, resuming a cut transfer with
 ``Range`` (``If-Range`` on the file's ``ETag``, so that a changed file starts over), and
-checks it against the SHA-256 the daemon sends (``Repr-Digest``, RFC 9530) and against its
-frames' own checksums before any work. It sends its results back as one tar archive,
-``PUT /jobs/{id}/results``; the daemon unpacks it beside the run file, where a worker on its
-own disk would have written them, refusing any member that would land elsewhere.
+checks it against the SHA-256 the daemon sends (``Repr-Digest``, RFC 9530): the bytes that
+arrived are the daemon's. The frames' own checksums are then checked by the processing's
+first step (``checksums``), before any work, as for a run on the worker's disk. It sends its
+results back as one tar archive, ``PUT /jobs/{id}/results``; the daemon unpacks it beside the
+run file, where a worker on its own disk would have written them, refusing any member that
+would land elsewhere.
 """
 
 from __future__ import annotations
@@ -24,7 +26,7 @@ from typing import NoReturn, TypeVar
 import httpx
 
 from acquisition.daemon.catalog import RunRecord
-from drivers.contracts.runfile import RunFile, RunFileError, file_sha256
+from drivers.contracts.runfile import file_sha256
 
 T = TypeVar("T")
 #: Bytes read at a time, hashing or streaming.
@@ -184,7 +186,7 @@ class RunFetcher:
 
     def fetch(self, run: RunRecord, on_progress: Callable[[int, int], None] | None = None) -> Path:
         """The run's file, fetched into :meth:`run_folder` (resuming a cut transfer) and checked
-        against the daemon's SHA-256 and the frames' checksums.
+        against the daemon's SHA-256 (the processing's first step checks the frames' checksums).
 
         Raises
         ------
@@ -202,16 +204,14 @@ class RunFetcher:
             f"fetching run {run.id} from {url}",
             self.fetch_patience_s,
         )
-        if digest is not None and file_sha256(part) != digest:
+        if digest is None:
+            raise TransferError(f"run {run.id} from {url}: the daemon sent no SHA-256 ({DIGEST_HEADER}) to check it")
+        if file_sha256(part) != digest:
             part.unlink(missing_ok=True)
             tag_file.unlink(missing_ok=True)
             raise DaemonUnreachableError(
                 f"run {run.id} from {url}: the file that arrived is not the daemon's (its SHA-256 differs)"
             )
-        problems = _frame_problems(part)
-        if problems and digest is None:
-            part.unlink(missing_ok=True)
-            raise TransferError(f"run {run.id} from {url}: {problems[0]}")
         os.replace(part, local)
         tag_file.unlink(missing_ok=True)
         return local
@@ -320,14 +320,3 @@ def _detail(answer: httpx.Response) -> str:
         return str(answer.json().get("detail", answer.text))
     except ValueError:
         return answer.text[:200]
-
-
-def _frame_problems(path: Path) -> list[str]:
-    """What is wrong with a run file's structure or its complete positions' frames (checksums)."""
-    try:
-        with RunFile.open(path) as f:
-            problems = list(f.structure_problems())
-            problems += [frame.describe() for frame in f.corrupt_frames()]
-    except RunFileError as exc:
-        return [str(exc)]
-    return problems
