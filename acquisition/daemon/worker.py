@@ -249,10 +249,10 @@ class JobWorker:
             raise  # not the job's fault: without heartbeats it is requeued, or claimed again by this worker
         except (StepsError, CatalogError) as exc:
             return self._fail(job, one_line(exc))
-        not_now = self._not_now(job, run)
+        remote = self.fetcher is not None and RunFetcher.is_remote(run)  # without a fetcher: processing says
+        not_now = self._not_now(job, run, remote)
         if not_now is not None:
             return not_now
-        remote = self.fetcher is not None and RunFetcher.is_remote(run)  # without a fetcher: processing says
         self._progress, self._note, self._step = 0.0, None, None
         self._steps_seen.clear()
         self._lost.clear()
@@ -299,10 +299,10 @@ class JobWorker:
         log.info("job %s complete: %s; %s", job.id, message, ", ".join(f"{k} {v}" for k, v in artifacts.items()))
         return done
 
-    def _not_now(self, job: JobRecord, run: RunRecord) -> JobRecord | None:
+    def _not_now(self, job: JobRecord, run: RunRecord, remote: bool) -> JobRecord | None:
         """The job put back to wait or failed, if it cannot be processed now (its layout file
         cannot be read, its run is being acquired, it asks for partial processing of a run
-        whose file is not on this disk); None when it can."""
+        whose file is not on this disk: ``remote``); None when it can."""
         if job.options.get("layout") is not None:
             try:  # the client's path: read here, with a time limit, before the job is started
                 load_client_file(str(job.options["layout"]), "layout", "layout file", _layout)
@@ -317,7 +317,7 @@ class JobWorker:
             )
         if not run.path:
             return self._fail(job, f"run {run.id} has no run file")
-        if acquiring and self.fetcher is not None and RunFetcher.is_remote(run):
+        if acquiring and remote:
             return self._fail(
                 job,
                 f"partial processing needs the run file on the worker's disk: run {run.id} is still being acquired "
