@@ -623,6 +623,13 @@ def test_a_worker_without_the_daemons_disk_fetches_the_run_and_sends_the_results
         assert not any(worker_dir.rglob("*.h5")), "the worker's copies are deleted once the daemon has the results"
         with daemon.client() as http:
             assert http.get(f"/jobs/{done.id}/artifacts/report").status_code == 200
+            late = http.put(  # results for a job that is no longer running under that worker
+                f"/jobs/{done.id}/results",
+                params={"worker_id": "w-remote"},
+                content=b"",
+                headers={"Content-Type": "application/x-tar"},
+            )
+            assert late.status_code == 409 and f"job {done.id} is complete" in late.json()["detail"]
             assert http.get(f"/jobs/{done.id}/artifacts/results").status_code == 200  # the results with their files
         # The same run processed by a worker on the daemon's own disk gives the same light model.
         remote_model = json.loads(Path(done.artifacts["light_model"]).read_text())
