@@ -304,3 +304,11 @@ def run_sql(location: str, *statements: tuple[str, tuple] | str) -> list[list[tu
     finally:
         conn.close()
     return results
+
+
+def unable(reason: str) -> None:
+    """A test this machine cannot run (it needs root: a mount, a namespace): skipped on a
+    developer's machine, a failure in CI, which runs as root and must run it."""
+    if os.environ.get("CI"):
+        pytest.fail(f"{reason} (CI must run this test)", pytrace=False)
+    pytest.skip(reason)

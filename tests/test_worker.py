@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import REDUCED_RIG, write_config
+from conftest import REDUCED_RIG, unable, write_config
 
 from acquisition.daemon.catalog import Catalog
 from acquisition.daemon.worker import ARTIFACT_KINDS, JobLostError, JobWorker, one_line, writer_alive
@@ -585,7 +585,7 @@ def _without_disk(data_dir: Path) -> list[str]:
     is an empty tmpfs: a worker on another machine, which does not see the daemon's disk."""
     probe = subprocess.run(["unshare", "-m", "true"], capture_output=True, check=False)
     if probe.returncode != 0:
-        pytest.skip(f"a worker without the daemon's disk needs a mount namespace: {probe.stderr.decode().strip()}")
+        unable(f"a worker without the daemon's disk needs a mount namespace: {probe.stderr.decode().strip()}")
     return ["unshare", "-m", "sh", "-c", f'mount -t tmpfs tmpfs "{data_dir}" && exec "$0" "$@"']
 
 
