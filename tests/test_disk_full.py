@@ -257,3 +257,36 @@ def test_a_read_only_data_directory_degrades_health_and_a_forced_run_fails_clean
 )
 def test_the_storage_refusal_behind_an_error_is_found_in_its_code_or_words(error, code):
     assert storage_errno(error) == code
+
+
+def test_results_sent_to_a_full_disk_are_a_507_and_leave_the_run_as_it_was(small_fs, daemon, tmp_path):
+    """A worker on another machine sends its results to a daemon whose runs' disk is full: 507
+    in one line, the run file untouched, nothing half-unpacked beside it."""
+    import io
+    import tarfile
+
+    data = tmp_path / "data"
+    runs = small_fs(data / "runs", 512)
+    http, engine = daemon(data)
+    catalog = engine.catalog
+    run = catalog.create_run(preset=None, path_for=lambda run_id: runs / f"{run_id}.h5", n_positions=2, request={})
+    Path(run.path).write_bytes(b"the run file")
+    catalog.transition_run(run.id, "aborted")
+    job = catalog.create_job(run.id)
+    assert catalog.claim_job("w-remote").id == job.id
+    fill(runs / "filler", leave=16_384)
+    archive = io.BytesIO()
+    with tarfile.open(fileobj=archive, mode="w") as tar:
+        member = tarfile.TarInfo(f"{run.id}.results.h5")
+        member.size = 200_000
+        tar.addfile(member, io.BytesIO(os.urandom(member.size)))
+    answer = http.put(
+        f"/jobs/{job.id}/results",
+        params={"worker_id": "w-remote"},
+        content=archive.getvalue(),
+        headers={"Content-Type": "application/x-tar"},
+    )
+    assert answer.status_code == 507, answer.text
+    assert re.fullmatch(r"no space left on device writing .*\.tar", answer.json()["detail"])
+    assert Path(run.path).read_bytes() == b"the run file"
+    assert sorted(p.name for p in runs.iterdir()) == sorted([Path(run.path).name, "filler"])

@@ -104,6 +104,8 @@ def unpack_results(archive: Path, folder: Path, protected: set[str]) -> dict[str
     ------
     TransferError
         The archive cannot be read, or a member would leave ``folder`` or replace a protected file.
+    OSError
+        ``folder``'s disk refused a write (full, read-only).
     """
     staging = folder / f".results-{archive.stem}"
     shutil.rmtree(staging, ignore_errors=True)
@@ -122,7 +124,7 @@ def unpack_results(archive: Path, folder: Path, protected: set[str]) -> dict[str
                 shutil.rmtree(target)
             os.replace(entry, target)
         return files
-    except (tarfile.TarError, OSError) as exc:
+    except tarfile.TarError as exc:  # not its disk's failures: those are the caller's 507 or 503
         raise TransferError(f"results archive: {exc}") from None
     finally:
         shutil.rmtree(staging, ignore_errors=True)
