@@ -19,6 +19,7 @@ from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
 from acquisition.daemon.catalog import DEFAULT_RIG
 from acquisition.daemon.catalog.backends import POSTGRESQL_SCHEMES, SQLITE_PREFIX, redact_url
+from acquisition.daemon.catalog.database import RIG_NAME_PATTERN
 from drivers.camera import LONGEST_EXPOSURE_S, SHORTEST_EXPOSURE_S
 from drivers.config_files import ConfigModel, read_toml, validate_model
 from drivers.contracts.rig import DEFAULT_RIG_PATH
@@ -217,7 +218,7 @@ class DaemonSettings(BaseSettings):
     rig: Path = DEFAULT_RIG_PATH
     rig_name: str = Field(
         default=DEFAULT_RIG,
-        pattern=r"^[a-z0-9][a-z0-9_.-]{0,62}$",
+        pattern=RIG_NAME_PATTERN,
         description="this rig's name in the catalog: its runs, their jobs and its queue carry it (lowercase "
         "letters, digits, '-', '_', '.'); several rigs that share one catalog each need their own",
     )

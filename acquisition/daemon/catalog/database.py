@@ -20,7 +20,9 @@ from acquisition.daemon.catalog.errors import CatalogError, CatalogFullError, Ca
 from acquisition.daemon.catalog.records import format_time
 from acquisition.daemon.catalog.schema import DEFAULT_RIG, MIGRATIONS, SCHEMA_VERSION
 
-_RIG_NAME = re.compile(r"[a-z0-9][a-z0-9_.-]{0,62}\Z")
+#: A rig's name: lowercase letters, digits, ``-``, ``_`` and ``.``, at most 63 characters.
+RIG_NAME_PATTERN = r"^[a-z0-9][a-z0-9_.-]{0,62}$"
+_RIG_NAME = re.compile(RIG_NAME_PATTERN)
 
 
 def _utc_now() -> datetime:
@@ -68,7 +70,7 @@ def check_text(name: str, value: object) -> str:
 def check_rig(rig: object) -> str:
     """``rig`` if it is a rig's name (lowercase letters, digits, ``-``, ``_``, ``.``; at most 63
     characters), else a CatalogError."""
-    if not isinstance(rig, str) or not _RIG_NAME.match(rig):
+    if not isinstance(rig, str) or not _RIG_NAME.fullmatch(rig):
         raise CatalogError(
             f"rig {rig!r} is not a rig's name (lowercase letters, digits, '-', '_' and '.', at most 63, "
             "starting with a letter or digit)"
