@@ -346,7 +346,7 @@ def bench_lab(
             rig.connect()
             rig.start(f"postgresql://postgres@{SUBNET}.{rig.index}.1:{server.port}/lab")
         log(f"  {rigs} daemons up: {', '.join(r.url for r in lab)}")
-        per_rig = _register_runs(lab, root, url, runs)
+        per_rig = _register_runs(lab, url, runs)
         job_ids = _queue_jobs(lab, per_rig)
         log(f"  {len(job_ids)} jobs queued through the daemons' API")
         probe = LatencyProbe(url, job_ids)
@@ -408,7 +408,7 @@ def _make_sources(lab: list[Rig], root: Path) -> dict[str, dict]:
     return references
 
 
-def _register_runs(lab: list[Rig], root: Path, url: str, runs: int) -> dict[str, list[str]]:
+def _register_runs(lab: list[Rig], url: str, runs: int) -> dict[str, list[str]]:
     """``runs`` finished runs in the catalog, shared among the rigs, each a copy of its rig's
     run file in the rig's folder: the run ids by rig."""
     n_positions = len(load_rig(DEMO_RIG).tool_poses())
