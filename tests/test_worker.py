@@ -765,6 +765,10 @@ def test_each_daemon_lists_the_labs_runs_and_changes_only_its_own(captured, tmp_
         assert refused.json()["detail"] == (
             f"cannot queue a job for it: run {run.id} belongs to rig 'rig-a'; rig 'rig-b' can only read it"
         )
+        for control in ("pause", "resume", "abort"):  # the run engine's controls refuse it the same way
+            answer = b.post(f"/runs/{run.id}/{control}")
+            assert answer.status_code == 403 and f"cannot {control} it: run {run.id} belongs to rig" in answer.text
+        assert a.get(f"/runs/{run.id}").json()["state"] == "complete"
         file = b.get(f"/runs/{run.id}/file")
         assert file.status_code == 404 and daemon_a.url in file.json()["detail"]
         served = a.get(f"/runs/{run.id}/file")

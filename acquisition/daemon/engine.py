@@ -25,7 +25,7 @@ from pathlib import Path
 
 from pydantic import ValidationError
 
-from acquisition.daemon.catalog import Catalog, RunRecord
+from acquisition.daemon.catalog import Catalog, OtherRigError, RunRecord
 from acquisition.daemon.catalog.pending import PendingEnds
 from acquisition.daemon.devices import Devices
 from acquisition.daemon.models import RunRequest
@@ -161,7 +161,7 @@ class RunEngine:
         """
         with self._lock:
             self.pending.save()
-            record = self.catalog.get_run(run_id)
+            record = self._own_run(run_id, "resume it")
             run = self._active(run_id)
             if record.state == "paused" and run is not None:
                 if run.finishing:
@@ -192,6 +192,14 @@ class RunEngine:
             self._launch(record, plan, resume=True)
             return record
 
+    def _own_run(self, run_id: str, wanted: str) -> RunRecord:
+        """The run, if it is this rig's; another rig's (a shared catalog) is refused before any
+        device or file of this rig is looked at."""
+        record = self.catalog.get_run(run_id)
+        if record.rig != self.catalog.rig:
+            raise OtherRigError(run_id, record.rig, self.catalog.rig, wanted)
+        return record
+
     def pause(self, run_id: str) -> RunRecord:
         """Pause a running run between frames.
 
@@ -201,6 +209,7 @@ class RunEngine:
             The run is not running (already paused, ended, or taking no more frames).
         """
         with self._lock:
+            self._own_run(run_id, "pause it")
             record, run = self._require_current(run_id)
             if record.state != "running":
                 raise RunConflictError(f"run {run_id} is {record.state}: only a running run can pause")
@@ -221,7 +230,7 @@ class RunEngine:
         """
         with self._lock:
             self.pending.save()
-            record = self.catalog.get_run(run_id)
+            record = self._own_run(run_id, "abort it")
             if record.state == "queued":
                 record = self.catalog.remove_from_queue(run_id, REMOVED)
                 self.events.publish()
